@@ -1,0 +1,62 @@
+"""The ``hel-warp`` command line.
+
+Each subcommand lives in its own module ``hel_warp/commands/<name>.py`` exposing
+``add_parser(subparsers)`` (registers the options) and ``run(args) -> int``. Heavy imports
+(warp, xgboost, optuna, pyvista) stay inside ``run`` so ``hel-warp --help`` is instant.
+
+Every error raised on purpose (``HelWarpError``) and every bad option prints one line
+``hel-warp: error: ...`` on stderr and exits with code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from hel_warp.errors import HelWarpError
+
+# name -> module under hel_warp.commands; a module not (yet) present is skipped.
+COMMANDS = ("timestep", "impact", "dem", "dataset", "train", "predict", "particle", "run", "report", "demo")
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, exit code 2 (argparse's default code too)
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="hel-warp", description=__doc__.splitlines()[0])
+    from hel_warp import __version__
+
+    parser.add_argument("--version", action="version", version=f"hel-warp {__version__}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    subparsers.required = True
+    for name in COMMANDS:
+        try:
+            module = importlib.import_module(f"hel_warp.commands.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"hel_warp.commands.{name}":
+                continue
+            raise
+        sub = module.add_parser(subparsers)
+        sub.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        code = args._run(args)
+    except HelWarpError as exc:
+        print(f"hel-warp: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("hel-warp: interrupted; rerun the same command to resume where supported", file=sys.stderr)
+        return 130
+    return int(code or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,63 @@
+"""Option parsing shared by the subcommands: vectors, finite numbers, JSON output, materials."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+
+from hel_warp.errors import ConfigError
+
+
+def finite_float(text: str) -> float:
+    """argparse type: a finite float (NaN and infinity are refused with a one-line error)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
+    return value
+
+
+def vector3(text: str) -> tuple[float, float, float]:
+    """argparse type: ``VX,VY,VZ`` -> a tuple of three finite floats."""
+    parts = text.split(",")
+    if len(parts) != 3:
+        raise argparse.ArgumentTypeError(f"expected three comma-separated numbers VX,VY,VZ, got {text!r}")
+    return tuple(finite_float(p) for p in parts)  # type: ignore[return-value]
+
+
+def add_json_flag(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+
+
+def add_material_options(parser: argparse.ArgumentParser, suffix: str = "", *, defaults: bool = True) -> None:
+    """Options ``--density``, ``--youngs``, ``--poisson``, ``--restitution``, ``--friction`` (+ suffix)."""
+    from hel_warp.material import Material
+
+    d = Material()
+    helpless = {} if defaults else {"default": None}
+    parser.add_argument(f"--density{suffix}", type=finite_float, **({"default": d.density} | helpless),
+                        help="material density, kg/m^3 (default: polyethylene 1000)")
+    parser.add_argument(f"--youngs{suffix}", type=finite_float, **({"default": d.youngs_modulus} | helpless),
+                        help="Young's modulus, Pa (default 5e8)")
+    parser.add_argument(f"--poisson{suffix}", type=finite_float, **({"default": d.poisson_ratio} | helpless),
+                        help="Poisson ratio in (-1, 0.5) (default 0.4)")
+
+
+def emit(result: dict, as_json: bool, text_lines: list[str] | None = None) -> None:
+    """Print ``result`` as one JSON object, or as readable ``key: value`` lines."""
+    if as_json:
+        print(json.dumps(result))
+        return
+    if text_lines is not None:
+        print("\n".join(text_lines))
+        return
+    for key, value in result.items():
+        print(f"{key}: {value}")
+
+
+def require(condition: bool, message: str) -> None:
+    if not condition:
+        raise ConfigError(message)
