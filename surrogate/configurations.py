@@ -1,0 +1,306 @@
+"""Binary-collision configurations for the surrogate data set, paper section 4.1.
+
+Velocities follow eq. (16): a speed ``V_mag`` in ``[speed_min, speed_max]`` (paper: 0-20 m/s)
+and a direction from ``phi`` (angle from OX) and ``theta`` (angle from OZ),
+
+    u = V sin(theta) cos(phi),  v = V sin(theta) sin(phi),  w = V cos(theta).
+
+Directions are isotropic: ``phi ~ U[0, 2 pi)``, ``cos(theta) ~ U[-1, 1]`` (a uniform ``theta``
+would crowd the poles). Three families, Fig. 5 of the paper:
+
+- 0 ``converging``: independent directions; both centres move towards one common point, which
+  is put at the origin (the paper: "both particles collide in the centre of the coordinate
+  system"). Central impacts reach it at the same instant; oblique ones in turn.
+- 1 ``parallel``: one direction, the rear particle faster (which of the two is the rear one is
+  drawn at random, so the set is symmetric in the particle labels).
+- 2 ``head-on``: opposite directions.
+
+Beyond the paper:
+
+- impact offset ``b / (r1 + r2)`` in ``[0, max_offset]``: a fraction ``central_fraction`` of the
+  rows is central (offset 0, as in the paper), the others are oblique with
+  ``offset = max_offset * sqrt(U)`` (impact points uniform over the collision disc). The contact
+  normal at first touch is ``n = sqrt(1 - b^2) g_hat + b p_hat`` (from 1 to 2), ``g = v1 - v2``,
+  ``p_hat`` perpendicular to ``g`` (in the plane of ``v1, v2`` for the converging family, so
+  both straight paths still cross at the common point; any direction otherwise);
+- diameters per particle from a normal distribution (paper's size table: 315 +- 8.2 um,
+  475 +- 22 um), truncated to ``d > 0``; densities per particle from a normal distribution
+  around the material density (standard deviation 0 by default: monodisperse in density).
+
+Every configuration collides, starts apart and touches after ``touch_time``. The pair is built
+at first touch (``x2 - x1 = (r1 + r2) n``) and moved back along straight lines by
+``touch_time``; then ``|x2 - x1|^2 = (r1+r2)^2 + 2 t (r1+r2) (g.n) + t^2 |g|^2 > (r1+r2)^2``,
+and the first touch of ballistic motion is exactly at ``t = touch_time`` with normal ``n``.
+
+The normal approach speed ``g.n = |g| sqrt(1 - b^2)`` is bounded below by
+``min_normal_speed`` (default 0.05 m/s): a slower contact carries almost no information
+(restitution and spin change by less than the float32 round-off of a 20 m/s velocity allows
+to resolve cleanly), and grazing impacts with ``b -> 1`` would otherwise dominate the contact
+durations. Candidates breaking a rule (normal speed too small, a converging pair whose
+common point lies behind one particle or whose directions are parallel within ~0.06 degrees,
+non-positive sizes or densities) are redrawn. The start positions ``x1, x2`` put the common
+point (converging) or the first contact point (other families) at the origin; the DEM gets
+``contact_frame_positions()`` instead (contact point at the origin, the same physics, no float32
+round-off from a far common point).
+
+Reproducibility: rows are drawn in blocks of ``BLOCK_ROWS``; block ``j`` uses the generator
+``numpy.random.default_rng(SeedSequence(seed, spawn_key=(j,)))``, so row ``k`` depends on
+``(seed, k)`` and the spec only, not on how rows are grouped into chunks or workers.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from hel_warp.errors import ConfigError
+
+FAMILIES = ("converging", "parallel", "head-on")
+CONVERGING, PARALLEL, HEAD_ON = 0, 1, 2
+
+BLOCK_ROWS = 1024
+"""Rows per random-number block (fixed: changing it changes every data set)."""
+
+PAPER_DIAMETER_STD = {315e-6: 8.2e-6, 475e-6: 22e-6}
+"""Standard deviation of the diameter (m) for the paper's two sizes (m), from its size table."""
+
+
+def paper_diameter_std(diameter_mean: float) -> float | None:
+    """The paper's standard deviation for ``diameter_mean`` (m), or None for another size."""
+    for mean, std in PAPER_DIAMETER_STD.items():
+        if math.isclose(diameter_mean, mean, rel_tol=1e-6):
+            return std
+    return None
+
+
+@dataclass(frozen=True, kw_only=True)
+class ConfigurationSpec:
+    """How configurations are drawn (SI units). Validated at construction."""
+
+    diameter_mean: float
+    """Mean particle diameter, m."""
+    diameter_std: float
+    """Standard deviation of the diameter, m (0: monodisperse)."""
+    density_mean: float = 1000.0
+    """Mean particle density, kg/m^3 (the material density)."""
+    density_std: float = 0.0
+    """Standard deviation of the particle density, kg/m^3."""
+    speed_min: float = 0.0
+    """Lowest particle speed V_mag, m/s (paper: 0)."""
+    speed_max: float = 20.0
+    """Highest particle speed V_mag, m/s (paper: 20)."""
+    family_weights: tuple[float, float, float] = (1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0)
+    """Probabilities of the converging, parallel and head-on families."""
+    central_fraction: float = 0.5
+    """Fraction of central impacts (offset 0, as the paper); the rest are oblique."""
+    max_offset: float = 0.95
+    """Largest impact offset b / (r1 + r2) of an oblique impact, in [0, 1)."""
+    min_normal_speed: float = 0.05
+    """Smallest normal approach speed (v1 - v2).n at first touch, m/s (> 0)."""
+    touch_time: float = 1e-7
+    """Time from the start positions to first touch, s (a couple of DEM steps at most)."""
+
+    def __post_init__(self) -> None:
+        values = asdict(self)
+        for name, value in values.items():
+            if not np.all(np.isfinite(np.asarray(value, dtype=float))):
+                raise ConfigError(f"configuration {name} must be finite (got {value!r})")
+        if not self.diameter_mean > 0:
+            raise ConfigError(f"diameter mean must be > 0 m (got {self.diameter_mean}); e.g. --diameter 315e-6")
+        if self.diameter_std < 0 or self.density_std < 0:
+            raise ConfigError("diameter and density standard deviations must be >= 0")
+        if not self.density_mean > 0:
+            raise ConfigError(f"density must be > 0 kg/m^3 (got {self.density_mean})")
+        if not 0 <= self.speed_min < self.speed_max:
+            raise ConfigError(f"need 0 <= speed_min < speed_max (got {self.speed_min}, {self.speed_max}) m/s")
+        weights = np.asarray(self.family_weights, dtype=float)
+        if weights.shape != (3,) or np.any(weights < 0) or not weights.sum() > 0:
+            raise ConfigError(f"family_weights must be three non-negative numbers, not all 0 (got {self.family_weights})")
+        if not 0.0 <= self.central_fraction <= 1.0:
+            raise ConfigError(f"central_fraction must lie in [0, 1] (got {self.central_fraction})")
+        if not 0.0 <= self.max_offset < 1.0:
+            raise ConfigError(f"max_offset must lie in [0, 1) (got {self.max_offset})")
+        if not self.min_normal_speed > 0:
+            raise ConfigError(f"min_normal_speed must be > 0 m/s (got {self.min_normal_speed}); 0.05 is sensible")
+        if self.min_normal_speed >= 2 * self.speed_max:
+            raise ConfigError("min_normal_speed must be below 2 x speed_max, or no pair can collide")
+        if not self.touch_time > 0:
+            raise ConfigError(f"touch_time must be > 0 s (got {self.touch_time})")
+
+    def as_dict(self) -> dict:
+        out = asdict(self)
+        out["family_weights"] = [float(w) for w in self.family_weights]
+        return out
+
+
+@dataclass(frozen=True)
+class Configurations:
+    """A batch of ``n`` binary-collision configurations (float64, SI units)."""
+
+    config_id: np.ndarray
+    """(n,) int64: the row number of each configuration."""
+    family: np.ndarray
+    """(n,) int8: 0 converging, 1 parallel, 2 head-on."""
+    x1: np.ndarray
+    """(n, 3) start position of particle 1, m."""
+    x2: np.ndarray
+    """(n, 3) start position of particle 2, m."""
+    v1: np.ndarray
+    """(n, 3) velocity of particle 1, m/s."""
+    v2: np.ndarray
+    """(n, 3) velocity of particle 2, m/s."""
+    d1: np.ndarray
+    """(n,) diameter of particle 1, m."""
+    d2: np.ndarray
+    """(n,) diameter of particle 2, m."""
+    rho1: np.ndarray
+    """(n,) density of particle 1, kg/m^3."""
+    rho2: np.ndarray
+    """(n,) density of particle 2, kg/m^3."""
+    normal: np.ndarray
+    """(n, 3) unit contact normal from 1 to 2 at first touch (ballistic motion)."""
+    offset: np.ndarray
+    """(n,) impact offset b / (r1 + r2), 0 = central."""
+    touch_time: float = field(default=0.0)
+    """Time from the start positions to first touch, s."""
+
+    def __len__(self) -> int:
+        return int(self.config_id.shape[0])
+
+    def contact_frame_positions(self) -> tuple[np.ndarray, np.ndarray]:
+        """Start positions translated so that the first contact point is the origin, m.
+
+        ``x1 = -r1 n - t v1``, ``x2 = r2 n - t v2`` with ``t = touch_time``: the same motion as
+        ``x1, x2`` (a translation), with coordinates of the particle size only.
+        """
+        r1, r2 = 0.5 * self.d1[:, None], 0.5 * self.d2[:, None]
+        return (-r1 * self.normal - self.touch_time * self.v1, r2 * self.normal - self.touch_time * self.v2)
+
+    def inputs(self) -> np.ndarray:
+        """(n, 14) float64 rows ``v1 v2 d1 d2 rho1 rho2 n offset`` (the data set's ``inputs``)."""
+        return np.column_stack([self.v1, self.v2, self.d1, self.d2, self.rho1, self.rho2,
+                                self.normal, self.offset]).astype(np.float64)
+
+
+def _unit(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    norm = np.linalg.norm(vectors, axis=1)
+    safe = np.where(norm > 0, norm, 1.0)
+    return vectors / safe[:, None], norm
+
+
+def _direction(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Isotropic unit vectors from the angles of eq. (16)."""
+    phi = rng.uniform(0.0, 2.0 * math.pi, n)
+    cos_theta = rng.uniform(-1.0, 1.0, n)
+    sin_theta = np.sqrt(np.clip(1.0 - cos_theta**2, 0.0, None))
+    return np.column_stack([sin_theta * np.cos(phi), sin_theta * np.sin(phi), cos_theta])
+
+
+def _draw_candidates(spec: ConfigurationSpec, rng: np.random.Generator, family: np.ndarray,
+                     central: np.ndarray) -> dict:
+    """One candidate per row of ``family`` / ``central``; ``valid`` marks those that satisfy every rule."""
+    n = family.shape[0]
+    d1 = rng.normal(spec.diameter_mean, spec.diameter_std, n)
+    d2 = rng.normal(spec.diameter_mean, spec.diameter_std, n)
+    rho1 = rng.normal(spec.density_mean, spec.density_std, n)
+    rho2 = rng.normal(spec.density_mean, spec.density_std, n)
+    speed1 = rng.uniform(spec.speed_min, spec.speed_max, n)
+    speed2 = rng.uniform(spec.speed_min, spec.speed_max, n)
+    dir1 = _direction(rng, n)
+    dir2 = _direction(rng, n)
+    rear_is_1 = rng.random(n) < 0.5
+    offset = np.where(central, 0.0, spec.max_offset * np.sqrt(rng.random(n)))
+    random_perp = _direction(rng, n)
+    sign = np.where(rng.random(n) < 0.5, -1.0, 1.0)
+
+    converging, parallel, head_on = family == CONVERGING, family == PARALLEL, family == HEAD_ON
+    fast, slow = np.maximum(speed1, speed2), np.minimum(speed1, speed2)
+    s1 = np.where(parallel, np.where(rear_is_1, fast, slow), speed1)
+    s2 = np.where(parallel, np.where(rear_is_1, slow, fast), speed2)
+    dir2 = np.where(converging[:, None], dir2, np.where(head_on[:, None], -dir1, dir1))
+    v1 = s1[:, None] * dir1
+    v2 = s2[:, None] * dir2
+
+    g_hat, g_norm = _unit(v1 - v2)
+    # perpendicular direction of the offset: in the plane of v1, v2 for converging pairs
+    in_plane = v1 - np.sum(v1 * g_hat, axis=1)[:, None] * g_hat
+    any_perp = random_perp - np.sum(random_perp * g_hat, axis=1)[:, None] * g_hat
+    p_hat, p_norm = _unit(np.where(converging[:, None], in_plane, any_perp))
+    p_hat *= sign[:, None]
+    cos_a = np.sqrt(1.0 - offset**2)
+    normal = cos_a[:, None] * g_hat + offset[:, None] * p_hat
+    normal /= np.linalg.norm(normal, axis=1)[:, None]
+
+    r1, r2 = 0.5 * d1, 0.5 * d2
+    contact = (r1 + r2)[:, None] * normal
+    x1c = -r1[:, None] * normal          # contact point at the origin
+    x2c = r2[:, None] * normal
+
+    # converging: the common point P = x1c + t1 v1 = x2c + t2 v2 (least squares, 2x2)
+    a11 = np.sum(v1 * v1, axis=1)
+    a22 = np.sum(v2 * v2, axis=1)
+    a12 = -np.sum(v1 * v2, axis=1)
+    b1 = np.sum(v1 * contact, axis=1)
+    b2 = -np.sum(v2 * contact, axis=1)
+    det = a11 * a22 - a12**2
+    well_posed = det > 1e-6 * a11 * a22  # directions more than ~0.06 degrees apart
+    det_safe = np.where(well_posed, det, 1.0)
+    t1 = (a22 * b1 - a12 * b2) / det_safe
+    t2 = (a11 * b2 - a12 * b1) / det_safe
+    common = x1c + t1[:, None] * v1
+    shift = np.where(converging[:, None], -common, 0.0)
+    x1 = x1c + shift - spec.touch_time * v1
+    x2 = x2c + shift - spec.touch_time * v2
+
+    valid = (d1 > 0) & (d2 > 0) & (rho1 > 0) & (rho2 > 0)
+    valid &= g_norm * cos_a >= spec.min_normal_speed
+    valid &= (offset == 0) | (p_norm > 1e-9 * np.maximum(g_norm, 1e-300) + 1e-12)
+    valid &= ~converging | (well_posed & (t1 >= 0) & (t2 >= 0))
+    return {"x1": x1, "x2": x2, "v1": v1, "v2": v2, "d1": d1, "d2": d2, "rho1": rho1, "rho2": rho2,
+            "normal": normal, "offset": offset, "valid": valid}
+
+
+_FIELDS = ("x1", "x2", "v1", "v2", "d1", "d2", "rho1", "rho2", "normal", "offset")
+
+
+def _draw_block(spec: ConfigurationSpec, seed: int, block: int) -> dict:
+    """All ``BLOCK_ROWS`` rows of block ``block`` (rejection sampling, deterministic)."""
+    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(block,)))
+    weights = np.asarray(spec.family_weights, dtype=float)
+    family = rng.choice(3, size=BLOCK_ROWS, p=weights / weights.sum()).astype(np.int8)
+    central = rng.random(BLOCK_ROWS) < spec.central_fraction  # drawn once: redraws keep the fraction
+    rows: dict = {}
+    todo = np.arange(BLOCK_ROWS)
+    for _ in range(10_000):
+        cand = _draw_candidates(spec, rng, family[todo], central[todo])
+        ok = cand.pop("valid")
+        for name, values in cand.items():
+            if name not in rows:
+                rows[name] = np.zeros((BLOCK_ROWS,) + values.shape[1:], dtype=np.float64)
+            rows[name][todo[ok]] = values[ok]
+        todo = todo[~ok]
+        if todo.size == 0:
+            rows["family"] = family
+            return rows
+    raise ConfigError("could not draw colliding configurations: min_normal_speed is too high for the speed range")
+
+
+def generate(spec: ConfigurationSpec, seed: int, start: int, stop: int) -> Configurations:
+    """Configurations ``start <= k < stop`` for ``seed``; row ``k`` never depends on ``start``/``stop``."""
+    if not 0 <= start <= stop:
+        raise ConfigError(f"need 0 <= start <= stop (got {start}, {stop})")
+    if not 0 <= int(seed) < 2**63:
+        raise ConfigError(f"seed must be a non-negative integer (got {seed})")
+    first, last = start // BLOCK_ROWS, (stop - 1) // BLOCK_ROWS if stop > start else start // BLOCK_ROWS - 1
+    parts = [_draw_block(spec, int(seed), j) for j in range(first, last + 1)]
+    lo = start - first * BLOCK_ROWS
+    hi = lo + (stop - start)
+    cat = {name: (np.concatenate([p[name] for p in parts])[lo:hi] if parts else np.zeros((0,)))
+           for name in _FIELDS + ("family",)}
+    if not parts:
+        cat = {name: np.zeros((0, 3) if name in ("x1", "x2", "v1", "v2", "normal") else (0,)) for name in _FIELDS}
+        cat["family"] = np.zeros((0,), dtype=np.int8)
+    return Configurations(config_id=np.arange(start, stop, dtype=np.int64), touch_time=spec.touch_time,
+                          **{name: cat[name] for name in _FIELDS + ("family",)})
