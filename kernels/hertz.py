@@ -1,0 +1,243 @@
+"""Hertz–Mindlin contact law (and a linear spring–dashpot option) as pure ``@wp.func``s,
+plus the one-step kernel of the batched isolated-pair runner with its launch wrapper.
+
+Equations (SI units; contact normal ``n`` points from body 1 to body 2; overlap ``delta > 0``
+in contact; ``v_rel`` = velocity of the contact point on body 1 minus that on body 2):
+
+Effective quantities (Johnson, *Contact Mechanics*, 1985, §4.2 and §5.3; Mindlin 1949)::
+
+    1/E* = (1 - nu1^2)/E1 + (1 - nu2^2)/E2
+    1/G* = 2 (2 - nu1)(1 + nu1)/E1 + 2 (2 - nu2)(1 + nu2)/E2
+    1/R* = 1/R1 + 1/R2,   1/m* = 1/m1 + 1/m2
+    rigid wall (E2 -> inf, R2 -> inf, m2 -> inf): its terms vanish, R* = R1, m* = m1
+
+Normal force, model ``MODEL_HERTZ`` (Hertz 1882, Johnson 1985 §4.2; damping form of
+Tsuji, Tanaka & Ishida 1992, Powder Technol. 71: 239-250)::
+
+    k_H = 4/3 E* sqrt(R*)
+    F_n = max(0, k_H delta^{3/2} + c sqrt(m* k_H) delta^{1/4} v_n),   v_n = v_rel . n
+
+Normal force, model ``MODEL_LINEAR`` (Cundall & Strack 1979, Geotechnique 29: 47-65)::
+
+    F_n = max(0, k_n delta + c sqrt(m* k_n) v_n)
+
+The total normal force is clipped at zero (no attraction). The dimensionless damping ``c``
+is computed on the host (``hel_warp.contact_law.damping_coefficient``) so that the clipped
+contact returns exactly the requested restitution ``e`` (c depends on e alone — see
+PHYSICS-NOTES "damping pitfall"); the raw Tsuji and LIGGGHTS forms are host options too.
+Thornton, Cummins & Cleary (2013), Powder Technol. 233: 30-46, discuss why the clipped
+contact needs its own calibration.
+
+Tangential force (Mindlin 1949, J. Appl. Mech. 16: 259-268; incremental history as in
+Cundall & Strack 1979 and LIGGGHTS ``tangential_model history``)::
+
+    S_t = 8 G* sqrt(R* delta)                  (MODEL_HERTZ)
+    S_t = (4 G*/E*) k_n                        (MODEL_LINEAR: the same S_t/S_n ratio as Mindlin/Hertz)
+    xi  <- xi projected on the current tangent plane, rescaled to its old length
+    xi  <- xi + slip_increment                 (slip_increment = v_t dt, v_t = v_rel - v_n n)
+    F_t = -S_t xi - c_t sqrt(m* S_t) v_t
+    |F_t| <= mu F_n; when capped, F_t = mu F_n F_t/|F_t| and xi = -(F_t + c_t sqrt(m* S_t) v_t)/S_t
+
+Rolling resistance (constant torque, Ai et al. 2011 model A): torque on body 1
+``-mu_r R* F_n w_t/|w_t|`` with ``w_t`` the tangential part of ``omega1 - omega2``; body 2 gets
+the opposite. Contact torques are ``r x F`` with the lever arm to the contact point.
+
+Stable API for other rooms (N-body DEM in ``kernels/contacts.py``, the HEL ``dem`` strategy)
+----------------------------------------------------------------------------------------
+- ``ContactParams`` (``@wp.struct``): per-pair parameters, built on the host or by
+  ``pair_params(...)`` below. Fields documented in the class.
+- ``contact_force(n, overlap, v_rel, shear, p, dt) -> (force1: vec3, shear_new: vec3, fn: float)``
+  the whole law for one contact; force on body 1 (body 2 gets ``-force1``). Call only when
+  ``overlap > 0``; when the contact opens, reset the caller's shear history to zero.
+- ``contact_force_split(n, overlap, v_rel, slip_increment, shear, p)``: the same with the
+  slip increment given separately (a Verlet integrator passes the half-step velocity times
+  dt for the slip and a predicted end-of-step velocity for the damping).
+- ``rolling_torque(p, n, omega_rel, fn) -> vec3``: rolling-resistance torque on body 1.
+- ``pair_params(E1, nu1, E2, nu2, r1, r2, m1, m2, wall, model, damping, k_linear, mu, c_t, mu_r)``:
+  effective quantities; ``wall != 0`` means body 2 is a wall (``E2 <= 0`` means a rigid wall).
+- ``effective_youngs``, ``effective_shear``, ``hertz_stiffness``, ``hertz_normal_force``,
+  ``linear_normal_force``, ``mindlin_stiffness``: the pieces.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+MODEL_HERTZ = wp.constant(0)
+"""``ContactParams.model`` value of the Hertz normal law (with Mindlin tangential stiffness)."""
+MODEL_LINEAR = wp.constant(1)
+"""``ContactParams.model`` value of the linear spring–dashpot normal law."""
+TARGET_SPHERE = wp.constant(0)
+"""Pair kind: body 2 is a sphere."""
+TARGET_WALL = wp.constant(1)
+"""Pair kind: body 2 is a plane wall (infinite mass, no rotation)."""
+
+
+@wp.struct
+class ContactParams:
+    """Parameters of one contact pair (SI units)."""
+
+    model: int
+    """MODEL_HERTZ (0) or MODEL_LINEAR (1)."""
+    youngs_eff: float
+    """E*, Pa."""
+    shear_eff: float
+    """G*, Pa."""
+    radius_eff: float
+    """R*, m."""
+    mass_eff: float
+    """m*, kg."""
+    normal_damping: float
+    """Dimensionless c of the normal dashpot (from ``contact_law.damping_coefficient``)."""
+    linear_stiffness: float
+    """k_n of MODEL_LINEAR, N/m (unused by MODEL_HERTZ)."""
+    friction: float
+    """Coulomb sliding friction coefficient mu."""
+    tangential_damping: float
+    """Dimensionless c_t of the tangential dashpot (0 = none)."""
+    rolling_friction: float
+    """Rolling friction coefficient mu_r (0 = none)."""
+
+
+# --------------------------------------------------------------------------- effective quantities
+
+
+@wp.func
+def effective_youngs(youngs1: float, poisson1: float, youngs2: float, poisson2: float):
+    """E* of two bodies; ``youngs2 <= 0`` means body 2 is rigid (its term vanishes)."""
+    inv = (1.0 - poisson1 * poisson1) / youngs1
+    if youngs2 > 0.0:
+        inv = inv + (1.0 - poisson2 * poisson2) / youngs2
+    return 1.0 / inv
+
+
+@wp.func
+def effective_shear(youngs1: float, poisson1: float, youngs2: float, poisson2: float):
+    """G* of Mindlin: 1/G* = 2(2-nu1)(1+nu1)/E1 + 2(2-nu2)(1+nu2)/E2; rigid body 2 if ``youngs2 <= 0``."""
+    inv = 2.0 * (2.0 - poisson1) * (1.0 + poisson1) / youngs1
+    if youngs2 > 0.0:
+        inv = inv + 2.0 * (2.0 - poisson2) * (1.0 + poisson2) / youngs2
+    return 1.0 / inv
+
+
+@wp.func
+def effective_harmonic(a1: float, a2: float, wall: int):
+    """1/(1/a1 + 1/a2) for R* and m*; a wall (``wall != 0``) has an infinite a2, so the result is a1."""
+    if wall != 0:
+        return a1
+    return a1 * a2 / (a1 + a2)
+
+
+@wp.func
+def pair_params(youngs1: float, poisson1: float, youngs2: float, poisson2: float,
+                radius1: float, radius2: float, mass1: float, mass2: float, wall: int,
+                model: int, normal_damping: float, linear_stiffness: float,
+                friction: float, tangential_damping: float, rolling_friction: float):
+    """Build ``ContactParams`` from the two bodies' properties (``youngs2 <= 0``: rigid body 2)."""
+    p = ContactParams()
+    p.model = model
+    p.youngs_eff = effective_youngs(youngs1, poisson1, youngs2, poisson2)
+    p.shear_eff = effective_shear(youngs1, poisson1, youngs2, poisson2)
+    p.radius_eff = effective_harmonic(radius1, radius2, wall)
+    p.mass_eff = effective_harmonic(mass1, mass2, wall)
+    p.normal_damping = normal_damping
+    p.linear_stiffness = linear_stiffness
+    p.friction = friction
+    p.tangential_damping = tangential_damping
+    p.rolling_friction = rolling_friction
+    return p
+
+
+# --------------------------------------------------------------------------- normal law
+
+
+@wp.func
+def hertz_stiffness(youngs_eff: float, radius_eff: float):
+    """k_H = 4/3 E* sqrt(R*), N/m^1.5 (F_n = k_H delta^1.5)."""
+    return 4.0 / 3.0 * youngs_eff * wp.sqrt(radius_eff)
+
+
+@wp.func
+def hertz_normal_force(p: ContactParams, overlap: float, normal_speed: float):
+    """Clipped damped Hertz force magnitude: max(0, k_H d^1.5 + c sqrt(m* k_H) d^0.25 v_n)."""
+    k_hertz = hertz_stiffness(p.youngs_eff, p.radius_eff)
+    root4 = wp.sqrt(wp.sqrt(overlap))
+    elastic = k_hertz * overlap * wp.sqrt(overlap)
+    viscous = p.normal_damping * wp.sqrt(p.mass_eff * k_hertz) * root4 * normal_speed
+    return wp.max(elastic + viscous, 0.0)
+
+
+@wp.func
+def linear_normal_force(p: ContactParams, overlap: float, normal_speed: float):
+    """Clipped linear spring–dashpot force magnitude: max(0, k_n d + c sqrt(m* k_n) v_n)."""
+    k_n = p.linear_stiffness
+    return wp.max(k_n * overlap + p.normal_damping * wp.sqrt(p.mass_eff * k_n) * normal_speed, 0.0)
+
+
+@wp.func
+def mindlin_stiffness(p: ContactParams, overlap: float):
+    """Tangential stiffness S_t: 8 G* sqrt(R* d) (Hertz) or (4 G*/E*) k_n (linear), N/m."""
+    if p.model == MODEL_LINEAR:
+        return 4.0 * p.shear_eff / p.youngs_eff * p.linear_stiffness
+    return 8.0 * p.shear_eff * wp.sqrt(p.radius_eff * overlap)
+
+
+# --------------------------------------------------------------------------- whole law
+
+
+@wp.func
+def contact_force_split(n: wp.vec3, overlap: float, v_rel: wp.vec3, slip_increment: wp.vec3,
+                        shear: wp.vec3, p: ContactParams):
+    """Force on body 1, new shear history, normal force magnitude (see the module docstring).
+
+    ``v_rel`` (contact-point velocity of 1 minus 2) feeds the dashpots; ``slip_increment`` (m)
+    is the tangential displacement of the contact over the step. Call only when overlap > 0.
+    """
+    normal_speed = wp.dot(v_rel, n)
+    fn = float(0.0)
+    if p.model == MODEL_LINEAR:
+        fn = linear_normal_force(p, overlap, normal_speed)
+    else:
+        fn = hertz_normal_force(p, overlap, normal_speed)
+
+    # shear history: rotate onto the current tangent plane (keep its length), then add the slip
+    old_len = wp.length(shear)
+    xi = shear - wp.dot(shear, n) * n
+    new_len = wp.length(xi)
+    if new_len > 0.0:
+        xi = xi * (old_len / new_len)
+    xi = xi + (slip_increment - wp.dot(slip_increment, n) * n)
+
+    v_t = v_rel - normal_speed * n
+    s_t = mindlin_stiffness(p, overlap)
+    eta_t = p.tangential_damping * wp.sqrt(p.mass_eff * s_t)
+    f_t = -s_t * xi - eta_t * v_t
+    f_t_len = wp.length(f_t)
+    cap = p.friction * fn
+    if f_t_len > cap:
+        if f_t_len > 0.0:
+            f_t = f_t * (cap / f_t_len)
+        else:
+            f_t = wp.vec3(0.0)
+        if s_t > 0.0:
+            xi = -(f_t + eta_t * v_t) / s_t
+        else:
+            xi = wp.vec3(0.0)
+    force1 = -fn * n + f_t
+    return force1, xi, fn
+
+
+@wp.func
+def contact_force(n: wp.vec3, overlap: float, v_rel: wp.vec3, shear: wp.vec3, p: ContactParams, dt: float):
+    """The whole contact law: (force on body 1, new shear history, F_n). Slip increment = v_t dt."""
+    return contact_force_split(n, overlap, v_rel, v_rel * dt, shear, p)
+
+
+@wp.func
+def rolling_torque(p: ContactParams, n: wp.vec3, omega_rel: wp.vec3, fn: float):
+    """Constant rolling-resistance torque on body 1 (body 2 gets the opposite); omega_rel = w1 - w2."""
+    w_t = omega_rel - wp.dot(omega_rel, n) * n
+    w_len = wp.length(w_t)
+    if p.rolling_friction <= 0.0 or w_len <= 0.0:
+        return wp.vec3(0.0)
+    return -p.rolling_friction * p.radius_eff * fn * (w_t / w_len)
