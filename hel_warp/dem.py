@@ -1,0 +1,359 @@
+"""N-body soft-sphere DEM (Cundall & Strack 1979) with Hertz-Mindlin contacts, on Warp.
+
+Model (fixed): :class:`DEMConfig` — material, walls, gravity, time step, neighbour-list settings —
+and the contact constants derived from it. State (changing): :class:`~hel_warp.particles.Particles`,
+the persistent contact list with its shear history, the wall shear history, forces.
+
+One :meth:`DEMSolver.step` (velocity Verlet, ``kernels/integrate.py``)::
+
+    half kick + drift            x <- x + (v + a dt/2) dt
+    neighbour list check         rebuild (hash grid + list, shear carried) if max |x - x_build| > skin/2
+    contact forces               Hertz-Mindlin particle-particle, then box planes and SDF walls
+    half kick                    v <- v + a dt/2
+
+The time step defaults to eq. (12) of the paper for the smallest radius
+(``Material.time_step(r_min).chosen``); a larger requested dt is a ConfigError.
+:meth:`DEMSolver.simulate` runs n steps with no host synchronisation: the conditional rebuild is a
+``wp.capture_if`` (a conditional graph node on CUDA; on the CPU device kernels run synchronously on
+the calling thread, so reading the one-int flag is a plain memory read). The contact-list overflow
+counter is checked once at the end of ``simulate`` and raises, never silently drops contacts.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from hel_warp.errors import ConfigError, HelWarpError, require_positive
+from hel_warp.material import Material
+from hel_warp.particles import Particles
+
+WALL_NAMES = ("x-", "x+", "y-", "y+", "z-", "z+")
+
+
+class ContactOverflowError(HelWarpError):
+    """A particle had more neighbour candidates than the contact-list capacity."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class DEMConfig:
+    """Fixed settings of an N-body DEM run (SI units). Validated at construction."""
+
+    material: Material = field(default_factory=Material)
+    """Particle material (E, nu, restitution e, friction mu, rolling friction)."""
+    wall_material: Material | None = None
+    """Material of the walls; None = rigid walls (their terms in E*, G* vanish) with the particle
+    material's restitution and friction."""
+    box_lo: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Lower corner of the box, m."""
+    box_hi: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """Upper corner of the box, m."""
+    walls: tuple[str, ...] = WALL_NAMES
+    """Which box faces are walls: any of 'x-', 'x+', 'y-', 'y+', 'z-', 'z+' (() = no walls)."""
+    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
+    """Gravitational acceleration, m/s^2."""
+    dt: float | None = None
+    """Time step, s; None = eq. (12) for the smallest radius. Larger than that: ConfigError."""
+    max_speed: float = 20.0
+    """V_max of the Hertz time step eq. (14), m/s."""
+    skin: float | None = None
+    """Neighbour-list skin, m; None = 0.3 r_max. Larger: fewer rebuilds, longer rows."""
+    contact_capacity: int = 32
+    """Slots per particle in the contact list; an overflow raises ContactOverflowError."""
+    sort_every: int = 0
+    """Spatially sort the particle arrays every this many list rebuilds (0 = never)."""
+    tangential_damping: float = 0.0
+    """Dimensionless tangential dashpot c_t of kernels/hertz.py (0 = none)."""
+    sdf_walls: tuple = ()
+    """Extra walls: ``@wp.func`` phi(x: vec3) -> float, m, > 0 inside the domain."""
+    sdf_gradient_step: float = 1e-6
+    """Central-difference step for the SDF normal, m."""
+
+    def __post_init__(self) -> None:
+        lo, hi = np.asarray(self.box_lo, float), np.asarray(self.box_hi, float)
+        if lo.shape != (3,) or hi.shape != (3,) or not np.all(np.isfinite(lo)) or not np.all(np.isfinite(hi)):
+            raise ConfigError(f"box_lo/box_hi must be three finite numbers each (got {self.box_lo}, {self.box_hi})")
+        if not np.all(hi > lo):
+            raise ConfigError(f"box_hi {self.box_hi} must exceed box_lo {self.box_lo} on every axis")
+        unknown = [w for w in self.walls if w not in WALL_NAMES]
+        if unknown:
+            raise ConfigError(f"unknown wall name(s) {unknown}; choose from {list(WALL_NAMES)}")
+        if self.dt is not None:
+            require_positive("dt", self.dt, "s")
+        require_positive("max_speed", self.max_speed, "m/s")
+        if self.skin is not None:
+            require_positive("skin", self.skin, "m")
+        if self.contact_capacity < 1:
+            raise ConfigError(f"contact_capacity must be >= 1 (got {self.contact_capacity}); 32 suits most packings")
+        if self.sort_every < 0:
+            raise ConfigError(f"sort_every must be >= 0 (got {self.sort_every})")
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d["material"] = self.material.as_dict()
+        d["wall_material"] = None if self.wall_material is None else self.wall_material.as_dict()
+        d["sdf_walls"] = [getattr(f, "key", str(f)) for f in self.sdf_walls]
+        return d
+
+
+@dataclass
+class ContactList:
+    """Per-particle contact rows (see ``kernels/contacts.py``)."""
+
+    partner: object
+    """(N, capacity) int32 partner index, -1 where empty, rows sorted."""
+    count: object
+    """(N,) int32 entries used per row."""
+    shear: object
+    """(N, capacity) vec3 Mindlin shear displacement, m."""
+
+    @classmethod
+    def empty(cls, n: int, capacity: int, device) -> "ContactList":
+        import warp as wp
+
+        return cls(partner=wp.full((n, capacity), -1, dtype=wp.int32, device=device),
+                   count=wp.zeros(n, dtype=wp.int32, device=device),
+                   shear=wp.zeros((n, capacity), dtype=wp.vec3, device=device))
+
+    def copy_from(self, other: "ContactList") -> None:
+        import warp as wp
+
+        wp.copy(self.partner, other.partner)
+        wp.copy(self.count, other.count)
+        wp.copy(self.shear, other.shear)
+
+
+def damping_for(restitution: float) -> float:
+    """Dimensionless Hertz dashpot c(e) that returns restitution e with the force clipped at zero."""
+    from hel_warp.contact_law import damping_coefficient
+
+    return float(damping_coefficient(restitution))
+
+
+class DEMSolver:
+    """N-body DEM: fixed :class:`DEMConfig`, changing :class:`Particles` (updated in place)."""
+
+    def __init__(self, config: DEMConfig, particles: Particles):
+        import warp as wp
+
+        from kernels.hertz import MODEL_HERTZ, ContactParams
+
+        self.config = config
+        self.particles = particles
+        self.device = particles.device
+        n = particles.count
+        radius = particles.radius.numpy()
+        self.r_min = float(radius.min())
+        self.r_max = float(radius.max())
+        x = particles.x.numpy()
+        lo, hi = np.asarray(config.box_lo), np.asarray(config.box_hi)
+        outside = np.flatnonzero(np.any((x - radius[:, None] < lo) | (x + radius[:, None] > hi), axis=1))
+        if outside.size:
+            raise ConfigError(f"particle {outside[0]} at {x[outside[0]].tolist()} is not fully inside the box "
+                              f"{config.box_lo}..{config.box_hi}; {outside.size} affected — move them or enlarge the box")
+
+        material = config.material
+        stable = material.time_step(self.r_min, max_speed=config.max_speed).chosen
+        if config.dt is None:
+            self.dt = stable
+        else:
+            material.check_time_step(config.dt, self.r_min, max_speed=config.max_speed)
+            self.dt = float(config.dt)
+        self.skin = float(config.skin) if config.skin is not None else 0.3 * self.r_max
+        self.cell_size = 2.0 * self.r_max + self.skin
+        self.gravity = wp.vec3(*config.gravity)
+
+        # contact constants (E*, G* of the material pair; R*, m* are set per contact in the kernels)
+        E, nu = material.youngs_modulus, material.poisson_ratio
+        self.params = ContactParams()
+        self.params.model = MODEL_HERTZ
+        self.params.youngs_eff = 1.0 / (2.0 * (1.0 - nu**2) / E)
+        self.params.shear_eff = 1.0 / (4.0 * (2.0 - nu) * (1.0 + nu) / E)
+        self.params.normal_damping = damping_for(material.restitution)
+        self.params.friction = material.friction
+        self.params.tangential_damping = config.tangential_damping
+        self.params.rolling_friction = material.rolling_friction
+        wall = config.wall_material
+        inv_e = (1.0 - nu**2) / E + (0.0 if wall is None else (1.0 - wall.poisson_ratio**2) / wall.youngs_modulus)
+        inv_g = 2.0 * (2.0 - nu) * (1.0 + nu) / E + (
+            0.0 if wall is None else 2.0 * (2.0 - wall.poisson_ratio) * (1.0 + wall.poisson_ratio) / wall.youngs_modulus)
+        wall_props = material if wall is None else wall
+        self.wall_params = ContactParams()
+        self.wall_params.model = MODEL_HERTZ
+        self.wall_params.youngs_eff = 1.0 / inv_e
+        self.wall_params.shear_eff = 1.0 / inv_g
+        self.wall_params.normal_damping = damping_for(wall_props.restitution)
+        self.wall_params.friction = wall_props.friction
+        self.wall_params.tangential_damping = config.tangential_damping
+        self.wall_params.rolling_friction = wall_props.rolling_friction
+
+        # plane walls of the box, inward normals
+        points, normals = [], []
+        for name in config.walls:
+            axis = "xyz".index(name[0])
+            normal = np.zeros(3)
+            normal[axis] = 1.0 if name[1] == "-" else -1.0
+            points.append(lo if name[1] == "-" else hi)
+            normals.append(normal)
+        n_walls = max(1, len(points))
+        self.wall_point = wp.array(np.asarray(points, np.float32).reshape(-1, 3), dtype=wp.vec3, device=self.device)
+        self.wall_normal = wp.array(np.asarray(normals, np.float32).reshape(-1, 3), dtype=wp.vec3, device=self.device)
+        from kernels.walls import make_sdf_wall_kernel
+
+        self.sdf_kernels = [make_sdf_wall_kernel(f) for f in config.sdf_walls]
+
+        # state beyond the particles
+        cap = config.contact_capacity
+        self.contacts = ContactList.empty(n, cap, self.device)
+        self._old_contacts = ContactList.empty(n, cap, self.device)
+        self.wall_shear = wp.zeros((n, n_walls), dtype=wp.vec3, device=self.device)
+        self.sdf_shear = [wp.zeros(n, dtype=wp.vec3, device=self.device) for _ in self.sdf_kernels]
+        self.force = wp.zeros(n, dtype=wp.vec3, device=self.device)
+        self.torque = wp.zeros(n, dtype=wp.vec3, device=self.device)
+        self.x_at_build = wp.zeros(n, dtype=wp.vec3, device=self.device)
+        self.rebuild_flag = wp.ones(1, dtype=wp.int32, device=self.device)
+        self.overflow = wp.zeros(1, dtype=wp.int32, device=self.device)
+        self.rebuild_count = wp.zeros(1, dtype=wp.int32, device=self.device)
+        dims = np.clip(np.ceil((hi - lo) / self.cell_size).astype(int), 1, 256)
+        self.grid = wp.HashGrid(int(dims[0]), int(dims[1]), int(dims[2]), device=self.device)
+        self.grid.reserve(n)
+        self.time = 0.0
+        self.steps_done = 0
+        self.rebuilds = 0
+        self._sort_scratch = None
+
+        self._rebuild()
+        self._compute_forces()
+        self.check_overflow()
+
+    # ------------------------------------------------------------------ the step
+    def step(self) -> None:
+        """Advance one time step dt (particles updated in place)."""
+        self._advance()
+        self.steps_done += 1
+        self.time += self.dt
+
+    def simulate(self, n_steps: int) -> None:
+        """Advance ``n_steps`` steps without host synchronisation, then check the contact list."""
+        for _ in range(n_steps):
+            self._advance()
+        self.steps_done += n_steps
+        self.time += n_steps * self.dt
+        self.check_overflow()
+
+    def _advance(self) -> None:
+        import warp as wp
+
+        from kernels.contacts import launch_flag_rebuild
+        from kernels.integrate import launch_kick, launch_kick_drift
+
+        launch_kick_drift(self.particles, self.force, self.torque, self.gravity, self.dt)
+        launch_flag_rebuild(self.particles, self.x_at_build, 0.5 * self.skin, self.rebuild_flag)
+        wp.capture_if(self.rebuild_flag, on_true=self._rebuild)
+        self._compute_forces()
+        launch_kick(self.particles, self.force, self.torque, self.gravity, self.dt)
+
+    def _compute_forces(self) -> None:
+        from kernels.contacts import launch_contact_forces
+        from kernels.walls import launch_plane_wall_forces, launch_sdf_wall_forces
+
+        launch_contact_forces(self.particles, self.contacts, self.params, self.dt, self.force, self.torque)
+        if self.config.walls:
+            launch_plane_wall_forces(self.particles, self.wall_point, self.wall_normal, self.wall_params, self.dt,
+                                     self.wall_shear, self.force, self.torque)
+        for kernel, shear in zip(self.sdf_kernels, self.sdf_shear):
+            launch_sdf_wall_forces(kernel, self.particles, self.wall_params, self.dt, self.config.sdf_gradient_step,
+                                   shear, self.force, self.torque)
+
+    def _rebuild(self) -> None:
+        """Hash grid + contact list (shear carried by partner id); optional spatial sort first."""
+        import warp as wp
+
+        from kernels.contacts import launch_build_contact_list
+
+        self.grid.build(self.particles.x, self.cell_size)
+        self.rebuilds += 1  # host counter: exact on the CPU device; on CUDA graphs use rebuild_count
+        if self.config.sort_every and self.rebuilds % self.config.sort_every == 1 % self.config.sort_every:
+            self._spatial_sort()
+            self.grid.build(self.particles.x, self.cell_size)
+        else:
+            self._old_contacts.copy_from(self.contacts)
+        launch_build_contact_list(self.grid, self.particles, self.r_max, self.skin, self._old_contacts,
+                                  self.contacts, self.x_at_build, self.overflow)
+        self.rebuild_flag.zero_()
+
+    def _spatial_sort(self) -> None:
+        """Reorder every per-particle array by hash-grid cell; contact rows go to ``_old_contacts``."""
+        import warp as wp
+
+        from kernels import contacts as kc
+
+        n = self.particles.count
+        if self._sort_scratch is None:
+            self._sort_scratch = {
+                "new_to_old": wp.zeros(n, dtype=wp.int32, device=self.device),
+                "old_to_new": wp.zeros(n, dtype=wp.int32, device=self.device),
+                "vec3": wp.zeros(n, dtype=wp.vec3, device=self.device),
+                "float": wp.zeros(n, dtype=wp.float32, device=self.device),
+                "int": wp.zeros(n, dtype=wp.int32, device=self.device),
+                "wall": wp.zeros_like(self.wall_shear),
+            }
+        s = self._sort_scratch
+        wp.launch(kc.sorted_order, dim=n, inputs=[self.grid.id], outputs=[s["new_to_old"], s["old_to_new"]],
+                  device=self.device)
+        p = self.particles
+        for arr in (p.x, p.v, p.omega, self.force, self.torque, *self.sdf_shear):
+            wp.launch(kc.gather_vec3, dim=n, inputs=[arr, s["new_to_old"], s["vec3"]], device=self.device)
+            wp.copy(arr, s["vec3"])
+        for arr in (p.radius, p.density, p.weight):
+            wp.launch(kc.gather_float, dim=n, inputs=[arr, s["new_to_old"], s["float"]], device=self.device)
+            wp.copy(arr, s["float"])
+        for arr in (p.stream, p.alive, p.particle_id):
+            wp.launch(kc.gather_int, dim=n, inputs=[arr, s["new_to_old"], s["int"]], device=self.device)
+            wp.copy(arr, s["int"])
+        wp.launch(kc.gather_rows_vec3, dim=n, inputs=[self.wall_shear, s["new_to_old"], s["wall"]], device=self.device)
+        wp.copy(self.wall_shear, s["wall"])
+        wp.launch(kc.gather_contact_rows, dim=n,
+                  inputs=[self.contacts.partner, self.contacts.count, self.contacts.shear,
+                          s["new_to_old"], s["old_to_new"]],
+                  outputs=[self._old_contacts.partner, self._old_contacts.count, self._old_contacts.shear],
+                  device=self.device)
+
+    # ------------------------------------------------------------------ checks and read-back
+    def check_overflow(self) -> None:
+        """Raise ContactOverflowError if any contact row overflowed since the start (host sync)."""
+        need = int(self.overflow.numpy()[0])
+        if need > 0:
+            raise ContactOverflowError(
+                f"contact list overflow: a particle had {need} neighbours within r_i + r_j + skin but the "
+                f"capacity is {self.config.contact_capacity}; set contact_capacity >= {need} "
+                f"(or reduce the skin {self.skin:.3e} m)")
+
+    def touching_pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """Compact list of touching pairs (i < j, overlap > 0) in the current device order (host copy)."""
+        import warp as wp
+
+        from kernels import contacts as kc
+
+        n = self.particles.count
+        counts = wp.zeros(n, dtype=wp.int32, device=self.device)
+        wp.launch(kc.count_touching_pairs, dim=n, device=self.device,
+                  inputs=[self.particles.x, self.particles.radius, self.contacts.partner, self.contacts.count],
+                  outputs=[counts])
+        offsets = wp.zeros(n, dtype=wp.int32, device=self.device)
+        wp.utils.array_scan(counts, offsets, inclusive=False)
+        total = int(counts.numpy().sum())
+        pair_i = wp.zeros(max(total, 1), dtype=wp.int32, device=self.device)
+        pair_j = wp.zeros(max(total, 1), dtype=wp.int32, device=self.device)
+        wp.launch(kc.fill_touching_pairs, dim=n, device=self.device,
+                  inputs=[self.particles.x, self.particles.radius, self.contacts.partner, self.contacts.count, offsets],
+                  outputs=[pair_i, pair_j])
+        return pair_i.numpy()[:total], pair_j.numpy()[:total]
+
+    def resolved_config(self) -> dict:
+        """The configuration with every default resolved (for run attrs)."""
+        return {**self.config.as_dict(), "dt": self.dt, "skin": self.skin, "cell_size": self.cell_size,
+                "particles": self.particles.count, "r_min": self.r_min, "r_max": self.r_max,
+                "normal_damping": self.params.normal_damping, "wall_normal_damping": self.wall_params.normal_damping}
