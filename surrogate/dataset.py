@@ -1,0 +1,392 @@
+"""The collision data set: configurations (``surrogate.configurations``) run through the batched
+binary DEM (``hel_warp.impact.simulate_pairs``) and stored in a zarr group, paper section 4.1.
+
+Layout (``docs/TEAM-NOTES.md`` "Collision data set"): arrays ``inputs`` (N, 14) float64,
+``outputs`` (N, 15) float64, ``config_id`` (N,) int64, ``family`` (N,) int8, ``chunk_done``
+(n_chunks,) bool, and the group attrs listed there.
+
+Writing is chunk by chunk (``chunk_size`` rows, the zarr chunk of every row array, so a chunk
+is whole files): compute, check (finite rows, ids in order), write the four row arrays, then
+set ``chunk_done[k]`` (a file of its own; zarr's local store writes files atomically). A killed
+run leaves at most one chunk written but not marked; the rerun recomputes every unmarked
+chunk. Rows depend on ``(seed, k)`` only and every pair runs on its own thread of the DEM
+kernel, so a resumed set is byte-identical to an uninterrupted one. ``dataset_hash`` (sha256
+of the bytes of ``inputs`` then ``outputs``, little-endian float64, C order) is set when the
+last chunk is done; ``load_dataset`` recomputes it and refuses a set that is incomplete or
+whose bytes changed.
+
+With a Dask scheduler address the chunks are computed by ``compute_chunk`` on the cluster's
+workers (which need hel_warp installed) and written by the client, in completion order.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from hel_warp.errors import ConfigError, HelWarpError
+from hel_warp.material import Material
+from surrogate.configurations import FAMILIES, Configurations, ConfigurationSpec, generate, paper_diameter_std
+
+INPUT_COLUMNS = ("v1x", "v1y", "v1z", "v2x", "v2y", "v2z", "d1", "d2", "rho1", "rho2", "nx", "ny", "nz", "offset")
+OUTPUT_COLUMNS = ("u1x", "u1y", "u1z", "u2x", "u2y", "u2z", "w1x", "w1y", "w1z", "w2x", "w2y", "w2z",
+                  "contact_duration", "max_overlap", "max_normal_force")
+CONTACT_MODELS = ("hertz", "linear")
+DEFAULT_CHUNK_SIZE = 4096
+FORMAT_VERSION = 1
+ROW_ARRAYS = ("inputs", "outputs", "config_id", "family")
+
+PairRunner = Callable[[Configurations, "DatasetSpec"], np.ndarray]
+"""``runner(configs, spec) -> outputs`` (n, 15) float64 in ``OUTPUT_COLUMNS`` order."""
+
+
+class DatasetError(HelWarpError):
+    """A data set that cannot be written, resumed or loaded; the message says what to do."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class DatasetSpec:
+    """Everything that determines the bytes of a data set (stored in the group attrs)."""
+
+    samples: int
+    """Number of configurations N."""
+    seed: int
+    """Seed of the configuration generator (non-negative integer)."""
+    configurations: ConfigurationSpec
+    """How configurations are drawn."""
+    material: Material = field(default_factory=Material)
+    """Particle material (elastic constants, restitution, friction)."""
+    contact_model: str = "hertz"
+    """DEM normal contact law: "hertz" or "linear"."""
+    chunk_size: int = DEFAULT_CHUNK_SIZE
+    """Rows per chunk (one DEM launch batch, one zarr chunk, one resume unit)."""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.samples, (int, np.integer)) or self.samples < 1:
+            raise ConfigError(f"samples must be a positive integer (got {self.samples!r})")
+        if not isinstance(self.seed, (int, np.integer)) or not 0 <= self.seed < 2**63:
+            raise ConfigError(f"seed must be a non-negative integer (got {self.seed!r})")
+        if not isinstance(self.chunk_size, (int, np.integer)) or self.chunk_size < 1:
+            raise ConfigError(f"chunk size must be a positive integer (got {self.chunk_size!r})")
+        if self.contact_model not in CONTACT_MODELS:
+            raise ConfigError(f"contact model must be one of {', '.join(CONTACT_MODELS)} (got {self.contact_model!r})")
+
+    @property
+    def n_chunks(self) -> int:
+        return math.ceil(self.samples / self.chunk_size)
+
+    def rows(self, k: int) -> tuple[int, int]:
+        """Row range ``[start, stop)`` of chunk ``k``."""
+        start = k * self.chunk_size
+        return start, min(self.samples, start + self.chunk_size)
+
+    def attrs(self) -> dict:
+        """The group attrs that identify the set (all but ``dataset_hash``), JSON-normalised."""
+        from hel_warp import __version__
+
+        cfg = self.configurations
+        attrs = {
+            "format_version": FORMAT_VERSION,
+            "material": self.material.as_dict(),
+            "contact_model": self.contact_model,
+            "seed": int(self.seed),
+            "samples": int(self.samples),
+            "chunk_size": int(self.chunk_size),
+            "n_chunks": int(self.n_chunks),
+            "diameter_mean": cfg.diameter_mean,
+            "diameter_std": cfg.diameter_std,
+            "density": cfg.density_mean,
+            "density_std": cfg.density_std,
+            "configuration": cfg.as_dict(),
+            "families": list(FAMILIES),
+            "code_version": __version__,
+            "input_columns": list(INPUT_COLUMNS),
+            "output_columns": list(OUTPUT_COLUMNS),
+        }
+        return json.loads(json.dumps(attrs))
+
+
+def make_spec(*, samples: int, seed: int, diameter: float, diameter_std: float | None = None,
+              density_std: float = 0.0, material: Material | None = None, contact_model: str = "hertz",
+              chunk_size: int = DEFAULT_CHUNK_SIZE, central_fraction: float = 0.5, max_offset: float = 0.95,
+              min_normal_speed: float = 0.05, speed_max: float = 20.0, touch_steps: float = 1.5) -> DatasetSpec:
+    """A ``DatasetSpec`` from user options.
+
+    ``diameter_std`` defaults to the paper's size table (315 um: 8.2 um, 475 um: 22 um) and must
+    be given for another diameter. The start gap is ``touch_steps`` DEM steps (eq. 12 step of the
+    smallest likely particle, mean - 4 std) at the pair's own approach speed.
+    """
+    material = material if material is not None else Material()
+    if not (isinstance(diameter, (int, float)) and math.isfinite(diameter) and diameter > 0):
+        raise ConfigError(f"--diameter must be a positive number of metres (got {diameter!r}); e.g. 315e-6")
+    if diameter_std is None:
+        diameter_std = paper_diameter_std(diameter)
+        if diameter_std is None:
+            raise ConfigError(f"no size distribution known for diameter {diameter:g} m (the paper gives 315e-6 and "
+                              "475e-6); give --diameter-std (0 for monodisperse)")
+    if not touch_steps > 0:
+        raise ConfigError(f"touch steps must be > 0 (got {touch_steps})")
+    small_radius = 0.5 * max(diameter - 4.0 * diameter_std, 0.25 * diameter)
+    dt = material.time_step(small_radius, max_speed=2.0 * speed_max).chosen
+    cfg = ConfigurationSpec(diameter_mean=float(diameter), diameter_std=float(diameter_std),
+                            density_mean=material.density, density_std=float(density_std),
+                            speed_max=float(speed_max), central_fraction=float(central_fraction),
+                            max_offset=float(max_offset), min_normal_speed=float(min_normal_speed),
+                            touch_time=float(touch_steps * dt))
+    return DatasetSpec(samples=int(samples), seed=int(seed), configurations=cfg, material=material,
+                       contact_model=contact_model, chunk_size=int(chunk_size))
+
+
+# ---------------------------------------------------------------- computing one chunk
+
+def dem_runner(configs: Configurations, spec: DatasetSpec) -> np.ndarray:
+    """Outputs of the batched binary DEM (``hel_warp.impact.simulate_pairs``) for ``configs``."""
+    from hel_warp.impact import simulate_pairs  # engineer A1's runner; imported lazily (warp)
+
+    x1, x2 = configs.contact_frame_positions()
+    result = simulate_pairs(x1=x1, x2=x2, v1=configs.v1, v2=configs.v2,
+                            d1=configs.d1, d2=configs.d2, rho1=configs.rho1, rho2=configs.rho2,
+                            material=spec.material, model=spec.contact_model)
+    return _outputs_from_result(result, len(configs))
+
+
+def _outputs_from_result(result, n: int) -> np.ndarray:
+    columns = [result.v1, result.v2, result.omega1, result.omega2,
+               result.contact_duration, result.max_overlap, result.max_normal_force]
+    out = np.column_stack([np.asarray(c, dtype=np.float64).reshape(n, -1) for c in columns])
+    return out
+
+
+@dataclass(frozen=True)
+class ChunkResult:
+    """The four row arrays of one chunk."""
+
+    k: int
+    inputs: np.ndarray
+    outputs: np.ndarray
+    config_id: np.ndarray
+    family: np.ndarray
+
+
+def compute_chunk(spec: DatasetSpec, k: int, runner: PairRunner | None = None) -> ChunkResult:
+    """Configurations and DEM outcomes of chunk ``k`` (pure: runs the same on any worker).
+
+    Raises DatasetError when any row is not finite (the count and first ids are in the message).
+    """
+    start, stop = spec.rows(k)
+    configs = generate(spec.configurations, spec.seed, start, stop)
+    outputs = np.asarray((runner or dem_runner)(configs, spec), dtype=np.float64)
+    inputs = configs.inputs()
+    if outputs.shape != (stop - start, len(OUTPUT_COLUMNS)):
+        raise DatasetError(f"pair runner returned shape {outputs.shape}, expected {(stop - start, len(OUTPUT_COLUMNS))}")
+    bad = ~(np.all(np.isfinite(inputs), axis=1) & np.all(np.isfinite(outputs), axis=1))
+    if bad.any():
+        ids = configs.config_id[bad]
+        raise DatasetError(f"chunk {k}: {int(bad.sum())} of {stop - start} rows are NaN/inf (config ids "
+                           f"{', '.join(map(str, ids[:5]))}{'...' if ids.size > 5 else ''}); nothing of this chunk "
+                           "was written; check the material and time step")
+    return ChunkResult(k=k, inputs=inputs, outputs=outputs, config_id=configs.config_id, family=configs.family)
+
+
+# ---------------------------------------------------------------- the store
+
+def _open_store(path: Path, spec: DatasetSpec, overwrite: bool):
+    import zarr
+
+    expected = spec.attrs()
+    if overwrite and path.exists():
+        shutil.rmtree(path)
+    if path.exists() and not (path / "zarr.json").exists():
+        if any(path.iterdir()):
+            raise DatasetError(f"{path} exists and is not a data set; choose a new --out or remove it")
+    if (path / "zarr.json").exists():
+        try:
+            group = zarr.open_group(str(path), mode="r+")
+        except Exception as exc:  # noqa: BLE001 - any read failure means: not our store
+            raise DatasetError(f"{path} is not a readable zarr group ({exc}); use a new --out or --overwrite") from None
+        stored = dict(group.attrs)
+        diff = [key for key in expected if stored.get(key) != expected[key]]
+        if diff:
+            details = "; ".join(f"{key}: stored {stored.get(key)!r}, requested {expected[key]!r}" for key in diff[:4])
+            raise DatasetError(f"{path} holds a data set made with other parameters ({details}); "
+                               "rerun with the same parameters to resume, or use a new --out or --overwrite")
+    else:
+        group = zarr.open_group(str(path), mode="w", attributes=expected)
+    n, cs = spec.samples, spec.chunk_size
+    layout = {
+        "inputs": ((n, len(INPUT_COLUMNS)), "float64", (cs, len(INPUT_COLUMNS)), 0.0),
+        "outputs": ((n, len(OUTPUT_COLUMNS)), "float64", (cs, len(OUTPUT_COLUMNS)), 0.0),
+        "config_id": ((n,), "int64", (cs,), -1),
+        "family": ((n,), "int8", (cs,), -1),
+        "chunk_done": ((spec.n_chunks,), "bool", (1,), False),
+    }
+    for name, (shape, dtype, chunks, fill) in layout.items():
+        if name in group:
+            arr = group[name]
+            if arr.shape != shape or arr.dtype != np.dtype(dtype) or arr.chunks != chunks:
+                raise DatasetError(f"{path}/{name} has shape {arr.shape}, dtype {arr.dtype}, chunks {arr.chunks}; "
+                                   f"expected {shape}, {dtype}, {chunks}: the store is corrupted, use --overwrite")
+        else:
+            group.create_array(name, shape=shape, dtype=dtype, chunks=chunks, fill_value=fill)
+    return group
+
+
+def _write_chunk(group, spec: DatasetSpec, result: ChunkResult) -> None:
+    start, stop = spec.rows(result.k)
+    if not np.array_equal(result.config_id, np.arange(start, stop)):
+        raise DatasetError(f"chunk {result.k}: config ids do not match rows {start}..{stop - 1} (input/output mix-up)")
+    group["inputs"][start:stop] = result.inputs
+    group["outputs"][start:stop] = result.outputs
+    group["config_id"][start:stop] = result.config_id
+    group["family"][start:stop] = result.family
+    group["chunk_done"][result.k] = True
+
+
+def _done_flags(group, n_chunks: int) -> np.ndarray:
+    """``chunk_done`` read flag by flag; an unreadable flag counts as not done."""
+    flags = np.zeros(n_chunks, dtype=bool)
+    try:
+        flags[:] = group["chunk_done"][:]
+    except Exception:  # noqa: BLE001 - a damaged flag file: read one by one
+        for k in range(n_chunks):
+            try:
+                flags[k] = bool(group["chunk_done"][k])
+            except Exception:  # noqa: BLE001
+                flags[k] = False
+    return flags
+
+
+def _content_hash(group, spec: DatasetSpec) -> str:
+    """sha256 of ``inputs`` then ``outputs`` (little-endian float64, C order), read chunk by chunk."""
+    digest = hashlib.sha256()
+    for name in ("inputs", "outputs"):
+        for k in range(spec.n_chunks):
+            start, stop = spec.rows(k)
+            digest.update(np.ascontiguousarray(group[name][start:stop], dtype="<f8").tobytes())
+    return digest.hexdigest()
+
+
+def build_dataset(out: str | Path, spec: DatasetSpec, *, scheduler: str | None = None, overwrite: bool = False,
+                  progress: bool = True, runner: PairRunner | None = None,
+                  after_chunk: Callable[[int], None] | None = None) -> dict:
+    """Write (or resume) the data set of ``spec`` at ``out``; return a summary dict.
+
+    ``scheduler``: a Dask distributed scheduler address (chunks computed on its workers);
+    None computes locally. ``runner`` replaces the DEM (tests); ``after_chunk(k)`` is called
+    after chunk ``k`` is marked done (a test hook).
+    """
+    from tqdm import tqdm
+
+    path = Path(out)
+    t0 = time.perf_counter()
+    group = _open_store(path, spec, overwrite)
+    done = _done_flags(group, spec.n_chunks)
+    pending = [k for k in range(spec.n_chunks) if not done[k]]
+    resumed = len(pending) < spec.n_chunks
+    bar = tqdm(total=spec.samples, initial=spec.samples - sum(stop - start for start, stop in map(spec.rows, pending)),
+               unit="pair", desc="dataset", disable=not progress, smoothing=0.1)
+    try:
+        def write(result: ChunkResult) -> None:
+            _write_chunk(group, spec, result)
+            bar.update(result.config_id.shape[0])
+            if after_chunk is not None:
+                after_chunk(result.k)
+
+        if scheduler:
+            _compute_on_dask(scheduler, spec, pending, runner, write)
+        else:
+            for k in pending:
+                write(compute_chunk(spec, k, runner))
+    finally:
+        bar.close()
+    if not _done_flags(group, spec.n_chunks).all():
+        raise DatasetError(f"{path}: some chunks are still missing; rerun the same command to resume")
+    digest = _content_hash(group, spec)
+    stored = group.attrs.get("dataset_hash")
+    if stored is not None and stored != digest:
+        raise DatasetError(f"{path}: stored dataset_hash {stored[:12]}... does not match the arrays "
+                           f"({digest[:12]}...): the set is corrupted; rebuild with --overwrite")
+    if stored is None:
+        group.attrs["dataset_hash"] = digest
+    return {"out": str(path), "samples": spec.samples, "chunks": spec.n_chunks, "computed_chunks": len(pending),
+            "resumed": resumed, "dataset_hash": digest, "seconds": time.perf_counter() - t0}
+
+
+def _compute_on_dask(address: str, spec: DatasetSpec, pending: list[int], runner, write) -> None:
+    try:
+        from dask.distributed import Client, as_completed
+    except ImportError:
+        raise ConfigError("--scheduler needs dask distributed: pip install 'hel_warp[dask]' "
+                          "(or 'dask[distributed]'), or leave --scheduler out to compute locally") from None
+    try:
+        client = Client(address)
+    except Exception as exc:  # noqa: BLE001 - connection errors come in many types
+        raise ConfigError(f"cannot reach the Dask scheduler at {address!r} ({exc}); check the address") from None
+    with client:
+        futures = [client.submit(compute_chunk, spec, k, runner, pure=False) for k in pending]
+        for future in as_completed(futures):
+            write(future.result())
+
+
+# ---------------------------------------------------------------- reading
+
+@dataclass(frozen=True)
+class Dataset:
+    """A complete, verified data set in memory."""
+
+    inputs: np.ndarray
+    """(N, 14) float64, columns ``attrs["input_columns"]``."""
+    outputs: np.ndarray
+    """(N, 15) float64, columns ``attrs["output_columns"]``."""
+    config_id: np.ndarray
+    """(N,) int64, equal to the row index."""
+    family: np.ndarray
+    """(N,) int8: 0 converging, 1 parallel, 2 head-on."""
+    attrs: dict
+    """The group attrs (material, seed, samples, contact model, dataset_hash, ...)."""
+
+
+def load_dataset(path: str | Path) -> Dataset:
+    """Read the data set at ``path``; refuse it (DatasetError) when incomplete or corrupted."""
+    import zarr
+
+    path = Path(path)
+    if not (path / "zarr.json").exists():
+        raise DatasetError(f"{path} is not a data set (no zarr.json); make one with hel-warp dataset --out {path}")
+    try:
+        group = zarr.open_group(str(path), mode="r")
+        attrs = dict(group.attrs)
+        arrays = {name: group[name][:] for name in ROW_ARRAYS}
+        flags = group["chunk_done"][:]
+    except Exception as exc:  # noqa: BLE001 - a missing or damaged array file
+        raise DatasetError(f"{path} cannot be read ({type(exc).__name__}: {exc}); the set is corrupted, "
+                           "rebuild it with hel-warp dataset --overwrite") from None
+    missing = [key for key in ("samples", "input_columns", "output_columns") if key not in attrs]
+    if missing:
+        raise DatasetError(f"{path} lacks the attrs {missing}: not a hel-warp collision data set")
+    if not flags.all():
+        raise DatasetError(f"{path} is incomplete ({int(flags.sum())} of {flags.size} chunks done); "
+                           "rerun the same hel-warp dataset command to finish it")
+    if "dataset_hash" not in attrs:
+        raise DatasetError(f"{path} has no dataset_hash (the run stopped before the end); rerun the same command")
+    n = int(attrs["samples"])
+    inputs, outputs = arrays["inputs"], arrays["outputs"]
+    if inputs.shape != (n, len(attrs["input_columns"])) or outputs.shape != (n, len(attrs["output_columns"])):
+        raise DatasetError(f"{path}: array shapes {inputs.shape}, {outputs.shape} do not match {n} samples")
+    if not np.array_equal(arrays["config_id"], np.arange(n)):
+        raise DatasetError(f"{path}: config_id is not 0..{n - 1} in order (rows mixed up); rebuild with --overwrite")
+    digest = hashlib.sha256(np.ascontiguousarray(inputs, dtype="<f8").tobytes()
+                            + np.ascontiguousarray(outputs, dtype="<f8").tobytes()).hexdigest()
+    if digest != attrs["dataset_hash"]:
+        raise DatasetError(f"{path}: content does not match dataset_hash (corrupted); rebuild with --overwrite")
+    if not (np.isfinite(inputs).all() and np.isfinite(outputs).all()):
+        raise DatasetError(f"{path}: holds NaN/inf values; rebuild with --overwrite")
+    return Dataset(inputs=inputs, outputs=outputs, config_id=arrays["config_id"], family=arrays["family"], attrs=attrs)
