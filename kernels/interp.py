@@ -1,0 +1,147 @@
+"""Grid -> particle interpolation with trilinear (cloud-in-cell) weights at cell centres.
+
+Uniform Cartesian grid: ``origin`` (m), spacing ``h`` (m), ``shape`` (nx, ny, nz); cell
+(i, j, k) has its centre at origin + (i + 1/2, j + 1/2, k + 1/2) h and cell fields are
+``wp.array3d`` indexed [i, j, k]. A parcel at x sits in the dual cell whose corners are the
+eight surrounding cell centres; the weight of corner (a, b, c) in {0, 1}^3 is
+prod (a ? f : 1 - f) over the axes, f the fractional position (Birdsall & Langdon,
+*Plasma Physics via Computer Simulation*, 1991, ch. 8: "cloud in cell").
+
+Within the outer half cell the coordinate is clamped to the last cell centre, so the field
+is held constant there and the weights still sum to one (no momentum leaves the grid).
+``kernels/deposit.py`` uses these same functions, so what a parcel reads and what it
+deposits are weighted identically and the exchange is equal and opposite.
+Weights are computed in float64.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+
+@wp.struct
+class CellGrid:
+    """Uniform grid: origin (m, float64), spacing h (m), shape (nx, ny, nz)."""
+
+    origin: wp.vec3d
+    spacing: wp.float64
+    shape: wp.vec3i
+
+
+@wp.func
+def cic_axis(x: wp.float64, origin: wp.float64, spacing: wp.float64, n: int):
+    """Base cell index along one axis and the fractional weight of the upper neighbour."""
+    s = (x - origin) / spacing - wp.float64(0.5)
+    s = wp.clamp(s, wp.float64(0.0), wp.float64(n - 1))
+    base = wp.max(wp.min(int(wp.floor(s)), n - 2), 0)
+    return base, s - wp.float64(base)
+
+
+@wp.func
+def cic_stencil(grid: CellGrid, x: wp.vec3):
+    """Base cell (i, j, k) of the 2x2x2 stencil around x, and the fractions (fx, fy, fz)."""
+    i, fx = cic_axis(wp.float64(x[0]), grid.origin[0], grid.spacing, grid.shape[0])
+    j, fy = cic_axis(wp.float64(x[1]), grid.origin[1], grid.spacing, grid.shape[1])
+    k, fz = cic_axis(wp.float64(x[2]), grid.origin[2], grid.spacing, grid.shape[2])
+    return wp.vec3i(i, j, k), wp.vec3d(fx, fy, fz)
+
+
+@wp.func
+def cic_corner(grid: CellGrid, base: wp.vec3i, frac: wp.vec3d, corner: int):
+    """Cell index and weight of stencil corner ``corner`` in 0..7 (bit 0: +x, bit 1: +y, bit 2: +z)."""
+    a = corner & 1
+    b = (corner >> 1) & 1
+    c = (corner >> 2) & 1
+    one = wp.float64(1.0)
+    wx = frac[0]
+    if a == 0:
+        wx = one - frac[0]
+    wy = frac[1]
+    if b == 0:
+        wy = one - frac[1]
+    wz = frac[2]
+    if c == 0:
+        wz = one - frac[2]
+    idx = wp.vec3i(wp.min(base[0] + a, grid.shape[0] - 1), wp.min(base[1] + b, grid.shape[1] - 1),
+                   wp.min(base[2] + c, grid.shape[2] - 1))
+    return idx, wx * wy * wz
+
+
+@wp.kernel
+def interp_vec3_kernel(
+    grid: CellGrid,
+    particle_x: wp.array(dtype=wp.vec3),
+    cell_field: wp.array3d(dtype=wp.vec3),
+    # outputs
+    parcel_value: wp.array(dtype=wp.vec3),
+):
+    tid = wp.tid()
+    base, frac = cic_stencil(grid, particle_x[tid])
+    acc = wp.vec3d(0.0, 0.0, 0.0)
+    for corner in range(8):
+        idx, w = cic_corner(grid, base, frac, corner)
+        f = cell_field[idx[0], idx[1], idx[2]]
+        acc = acc + w * wp.vec3d(wp.float64(f[0]), wp.float64(f[1]), wp.float64(f[2]))
+    parcel_value[tid] = wp.vec3(float(acc[0]), float(acc[1]), float(acc[2]))
+
+
+@wp.kernel
+def interp_scalar_kernel(
+    grid: CellGrid,
+    particle_x: wp.array(dtype=wp.vec3),
+    cell_field: wp.array3d(dtype=float),
+    # outputs
+    parcel_value: wp.array(dtype=float),
+):
+    tid = wp.tid()
+    base, frac = cic_stencil(grid, particle_x[tid])
+    acc = wp.float64(0.0)
+    for corner in range(8):
+        idx, w = cic_corner(grid, base, frac, corner)
+        acc = acc + w * wp.float64(cell_field[idx[0], idx[1], idx[2]])
+    parcel_value[tid] = float(acc)
+
+
+@wp.kernel
+def stencil_weights_kernel(
+    grid: CellGrid,
+    particle_x: wp.array(dtype=wp.vec3),
+    # outputs
+    parcel_cells: wp.array2d(dtype=wp.vec3i),
+    parcel_weights: wp.array2d(dtype=wp.float64),
+):
+    tid = wp.tid()
+    base, frac = cic_stencil(grid, particle_x[tid])
+    for corner in range(8):
+        idx, w = cic_corner(grid, base, frac, corner)
+        parcel_cells[tid, corner] = idx
+        parcel_weights[tid, corner] = w
+
+
+# ---------------------------------------------------------------- launch wrappers
+
+def make_cell_grid(origin, spacing: float, shape) -> CellGrid:
+    """A ``CellGrid`` from plain values (origin m, spacing m, shape of three ints)."""
+    grid = CellGrid()
+    grid.origin = wp.vec3d(*[float(o) for o in origin])
+    grid.spacing = wp.float64(spacing)
+    grid.shape = wp.vec3i(*[int(n) for n in shape])
+    return grid
+
+
+def interpolate_vec3(grid: CellGrid, particle_x, cell_field, parcel_value):
+    """Trilinear value of a vec3 cell field at each parcel, into ``parcel_value``."""
+    wp.launch(interp_vec3_kernel, dim=particle_x.shape[0], device=particle_x.device,
+              inputs=[grid, particle_x, cell_field], outputs=[parcel_value])
+
+
+def interpolate_scalar(grid: CellGrid, particle_x, cell_field, parcel_value):
+    """Trilinear value of a float32 cell field at each parcel, into ``parcel_value``."""
+    wp.launch(interp_scalar_kernel, dim=particle_x.shape[0], device=particle_x.device,
+              inputs=[grid, particle_x, cell_field], outputs=[parcel_value])
+
+
+def stencil_weights(grid: CellGrid, particle_x, parcel_cells, parcel_weights):
+    """The eight (cell, weight) pairs of each parcel, shape (n, 8) (diagnostics and tests)."""
+    wp.launch(stencil_weights_kernel, dim=particle_x.shape[0], device=particle_x.device,
+              inputs=[grid, particle_x], outputs=[parcel_cells, parcel_weights])

@@ -1,0 +1,314 @@
+"""KTGF collision closures of the HEL model (paper eqs. (5)-(8), Table 1) and the MP-PIC
+collision acceleration.
+
+Closures (e = e_ss, Theta the granular temperature, m^2/s^2; viscosities are the full
+coefficients of sigma_s = -p_s I + mu_s (grad u + grad u^T) + (lambda_s - 2/3 mu_s) div(u) I,
+i.e. Gidaspow's (1994) convention, equal to Fluent's eps_s * mu_s):
+
+- radial distribution (Ogawa et al. 1980 / Lun et al. 1984, Fluent "lun-et-al"):
+      g0 = [1 - (eps_s / eps_s,max)^(1/3)]^-1                      (infinite at packing)
+- solids pressure (Lun et al. 1984):
+      p_s = eps_s rho_s Theta + 2 rho_s (1 + e) eps_s^2 g0 Theta   (the paper's eq. (7) is garbled)
+- granular shear viscosity (Gidaspow 1994, *Multiphase Flow and Fluidization*, ch. 9):
+      mu_s = 4/5 eps_s^2 rho_s d g0 (1 + e) sqrt(Theta/pi)
+           + 10 rho_s d sqrt(pi Theta) / (96 (1 + e) g0) [1 + 4/5 g0 eps_s (1 + e)]^2
+- bulk viscosity (Lun et al. 1984):  lambda_s = 4/3 eps_s^2 rho_s d g0 (1 + e) sqrt(Theta/pi)
+- frictional viscosity (Schaeffer 1987): mu_fr = p_s sin(phi) / (2 sqrt(I_2D)) for
+  eps_s > eps_s,fric (0.61), zero below; frictional pressure "based-ktgf" = p_s.
+- algebraic granular temperature (Syamlal, Rogers & O'Brien 1993, MFIX ``calc_mu_s.f``):
+      sqrt(Theta) = [-K1 eps_s trD + sqrt(K1^2 eps_s^2 trD^2 + 4 K4 eps_s (K2 trD^2 + 2 K3 tr(D^2)))] / (2 K4 eps_s)
+  K1 = 2 (1 + e) rho_s g0,
+  K3 = d rho_s / 2 {sqrt(pi) / (3 (3 - e)) [1/2 (3e + 1) + 0.4 (1 + e)(3e - 1) eps_s g0] + 8 eps_s g0 (1 + e) / (5 sqrt(pi))},
+  K2 = 4 d rho_s (1 + e) eps_s g0 / (3 sqrt(pi)) - 2/3 K3,   K4 = 12 (1 - e^2) rho_s g0 / (d sqrt(pi)),
+  the root of the local balance  -p_s trD + lambda_s trD^2 + 2 mu_s tr(D^2) - gamma = 0 with
+  p_s = K1 eps_s^2 Theta, lambda_s = K2 eps_s sqrt(Theta), mu_s = K3 eps_s sqrt(Theta),
+  gamma = K4 eps_s^2 Theta^(3/2) (production = dissipation; convection, diffusion and the gas
+  exchange term of eq. (8) neglected, as in MFIX).
+- MP-PIC collision acceleration at a parcel (Snider 2001; Andrews & O'Rourke 1996):
+      a_coll = -grad(p_s) / (eps_s rho_p)                        (eq. (5)-(6) with sigma_s = -p_s I)
+
+Cell-centred fields, uniform spacing h; derivatives by central differences (one-sided at the
+grid boundary).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from kernels.interp import CellGrid, cic_corner, cic_stencil
+
+
+@wp.func
+def radial_distribution_lun(eps_s: float, eps_s_max: float):
+    """g0 = 1 / (1 - (eps_s/eps_s_max)^(1/3)) (Ogawa/Lun); infinite at packing."""
+    return 1.0 / (1.0 - wp.pow(eps_s / eps_s_max, 1.0 / 3.0))
+
+
+@wp.func
+def solids_pressure_lun(eps_s: float, rho_s: float, restitution: float, g0: float, theta: float):
+    """p_s = eps_s rho_s Theta + 2 rho_s (1 + e) eps_s^2 g0 Theta (Lun et al. 1984), Pa."""
+    return eps_s * rho_s * theta * (1.0 + 2.0 * (1.0 + restitution) * eps_s * g0)
+
+
+@wp.func
+def granular_viscosity_gidaspow(eps_s: float, rho_s: float, diameter: float, restitution: float, g0: float,
+                                theta: float):
+    """mu_s (Pa s), Gidaspow (1994): collisional 4/5 eps^2 rho d g0 (1+e) sqrt(Theta/pi) + kinetic part."""
+    one_e = 1.0 + restitution
+    collisional = 0.8 * eps_s * eps_s * rho_s * diameter * g0 * one_e * wp.sqrt(theta / wp.pi)
+    bracket = 1.0 + 0.8 * g0 * eps_s * one_e
+    kinetic = 10.0 * rho_s * diameter * wp.sqrt(wp.pi * theta) / (96.0 * one_e * g0) * bracket * bracket
+    return collisional + kinetic
+
+
+@wp.func
+def bulk_viscosity_lun(eps_s: float, rho_s: float, diameter: float, restitution: float, g0: float, theta: float):
+    """lambda_s = 4/3 eps_s^2 rho_s d g0 (1 + e) sqrt(Theta/pi) (Lun et al. 1984), Pa s."""
+    return 4.0 / 3.0 * eps_s * eps_s * rho_s * diameter * g0 * (1.0 + restitution) * wp.sqrt(theta / wp.pi)
+
+
+@wp.func
+def schaeffer_viscosity(eps_s: float, eps_s_fric: float, p_s: float, friction_angle: float, i2d: float):
+    """mu_fr = p_s sin(phi) / (2 sqrt(I_2D)) above the friction packing eps_s_fric, else 0 (Schaeffer 1987)."""
+    if eps_s <= eps_s_fric or i2d <= 0.0:
+        return 0.0
+    return p_s * wp.sin(friction_angle) / (2.0 * wp.sqrt(i2d))
+
+
+@wp.func
+def second_invariant_deviatoric(strain_rate: wp.mat33):
+    """I_2D = 1/6 [(D11-D22)^2 + (D22-D33)^2 + (D33-D11)^2] + D12^2 + D23^2 + D31^2."""
+    d = strain_rate
+    a = d[0, 0] - d[1, 1]
+    b = d[1, 1] - d[2, 2]
+    c = d[2, 2] - d[0, 0]
+    return (a * a + b * b + c * c) / 6.0 + d[0, 1] * d[0, 1] + d[1, 2] * d[1, 2] + d[2, 0] * d[2, 0]
+
+
+@wp.func
+def algebraic_theta(eps_s: float, rho_s: float, diameter: float, restitution: float, g0: float, tr_d: float,
+                    tr_d2: float):
+    """Theta (m^2/s^2) zeroing production - dissipation (Syamlal et al. 1993; MFIX calc_mu_s.f).
+
+    tr_d = trace(D), tr_d2 = D:D, D the solids strain-rate tensor (1/s). 0 where eps_s <= 0.
+    """
+    if eps_s <= 0.0:
+        return 0.0
+    e = restitution
+    sqrt_pi = wp.sqrt(wp.pi)
+    k1 = 2.0 * (1.0 + e) * rho_s * g0
+    k3 = 0.5 * diameter * rho_s * (sqrt_pi / (3.0 * (3.0 - e)) * (0.5 * (3.0 * e + 1.0)
+                                   + 0.4 * (1.0 + e) * (3.0 * e - 1.0) * eps_s * g0)
+                                   + 8.0 * eps_s * g0 * (1.0 + e) / (5.0 * sqrt_pi))
+    k2 = 4.0 * diameter * rho_s * (1.0 + e) * eps_s * g0 / (3.0 * sqrt_pi) - 2.0 / 3.0 * k3
+    k4 = 12.0 * (1.0 - e * e) * rho_s * g0 / (diameter * sqrt_pi)
+    production = k2 * tr_d * tr_d + 2.0 * k3 * tr_d2
+    disc = k1 * k1 * eps_s * eps_s * tr_d * tr_d + 4.0 * k4 * eps_s * production
+    root = (-k1 * eps_s * tr_d + wp.sqrt(wp.max(disc, 0.0))) / (2.0 * k4 * eps_s)
+    root = wp.max(root, 0.0)
+    return root * root
+
+
+@wp.struct
+class KtgfParams:
+    """Table 1 constants. diameter m, density kg/m^3, friction_angle rad."""
+
+    restitution: float
+    """e_ss (0.9)."""
+    packing: float
+    """eps_s,max of g0 (0.63)."""
+    friction_packing: float
+    """eps_s above which Schaeffer friction acts (0.61)."""
+    friction_angle: float
+    """internal friction angle phi of Schaeffer's law, rad (30 deg)."""
+    max_fraction_of_packing: float
+    """eps_s used in g0 is capped at this fraction of packing (0.999) so g0 stays finite in overfull cells."""
+    eps_s_min: float
+    """below this solid fraction a cell carries no granular pressure and a parcel no collision force."""
+    particle_diameter: float
+    particle_density: float
+
+
+@wp.func
+def _index_pair(i: int, n: int):
+    lo = wp.max(i - 1, 0)
+    hi = wp.min(i + 1, n - 1)
+    return lo, hi
+
+
+@wp.kernel
+def ktgf_cells_kernel(
+    params: KtgfParams,
+    spacing: float,
+    cell_eps_s: wp.array3d(dtype=float),
+    cell_solid_velocity: wp.array3d(dtype=wp.vec3),
+    # outputs
+    cell_g0: wp.array3d(dtype=float),
+    cell_theta: wp.array3d(dtype=float),
+    cell_p_s: wp.array3d(dtype=float),
+    cell_mu_s: wp.array3d(dtype=float),
+    cell_mu_fric: wp.array3d(dtype=float),
+):
+    i, j, k = wp.tid()
+    nx = cell_eps_s.shape[0]
+    ny = cell_eps_s.shape[1]
+    nz = cell_eps_s.shape[2]
+    eps = wp.min(cell_eps_s[i, j, k], params.max_fraction_of_packing * params.packing)
+    if eps < params.eps_s_min:
+        cell_g0[i, j, k] = 1.0
+        cell_theta[i, j, k] = 0.0
+        cell_p_s[i, j, k] = 0.0
+        cell_mu_s[i, j, k] = 0.0
+        cell_mu_fric[i, j, k] = 0.0
+        return
+    # velocity gradient G[a, b] = d u_a / d x_b by central differences
+    il, ih = _index_pair(i, nx)
+    jl, jh = _index_pair(j, ny)
+    kl, kh = _index_pair(k, nz)
+    dudx = wp.vec3(0.0)
+    dudy = wp.vec3(0.0)
+    dudz = wp.vec3(0.0)
+    if ih > il:
+        dudx = (cell_solid_velocity[ih, j, k] - cell_solid_velocity[il, j, k]) / (float(ih - il) * spacing)
+    if jh > jl:
+        dudy = (cell_solid_velocity[i, jh, k] - cell_solid_velocity[i, jl, k]) / (float(jh - jl) * spacing)
+    if kh > kl:
+        dudz = (cell_solid_velocity[i, j, kh] - cell_solid_velocity[i, j, kl]) / (float(kh - kl) * spacing)
+    grad = wp.mat33(dudx[0], dudy[0], dudz[0], dudx[1], dudy[1], dudz[1], dudx[2], dudy[2], dudz[2])
+    strain = 0.5 * (grad + wp.transpose(grad))
+    tr_d = wp.trace(strain)
+    tr_d2 = wp.ddot(strain, strain)
+    g0 = radial_distribution_lun(eps, params.packing)
+    theta = algebraic_theta(eps, params.particle_density, params.particle_diameter, params.restitution, g0,
+                            tr_d, tr_d2)
+    p_s = solids_pressure_lun(eps, params.particle_density, params.restitution, g0, theta)
+    cell_g0[i, j, k] = g0
+    cell_theta[i, j, k] = theta
+    cell_p_s[i, j, k] = p_s
+    cell_mu_s[i, j, k] = granular_viscosity_gidaspow(eps, params.particle_density, params.particle_diameter,
+                                                     params.restitution, g0, theta)
+    cell_mu_fric[i, j, k] = schaeffer_viscosity(eps, params.friction_packing, p_s, params.friction_angle,
+                                                second_invariant_deviatoric(strain))
+
+
+@wp.kernel
+def gradient_kernel(
+    spacing: float,
+    cell_field: wp.array3d(dtype=float),
+    # outputs
+    cell_gradient: wp.array3d(dtype=wp.vec3),
+):
+    i, j, k = wp.tid()
+    il, ih = _index_pair(i, cell_field.shape[0])
+    jl, jh = _index_pair(j, cell_field.shape[1])
+    kl, kh = _index_pair(k, cell_field.shape[2])
+    g = wp.vec3(0.0)
+    if ih > il:
+        g[0] = (cell_field[ih, j, k] - cell_field[il, j, k]) / (float(ih - il) * spacing)
+    if jh > jl:
+        g[1] = (cell_field[i, jh, k] - cell_field[i, jl, k]) / (float(jh - jl) * spacing)
+    if kh > kl:
+        g[2] = (cell_field[i, j, kh] - cell_field[i, j, kl]) / (float(kh - kl) * spacing)
+    cell_gradient[i, j, k] = g
+
+
+@wp.kernel
+def collision_acceleration_kernel(
+    grid: CellGrid,
+    eps_s_min: float,
+    particle_x: wp.array(dtype=wp.vec3),
+    particle_density: wp.array(dtype=float),
+    cell_grad_p_s: wp.array3d(dtype=wp.vec3),
+    cell_eps_s: wp.array3d(dtype=float),
+    # outputs
+    parcel_a_coll: wp.array(dtype=wp.vec3),
+):
+    """a_coll = -grad(p_s) / (eps_s rho_p), both interpolated with the cloud-in-cell weights."""
+    tid = wp.tid()
+    base, frac = cic_stencil(grid, particle_x[tid])
+    grad = wp.vec3d(0.0, 0.0, 0.0)
+    eps = wp.float64(0.0)
+    for corner in range(8):
+        idx, w = cic_corner(grid, base, frac, corner)
+        g = cell_grad_p_s[idx[0], idx[1], idx[2]]
+        grad = grad + w * wp.vec3d(wp.float64(g[0]), wp.float64(g[1]), wp.float64(g[2]))
+        eps = eps + w * wp.float64(cell_eps_s[idx[0], idx[1], idx[2]])
+    a = wp.vec3(0.0)
+    if float(eps) >= eps_s_min:
+        s = -1.0 / (float(eps) * particle_density[tid])
+        a = wp.vec3(s * float(grad[0]), s * float(grad[1]), s * float(grad[2]))
+    parcel_a_coll[tid] = a
+
+
+@wp.kernel
+def closures_kernel(
+    params: KtgfParams,
+    eps_s: wp.array(dtype=float),
+    tr_d: wp.array(dtype=float),
+    tr_d2: wp.array(dtype=float),
+    i2d: wp.array(dtype=float),
+    # outputs: rows g0, theta, p_s, mu_s, lambda_s, mu_fric
+    out: wp.array2d(dtype=float),
+):
+    """Point evaluation of the closures (tests, diagnostics)."""
+    tid = wp.tid()
+    eps = eps_s[tid]
+    g0 = radial_distribution_lun(eps, params.packing)
+    theta = algebraic_theta(eps, params.particle_density, params.particle_diameter, params.restitution, g0,
+                            tr_d[tid], tr_d2[tid])
+    out[0, tid] = g0
+    out[1, tid] = theta
+    out[2, tid] = solids_pressure_lun(eps, params.particle_density, params.restitution, g0, theta)
+    out[3, tid] = granular_viscosity_gidaspow(eps, params.particle_density, params.particle_diameter,
+                                              params.restitution, g0, theta)
+    out[4, tid] = bulk_viscosity_lun(eps, params.particle_density, params.particle_diameter, params.restitution,
+                                     g0, theta)
+    out[5, tid] = schaeffer_viscosity(eps, params.friction_packing, out[2, tid], params.friction_angle, i2d[tid])
+
+
+# ---------------------------------------------------------------- launch wrappers
+
+def make_ktgf_params(*, particle_diameter: float, particle_density: float, restitution: float = 0.9,
+                     packing: float = 0.63, friction_packing: float = 0.61, friction_angle_deg: float = 30.0,
+                     max_fraction_of_packing: float = 0.999, eps_s_min: float = 1e-8) -> KtgfParams:
+    """``KtgfParams`` with Table 1 defaults (e_ss 0.9, packing 0.63, friction packing 0.61)."""
+    import math
+
+    p = KtgfParams()
+    p.restitution = float(restitution)
+    p.packing = float(packing)
+    p.friction_packing = float(friction_packing)
+    p.friction_angle = math.radians(friction_angle_deg)
+    p.max_fraction_of_packing = float(max_fraction_of_packing)
+    p.eps_s_min = float(eps_s_min)
+    p.particle_diameter = float(particle_diameter)
+    p.particle_density = float(particle_density)
+    return p
+
+
+def ktgf_cells(params: KtgfParams, spacing: float, cell_eps_s, cell_solid_velocity, *, cell_g0, cell_theta,
+               cell_p_s, cell_mu_s, cell_mu_fric):
+    """g0, algebraic Theta, p_s, mu_s and Schaeffer mu_fr in every cell."""
+    wp.launch(ktgf_cells_kernel, dim=cell_eps_s.shape, device=cell_eps_s.device,
+              inputs=[params, float(spacing), cell_eps_s, cell_solid_velocity],
+              outputs=[cell_g0, cell_theta, cell_p_s, cell_mu_s, cell_mu_fric])
+
+
+def cell_gradient(spacing: float, cell_field, cell_gradient_out):
+    """Central-difference gradient of a float32 cell field."""
+    wp.launch(gradient_kernel, dim=cell_field.shape, device=cell_field.device,
+              inputs=[float(spacing), cell_field], outputs=[cell_gradient_out])
+
+
+def collision_acceleration(grid: CellGrid, eps_s_min: float, particle_x, particle_density, cell_grad_p_s,
+                           cell_eps_s, parcel_a_coll):
+    """-grad(p_s)/(eps_s rho_p) at each parcel (Snider 2001)."""
+    wp.launch(collision_acceleration_kernel, dim=particle_x.shape[0], device=particle_x.device,
+              inputs=[grid, float(eps_s_min), particle_x, particle_density, cell_grad_p_s, cell_eps_s],
+              outputs=[parcel_a_coll])
+
+
+def eval_closures(params: KtgfParams, eps_s, tr_d, tr_d2, i2d, out):
+    """g0, Theta, p_s, mu_s, lambda_s, mu_fric for arrays of eps_s, trace(D), D:D, I_2D; ``out`` shape (6, n)."""
+    wp.launch(closures_kernel, dim=eps_s.shape[0], device=eps_s.device,
+              inputs=[params, eps_s, tr_d, tr_d2, i2d], outputs=[out])
