@@ -1,0 +1,221 @@
+"""Engine-side surrogate collision model: load ``MODEL_DIR/forest.json`` into Warp arrays.
+
+The file is written by surrogate/flatten.py (format documented there); its sha256 is
+checked against ``MODEL_DIR/metadata.json`` when that file is present. Needs neither
+XGBoost nor Optuna. Evaluation goes through the launch wrappers of kernels/forest.py.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from hel_warp.errors import ConfigError
+
+FORMAT = "hel_warp.forest"
+VERSION = 1
+CANONICAL_FEATURES = {
+    "paper": ("v1x", "v1y", "v1z", "v2x", "v2y", "v2z", "d1", "d2", "rho1", "rho2"),
+    "contact": ("g_n", "g_t", "d1", "size_ratio", "density_ratio"),
+}
+N_TARGETS = {"paper": 3, "contact": 2}
+
+
+def _sha256(path: str) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+@dataclass
+class FlatForest:
+    """A flattened forest on the host (numpy); :meth:`to_device` gives the Warp ``Forest`` struct."""
+
+    form: str
+    features: list
+    targets: list
+    base_score: np.ndarray
+    """(T,) float32."""
+    tree_start: np.ndarray
+    """(T+1,) int32."""
+    tree_root: np.ndarray
+    node_info: np.ndarray
+    node_value: np.ndarray
+    node_left: np.ndarray
+    max_depth: int
+
+    @property
+    def n_trees(self) -> int:
+        return int(self.tree_root.size)
+
+    @property
+    def n_nodes(self) -> int:
+        return int(self.node_info.size)
+
+    def to_device(self, device="cpu"):
+        import warp as wp
+
+        from kernels.forest import Forest
+
+        forest = Forest()
+        forest.tree_root = wp.array(self.tree_root, dtype=wp.int32, device=device)
+        forest.tree_start = wp.array(self.tree_start, dtype=wp.int32, device=device)
+        forest.node_info = wp.array(self.node_info, dtype=wp.int32, device=device)
+        forest.node_value = wp.array(self.node_value, dtype=wp.float32, device=device)
+        forest.node_left = wp.array(self.node_left, dtype=wp.int32, device=device)
+        forest.base_score = wp.array(self.base_score, dtype=wp.float32, device=device)
+        return forest
+
+
+def _decode(spec, name: str, dtype: str) -> np.ndarray:
+    try:
+        if spec["dtype"] != dtype:
+            raise ConfigError(f"forest array {name} has dtype {spec['dtype']}, expected {dtype}")
+        raw = base64.b64decode(spec["base64"], validate=True)
+        arr = np.frombuffer(raw, dtype=np.dtype(dtype))
+        if list(arr.shape) != list(spec["shape"]):
+            raise ConfigError(f"forest array {name} holds {arr.size} values, header says {spec['shape']}")
+        return arr.astype(np.dtype(dtype).newbyteorder("="))
+    except (KeyError, TypeError, ValueError) as exc:
+        if isinstance(exc, ConfigError):
+            raise
+        raise ConfigError(f"forest array {name} is malformed ({exc}); re-flatten the model") from None
+
+
+def parse_forest(doc: dict) -> FlatForest:
+    """Validate a forest.json document and return its arrays (every index checked in range)."""
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise ConfigError(f"not a {FORMAT} file")
+    if doc.get("version") != VERSION:
+        raise ConfigError(f"forest file version {doc.get('version')!r}; this engine reads version {VERSION}")
+    form = doc.get("form")
+    if form not in CANONICAL_FEATURES:
+        raise ConfigError(f"forest form {form!r} unknown; expected one of {sorted(CANONICAL_FEATURES)}")
+    if tuple(doc.get("features", ())) != CANONICAL_FEATURES[form]:
+        raise ConfigError(f"forest features {doc.get('features')} differ from the engine's {form!r} features "
+                          f"{list(CANONICAL_FEATURES[form])}")
+    targets = list(doc.get("targets", []))
+    if len(targets) != N_TARGETS[form]:
+        raise ConfigError(f"{form!r} forest must have {N_TARGETS[form]} targets, has {targets}")
+    arrays = doc.get("arrays") or {}
+    try:
+        root = _decode(arrays["tree_root"], "tree_root", "<i4")
+        info = _decode(arrays["node_info"], "node_info", "<i4")
+        value = _decode(arrays["node_value"], "node_value", "<f4")
+        left = _decode(arrays["node_left"], "node_left", "<i4")
+    except KeyError as exc:
+        raise ConfigError(f"forest file lacks array {exc}") from None
+    start = np.asarray(doc.get("tree_start", []), dtype=np.int32)
+    base = np.asarray(doc.get("base_score", []), dtype=np.float32)
+    n_nodes = info.size
+    if not (value.size == left.size == n_nodes):
+        raise ConfigError("forest node arrays have different lengths")
+    if start.size != len(targets) + 1 or start[0] != 0 or start[-1] != root.size or np.any(np.diff(start) < 0):
+        raise ConfigError("forest tree_start is inconsistent with the number of trees")
+    if base.size != len(targets) or not np.all(np.isfinite(base)):
+        raise ConfigError("forest base_score must hold one finite value per target")
+    if root.size and (root.min() < 0 or root.max() >= n_nodes):
+        raise ConfigError("forest tree_root index out of range")
+    split = info >= 0
+    if np.any(info < -1) or np.any((info[split] >> 1) >= len(CANONICAL_FEATURES[form])):
+        raise ConfigError("forest node feature index out of range")
+    if np.any(split & ((left < 0) | (left + 1 >= n_nodes))) or np.any(split & (left <= np.arange(n_nodes))):
+        raise ConfigError("forest child index out of range (children must follow their parent)")
+    if np.any(np.isnan(value)):
+        raise ConfigError("forest holds NaN node values")
+    return FlatForest(form, list(doc["features"]), targets, base, start, root, info, value, left,
+                      int(doc.get("max_depth", 0)))
+
+
+def load_forest(model_dir: str) -> FlatForest:
+    """Read ``model_dir/forest.json`` (checked against ``metadata.json``'s sha256 when present)."""
+    path = os.path.join(model_dir, "forest.json") if os.path.isdir(model_dir) else model_dir
+    if not os.path.isfile(path):
+        raise ConfigError(f"no flattened forest at {path!r}; train a model with `hel-warp train --out DIR` first")
+    meta_path = os.path.join(os.path.dirname(path), "metadata.json")
+    if os.path.isfile(meta_path):
+        try:
+            with open(meta_path) as fh:
+                expected = json.load(fh).get("files", {}).get(os.path.basename(path))
+        except (json.JSONDecodeError, AttributeError, OSError) as exc:
+            raise ConfigError(f"cannot read {meta_path}: {exc}") from None
+        if expected is not None and expected != _sha256(path):
+            raise ConfigError(f"{path} does not match the sha256 recorded in metadata.json (corrupted or replaced)")
+    try:
+        with open(path) as fh:
+            doc = json.load(fh)
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{path} is not valid JSON ({exc}); the file is truncated or corrupted") from None
+    return parse_forest(doc)
+
+
+class ForestPredictor:
+    """Evaluate a flattened forest on a Warp device: raw features, or whole pairs (v1, v2, ...)."""
+
+    def __init__(self, flat: FlatForest, device="cpu", *, rows_per_thread: int | None = None):
+        import warp as wp
+
+        self.flat = flat
+        self.device = wp.get_device(device)
+        self.forest = flat.to_device(self.device)
+        # CPU: a block of rows per thread walks each tree for all of them (cache reuse);
+        # GPU: one row per thread.
+        self.rows_per_thread = rows_per_thread or (64 if self.device.is_cpu else 1)
+
+    def predict_features(self, features) -> np.ndarray:
+        """(N, F) raw features (canonical order, NaN = missing) -> (N, T) float32 predictions."""
+        import warp as wp
+
+        from kernels.forest import eval_forest
+
+        x = np.ascontiguousarray(np.asarray(features, dtype=np.float32))
+        if x.ndim != 2 or x.shape[1] != len(self.flat.features):
+            raise ConfigError(f"features must have shape (N, {len(self.flat.features)}), got {x.shape}")
+        x_wp = wp.array(x, dtype=wp.float32, device=self.device)
+        out = wp.zeros((x.shape[0], len(self.flat.targets)), dtype=wp.float32, device=self.device)
+        eval_forest(self.forest, x_wp, out, rows_per_thread=self.rows_per_thread)
+        return out.numpy()
+
+    def predict_pairs(self, v1, v2, d1, d2, rho1, rho2, normal=None):
+        """Post-collision velocities (v1', v2') of N pairs, each (N, 3) float32.
+
+        ``contact`` form needs ``normal`` (unit, from 1 to 2); the ``paper`` form ignores it.
+        """
+        import warp as wp
+
+        from kernels import forest as kf
+
+        v1 = np.atleast_2d(np.asarray(v1, dtype=np.float32))
+        n_pairs = v1.shape[0]
+        as_vec = lambda a: wp.array(np.ascontiguousarray(np.atleast_2d(np.asarray(a, np.float32))), dtype=wp.vec3,
+                                    device=self.device)
+        as_f = lambda a: wp.array(np.ascontiguousarray(np.broadcast_to(np.asarray(a, np.float32), (n_pairs,))),
+                                  dtype=wp.float32, device=self.device)
+        w_v1, w_v2 = as_vec(v1), as_vec(v2)
+        w_d1, w_d2, w_r1, w_r2 = as_f(d1), as_f(d2), as_f(rho1), as_f(rho2)
+        v1_after = wp.zeros(n_pairs, dtype=wp.vec3, device=self.device)
+        v2_after = wp.zeros(n_pairs, dtype=wp.vec3, device=self.device)
+        n_targets = len(self.flat.targets)
+        if self.flat.form == "contact":
+            if normal is None:
+                raise ConfigError("the contact-form model needs the contact normal of each pair")
+            w_n = as_vec(normal)
+            feats = wp.zeros((n_pairs, len(self.flat.features)), dtype=wp.float32, device=self.device)
+            targets = wp.zeros((n_pairs, n_targets), dtype=wp.float32, device=self.device)
+            kf.contact_features(w_v1, w_v2, w_n, w_d1, w_d2, w_r1, w_r2, feats)
+            kf.eval_forest(self.forest, feats, targets, rows_per_thread=self.rows_per_thread)
+            kf.apply_contact(w_v1, w_v2, w_n, w_d1, w_d2, w_r1, w_r2, targets, v1_after, v2_after)
+        else:
+            feats = wp.zeros((2 * n_pairs, len(self.flat.features)), dtype=wp.float32, device=self.device)
+            targets = wp.zeros((2 * n_pairs, n_targets), dtype=wp.float32, device=self.device)
+            kf.paper_features(w_v1, w_v2, w_d1, w_d2, w_r1, w_r2, feats)
+            kf.eval_forest(self.forest, feats, targets, rows_per_thread=self.rows_per_thread)
+            kf.paper_velocities(targets, v1_after, v2_after)
+        return v1_after.numpy(), v2_after.numpy()

@@ -1,0 +1,208 @@
+"""Flattened tree-ensemble evaluation (the HELSCM surrogate collision model, sec. 4.3).
+
+Node arrays as written by surrogate/flatten.py (format documented there): XGBoost split
+semantics (``x < T`` left, NaN -> default direction), thresholds already in raw-feature
+space (scaler of eq. 17 folded in), prediction = base_score + sum of leaf values, one tree
+group per target. Contact form: features in the contact frame and the equal-and-opposite
+impulse of surrogate/features.py ``apply_contact_model`` (momentum conserved exactly).
+
+Launch wrappers at the bottom; they never allocate (the host side, hel_warp/forest.py,
+owns the scratch arrays).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+PAPER_FEATURES = 10  # v1x v1y v1z v2x v2y v2z d1 d2 rho1 rho2
+CONTACT_FEATURES = 5  # g_n g_t d1 size_ratio density_ratio
+TANGENT_EPS = 1.0e-6  # = surrogate.features.TANGENT_EPS: relative slip below which t_hat = 0
+
+
+@wp.struct
+class Forest:
+    """Flattened forest on the device (see surrogate/flatten.py for the layout)."""
+
+    tree_root: wp.array(dtype=wp.int32)
+    """(n_trees,) root node of each tree."""
+    tree_start: wp.array(dtype=wp.int32)
+    """(n_targets+1,) trees of target t: tree_start[t] .. tree_start[t+1]-1."""
+    node_info: wp.array(dtype=wp.int32)
+    """(n_nodes,) -1 at a leaf; else 2*feature + default_left."""
+    node_value: wp.array(dtype=wp.float32)
+    """(n_nodes,) leaf value, or the raw-space split threshold."""
+    node_left: wp.array(dtype=wp.int32)
+    """(n_nodes,) left child; the right child is node_left + 1."""
+    base_score: wp.array(dtype=wp.float32)
+    """(n_targets,) XGBoost base_score of each target."""
+
+
+@wp.func
+def walk_tree(forest: Forest, root: wp.int32, features: wp.array2d(dtype=wp.float32), row: wp.int32):
+    """Leaf value of one tree for one row: left iff ``x < T``; NaN goes to the default side."""
+    i = root
+    info = forest.node_info[i]
+    while info >= 0:
+        x = features[row, info >> 1]
+        go_right = wp.int32(0)
+        if wp.isnan(x):
+            go_right = 1 - (info & 1)
+        elif x >= forest.node_value[i]:
+            go_right = 1
+        i = forest.node_left[i] + go_right
+        info = forest.node_info[i]
+    return forest.node_value[i]
+
+
+@wp.kernel
+def eval_forest_kernel(forest: Forest, features: wp.array2d(dtype=wp.float32), n_rows: wp.int32,
+                       rows_per_thread: wp.int32,
+                       # outputs
+                       out: wp.array2d(dtype=wp.float32)):
+    """Every target for rows [tid*rows_per_thread, ...): trees outer, rows inner (cache reuse on CPU)."""
+    tid = wp.tid()
+    first = tid * rows_per_thread
+    last = wp.min(first + rows_per_thread, n_rows)
+    n_targets = forest.tree_start.shape[0] - 1
+    for t in range(n_targets):
+        base = forest.base_score[t]
+        for row in range(first, last):
+            out[row, t] = base
+        for k in range(forest.tree_start[t], forest.tree_start[t + 1]):
+            root = forest.tree_root[k]
+            for row in range(first, last):
+                out[row, t] = out[row, t] + walk_tree(forest, root, features, row)
+
+
+@wp.func
+def tangent_direction(g: wp.vec3, n: wp.vec3):
+    """Unit slip direction of ``g`` in the contact plane (two Gram-Schmidt passes), zero if none."""
+    gt = g - wp.dot(g, n) * n
+    gt = gt - wp.dot(gt, n) * n
+    gt_mag = wp.length(gt)
+    if gt_mag > TANGENT_EPS * wp.length(g):
+        return gt / gt_mag
+    return wp.vec3(0.0)
+
+
+@wp.func
+def sphere_mass(d: wp.float32, rho: wp.float32):
+    """rho pi d^3 / 6."""
+    return rho * (wp.pi / 6.0) * d * d * d
+
+
+@wp.func
+def contact_impulse(v1: wp.vec3, v2: wp.vec3, n: wp.vec3, m1: wp.float32, m2: wp.float32,
+                    impulse_n: wp.float32, impulse_t: wp.float32):
+    """Impulse on particle 2, ``J = m*|g| (impulse_n n + impulse_t t_hat)``; particle 1 gets -J."""
+    g = v1 - v2
+    m_eff = m1 * m2 / (m1 + m2)
+    return m_eff * wp.length(g) * (impulse_n * n + impulse_t * tangent_direction(g, n))
+
+
+@wp.kernel
+def contact_features_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.array(dtype=wp.vec3), n: wp.array(dtype=wp.vec3),
+                            d1: wp.array(dtype=wp.float32), d2: wp.array(dtype=wp.float32),
+                            rho1: wp.array(dtype=wp.float32), rho2: wp.array(dtype=wp.float32),
+                            # outputs
+                            features: wp.array2d(dtype=wp.float32)):
+    """Contact-frame features g_n, g_t, d1, d2/d1, rho2/rho1 of each pair (n from 1 to 2)."""
+    i = wp.tid()
+    g = v1[i] - v2[i]
+    g_n = wp.dot(g, n[i])
+    gt = g - g_n * n[i]
+    gt = gt - wp.dot(gt, n[i]) * n[i]
+    features[i, 0] = g_n
+    features[i, 1] = wp.length(gt)
+    features[i, 2] = d1[i]
+    features[i, 3] = d2[i] / d1[i]
+    features[i, 4] = rho2[i] / rho1[i]
+
+
+@wp.kernel
+def apply_contact_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.array(dtype=wp.vec3), n: wp.array(dtype=wp.vec3),
+                         d1: wp.array(dtype=wp.float32), d2: wp.array(dtype=wp.float32),
+                         rho1: wp.array(dtype=wp.float32), rho2: wp.array(dtype=wp.float32),
+                         targets: wp.array2d(dtype=wp.float32),
+                         # outputs
+                         v1_after: wp.array(dtype=wp.vec3), v2_after: wp.array(dtype=wp.vec3)):
+    """Equal and opposite impulse from the predicted targets (momentum conserved exactly)."""
+    i = wp.tid()
+    m1 = sphere_mass(d1[i], rho1[i])
+    m2 = sphere_mass(d2[i], rho2[i])
+    J = contact_impulse(v1[i], v2[i], n[i], m1, m2, targets[i, 0], targets[i, 1])
+    v1_after[i] = v1[i] - J / m1
+    v2_after[i] = v2[i] + J / m2
+
+
+@wp.kernel
+def paper_features_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.array(dtype=wp.vec3),
+                          d1: wp.array(dtype=wp.float32), d2: wp.array(dtype=wp.float32),
+                          rho1: wp.array(dtype=wp.float32), rho2: wp.array(dtype=wp.float32),
+                          # outputs
+                          features: wp.array2d(dtype=wp.float32)):
+    """Paper-form features: row i the pair (1, 2), row N+i the swapped pair (2, 1)."""
+    i = wp.tid()
+    n_pairs = v1.shape[0]
+    for k in range(3):
+        features[i, k] = v1[i][k]
+        features[i, 3 + k] = v2[i][k]
+        features[n_pairs + i, k] = v2[i][k]
+        features[n_pairs + i, 3 + k] = v1[i][k]
+    features[i, 6] = d1[i]
+    features[i, 7] = d2[i]
+    features[i, 8] = rho1[i]
+    features[i, 9] = rho2[i]
+    features[n_pairs + i, 6] = d2[i]
+    features[n_pairs + i, 7] = d1[i]
+    features[n_pairs + i, 8] = rho2[i]
+    features[n_pairs + i, 9] = rho1[i]
+
+
+@wp.kernel
+def paper_velocities_kernel(targets: wp.array2d(dtype=wp.float32),
+                            # outputs
+                            v1_after: wp.array(dtype=wp.vec3), v2_after: wp.array(dtype=wp.vec3)):
+    """u, v, w of particle 1 (row i) and of particle 2 (swapped row N+i)."""
+    i = wp.tid()
+    n_pairs = v1_after.shape[0]
+    v1_after[i] = wp.vec3(targets[i, 0], targets[i, 1], targets[i, 2])
+    v2_after[i] = wp.vec3(targets[n_pairs + i, 0], targets[n_pairs + i, 1], targets[n_pairs + i, 2])
+
+
+# ------------------------------------------------------------------------------ launch wrappers
+
+
+def eval_forest(forest: Forest, features, out, *, rows_per_thread: int = 1, device=None) -> None:
+    """``out[row, t]`` = prediction of target t for ``features[row]`` (raw float32 features)."""
+    n_rows = features.shape[0]
+    rows_per_thread = max(1, int(rows_per_thread))
+    n_threads = (n_rows + rows_per_thread - 1) // rows_per_thread
+    if n_threads == 0:
+        return
+    wp.launch(eval_forest_kernel, dim=n_threads, inputs=[forest, features, n_rows, rows_per_thread],
+              outputs=[out], device=device or features.device)
+
+
+def contact_features(v1, v2, n, d1, d2, rho1, rho2, features, *, device=None) -> None:
+    if v1.shape[0]:
+        wp.launch(contact_features_kernel, dim=v1.shape[0], inputs=[v1, v2, n, d1, d2, rho1, rho2],
+                  outputs=[features], device=device or v1.device)
+
+
+def apply_contact(v1, v2, n, d1, d2, rho1, rho2, targets, v1_after, v2_after, *, device=None) -> None:
+    if v1.shape[0]:
+        wp.launch(apply_contact_kernel, dim=v1.shape[0], inputs=[v1, v2, n, d1, d2, rho1, rho2, targets],
+                  outputs=[v1_after, v2_after], device=device or v1.device)
+
+
+def paper_features(v1, v2, d1, d2, rho1, rho2, features, *, device=None) -> None:
+    if v1.shape[0]:
+        wp.launch(paper_features_kernel, dim=v1.shape[0], inputs=[v1, v2, d1, d2, rho1, rho2],
+                  outputs=[features], device=device or v1.device)
+
+
+def paper_velocities(targets, v1_after, v2_after, *, device=None) -> None:
+    if v1_after.shape[0]:
+        wp.launch(paper_velocities_kernel, dim=v1_after.shape[0], inputs=[targets],
+                  outputs=[v1_after, v2_after], device=device or targets.device)

@@ -1,0 +1,395 @@
+"""Features and targets of the surrogate collision model, in two forms.
+
+Rows come from the collision data set (docs/TEAM-NOTES.md): ``inputs`` columns
+``v1x v1y v1z v2x v2y v2z d1 d2 rho1 rho2 nx ny nz offset`` and ``outputs`` columns
+``u1x u1y u1z u2x u2y u2z ...`` (post-collision velocities first).
+
+``paper`` form (reference paper, sec. 4.2): features are the six pre-collision velocity
+components of the two particles (plus diameters and densities when they vary in the
+training data), targets the post-collision ``u, v, w`` of particle 1, one model each.
+Particle 2 follows by symmetry (swap the pair), so every row is also used swapped
+(data augmentation). The paper's configurations are all central impacts, so this form
+trains on the rows with ``offset == 0`` only (a non-central impact is not determined by
+the six velocities: the contact normal is missing).
+
+``contact`` form (default, beyond the paper): features in the contact frame,
+``g_n = (v1 - v2) . n`` (approach speed along the normal n from 1 to 2),
+``g_t = |(v1 - v2) - g_n n|`` (tangential slip speed), ``d1``, ``size_ratio = d2/d1``,
+``density_ratio = rho2/rho1``; the impact offset is implied by ``g_t / |g|``.
+Targets are the impulse on particle 2, ``J = J_n n + J_t t`` (t the unit tangential
+slip direction), normalised by ``m* |g|`` (``1/m* = 1/m1 + 1/m2``) so they are O(1):
+``impulse_n = J_n / (m*|g|)``, ``impulse_t = J_t / (m*|g|)``. For a frictionless impact
+with restitution e, ``impulse_n = (1 + e) g_n/|g|`` and ``impulse_t = 0`` exactly
+(PHYSICS-NOTES "Binary collision outcome"). The impulse is applied equal and opposite
+(:func:`apply_contact_model`), so momentum ``m1 v1 + m2 v2`` is conserved exactly,
+whatever the trees predict.
+
+Input precision: raw features are rounded to float32 first (the engine's precision), and
+the standardisation of eq. (17) is evaluated in float64 on those float32 values, then
+rounded to float32 (what XGBoost sees). The flattened forest folds the scaler into float32
+thresholds that reproduce exactly that comparison (surrogate/flatten.py).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hel_warp.errors import ConfigError
+
+INPUT_COLUMNS = ("v1x", "v1y", "v1z", "v2x", "v2y", "v2z", "d1", "d2", "rho1", "rho2", "nx", "ny", "nz", "offset")
+OUTPUT_COLUMNS = ("u1x", "u1y", "u1z", "u2x", "u2y", "u2z", "w1x", "w1y", "w1z", "w2x", "w2y", "w2z",
+                  "contact_duration", "max_overlap", "max_normal_force")
+
+FORMS = ("paper", "contact")
+# Canonical feature order of each form: the flattened forest indexes into this list, and the
+# engine kernels (kernels/forest.py) compute exactly these, in this order.
+CANONICAL_FEATURES = {
+    "paper": ("v1x", "v1y", "v1z", "v2x", "v2y", "v2z", "d1", "d2", "rho1", "rho2"),
+    "contact": ("g_n", "g_t", "d1", "size_ratio", "density_ratio"),
+}
+ALWAYS_USED = {"paper": ("v1x", "v1y", "v1z", "v2x", "v2y", "v2z"), "contact": ("g_n", "g_t")}
+TARGETS = {"paper": ("u", "v", "w"), "contact": ("impulse_n", "impulse_t")}
+TANGENT_EPS = 1e-6
+"""Relative slip ``g_t/|g|`` below which the tangential direction is taken as zero (float32-safe)."""
+CENTRAL_OFFSET_TOL = 1e-6
+"""Rows with ``offset <= CENTRAL_OFFSET_TOL`` count as central impacts (paper form)."""
+
+
+@dataclass
+class CollisionData:
+    """Rows of the collision data set, columns as in docs/TEAM-NOTES.md."""
+
+    inputs: np.ndarray
+    """(N, 14) float64, INPUT_COLUMNS."""
+    outputs: np.ndarray
+    """(N, >=6) float64, OUTPUT_COLUMNS (only the first six, post velocities, are used)."""
+    dataset_hash: str = ""
+    attrs: dict = field(default_factory=dict)
+    family: np.ndarray | None = None
+    """(N,) int8 collision family (0 converging, 1 parallel, 2 head-on), when known."""
+
+    def col(self, name: str) -> np.ndarray:
+        if name in INPUT_COLUMNS:
+            return self.inputs[:, INPUT_COLUMNS.index(name)]
+        return self.outputs[:, OUTPUT_COLUMNS.index(name)]
+
+    def take(self, rows: np.ndarray) -> "CollisionData":
+        family = None if self.family is None else self.family[rows]
+        return CollisionData(self.inputs[rows], self.outputs[rows], self.dataset_hash, self.attrs, family)
+
+    def __len__(self) -> int:
+        return int(self.inputs.shape[0])
+
+
+def validate_data(data: CollisionData) -> None:
+    """Refuse empty data, wrong shapes, and NaN/inf in the columns the models use."""
+    if data.inputs.ndim != 2 or data.inputs.shape[1] != len(INPUT_COLUMNS):
+        raise ConfigError(f"data set inputs must have shape (N, {len(INPUT_COLUMNS)}), got {data.inputs.shape}")
+    if data.outputs.ndim != 2 or data.outputs.shape[1] < 6 or data.outputs.shape[0] != data.inputs.shape[0]:
+        raise ConfigError(f"data set outputs must have shape (N, >=6) with N = {data.inputs.shape[0]}, "
+                          f"got {data.outputs.shape}")
+    if len(data) == 0:
+        raise ConfigError("the data set is empty (0 rows); generate it with `hel-warp dataset` first")
+    used = np.concatenate([data.inputs, data.outputs[:, :6]], axis=1)
+    bad = ~np.all(np.isfinite(used), axis=1)
+    if bad.any():
+        rows = np.flatnonzero(bad)
+        raise ConfigError(f"the data set holds NaN or infinite values in {rows.size} row(s) "
+                          f"(first: row {int(rows[0])}); regenerate or drop those rows")
+    for name in ("d1", "d2", "rho1", "rho2"):
+        if np.any(data.col(name) <= 0):
+            raise ConfigError(f"data set column {name} must be > 0 in every row")
+
+
+def load_collision_data(path: str, *, samples_limit: int | None = None) -> CollisionData:
+    """Read the zarr group written by ``hel-warp dataset`` (schema: docs/TEAM-NOTES.md)."""
+    import os
+
+    if not os.path.isdir(path):
+        raise ConfigError(f"data set {path!r} not found; give the directory written by `hel-warp dataset --out`")
+    import zarr
+
+    try:
+        group = zarr.open_group(path, mode="r")
+        attrs = dict(group.attrs)
+        inputs = group["inputs"]
+        outputs = group["outputs"]
+    except Exception as exc:  # zarr raises several types for a broken store
+        raise ConfigError(f"cannot read data set {path!r} as a zarr group with 'inputs' and 'outputs': {exc}") from None
+    if tuple(attrs.get("input_columns", INPUT_COLUMNS)) != INPUT_COLUMNS:
+        raise ConfigError(f"data set {path!r} input_columns {attrs.get('input_columns')} differ from the "
+                          f"agreed schema {list(INPUT_COLUMNS)}")
+    out_cols = tuple(attrs.get("output_columns", OUTPUT_COLUMNS))
+    if out_cols[:6] != OUTPUT_COLUMNS[:6]:
+        raise ConfigError(f"data set {path!r} output_columns start with {list(out_cols[:6])}, "
+                          f"expected {list(OUTPUT_COLUMNS[:6])}")
+    if "chunk_done" in group:
+        done = np.asarray(group["chunk_done"][...])
+        if done.size and not done.all():
+            raise ConfigError(f"data set {path!r} is incomplete ({int(done.sum())}/{done.size} chunks written); "
+                              "rerun `hel-warp dataset` with the same options to finish it")
+    n = inputs.shape[0] if samples_limit is None else min(int(samples_limit), inputs.shape[0])
+    family = np.asarray(group["family"][:n]) if "family" in group else None
+    data = CollisionData(np.asarray(inputs[:n], dtype=np.float64), np.asarray(outputs[:n], dtype=np.float64),
+                         str(attrs.get("dataset_hash", "")) if samples_limit is None else "", attrs, family)
+    if not data.dataset_hash:
+        import hashlib
+
+        data.dataset_hash = hashlib.sha256(data.inputs.tobytes() + data.outputs.tobytes()).hexdigest()
+    validate_data(data)
+    return data
+
+
+# ---------------------------------------------------------------------------------------------
+# physics helpers shared by both forms
+
+
+def sphere_mass(d, rho):
+    """Mass of a sphere of diameter ``d`` (m) and density ``rho`` (kg/m^3): rho pi d^3 / 6."""
+    return rho * (math.pi / 6.0) * np.asarray(d, dtype=np.float64) ** 3
+
+
+def contact_frame(v1, v2, n):
+    """Relative velocity ``g = v1 - v2`` split along the unit normal ``n`` (from 1 to 2).
+
+    Returns ``(g_n, g_t, t_hat, g_mag)``: ``g_n = g . n``, ``g_t = |g - g_n n|``, the unit
+    tangential direction ``t_hat`` (zero where ``g_t <= TANGENT_EPS |g|``: a central impact,
+    where the direction is rounding noise) and ``|g|``.
+    """
+    v1, v2, n = (np.asarray(a, dtype=np.float64) for a in (v1, v2, n))
+    g = v1 - v2
+    g_n = np.einsum("ij,ij->i", g, n)
+    g_tvec = g - g_n[:, None] * n
+    g_tvec = g_tvec - np.einsum("ij,ij->i", g_tvec, n)[:, None] * n  # second Gram-Schmidt pass
+    g_t = np.linalg.norm(g_tvec, axis=1)
+    g_mag = np.linalg.norm(g, axis=1)
+    has_t = g_t > TANGENT_EPS * g_mag
+    t_hat = np.where(has_t[:, None], g_tvec / np.where(has_t, g_t, 1.0)[:, None], 0.0)
+    return g_n, g_t, t_hat, g_mag
+
+
+def apply_contact_model(v1, v2, n, d1, d2, rho1, rho2, predicted_targets):
+    """Post-collision velocities from predicted contact-frame impulses (contact form).
+
+    ``predicted_targets`` (N, 2): ``impulse_n, impulse_t`` = components of the impulse on
+    particle 2 along ``n`` and ``t_hat``, divided by ``m* |g|``. With
+    ``J = m*|g| (impulse_n n + impulse_t t_hat)``:
+    ``v1' = v1 - J/m1``, ``v2' = v2 + J/m2`` — equal and opposite, so ``m1 v1 + m2 v2`` is
+    unchanged (PHYSICS-NOTES "Binary collision outcome"). Returns ``(v1', v2')``, (N, 3) each.
+    The Warp twin is ``apply_contact_impulse`` in kernels/forest.py.
+    """
+    v1, v2, n = (np.atleast_2d(np.asarray(a, dtype=np.float64)) for a in (v1, v2, n))
+    targets = np.atleast_2d(np.asarray(predicted_targets, dtype=np.float64))
+    m1, m2 = sphere_mass(d1, rho1), sphere_mass(d2, rho2)
+    m_eff = m1 * m2 / (m1 + m2)
+    _, _, t_hat, g_mag = contact_frame(v1, v2, n)
+    scale = (m_eff * g_mag)[:, None]
+    impulse = scale * (targets[:, 0:1] * n + targets[:, 1:2] * t_hat)
+    return v1 - impulse / np.asarray(m1)[..., None], v2 + impulse / np.asarray(m2)[..., None]
+
+
+# ---------------------------------------------------------------------------------------------
+# the two forms
+
+
+def raw_features(form: str, v1, v2, n, d1, d2, rho1, rho2) -> np.ndarray:
+    """All canonical features of ``form`` (CANONICAL_FEATURES order), float64, shape (N, F)."""
+    v1, v2 = np.atleast_2d(v1), np.atleast_2d(v2)
+    d1, d2, rho1, rho2 = (np.broadcast_to(np.asarray(a, dtype=np.float64), (v1.shape[0],)) for a in (d1, d2, rho1, rho2))
+    if form == "paper":
+        return np.column_stack([v1, v2, d1, d2, rho1, rho2]).astype(np.float64)
+    if form == "contact":
+        g_n, g_t, _, _ = contact_frame(v1, v2, np.atleast_2d(n))
+        return np.column_stack([g_n, g_t, d1, d2 / d1, rho2 / rho1])
+    raise ConfigError(f"unknown form {form!r}; choose one of {', '.join(FORMS)}")
+
+
+@dataclass
+class FormRows:
+    """The rows of one form, ready for training: raw features, targets and the lab-frame context."""
+
+    form: str
+    features: np.ndarray
+    """(N, F) float32 raw features, CANONICAL_FEATURES[form] order (all of them)."""
+    targets: np.ndarray
+    """(N, T) float64."""
+    group: np.ndarray
+    """(N,) int64 data-set row each row came from (swapped rows share it; splits go by group)."""
+    data: CollisionData
+    """The data-set rows, one per distinct group (index = group)."""
+
+
+def form_rows(form: str, data: CollisionData) -> FormRows:
+    """Features and targets of ``form`` for every usable row of ``data``."""
+    validate_data(data)
+    if form == "paper":
+        central = np.flatnonzero(data.col("offset") <= CENTRAL_OFFSET_TOL)
+        if central.size == 0:
+            raise ConfigError("the paper form trains on central impacts (offset 0) and the data set has none; "
+                              "use --form contact")
+        sub = data.take(central)
+        c = sub.col
+        v1 = np.column_stack([c("v1x"), c("v1y"), c("v1z")])
+        v2 = np.column_stack([c("v2x"), c("v2y"), c("v2z")])
+        u1 = np.column_stack([c("u1x"), c("u1y"), c("u1z")])
+        u2 = np.column_stack([c("u2x"), c("u2y"), c("u2z")])
+        f_12 = raw_features("paper", v1, v2, None, c("d1"), c("d2"), c("rho1"), c("rho2"))
+        f_21 = raw_features("paper", v2, v1, None, c("d2"), c("d1"), c("rho2"), c("rho1"))
+        idx = np.arange(len(sub))
+        return FormRows(form, np.concatenate([f_12, f_21]).astype(np.float32), np.concatenate([u1, u2]),
+                        np.concatenate([idx, idx]), sub)
+    if form == "contact":
+        c = data.col
+        v1 = np.column_stack([c("v1x"), c("v1y"), c("v1z")])
+        v2 = np.column_stack([c("v2x"), c("v2y"), c("v2z")])
+        n = np.column_stack([c("nx"), c("ny"), c("nz")])
+        u1 = np.column_stack([c("u1x"), c("u1y"), c("u1z")])
+        u2 = np.column_stack([c("u2x"), c("u2y"), c("u2z")])
+        g_n, g_t, t_hat, g_mag = contact_frame(v1, v2, n)
+        if np.any(g_mag <= 0):
+            raise ConfigError(f"{int(np.sum(g_mag <= 0))} data-set row(s) have zero relative velocity "
+                              "(no impact); drop them")
+        m1, m2 = sphere_mass(c("d1"), c("rho1")), sphere_mass(c("d2"), c("rho2"))
+        m_eff = m1 * m2 / (m1 + m2)
+        # impulse on particle 2; the mean of both particles' momentum changes
+        impulse = 0.5 * (m2[:, None] * (u2 - v2) - m1[:, None] * (u1 - v1))
+        scale = m_eff * g_mag
+        targets = np.column_stack([np.einsum("ij,ij->i", impulse, n) / scale,
+                                   np.einsum("ij,ij->i", impulse, t_hat) / scale])
+        feats = raw_features("contact", v1, v2, n, c("d1"), c("d2"), c("rho1"), c("rho2"))
+        return FormRows(form, feats.astype(np.float32), targets, np.arange(len(data)), data)
+    raise ConfigError(f"unknown form {form!r}; choose one of {', '.join(FORMS)}")
+
+
+def rows_of_groups(rows: FormRows, groups: np.ndarray) -> np.ndarray:
+    """Row indices of ``rows`` for the data-set rows ``groups``; paper form: direct, then swapped."""
+    groups = np.asarray(groups, dtype=np.int64)
+    if rows.form == "paper":
+        return np.concatenate([groups, groups + len(rows.data)])
+    return groups
+
+
+def used_features(form: str, features: np.ndarray) -> list[str]:
+    """Canonical features that vary in ``features`` (velocity features always kept)."""
+    names = CANONICAL_FEATURES[form]
+    keep = []
+    for j, name in enumerate(names):
+        col = features[:, j]
+        if name in ALWAYS_USED[form] or (col.size and np.ptp(col) > 0):
+            keep.append(name)
+    return keep
+
+
+def standardize(raw_f32: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
+    """Eq. (17) exactly as the models see it: float64 ``(x - mean)/std`` of float32 ``x``, then float32."""
+    x = np.asarray(raw_f32, dtype=np.float32).astype(np.float64)
+    return ((x - np.asarray(mean, dtype=np.float64)) / np.asarray(std, dtype=np.float64)).astype(np.float32)
+
+
+def predictions_to_lab(form: str, data: CollisionData, group: np.ndarray, predicted: np.ndarray):
+    """Lab-frame post velocities of particles 1 and 2 from target predictions.
+
+    ``paper``: rows as built by :func:`rows_of_groups` — all direct rows first (they predict
+    particle 1), then the swapped rows in the same order (they predict particle 2).
+    ``contact``: :func:`apply_contact_model`.
+    Returns ``(rows, u1_pred, u2_pred)`` with ``rows`` the data-set rows (index into ``data``).
+    """
+    if form == "contact":
+        c = data.take(group).col
+        v1 = np.column_stack([c("v1x"), c("v1y"), c("v1z")])
+        v2 = np.column_stack([c("v2x"), c("v2y"), c("v2z")])
+        n = np.column_stack([c("nx"), c("ny"), c("nz")])
+        u1, u2 = apply_contact_model(v1, v2, n, c("d1"), c("d2"), c("rho1"), c("rho2"), predicted)
+        return group, u1, u2
+    half = predicted.shape[0] // 2
+    # form_rows stacks all direct rows first, then all swapped ones; split keeps that order
+    return group[:half], predicted[:half], predicted[half:]
+
+
+# ---------------------------------------------------------------------------------------------
+# TEST FIXTURE: analytic data set (not DEM). Used by the tests and the benchmark until (and
+# besides) the DEM data set of surrogate/dataset.py.
+
+
+def synthetic_collisions(samples: int, *, seed: int = 0, restitution: float = 0.9, central_fraction: float = 0.5,
+                         diameter: float = 315e-6, density: float = 1000.0, polydisperse: bool = False,
+                         max_speed: float = 20.0) -> CollisionData:
+    """TEST FIXTURE — frictionless binary impacts with restitution ``e``, solved analytically.
+
+    ``v1' = v1 - (1+e) m2/(m1+m2) (g.n) n``, ``v2' = v2 + (1+e) m1/(m1+m2) (g.n) n`` with
+    ``g = v1 - v2`` (PHYSICS-NOTES "Binary collision outcome"); no spin. Velocities follow
+    eq. (16) (speed uniform in [0, max_speed], direction uniform on the sphere) in the
+    three families: 0 converging (independent directions), 1 parallel (same direction, the
+    rear one faster), 2 head-on (opposite directions). The contact normal makes the angle
+    ``asin(offset)`` with ``g``; ``central_fraction`` of rows have offset 0, the others
+    uniform offset in [0, 0.95). Written in the data-set schema of docs/TEAM-NOTES.md.
+    """
+    rng = np.random.default_rng(seed)
+
+    def directions(k):
+        phi = rng.uniform(0.0, 2.0 * math.pi, k)
+        cos_t = rng.uniform(-1.0, 1.0, k)
+        sin_t = np.sqrt(1.0 - cos_t ** 2)
+        return np.column_stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t])  # eq. (16)
+
+    family = rng.integers(0, 3, samples)
+    s1 = rng.uniform(0.5, max_speed, samples)
+    s2 = rng.uniform(0.5, max_speed, samples)
+    e1 = directions(samples)
+    e2 = directions(samples)
+    e2 = np.where((family == 1)[:, None], e1, np.where((family == 2)[:, None], -e1, e2))
+    lo, hi = np.minimum(s1, s2), np.maximum(s1, s2)
+    s1 = np.where(family == 1, hi, s1)  # particle 1 is the rear, faster one
+    s2 = np.where(family == 1, lo * 0.9, s2)
+    v1, v2 = s1[:, None] * e1, s2[:, None] * e2
+    if polydisperse:
+        d1 = diameter * rng.uniform(0.6, 1.4, samples)
+        d2 = diameter * rng.uniform(0.6, 1.4, samples)
+        rho1 = density * rng.uniform(0.8, 1.25, samples)
+        rho2 = density * rng.uniform(0.8, 1.25, samples)
+    else:
+        d1 = d2 = np.full(samples, diameter)
+        rho1 = rho2 = np.full(samples, density)
+    g = v1 - v2
+    g_hat = g / np.linalg.norm(g, axis=1, keepdims=True)
+    offset = np.where(rng.uniform(size=samples) < central_fraction, 0.0, rng.uniform(0.0, 0.95, samples))
+    # a unit vector perpendicular to g_hat
+    helper = np.where((np.abs(g_hat[:, 0]) < 0.9)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    p = np.cross(g_hat, helper)
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    q = np.cross(g_hat, p)
+    psi = rng.uniform(0.0, 2.0 * math.pi, samples)
+    perp = np.cos(psi)[:, None] * p + np.sin(psi)[:, None] * q
+    n = np.sqrt(1.0 - offset ** 2)[:, None] * g_hat + offset[:, None] * perp
+    m1, m2 = sphere_mass(d1, rho1), sphere_mass(d2, rho2)
+    g_n = np.einsum("ij,ij->i", g, n)
+    u1 = v1 - ((1 + restitution) * m2 / (m1 + m2) * g_n)[:, None] * n
+    u2 = v2 + ((1 + restitution) * m1 / (m1 + m2) * g_n)[:, None] * n
+    inputs = np.column_stack([v1, v2, d1, d2, rho1, rho2, n, offset])
+    outputs = np.zeros((samples, len(OUTPUT_COLUMNS)))
+    outputs[:, 0:3], outputs[:, 3:6] = u1, u2
+    import hashlib
+
+    digest = hashlib.sha256(inputs.tobytes() + outputs.tobytes()).hexdigest()
+    attrs = {"synthetic": "analytic frictionless fixture (surrogate.features.synthetic_collisions)",
+             "restitution": restitution, "seed": seed, "samples": samples,
+             "input_columns": list(INPUT_COLUMNS), "output_columns": list(OUTPUT_COLUMNS), "dataset_hash": digest}
+    return CollisionData(inputs, outputs, digest, attrs, family.astype(np.int8))
+
+
+def write_synthetic_zarr(path: str, samples: int, **kwargs) -> CollisionData:
+    """TEST FIXTURE — write :func:`synthetic_collisions` as a complete zarr data set (TEAM-NOTES schema)."""
+    import zarr
+
+    data = synthetic_collisions(samples, **kwargs)
+    group = zarr.open_group(path, mode="w")
+    group.create_array("inputs", data=data.inputs)
+    group.create_array("outputs", data=data.outputs)
+    group.create_array("config_id", data=np.arange(samples, dtype=np.int64))
+    group.create_array("family", data=data.family)
+    group.create_array("chunk_done", data=np.ones(1, dtype=bool))
+    group.attrs.update(data.attrs | {"chunk_size": samples})
+    return data
