@@ -357,3 +357,43 @@ class DEMSolver:
         return {**self.config.as_dict(), "dt": self.dt, "skin": self.skin, "cell_size": self.cell_size,
                 "particles": self.particles.count, "r_min": self.r_min, "r_max": self.r_max,
                 "normal_damping": self.params.normal_damping, "wall_normal_damping": self.wall_params.normal_damping}
+
+
+def run_with_output(solver: DEMSolver, *, end_time: float, writer=None, snapshots: int = 10,
+                    progress: bool = True, extra_arrays=None) -> int:
+    """Advance ``solver`` to ``end_time`` (s), writing ``snapshots`` evenly spaced snapshots (plus t=0).
+
+    Between outputs the solver runs :meth:`DEMSolver.simulate` chunks (no host syncs); the tqdm bar
+    advances per chunk. ``extra_arrays(solver) -> dict`` adds named arrays to every snapshot.
+    Returns the number of steps taken.
+    """
+    from tqdm import tqdm
+
+    require_positive("end time", end_time, "s")
+    n_steps = max(1, int(math.ceil(end_time / solver.dt - 1e-9)))
+    snapshots = max(1, int(snapshots))
+    # split into output intervals and, inside one, progress chunks of at most ~1 % of the run
+    marks = sorted(set(int(round(k * n_steps / snapshots)) for k in range(1, snapshots + 1)))
+    chunk = max(1, n_steps // 100)
+
+    def output():
+        if writer is None:
+            return
+        data = solver.particles.to_numpy()
+        arrays = {name: data[name] for name in ("x", "v", "omega", "radius", "density", "stream", "alive",
+                                                  "particle_id")}
+        if extra_arrays is not None:
+            arrays.update(extra_arrays(solver))
+        writer.write_snapshot(arrays, time=solver.time, step=solver.steps_done)
+
+    output()
+    done = 0
+    with tqdm(total=n_steps, unit="step", disable=not progress, mininterval=0.5) as bar:
+        for mark in marks:
+            while done < mark:
+                k = min(chunk, mark - done)
+                solver.simulate(k)
+                done += k
+                bar.update(k)
+            output()
+    return n_steps
