@@ -1,0 +1,283 @@
+"""Two-way gas-parcel coupling on a uniform Cartesian grid (host wrappers of the HEL step).
+
+The order inside one HEL step (ARCHITECTURE.md, "The step"):
+
+1. :func:`deposit_parcels`  - solid volume, -drag impulse (the gas momentum source), sum beta V,
+   solids mass and momentum to the cells (``kernels/deposit.py``);
+2. gas step                 - engineer F's ``GasSolver`` (reads ``cell_eps_s``, ``cell_momentum_source``,
+   ``cell_drag_coeff``), not here;
+3. :func:`interpolate_gas`  - gas velocity, modified-pressure gradient and eps_s at the parcels,
+   with the same cloud-in-cell weights (``kernels/interp.py``);
+4. collision acceleration   - :func:`ktgf_collision` (or zero);
+5. :func:`push_parcels`     - eq. (4) with semi-implicit drag; records each parcel's drag impulse,
+   which the next :func:`deposit_parcels` hands to the gas with the opposite sign.
+
+Momentum bookkeeping: the impulse a parcel receives from drag over a step is
+``weight m F_D dt (u_f - v_new)``; the cells receive exactly minus that, spread with weights
+that sum to one, so sum(cell_momentum_source) + sum(parcel drag impulses) = 0 to float64
+round-off.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hel_warp.errors import ConfigError, require_finite, require_positive
+
+
+@dataclass(frozen=True, kw_only=True)
+class GridSpec:
+    """Uniform Cartesian grid: cell (i,j,k) centre = origin + (i+1/2, j+1/2, k+1/2) spacing."""
+
+    origin: tuple[float, float, float]
+    """Lower corner of the grid, m."""
+    spacing: float
+    """Cell size h, m."""
+    shape: tuple[int, int, int]
+    """Cells per axis (nx, ny, nz)."""
+
+    def __post_init__(self):
+        if len(self.origin) != 3 or len(self.shape) != 3:
+            raise ConfigError("grid origin and shape must each have three entries")
+        require_finite("grid origin", np.asarray(self.origin, float))
+        require_positive("grid spacing", self.spacing, "m")
+        if any(int(n) != n or n < 1 for n in self.shape):
+            raise ConfigError(f"grid shape must be three positive integers (got {self.shape!r})")
+
+    @property
+    def cell_volume(self) -> float:
+        return self.spacing**3
+
+    def cell_grid(self):
+        """The kernel-side ``CellGrid`` struct."""
+        from kernels.interp import make_cell_grid
+
+        return make_cell_grid(self.origin, self.spacing, self.shape)
+
+    @classmethod
+    def of(cls, grid) -> "GridSpec":
+        """From any grid object with ``origin``, ``spacing`` (or ``h``) and ``shape`` attributes."""
+        spacing = getattr(grid, "spacing", None)
+        if spacing is None:
+            spacing = grid.h
+        return cls(origin=tuple(float(o) for o in grid.origin), spacing=float(spacing),
+                   shape=tuple(int(n) for n in grid.shape))
+
+
+@dataclass(frozen=True, kw_only=True)
+class PushConfig:
+    """Gas properties and drag law seen by the parcels (SI units)."""
+
+    drag: str = "gidaspow"
+    """Drag law: ``schiller-naumann``, ``wen-yu``, ``gidaspow`` (Table 1) or ``ergun``."""
+    fluid_density: float = 1.205
+    """Gas density rho_f, kg/m^3 (air at 20 C)."""
+    fluid_viscosity: float = 1.81e-5
+    """Gas dynamic viscosity mu_f, Pa s (air at 20 C)."""
+    gravity: tuple[float, float, float] = (0.0, 0.0, -9.80665)
+    """Gravitational acceleration, m/s^2."""
+    gidaspow_switch: float = 0.8
+    """Gas fraction at which Gidaspow switches from Ergun (below) to Wen-Yu (above)."""
+    packing: float = 0.63
+    """eps_s seen by the drag law is clipped to this packing limit."""
+
+    def __post_init__(self):
+        from kernels.push import DRAG_LAWS
+
+        if self.drag not in DRAG_LAWS:
+            raise ConfigError(f"unknown drag law {self.drag!r}; choose one of {', '.join(DRAG_LAWS)}")
+        require_positive("fluid_density", self.fluid_density, "kg/m^3")
+        require_positive("fluid_viscosity", self.fluid_viscosity, "Pa s")
+        if len(self.gravity) != 3:
+            raise ConfigError("gravity must have three components (m/s^2)")
+        require_finite("gravity", np.asarray(self.gravity, float))
+        if not 0.0 < self.gidaspow_switch < 1.0:
+            raise ConfigError(f"gidaspow_switch must lie in (0, 1) (got {self.gidaspow_switch})")
+        if not 0.0 < self.packing < 1.0:
+            raise ConfigError(f"packing must lie in (0, 1) (got {self.packing})")
+
+    def params(self, dt: float):
+        """The kernel-side ``PushParams`` for time step ``dt`` (s)."""
+        import warp as wp
+
+        from kernels.push import DRAG_LAWS, PushParams
+
+        require_positive("dt", dt, "s")
+        p = PushParams()
+        p.gravity = wp.vec3(*[float(g) for g in self.gravity])
+        p.fluid_density = float(self.fluid_density)
+        p.fluid_viscosity = float(self.fluid_viscosity)
+        p.drag_law = int(DRAG_LAWS[self.drag])
+        p.gidaspow_switch = float(self.gidaspow_switch)
+        p.eps_s_max = float(self.packing)
+        p.dt = float(dt)
+        return p
+
+
+@dataclass
+class CouplingFields:
+    """Cell and parcel arrays of the coupling, allocated once (Warp arrays on one device).
+
+    Cell fields (shape = grid shape):
+        solid_volume: sum weight V_p w, m^3, float64.
+        momentum_source: N s over the step given to the gas (= -sum drag impulse w), vec3d.
+        drag_coeff: sum beta V = sum weight m_p F_D w, kg/s, float64.
+        solid_mass: kg, float64.  solid_momentum: kg m/s, vec3d.
+        eps_s: solid volume fraction, float32.  solid_velocity: mass-averaged, m/s, vec3.
+        p_s: granular pressure, Pa; theta: granular temperature m^2/s^2; g0; mu_s, mu_fric Pa s;
+        grad_p_s: Pa/m, vec3 (KTGF collision model only).
+    Parcel fields (shape = capacity):
+        u_f: gas velocity at the parcel, m/s; grad_p: modified-pressure gradient, Pa/m;
+        eps_s: solid fraction at the parcel; a_coll: collision acceleration, m/s^2;
+        drag_impulse: impulse of drag on the parcel over the last push, N s, vec3d;
+        drag_coeff: weight m_p F_D, kg/s, float64.
+    """
+
+    cell_solid_volume: object
+    cell_momentum_source: object
+    cell_drag_coeff: object
+    cell_solid_mass: object
+    cell_solid_momentum: object
+    cell_eps_s: object
+    cell_solid_velocity: object
+    cell_p_s: object
+    cell_theta: object
+    cell_g0: object
+    cell_mu_s: object
+    cell_mu_fric: object
+    cell_grad_p_s: object
+    parcel_u_f: object
+    parcel_grad_p: object
+    parcel_eps_s: object
+    parcel_a_coll: object
+    parcel_drag_impulse: object
+    parcel_drag_coeff: object
+
+    @classmethod
+    def allocate(cls, grid: GridSpec, capacity: int, *, device=None) -> "CouplingFields":
+        import warp as wp
+
+        shape = tuple(int(n) for n in grid.shape)
+
+        def cells(dtype):
+            return wp.zeros(shape, dtype=dtype, device=device)
+
+        def parcels(dtype):
+            return wp.zeros(int(capacity), dtype=dtype, device=device)
+
+        return cls(
+            cell_solid_volume=cells(wp.float64), cell_momentum_source=cells(wp.vec3d),
+            cell_drag_coeff=cells(wp.float64), cell_solid_mass=cells(wp.float64),
+            cell_solid_momentum=cells(wp.vec3d), cell_eps_s=cells(wp.float32),
+            cell_solid_velocity=cells(wp.vec3), cell_p_s=cells(wp.float32), cell_theta=cells(wp.float32),
+            cell_g0=cells(wp.float32), cell_mu_s=cells(wp.float32), cell_mu_fric=cells(wp.float32),
+            cell_grad_p_s=cells(wp.vec3),
+            parcel_u_f=parcels(wp.vec3), parcel_grad_p=parcels(wp.vec3), parcel_eps_s=parcels(wp.float32),
+            parcel_a_coll=parcels(wp.vec3), parcel_drag_impulse=parcels(wp.vec3d),
+            parcel_drag_coeff=parcels(wp.float64))
+
+
+def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields) -> None:
+    """Step 1: parcels -> cells (volume, momentum source from the last push, sum beta V, solids momentum)."""
+    from kernels.deposit import deposit, finish_cells
+
+    p = particles
+    deposit(grid.cell_grid(), p.x, p.v, p.radius, p.density, p.weight, p.alive, fields.parcel_drag_impulse,
+            fields.parcel_drag_coeff, cell_solid_volume=fields.cell_solid_volume,
+            cell_momentum_source=fields.cell_momentum_source, cell_drag_coeff=fields.cell_drag_coeff,
+            cell_solid_mass=fields.cell_solid_mass, cell_solid_momentum=fields.cell_solid_momentum)
+    finish_cells(grid.cell_volume, fields.cell_solid_volume, fields.cell_solid_mass, fields.cell_solid_momentum,
+                 cell_eps_s=fields.cell_eps_s, cell_solid_velocity=fields.cell_solid_velocity)
+
+
+def interpolate_gas(grid: GridSpec, particles, cell_velocity, cell_grad_p, fields: CouplingFields) -> None:
+    """Step 3: gas velocity, grad p' and eps_s at the parcels (same weights as the deposit)."""
+    from kernels.interp import interpolate_scalar, interpolate_vec3
+
+    g = grid.cell_grid()
+    interpolate_vec3(g, particles.x, cell_velocity, fields.parcel_u_f)
+    interpolate_vec3(g, particles.x, cell_grad_p, fields.parcel_grad_p)
+    interpolate_scalar(g, particles.x, fields.cell_eps_s, fields.parcel_eps_s)
+
+
+def ktgf_collision(grid: GridSpec, particles, fields: CouplingFields, params) -> None:
+    """Step 4 (KTGF): cell Theta, p_s from the deposited solids; a_coll = -grad p_s / (eps_s rho_p) at parcels.
+
+    ``params``: a ``kernels.ktgf.KtgfParams`` (see ``make_ktgf_params``). Needs :func:`deposit_parcels` first.
+    """
+    from kernels.ktgf import cell_gradient, collision_acceleration, ktgf_cells
+
+    ktgf_cells(params, grid.spacing, fields.cell_eps_s, fields.cell_solid_velocity, cell_g0=fields.cell_g0,
+               cell_theta=fields.cell_theta, cell_p_s=fields.cell_p_s, cell_mu_s=fields.cell_mu_s,
+               cell_mu_fric=fields.cell_mu_fric)
+    cell_gradient(grid.spacing, fields.cell_p_s, fields.cell_grad_p_s)
+    collision_acceleration(grid.cell_grid(), params.eps_s_min, particles.x, particles.density,
+                           fields.cell_grad_p_s, fields.cell_eps_s, fields.parcel_a_coll)
+
+
+def push_parcels(particles, fields: CouplingFields, push_params) -> None:
+    """Step 5: eq. (4) in place on ``particles.x``/``particles.v``; records drag impulses for the next deposit."""
+    from kernels.push import push
+
+    p = particles
+    push(push_params, p.x, p.v, p.radius, p.density, p.weight, p.alive, fields.parcel_u_f, fields.parcel_grad_p,
+         fields.parcel_eps_s, fields.parcel_a_coll, fields.parcel_drag_impulse, fields.parcel_drag_coeff)
+
+
+def single_particle_response(*, diameter: float, density: float, config: PushConfig, dt: float,
+                             max_time: float | None = None, tolerance: float = 1e-7, device=None) -> dict:
+    """One particle released from rest in still gas, integrated with the engine's push kernel.
+
+    Returns ``terminal_velocity`` (m/s, speed once a step changes it by less than ``tolerance``
+    relative, or float32 stagnation), ``response_time`` (s, first time the speed reaches
+    1 - 1/e = 63.2 % of the terminal speed, interpolated linearly within the step), ``steps``,
+    ``converged``. Still gas: u_f = 0 and grad p' = 0 (hydrostatic pressure is in p' already).
+    """
+    import warp as wp
+
+    from hel_warp.particles import Particles
+
+    require_positive("diameter", diameter, "m")
+    require_positive("density", density, "kg/m^3")
+    require_positive("dt", dt, "s")
+    g = float(np.linalg.norm(config.gravity))
+    if not g > 0:
+        raise ConfigError("gravity must be non-zero to settle a particle")
+    if density <= config.fluid_density:
+        raise ConfigError(f"particle density {density} kg/m^3 must exceed the gas density "
+                          f"{config.fluid_density} kg/m^3 for the particle to settle")
+    # Generous end time: 40 Stokes response times bound the approach from rest for any Re.
+    tau_stokes = density * diameter**2 / (18.0 * config.fluid_viscosity)
+    t_end = max_time if max_time is not None else 40.0 * tau_stokes
+    n_steps_max = int(math.ceil(t_end / dt))
+    chunk = int(min(max(n_steps_max, 1), 2000))
+
+    parts = Particles.from_numpy(np.zeros((1, 3)), 0.5 * diameter, density=density, check_overlap=False,
+                                 device=device)
+    fields = CouplingFields.allocate(GridSpec(origin=(0, 0, 0), spacing=1.0, shape=(1, 1, 1)), 1, device=device)
+    params = config.params(dt)
+    history = wp.zeros(chunk, dtype=wp.vec3, device=parts.device)
+    speeds = [np.zeros(1)]
+    done = 0
+    converged = False
+    while done < n_steps_max and not converged:
+        n = min(chunk, n_steps_max - done)
+        for s in range(n):
+            push_parcels(parts, fields, params)
+            wp.copy(history, parts.v, dest_offset=s, count=1)
+        block = np.linalg.norm(history.numpy()[:n].astype(np.float64), axis=1)
+        speeds.append(block)
+        done += n
+        allv = np.concatenate(speeds[-2:])
+        change = np.abs(np.diff(allv[-3:]))
+        converged = bool(allv[-1] > 0 and np.all(change <= tolerance * allv[-1]))
+    speed = np.concatenate(speeds)
+    v_term = float(speed[-1])
+    target = (1.0 - math.exp(-1.0)) * v_term
+    k = int(np.argmax(speed >= target))
+    t_resp = dt * ((k - 1) + (target - speed[k - 1]) / (speed[k] - speed[k - 1])) if k > 0 else 0.0
+    return {"terminal_velocity": v_term, "response_time": float(t_resp), "steps": int(done),
+            "converged": converged}
