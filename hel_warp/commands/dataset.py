@@ -53,6 +53,8 @@ def add_parser(subparsers):
                    help="largest impact offset b/(r1+r2) of oblique impacts, in [0, 1) (default 0.95)")
     p.add_argument("--min-normal-speed", type=finite_float, default=0.05,
                    help="smallest normal approach speed, m/s (default 0.05)")
+    p.add_argument("--dt-factor", type=finite_float, default=0.5,
+                   help="DEM time step as a fraction of the eq. (12) stable step, in (0, 1] (default 0.5)")
     add_material_options(p)
     p.add_argument("--restitution", type=finite_float, default=0.9, help="normal restitution e (default 0.9)")
     p.add_argument("--friction", type=finite_float, default=0.3, help="sliding friction mu (default 0.3)")
@@ -87,7 +89,7 @@ def run(args) -> int:
     spec = make_spec(samples=args.samples, seed=args.seed, diameter=args.diameter, diameter_std=args.diameter_std,
                      density_std=args.density_std, material=material, contact_model=args.model,
                      chunk_size=chunk_size, central_fraction=args.central_fraction, max_offset=args.max_offset,
-                     min_normal_speed=args.min_normal_speed)
+                     min_normal_speed=args.min_normal_speed, dt_factor=args.dt_factor)
     summary = build_dataset(args.out, spec, scheduler=args.scheduler, overwrite=args.overwrite,
                             progress=not args.no_progress and not args.json)
     emit(summary, args.json, [
