@@ -241,3 +241,229 @@ def rolling_torque(p: ContactParams, n: wp.vec3, omega_rel: wp.vec3, fn: float):
     if p.rolling_friction <= 0.0 or w_len <= 0.0:
         return wp.vec3(0.0)
     return -p.rolling_friction * p.radius_eff * fn * (w_t / w_len)
+
+
+# =========================================================================== isolated-pair runner
+# One thread per independent pair (sphere–sphere or sphere–wall), one velocity-Verlet step per
+# launch. Used by ``hel_warp.impact.simulate_pairs``; host code calls the wrappers below.
+
+
+@wp.struct
+class PairBodies:
+    """Fixed data of N isolated pairs (arrays of shape (N,))."""
+
+    kind: wp.array(dtype=wp.int32)
+    """TARGET_SPHERE or TARGET_WALL."""
+    params: wp.array(dtype=ContactParams)
+    """Contact parameters of each pair."""
+    radius1: wp.array(dtype=float)
+    """m."""
+    radius2: wp.array(dtype=float)
+    """m (unused for a wall)."""
+    inv_mass1: wp.array(dtype=float)
+    """1/kg."""
+    inv_mass2: wp.array(dtype=float)
+    """1/kg (0 for a wall)."""
+    inv_inertia1: wp.array(dtype=float)
+    """1/(kg m^2), sphere: 1/(2/5 m r^2)."""
+    inv_inertia2: wp.array(dtype=float)
+    """1/(kg m^2) (0 for a wall)."""
+    wall_normal: wp.array(dtype=wp.vec3)
+    """Unit normal of the wall plane pointing towards sphere 1 (unused for sphere pairs)."""
+    dt: wp.array(dtype=float)
+    """Time step of each pair, s."""
+
+
+@wp.struct
+class PairState:
+    """Changing data of N pairs, updated in place by ``step_pairs``."""
+
+    x1: wp.array(dtype=wp.vec3)
+    """Centre of sphere 1, m (in the pair's own frame)."""
+    x2: wp.array(dtype=wp.vec3)
+    """Centre of sphere 2, or a point of the wall plane, m."""
+    v1: wp.array(dtype=wp.vec3)
+    v2: wp.array(dtype=wp.vec3)
+    omega1: wp.array(dtype=wp.vec3)
+    omega2: wp.array(dtype=wp.vec3)
+    force1: wp.array(dtype=wp.vec3)
+    """Contact force on body 1 at the current positions, N (body 2 gets the opposite)."""
+    torque1: wp.array(dtype=wp.vec3)
+    torque2: wp.array(dtype=wp.vec3)
+    shear: wp.array(dtype=wp.vec3)
+    """Tangential displacement history, m."""
+
+
+@wp.struct
+class PairRecord:
+    """Per-pair measurements, updated in place by ``step_pairs``."""
+
+    steps: wp.array(dtype=wp.int32)
+    done: wp.array(dtype=wp.int32)
+    """1 once the pair has separated after contact, or is moving apart without having touched."""
+    touched: wp.array(dtype=wp.int32)
+    time_touch: wp.array(dtype=float)
+    """First-touch instant, s, interpolated linearly within the step."""
+    time_separation: wp.array(dtype=float)
+    """Separation instant, s, interpolated linearly within the step."""
+    overlap_samples: wp.array(dtype=wp.vec3)
+    """Last three overlap samples (oldest first), m."""
+    force_samples: wp.array(dtype=wp.vec3)
+    """Last three normal-force samples (oldest first), N."""
+    peak_overlap: wp.array(dtype=float)
+    peak_normal_force: wp.array(dtype=float)
+
+
+@wp.func
+def parabolic_peak(samples: wp.vec3, current_peak: float):
+    """Max of ``current_peak`` and the vertex of the parabola through 3 equally spaced samples
+    whose middle one is a local maximum (else the newest sample)."""
+    y0 = samples[0]
+    y1 = samples[1]
+    y2 = samples[2]
+    peak = wp.max(current_peak, y2)
+    curvature = 2.0 * y1 - y0 - y2
+    if y1 >= y0 and y1 > y2 and curvature > 0.0:
+        peak = wp.max(peak, y1 + (y2 - y0) * (y2 - y0) / (8.0 * curvature))
+    return peak
+
+
+@wp.func
+def crossing_time(t_prev: float, dt: float, value_prev: float, value_now: float):
+    """Instant within [t_prev, t_prev + dt] where a linearly interpolated quantity crosses zero."""
+    return t_prev + dt * value_prev / (value_prev - value_now)
+
+
+@wp.kernel
+def build_pair_params(model: wp.array(dtype=wp.int32), kind: wp.array(dtype=wp.int32),
+                      youngs1: wp.array(dtype=float), poisson1: wp.array(dtype=float),
+                      youngs2: wp.array(dtype=float), poisson2: wp.array(dtype=float),
+                      radius1: wp.array(dtype=float), radius2: wp.array(dtype=float),
+                      mass1: wp.array(dtype=float), mass2: wp.array(dtype=float),
+                      normal_damping: wp.array(dtype=float), linear_stiffness: wp.array(dtype=float),
+                      friction: wp.array(dtype=float), tangential_damping: wp.array(dtype=float),
+                      rolling_friction: wp.array(dtype=float),
+                      # outputs
+                      params: wp.array(dtype=ContactParams)):
+    i = wp.tid()
+    params[i] = pair_params(youngs1[i], poisson1[i], youngs2[i], poisson2[i], radius1[i], radius2[i],
+                            mass1[i], mass2[i], kind[i], model[i], normal_damping[i], linear_stiffness[i],
+                            friction[i], tangential_damping[i], rolling_friction[i])
+
+
+@wp.kernel
+def step_pairs(bodies: PairBodies,
+               # outputs (updated in place)
+               state: PairState, record: PairRecord):
+    """One velocity-Verlet step of each unfinished pair (translation and rotation, no gravity).
+
+    kick v(t+dt/2) = v + F dt/(2m); drift x += v(t+dt/2) dt; force at x(t+dt) from the slip
+    v_rel(t+dt/2) dt and the dashpot velocity predicted at t+dt (v(t+dt/2) + F(t) dt/(2m),
+    second order); kick v(t+dt) = v(t+dt/2) + F(t+dt) dt/(2m). Same for omega with torques.
+    """
+    i = wp.tid()
+    if record.done[i] != 0:
+        return
+    dt = bodies.dt[i]
+    half = 0.5 * dt
+    p = bodies.params[i]
+    is_wall = bodies.kind[i] == TARGET_WALL
+    r1 = bodies.radius1[i]
+    r2 = bodies.radius2[i]
+    im1 = bodies.inv_mass1[i]
+    im2 = bodies.inv_mass2[i]
+    ii1 = bodies.inv_inertia1[i]
+    ii2 = bodies.inv_inertia2[i]
+
+    f_old = state.force1[i]
+    tq1_old = state.torque1[i]
+    tq2_old = state.torque2[i]
+    v1h = state.v1[i] + f_old * (half * im1)
+    v2h = state.v2[i] - f_old * (half * im2)
+    w1h = state.omega1[i] + tq1_old * (half * ii1)
+    w2h = state.omega2[i] + tq2_old * (half * ii2)
+    x1 = state.x1[i] + v1h * dt
+    x2 = state.x2[i] + v2h * dt
+    state.x1[i] = x1
+    state.x2[i] = x2
+
+    n = wp.vec3(0.0)
+    overlap = float(0.0)
+    if is_wall:
+        n = -bodies.wall_normal[i]
+        overlap = r1 + wp.dot(x1 - x2, n)
+    else:
+        d = x2 - x1
+        dist = wp.length(d)
+        n = d / dist
+        overlap = r1 + r2 - dist
+
+    force1 = wp.vec3(0.0)
+    torque1 = wp.vec3(0.0)
+    torque2 = wp.vec3(0.0)
+    shear = wp.vec3(0.0)
+    fn = float(0.0)
+    if overlap > 0.0:
+        arm1 = (r1 - 0.5 * overlap) * n
+        arm2 = -(r2 - 0.5 * overlap) * n
+        if is_wall:
+            arm2 = wp.vec3(0.0)
+        v1p = v1h + f_old * (half * im1)
+        v2p = v2h - f_old * (half * im2)
+        w1p = w1h + tq1_old * (half * ii1)
+        w2p = w2h + tq2_old * (half * ii2)
+        v_rel_half = v1h + wp.cross(w1h, arm1) - v2h - wp.cross(w2h, arm2)
+        v_rel_pred = v1p + wp.cross(w1p, arm1) - v2p - wp.cross(w2p, arm2)
+        force1, shear, fn = contact_force_split(n, overlap, v_rel_pred, v_rel_half * dt, state.shear[i], p)
+        roll = rolling_torque(p, n, w1p - w2p, fn)
+        torque1 = wp.cross(arm1, force1) + roll
+        torque2 = -wp.cross(arm2, force1) - roll
+    state.shear[i] = shear
+    state.force1[i] = force1
+    state.torque1[i] = torque1
+    state.torque2[i] = torque2
+    state.v1[i] = v1h + force1 * (half * im1)
+    state.v2[i] = v2h - force1 * (half * im2)
+    state.omega1[i] = w1h + torque1 * (half * ii1)
+    state.omega2[i] = w2h + torque2 * (half * ii2)
+
+    # records
+    step = record.steps[i]
+    t_prev = float(step) * dt
+    record.steps[i] = step + 1
+    ov = record.overlap_samples[i]
+    overlap_prev = ov[2]
+    ov = wp.vec3(ov[1], ov[2], overlap)
+    record.overlap_samples[i] = ov
+    fs = record.force_samples[i]
+    fs = wp.vec3(fs[1], fs[2], fn)
+    record.force_samples[i] = fs
+    if record.touched[i] == 0:
+        if overlap > 0.0:
+            record.touched[i] = 1
+            record.time_touch[i] = crossing_time(t_prev, dt, overlap_prev, overlap)
+        elif wp.dot(state.v1[i] - state.v2[i], n) <= 0.0:
+            record.done[i] = 1  # moving apart without contact: it never touches
+    else:
+        record.peak_overlap[i] = parabolic_peak(ov, record.peak_overlap[i])
+        record.peak_normal_force[i] = parabolic_peak(fs, record.peak_normal_force[i])
+        if overlap <= 0.0:
+            record.time_separation[i] = crossing_time(t_prev, dt, overlap_prev, overlap)
+            record.done[i] = 1
+
+
+def launch_build_pair_params(arrays: dict, params, device=None) -> None:
+    """Fill ``params`` (wp.array of ContactParams) from per-pair Warp arrays named as the kernel inputs."""
+    wp.launch(build_pair_params, dim=params.shape[0], device=device,
+              inputs=[arrays[name] for name in (
+                  "model", "kind", "youngs1", "poisson1", "youngs2", "poisson2", "radius1", "radius2",
+                  "mass1", "mass2", "normal_damping", "linear_stiffness", "friction",
+                  "tangential_damping", "rolling_friction")],
+              outputs=[params])
+
+
+def launch_step_pairs(bodies: PairBodies, state: PairState, record: PairRecord, n_pairs: int,
+                      steps: int = 1, device=None) -> None:
+    """Advance every unfinished pair by ``steps`` velocity-Verlet steps (no host synchronisation)."""
+    for _ in range(steps):
+        wp.launch(step_pairs, dim=n_pairs, inputs=[bodies], outputs=[state, record], device=device)
