@@ -11,9 +11,10 @@ weights the gas velocity is read with):
 
 then ``cell_eps_s = cell_solid_volume / h^3`` and the mass-averaged solids velocity.
 
-Accumulation is in float64 with atomics. On the CPU device launches run in a fixed order
-and the result is bit-identical between runs; on a GPU the order of float64 additions may
-vary, which changes results at the 1e-16 relative level only (tested twice-run on CPU).
+Accumulation is in float64 with atomics, and this module compiles with Warp's deterministic
+atomics (``DeterministicMode.RUN_TO_RUN``, Warp >= 1.19): the additions into a cell are done in
+an order that does not depend on thread scheduling, so a rerun on the same device is
+bit-identical (CONVENTIONS rule 10; tested by running twice).
 """
 
 from __future__ import annotations
@@ -21,6 +22,9 @@ from __future__ import annotations
 import warp as wp
 
 from kernels.interp import CellGrid, cic_corner, cic_stencil
+
+if hasattr(wp.config, "DeterministicMode"):
+    wp.set_module_options({"deterministic": wp.config.DeterministicMode.RUN_TO_RUN})
 
 
 @wp.kernel

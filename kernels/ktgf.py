@@ -244,26 +244,28 @@ def collision_acceleration_kernel(
 def closures_kernel(
     params: KtgfParams,
     eps_s: wp.array(dtype=float),
+    theta: wp.array(dtype=float),
     tr_d: wp.array(dtype=float),
     tr_d2: wp.array(dtype=float),
     i2d: wp.array(dtype=float),
-    # outputs: rows g0, theta, p_s, mu_s, lambda_s, mu_fric
+    # outputs: rows g0, algebraic theta (from tr_d, tr_d2), then at the given theta: p_s, mu_s, lambda_s, mu_fric
     out: wp.array2d(dtype=float),
 ):
     """Point evaluation of the closures (tests, diagnostics)."""
     tid = wp.tid()
     eps = eps_s[tid]
+    th = theta[tid]
     g0 = radial_distribution_lun(eps, params.packing)
-    theta = algebraic_theta(eps, params.particle_density, params.particle_diameter, params.restitution, g0,
-                            tr_d[tid], tr_d2[tid])
     out[0, tid] = g0
-    out[1, tid] = theta
-    out[2, tid] = solids_pressure_lun(eps, params.particle_density, params.restitution, g0, theta)
+    out[1, tid] = algebraic_theta(eps, params.particle_density, params.particle_diameter, params.restitution, g0,
+                                  tr_d[tid], tr_d2[tid])
+    p_s = solids_pressure_lun(eps, params.particle_density, params.restitution, g0, th)
+    out[2, tid] = p_s
     out[3, tid] = granular_viscosity_gidaspow(eps, params.particle_density, params.particle_diameter,
-                                              params.restitution, g0, theta)
+                                              params.restitution, g0, th)
     out[4, tid] = bulk_viscosity_lun(eps, params.particle_density, params.particle_diameter, params.restitution,
-                                     g0, theta)
-    out[5, tid] = schaeffer_viscosity(eps, params.friction_packing, out[2, tid], params.friction_angle, i2d[tid])
+                                     g0, th)
+    out[5, tid] = schaeffer_viscosity(eps, params.friction_packing, p_s, params.friction_angle, i2d[tid])
 
 
 # ---------------------------------------------------------------- launch wrappers
@@ -308,7 +310,8 @@ def collision_acceleration(grid: CellGrid, eps_s_min: float, particle_x, particl
               outputs=[parcel_a_coll])
 
 
-def eval_closures(params: KtgfParams, eps_s, tr_d, tr_d2, i2d, out):
-    """g0, Theta, p_s, mu_s, lambda_s, mu_fric for arrays of eps_s, trace(D), D:D, I_2D; ``out`` shape (6, n)."""
+def eval_closures(params: KtgfParams, eps_s, theta, tr_d, tr_d2, i2d, out):
+    """Rows of ``out`` (6, n): g0, algebraic Theta(tr_d, tr_d2), and at the given ``theta``: p_s, mu_s,
+    lambda_s, Schaeffer mu_fric(i2d)."""
     wp.launch(closures_kernel, dim=eps_s.shape[0], device=eps_s.device,
-              inputs=[params, eps_s, tr_d, tr_d2, i2d], outputs=[out])
+              inputs=[params, eps_s, theta, tr_d, tr_d2, i2d], outputs=[out])

@@ -52,6 +52,8 @@ def run(args) -> int:
     import warp as wp
 
     wp.config.quiet = True
+    if hasattr(wp, "LOG_WARNING"):
+        wp.config.log_level = wp.LOG_WARNING
     from hel_warp.coupling import PushConfig, single_particle_response
 
     config = PushConfig(drag=args.drag, fluid_density=args.gas_density, fluid_viscosity=args.gas_viscosity,

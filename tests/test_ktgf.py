@@ -1,0 +1,127 @@
+"""KTGF closures (Table 1) against values worked out by hand from the published formulas, their limits,
+the algebraic granular temperature as the root of the local energy balance, and the MP-PIC
+collision acceleration -grad(p_s)/(eps_s rho_p)."""
+
+import math
+
+import numpy as np
+import pytest
+import warp as wp
+
+from kernels import ktgf
+
+RHO_S, D, E, EPS_MAX = 1000.0, 315e-6, 0.9, 0.63
+
+
+def closures(eps_s, theta=0.01, tr_d=0.0, tr_d2=0.0, i2d=0.0):
+    """Evaluate the kernel-side closures at points; returns (6, n) float64 rows (see eval_closures)."""
+    eps_s = np.atleast_1d(np.asarray(eps_s, np.float32))
+    n = eps_s.size
+
+    def arr(v):
+        return wp.array(np.broadcast_to(np.asarray(v, np.float32), (n,)).copy(), dtype=float)
+
+    out = wp.zeros((6, n), dtype=float)
+    params = ktgf.make_ktgf_params(particle_diameter=D, particle_density=RHO_S, restitution=E, packing=EPS_MAX)
+    ktgf.eval_closures(params, arr(eps_s), arr(theta), arr(tr_d), arr(tr_d2), arr(i2d), out)
+    return out.numpy().astype(np.float64)
+
+
+def test_closures_match_hand_computation():
+    # eps_s = 0.3, rho_s = 1000, d = 315e-6 m, e = 0.9, eps_max = 0.63, Theta = 0.01 m^2/s^2.
+    # g0 = 1/(1 - (0.3/0.63)^(1/3)) = 1/(1 - 0.780897) = 4.564057          (Ogawa / Lun)
+    # p_s = 0.3*1000*0.01 + 2*1000*1.9*0.09*4.564057*0.01 = 3.0 + 15.609073 = 18.609073 Pa   (Lun 1984)
+    # mu_col = 0.8*0.09*1000*315e-6*4.564057*1.9*sqrt(0.01/pi) = 0.0110962 Pa s
+    # mu_kin = 10*1000*315e-6*sqrt(0.01 pi)/(96*1.9*4.564057)*(1 + 0.8*4.564057*0.3*1.9)^2 = 0.00636725
+    # mu_s = 0.0174634 Pa s                                                    (Gidaspow 1994)
+    # lambda_s = 4/3*0.09*1000*315e-6*4.564057*1.9*sqrt(0.01/pi) = 0.0184936 Pa s   (Lun 1984)
+    g0, _, p_s, mu_s, lam, mu_fr = closures(0.3, theta=0.01)[:, 0]
+    assert g0 == pytest.approx(4.564057, rel=2e-6)
+    assert p_s == pytest.approx(18.609073, rel=1e-5)
+    assert mu_s == pytest.approx(0.0174634, rel=1e-5)
+    assert lam == pytest.approx(0.0184936, rel=1e-5)
+    assert mu_fr == 0.0  # below the friction packing 0.61
+
+
+def test_algebraic_theta_simple_shear_hand_value():
+    # Simple shear du_x/dy = 10 1/s: D_xy = D_yx = 5, tr D = 0, D:D = 50. Then the MFIX root reduces to
+    # Theta = 2 K3 D:D / (K4 eps_s), with (eps_s = 0.3, g0 = 4.564057)
+    # K3 = d rho/2 {sqrt(pi)/(3(3-e)) [ (3e+1)/2 + 0.4(1+e)(3e-1) eps g0 ] + 8 eps g0 (1+e)/(5 sqrt(pi))} = 0.530236
+    # K4 = 12 (1-e^2) rho g0/(d sqrt(pi)) = 1.8638046e7
+    # Theta = 2*0.530236*50/(1.8638046e7*0.3) = 9.48304e-6 m^2/s^2
+    theta = closures(0.3, tr_d=0.0, tr_d2=50.0)[1, 0]
+    assert theta == pytest.approx(9.48304e-6, rel=1e-5)
+
+
+@pytest.mark.parametrize("eps_s,tr_d,tr_d2", [(0.05, 0.0, 200.0), (0.3, -4.0, 60.0), (0.3, 3.0, 40.0),
+                                              (0.55, -1.0, 5.0), (0.001, 0.5, 800.0)])
+def test_algebraic_theta_zeroes_energy_balance(eps_s, tr_d, tr_d2):
+    # Syamlal et al. (1993): 0 = -p_s trD + lambda_s trD^2 + 2 mu_s D:D - gamma with p_s = K1 eps^2 Theta,
+    # lambda_s = K2 eps sqrt(Theta), mu_s = K3 eps sqrt(Theta), gamma = K4 eps^2 Theta^1.5 (written here again).
+    theta = closures(eps_s, tr_d=tr_d, tr_d2=tr_d2)[1, 0]
+    assert theta > 0
+    e, rho, d = E, RHO_S, D
+    g0 = 1.0 / (1.0 - (eps_s / EPS_MAX) ** (1.0 / 3.0))
+    sp = math.sqrt(math.pi)
+    k1 = 2 * (1 + e) * rho * g0
+    k3 = d * rho / 2 * (sp / (3 * (3 - e)) * (0.5 * (3 * e + 1) + 0.4 * (1 + e) * (3 * e - 1) * eps_s * g0)
+                        + 8 * eps_s * g0 * (1 + e) / (5 * sp))
+    k2 = 4 * d * rho * (1 + e) * eps_s * g0 / (3 * sp) - 2.0 / 3.0 * k3
+    k4 = 12 * (1 - e * e) * rho * g0 / (d * sp)
+    s = math.sqrt(theta)
+    production = -k1 * eps_s**2 * theta * tr_d + k2 * eps_s * s * tr_d**2 + 2 * k3 * eps_s * s * tr_d2
+    dissipation = k4 * eps_s**2 * theta**1.5
+    # float32 kernel: residual relative to the dissipation at the float32 level
+    assert abs(production - dissipation) <= 1e-4 * dissipation
+
+
+def test_radial_distribution_diverges_at_packing():
+    eps = EPS_MAX * (1.0 - np.array([1e-1, 1e-2, 1e-3, 1e-4]))
+    g0 = closures(eps)[0]
+    assert np.all(np.diff(g0) > 0)
+    # 1/(1 - (1-x)^(1/3)) ~ 3/x for small x: 3e4 at x = 1e-4
+    assert g0[-1] == pytest.approx(3.0 / 1e-4, rel=0.02)
+    assert closures(1e-9)[0, 0] == pytest.approx(1.0, abs=2e-3)  # dilute: g0 -> 1 (1/(1 - 1.6e-3))
+
+
+def test_kinetic_pressure_limit():
+    # eps_s -> 0: p_s -> eps_s rho_s Theta (collisional part ~ eps_s^2)
+    for eps in (1e-4, 1e-6):
+        p_s = closures(eps, theta=0.5)[2, 0]
+        assert p_s / (eps * RHO_S * 0.5) == pytest.approx(1.0, rel=2 * (1 + E) * eps * 1.1 + 1e-6)
+
+
+def test_schaeffer_zero_below_friction_packing_and_hand_value_above():
+    # I_2D = 25 (simple shear D_xy = 5), phi = 30 deg, Theta = 0.01
+    rows = closures([0.5, 0.61, 0.62], theta=0.01, i2d=25.0)
+    assert rows[5, 0] == 0.0 and rows[5, 1] == 0.0
+    # eps 0.62: g0 = 1/(1 - (0.62/0.63)^(1/3)) = 187.9964; p_s = 0.62*1000*0.01*(1 + 2*1.9*0.62*187.9964)
+    #   = 2752.302 Pa; mu_fr = p_s sin30/(2*5) = 137.615 Pa s
+    assert rows[2, 2] == pytest.approx(2752.302, rel=2e-4)   # float32 near packing: g0 loses digits
+    assert rows[5, 2] == pytest.approx(137.615, rel=2e-4)
+
+
+def test_collision_acceleration_is_minus_grad_ps_over_eps_rho():
+    from kernels.interp import make_cell_grid
+
+    shape = (4, 4, 4)
+    grad = np.zeros(shape + (3,), np.float32)
+    grad[...] = (120.0, -30.0, 7.5)  # Pa/m, uniform
+    eps = np.full(shape, 0.2, np.float32)
+    x = wp.array(np.array([[1.3e-3, 2.1e-3, 0.7e-3], [3.9e-3, 0.2e-3, 2.5e-3]], np.float32), dtype=wp.vec3)
+    rho = wp.array(np.array([1000.0, 2500.0], np.float32), dtype=float)
+    out = wp.zeros(2, dtype=wp.vec3)
+    ktgf.collision_acceleration(make_cell_grid((0, 0, 0), 1e-3, shape), 1e-8, x, rho,
+                                wp.array(grad, dtype=wp.vec3), wp.array(eps, dtype=float), out)
+    expect = -np.array([120.0, -30.0, 7.5])[None, :] / (0.2 * np.array([1000.0, 2500.0])[:, None])
+    assert np.allclose(out.numpy(), expect, rtol=1e-6)
+
+
+def test_cell_pressure_gradient_of_linear_field_is_exact():
+    shape = (5, 4, 3)
+    h = 0.01
+    i, j, k = np.meshgrid(*[np.arange(n) for n in shape], indexing="ij")
+    field = (2.0 * i - 3.0 * j + 0.5 * k).astype(np.float32) * h  # gradient (2, -3, 0.5)
+    out = wp.zeros(shape, dtype=wp.vec3)
+    ktgf.cell_gradient(h, wp.array(field, dtype=float), out)
+    assert np.allclose(out.numpy(), [2.0, -3.0, 0.5], rtol=1e-5)
