@@ -300,11 +300,11 @@ def _content_hash(group, spec: DatasetSpec) -> str:
 
 def build_dataset(out: str | Path, spec: DatasetSpec, *, scheduler: str | None = None, overwrite: bool = False,
                   progress: bool = True, runner: PairRunner | None = None,
-                  after_chunk: Callable[[int], None] | None = None) -> dict:
+                  after_chunk: Callable[[int], None] | None = None, scheduler_timeout: float = 30.0) -> dict:
     """Write (or resume) the data set of ``spec`` at ``out``; return a summary dict.
 
     ``scheduler``: a Dask distributed scheduler address (chunks computed on its workers);
-    None computes locally. ``runner`` replaces the DEM (tests); ``after_chunk(k)`` is called
+    None computes locally (``scheduler_timeout``: seconds to wait for it). ``runner`` replaces the DEM (tests); ``after_chunk(k)`` is called
     after chunk ``k`` is marked done (a test hook).
     """
     from tqdm import tqdm
@@ -325,7 +325,7 @@ def build_dataset(out: str | Path, spec: DatasetSpec, *, scheduler: str | None =
                 after_chunk(result.k)
 
         if scheduler:
-            _compute_on_dask(scheduler, spec, pending, runner, write)
+            _compute_on_dask(scheduler, spec, pending, runner, write, scheduler_timeout)
         else:
             for k in pending:
                 write(compute_chunk(spec, k, runner))
@@ -344,14 +344,14 @@ def build_dataset(out: str | Path, spec: DatasetSpec, *, scheduler: str | None =
             "resumed": resumed, "dataset_hash": digest, "seconds": time.perf_counter() - t0}
 
 
-def _compute_on_dask(address: str, spec: DatasetSpec, pending: list[int], runner, write) -> None:
+def _compute_on_dask(address: str, spec: DatasetSpec, pending: list[int], runner, write, timeout: float) -> None:
     try:
         from dask.distributed import Client, as_completed
     except ImportError:
         raise ConfigError("--scheduler needs dask distributed: pip install 'hel_warp[dask]' "
                           "(or 'dask[distributed]'), or leave --scheduler out to compute locally") from None
     try:
-        client = Client(address)
+        client = Client(address, timeout=timeout)
     except Exception as exc:  # noqa: BLE001 - connection errors come in many types
         raise ConfigError(f"cannot reach the Dask scheduler at {address!r} ({exc}); check the address") from None
     with client:

@@ -224,3 +224,24 @@ def test_dem_central_rows_restitution(tmp_path):
     g_post = np.sum((ds.outputs[:, 0:3] - ds.outputs[:, 3:6]) * n, axis=1)
     e = spec.material.restitution
     np.testing.assert_allclose(g_post / g_pre, -e, rtol=0.01)
+
+
+def test_dask_scheduler_gives_the_same_bytes(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    spec = small_spec()
+    build_dataset(tmp_path / "local", spec, progress=False, runner=analytic_stand_in)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        summary = build_dataset(tmp_path / "dask", spec, scheduler=cluster.scheduler_address, progress=False,
+                                runner=analytic_stand_in)
+    assert summary["computed_chunks"] == spec.n_chunks
+    for a, b in zip(_arrays(tmp_path / "local"), _arrays(tmp_path / "dask")):
+        assert np.array_equal(a, b)
+
+
+def test_unreachable_scheduler_is_a_clear_error(tmp_path):
+    pytest.importorskip("distributed")
+    from hel_warp.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="Dask scheduler"):
+        build_dataset(tmp_path / "ds", small_spec(), scheduler="tcp://127.0.0.1:1", progress=False,
+                      runner=analytic_stand_in, scheduler_timeout=1.0)

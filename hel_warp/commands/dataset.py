@@ -78,9 +78,12 @@ def _stored_chunk_size(out: str) -> int | None:
 
 
 def run(args) -> int:
+    import warp as wp
+
     from hel_warp.material import Material
     from surrogate.dataset import DEFAULT_CHUNK_SIZE, build_dataset, make_spec
 
+    wp.config.quiet = True  # no per-module load lines between the progress bar and the summary
     chunk_size = args.chunk_size
     if chunk_size is None:
         chunk_size = (None if args.overwrite else _stored_chunk_size(args.out)) or DEFAULT_CHUNK_SIZE
