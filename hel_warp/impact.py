@@ -444,15 +444,12 @@ def simulate_pairs(*, x1, x2, v1, v2=0.0, omega1=0.0, omega2=0.0,
         setattr(state, name, wp.zeros(n, dtype=wp.vec3, device=dev))
 
     record = hz.PairRecord()
-    record.steps = wp.zeros(n, dtype=wp.int32, device=dev)
-    record.done = wp.zeros(n, dtype=wp.int32, device=dev)
-    record.touched = wp.zeros(n, dtype=wp.int32, device=dev)
-    record.time_touch = wp.zeros(n, dtype=float, device=dev)
-    record.time_separation = wp.zeros(n, dtype=float, device=dev)
-    record.overlap_samples = v3(np.repeat(-gap[:, None], 3, axis=1))
+    for name in ("steps", "done", "touched"):
+        setattr(record, name, wp.zeros(n, dtype=wp.int32, device=dev))
+    for name in ("time", "time_touch", "contact_time", "peak_overlap", "peak_normal_force"):
+        setattr(record, name, wp.zeros(n, dtype=float, device=dev))
+    record.overlap_samples = wp.zeros(n, dtype=wp.vec3, device=dev)
     record.force_samples = wp.zeros(n, dtype=wp.vec3, device=dev)
-    record.peak_overlap = wp.zeros(n, dtype=float, device=dev)
-    record.peak_normal_force = wp.zeros(n, dtype=float, device=dev)
 
     taken = 0
     while taken < max_steps:
@@ -465,8 +462,7 @@ def simulate_pairs(*, x1, x2, v1, v2=0.0, omega1=0.0, omega2=0.0,
     done = record.done.numpy().astype(bool)
     touched = record.touched.numpy().astype(bool)
     t_touch = record.time_touch.numpy().astype(np.float64)
-    t_sep = record.time_separation.numpy().astype(np.float64)
-    duration = np.where(touched & done, t_sep - t_touch, 0.0)
+    duration = np.where(touched, record.contact_time.numpy().astype(np.float64), 0.0)
     return PairResults(
         velocity1=state.v1.numpy().astype(np.float64),
         velocity2=np.where(wall[:, None], vec["v2"], state.v2.numpy().astype(np.float64)),
