@@ -1,0 +1,313 @@
+"""Gas phase of the HEL / MP-PIC step: state (``GasField``) and the step (``GasSolver``).
+
+Paper eqs. (1)-(3) with constant gas density, on the MAC grid of ``kernels/gas.py``:
+semi-Lagrangian advection, particle momentum source, backward-Euler viscous step with
+molecular + Smagorinsky viscosity, and a pressure projection onto
+``d(eps_f)/dt + div(eps_f u) = 0``; both linear systems are solved with
+``warp.optim.linear.cg`` and a Jacobi preconditioner (matrix-free operators).
+
+Interface with the particle side (``kernels/deposit.py``, ``kernels/interp.py``):
+before ``GasSolver.step`` fill ``cell_eps_s``, ``cell_momentum_source`` (N s per cell over
+the step, = minus the drag impulses the particles received) and ``cell_drag_coeff``; after
+it read ``cell_velocity`` and ``cell_grad_p`` (gradient of the modified pressure
+``p' = p - rho_f g.x``, including any imposed mean gradient).
+
+The momentum source is applied explicitly (the gas gets exactly the impulse the particles
+lost); ``cell_drag_coeff`` is accepted but not used by this step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+import warp.optim.linear as wpl
+
+from hel_warp.errors import ConfigError, HelWarpError, require_finite, require_positive
+from hel_warp.grid import FlowDomain
+from kernels import gas as K
+
+
+@dataclass(frozen=True, kw_only=True)
+class GasConfig:
+    """Gas properties and solver controls (SI units)."""
+
+    density: float = 1.205
+    """Gas density rho_f, kg/m^3 (air at 20 C)."""
+    viscosity: float = 1.81e-5
+    """Molecular dynamic viscosity mu_f, Pa s (air at 20 C)."""
+    smagorinsky_constant: float = 0.17
+    """C_s of the Smagorinsky sub-grid viscosity; 0 switches it off (laminar)."""
+    eps_f_min: float = 0.37
+    """Lower clip of eps_f = 1 - eps_s (1 - packing limit 0.63)."""
+    mean_pressure_gradient: tuple = (0.0, 0.0, 0.0)
+    """Imposed mean gradient of p' (Pa/m), e.g. to drive a periodic duct; reported in cell_grad_p."""
+    pressure_tolerance: float = 1e-7
+    """Relative residual of the pressure (continuity) system."""
+    pressure_max_iterations: int = 5000
+    viscous_tolerance: float = 1e-8
+    """Relative residual of each viscous system."""
+    viscous_max_iterations: int = 1000
+    check_finite: bool = True
+    """Raise HelWarpError when a NaN/inf appears (one int read back per step)."""
+
+    def __post_init__(self) -> None:
+        require_positive("gas density", self.density, "kg/m^3")
+        require_positive("gas viscosity", self.viscosity, "Pa s")
+        require_finite("smagorinsky_constant", self.smagorinsky_constant)
+        if self.smagorinsky_constant < 0.0:
+            raise ConfigError(f"smagorinsky_constant must be >= 0 (got {self.smagorinsky_constant})")
+        if not 0.0 < self.eps_f_min <= 1.0:
+            raise ConfigError(f"eps_f_min must lie in (0, 1] (got {self.eps_f_min})")
+        object.__setattr__(self, "mean_pressure_gradient",
+                           tuple(float(v) for v in np.asarray(self.mean_pressure_gradient, dtype=float)))
+        require_finite("mean_pressure_gradient", self.mean_pressure_gradient)
+        for name in ("pressure_tolerance", "viscous_tolerance"):
+            value = getattr(self, name)
+            if not 0.0 < value < 1.0:
+                raise ConfigError(f"{name} must lie in (0, 1) (got {value})")
+        for name in ("pressure_max_iterations", "viscous_max_iterations"):
+            if int(getattr(self, name)) < 1:
+                raise ConfigError(f"{name} must be >= 1 (got {getattr(self, name)})")
+
+
+class GasField:
+    """Changing gas state on a ``FlowDomain`` (updated in place by ``GasSolver.step``).
+
+    Cell arrays are ``wp.array3d`` indexed [i, j, k]; face arrays follow ``kernels/gas.py``.
+    """
+
+    def __init__(self, domain: FlowDomain, device=None):
+        grid = domain.grid
+        shape = grid.shape
+        self.domain = domain
+        self.face_velocity = self._faces(grid, device)
+        """MAC face velocity components, m/s (float32, shape + e_axis)."""
+        self.face_eps = self._faces(grid, device, fill=1.0)
+        """eps_f on faces (used by the last projection)."""
+        self.face_kappa = self._faces(grid, device)
+        """eps_f (mu + rho nu_t) on faces, Pa s."""
+        self.cell_velocity = wp.zeros(shape, dtype=wp.vec3, device=device)
+        """Cell-centred gas velocity, m/s."""
+        self.cell_pressure = wp.zeros(shape, dtype=float, device=device)
+        """Modified pressure p' less the imposed mean-gradient part, Pa."""
+        self.cell_grad_p = wp.zeros(shape, dtype=wp.vec3, device=device)
+        """grad p' at cell centres (imposed mean gradient included), Pa/m."""
+        self.cell_eps_s = wp.zeros(shape, dtype=float, device=device)
+        """Solid volume fraction (input from deposit)."""
+        self.cell_eps_f = wp.ones(shape, dtype=float, device=device)
+        """Gas volume fraction of the last step, clip(1 - eps_s, eps_f_min, 1)."""
+        self.cell_eps_f_prev = wp.ones(shape, dtype=float, device=device)
+        """Gas volume fraction of the step before (for d eps_f/dt)."""
+        self.cell_momentum_source = wp.zeros(shape, dtype=wp.vec3, device=device)
+        """Momentum given to the gas over the step, N s per cell (input from deposit)."""
+        self.cell_drag_coeff = wp.zeros(shape, dtype=float, device=device)
+        """Sum of beta V per cell, kg/s (input; unused by the explicit source treatment)."""
+        self.cell_nu_t = wp.zeros(shape, dtype=float, device=device)
+        """Smagorinsky sub-grid kinematic viscosity, m^2/s."""
+        self._started = False
+
+    @staticmethod
+    def _faces(grid, device, fill: float = 0.0) -> K.FaceFloat:
+        faces = K.FaceFloat()
+        arrays = []
+        for axis in range(3):
+            shape = list(grid.shape)
+            shape[axis] += 1
+            arrays.append(wp.full(tuple(shape), fill, dtype=float, device=device))
+        faces.x, faces.y, faces.z = arrays
+        return faces
+
+    def face_arrays(self, faces: K.FaceFloat | None = None) -> tuple:
+        """Host copies (numpy) of a face struct's three arrays (default: the velocity)."""
+        faces = self.face_velocity if faces is None else faces
+        return faces.x.numpy(), faces.y.numpy(), faces.z.numpy()
+
+    def set_face_velocity(self, components) -> None:
+        """Set the face velocities from three numpy arrays (fixed faces are reset to their BC)."""
+        for axis, arr in enumerate(components):
+            target = (self.face_velocity.x, self.face_velocity.y, self.face_velocity.z)[axis]
+            types = (self.domain.face_type.x, self.domain.face_type.y, self.domain.face_type.z)[axis].numpy()
+            bc = (self.domain.face_bc.velocity_x, self.domain.face_bc.velocity_y,
+                  self.domain.face_bc.velocity_z)[axis].numpy()[..., axis]
+            values = np.asarray(arr, dtype=np.float32).copy()
+            if values.shape != tuple(target.shape):
+                raise ConfigError(f"face velocity {axis} must have shape {tuple(target.shape)} (got {values.shape})")
+            fixed = (types == int(K.FACE_WALL)) | (types == int(K.FACE_INLET))
+            values[fixed] = bc[fixed]
+            alias = types == int(K.FACE_ALIAS)
+            if alias.any():
+                first = [slice(None)] * 3
+                first[axis] = 0
+                last = [slice(None)] * 3
+                last[axis] = -1
+                values[tuple(last)] = values[tuple(first)]
+            target.assign(values)
+
+
+class GasSolver:
+    """One gas step per call; fixed data (domain, config) here, changing data in ``GasField``."""
+
+    def __init__(self, domain: FlowDomain, config: GasConfig | None = None, device=None):
+        self.domain = domain
+        self.config = config or GasConfig()
+        self.device = wp.get_device(device)
+        grid = domain.grid
+        self.grid_info = grid.info()
+        self._cells = grid.shape
+        self._n_cells = int(np.prod(grid.shape))
+        self._face_shapes = []
+        for axis in range(3):
+            shape = list(grid.shape)
+            shape[axis] += 1
+            self._face_shapes.append(tuple(shape))
+        n_max = max(int(np.prod(s)) for s in self._face_shapes)
+        dev = self.device
+        self._rhs = wp.zeros(n_max, dtype=wp.float64, device=dev)
+        self._x = wp.zeros(n_max, dtype=wp.float64, device=dev)
+        self._diag = wp.zeros(n_max, dtype=wp.float64, device=dev)
+        self._active = wp.zeros(self._n_cells, dtype=wp.int32, device=dev)
+        self._fluid_sum = wp.zeros(2, dtype=wp.float64, device=dev)
+        self._bad = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._velocity_tmp = GasField._faces(grid, dev)
+        self._cell_kappa = wp.zeros(grid.shape, dtype=float, device=dev)
+        self.last_iterations = {"pressure": 0, "viscous": [0, 0, 0]}
+        """CG iterations of the last step (diagnostic)."""
+
+    # ------------------------------------------------------------------ helpers
+    def _params(self, dt: float) -> K.FlowParams:
+        c = self.config
+        params = K.FlowParams()
+        params.rho = float(c.density)
+        params.mu = float(c.viscosity)
+        params.smagorinsky = float(c.smagorinsky_constant)
+        params.eps_min = float(c.eps_f_min)
+        params.body_accel = wp.vec3(*(-g / c.density for g in c.mean_pressure_gradient))
+        params.dt = float(dt)
+        return params
+
+    def _launch(self, kernel, dim, inputs):
+        wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+
+    def _solve(self, n: int, matvec, what: str, tol: float, maxiter: int) -> int:
+        """CG with a Jacobi preconditioner on the first ``n`` entries of the scratch vectors."""
+        rhs, x, diag = self._rhs[:n], self._x[:n], self._diag[:n]
+        A = wpl.LinearOperator(shape=(n, n), dtype=wp.float64, device=self.device, matvec=matvec)
+
+        def jacobi(xv, yv, zv, alpha, beta):
+            wp.launch(K.jacobi_kernel, dim=n, inputs=[diag, xv, yv, wp.float64(alpha), wp.float64(beta)],
+                      outputs=[zv], device=self.device)
+
+        M = wpl.LinearOperator(shape=(n, n), dtype=wp.float64, device=self.device, matvec=jacobi)
+        iterations, residual, atol = wpl.cg(A, rhs, x, tol=tol, maxiter=maxiter, M=M, check_every=10,
+                                            use_cuda_graph=False)
+        if not np.isfinite(residual):
+            raise HelWarpError(f"{what} solve produced NaN/inf (residual {residual}); the gas state blew up: "
+                               "reduce dt or check the inputs (eps_s, momentum source) for NaN")
+        if residual > atol:
+            raise HelWarpError(
+                f"{what} solve did not converge: residual {residual:.3e} > {atol:.3e} after {iterations} "
+                f"CG iterations; raise {'pressure' if what == 'pressure' else 'viscous'}_max_iterations, "
+                f"loosen {'pressure' if what == 'pressure' else 'viscous'}_tolerance, or reduce dt")
+        return int(iterations)
+
+    # ------------------------------------------------------------------ sub-steps
+    def update_cell_state(self, gas: GasField) -> None:
+        """eps_f from eps_s, cell velocity, Smagorinsky viscosity and face coefficients."""
+        g, dom, params = self.grid_info, self.domain, self._params(1.0)
+        self._launch(K.eps_f_kernel, self._cells, [gas.cell_eps_s, dom.cell_fluid, params.eps_min, gas.cell_eps_f])
+        self._launch(K.cell_velocity_kernel, self._cells, [g, dom.cell_fluid, gas.face_velocity, gas.cell_velocity])
+        self._launch(K.smagorinsky_kernel, self._cells,
+                     [g, params, dom.cell_fluid, gas.cell_velocity, gas.cell_eps_f, gas.cell_nu_t, self._cell_kappa])
+        for axis in range(3):
+            self._launch(K.face_coefficients_kernel, self._face_shapes[axis],
+                         [g, axis, dom.cell_fluid, gas.cell_eps_f, self._cell_kappa, gas.face_eps, gas.face_kappa])
+
+    def advect(self, gas: GasField, dt: float) -> None:
+        """Semi-Lagrangian advection of the face velocities (result in place)."""
+        g, dom = self.grid_info, self.domain
+        for axis in range(3):
+            self._launch(K.advect_kernel, self._face_shapes[axis],
+                         [g, axis, dom.face_type, gas.face_velocity, float(dt), self._velocity_tmp])
+        gas.face_velocity, self._velocity_tmp = self._velocity_tmp, gas.face_velocity
+
+    def add_sources(self, gas: GasField, dt: float) -> None:
+        """Particle momentum source and imposed mean pressure gradient."""
+        g, dom, params = self.grid_info, self.domain, self._params(dt)
+        for axis in range(3):
+            self._launch(K.momentum_source_kernel, self._face_shapes[axis],
+                         [g, axis, params, dom.face_type, dom.cell_fluid, gas.face_eps,
+                          gas.cell_momentum_source, gas.face_velocity])
+
+    def diffuse(self, gas: GasField, dt: float) -> None:
+        """Backward-Euler viscous step, one CG solve per component."""
+        g, dom, params, c = self.grid_info, self.domain, self._params(dt), self.config
+        for axis in range(3):
+            shape = self._face_shapes[axis]
+            n = int(np.prod(shape))
+            self._launch(K.viscous_rhs_kernel, shape,
+                         [g, axis, params, dom.face_type, dom.face_bc, gas.face_eps, gas.face_kappa,
+                          gas.face_velocity, self._rhs, self._x, self._diag])
+
+            def matvec(x, y, z, alpha, beta, axis=axis, shape=shape):
+                wp.launch(K.viscous_matvec_kernel, dim=shape,
+                          inputs=[g, axis, params, dom.face_type, dom.face_bc, gas.face_eps, gas.face_kappa,
+                                  x, y, wp.float64(alpha), wp.float64(beta)], outputs=[z], device=self.device)
+
+            self.last_iterations["viscous"][axis] = self._solve(
+                n, matvec, f"viscous ({'xyz'[axis]})", c.viscous_tolerance, c.viscous_max_iterations)
+            self._launch(K.store_component_kernel, shape, [g, axis, self._x, gas.face_velocity])
+
+    def project(self, gas: GasField, dt: float) -> None:
+        """Pressure projection onto d(eps_f)/dt + div(eps_f u) = 0; sets pressure and its gradient."""
+        g, dom, params, c = self.grid_info, self.domain, self._params(dt), self.config
+        n = self._n_cells
+        self._fluid_sum.zero_()
+        self._launch(K.pressure_rhs_kernel, self._cells,
+                     [g, params, dom.cell_fluid, dom.face_type, dom.face_bc, gas.face_eps, gas.face_velocity,
+                      gas.cell_eps_f, gas.cell_eps_f_prev, self._rhs, self._diag, self._active, self._fluid_sum])
+        if not dom.has_outlet:
+            self._launch(K.remove_mean_kernel, n, [self._active, self._fluid_sum, self._rhs])
+        self._x.zero_()
+        active = self._active
+
+        def matvec(x, y, z, alpha, beta):
+            wp.launch(K.pressure_matvec_kernel, dim=self._cells,
+                      inputs=[g, active, dom.face_type, gas.face_eps, x, y, wp.float64(alpha), wp.float64(beta)],
+                      outputs=[z], device=self.device)
+
+        self.last_iterations["pressure"] = self._solve(n, matvec, "pressure", c.pressure_tolerance,
+                                                       c.pressure_max_iterations)
+        p = self._x[:n]
+        for axis in range(3):
+            self._launch(K.pressure_correct_kernel, self._face_shapes[axis],
+                         [g, axis, params, dom.face_type, dom.face_bc, p, gas.face_velocity])
+            self._launch(K.periodic_sync_kernel, self._face_shapes[axis], [g, axis, gas.face_velocity])
+        self._launch(K.cell_pressure_kernel, self._cells,
+                     [g, params, dom.cell_fluid, dom.face_type, dom.face_bc, p, gas.cell_pressure, gas.cell_grad_p])
+        self._launch(K.cell_velocity_kernel, self._cells, [g, dom.cell_fluid, gas.face_velocity, gas.cell_velocity])
+
+    # ------------------------------------------------------------------ the step
+    def step(self, gas: GasField, dt: float) -> None:
+        """Advance ``gas`` by ``dt`` in place (ARCHITECTURE.md, step 2)."""
+        if not dt > 0.0:
+            raise ConfigError(f"gas time step dt must be > 0 (got {dt!r})")
+        if not gas._started:
+            # first step: no history of eps_f, take d(eps_f)/dt = 0
+            self._launch(K.eps_f_kernel, self._cells,
+                         [gas.cell_eps_s, self.domain.cell_fluid, float(self.config.eps_f_min), gas.cell_eps_f_prev])
+            gas._started = True
+        else:
+            wp.copy(gas.cell_eps_f_prev, gas.cell_eps_f)
+        self.update_cell_state(gas)
+        self.advect(gas, dt)
+        self.add_sources(gas, dt)
+        self.diffuse(gas, dt)
+        self.project(gas, dt)
+        if self.config.check_finite:
+            self._bad.zero_()
+            self._launch(K.finite_check_kernel, self._cells, [gas.cell_velocity, gas.cell_pressure, self._bad])
+            if int(self._bad.numpy()[0]) > 0:
+                raise HelWarpError(f"gas field holds NaN/inf in {int(self._bad.numpy()[0])} cells after the step; "
+                                   "reduce dt or check eps_s and the momentum source for NaN")

@@ -1,0 +1,767 @@
+"""Kernels of the gas step: eps_f-weighted incompressible flow on a MAC (face-staggered) grid.
+
+Equations (paper eqs. 1-3, constant gas density, no mass source), written per unit volume
+of gas after dividing eq. (2) by eps_f with the continuity equation:
+
+    d(eps_f)/dt + div(eps_f u) = 0                                          (1)
+    du/dt + (u.grad) u = -grad p'/rho + div(eps_f mu_eff grad u)/(eps_f rho)
+                         + S_mom/(eps_f rho)                                (2)
+
+``p' = p - rho g.x`` is the modified pressure (gravity absorbed). The stress of eq. (3) is
+kept as ``eps_f mu_eff grad u`` (the transposed-gradient and bulk terms vanish for
+constant eps_f mu_eff and a solenoidal u; they are dropped). ``mu_eff = mu + rho nu_t``,
+Smagorinsky (1963): ``nu_t = (C_s h)^2 sqrt(2 S:S)``.
+
+Splitting per step (Chorin 1968 projection, semi-Lagrangian advection after Stam 1999):
+advect (RK2 back-trace, stable at any CFL) -> momentum source and imposed mean pressure
+gradient -> implicit (backward-Euler) viscous step, one SPD system per velocity component
+-> projection: ``sum_f eps_f (p_c - p_nb) = -(rho h^2/dt) (div(eps_f u*) + d(eps_f)/dt)``.
+
+Layout: face arrays of axis ``a`` have shape ``shape + e_a``; face ``(i,j,k)`` of axis 0 sits
+at ``origin + (i, j+1/2, k+1/2) h`` between cells ``i-1`` and ``i``. On a periodic axis the
+last face (index ``n_a``) is an alias of face 0 (type ``FACE_ALIAS``), synced after writes.
+Linear-solver vectors are flat float64 arrays in ``(i*ny + j)*nz + k`` order.
+"""
+
+import warp as wp
+
+FACE_WALL = wp.constant(0)
+"""Fixed zero normal velocity (solid neighbour cell or domain wall)."""
+FACE_FLUID = wp.constant(1)
+"""Interior face between two fluid cells: solved."""
+FACE_INLET = wp.constant(2)
+"""Fixed velocity from the inlet patch."""
+FACE_OUTLET = wp.constant(3)
+"""Boundary face with a fixed pressure on its outer side: solved."""
+FACE_ALIAS = wp.constant(4)
+"""Last face of a periodic axis, a copy of face 0."""
+
+
+@wp.struct
+class GridInfo:
+    origin: wp.vec3
+    spacing: float
+    shape: wp.vec3i
+    periodic: wp.vec3i
+
+
+@wp.struct
+class FaceFloat:
+    """One float32 array per face axis."""
+
+    x: wp.array3d(dtype=float)
+    y: wp.array3d(dtype=float)
+    z: wp.array3d(dtype=float)
+
+
+@wp.struct
+class FaceInt:
+    x: wp.array3d(dtype=wp.int32)
+    y: wp.array3d(dtype=wp.int32)
+    z: wp.array3d(dtype=wp.int32)
+
+
+@wp.struct
+class FaceBc:
+    """Boundary data of the faces: inlet velocity vector (m/s) and outlet pressure (Pa)."""
+
+    velocity_x: wp.array3d(dtype=wp.vec3)
+    velocity_y: wp.array3d(dtype=wp.vec3)
+    velocity_z: wp.array3d(dtype=wp.vec3)
+    pressure: FaceFloat
+
+
+@wp.struct
+class FlowParams:
+    rho: float
+    """Gas density, kg/m^3."""
+    mu: float
+    """Molecular dynamic viscosity, Pa s."""
+    smagorinsky: float
+    """Smagorinsky constant C_s."""
+    eps_min: float
+    """Lower clip of eps_f (1 - packing limit)."""
+    body_accel: wp.vec3
+    """-(imposed mean pressure gradient)/rho, m/s^2."""
+    dt: float
+
+
+# ----------------------------------------------------------------- index helpers
+
+
+@wp.func
+def unit(axis: int):
+    e = wp.vec3i(0, 0, 0)
+    e[axis] = 1
+    return e
+
+
+@wp.func
+def wrap_cell(g: GridInfo, c: wp.vec3i):
+    """Canonical cell index, or x = -1 when outside a non-periodic boundary."""
+    out = c
+    for d in range(3):
+        n = g.shape[d]
+        if c[d] < 0 or c[d] >= n:
+            if g.periodic[d] != 0:
+                out[d] = (c[d] % n + n) % n
+            else:
+                return wp.vec3i(-1, 0, 0)
+    return out
+
+
+@wp.func
+def wrap_face(g: GridInfo, axis: int, f: wp.vec3i):
+    """Canonical face index of axis ``axis`` (alias -> 0), or x = -1 when outside."""
+    out = f
+    for d in range(3):
+        n = g.shape[d]
+        upper = n
+        if d == axis and g.periodic[d] == 0:
+            upper = n + 1
+        if f[d] < 0 or f[d] >= upper:
+            if g.periodic[d] != 0:
+                out[d] = (f[d] % n + n) % n
+            else:
+                return wp.vec3i(-1, 0, 0)
+    return out
+
+
+@wp.func
+def flat_index(shape: wp.vec3i, c: wp.vec3i):
+    return (c[0] * shape[1] + c[1]) * shape[2] + c[2]
+
+
+@wp.func
+def face_shape(g: GridInfo, axis: int):
+    return g.shape + unit(axis)
+
+
+@wp.func
+def get_f(a: FaceFloat, axis: int, f: wp.vec3i):
+    if axis == 0:
+        return a.x[f[0], f[1], f[2]]
+    if axis == 1:
+        return a.y[f[0], f[1], f[2]]
+    return a.z[f[0], f[1], f[2]]
+
+
+@wp.func
+def set_f(a: FaceFloat, axis: int, f: wp.vec3i, value: float):
+    if axis == 0:
+        a.x[f[0], f[1], f[2]] = value
+    elif axis == 1:
+        a.y[f[0], f[1], f[2]] = value
+    else:
+        a.z[f[0], f[1], f[2]] = value
+
+
+@wp.func
+def get_t(a: FaceInt, axis: int, f: wp.vec3i):
+    if axis == 0:
+        return a.x[f[0], f[1], f[2]]
+    if axis == 1:
+        return a.y[f[0], f[1], f[2]]
+    return a.z[f[0], f[1], f[2]]
+
+
+@wp.func
+def get_bc_velocity(bc: FaceBc, axis: int, f: wp.vec3i):
+    if axis == 0:
+        return bc.velocity_x[f[0], f[1], f[2]]
+    if axis == 1:
+        return bc.velocity_y[f[0], f[1], f[2]]
+    return bc.velocity_z[f[0], f[1], f[2]]
+
+
+@wp.func
+def is_solved(t: int):
+    return t == FACE_FLUID or t == FACE_OUTLET
+
+
+# ----------------------------------------------------------------- sampling (advection)
+
+
+@wp.func
+def sample_component(g: GridInfo, vel: FaceFloat, axis: int, x: wp.vec3):
+    """Trilinear value of face component ``axis`` at ``x`` (clamped / wrapped at the box)."""
+    s = (x - g.origin) / g.spacing - wp.vec3(0.5, 0.5, 0.5)
+    s[axis] = s[axis] + 0.5
+    lo = wp.vec3i(0, 0, 0)
+    w = wp.vec3(0.0, 0.0, 0.0)
+    for d in range(3):
+        fl = wp.floor(s[d])
+        lo[d] = int(fl)
+        w[d] = s[d] - fl
+    result = float(0.0)
+    for corner in range(8):
+        c = wp.vec3i(lo[0] + (corner & 1), lo[1] + ((corner >> 1) & 1), lo[2] + ((corner >> 2) & 1))
+        weight = float(1.0)
+        for d in range(3):
+            bit = (corner >> d) & 1
+            if bit == 1:
+                weight = weight * w[d]
+            else:
+                weight = weight * (1.0 - w[d])
+            n = g.shape[d]
+            upper = n - 1
+            if d == axis and g.periodic[d] == 0:
+                upper = n
+            if g.periodic[d] != 0:
+                c[d] = (c[d] % n + n) % n
+            else:
+                c[d] = wp.clamp(c[d], 0, upper)
+        result = result + weight * get_f(vel, axis, c)
+    return result
+
+
+@wp.func
+def sample_velocity(g: GridInfo, vel: FaceFloat, x: wp.vec3):
+    return wp.vec3(sample_component(g, vel, 0, x), sample_component(g, vel, 1, x), sample_component(g, vel, 2, x))
+
+
+@wp.func
+def face_position(g: GridInfo, axis: int, f: wp.vec3i):
+    p = wp.vec3(float(f[0]) + 0.5, float(f[1]) + 0.5, float(f[2]) + 0.5)
+    p[axis] = p[axis] - 0.5
+    return g.origin + g.spacing * p
+
+
+@wp.kernel
+def advect_kernel(
+    g: GridInfo,
+    axis: int,
+    types: FaceInt,
+    vel_old: FaceFloat,
+    dt: float,
+    # outputs
+    vel_new: FaceFloat,
+):
+    """Semi-Lagrangian advection with an RK2 (midpoint) back-trace; fixed faces keep their value."""
+    i, j, k = wp.tid()
+    f = wp.vec3i(i, j, k)
+    t = get_t(types, axis, f)
+    if is_solved(t):
+        x = face_position(g, axis, f)
+        x_mid = x - 0.5 * dt * sample_velocity(g, vel_old, x)
+        x_dep = x - dt * sample_velocity(g, vel_old, x_mid)
+        set_f(vel_new, axis, f, sample_component(g, vel_old, axis, x_dep))
+    else:
+        set_f(vel_new, axis, f, get_f(vel_old, axis, f))
+
+
+# ----------------------------------------------------------------- cell quantities
+
+
+@wp.kernel
+def eps_f_kernel(
+    cell_eps_s: wp.array3d(dtype=float),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    eps_min: float,
+    # outputs
+    cell_eps_f: wp.array3d(dtype=float),
+):
+    """eps_f = max(1 - eps_s, eps_min) in fluid cells, 1 in solid cells."""
+    i, j, k = wp.tid()
+    if cell_fluid[i, j, k] != 0:
+        cell_eps_f[i, j, k] = wp.clamp(1.0 - cell_eps_s[i, j, k], eps_min, 1.0)
+    else:
+        cell_eps_f[i, j, k] = 1.0
+
+
+@wp.kernel
+def cell_velocity_kernel(
+    g: GridInfo,
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    vel: FaceFloat,
+    # outputs
+    cell_velocity: wp.array3d(dtype=wp.vec3),
+):
+    """Cell-centred velocity = mean of the two faces per axis (0 in solid cells)."""
+    i, j, k = wp.tid()
+    c = wp.vec3i(i, j, k)
+    u = wp.vec3(0.0, 0.0, 0.0)
+    if cell_fluid[i, j, k] != 0:
+        for a in range(3):
+            hi = wrap_face(g, a, c + unit(a))
+            u[a] = 0.5 * (get_f(vel, a, c) + get_f(vel, a, hi))
+    cell_velocity[i, j, k] = u
+
+
+@wp.func
+def cell_value(g: GridInfo, field: wp.array3d(dtype=wp.vec3), c: wp.vec3i, fallback: wp.vec3i):
+    w = wrap_cell(g, c)
+    if w[0] < 0:
+        w = fallback
+    return field[w[0], w[1], w[2]]
+
+
+@wp.kernel
+def smagorinsky_kernel(
+    g: GridInfo,
+    params: FlowParams,
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    cell_velocity: wp.array3d(dtype=wp.vec3),
+    cell_eps_f: wp.array3d(dtype=float),
+    # outputs
+    cell_nu_t: wp.array3d(dtype=float),
+    cell_kappa: wp.array3d(dtype=float),
+):
+    """nu_t = (C_s h)^2 sqrt(2 S:S) (Smagorinsky 1963), kappa = eps_f (mu + rho nu_t)."""
+    i, j, k = wp.tid()
+    c = wp.vec3i(i, j, k)
+    grad = wp.mat33(0.0)
+    for d in range(3):
+        up = cell_value(g, cell_velocity, c + unit(d), c)
+        down = cell_value(g, cell_velocity, c - unit(d), c)
+        du = (up - down) / (2.0 * g.spacing)
+        for a in range(3):
+            grad[a, d] = du[a]
+    strain = 0.5 * (grad + wp.transpose(grad))
+    ss = float(0.0)
+    for a in range(3):
+        for d in range(3):
+            ss = ss + strain[a, d] * strain[a, d]
+    length = params.smagorinsky * g.spacing
+    nu_t = length * length * wp.sqrt(2.0 * ss)
+    if cell_fluid[i, j, k] == 0:
+        nu_t = 0.0
+    cell_nu_t[i, j, k] = nu_t
+    cell_kappa[i, j, k] = cell_eps_f[i, j, k] * (params.mu + params.rho * nu_t)
+
+
+@wp.kernel
+def face_coefficients_kernel(
+    g: GridInfo,
+    axis: int,
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    cell_eps_f: wp.array3d(dtype=float),
+    cell_kappa: wp.array3d(dtype=float),
+    # outputs
+    face_eps: FaceFloat,
+    face_kappa: FaceFloat,
+):
+    """Face eps_f and eps_f mu_eff: mean over the adjacent fluid cells (1 and 0 if none)."""
+    i, j, k = wp.tid()
+    f = wp.vec3i(i, j, k)
+    eps_sum = float(0.0)
+    kappa_sum = float(0.0)
+    count = float(0.0)
+    for side in range(2):
+        c = wrap_cell(g, f - (1 - side) * unit(axis))
+        if c[0] >= 0:
+            if cell_fluid[c[0], c[1], c[2]] != 0:
+                eps_sum = eps_sum + cell_eps_f[c[0], c[1], c[2]]
+                kappa_sum = kappa_sum + cell_kappa[c[0], c[1], c[2]]
+                count = count + 1.0
+    if count > 0.0:
+        set_f(face_eps, axis, f, eps_sum / count)
+        set_f(face_kappa, axis, f, kappa_sum / count)
+    else:
+        set_f(face_eps, axis, f, 1.0)
+        set_f(face_kappa, axis, f, 0.0)
+
+
+@wp.kernel
+def momentum_source_kernel(
+    g: GridInfo,
+    axis: int,
+    params: FlowParams,
+    types: FaceInt,
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    face_eps: FaceFloat,
+    cell_momentum_source: wp.array3d(dtype=wp.vec3),
+    # outputs
+    vel: FaceFloat,
+):
+    """u_f += dt body_accel + sum_c w_c J_c / (rho eps_f V): each cell's impulse J (N s) split
+    over its solved faces of this axis, so that sum_f rho eps_f V du_f = sum_c J_c exactly."""
+    i, j, k = wp.tid()
+    f = wp.vec3i(i, j, k)
+    t = get_t(types, axis, f)
+    if not is_solved(t):
+        return
+    volume = g.spacing * g.spacing * g.spacing
+    impulse = float(0.0)
+    for side in range(2):
+        c = wrap_cell(g, f - (1 - side) * unit(axis))
+        if c[0] >= 0:
+            if cell_fluid[c[0], c[1], c[2]] != 0:
+                # number of solved faces of this axis on cell c
+                n_solved = float(0.0)
+                for s2 in range(2):
+                    fc = wrap_face(g, axis, c + s2 * unit(axis))
+                    if is_solved(get_t(types, axis, fc)):
+                        n_solved = n_solved + 1.0
+                impulse = impulse + cell_momentum_source[c[0], c[1], c[2]][axis] / n_solved
+    du = params.dt * params.body_accel[axis] + impulse / (params.rho * get_f(face_eps, axis, f) * volume)
+    set_f(vel, axis, f, get_f(vel, axis, f) + du)
+
+
+@wp.kernel
+def periodic_sync_kernel(
+    g: GridInfo,
+    axis: int,
+    # outputs
+    vel: FaceFloat,
+):
+    """Copy face 0 of a periodic axis onto its alias face n_a."""
+    i, j, k = wp.tid()
+    f = wp.vec3i(i, j, k)
+    if f[axis] == g.shape[axis] and g.periodic[axis] != 0:
+        f0 = f
+        f0[axis] = 0
+        set_f(vel, axis, f, get_f(vel, axis, f0))
+
+
+# ----------------------------------------------------------------- implicit viscous step
+
+
+@wp.func
+def viscous_neighbour(g: GridInfo, axis: int, types: FaceInt, bc: FaceBc, f: wp.vec3i, d: int, s: int):
+    """Classify the neighbour of face ``f`` (axis ``axis``) in direction ``s e_d``.
+
+    Returns (kind, neighbour face, Dirichlet value, distance factor): kind 0 = zero gradient
+    (outlet), 1 = coupled unknown, 2 = Dirichlet value at distance h / factor.
+    """
+    nb = f + s * unit(d)
+    w = wrap_face(g, axis, nb)
+    if d == axis:
+        if w[0] < 0:
+            return 0, f, 0.0, 0.0
+        t = get_t(types, axis, w)
+        if is_solved(t):
+            return 1, w, 0.0, 1.0
+        return 2, w, get_bc_velocity(bc, axis, w)[axis], 1.0
+    if w[0] < 0:
+        # across the domain boundary normal to d: the wall (or patch) lies h/2 away
+        side_index = 0
+        if s > 0:
+            side_index = g.shape[d]
+        value = float(0.0)
+        count = float(0.0)
+        n_outlet = float(0.0)
+        for side in range(2):
+            c = f - (1 - side) * unit(axis)
+            c = wrap_cell(g, c)
+            if c[0] >= 0:
+                bf = c
+                bf[d] = side_index
+                t = get_t(types, d, bf)
+                if t == FACE_OUTLET:
+                    n_outlet = n_outlet + 1.0
+                if t == FACE_INLET:
+                    value = value + get_bc_velocity(bc, d, bf)[axis]
+                count = count + 1.0
+        if n_outlet >= count:
+            return 0, f, 0.0, 0.0
+        return 2, f, value / count, 2.0
+    t = get_t(types, axis, w)
+    if is_solved(t):
+        return 1, w, 0.0, 1.0
+    index_along = w[axis]
+    if g.periodic[axis] == 0 and (index_along == 0 or index_along == g.shape[axis]):
+        return 2, w, get_bc_velocity(bc, axis, w)[axis], 1.0
+    return 2, w, 0.0, 2.0
+
+
+@wp.kernel
+def viscous_rhs_kernel(
+    g: GridInfo,
+    axis: int,
+    params: FlowParams,
+    types: FaceInt,
+    bc: FaceBc,
+    face_eps: FaceFloat,
+    face_kappa: FaceFloat,
+    vel: FaceFloat,
+    # outputs
+    rhs: wp.array(dtype=wp.float64),
+    guess: wp.array(dtype=wp.float64),
+    diag: wp.array(dtype=wp.float64),
+):
+    """Backward-Euler viscous system of one component: (rho eps/dt) u - div(kappa grad u) = (rho eps/dt) u*."""
+    i, j, k = wp.tid()
+    f = wp.vec3i(i, j, k)
+    row = flat_index(face_shape(g, axis), f)
+    u_star = get_f(vel, axis, f)
+    guess[row] = wp.float64(u_star)
+    if not is_solved(get_t(types, axis, f)):
+        rhs[row] = wp.float64(u_star)
+        diag[row] = wp.float64(1.0)
+        return
+    h2 = g.spacing * g.spacing
+    mass = params.rho * get_f(face_eps, axis, f) / params.dt
+    kappa_f = get_f(face_kappa, axis, f)
+    b = mass * u_star
+    a_diag = mass
+    for d in range(3):
+        for side in range(2):
+            s = 2 * side - 1
+            kind, nb, value, factor = viscous_neighbour(g, axis, types, bc, f, d, s)
+            if kind == 1:
+                a_diag = a_diag + 0.5 * (kappa_f + get_f(face_kappa, axis, nb)) / h2
+            elif kind == 2:
+                a_diag = a_diag + factor * kappa_f / h2
+                b = b + factor * kappa_f * value / h2
+    rhs[row] = wp.float64(b)
+    diag[row] = wp.float64(a_diag)
+
+
+@wp.kernel
+def viscous_matvec_kernel(
+    g: GridInfo,
+    axis: int,
+    params: FlowParams,
+    types: FaceInt,
+    bc: FaceBc,
+    face_eps: FaceFloat,
+    face_kappa: FaceFloat,
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    alpha: wp.float64,
+    beta: wp.float64,
+    # outputs
+    z: wp.array(dtype=wp.float64),
+):
+    """z = alpha A x + beta y for the viscous system of ``viscous_rhs_kernel``."""
+    i, j, k = wp.tid()
+    f = wp.vec3i(i, j, k)
+    shape = face_shape(g, axis)
+    row = flat_index(shape, f)
+    ax = x[row]
+    if is_solved(get_t(types, axis, f)):
+        h2 = wp.float64(g.spacing * g.spacing)
+        kappa_f = wp.float64(get_f(face_kappa, axis, f))
+        a_diag = wp.float64(params.rho * get_f(face_eps, axis, f) / params.dt)
+        off = wp.float64(0.0)
+        xf = x[row]
+        for d in range(3):
+            for side in range(2):
+                s = 2 * side - 1
+                kind, nb, value, factor = viscous_neighbour(g, axis, types, bc, f, d, s)
+                if kind == 1:
+                    c = wp.float64(0.5) * (kappa_f + wp.float64(get_f(face_kappa, axis, nb))) / h2
+                    a_diag = a_diag + c
+                    off = off + c * x[flat_index(shape, nb)]
+                elif kind == 2:
+                    a_diag = a_diag + wp.float64(factor) * kappa_f / h2
+        ax = a_diag * xf - off
+    z[row] = alpha * ax + beta * y[row]
+
+
+@wp.kernel
+def store_component_kernel(
+    g: GridInfo,
+    axis: int,
+    x: wp.array(dtype=wp.float64),
+    # outputs
+    vel: FaceFloat,
+):
+    i, j, k = wp.tid()
+    f = wp.vec3i(i, j, k)
+    set_f(vel, axis, f, float(x[flat_index(face_shape(g, axis), f)]))
+
+
+# ----------------------------------------------------------------- pressure projection
+
+
+@wp.kernel
+def pressure_rhs_kernel(
+    g: GridInfo,
+    params: FlowParams,
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    types: FaceInt,
+    bc: FaceBc,
+    face_eps: FaceFloat,
+    vel: FaceFloat,
+    cell_eps_f: wp.array3d(dtype=float),
+    cell_eps_f_prev: wp.array3d(dtype=float),
+    # outputs
+    rhs: wp.array(dtype=wp.float64),
+    diag: wp.array(dtype=wp.float64),
+    active: wp.array(dtype=wp.int32),
+    fluid_sum: wp.array(dtype=wp.float64),
+):
+    """b_c = -(rho h^2/dt)(div(eps u*) + d eps/dt) + sum_outlet 2 eps_f p_out; diag of A."""
+    i, j, k = wp.tid()
+    c = wp.vec3i(i, j, k)
+    row = flat_index(g.shape, c)
+    active[row] = 0
+    if cell_fluid[i, j, k] == 0:
+        rhs[row] = wp.float64(0.0)
+        diag[row] = wp.float64(1.0)
+        return
+    h = wp.float64(g.spacing)
+    div = wp.float64(0.0)
+    b = wp.float64(0.0)
+    a_diag = wp.float64(0.0)
+    for a in range(3):
+        for side in range(2):
+            f = wrap_face(g, a, c + side * unit(a))
+            sign = wp.float64(2 * side - 1)
+            eps = wp.float64(get_f(face_eps, a, f))
+            div = div + sign * eps * wp.float64(get_f(vel, a, f)) / h
+            t = get_t(types, a, f)
+            if t == FACE_FLUID:
+                a_diag = a_diag + eps
+            elif t == FACE_OUTLET:
+                a_diag = a_diag + wp.float64(2.0) * eps
+                b = b + wp.float64(2.0) * eps * wp.float64(get_f(bc.pressure, a, f))
+    d_eps_dt = wp.float64(cell_eps_f[i, j, k] - cell_eps_f_prev[i, j, k]) / wp.float64(params.dt)
+    b = b - wp.float64(params.rho) * h * h / wp.float64(params.dt) * (div + d_eps_dt)
+    if a_diag == wp.float64(0.0):
+        # enclosed fluid cell: nothing can flow, keep p = 0
+        rhs[row] = wp.float64(0.0)
+        diag[row] = wp.float64(1.0)
+        return
+    rhs[row] = b
+    diag[row] = a_diag
+    active[row] = 1
+    wp.atomic_add(fluid_sum, 0, wp.float64(b))
+    wp.atomic_add(fluid_sum, 1, wp.float64(1.0))
+
+
+@wp.kernel
+def remove_mean_kernel(
+    active: wp.array(dtype=wp.int32),
+    fluid_sum: wp.array(dtype=wp.float64),
+    # outputs
+    rhs: wp.array(dtype=wp.float64),
+):
+    """Make the right-hand side of an all-Neumann (no outlet) system compatible: zero mean."""
+    row = wp.tid()
+    if active[row] != 0:
+        rhs[row] = rhs[row] - fluid_sum[0] / fluid_sum[1]
+
+
+@wp.kernel
+def pressure_matvec_kernel(
+    g: GridInfo,
+    active: wp.array(dtype=wp.int32),
+    types: FaceInt,
+    face_eps: FaceFloat,
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    alpha: wp.float64,
+    beta: wp.float64,
+    # outputs
+    z: wp.array(dtype=wp.float64),
+):
+    """z = alpha A x + beta y, (A p)_c = sum_fluid faces eps_f (p_c - p_nb) + sum_outlet 2 eps_f p_c."""
+    i, j, k = wp.tid()
+    c = wp.vec3i(i, j, k)
+    row = flat_index(g.shape, c)
+    ax = x[row]
+    if active[row] != 0:
+        acc = wp.float64(0.0)
+        pc = x[row]
+        for a in range(3):
+            for side in range(2):
+                f = wrap_face(g, a, c + side * unit(a))
+                t = get_t(types, a, f)
+                eps = wp.float64(get_f(face_eps, a, f))
+                if t == FACE_FLUID:
+                    nb = wrap_cell(g, c + (2 * side - 1) * unit(a))
+                    acc = acc + eps * (pc - x[flat_index(g.shape, nb)])
+                elif t == FACE_OUTLET:
+                    acc = acc + wp.float64(2.0) * eps * pc
+        ax = acc
+    z[row] = alpha * ax + beta * y[row]
+
+
+@wp.kernel
+def jacobi_kernel(
+    diag: wp.array(dtype=wp.float64),
+    x: wp.array(dtype=wp.float64),
+    y: wp.array(dtype=wp.float64),
+    alpha: wp.float64,
+    beta: wp.float64,
+    # outputs
+    z: wp.array(dtype=wp.float64),
+):
+    """Jacobi preconditioner z = alpha D^-1 x + beta y."""
+    row = wp.tid()
+    z[row] = alpha * x[row] / diag[row] + beta * y[row]
+
+
+@wp.func
+def face_pressure_gradient(g: GridInfo, types: FaceInt, bc: FaceBc, p: wp.array(dtype=wp.float64),
+                           axis: int, f: wp.vec3i):
+    """d p / d x_axis at a solved face (Dirichlet outlet pressure sits on the face, h/2 away)."""
+    t = get_t(types, axis, f)
+    h = g.spacing
+    if t == FACE_FLUID:
+        c_lo = wrap_cell(g, f - unit(axis))
+        c_hi = wrap_cell(g, f)
+        return float(p[flat_index(g.shape, c_hi)] - p[flat_index(g.shape, c_lo)]) / h
+    # outlet
+    p_out = get_f(bc.pressure, axis, f)
+    if f[axis] == 0:
+        return 2.0 * (float(p[flat_index(g.shape, f)]) - p_out) / h
+    return 2.0 * (p_out - float(p[flat_index(g.shape, f - unit(axis))])) / h
+
+
+@wp.kernel
+def pressure_correct_kernel(
+    g: GridInfo,
+    axis: int,
+    params: FlowParams,
+    types: FaceInt,
+    bc: FaceBc,
+    p: wp.array(dtype=wp.float64),
+    # outputs
+    vel: FaceFloat,
+):
+    """u_f = u*_f - (dt/rho) dp/dx_axis on solved faces."""
+    i, j, k = wp.tid()
+    f = wp.vec3i(i, j, k)
+    if is_solved(get_t(types, axis, f)):
+        gp = face_pressure_gradient(g, types, bc, p, axis, f)
+        set_f(vel, axis, f, get_f(vel, axis, f) - params.dt / params.rho * gp)
+
+
+@wp.kernel
+def cell_pressure_kernel(
+    g: GridInfo,
+    params: FlowParams,
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    types: FaceInt,
+    bc: FaceBc,
+    p: wp.array(dtype=wp.float64),
+    # outputs
+    cell_pressure: wp.array3d(dtype=float),
+    cell_grad_p: wp.array3d(dtype=wp.vec3),
+):
+    """Cell pressure and grad p' = mean of the solved-face gradients + imposed mean gradient."""
+    i, j, k = wp.tid()
+    c = wp.vec3i(i, j, k)
+    grad = -params.rho * params.body_accel
+    if cell_fluid[i, j, k] != 0:
+        for a in range(3):
+            acc = float(0.0)
+            n = float(0.0)
+            for side in range(2):
+                f = wrap_face(g, a, c + side * unit(a))
+                if is_solved(get_t(types, a, f)):
+                    acc = acc + face_pressure_gradient(g, types, bc, p, a, f)
+                    n = n + 1.0
+            if n > 0.0:
+                grad[a] = grad[a] + acc / n
+        cell_pressure[i, j, k] = float(p[flat_index(g.shape, c)])
+    else:
+        cell_pressure[i, j, k] = 0.0
+    cell_grad_p[i, j, k] = grad
+
+
+@wp.kernel
+def finite_check_kernel(
+    cell_velocity: wp.array3d(dtype=wp.vec3),
+    cell_pressure: wp.array3d(dtype=float),
+    # outputs
+    bad_count: wp.array(dtype=wp.int32),
+):
+    i, j, k = wp.tid()
+    u = cell_velocity[i, j, k]
+    if not (wp.isfinite(u) and wp.isfinite(cell_pressure[i, j, k])):
+        wp.atomic_add(bad_count, 0, 1)

@@ -1,0 +1,262 @@
+"""Gas step: projection, laminar duct flow against the analytic series, junction mass balance,
+momentum balance of the particle source, error paths.
+
+References: continuity d(eps_f)/dt + div(eps_f u) = 0 (paper eq. 1); fully developed laminar
+flow in a rectangular duct (White, *Viscous Fluid Flow*, 3rd ed., eq. 3-48); conservation of
+mass (junction) and momentum (source impulse).
+"""
+
+import math
+
+import numpy as np
+import pytest
+import warp as wp
+
+from hel_warp.errors import ConfigError, HelWarpError
+from hel_warp.gas import GasConfig, GasField, GasSolver
+from hel_warp.grid import Box, Channel, Geometry, Grid, Patch
+
+
+def continuity_residual(grid, fluid, face_u, cell_eps_f, cell_eps_prev, dt):
+    """div(eps_f u) + d eps_f/dt per cell, recomputed in numpy from the face velocities.
+
+    Face eps_f = mean of the adjacent fluid cells (periodic wrap), independent of the kernels.
+    """
+    h = grid.spacing
+    div = (cell_eps_f - cell_eps_prev) / dt
+    for axis in range(3):
+        u = face_u[axis].astype(np.float64)
+        eps_cell = np.where(fluid, cell_eps_f, 0.0)
+        count = fluid.astype(np.float64)
+        if grid.periodic[axis]:
+            eps_lo, cnt_lo = np.roll(eps_cell, 1, axis), np.roll(count, 1, axis)
+        else:
+            pad = [(0, 0)] * 3
+            pad[axis] = (1, 0)
+            eps_lo = np.pad(eps_cell, pad)[tuple(slice(0, n) for n in eps_cell.shape)]
+            cnt_lo = np.pad(count, pad)[tuple(slice(0, n) for n in count.shape)]
+        # face eps at the low face of every cell
+        eps_face_lo = np.where(cnt_lo + count > 0, (eps_lo + eps_cell) / np.maximum(cnt_lo + count, 1), 1.0)
+        if grid.periodic[axis]:
+            eps_face_hi = np.roll(eps_face_lo, -1, axis)
+        else:
+            pad = [(0, 0)] * 3
+            pad[axis] = (0, 1)
+            eps_hi_cell = np.pad(eps_cell, pad)[tuple(slice(1, n + 1) if a == axis else slice(None)
+                                                       for a, n in enumerate(eps_cell.shape))]
+            cnt_hi = np.pad(count, pad)[tuple(slice(1, n + 1) if a == axis else slice(None)
+                                              for a, n in enumerate(count.shape))]
+            eps_face_hi = np.where(cnt_hi + count > 0, (eps_hi_cell + eps_cell) / np.maximum(cnt_hi + count, 1), 1.0)
+        lo = [slice(None)] * 3
+        lo[axis] = slice(0, -1)
+        hi = [slice(None)] * 3
+        hi[axis] = slice(1, None)
+        div = div + (eps_face_hi * u[tuple(hi)] - eps_face_lo * u[tuple(lo)]) / h
+    return np.where(fluid, div, 0.0)
+
+
+@pytest.mark.parametrize("case", ["periodic", "walls"])
+def test_projection_divergence_free(case):
+    """After the projection, div(eps_f u) + d eps_f/dt = 0 to the CG tolerance.
+
+    The CG stops at ||r|| <= tol ||b|| with r = (rho h^2/dt)(continuity residual) and
+    b = (rho h^2/dt)(residual before, mean removed), so ||after|| <= tol ||before|| plus
+    float32 rounding of the stored face velocities (~1e-7 |u|/h per cell).
+    """
+    rng = np.random.default_rng(1)
+    periodic = case == "periodic"
+    grid = Grid(spacing=1e-3, shape=(12, 10, 8), periodic=(periodic,) * 3)
+    if periodic:
+        geometry = Geometry(shapes=(Box(lo=(-1, -1, -1), hi=(1, 1, 1)),))
+    else:  # a closed L-shaped cavity: box + inclined channel, no-slip walls
+        geometry = Geometry(shapes=(Box(lo=(1e-3, 1e-3, 1e-3), hi=(7e-3, 9e-3, 7e-3)),
+                                    Channel(start=(4e-3, 5e-3, 4e-3), end=(11e-3, 8e-3, 4e-3),
+                                            width=3.5e-3, height=5e-3)))
+    domain = geometry.build(grid)
+    tol = 1e-6
+    solver = GasSolver(domain, GasConfig(pressure_tolerance=tol))
+    gas = GasField(domain)
+    gas.set_face_velocity([rng.normal(size=a.shape) for a in gas.face_arrays()])
+    eps_s = rng.uniform(0.0, 0.7, size=grid.shape).astype(np.float32)  # clipped at 0.63 inside
+    gas.cell_eps_s.assign(eps_s)
+    dt = 1e-3
+    solver.update_cell_state(gas)
+    fluid = domain.cell_fluid.numpy().astype(bool)
+    eps_f = gas.cell_eps_f.numpy().astype(np.float64)
+    assert np.allclose(eps_f[fluid], np.clip(1 - eps_s[fluid], 0.37, 1.0), atol=1e-7)
+    assert eps_f[fluid].min() < 0.5 < eps_f[fluid].max()  # eps_f really varies
+    # eps_f of the previous step: a zero-mean change, so the total gas volume of the closed
+    # (or periodic) box is conserved and the continuity problem is solvable
+    change = rng.uniform(-0.05, 0.05, size=grid.shape)
+    change = np.where(fluid, change - change[fluid].mean(), 0.0)
+    eps_prev = eps_f - change
+    gas.cell_eps_f_prev.assign(eps_prev.astype(np.float32))
+    eps_prev = gas.cell_eps_f_prev.numpy().astype(np.float64)
+
+    before = continuity_residual(grid, fluid, gas.face_arrays(), eps_f, eps_prev, dt)
+    before = np.where(fluid, before - before[fluid].mean(), 0.0)  # the compatible part
+    solver.project(gas, dt)
+    after = continuity_residual(grid, fluid, gas.face_arrays(), eps_f, eps_prev, dt)
+    u_max = max(np.abs(a).max() for a in gas.face_arrays())
+    rounding = 4 * 6e-8 * u_max / grid.spacing * math.sqrt(fluid.sum())
+    ratio = np.linalg.norm(after) / np.linalg.norm(before)
+    assert np.linalg.norm(after) <= tol * np.linalg.norm(before) + rounding, ratio
+    assert ratio < 1e-5
+
+
+def duct_series(y, z, a, b, dpdx, mu, terms=201):
+    """Fully developed laminar flow in the duct -a<y<a, -b<z<b (White, eq. 3-48):
+
+    u = 16 a^2 (-dp/dx) / (mu pi^3) sum_{n=1,3,..} (-1)^((n-1)/2) / n^3
+        [1 - cosh(n pi z / 2a) / cosh(n pi b / 2a)] cos(n pi y / 2a).
+    """
+    u = np.zeros(np.broadcast(y, z).shape)
+    for n in range(1, 2 * terms, 2):
+        k = n * math.pi / (2 * a)
+        # cosh ratio written with exponentials to avoid overflow
+        ratio = np.exp(k * (np.abs(z) - b)) * (1 + np.exp(-2 * k * np.abs(z))) / (1 + np.exp(-2 * k * b))
+        u += (-1) ** ((n - 1) // 2) / n**3 * (1 - ratio) * np.cos(k * y)
+    return 16 * a**2 * (-dpdx) / (mu * math.pi**3) * u
+
+
+def test_duct_series_reference():
+    """The reference itself against White's flow-rate series (eq. 3-49):
+    Q = 4 b a^3 (-G) / (3 mu) [1 - 192 a / (pi^5 b) sum_{n odd} tanh(n pi b / 2a) / n^5],
+    and the known centre value 0.2947 (-G) a^2 / mu of the square duct."""
+    a, b, mu, G = 1.0, 0.5, 1.0, -1.0
+    series = sum(math.tanh(n * math.pi * b / (2 * a)) / n**5 for n in range(1, 400, 2))
+    flow = 4 * b * a**3 * (-G) / (3 * mu) * (1 - 192 * a / (math.pi**5 * b) * series)
+    m = 1600
+    y = -a + (np.arange(m) + 0.5) * 2 * a / m
+    z = -b + (np.arange(m) + 0.5) * 2 * b / m
+    yy, zz = np.meshgrid(y, z, indexing="ij")
+    midpoint = duct_series(yy, zz, a, b, G, mu).sum() * (2 * a / m) * (2 * b / m)
+    assert midpoint == pytest.approx(flow, rel=1e-5)
+    assert duct_series(0.0, 0.0, a, a, G, mu) == pytest.approx(0.2947, abs=2e-4)
+
+
+@pytest.mark.slow
+def test_square_duct_poiseuille(full_size):
+    """Periodic square duct driven by a mean pressure gradient matches the series within 2 %.
+
+    Resolution: the wall condition (ghost value -u at h/2) interpolates a parabola linearly,
+    an error h^2 u''/8 = h^2 G/(8 mu) on a profile of amplitude ~G a^2/(2 mu) (plane flow),
+    i.e. ~ (h/2a)^2 = 1/N^2 of the peak: N >= 8 cells across keeps it below 2 %, N = 12 gives
+    ~0.7 %. Backward-Euler steps with dt = 0.05 s damp the slowest mode (rate nu pi^2/(2 a^2))
+    by 1/(1 + rate dt) per step, so 60 steps reach the discrete steady state to < 1e-9.
+    """
+    n = 24 if full_size else 12
+    side = 4e-3
+    h = side / n
+    mu, rho, G = 1.81e-5, 1.205, -1.0
+    grid = Grid(spacing=h, shape=(3, n, n), periodic=(True, False, False))
+    geometry = Geometry(shapes=(Box(lo=(-1.0, 0.0, 0.0), hi=(1.0, side, side), name="duct"),))
+    domain = geometry.build(grid)
+    solver = GasSolver(domain, GasConfig(density=rho, viscosity=mu, smagorinsky_constant=0.0,
+                                         mean_pressure_gradient=(G, 0.0, 0.0)))
+    gas = GasField(domain)
+    for _ in range(60):
+        solver.step(gas, 0.05)
+    u = gas.face_arrays()[0][1]  # x-faces of the middle slab, at cell centres in (y, z)
+    centres = (np.arange(n) + 0.5) * h - side / 2
+    yy, zz = np.meshgrid(centres, centres, indexing="ij")
+    exact = duct_series(yy, zz, side / 2, side / 2, G, mu)
+    error = np.abs(u - exact).max() / exact.max()
+    print(f"duct N={n}: max error {error:.4%} of the peak, centre {u.max():.5f} vs {exact.max():.5f} m/s")
+    assert error < 0.02
+    # the gradient reported to the particles is the imposed one (fully developed flow)
+    grad_p = gas.cell_grad_p.numpy()
+    assert np.allclose(grad_p[..., 0], G, rtol=1e-4)
+    assert np.abs(grad_p[..., 1:]).max() < 1e-3 * abs(G)
+    assert np.abs(gas.face_arrays()[1]).max() < 1e-6 * exact.max()
+
+
+@pytest.mark.slow
+def test_junction_mass_balance(full_size):
+    """Y junction: main inlet (-x side) + inclined side inlet (+y side) -> outlet (+x side).
+
+    At steady state the outlet mass flow equals the sum of the inlets within 0.5 %.
+    """
+    h = 1e-3 if full_size else 1.25e-3
+    width = 5e-3
+    length, top = 24e-3, 14e-3
+    grid = Grid(spacing=h, shape=(round(length / h), round(top / h), round(width / h)))
+    direction = np.array([1.0, -1.0, 0.0]) / math.sqrt(2.0)
+    u_main, u_side = 2.0, 1.5
+    geometry = Geometry(
+        shapes=(Box(lo=(-1e-3, 0.0, 0.0), hi=(length + 1e-3, width, width), name="main"),
+                Channel(start=(4e-3, top + 2e-3, width / 2), end=(4e-3 + top + 2e-3 - width / 2, width / 2, width / 2),
+                        width=width, height=width, name="branch")),
+        patches=(Patch(name="main_in", kind="inlet", axis=0, side="min", velocity=(u_main, 0, 0)),
+                 Patch(name="side_in", kind="inlet", axis=1, side="max", velocity=tuple(u_side * direction)),
+                 Patch(name="out", kind="outlet", axis=0, side="max", pressure=0.0)))
+    domain = geometry.build(grid)
+    solver = GasSolver(domain, GasConfig())
+    gas = GasField(domain)
+    steps = 150 if full_size else 80  # ~5 transit times of the main channel at 1e-3 s
+    flows = []
+    for _ in range(steps):
+        solver.step(gas, 1e-3)
+        faces, eps = gas.face_arrays(), gas.face_arrays(gas.face_eps)
+        flows.append([domain.patch_mass_flow(name, faces, eps, 1.205) for name in ("main_in", "side_in", "out")])
+    m_main, m_side, m_out = flows[-1]
+    assert m_main < 0 and m_side < 0 and m_out > 0
+    # inlet flows are fixed: u_normal * h^2 * faces
+    assert -m_main == pytest.approx(1.205 * u_main * h * h * domain.patch_faces["main_in"][1].sum(), rel=1e-6)
+    imbalance = abs(m_out + m_main + m_side) / (-(m_main + m_side))
+    print(f"junction: inlets {-m_main:.4e} + {-m_side:.4e} kg/s, outlet {m_out:.4e} kg/s, imbalance {imbalance:.2e}")
+    assert imbalance < 0.005
+    # steady: the outlet flow changed by < 0.1 % over the last 10 steps
+    assert abs(flows[-1][2] - flows[-10][2]) / m_out < 1e-3
+    cell_u = gas.cell_velocity.numpy()
+    assert np.isfinite(cell_u).all() and np.abs(cell_u).max() < 5 * u_main
+
+
+def test_momentum_source_balance():
+    """Periodic box, uniform eps_f: the gas momentum rho sum eps V u grows by exactly the
+    impulse deposited (Newton's third law with the particles), projection and viscosity included."""
+    rng = np.random.default_rng(3)
+    grid = Grid(spacing=1e-3, shape=(8, 8, 8), periodic=(True, True, True))
+    domain = Geometry(shapes=(Box(lo=(-1, -1, -1), hi=(1, 1, 1)),)).build(grid)
+    rho = 1.205
+    solver = GasSolver(domain, GasConfig(density=rho))
+    gas = GasField(domain)
+    gas.cell_eps_s.fill_(0.2)
+    impulse = rng.normal(scale=1e-9, size=grid.shape + (3,)).astype(np.float32)
+    gas.cell_momentum_source.assign(impulse)
+    solver.step(gas, 1e-3)
+    u = gas.face_arrays()
+    momentum = [rho * 0.8 * grid.cell_volume * u[a][tuple(slice(0, n) for n in grid.shape)].sum() for a in range(3)]
+    expected = impulse.astype(np.float64).sum(axis=(0, 1, 2))
+    assert np.allclose(momentum, expected, rtol=1e-4, atol=1e-6 * np.abs(impulse).sum())
+
+
+def test_nonconvergence_names_the_fix():
+    grid = Grid(spacing=1e-3, shape=(8, 8, 8), periodic=(True, True, True))
+    domain = Geometry(shapes=(Box(lo=(-1, -1, -1), hi=(1, 1, 1)),)).build(grid)
+    solver = GasSolver(domain, GasConfig(pressure_max_iterations=2, pressure_tolerance=1e-12))
+    gas = GasField(domain)
+    gas.set_face_velocity([np.random.default_rng(0).normal(size=a.shape) for a in gas.face_arrays()])
+    with pytest.raises(HelWarpError, match="pressure_max_iterations"):
+        solver.step(gas, 1e-3)
+
+
+def test_nan_input_is_reported():
+    grid = Grid(spacing=1e-3, shape=(6, 6, 6), periodic=(True, True, True))
+    domain = Geometry(shapes=(Box(lo=(-1, -1, -1), hi=(1, 1, 1)),)).build(grid)
+    solver = GasSolver(domain, GasConfig())
+    gas = GasField(domain)
+    source = np.zeros(grid.shape + (3,), dtype=np.float32)
+    source[2, 2, 2, 0] = np.nan
+    gas.cell_momentum_source.assign(source)
+    with pytest.raises(HelWarpError, match="NaN"):
+        solver.step(gas, 1e-3)
+
+
+def test_config_errors():
+    with pytest.raises(ConfigError, match="smagorinsky"):
+        GasConfig(smagorinsky_constant=-0.1)
+    with pytest.raises(ConfigError, match="dt"):
+        grid = Grid(spacing=1e-3, shape=(4, 4, 4), periodic=(True, True, True))
+        domain = Geometry(shapes=(Box(lo=(-1, -1, -1), hi=(1, 1, 1)),)).build(grid)
+        GasSolver(domain).step(GasField(domain), 0.0)
