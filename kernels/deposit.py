@@ -19,9 +19,13 @@ bit-identical (CONVENTIONS rule 10; tested by running twice).
 
 from __future__ import annotations
 
+import math
+
 import warp as wp
 
 from kernels.interp import CellGrid, cic_corner, cic_stencil
+
+SPHERE_VOLUME_FACTOR = wp.constant(wp.float64(4.0 * math.pi / 3.0))  # float64 (wp.pi is float32)
 
 if hasattr(wp.config, "DeterministicMode"):
     wp.set_module_options({"deterministic": wp.config.DeterministicMode.RUN_TO_RUN})
@@ -49,7 +53,7 @@ def deposit_kernel(
     if particle_alive[tid] == 0:
         return
     r = wp.float64(particle_radius[tid])
-    volume = wp.float64(particle_weight[tid]) * wp.float64(4.0 * wp.pi / 3.0) * r * r * r
+    volume = wp.float64(particle_weight[tid]) * SPHERE_VOLUME_FACTOR * r * r * r
     mass = volume * wp.float64(particle_density[tid])
     v = particle_v[tid]
     momentum = mass * wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))

@@ -27,7 +27,11 @@ functions below return F_D directly and stay finite as eps_s -> 0.
 
 from __future__ import annotations
 
+import math
+
 import warp as wp
+
+PI_OVER_SIX = wp.constant(wp.float64(math.pi / 6.0))  # float64 (wp.pi is float32)
 
 DRAG_SCHILLER_NAUMANN = wp.constant(0)
 DRAG_WEN_YU = wp.constant(1)
@@ -140,7 +144,7 @@ def push_kernel(
     particle_v_out[tid] = v_new
     particle_x_out[tid] = x + dt * v_new
     # impulse the gas gives the parcel: weight * m * F_D dt (u_f - v_new), float64 for the balance
-    mass = wp.float64(particle_weight[tid]) * wp.float64(rho_p) * wp.float64(wp.pi / 6.0) * wp.float64(diameter) \
+    mass = wp.float64(particle_weight[tid]) * wp.float64(rho_p) * PI_OVER_SIX * wp.float64(diameter) \
         * wp.float64(diameter) * wp.float64(diameter)
     rate = mass * wp.float64(f_d)
     du = u_f - v_new

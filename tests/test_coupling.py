@@ -1,0 +1,259 @@
+"""Two-way coupling: cloud-in-cell weights (partition of unity, exact for linear fields), deposition
+conserving volume and momentum (sum over cells = sum over parcels), the same weights for deposit and
+interpolation, determinism, injection/outlet bookkeeping, and hindered settling of a uniform
+suspension against the drag-law force balance solved independently."""
+
+import math
+
+import numpy as np
+import pytest
+import warp as wp
+from scipy.optimize import brentq
+
+from hel_warp.coupling import (CouplingFields, GridSpec, PushConfig, deposit_parcels, interpolate_gas,
+                               ktgf_collision, push_parcels)
+from hel_warp.errors import ConfigError
+from hel_warp.parcels import ParcelPool, VolumeInjection
+from hel_warp.particles import Particles
+from kernels.interp import interpolate_scalar, interpolate_vec3, stencil_weights
+
+GRID = GridSpec(origin=(-0.01, 0.02, 0.0), spacing=0.005, shape=(6, 5, 4))
+
+
+def random_parcels(n, seed=0, margin=-0.004, weight=None):
+    """Parcels uniformly in the grid box widened by ``margin`` (negative: also outside the grid)."""
+    rng = np.random.default_rng(seed)
+    lo = np.array(GRID.origin) + margin
+    hi = np.array(GRID.origin) + GRID.spacing * np.array(GRID.shape) - margin
+    x = lo + rng.uniform(size=(n, 3)) * (hi - lo)
+    w = rng.integers(1, 9, n) if weight is None else weight
+    return Particles.from_numpy(x, rng.uniform(100e-6, 300e-6, n), v=rng.normal(0, 1, (n, 3)),
+                                density=rng.uniform(900, 2500, n), weight=w, check_overlap=False), rng
+
+
+def test_weights_are_a_partition_of_unity():
+    parts, _ = random_parcels(500)
+    cells = wp.zeros((500, 8), dtype=wp.vec3i)
+    weights = wp.zeros((500, 8), dtype=wp.float64)
+    stencil_weights(GRID.cell_grid(), parts.x, cells, weights)
+    w = weights.numpy()
+    assert np.all(w >= 0) and np.all(w <= 1)
+    assert np.allclose(w.sum(axis=1), 1.0, rtol=0, atol=1e-14)
+    c = cells.numpy()
+    assert c.min() >= 0 and np.all(c.max(axis=(0, 1)) < np.array(GRID.shape))
+
+
+def test_linear_field_is_interpolated_exactly_between_cell_centres():
+    # f(x) = a + b.x sampled at cell centres; trilinear interpolation reproduces it inside the centre hull
+    a, b = 0.7, np.array([3.0, -2.0, 5.0])
+    i, j, k = np.meshgrid(*[np.arange(n) for n in GRID.shape], indexing="ij")
+    centres = np.stack([i, j, k], -1) * GRID.spacing + np.array(GRID.origin) + 0.5 * GRID.spacing
+    scalar = (a + centres @ b).astype(np.float32)
+    vector = np.stack([a + centres @ b, 2 * a - centres @ b, centres[..., 2]], -1).astype(np.float32)
+    parts, _ = random_parcels(300, margin=0.5 * GRID.spacing + 1e-6)  # inside the hull of the centres
+    x = parts.x.numpy().astype(np.float64)
+    s_out = wp.zeros(300, dtype=float)
+    v_out = wp.zeros(300, dtype=wp.vec3)
+    interpolate_scalar(GRID.cell_grid(), parts.x, wp.array(scalar, dtype=float), s_out)
+    interpolate_vec3(GRID.cell_grid(), parts.x, wp.array(vector, dtype=wp.vec3), v_out)
+    assert np.allclose(s_out.numpy(), a + x @ b, rtol=0, atol=2e-6)
+    expect = np.stack([a + x @ b, 2 * a - x @ b, x[:, 2]], -1)
+    assert np.allclose(v_out.numpy(), expect, rtol=0, atol=2e-6)
+
+
+def _deposit_random(seed=1, n=400):
+    parts, rng = random_parcels(n, seed=seed)
+    fields = CouplingFields.allocate(GRID, n)
+    impulse = rng.normal(0, 1e-6, (n, 3))
+    fields.parcel_drag_impulse.assign(impulse)
+    fields.parcel_drag_coeff.assign(rng.uniform(0, 1e-3, n))
+    alive = np.ones(n, np.int32)
+    alive[::7] = 0  # dead parcels deposit nothing
+    parts.alive.assign(alive)
+    deposit_parcels(GRID, parts, fields)
+    return parts, fields, impulse, alive
+
+
+def test_deposit_conserves_volume_momentum_and_drag_coefficient():
+    parts, fields, impulse, alive = _deposit_random()
+    live = alive == 1
+    r = parts.radius.numpy().astype(np.float64)
+    w = parts.weight.numpy().astype(np.float64)
+    volume = w * 4.0 / 3.0 * math.pi * r**3
+    assert fields.cell_solid_volume.numpy().sum() == pytest.approx(volume[live].sum(), rel=1e-13, abs=0)
+    # momentum given to the gas = minus the drag impulses of the live parcels (sum over cells vs parcels)
+    src = fields.cell_momentum_source.numpy().reshape(-1, 3).sum(axis=0)
+    total = impulse[live].sum(axis=0)
+    assert np.allclose(src, -total, rtol=0, atol=1e-13 * np.abs(impulse).sum())
+    assert fields.cell_drag_coeff.numpy().sum() == pytest.approx(fields.parcel_drag_coeff.numpy()[live].sum(),
+                                                                  rel=1e-13, abs=0)
+    mass = volume * parts.density.numpy()
+    mom = (mass[:, None] * parts.v.numpy())[live].sum(axis=0)
+    assert np.allclose(fields.cell_solid_momentum.numpy().reshape(-1, 3).sum(axis=0), mom, rtol=1e-12, atol=0)
+    eps = fields.cell_eps_s.numpy().astype(np.float64)
+    assert eps.sum() * GRID.cell_volume == pytest.approx(volume[live].sum(), rel=1e-6, abs=0)
+
+
+def test_deposit_and_interpolation_use_the_same_weights():
+    # Work of the exchange: sum_c S_c . u_c = -sum_p I_p . u_f(x_p) holds only when the gas velocity is read
+    # with the weights the source was spread with (the discrete "equal and opposite").
+    parts, fields, impulse, alive = _deposit_random(seed=5)
+    rng = np.random.default_rng(9)
+    u_cells = rng.normal(0, 1, GRID.shape + (3,)).astype(np.float32)
+    u_f = wp.zeros(parts.count, dtype=wp.vec3)
+    interpolate_vec3(GRID.cell_grid(), parts.x, wp.array(u_cells, dtype=wp.vec3), u_f)
+    lhs = np.sum(fields.cell_momentum_source.numpy() * u_cells.astype(np.float64))
+    rhs = -np.sum((impulse * u_f.numpy().astype(np.float64))[alive == 1])
+    assert lhs == pytest.approx(rhs, rel=1e-6)  # u_f stored in float32
+
+
+def test_deposit_is_deterministic():
+    _, a, _, _ = _deposit_random(seed=11, n=2000)
+    _, b, _, _ = _deposit_random(seed=11, n=2000)
+    for name in ("cell_solid_volume", "cell_momentum_source", "cell_drag_coeff", "cell_solid_momentum"):
+        assert np.array_equal(getattr(a, name).numpy(), getattr(b, name).numpy()), name
+
+
+def test_parcel_at_a_cell_centre_deposits_into_that_cell_only():
+    x = np.array(GRID.origin) + GRID.spacing * np.array([2.5, 1.5, 3.5])
+    parts = Particles.from_numpy(x[None, :], 200e-6, density=1500.0, weight=3.0, check_overlap=False)
+    fields = CouplingFields.allocate(GRID, 1)
+    deposit_parcels(GRID, parts, fields)
+    vol = fields.cell_solid_volume.numpy()
+    expect = 3.0 * 4.0 / 3.0 * math.pi * float(np.float32(200e-6)) ** 3  # radius is stored in float32
+    # positions are float32: the parcel sits within ~1e-9 m of the centre, leaving ~1e-6 of its volume aside
+    assert vol.sum() == pytest.approx(expect, rel=1e-12, abs=0)
+    assert vol[2, 1, 3] == pytest.approx(expect, rel=1e-6, abs=0)
+
+
+def test_coupled_step_conserves_gas_plus_particle_momentum():
+    # push then deposit: d(particle momentum) - m dt a_body + (momentum given to the gas) = 0
+    parts, rng = random_parcels(300, seed=4, margin=0.0)
+    fields = CouplingFields.allocate(GRID, 300)
+    u_cells = rng.normal(0, 2, GRID.shape + (3,)).astype(np.float32)
+    zero_grad = np.zeros(GRID.shape + (3,), np.float32)
+    deposit_parcels(GRID, parts, fields)  # eps_s for the drag law
+    interpolate_gas(GRID, parts, wp.array(u_cells, dtype=wp.vec3), wp.array(zero_grad, dtype=wp.vec3), fields)
+    cfg = PushConfig(drag="gidaspow", gravity=(0.0, 0.0, 0.0))  # body forces off: drag is the only exchange
+    m = parts.mass_numpy() * parts.weight.numpy()
+    p_before = (m[:, None] * parts.v.numpy()).sum(axis=0)
+    push_parcels(parts, fields, cfg.params(1e-3))
+    p_after = (m[:, None] * parts.v.numpy()).sum(axis=0)
+    deposit_parcels(GRID, parts, fields)
+    gas_gain = fields.cell_momentum_source.numpy().reshape(-1, 3).sum(axis=0)
+    scale = np.abs(m[:, None] * parts.v.numpy()).sum()
+    assert np.abs(p_after - p_before + gas_gain).max() <= 1e-6 * scale  # float32 particle velocities
+
+
+def _beta_balance_slip(eps_s, d, rho_p, rho_f, mu, g):
+    """Slip w solving beta(eps_s, w) w = eps_s eps_f (rho_p - rho_f) g with Gidaspow's beta (written here again)."""
+    ef = 1.0 - eps_s
+
+    def beta(w):
+        if ef <= 0.8:
+            return 150.0 * eps_s**2 * mu / (ef * d * d) + 1.75 * rho_f * eps_s * w / d
+        re = ef * rho_f * w * d / mu
+        cd = 24.0 / re * (1 + 0.15 * re**0.687) if re <= 1000 else 0.44
+        return 0.75 * cd * eps_s * ef * rho_f * w * ef**-2.65 / d
+
+    return brentq(lambda w: beta(w) * w - eps_s * ef * (rho_p - rho_f) * g, 1e-9, 50.0, xtol=1e-14, rtol=1e-13)
+
+
+@pytest.mark.parametrize("eps_s", [0.05, 0.1, 0.3, 0.45])
+def test_hindered_settling_matches_drag_force_balance(eps_s):
+    # Uniform suspension, gas at rest on average: volume continuity eps_f u_f + eps_s u_s = 0, mean
+    # modified-pressure gradient grad p' = grad p - rho_f g = eps_s (rho_p - rho_f) g (mixture weight).
+    # Steady parcel: F_D (u_f - v) + g (rho_p - rho_f)/rho_p - grad p'/rho_p = 0
+    #   =>  beta |v - u_f| = eps_s eps_f (rho_p - rho_f) |g|.
+    d, rho_p, g = 315e-6, 1000.0, 9.80665
+    cfg = PushConfig(drag="gidaspow", gravity=(0.0, 0.0, -g))
+    expect = _beta_balance_slip(eps_s, d, rho_p, cfg.fluid_density, cfg.fluid_viscosity, g)
+    grid = GridSpec(origin=(0, 0, 0), spacing=0.01, shape=(3, 3, 3))
+    n = 200
+    rng = np.random.default_rng(2)
+    parts = Particles.from_numpy(rng.uniform(0.0, 0.03, (n, 3)), d / 2, density=rho_p, check_overlap=False)
+    fields = CouplingFields.allocate(grid, n)
+    fields.cell_eps_s.fill_(eps_s)
+    grad_p = np.zeros(grid.shape + (3,), np.float32)
+    grad_p[..., 2] = -eps_s * (rho_p - cfg.fluid_density) * g
+    grad_p = wp.array(grad_p, dtype=wp.vec3)
+    u_gas = wp.zeros(grid.shape, dtype=wp.vec3)
+    params = cfg.params(1e-3)
+    for _ in range(1500):
+        interpolate_gas(grid, parts, u_gas, grad_p, fields)
+        push_parcels(parts, fields, params)
+        v_mean = parts.v.numpy().astype(np.float64).mean(axis=0)
+        u_gas.fill_(wp.vec3(*(-eps_s * v_mean / (1.0 - eps_s))))
+    slip = parts.v.numpy()[:, 2].astype(np.float64) - (-eps_s * v_mean[2] / (1.0 - eps_s))
+    assert np.allclose(-slip, expect, rtol=0.02)
+    assert np.allclose(-slip, expect, rtol=1e-3)
+
+
+def test_ktgf_cells_and_collision_acceleration_on_a_sheared_slab():
+    # Cells along z with a peaked eps_s profile under simple shear u_x = gamma z (D_xz = gamma/2, tr D = 0,
+    # D:D = gamma^2/2). The algebraic root is then Theta = 2 K3 D:D / (K4 eps_s) (MFIX form, written here
+    # again), p_s follows from Lun et al.; a_coll = -grad p_s/(eps_s rho_p) pushes parcels away from the peak.
+    from kernels.ktgf import make_ktgf_params
+
+    h, gamma, rho, d, e, emax = 0.002, 20.0, 1000.0, 300e-6, 0.9, 0.63
+    grid = GridSpec(origin=(0, 0, 0), spacing=h, shape=(1, 1, 9))
+    eps = np.array([0.02, 0.05, 0.1, 0.2, 0.4, 0.2, 0.1, 0.05, 0.02])
+    zc = (np.arange(9) + 0.5) * h
+    z = np.concatenate([np.linspace(0.5 * h, 2.5 * h, 20), np.linspace(6.5 * h, 8.5 * h, 20)])
+    x = np.stack([np.full(z.size, 0.001), np.full(z.size, 0.001), z], -1)
+    parts = Particles.from_numpy(x, d / 2, density=rho, check_overlap=False)
+    fields = CouplingFields.allocate(grid, z.size)
+    fields.cell_eps_s.assign(eps.reshape(1, 1, 9).astype(np.float32))
+    u = np.zeros((1, 1, 9, 3), np.float32)
+    u[0, 0, :, 0] = gamma * zc
+    fields.cell_solid_velocity.assign(u)
+    ktgf_collision(grid, parts, fields, make_ktgf_params(particle_diameter=d, particle_density=rho))
+    g0 = 1.0 / (1.0 - (eps / emax) ** (1.0 / 3.0))
+    sp = math.sqrt(math.pi)
+    k3 = d * rho / 2 * (sp / (3 * (3 - e)) * (0.5 * (3 * e + 1) + 0.4 * (1 + e) * (3 * e - 1) * eps * g0)
+                        + 8 * eps * g0 * (1 + e) / (5 * sp))
+    k4 = 12 * (1 - e * e) * rho * g0 / (d * sp)
+    theta = 2 * k3 * (gamma**2 / 2) / (k4 * eps)
+    p_s = eps * rho * theta * (1 + 2 * (1 + e) * eps * g0)
+    assert np.allclose(fields.cell_theta.numpy().ravel(), theta, rtol=1e-4)
+    assert np.allclose(fields.cell_p_s.numpy().ravel(), p_s, rtol=1e-4)
+    a = fields.parcel_a_coll.numpy()
+    assert np.all(a[:20, 2] < 0) and np.all(a[20:, 2] > 0)
+    assert np.allclose(a[:, :2], 0.0)
+
+
+def test_volume_injection_by_mass_count_and_outlet_removal():
+    # the paper's 315 um case: 0.000196 kg of 1000 kg/m^3 spheres = 12000 particles (weight 1)
+    pool = ParcelPool.empty(13000)
+    inj = VolumeInjection(box_lo=(0, 0, 0), box_hi=(0.01, 0.02, 0.005), diameter_mean=315e-6, mass=0.000196,
+                          speed=5.0, direction=(1.0, 1.0, 0.0), seed=1)
+    n = pool.inject(inj)
+    m_p = 1000.0 * math.pi / 6.0 * (315e-6) ** 3
+    assert n == math.ceil(0.000196 / m_p - 1e-9)
+    p = pool.particles.to_numpy()
+    x = p["x"][:n]
+    assert np.all(x >= 0) and np.all(x <= [0.01, 0.02, 0.005])
+    assert np.allclose(p["v"][:n], [5 / math.sqrt(2), 5 / math.sqrt(2), 0], rtol=1e-6)
+    assert p["alive"][:n].all() and not p["alive"][n:].any()
+    pool2 = ParcelPool.empty(5000)
+    pool2.inject(VolumeInjection(box_lo=(0, 0, 0), box_hi=(1, 1, 1), diameter_mean=400e-6, diameter_std=40e-6,
+                                 count=4000, seed=2))
+    d = 2 * pool2.particles.radius.numpy()[:4000].astype(np.float64)
+    assert d.mean() == pytest.approx(400e-6, abs=4 * 40e-6 / math.sqrt(4000))
+    assert d.std() == pytest.approx(40e-6, rel=0.05)
+    pool2.remove_beyond_plane((0.5, 0, 0), (1, 0, 0))
+    xs = pool2.particles.x.numpy()[:4000, 0]
+    assert pool2.removed_count() == int((xs > 0.5).sum())
+    assert pool2.alive_count() == int((xs <= 0.5).sum())
+    with pytest.raises(ConfigError, match="capacity"):
+        pool2.inject(VolumeInjection(box_lo=(0, 0, 0), box_hi=(1, 1, 1), diameter_mean=1e-3, count=2000))
+
+
+@pytest.mark.parametrize("kwargs,field", [({"count": 10, "mass": 1.0}, "exactly one"),
+                                          ({"count": 10, "diameter_mean": -1.0}, "diameter_mean"),
+                                          ({"count": 10, "box_hi": (0, 1, 1)}, "box_hi"),
+                                          ({"count": 10, "direction": (0, 0, 0)}, "direction")])
+def test_bad_injection_is_refused(kwargs, field):
+    base = dict(box_lo=(0, 0, 0), box_hi=(1, 1, 1), diameter_mean=1e-3)
+    with pytest.raises(ConfigError, match=field):
+        VolumeInjection(**(base | kwargs))
