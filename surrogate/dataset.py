@@ -21,6 +21,7 @@ workers (which need hel_warp installed) and written by the client, in completion
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
@@ -43,6 +44,29 @@ CONTACT_MODELS = ("hertz", "linear")
 DEFAULT_CHUNK_SIZE = 4096
 FORMAT_VERSION = 1
 ROW_ARRAYS = ("inputs", "outputs", "config_id", "family")
+FINGERPRINT_MODULES = ("surrogate.configurations", "surrogate.dataset", "hel_warp.material", "hel_warp.impact",
+                       "hel_warp.contact_law", "kernels.hertz")
+"""Modules whose source decides the bytes of a data set (``code_fingerprint``)."""
+
+
+@functools.lru_cache(maxsize=1)
+def code_fingerprint() -> str:
+    """sha256 over the source files of ``FINGERPRINT_MODULES`` (first 16 hex digits).
+
+    Stored in the attrs: a resume with changed configuration or DEM code would mix two versions
+    of the physics in one set, so it is refused. Also returned by every chunk computed on a Dask
+    worker, so a worker running other code is caught.
+    """
+    import importlib.util
+
+    digest = hashlib.sha256()
+    for name in FINGERPRINT_MODULES:
+        spec = importlib.util.find_spec(name)
+        if spec is None or spec.origin is None:
+            digest.update(f"{name}:missing".encode())
+            continue
+        digest.update(name.encode() + b"\0" + Path(spec.origin).read_bytes())
+    return digest.hexdigest()[:16]
 
 PairRunner = Callable[[Configurations, "DatasetSpec"], np.ndarray]
 """``runner(configs, spec) -> outputs`` (n, 15) float64 in ``OUTPUT_COLUMNS`` order."""
@@ -115,6 +139,7 @@ class DatasetSpec:
             "configuration": cfg.as_dict(),
             "families": list(FAMILIES),
             "code_version": __version__,
+            "code_fingerprint": code_fingerprint(),
             "input_columns": list(INPUT_COLUMNS),
             "output_columns": list(OUTPUT_COLUMNS),
         }
@@ -198,6 +223,7 @@ class ChunkResult:
     outputs: np.ndarray
     config_id: np.ndarray
     family: np.ndarray
+    fingerprint: str = ""
 
 
 def compute_chunk(spec: DatasetSpec, k: int, runner: PairRunner | None = None) -> ChunkResult:
@@ -217,7 +243,8 @@ def compute_chunk(spec: DatasetSpec, k: int, runner: PairRunner | None = None) -
         raise DatasetError(f"chunk {k}: {int(bad.sum())} of {stop - start} rows are NaN/inf (config ids "
                            f"{', '.join(map(str, ids[:5]))}{'...' if ids.size > 5 else ''}); nothing of this chunk "
                            "was written; check the material and time step")
-    return ChunkResult(k=k, inputs=inputs, outputs=outputs, config_id=configs.config_id, family=configs.family)
+    return ChunkResult(k=k, inputs=inputs, outputs=outputs, config_id=configs.config_id, family=configs.family,
+                       fingerprint=code_fingerprint())
 
 
 # ---------------------------------------------------------------- the store
@@ -238,6 +265,11 @@ def _open_store(path: Path, spec: DatasetSpec, overwrite: bool):
             raise DatasetError(f"{path} is not a readable zarr group ({exc}); use a new --out or --overwrite") from None
         stored = dict(group.attrs)
         diff = [key for key in expected if stored.get(key) != expected[key]]
+        if diff == ["code_fingerprint"]:
+            raise DatasetError(f"{path} was started with other configuration/DEM code (fingerprint "
+                               f"{stored.get('code_fingerprint')}, now {expected['code_fingerprint']}); finishing it "
+                               "would mix two versions in one set: finish it with the old code, or use a new --out "
+                               "or --overwrite")
         if diff:
             details = "; ".join(f"{key}: stored {stored.get(key)!r}, requested {expected[key]!r}" for key in diff[:4])
             raise DatasetError(f"{path} holds a data set made with other parameters ({details}); "
@@ -265,6 +297,9 @@ def _open_store(path: Path, spec: DatasetSpec, overwrite: bool):
 
 def _write_chunk(group, spec: DatasetSpec, result: ChunkResult) -> None:
     start, stop = spec.rows(result.k)
+    if result.fingerprint != code_fingerprint():
+        raise DatasetError(f"chunk {result.k} was computed with other code (fingerprint {result.fingerprint}, "
+                           f"this client {code_fingerprint()}); install the same hel_warp on every Dask worker")
     if not np.array_equal(result.config_id, np.arange(start, stop)):
         raise DatasetError(f"chunk {result.k}: config ids do not match rows {start}..{stop - 1} (input/output mix-up)")
     group["inputs"][start:stop] = result.inputs

@@ -168,6 +168,19 @@ def test_mismatched_resume_is_refused(tmp_path):
     assert load_dataset(tmp_path / "ds").attrs["seed"] == 8 and summary["computed_chunks"] == 4
 
 
+def test_resume_with_changed_physics_code_is_refused(tmp_path):
+    import zarr
+
+    spec = small_spec()
+    with pytest.raises(Killed):
+        build_dataset(tmp_path / "ds", spec, progress=False, runner=analytic_stand_in,
+                      after_chunk=lambda k: (_ for _ in ()).throw(Killed()))
+    group = zarr.open_group(str(tmp_path / "ds"), mode="r+")
+    group.attrs["code_fingerprint"] = "0123456789abcdef"  # as if started by another version of the DEM
+    with pytest.raises(DatasetError, match="other configuration/DEM code"):
+        build_dataset(tmp_path / "ds", spec, progress=False, runner=analytic_stand_in)
+
+
 def test_nan_rows_are_refused_and_corruption_detected(tmp_path):
     with pytest.raises(DatasetError, match="1 of 16 rows are NaN"):
         build_dataset(tmp_path / "nan", small_spec(), progress=False, runner=nan_stand_in)

@@ -83,7 +83,11 @@ def run(args) -> int:
     from hel_warp.material import Material
     from surrogate.dataset import DEFAULT_CHUNK_SIZE, build_dataset, make_spec
 
-    wp.config.quiet = True  # no per-module load lines between the progress bar and the summary
+    # no greeting or per-module load lines around the progress bar (Warp >= 1.19: log_level; older: quiet)
+    if hasattr(wp, "LOG_WARNING"):
+        wp.config.log_level = wp.LOG_WARNING
+    else:
+        wp.config.quiet = True
     chunk_size = args.chunk_size
     if chunk_size is None:
         chunk_size = (None if args.overwrite else _stored_chunk_size(args.out)) or DEFAULT_CHUNK_SIZE
