@@ -171,7 +171,9 @@ def contact_forces(
             fc, shear_new, fn = contact_force(n, overlap, v_rel, contact_shear[i, k], p, dt)
             contact_shear[i, k] = shear_new
             f = f + fc
-            t = t + wp.cross(ri * n, fc) + rolling_torque(p, n, wi - wj, fn)
+            t = t + wp.cross(ri * n, fc)
+            if p.rolling_friction > 0.0:
+                t = t + rolling_torque(p, n, wi - wj, fn)
         else:
             contact_shear[i, k] = wp.vec3(0.0)
     particle_f[i] = f

@@ -34,7 +34,9 @@ def wall_contact(
         v_rel = v - wp.cross(x_radius * omega, n)
         p = with_bodies(params, x_radius, mass)
         force, new_shear, fn = contact_force(-n, overlap, v_rel, shear, p, dt)
-        torque = wp.cross(-x_radius * n, force) + rolling_torque(p, -n, omega, fn)
+        torque = wp.cross(-x_radius * n, force)
+        if p.rolling_friction > 0.0:
+            torque = torque + rolling_torque(p, -n, omega, fn)
     return force, new_shear, torque
 
 
@@ -63,15 +65,21 @@ def plane_wall_forces(
     m = particle_mass(r, particle_density[i])
     f = wp.vec3(0.0)
     t = wp.vec3(0.0)
+    touching = int(0)
     for w in range(wall_point.shape[0]):
         n = wall_normal[w]
         gap = wp.dot(x - wall_point[w], n)
-        result = wall_contact(n, gap, r, m, particle_v[i], particle_omega[i], wall_shear[i, w], params, dt)
-        f = f + result[0]
-        wall_shear[i, w] = result[1]
-        t = t + result[2]
-    particle_f[i] = particle_f[i] + f
-    particle_torque[i] = particle_torque[i] + t
+        if gap < r:
+            result = wall_contact(n, gap, r, m, particle_v[i], particle_omega[i], wall_shear[i, w], params, dt)
+            f = f + result[0]
+            wall_shear[i, w] = result[1]
+            t = t + result[2]
+            touching = 1
+        else:
+            wall_shear[i, w] = wp.vec3(0.0)  # the contact opened: forget its history
+    if touching != 0:
+        particle_f[i] = particle_f[i] + f
+        particle_torque[i] = particle_torque[i] + t
 
 
 def make_sdf_wall_kernel(sdf):

@@ -1,0 +1,176 @@
+"""Benchmark: particle-steps per second of our N-body DEM vs Warp's own ``example_dem`` (same run, same N).
+
+Ours: ``hel_warp.dem.DEMSolver`` on a dense bed — monodisperse 6 mm polyethylene spheres
+(``Material()`` with e = 0.5, mu = 0.3) on a simple cubic lattice of spacing 1.0 d in a closed box
+under gravity, so every sphere touches its lattice neighbours from the first step and the bed
+compresses under its weight; dt from eq. (12). Timed: ``simulate(k)`` (neighbour-list checks and
+rebuilds, Hertz-Mindlin contacts with history, walls, velocity Verlet), median of repeats.
+
+Warp: ``warp/examples/core/example_dem.py``, its ``Example`` class imported from the installed
+package, its particle lattice (spacing ~2r + jitter) cut to N particles. Timed: its
+``simulate()`` (apply_forces + integrate per substep) with the hash-grid build amortised over 64
+substeps as in the example's ``step()``.
+
+Printed: medians, ours/Warp, cost per particle-step (ns) and its flatness (max/min over sizes),
+and the comparison with LAMMPS ``gran/hooke/history`` at 1.16e7 particle-steps/s/core (LAMMPS
+benchmark "chute", see https://docs.lammps.org/Speed_bench.html).
+
+Usage::
+
+    python scripts/bench_dem.py                         # 1e4, 1e5, 1e6 on the CPU (a few minutes)
+    python scripts/bench_dem.py --sizes 10000 100000    # fewer sizes
+    python scripts/bench_dem.py --device cuda           # on a GPU
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import math
+import statistics
+import sys
+import time
+
+import numpy as np
+
+LAMMPS_CHUTE = 1.16e7
+"""LAMMPS gran/hooke/history particle-steps per second per CPU core (chute benchmark)."""
+
+
+def build_ours(n: int, device: str, sort_every: int, capacity: int):
+    from hel_warp.dem import DEMConfig, DEMSolver
+    from hel_warp.material import Material
+    from hel_warp.particles import Particles, lattice_positions
+
+    d = 6e-3
+    per_side = max(2, int(round(n ** (1.0 / 3.0))))
+    layers = int(math.ceil(n / per_side**2))
+    lo = (0.0, 0.0, 0.0)
+    hi = (per_side * d, per_side * d, (layers + 2) * d)
+    x = lattice_positions(n, d, lo, hi)
+    material = Material(restitution=0.5, friction=0.3)
+    particles = Particles.from_numpy(x, 0.5 * d, density=material.density, check_overlap=False, device=device)
+    config = DEMConfig(material=material, box_lo=lo, box_hi=hi, sort_every=sort_every, contact_capacity=capacity)
+    return DEMSolver(config, particles)
+
+
+def time_ours(n: int, device: str, repeats: int, budget_s: float, sort_every: int, capacity: int) -> dict:
+    import warp as wp
+
+    solver = build_ours(n, device, sort_every, capacity)
+    solver.simulate(5)  # compile + first rebuilds
+    wp.synchronize_device(device)
+    t0 = time.perf_counter()
+    solver.simulate(5)
+    wp.synchronize_device(device)
+    per_step = (time.perf_counter() - t0) / 5
+    k = max(5, int(budget_s / repeats / per_step))
+    rates = []
+    for _ in range(repeats):
+        wp.synchronize_device(device)
+        t0 = time.perf_counter()
+        solver.simulate(k)
+        wp.synchronize_device(device)
+        rates.append(n * k / (time.perf_counter() - t0))
+    pairs = len(solver.touching_pairs()[0])
+    return {"rate": statistics.median(rates), "rates": rates, "steps_per_repeat": k, "rebuilds": solver.rebuilds,
+            "steps": solver.steps_done, "contacts_per_particle": 2.0 * pairs / n, "dt": solver.dt}
+
+
+def time_warp_example(n: int, device: str, repeats: int, budget_s: float) -> dict:
+    import warp as wp
+    from warp.examples.core.example_dem import Example
+
+    class SizedExample(Example):
+        """Warp's example with its lattice (aspect 1:2:1) cut to ``count`` particles."""
+
+        count = n
+
+        def particle_grid(self, dim_x, dim_y, dim_z, lower, radius, jitter):
+            nx = max(2, int(round((self.count / 2.0) ** (1.0 / 3.0))))
+            ny = int(math.ceil(self.count / (nx * nx)))
+            return super().particle_grid(nx, ny, nx, lower, radius, jitter)[: self.count]
+
+    with wp.ScopedDevice(device):
+        example = SizedExample(stage_path=None)
+        example.use_graph_capture = False
+        frame_substeps = example.sim_substeps  # 64 substeps per grid build in the example
+        example.grid.build(example.x, example.grid_cell_size)
+        example.sim_substeps = 1
+        example.simulate()  # warm-up
+        wp.synchronize_device(device)
+        t0 = time.perf_counter()
+        example.simulate()
+        wp.synchronize_device(device)
+        per_substep = time.perf_counter() - t0
+        k = max(1, int(budget_s / repeats / per_substep))
+        example.sim_substeps = k
+        builds, substeps = [], []
+        for _ in range(repeats):
+            wp.synchronize_device(device)
+            t0 = time.perf_counter()
+            example.grid.build(example.x, example.grid_cell_size)
+            wp.synchronize_device(device)
+            t1 = time.perf_counter()
+            example.simulate()
+            wp.synchronize_device(device)
+            builds.append(t1 - t0)
+            substeps.append((time.perf_counter() - t1) / k)
+    cost = statistics.median(substeps) + statistics.median(builds) / frame_substeps
+    return {"rate": n / cost, "substeps_per_repeat": k, "substep_s": statistics.median(substeps),
+            "build_s": statistics.median(builds)}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000],
+                        help="particle counts (default 1e4 1e5 1e6)")
+    parser.add_argument("--device", default="cpu", help="Warp device (default cpu)")
+    parser.add_argument("--repeats", type=int, default=5, help="timed repeats per size (default 5)")
+    parser.add_argument("--budget", type=float, default=6.0, help="seconds of timed work per size and code (default 6)")
+    parser.add_argument("--sort-every", type=int, default=0, help="our spatial sort every k rebuilds (default 0)")
+    parser.add_argument("--capacity", type=int, default=16, help="our contact-list capacity (default 16)")
+    parser.add_argument("--skip-warp", action="store_true", help="time ours only")
+    parser.add_argument("--json", help="also write the results to this JSON file")
+    args = parser.parse_args(argv)
+
+    import warp as wp
+
+    wp.config.quiet = True
+    wp.init()
+    results = []
+    print(f"device {args.device}; {args.repeats} repeats, ~{args.budget:.0f} s of timed work per size and code")
+    print(f"{'N':>9} {'ours p-steps/s':>15} {'warp p-steps/s':>15} {'ours/warp':>9} {'ours ns/p-step':>15} "
+          f"{'warp ns/p-step':>15} {'contacts/p':>10} {'rebuilds/steps':>15}")
+    for n in args.sizes:
+        ours = time_ours(n, args.device, args.repeats, args.budget, args.sort_every, args.capacity)
+        warp_ex = None
+        if not args.skip_warp:
+            with contextlib.redirect_stdout(io.StringIO()):  # the example's ScopedTimer prints
+                warp_ex = time_warp_example(n, args.device, args.repeats, args.budget)
+        row = {"n": n, "ours": ours, "warp_example": warp_ex}
+        results.append(row)
+        wr = warp_ex["rate"] if warp_ex else float("nan")
+        print(f"{n:>9} {ours['rate']:>15.4g} {wr:>15.4g} {ours['rate'] / wr:>9.2f} {1e9 / ours['rate']:>15.1f} "
+              f"{1e9 / wr:>15.1f} {ours['contacts_per_particle']:>10.2f} {ours['rebuilds']:>7}/{ours['steps']:<7}",
+              flush=True)
+    costs = [1e9 / r["ours"]["rate"] for r in results]
+    flat = max(costs) / min(costs)
+    print(f"ours: cost per particle-step {min(costs):.1f}..{max(costs):.1f} ns, flatness max/min = {flat:.2f} "
+          f"over N = {args.sizes[0]:.0e}..{args.sizes[-1]:.0e} (target <= 1.5)")
+    if not args.skip_warp:
+        ratios = [r["ours"]["rate"] / r["warp_example"]["rate"] for r in results]
+        print(f"ours / Warp example_dem: {', '.join(f'{x:.1f}x' for x in ratios)} (target >= 3x)")
+    best = max(r["ours"]["rate"] for r in results)
+    print(f"vs LAMMPS gran/hooke/history {LAMMPS_CHUTE:.3g} particle-steps/s/core: ours best {best:.3g} "
+          f"= {best / LAMMPS_CHUTE:.2f}x (ours: one Warp CPU thread, Hertz-Mindlin with history, full contact list)")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(results, fh, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
