@@ -38,6 +38,8 @@ class GridSpec:
     """Cell size h, m."""
     shape: tuple[int, int, int]
     """Cells per axis (nx, ny, nz)."""
+    periodic: tuple[bool, bool, bool] = (False, False, False)
+    """Periodic flag per axis (the stencil wraps around)."""
 
     def __post_init__(self):
         if len(self.origin) != 3 or len(self.shape) != 3:
@@ -46,6 +48,8 @@ class GridSpec:
         require_positive("grid spacing", self.spacing, "m")
         if any(int(n) != n or n < 1 for n in self.shape):
             raise ConfigError(f"grid shape must be three positive integers (got {self.shape!r})")
+        if len(self.periodic) != 3:
+            raise ConfigError(f"grid periodic must have three flags (got {self.periodic!r})")
 
     @property
     def cell_volume(self) -> float:
@@ -55,7 +59,7 @@ class GridSpec:
         """The kernel-side ``CellGrid`` struct."""
         from kernels.interp import make_cell_grid
 
-        return make_cell_grid(self.origin, self.spacing, self.shape)
+        return make_cell_grid(self.origin, self.spacing, self.shape, self.periodic)
 
     @classmethod
     def of(cls, grid) -> "GridSpec":
@@ -63,8 +67,9 @@ class GridSpec:
         spacing = getattr(grid, "spacing", None)
         if spacing is None:
             spacing = grid.h
+        periodic = tuple(bool(p) for p in getattr(grid, "periodic", (False, False, False)))
         return cls(origin=tuple(float(o) for o in grid.origin), spacing=float(spacing),
-                   shape=tuple(int(n) for n in grid.shape))
+                   shape=tuple(int(n) for n in grid.shape), periodic=periodic)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -212,8 +217,8 @@ def ktgf_collision(grid: GridSpec, particles, fields: CouplingFields, params) ->
 
     ktgf_cells(params, grid.spacing, fields.cell_eps_s, fields.cell_solid_velocity, cell_g0=fields.cell_g0,
                cell_theta=fields.cell_theta, cell_p_s=fields.cell_p_s, cell_mu_s=fields.cell_mu_s,
-               cell_mu_fric=fields.cell_mu_fric)
-    cell_gradient(grid.spacing, fields.cell_p_s, fields.cell_grad_p_s)
+               cell_mu_fric=fields.cell_mu_fric, periodic=grid.periodic)
+    cell_gradient(grid.spacing, fields.cell_p_s, fields.cell_grad_p_s, periodic=grid.periodic)
     collision_acceleration(grid.cell_grid(), params.eps_s_min, particles.x, particles.density,
                            fields.cell_grad_p_s, fields.cell_eps_s, fields.parcel_a_coll)
 

@@ -7,7 +7,8 @@ eight surrounding cell centres; the weight of corner (a, b, c) in {0, 1}^3 is
 prod (a ? f : 1 - f) over the axes, f the fractional position (Birdsall & Langdon,
 *Plasma Physics via Computer Simulation*, 1991, ch. 8: "cloud in cell").
 
-Within the outer half cell the coordinate is clamped to the last cell centre, so the field
+Along a periodic axis the stencil wraps around (cell -1 is cell n-1). Along a bounded axis,
+within the outer half cell the coordinate is clamped to the last cell centre, so the field
 is held constant there and the weights still sum to one (no momentum leaves the grid).
 ``kernels/deposit.py`` uses these same functions, so what a parcel reads and what it
 deposits are weighted identically and the exchange is equal and opposite.
@@ -21,16 +22,24 @@ import warp as wp
 
 @wp.struct
 class CellGrid:
-    """Uniform grid: origin (m, float64), spacing h (m), shape (nx, ny, nz)."""
+    """Uniform grid: origin (m, float64), spacing h (m), shape (nx, ny, nz), periodic flag per axis (0/1)."""
 
     origin: wp.vec3d
     spacing: wp.float64
     shape: wp.vec3i
+    periodic: wp.vec3i
 
 
 @wp.func
-def cic_axis(x: wp.float64, origin: wp.float64, spacing: wp.float64, n: int):
-    """Base cell index along one axis and the fractional weight of the upper neighbour."""
+def cic_axis(x: wp.float64, origin: wp.float64, spacing: wp.float64, n: int, periodic: int):
+    """Base cell index along one axis (-1 allowed when periodic) and the fractional weight of the upper one."""
+    if periodic != 0:
+        length = spacing * wp.float64(n)
+        u = x - origin
+        u = u - length * wp.floor(u / length)
+        s = u / spacing - wp.float64(0.5)
+        base = int(wp.floor(s))
+        return base, s - wp.float64(base)
     s = (x - origin) / spacing - wp.float64(0.5)
     s = wp.clamp(s, wp.float64(0.0), wp.float64(n - 1))
     base = wp.max(wp.min(int(wp.floor(s)), n - 2), 0)
@@ -40,10 +49,18 @@ def cic_axis(x: wp.float64, origin: wp.float64, spacing: wp.float64, n: int):
 @wp.func
 def cic_stencil(grid: CellGrid, x: wp.vec3):
     """Base cell (i, j, k) of the 2x2x2 stencil around x, and the fractions (fx, fy, fz)."""
-    i, fx = cic_axis(wp.float64(x[0]), grid.origin[0], grid.spacing, grid.shape[0])
-    j, fy = cic_axis(wp.float64(x[1]), grid.origin[1], grid.spacing, grid.shape[1])
-    k, fz = cic_axis(wp.float64(x[2]), grid.origin[2], grid.spacing, grid.shape[2])
+    i, fx = cic_axis(wp.float64(x[0]), grid.origin[0], grid.spacing, grid.shape[0], grid.periodic[0])
+    j, fy = cic_axis(wp.float64(x[1]), grid.origin[1], grid.spacing, grid.shape[1], grid.periodic[1])
+    k, fz = cic_axis(wp.float64(x[2]), grid.origin[2], grid.spacing, grid.shape[2], grid.periodic[2])
     return wp.vec3i(i, j, k), wp.vec3d(fx, fy, fz)
+
+
+@wp.func
+def cic_index(i: int, n: int, periodic: int):
+    """Stencil index on the grid: wrapped when periodic, else clamped to n - 1."""
+    if periodic != 0:
+        return (i + n) % n
+    return wp.min(i, n - 1)
 
 
 @wp.func
@@ -62,8 +79,9 @@ def cic_corner(grid: CellGrid, base: wp.vec3i, frac: wp.vec3d, corner: int):
     wz = frac[2]
     if c == 0:
         wz = one - frac[2]
-    idx = wp.vec3i(wp.min(base[0] + a, grid.shape[0] - 1), wp.min(base[1] + b, grid.shape[1] - 1),
-                   wp.min(base[2] + c, grid.shape[2] - 1))
+    idx = wp.vec3i(cic_index(base[0] + a, grid.shape[0], grid.periodic[0]),
+                   cic_index(base[1] + b, grid.shape[1], grid.periodic[1]),
+                   cic_index(base[2] + c, grid.shape[2], grid.periodic[2]))
     return idx, wx * wy * wz
 
 
@@ -120,12 +138,13 @@ def stencil_weights_kernel(
 
 # ---------------------------------------------------------------- launch wrappers
 
-def make_cell_grid(origin, spacing: float, shape) -> CellGrid:
-    """A ``CellGrid`` from plain values (origin m, spacing m, shape of three ints)."""
+def make_cell_grid(origin, spacing: float, shape, periodic=(False, False, False)) -> CellGrid:
+    """A ``CellGrid`` from plain values (origin m, spacing m, shape and periodic flags of three entries)."""
     grid = CellGrid()
     grid.origin = wp.vec3d(*[float(o) for o in origin])
     grid.spacing = wp.float64(spacing)
     grid.shape = wp.vec3i(*[int(n) for n in shape])
+    grid.periodic = wp.vec3i(*[int(bool(p)) for p in periodic])
     return grid
 
 

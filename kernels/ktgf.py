@@ -130,16 +130,21 @@ class KtgfParams:
 
 
 @wp.func
-def _index_pair(i: int, n: int):
+def _index_pair(i: int, n: int, periodic: int):
+    """Neighbours of cell i for a central difference and the number of spacings between them
+    (wrapped when periodic; one-sided at a bounded edge; span 0 when n == 1)."""
+    if periodic != 0 and n >= 3:
+        return (i - 1 + n) % n, (i + 1) % n, 2
     lo = wp.max(i - 1, 0)
     hi = wp.min(i + 1, n - 1)
-    return lo, hi
+    return lo, hi, hi - lo
 
 
 @wp.kernel
 def ktgf_cells_kernel(
     params: KtgfParams,
     spacing: float,
+    periodic: wp.vec3i,
     cell_eps_s: wp.array3d(dtype=float),
     cell_solid_velocity: wp.array3d(dtype=wp.vec3),
     # outputs
@@ -162,18 +167,18 @@ def ktgf_cells_kernel(
         cell_mu_fric[i, j, k] = 0.0
         return
     # velocity gradient G[a, b] = d u_a / d x_b by central differences
-    il, ih = _index_pair(i, nx)
-    jl, jh = _index_pair(j, ny)
-    kl, kh = _index_pair(k, nz)
+    il, ih, si = _index_pair(i, nx, periodic[0])
+    jl, jh, sj = _index_pair(j, ny, periodic[1])
+    kl, kh, sk = _index_pair(k, nz, periodic[2])
     dudx = wp.vec3(0.0)
     dudy = wp.vec3(0.0)
     dudz = wp.vec3(0.0)
-    if ih > il:
-        dudx = (cell_solid_velocity[ih, j, k] - cell_solid_velocity[il, j, k]) / (float(ih - il) * spacing)
-    if jh > jl:
-        dudy = (cell_solid_velocity[i, jh, k] - cell_solid_velocity[i, jl, k]) / (float(jh - jl) * spacing)
-    if kh > kl:
-        dudz = (cell_solid_velocity[i, j, kh] - cell_solid_velocity[i, j, kl]) / (float(kh - kl) * spacing)
+    if si > 0:
+        dudx = (cell_solid_velocity[ih, j, k] - cell_solid_velocity[il, j, k]) / (float(si) * spacing)
+    if sj > 0:
+        dudy = (cell_solid_velocity[i, jh, k] - cell_solid_velocity[i, jl, k]) / (float(sj) * spacing)
+    if sk > 0:
+        dudz = (cell_solid_velocity[i, j, kh] - cell_solid_velocity[i, j, kl]) / (float(sk) * spacing)
     grad = wp.mat33(dudx[0], dudy[0], dudz[0], dudx[1], dudy[1], dudz[1], dudx[2], dudy[2], dudz[2])
     strain = 0.5 * (grad + wp.transpose(grad))
     tr_d = wp.trace(strain)
@@ -194,21 +199,22 @@ def ktgf_cells_kernel(
 @wp.kernel
 def gradient_kernel(
     spacing: float,
+    periodic: wp.vec3i,
     cell_field: wp.array3d(dtype=float),
     # outputs
     cell_gradient: wp.array3d(dtype=wp.vec3),
 ):
     i, j, k = wp.tid()
-    il, ih = _index_pair(i, cell_field.shape[0])
-    jl, jh = _index_pair(j, cell_field.shape[1])
-    kl, kh = _index_pair(k, cell_field.shape[2])
+    il, ih, si = _index_pair(i, cell_field.shape[0], periodic[0])
+    jl, jh, sj = _index_pair(j, cell_field.shape[1], periodic[1])
+    kl, kh, sk = _index_pair(k, cell_field.shape[2], periodic[2])
     g = wp.vec3(0.0)
-    if ih > il:
-        g[0] = (cell_field[ih, j, k] - cell_field[il, j, k]) / (float(ih - il) * spacing)
-    if jh > jl:
-        g[1] = (cell_field[i, jh, k] - cell_field[i, jl, k]) / (float(jh - jl) * spacing)
-    if kh > kl:
-        g[2] = (cell_field[i, j, kh] - cell_field[i, j, kl]) / (float(kh - kl) * spacing)
+    if si > 0:
+        g[0] = (cell_field[ih, j, k] - cell_field[il, j, k]) / (float(si) * spacing)
+    if sj > 0:
+        g[1] = (cell_field[i, jh, k] - cell_field[i, jl, k]) / (float(sj) * spacing)
+    if sk > 0:
+        g[2] = (cell_field[i, j, kh] - cell_field[i, j, kl]) / (float(sk) * spacing)
     cell_gradient[i, j, k] = g
 
 
@@ -289,17 +295,19 @@ def make_ktgf_params(*, particle_diameter: float, particle_density: float, resti
 
 
 def ktgf_cells(params: KtgfParams, spacing: float, cell_eps_s, cell_solid_velocity, *, cell_g0, cell_theta,
-               cell_p_s, cell_mu_s, cell_mu_fric):
+               cell_p_s, cell_mu_s, cell_mu_fric, periodic=(False, False, False)):
     """g0, algebraic Theta, p_s, mu_s and Schaeffer mu_fr in every cell."""
     wp.launch(ktgf_cells_kernel, dim=cell_eps_s.shape, device=cell_eps_s.device,
-              inputs=[params, float(spacing), cell_eps_s, cell_solid_velocity],
+              inputs=[params, float(spacing), wp.vec3i(*[int(bool(p)) for p in periodic]), cell_eps_s,
+                      cell_solid_velocity],
               outputs=[cell_g0, cell_theta, cell_p_s, cell_mu_s, cell_mu_fric])
 
 
-def cell_gradient(spacing: float, cell_field, cell_gradient_out):
-    """Central-difference gradient of a float32 cell field."""
+def cell_gradient(spacing: float, cell_field, cell_gradient_out, periodic=(False, False, False)):
+    """Central-difference gradient of a float32 cell field (wrapped along periodic axes)."""
     wp.launch(gradient_kernel, dim=cell_field.shape, device=cell_field.device,
-              inputs=[float(spacing), cell_field], outputs=[cell_gradient_out])
+              inputs=[float(spacing), wp.vec3i(*[int(bool(p)) for p in periodic]), cell_field],
+              outputs=[cell_gradient_out])
 
 
 def collision_acceleration(grid: CellGrid, eps_s_min: float, particle_x, particle_density, cell_grad_p_s,

@@ -257,3 +257,26 @@ def test_bad_injection_is_refused(kwargs, field):
     base = dict(box_lo=(0, 0, 0), box_hi=(1, 1, 1), diameter_mean=1e-3)
     with pytest.raises(ConfigError, match=field):
         VolumeInjection(**(base | kwargs))
+
+
+def test_periodic_axis_wraps_the_stencil():
+    # Periodic x: a parcel a quarter cell above the lower face sits between cell n-1 (image at -h/2) and
+    # cell 0: weights 1/4 and 3/4 on that axis. Bounded y, z: clamped, still a partition of unity.
+    grid = GridSpec(origin=(0, 0, 0), spacing=0.01, shape=(5, 3, 3), periodic=(True, False, False))
+    x = np.array([[0.0025, 0.015, 0.015], [0.0525, 0.015, 0.015], [-0.0475, 0.015, 0.015]])
+    parts = Particles.from_numpy(x, 1e-4, check_overlap=False)
+    cells = wp.zeros((3, 8), dtype=wp.vec3i)
+    weights = wp.zeros((3, 8), dtype=wp.float64)
+    stencil_weights(grid.cell_grid(), parts.x, cells, weights)
+    c, w = cells.numpy(), weights.numpy()
+    for p in range(3):  # the three positions are periodic images of one another
+        wx = {}
+        for corner in range(8):
+            wx[c[p, corner, 0]] = wx.get(c[p, corner, 0], 0.0) + w[p, corner]
+        assert wx[4] == pytest.approx(0.25, abs=1e-6) and wx[0] == pytest.approx(0.75, abs=1e-6)
+        assert w[p].sum() == pytest.approx(1.0, abs=1e-14)
+    fields = CouplingFields.allocate(grid, 3)
+    deposit_parcels(grid, parts, fields)
+    vol = fields.cell_solid_volume.numpy()
+    assert vol.sum() == pytest.approx(3 * 4 / 3 * math.pi * float(np.float32(1e-4)) ** 3, rel=1e-12, abs=0)
+    assert vol[4].sum() == pytest.approx(vol.sum() / 4, rel=1e-5)
