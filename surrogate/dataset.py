@@ -250,11 +250,23 @@ def compute_chunk(spec: DatasetSpec, k: int, runner: PairRunner | None = None) -
 
 # ---------------------------------------------------------------- the store
 
+def _is_our_store(path: Path) -> bool:
+    """True when ``path`` holds a zarr group whose attrs name our input columns."""
+    try:
+        attrs = json.loads((path / "zarr.json").read_text()).get("attributes", {})
+    except (OSError, ValueError, AttributeError):
+        return False
+    return attrs.get("input_columns") == list(INPUT_COLUMNS)
+
+
 def _open_store(path: Path, spec: DatasetSpec, overwrite: bool):
     import zarr
 
     expected = spec.attrs()
     if overwrite and path.exists():
+        if not _is_our_store(path) and (path.is_file() or any(path.iterdir())):
+            raise DatasetError(f"{path} exists and is not a hel-warp data set; --overwrite only replaces a data set "
+                               "(choose another --out)")
         shutil.rmtree(path)
     if path.exists() and not (path / "zarr.json").exists():
         if any(path.iterdir()):

@@ -258,3 +258,24 @@ def test_unreachable_scheduler_is_a_clear_error(tmp_path):
     with pytest.raises(ConfigError, match="Dask scheduler"):
         build_dataset(tmp_path / "ds", small_spec(), scheduler="tcp://127.0.0.1:1", progress=False,
                       runner=analytic_stand_in, scheduler_timeout=1.0)
+
+
+def test_cli_builds_resumes_and_refuses_other_parameters(tmp_path, capsys):
+    pytest.importorskip("hel_warp.impact")
+    from hel_warp.cli import main
+
+    out = str(tmp_path / "ds")
+    args = ["dataset", "--out", out, "--samples", "300", "--chunk-size", "128", "--seed", "5", "--no-progress"]
+    assert main(args) == 0
+    first = capsys.readouterr().out
+    assert "300 configurations in 3 chunks (3 computed now)" in first and "total time" in first
+    assert main(args[:-3] + ["--seed", "5", "--no-progress"]) == 0          # rerun: nothing to compute
+    assert "(0 computed now, resumed)" in capsys.readouterr().out
+    assert main(args[:-3] + ["--seed", "6", "--no-progress"]) == 2          # other seed: one-line error
+    err = capsys.readouterr().err
+    assert err.startswith("hel-warp: error:") and "--overwrite" in err and "seed" in err
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "keep.txt").write_text("x")
+    assert main(["dataset", "--out", str(tmp_path / "notes"), "--samples", "10", "--overwrite", "--no-progress"]) == 2
+    assert (tmp_path / "notes" / "keep.txt").exists()                       # --overwrite never deletes other data
+    assert load_dataset(out).inputs.shape == (300, 14)
