@@ -70,6 +70,9 @@ class DEMConfig:
     """Extra walls: ``@wp.func`` phi(x: vec3) -> float, m, > 0 inside the domain."""
     sdf_gradient_step: float = 1e-6
     """Central-difference step for the SDF normal, m."""
+    cuda_graph_steps: int = 50
+    """On CUDA: steps per captured CUDA graph in ``simulate`` (0 = launch eagerly). Graphs need
+    ``sort_every = 0`` (the sort decision is a host one); otherwise the solver launches eagerly."""
 
     def __post_init__(self) -> None:
         lo, hi = np.asarray(self.box_lo, float), np.asarray(self.box_hi, float)
@@ -87,6 +90,8 @@ class DEMConfig:
             require_positive("skin", self.skin, "m")
         if self.contact_capacity < 1:
             raise ConfigError(f"contact_capacity must be >= 1 (got {self.contact_capacity}); 32 suits most packings")
+        if self.cuda_graph_steps < 0:
+            raise ConfigError(f"cuda_graph_steps must be >= 0 (got {self.cuda_graph_steps})")
         if self.sort_every < 0:
             raise ConfigError(f"sort_every must be >= 0 (got {self.sort_every})")
 
@@ -149,7 +154,9 @@ class DEMSolver:
         self.r_max = float(radius.max())
         x = particles.x.numpy()
         lo, hi = np.asarray(config.box_lo), np.asarray(config.box_hi)
-        outside = np.flatnonzero(np.any((x - radius[:, None] < lo) | (x + radius[:, None] > hi), axis=1))
+        slack = 1e-6 * float(np.max(np.abs(np.concatenate([lo, hi]))))  # float32 round-off of the positions
+        outside = np.flatnonzero(np.any((x - radius[:, None] < lo - slack) | (x + radius[:, None] > hi + slack),
+                                        axis=1))
         if outside.size:
             raise ConfigError(f"particle {outside[0]} at {x[outside[0]].tolist()} is not fully inside the box "
                               f"{config.box_lo}..{config.box_hi}; {outside.size} affected — move them or enlarge the box")
@@ -221,8 +228,11 @@ class DEMSolver:
         self.grid.reserve(n)
         self.time = 0.0
         self.steps_done = 0
-        self.rebuilds = 0
+        self._host_rebuilds = 0
         self._sort_scratch = None
+        self._graph = None
+        self._use_graph = bool(wp.get_device(self.device).is_cuda and config.cuda_graph_steps > 0
+                               and config.sort_every == 0)
 
         self._rebuild()
         self._compute_forces()
@@ -236,8 +246,22 @@ class DEMSolver:
         self.time += self.dt
 
     def simulate(self, n_steps: int) -> None:
-        """Advance ``n_steps`` steps without host synchronisation, then check the contact list."""
-        for _ in range(n_steps):
+        """Advance ``n_steps`` steps without host synchronisation, then check the contact list.
+
+        On CUDA (``cuda_graph_steps > 0``) the steps replay a captured graph whose rebuild branch is a
+        conditional node; the remainder runs eagerly.
+        """
+        import warp as wp
+
+        full, rest = (divmod(n_steps, self.config.cuda_graph_steps) if self._use_graph else (0, n_steps))
+        if full and self._graph is None:
+            with wp.ScopedCapture(device=self.device) as capture:
+                for _ in range(self.config.cuda_graph_steps):
+                    self._advance()
+            self._graph = capture.graph
+        for _ in range(full):
+            wp.capture_launch(self._graph)
+        for _ in range(rest):
             self._advance()
         self.steps_done += n_steps
         self.time += n_steps * self.dt
@@ -269,13 +293,14 @@ class DEMSolver:
 
     def _rebuild(self) -> None:
         """Hash grid + contact list (shear carried by partner id); optional spatial sort first."""
-        import warp as wp
-
+        from kernels import contacts as kc
         from kernels.contacts import launch_build_contact_list
 
         self.grid.build(self.particles.x, self.cell_size)
-        self.rebuilds += 1  # host counter: exact on the CPU device; on CUDA graphs use rebuild_count
-        if self.config.sort_every and self.rebuilds % self.config.sort_every == 1 % self.config.sort_every:
+        kc.launch_count_rebuild(self.rebuild_count)
+        self._host_rebuilds += 1  # only for the sort decision (eager launches)
+        every = self.config.sort_every
+        if every and self._host_rebuilds % every == 1 % every:
             self._spatial_sort()
             self.grid.build(self.particles.x, self.cell_size)
         else:
@@ -322,6 +347,11 @@ class DEMSolver:
                   device=self.device)
 
     # ------------------------------------------------------------------ checks and read-back
+    @property
+    def rebuilds(self) -> int:
+        """Neighbour-list builds so far, including the initial one (device counter; a host sync)."""
+        return int(self.rebuild_count.numpy()[0])
+
     def check_overflow(self) -> None:
         """Raise ContactOverflowError if any contact row overflowed since the start (host sync)."""
         need = int(self.overflow.numpy()[0])

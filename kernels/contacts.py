@@ -294,8 +294,17 @@ def gather_contact_rows(
         dst_partner[k, c] = -1
 
 
+@wp.kernel
+def count_rebuild(counter: wp.array[wp.int32]):
+    counter[0] = counter[0] + 1
+
+
 # ---------------------------------------------------------------------------------------------
 # launch wrappers
+
+
+def launch_count_rebuild(counter) -> None:
+    wp.launch(count_rebuild, dim=1, device=counter.device, inputs=[counter])
 
 
 def launch_flag_rebuild(particles, x_at_build, half_skin: float, rebuild_flag) -> None:

@@ -48,7 +48,7 @@ def build_ours(n: int, device: str, sort_every: int, capacity: int):
     per_side = max(2, int(round(n ** (1.0 / 3.0))))
     layers = int(math.ceil(n / per_side**2))
     lo = (0.0, 0.0, 0.0)
-    hi = (per_side * d, per_side * d, (layers + 2) * d)
+    hi = (per_side * d * 1.001, per_side * d * 1.001, (layers + 2) * d)
     x = lattice_positions(n, d, lo, hi)
     material = Material(restitution=0.5, friction=0.3)
     particles = Particles.from_numpy(x, 0.5 * d, density=material.density, check_overlap=False, device=device)
