@@ -92,6 +92,20 @@ def finish_cells_kernel(
     cell_solid_velocity[i, j, k] = u
 
 
+@wp.kernel
+def to_float32_kernel(
+    cell_momentum_source: wp.array3d(dtype=wp.vec3d),
+    cell_drag_coeff: wp.array3d(dtype=wp.float64),
+    # outputs
+    cell_momentum_source_f32: wp.array3d(dtype=wp.vec3),
+    cell_drag_coeff_f32: wp.array3d(dtype=float),
+):
+    i, j, k = wp.tid()
+    s = cell_momentum_source[i, j, k]
+    cell_momentum_source_f32[i, j, k] = wp.vec3(float(s[0]), float(s[1]), float(s[2]))
+    cell_drag_coeff_f32[i, j, k] = float(cell_drag_coeff[i, j, k])
+
+
 # ---------------------------------------------------------------- launch wrappers
 
 def deposit(grid: CellGrid, particle_x, particle_v, particle_radius, particle_density, particle_weight,
@@ -113,3 +127,10 @@ def finish_cells(cell_volume: float, cell_solid_volume, cell_solid_mass, cell_so
     wp.launch(finish_cells_kernel, dim=cell_eps_s.shape, device=cell_eps_s.device,
               inputs=[wp.float64(cell_volume), cell_solid_volume, cell_solid_mass, cell_solid_momentum],
               outputs=[cell_eps_s, cell_solid_velocity])
+
+
+def to_float32(cell_momentum_source, cell_drag_coeff, *, cell_momentum_source_f32, cell_drag_coeff_f32):
+    """Copy the float64 sums into float32 cell arrays (the gas solver's inputs)."""
+    wp.launch(to_float32_kernel, dim=cell_drag_coeff.shape, device=cell_drag_coeff.device,
+              inputs=[cell_momentum_source, cell_drag_coeff],
+              outputs=[cell_momentum_source_f32, cell_drag_coeff_f32])

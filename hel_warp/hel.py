@@ -1,0 +1,158 @@
+"""The HEL (hybrid Euler-Lagrange / MP-PIC) step, as the algorithm reads (ARCHITECTURE.md, "The step"):
+
+    deposit -> gas step -> interpolate -> collide -> push
+
+``HelSolver.step()`` is those five calls. The collision model is a strategy chosen per run:
+
+- ``none``: no particle-particle interaction (a_coll = 0);
+- ``ktgf``: the paper's HEL baseline, a_coll = -grad(p_s)/(eps_s rho_p) with the Table 1 closures
+  (``kernels/ktgf.py``);
+- ``surrogate`` (HELSCM) and ``dem`` plug in later through the same interface: an object with
+  ``name`` and ``accelerate(solver)`` that fills ``solver.fields.parcel_a_coll`` (an acceleration,
+  m/s^2, applied in the push) and may also change ``solver.pool.particles.v`` directly (a
+  velocity jump, as the surrogate's post-collision velocities are).
+
+Momentum bookkeeping: the push records each parcel's drag impulse; the next step's deposit hands
+minus that to the gas (one step later), so particles + gas + :meth:`HelSolver.momentum_in_flight`
+(minus the drag impulses of the last push, owed to the gas) is conserved by the coupling. The float64 sums are copied into
+the gas solver's float32 arrays, so the gas side holds them to float32 round-off.
+
+Walls (SDF reflection, e_n = e_t = 0.8), injection timing and outlets are the integration step that
+follows; ``pool.remove_beyond_plane`` and ``pool.inject`` already exist.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from hel_warp.coupling import (CouplingFields, GridSpec, PushConfig, deposit_parcels, interpolate_gas,
+                               ktgf_collision, push_parcels)
+from hel_warp.errors import ConfigError, require_positive
+from hel_warp.parcels import ParcelPool
+
+
+class NoCollision:
+    """``none``: parcels do not interact (a_coll stays zero)."""
+
+    name = "none"
+
+    def accelerate(self, solver: "HelSolver") -> None:
+        solver.fields.parcel_a_coll.zero_()
+
+
+class KtgfCollision:
+    """``ktgf``: granular-pressure collision acceleration (paper eqs. (5)-(8), Table 1).
+
+    Monodisperse closures: ``particle_diameter`` (m) and ``particle_density`` (kg/m^3) are the ones
+    of the KTGF solids phase.
+    """
+
+    name = "ktgf"
+
+    def __init__(self, *, particle_diameter: float, particle_density: float, restitution: float = 0.9,
+                 packing: float = 0.63, friction_packing: float = 0.61, friction_angle_deg: float = 30.0):
+        from kernels.ktgf import make_ktgf_params
+
+        require_positive("particle_diameter", particle_diameter, "m")
+        require_positive("particle_density", particle_density, "kg/m^3")
+        if not 0.0 < restitution <= 1.0:
+            raise ConfigError(f"restitution must lie in (0, 1] (got {restitution})")
+        if not 0.0 < friction_packing < packing < 1.0:
+            raise ConfigError(f"need 0 < friction_packing < packing < 1 (got {friction_packing}, {packing})")
+        self.params = make_ktgf_params(particle_diameter=particle_diameter, particle_density=particle_density,
+                                       restitution=restitution, packing=packing, friction_packing=friction_packing,
+                                       friction_angle_deg=friction_angle_deg)
+
+    def accelerate(self, solver: "HelSolver") -> None:
+        ktgf_collision(solver.grid, solver.pool.particles, solver.fields, self.params)
+
+
+COLLISION_MODELS = {"none": NoCollision, "ktgf": KtgfCollision}
+"""name -> strategy class; ``surrogate`` and ``dem`` register here when they land."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class HelConfig:
+    """Settings of the HEL loop."""
+
+    dt: float = 1e-3
+    """Time step of gas and parcels, s (the paper's HEL runs use 1e-3, 1e-4, 7.14e-5)."""
+    push: PushConfig = PushConfig()
+    """Drag law and gas properties seen by the parcels (must match the gas solver's)."""
+
+    def __post_init__(self):
+        require_positive("dt", self.dt, "s")
+
+
+class HelSolver:
+    """Parcels (``ParcelPool``) coupled two-way to engineer F's ``GasSolver`` on its grid.
+
+    ``gas_solver``/``gas``: ``hel_warp.gas.GasSolver`` and its ``GasField`` (or any objects with
+    ``step(gas, dt)`` and ``cell_velocity``, ``cell_grad_p``, ``cell_eps_s``, ``cell_momentum_source``,
+    ``cell_drag_coeff`` float32 cell arrays). Updates ``pool.particles`` and ``gas`` in place.
+    """
+
+    def __init__(self, *, pool: ParcelPool, gas_solver, gas, config: HelConfig, collision=None):
+        self.pool = pool
+        self.gas_solver = gas_solver
+        self.gas = gas
+        self.config = config
+        self.collision = collision if collision is not None else NoCollision()
+        grid = gas.domain.grid if hasattr(gas, "domain") else gas_solver.domain.grid
+        self.grid = GridSpec.of(grid)
+        gas_config = getattr(gas_solver, "config", None)
+        if gas_config is not None:
+            for name, ours, theirs in (("density", config.push.fluid_density, gas_config.density),
+                                       ("viscosity", config.push.fluid_viscosity, gas_config.viscosity)):
+                if abs(ours - theirs) > 1e-12 * abs(theirs):
+                    raise ConfigError(f"gas {name} differs between the parcels ({ours}) and the gas solver "
+                                      f"({theirs}); give the same value to PushConfig and GasConfig")
+        self.fields = CouplingFields.allocate(self.grid, pool.capacity, device=pool.particles.device)
+        self.push_params = config.push.params(config.dt)
+        self.time = 0.0
+
+    # ------------------------------------------------------------------ the five sub-steps
+    def deposit(self) -> None:
+        """1. parcels -> cells; hand eps_s, momentum source, sum beta V to the gas."""
+        from kernels.deposit import to_float32
+
+        deposit_parcels(self.grid, self.pool.particles, self.fields)
+        import warp as wp
+
+        wp.copy(self.gas.cell_eps_s, self.fields.cell_eps_s)
+        to_float32(self.fields.cell_momentum_source, self.fields.cell_drag_coeff,
+                   cell_momentum_source_f32=self.gas.cell_momentum_source,
+                   cell_drag_coeff_f32=self.gas.cell_drag_coeff)
+
+    def gas_step(self) -> None:
+        """2. eps_f-weighted Navier-Stokes step with the particle momentum source (engineer F)."""
+        self.gas_solver.step(self.gas, self.config.dt)
+
+    def interpolate(self) -> None:
+        """3. gas velocity, grad p' and eps_s at the parcels, with the deposit's weights."""
+        interpolate_gas(self.grid, self.pool.particles, self.gas.cell_velocity, self.gas.cell_grad_p, self.fields)
+
+    def collide(self) -> None:
+        """4. the collision model's acceleration (and/or velocity jumps)."""
+        self.collision.accelerate(self)
+
+    def push(self) -> None:
+        """5. eq. (4), semi-implicit drag; records the drag impulses for the next deposit."""
+        push_parcels(self.pool.particles, self.fields, self.push_params)
+
+    def step(self) -> None:
+        """One HEL step of ``config.dt``."""
+        self.deposit()
+        self.gas_step()
+        self.interpolate()
+        self.collide()
+        self.push()
+        self.time += self.config.dt
+
+    # ------------------------------------------------------------------ diagnostics (host reads)
+    def momentum_in_flight(self):
+        """Momentum (N s, numpy (3,)) the gas receives at the next deposit: minus the last push's drag impulses."""
+        import numpy as np
+
+        alive = self.pool.particles.alive.numpy().astype(bool)
+        return -self.fields.parcel_drag_impulse.numpy()[alive].sum(axis=0).astype(np.float64)
