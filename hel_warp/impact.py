@@ -246,16 +246,17 @@ def simulate_pairs(*, x1, x2, v1, v2=0.0, omega1=0.0, omega2=0.0,
 
     vec_inputs = {"x1": x1, "x2": x2, "v1": v1, "v2": v2, "omega1": omega1, "omega2": omega2,
                   "wall_normal": wall_normal}
+    scalar_inputs = {"radius1": radius1, "radius2": radius2, "density1": density1, "density2": density2,
+                     "youngs1": youngs1, "poisson1": poisson1, "youngs2": youngs2, "poisson2": poisson2,
+                     "restitution": restitution, "friction": friction, "model": model, "target": target,
+                     "rolling_friction": rolling_friction, "tangential_damping": tangential_damping,
+                     "linear_stiffness": linear_stiffness, "reference_speed": reference_speed, "dt": dt}
     n = 1
-    for name, value in {**vec_inputs, "radius1": radius1, "density1": density1, "restitution": restitution,
-                        "dt": dt if dt is not None else 0.0}.items():
-        arr = np.asarray(value)
-        if name in vec_inputs and arr.ndim == 2:
-            n = max(n, arr.shape[0])
-        elif name not in vec_inputs and arr.ndim == 1:
-            n = max(n, arr.shape[0])
-    for value in (model, target, friction, youngs1, poisson1, youngs2, poisson2, radius2, density2):
-        if value is not None and np.ndim(value) == 1 and not isinstance(value, str):
+    for value in vec_inputs.values():
+        if np.ndim(value) == 2:
+            n = max(n, np.shape(value)[0])
+    for value in scalar_inputs.values():
+        if value is not None and not isinstance(value, str) and np.ndim(value) == 1:
             n = max(n, len(value))
 
     wall = _choice("target", target, TARGETS, n) == 1

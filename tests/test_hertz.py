@@ -391,3 +391,41 @@ def test_sixty_thousand_pairs_within_a_minute():
     assert elapsed < 60.0
     e_out = -np.einsum("ij,ij->i", res.velocity1 - res.velocity2, normal) / np.linalg.norm(g, axis=1)
     np.testing.assert_allclose(e_out, 0.9, rtol=0.01)  # head-on along the normal: e exactly
+
+
+@wp.kernel
+def _rolling_probe(out: wp.array(dtype=wp.vec3)):
+    p = hz.ContactParams()
+    p.radius_eff = 1e-4
+    p.rolling_friction = 0.05
+    # omega_rel has a normal (twist) part that rolling resistance must ignore
+    out[0] = hz.rolling_torque(p, wp.vec3(0.0, 0.0, 1.0), wp.vec3(3.0, -4.0, 7.0), 2.0)
+    p.rolling_friction = 0.0
+    out[1] = hz.rolling_torque(p, wp.vec3(0.0, 0.0, 1.0), wp.vec3(3.0, -4.0, 7.0), 2.0)
+
+
+def test_rolling_torque_is_constant_and_opposes_rolling():
+    out = wp.zeros(2, dtype=wp.vec3, device=DEVICE)
+    wp.launch(_rolling_probe, 1, inputs=[out], device=DEVICE)
+    # constant-torque model: -mu_r R* Fn w_t/|w_t|, w_t = (3, -4, 0)/5
+    np.testing.assert_allclose(out.numpy()[0], -0.05 * 1e-4 * 2.0 * np.array([0.6, -0.8, 0.0]), rtol=1e-6)
+    np.testing.assert_array_equal(out.numpy()[1], [0, 0, 0])
+
+
+def test_per_pair_arrays_mix_models_targets_and_restitution():
+    # one batch, every input per pair: the result of each pair equals its run alone
+    speeds = np.array([1.0, 3.0, 0.5])
+    v1 = np.zeros((3, 3))
+    v1[:, 2] = -speeds
+    kw = dict(restitution=np.array([0.4, 0.8, 0.95]), model=np.array(["hertz", "linear", "hertz"]),
+              target=np.array(["wall", "sphere", "sphere"]), friction=np.array([0.1, 0.2, 0.3]))
+    dt = stable_time_step(R, RHO, E_MOD, NU)
+    x1, x2 = place_just_apart(normal=(0, 0, -1), velocity1=v1, radius1=R, radius2=R, target=kw["target"], dt=dt)
+    res = simulate_pairs(x1=x1, x2=x2, v1=v1, radius1=R, density1=RHO, youngs1=E_MOD, poisson1=NU,
+                         device=DEVICE, **kw)
+    e_out = (res.velocity1[:, 2] - res.velocity2[:, 2]) / speeds
+    np.testing.assert_allclose(e_out, kw["restitution"], rtol=0.01)
+    for k in range(3):
+        alone = simulate_pairs(x1=x1[k], x2=x2[k], v1=v1[k], radius1=R, density1=RHO, youngs1=E_MOD, poisson1=NU,
+                               device=DEVICE, **{key: val[k] for key, val in kw.items()})
+        np.testing.assert_array_equal(alone.velocity1[0], res.velocity1[k])
