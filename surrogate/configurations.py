@@ -293,14 +293,13 @@ def generate(spec: ConfigurationSpec, seed: int, start: int, stop: int) -> Confi
         raise ConfigError(f"need 0 <= start <= stop (got {start}, {stop})")
     if not 0 <= int(seed) < 2**63:
         raise ConfigError(f"seed must be a non-negative integer (got {seed})")
-    first, last = start // BLOCK_ROWS, (stop - 1) // BLOCK_ROWS if stop > start else start // BLOCK_ROWS - 1
+    if stop == start:
+        empty = {name: np.zeros((0, 3) if name in ("x1", "x2", "v1", "v2", "normal") else (0,)) for name in _FIELDS}
+        return Configurations(config_id=np.zeros(0, dtype=np.int64), family=np.zeros(0, dtype=np.int8),
+                              touch_time=spec.touch_time, **empty)
+    first, last = start // BLOCK_ROWS, (stop - 1) // BLOCK_ROWS
     parts = [_draw_block(spec, int(seed), j) for j in range(first, last + 1)]
     lo = start - first * BLOCK_ROWS
-    hi = lo + (stop - start)
-    cat = {name: (np.concatenate([p[name] for p in parts])[lo:hi] if parts else np.zeros((0,)))
-           for name in _FIELDS + ("family",)}
-    if not parts:
-        cat = {name: np.zeros((0, 3) if name in ("x1", "x2", "v1", "v2", "normal") else (0,)) for name in _FIELDS}
-        cat["family"] = np.zeros((0,), dtype=np.int8)
+    cat = {name: np.concatenate([p[name] for p in parts])[lo:lo + stop - start] for name in _FIELDS + ("family",)}
     return Configurations(config_id=np.arange(start, stop, dtype=np.int64), touch_time=spec.touch_time,
                           **{name: cat[name] for name in _FIELDS + ("family",)})

@@ -12,10 +12,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hel_warp.material import Material
 from surrogate.configurations import CONVERGING, HEAD_ON, PARALLEL, ConfigurationSpec, generate
-from surrogate.dataset import (DatasetError, Dataset, OUTPUT_COLUMNS, build_dataset, compute_chunk, load_dataset,
-                               make_spec)
+from surrogate.dataset import DatasetError, Dataset, OUTPUT_COLUMNS, build_dataset, load_dataset, make_spec
 
 SPEC = ConfigurationSpec(diameter_mean=315e-6, diameter_std=8.2e-6, touch_time=1e-7)
 
