@@ -114,11 +114,11 @@ class HelSolver:
     # ------------------------------------------------------------------ the five sub-steps
     def deposit(self) -> None:
         """1. parcels -> cells; hand eps_s, momentum source, sum beta V to the gas."""
+        import warp as wp
+
         from kernels.deposit import to_float32
 
         deposit_parcels(self.grid, self.pool.particles, self.fields)
-        import warp as wp
-
         wp.copy(self.gas.cell_eps_s, self.fields.cell_eps_s)
         to_float32(self.fields.cell_momentum_source, self.fields.cell_drag_coeff,
                    cell_momentum_source_f32=self.gas.cell_momentum_source,
