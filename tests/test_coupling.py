@@ -326,3 +326,18 @@ def test_hel_solver_with_gas_hindered_settling_conserves_momentum():
     slip = v[:, 2].mean() - hel.fields.parcel_u_f.numpy()[:, 2].astype(np.float64).mean()
     expect = _beta_balance_slip(eps_s, d, rho_p, push.fluid_density, push.fluid_viscosity, g)
     assert -slip == pytest.approx(expect, rel=0.02)
+
+
+def test_hel_solver_refuses_gas_properties_that_differ_from_the_gas_solver():
+    from hel_warp.gas import GasConfig, GasField, GasSolver
+    from hel_warp.grid import Box, Geometry, Grid
+    from hel_warp.hel import HelConfig, HelSolver
+
+    grid = Grid(spacing=1e-3, shape=(3, 3, 3), periodic=(True, True, True))
+    domain = Geometry(shapes=(Box(lo=(-1, -1, -1), hi=(1, 1, 1)),)).build(grid)
+    solver = GasSolver(domain, GasConfig(density=1.0))
+    with pytest.raises(ConfigError, match="density"):
+        HelSolver(pool=ParcelPool.empty(4), gas_solver=solver, gas=GasField(domain),
+                  config=HelConfig(push=PushConfig(fluid_density=1.205)))
+    assert GridSpec.of(grid) == GridSpec(origin=(0.0, 0.0, 0.0), spacing=1e-3, shape=(3, 3, 3),
+                                         periodic=(True, True, True))
