@@ -429,3 +429,11 @@ def test_per_pair_arrays_mix_models_targets_and_restitution():
         alone = simulate_pairs(x1=x1[k], x2=x2[k], v1=v1[k], radius1=R, density1=RHO, youngs1=E_MOD, poisson1=NU,
                                device=DEVICE, **{key: val[k] for key, val in kw.items()})
         np.testing.assert_array_equal(alone.velocity1[0], res.velocity1[k])
+
+
+def test_many_distinct_restitutions_use_the_table_accurately():
+    rng = np.random.default_rng(3)
+    e = np.sort(rng.uniform(0.1, 1.0, 40))
+    c = damping_coefficient(e, "hertz")  # > TABLE_THRESHOLD distinct values: interpolated table
+    for k in (0, 13, 27, 39):
+        assert rk4_clipped_restitution(c[k], 1.5) == pytest.approx(e[k], abs=3e-4)
