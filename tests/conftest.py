@@ -10,7 +10,7 @@ FULL = os.environ.get("HEL_WARP_FULL", "0") == "1"
 def pytest_configure(config):
     import warp as wp
 
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING
     wp.init()
 
 
