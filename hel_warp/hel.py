@@ -7,10 +7,16 @@
 - ``none``: no particle-particle interaction (a_coll = 0);
 - ``ktgf``: the paper's HEL baseline, a_coll = -grad(p_s)/(eps_s rho_p) with the Table 1 closures
   (``kernels/ktgf.py``);
-- ``surrogate`` (HELSCM) and ``dem`` plug in later through the same interface: an object with
-  ``name`` and ``accelerate(solver)`` that fills ``solver.fields.parcel_a_coll`` (an acceleration,
-  m/s^2, applied in the push) and may also change ``solver.pool.particles.v`` directly (a
-  velocity jump, as the surrogate's post-collision velocities are).
+- ``surrogate``, ``surrogate-paper`` (HELSCM) and ``dem`` (CFD-DEM reference), from
+  ``hel_warp.collision_models``, resolved lazily by :data:`COLLISION_MODELS` / :func:`collision_model`.
+
+The strategy interface: ``name``; ``accelerate(solver)`` fills ``solver.fields.parcel_a_coll``
+(an acceleration, m/s^2, applied in the push) and may also change ``solver.pool.particles.v``
+directly (a velocity jump, as the surrogate's post-collision velocities are); optional
+``advance(solver)`` replaces the push (the strategy integrates the parcels itself, e.g. ``dem``
+with Hertz sub-steps at the DEM dt and the fluid acceleration held over the step; it must still
+record ``solver.fields.parcel_drag_impulse`` for the momentum hand-back); optional ``counts()``
+returns this step's collision counts ``{name: int}`` for the run output.
 
 Momentum bookkeeping: the push records each parcel's drag impulse; the next step's deposit hands
 minus that to the gas (one step later), so particles + gas + :meth:`HelSolver.momentum_in_flight`
@@ -67,8 +73,55 @@ class KtgfCollision:
         ktgf_collision(solver.grid, solver.pool.particles, solver.fields, self.params)
 
 
-COLLISION_MODELS = {"none": NoCollision, "ktgf": KtgfCollision}
-"""name -> strategy class; ``surrogate`` and ``dem`` register here when they land."""
+class _CollisionModels:
+    """name -> strategy class. ``none`` and ``ktgf`` live here; ``surrogate``, ``surrogate-paper`` and
+    ``dem`` are resolved lazily from ``hel_warp.collision_models`` (classes ``SurrogateCollision``,
+    ``SurrogatePaperCollision``, ``DemCollision``), so importing the HEL loop never loads the forest or
+    the DEM."""
+
+    _builtin = {"none": NoCollision, "ktgf": KtgfCollision}
+    _lazy = {"surrogate": "SurrogateCollision", "surrogate-paper": "SurrogatePaperCollision",
+             "dem": "DemCollision"}
+
+    def keys(self):
+        return [*self._builtin, *self._lazy]
+
+    def __iter__(self):
+        return iter(self.keys())
+
+    def __contains__(self, name) -> bool:
+        return name in self._builtin or name in self._lazy
+
+    def __getitem__(self, name: str):
+        if name in self._builtin:
+            return self._builtin[name]
+        if name in self._lazy:
+            import importlib
+
+            try:
+                module = importlib.import_module("hel_warp.collision_models")
+            except ModuleNotFoundError as err:
+                if err.name != "hel_warp.collision_models":
+                    raise
+                raise ConfigError(f"collision model {name!r} lives in hel_warp.collision_models, which is not "
+                                  f"installed in this checkout; use none or ktgf") from err
+            return getattr(module, self._lazy[name])
+        raise ConfigError(f"unknown collision model {name!r}; choose one of {', '.join(self.keys())}")
+
+
+COLLISION_MODELS = _CollisionModels()
+"""name -> strategy class (``none``, ``ktgf``, ``surrogate``, ``surrogate-paper``, ``dem``)."""
+
+
+def collision_model(name: str, **kwargs):
+    """The collision strategy called ``name``, built with ``kwargs``; a typo is a ConfigError naming the valid names.
+
+    A strategy has ``name`` and ``accelerate(solver)``; optionally ``advance(solver)`` (called by
+    ``HelSolver.step`` INSTEAD of the push: the strategy moves the parcels itself, e.g. CFD-DEM Hertz
+    sub-steps at the DEM dt with the fluid acceleration held over the step) and ``counts()`` (a dict
+    ``{name: int}`` of this step's collision counts, written per step to the run output).
+    """
+    return COLLISION_MODELS[name](**kwargs)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -137,8 +190,19 @@ class HelSolver:
         self.collision.accelerate(self)
 
     def push(self) -> None:
-        """5. eq. (4), semi-implicit drag; records the drag impulses for the next deposit."""
-        push_parcels(self.pool.particles, self.fields, self.push_params)
+        """5. eq. (4), semi-implicit drag; records the drag impulses for the next deposit.
+
+        A strategy with ``advance(solver)`` moves the parcels itself instead (CFD-DEM sub-steps)."""
+        advance = getattr(self.collision, "advance", None)
+        if advance is not None:
+            advance(self)
+        else:
+            push_parcels(self.pool.particles, self.fields, self.push_params)
+
+    def collision_counts(self) -> dict:
+        """This step's collision counts from the strategy's optional ``counts()`` ({} when it has none)."""
+        counts = getattr(self.collision, "counts", None)
+        return dict(counts()) if counts is not None else {}
 
     def step(self) -> None:
         """One HEL step of ``config.dt``."""
