@@ -21,9 +21,19 @@ FORMAT = "hel_warp.forest"
 VERSION = 1
 CANONICAL_FEATURES = {
     "paper": ("v1x", "v1y", "v1z", "v2x", "v2y", "v2z", "d1", "d2", "rho1", "rho2"),
-    "contact": ("g_n", "g_t", "d1", "size_ratio", "density_ratio"),
+    "contact": ("g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio"),
 }
 N_TARGETS = {"paper": 3, "contact": 2}
+
+
+def quiet_warp() -> None:
+    """No greeting or module-load lines from Warp on stdout (Warp >= 1.19: log_level; older: quiet)."""
+    import warp as wp
+
+    if hasattr(wp, "LOG_WARNING"):
+        wp.config.log_level = wp.LOG_WARNING
+    else:
+        wp.config.quiet = True
 
 
 def _sha256(path: str) -> str:
@@ -162,6 +172,7 @@ class ForestPredictor:
     def __init__(self, flat: FlatForest, device="cpu", *, rows_per_thread: int | None = None):
         import warp as wp
 
+        quiet_warp()
         self.flat = flat
         self.device = wp.get_device(device)
         self.forest = flat.to_device(self.device)

@@ -15,7 +15,7 @@ from __future__ import annotations
 import warp as wp
 
 PAPER_FEATURES = 10  # v1x v1y v1z v2x v2y v2z d1 d2 rho1 rho2
-CONTACT_FEATURES = 5  # g_n g_t d1 size_ratio density_ratio
+CONTACT_FEATURES = 6  # g_n g_t cos_angle d1 size_ratio density_ratio
 TANGENT_EPS = 1.0e-6  # = surrogate.features.TANGENT_EPS: relative slip below which t_hat = 0
 
 
@@ -106,7 +106,7 @@ def contact_features_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.array(dtype=wp.v
                             rho1: wp.array(dtype=wp.float32), rho2: wp.array(dtype=wp.float32),
                             # outputs
                             features: wp.array2d(dtype=wp.float32)):
-    """Contact-frame features g_n, g_t, d1, d2/d1, rho2/rho1 of each pair (n from 1 to 2)."""
+    """Contact-frame features g_n, g_t, g_n/|g|, d1, d2/d1, rho2/rho1 of each pair (n from 1 to 2)."""
     i = wp.tid()
     g = v1[i] - v2[i]
     g_n = wp.dot(g, n[i])
@@ -114,9 +114,10 @@ def contact_features_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.array(dtype=wp.v
     gt = gt - wp.dot(gt, n[i]) * n[i]
     features[i, 0] = g_n
     features[i, 1] = wp.length(gt)
-    features[i, 2] = d1[i]
-    features[i, 3] = d2[i] / d1[i]
-    features[i, 4] = rho2[i] / rho1[i]
+    features[i, 2] = g_n / wp.length(g)
+    features[i, 3] = d1[i]
+    features[i, 4] = d2[i] / d1[i]
+    features[i, 5] = rho2[i] / rho1[i]
 
 
 @wp.kernel

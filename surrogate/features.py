@@ -14,8 +14,9 @@ the six velocities: the contact normal is missing).
 
 ``contact`` form (default, beyond the paper): features in the contact frame,
 ``g_n = (v1 - v2) . n`` (approach speed along the normal n from 1 to 2),
-``g_t = |(v1 - v2) - g_n n|`` (tangential slip speed), ``d1``, ``size_ratio = d2/d1``,
-``density_ratio = rho2/rho1``; the impact offset is implied by ``g_t / |g|``.
+``g_t = |(v1 - v2) - g_n n|`` (tangential slip speed), ``cos_angle = g_n/|g|`` (cosine of the
+impact angle; the impact offset is implied by it), ``d1``, ``size_ratio = d2/d1``,
+``density_ratio = rho2/rho1``.
 Targets are the impulse on particle 2, ``J = J_n n + J_t t`` (t the unit tangential
 slip direction), normalised by ``m* |g|`` (``1/m* = 1/m1 + 1/m2``) so they are O(1):
 ``impulse_n = J_n / (m*|g|)``, ``impulse_t = J_t / (m*|g|)``. For a frictionless impact
@@ -48,9 +49,9 @@ FORMS = ("paper", "contact")
 # engine kernels (kernels/forest.py) compute exactly these, in this order.
 CANONICAL_FEATURES = {
     "paper": ("v1x", "v1y", "v1z", "v2x", "v2y", "v2z", "d1", "d2", "rho1", "rho2"),
-    "contact": ("g_n", "g_t", "d1", "size_ratio", "density_ratio"),
+    "contact": ("g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio"),
 }
-ALWAYS_USED = {"paper": ("v1x", "v1y", "v1z", "v2x", "v2y", "v2z"), "contact": ("g_n", "g_t")}
+ALWAYS_USED = {"paper": ("v1x", "v1y", "v1z", "v2x", "v2y", "v2z"), "contact": ("g_n", "g_t", "cos_angle")}
 TARGETS = {"paper": ("u", "v", "w"), "contact": ("impulse_n", "impulse_t")}
 TANGENT_EPS = 1e-6
 """Relative slip ``g_t/|g|`` below which the tangential direction is taken as zero (float32-safe)."""
@@ -202,8 +203,8 @@ def raw_features(form: str, v1, v2, n, d1, d2, rho1, rho2) -> np.ndarray:
     if form == "paper":
         return np.column_stack([v1, v2, d1, d2, rho1, rho2]).astype(np.float64)
     if form == "contact":
-        g_n, g_t, _, _ = contact_frame(v1, v2, np.atleast_2d(n))
-        return np.column_stack([g_n, g_t, d1, d2 / d1, rho2 / rho1])
+        g_n, g_t, _, g_mag = contact_frame(v1, v2, np.atleast_2d(n))
+        return np.column_stack([g_n, g_t, g_n / g_mag, d1, d2 / d1, rho2 / rho1])
     raise ConfigError(f"unknown form {form!r}; choose one of {', '.join(FORMS)}")
 
 

@@ -1,0 +1,304 @@
+"""Training of the surrogate collision model (reference paper, sec. 4.2).
+
+One XGBoost regressor per target (surrogate/features.py: ``paper`` form u, v, w of
+particle 1; ``contact`` form the normalised normal and tangential impulse). The data-set
+rows are split 5 % test first, then the rest 75 % train / 25 % validation (by data-set
+row, so a row and its swapped twin of the paper form always fall in the same subset).
+Features are standardised with the TRAIN mean and std (eq. 17). Hyperparameters
+(n_estimators, max_depth, learning_rate, colsample_bytree, reg_alpha) are tuned by
+Optuna's TPE sampler on the validation MAE, with trials pruned by
+``optuna_integration.XGBoostPruningCallback`` (median pruner) and early stopping on the
+validation set; the final model is refit with the best parameters and cut at its best
+iteration. Studies live in an Optuna storage (default ``sqlite:///MODEL_DIR/study.db``), one
+study per target named ``<form>-<target>``: rerunning the same command continues an
+interrupted study up to N finished trials in all, and any database URL lets several
+workers share the studies.
+
+Test-set metrics (``metrics.json``): ``mae`` = MAE of particle 1's post-collision u, v, w
+in m/s, lab frame (contact form: after the impulse is applied and rotated back), the same
+for particle 2, a trivial baseline (the train-set mean velocity), target-level MAE/R²,
+the share of rows with a relative velocity error below 5 % (Fig. 8), the relative momentum
+error, and the largest difference between the flattened Warp forest and XGBoost.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from hel_warp.errors import ConfigError
+from surrogate.features import (CANONICAL_FEATURES, TARGETS, CollisionData, FormRows, form_rows,
+                                predictions_to_lab, rows_of_groups, sphere_mass, standardize, used_features)
+
+TEST_FRACTION = 0.05
+VALIDATION_FRACTION = 0.25
+EARLY_STOPPING_ROUNDS = 25
+PRUNING_REPORT_EVERY = 10
+"""Boosting rounds between two reports to the pruner: each report is a storage write (sqlite
+commit) and each pruning check reads the study, so reporting every round costs more than
+the training itself on a busy disk."""
+SEARCH_SPACE = {
+    "n_estimators": (50, 500),
+    "max_depth": (3, 10),
+    "learning_rate": (0.02, 0.3),
+    "colsample_bytree": (0.5, 1.0),
+    "reg_alpha": (1e-8, 1.0),
+}
+"""Ranges of the tuned hyperparameters (learning_rate and reg_alpha sampled log-uniform)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrainConfig:
+    """Options of one training run."""
+
+    form: str = "contact"
+    """``contact`` (default) or ``paper``."""
+    trials: int = 50
+    """Finished Optuna trials per target (in all, counting earlier runs of the same study)."""
+    storage: str | None = None
+    """Optuna storage URL; None -> ``sqlite:///MODEL_DIR/study.db``."""
+    timeout: float | None = None
+    """Wall-clock budget of the whole search, s (split over the targets); None = no limit."""
+    seed: int = 0
+    """Seed of the split, the sampler and XGBoost."""
+    nthread: int = 1
+    """XGBoost threads per trial. One thread per trial, trials run side by side (``jobs``): on a
+    shared 2-core machine OpenMP barriers made nthread=2 fits 4x slower than nthread=1."""
+    jobs: int = 2
+    """Trials evaluated at the same time in this process (Optuna threads; XGBoost frees the GIL)."""
+    progress: bool = True
+    """Show Optuna's progress bar."""
+    report: bool = True
+    """Write the parity plots and error histograms to MODEL_DIR/report/."""
+    min_rows: int = 40
+    """Fewest data-set rows accepted."""
+
+    def __post_init__(self):
+        if self.form not in TARGETS:
+            raise ConfigError(f"--form must be one of {', '.join(TARGETS)}, got {self.form!r}")
+        if self.trials < 1:
+            raise ConfigError(f"--trials must be >= 1, got {self.trials}")
+        if self.timeout is not None and not self.timeout > 0:
+            raise ConfigError(f"--timeout must be > 0 s, got {self.timeout}")
+        if self.nthread < 1:
+            raise ConfigError(f"--nthread must be >= 1, got {self.nthread}")
+        if self.jobs < 1:
+            raise ConfigError(f"--jobs must be >= 1, got {self.jobs}")
+
+
+def split_groups(n_groups: int, seed: int):
+    """5 % test first, then 75/25 train/validation of the rest; returns three sorted index arrays."""
+    rng = np.random.default_rng(seed)
+    perm = rng.permutation(n_groups)
+    n_test = max(1, int(round(TEST_FRACTION * n_groups)))
+    rest = perm[n_test:]
+    n_val = max(1, int(round(VALIDATION_FRACTION * rest.size)))
+    return np.sort(perm[:n_test]), np.sort(rest[n_val:]), np.sort(rest[:n_val])
+
+
+def default_storage(model_dir: str) -> str:
+    return f"sqlite:///{os.path.abspath(os.path.join(model_dir, 'study.db'))}"
+
+
+def _xgb_params(params: dict, nthread: int, seed: int) -> dict:
+    return dict(params, tree_method="hist", n_jobs=nthread, random_state=seed, objective="reg:squarederror",
+                eval_metric="mae", early_stopping_rounds=EARLY_STOPPING_ROUNDS)
+
+
+def run_study(x_train, y_train, x_val, y_val, *, study_name: str, storage: str, trials: int, seed: int = 0,
+              nthread: int = 1, jobs: int = 1, timeout: float | None = None, progress: bool = False,
+              dataset_hash: str = ""):
+    """Tune one target; continues the study ``study_name`` until it holds ``trials`` finished trials."""
+    import optuna
+    import xgboost as xgb
+    from optuna.study import MaxTrialsCallback
+    from optuna.trial import TrialState
+    from optuna_integration import XGBoostPruningCallback
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    finished = (TrialState.COMPLETE, TrialState.PRUNED)
+    try:
+        probe = optuna.load_study(study_name=study_name, storage=storage)
+        n_done = len(probe.get_trials(deepcopy=False, states=finished))
+    except KeyError:
+        n_done = 0
+    study = optuna.create_study(study_name=study_name, storage=storage, direction="minimize", load_if_exists=True,
+                                sampler=optuna.samplers.TPESampler(seed=seed + n_done),
+                                pruner=optuna.pruners.MedianPruner(n_startup_trials=5, n_warmup_steps=30))
+    known = study.user_attrs.get("dataset_hash")
+    if known is not None and dataset_hash and known != dataset_hash:
+        raise ConfigError(f"study {study_name!r} in {storage} was run on another data set; "
+                          "give a new --out or --storage to start afresh")
+    if known is None and dataset_hash:
+        study.set_user_attr("dataset_hash", dataset_hash)
+
+    class SparsePruningCallback(XGBoostPruningCallback):
+        """XGBoostPruningCallback that reports every PRUNING_REPORT_EVERY rounds only."""
+
+        def after_iteration(self, model, epoch, evals_log):
+            if (epoch + 1) % PRUNING_REPORT_EVERY:
+                return False
+            return super().after_iteration(model, epoch, evals_log)
+
+    def objective(trial):
+        lo_n, hi_n = SEARCH_SPACE["n_estimators"]
+        params = {
+            "n_estimators": trial.suggest_int("n_estimators", lo_n, hi_n, step=10),
+            "max_depth": trial.suggest_int("max_depth", *SEARCH_SPACE["max_depth"]),
+            "learning_rate": trial.suggest_float("learning_rate", *SEARCH_SPACE["learning_rate"], log=True),
+            "colsample_bytree": trial.suggest_float("colsample_bytree", *SEARCH_SPACE["colsample_bytree"]),
+            "reg_alpha": trial.suggest_float("reg_alpha", *SEARCH_SPACE["reg_alpha"], log=True),
+        }
+        model = xgb.XGBRegressor(**_xgb_params(params, nthread, seed),
+                                 callbacks=[SparsePruningCallback(trial, "validation_0-mae")])
+        model.fit(x_train, y_train, eval_set=[(x_val, y_val)], verbose=False)
+        trial.set_user_attr("best_iteration", int(model.best_iteration))
+        return float(model.best_score)
+
+    remaining = max(0, trials - n_done)
+    if remaining:
+        study.optimize(objective, n_trials=remaining, timeout=timeout, show_progress_bar=progress, n_jobs=jobs,
+                       callbacks=[MaxTrialsCallback(trials, states=finished)], gc_after_trial=False)
+    if not study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
+        raise ConfigError(f"study {study_name!r} has no completed trial; raise --trials or --timeout")
+    return study
+
+
+def fit_final(params: dict, x_train, y_train, x_val, y_val, *, nthread: int, seed: int):
+    """Refit with the best parameters; return the booster cut at its best iteration."""
+    import xgboost as xgb
+
+    model = xgb.XGBRegressor(**_xgb_params(params, nthread, seed))
+    model.fit(x_train, y_train, eval_set=[(x_val, y_val)], verbose=False)
+    return model.get_booster()[: int(model.best_iteration) + 1]
+
+
+def _mae_dict(pred, true, keys=("u", "v", "w")):
+    return {k: float(np.mean(np.abs(pred[:, i] - true[:, i]))) for i, k in enumerate(keys)}
+
+
+def lab_metrics(form: str, rows: FormRows, test_rows: np.ndarray, predicted: np.ndarray,
+                train_rows: np.ndarray) -> tuple[dict, dict]:
+    """Test-set lab-frame metrics and the arrays behind the report figures."""
+    data_rows, u1_pred, u2_pred = predictions_to_lab(form, rows.data, rows.group[test_rows], predicted)
+    c = rows.data.take(data_rows).col
+    v1 = np.column_stack([c("v1x"), c("v1y"), c("v1z")])
+    v2 = np.column_stack([c("v2x"), c("v2y"), c("v2z")])
+    u1 = np.column_stack([c("u1x"), c("u1y"), c("u1z")])
+    u2 = np.column_stack([c("u2x"), c("u2y"), c("u2z")])
+    m1, m2 = sphere_mass(c("d1"), c("rho1")), sphere_mass(c("d2"), c("rho2"))
+    p_before = m1[:, None] * v1 + m2[:, None] * v2
+    p_after = m1[:, None] * u1_pred + m2[:, None] * u2_pred
+    p_scale = m1 * np.linalg.norm(v1, axis=1) + m2 * np.linalg.norm(v2, axis=1)
+    momentum_rel = np.linalg.norm(p_after - p_before, axis=1) / np.maximum(p_scale, 1e-300)
+    rel_err = np.linalg.norm(u1_pred - u1, axis=1) / np.maximum(np.linalg.norm(u1, axis=1), 1e-12)
+    train_data = rows.data.take(np.unique(rows.group[train_rows])).col
+    u1_train_mean = np.array([train_data("u1x").mean(), train_data("u1y").mean(), train_data("u1z").mean()])
+    metrics = {
+        "mae": _mae_dict(u1_pred, u1),
+        "mae_particle2": _mae_dict(u2_pred, u2),
+        "baseline_mae": _mae_dict(np.broadcast_to(u1_train_mean, u1.shape), u1),
+        "rel_error_median": float(np.median(rel_err)),
+        "frac_rel_error_below_5pct": float(np.mean(rel_err < 0.05)),
+        "momentum_rel_error_max": float(momentum_rel.max()),
+        "momentum_rel_error_mean": float(momentum_rel.mean()),
+    }
+    return metrics, {"u1_true": u1, "u1_pred": u1_pred, "rel_err": rel_err}
+
+
+def train(data: CollisionData, model_dir: str, config: TrainConfig, *, log=print) -> dict:
+    """Tune, fit, evaluate and save one model per target; return the metadata written."""
+    import xgboost as xgb
+
+    t_start = time.perf_counter()
+    rows = form_rows(config.form, data)
+    n_groups = len(rows.data)
+    if n_groups < config.min_rows:
+        raise ConfigError(f"only {n_groups} usable data-set rows for the {config.form!r} form; "
+                          f"need at least {config.min_rows}")
+    test_g, train_g, val_g = split_groups(n_groups, config.seed)
+    test_r, train_r, val_r = (rows_of_groups(rows, g) for g in (test_g, train_g, val_g))
+    features = used_features(config.form, rows.features[train_r])
+    cols = [CANONICAL_FEATURES[config.form].index(f) for f in features]
+    raw = rows.features[:, cols]
+    mean = raw[train_r].astype(np.float64).mean(axis=0)
+    std = raw[train_r].astype(np.float64).std(axis=0)
+    std = np.where(std > 0, std, 1.0)
+    x_all = standardize(raw, mean, std)
+    storage = config.storage or default_storage(model_dir)
+    os.makedirs(model_dir, exist_ok=True)
+    targets = list(TARGETS[config.form])
+    boosters, hyper, target_metrics = {}, {}, {}
+    predicted = np.zeros((test_r.size, len(targets)))
+    deadline = None if config.timeout is None else time.monotonic() + config.timeout
+    log(f"{config.form} form: {n_groups} data-set rows -> {train_r.size} train / {val_r.size} validation / "
+        f"{test_r.size} test rows, features {features}")
+    for k, target in enumerate(targets):
+        y = rows.targets[:, k]
+        budget = None if deadline is None else max(1.0, (deadline - time.monotonic()) / (len(targets) - k))
+        t0 = time.perf_counter()
+        study = run_study(x_all[train_r], y[train_r], x_all[val_r], y[val_r],
+                          study_name=f"{config.form}-{target}", storage=storage, trials=config.trials,
+                          seed=config.seed, nthread=config.nthread, jobs=config.jobs, timeout=budget,
+                          progress=config.progress,
+                          dataset_hash=data.dataset_hash)
+        best = study.best_trial
+        booster = fit_final(best.params, x_all[train_r], y[train_r], x_all[val_r], y[val_r],
+                            nthread=config.nthread, seed=config.seed)
+        boosters[target] = booster
+        pred = booster.inplace_predict(x_all[test_r])
+        predicted[:, k] = pred
+        y_test = y[test_r]
+        ss_tot = float(np.sum((y_test - y_test.mean()) ** 2))
+        target_metrics[target] = {
+            "mae": float(np.mean(np.abs(pred - y_test))),
+            "baseline_mae": float(np.mean(np.abs(y[train_r].mean() - y_test))),
+            "r2": float(1.0 - np.sum((pred - y_test) ** 2) / ss_tot) if ss_tot > 0 else None,
+        }
+        hyper[target] = dict(best.params, best_iteration=int(booster.num_boosted_rounds()) - 1,
+                             validation_mae=float(best.value), trials=len(study.trials))
+        log(f"  {target}: best validation MAE {best.value:.4g} after {len(study.trials)} trials "
+            f"({time.perf_counter() - t0:.1f} s), test MAE {target_metrics[target]['mae']:.4g}")
+    lab, arrays = lab_metrics(config.form, rows, test_r, predicted, train_r)
+    metrics = {"form": config.form, **lab, "n_test": int(test_g.size), "n_test_rows": int(test_r.size),
+               "n_train_rows": int(train_r.size), "n_validation_rows": int(val_r.size),
+               "targets": target_metrics, "dataset_samples": int(len(data)),
+               "wall_time_s": None}
+    metrics["forest_vs_xgboost_max_abs_diff"] = _forest_check(config.form, features, targets, boosters, mean, std,
+                                                              rows.features[test_r], predicted)
+    metrics["wall_time_s"] = round(time.perf_counter() - t_start, 2)
+    from surrogate.artifact import save_artifact
+
+    metadata = save_artifact(model_dir, form=config.form, features=features, targets=targets, scaler_mean=mean,
+                             scaler_std=std, boosters=boosters, metrics=metrics, dataset_hash=data.dataset_hash,
+                             hyperparameters=hyper,
+                             extra={"split": {"seed": config.seed, "test_fraction": TEST_FRACTION,
+                                              "validation_fraction": VALIDATION_FRACTION},
+                                    "optuna_storage": storage if config.storage else "study.db",
+                                    "defaults": {k: float(np.mean(data.col(k))) for k in ("d1", "d2", "rho1", "rho2")},
+                                    "search_space": {k: list(v) for k, v in SEARCH_SPACE.items()}})
+    if config.report:
+        from surrogate.report import write_report
+
+        write_report(model_dir, arrays["u1_true"], arrays["u1_pred"], arrays["rel_err"], metrics)
+    log(f"test MAE u, v, w = {metrics['mae']['u']:.4g}, {metrics['mae']['v']:.4g}, {metrics['mae']['w']:.4g} m/s "
+        f"(baseline {metrics['baseline_mae']['u']:.3g}, {metrics['baseline_mae']['v']:.3g}, "
+        f"{metrics['baseline_mae']['w']:.3g}); wrote {model_dir}")
+    return metadata
+
+
+def _forest_check(form, features, targets, boosters, mean, std, raw_test, predicted) -> float:
+    """Largest |Warp flattened forest - XGBoost| over the test rows and targets (should be ~0)."""
+    from hel_warp.forest import ForestPredictor, parse_forest
+    from surrogate.flatten import flatten_models
+
+    models = {t: json.loads(boosters[t].save_raw("json")) for t in targets}
+    doc = flatten_models(form, list(CANONICAL_FEATURES[form]), features, targets, models, mean, std)
+    out = ForestPredictor(parse_forest(doc)).predict_features(raw_test)
+    return float(np.max(np.abs(out - predicted))) if predicted.size else 0.0
