@@ -446,7 +446,7 @@ def simulate_pairs(*, x1, x2, v1, v2=0.0, omega1=0.0, omega2=0.0,
     state.v2 = v3(vec["v2"])
     state.omega1 = v3(vec["omega1"])
     state.omega2 = v3(np.where(wall[:, None], 0.0, vec["omega2"]))
-    for name in ("force1", "torque1", "torque2", "shear"):
+    for name in ("force1", "torque1", "torque2", "shear", "touch_separation", "displacement"):
         setattr(state, name, wp.zeros(n, dtype=wp.vec3, device=dev))
 
     record = hz.PairRecord()

@@ -341,6 +341,11 @@ class PairState:
     """N m."""
     shear: wp.array(dtype=wp.vec3)
     """Tangential displacement history, m."""
+    touch_separation: wp.array(dtype=wp.vec3)
+    """x2 - x1 at first touch, scaled to length r1 + r2 (spheres), m; set at touch."""
+    displacement: wp.array(dtype=wp.vec3)
+    """(x2 - x1) now minus at first touch, m: the overlap is computed from this small vector, so
+    float32 resolves it to ~1e-7 of itself instead of ~1e-7 of the radius."""
 
 
 @wp.struct
@@ -412,14 +417,18 @@ def time_to_touch(kind: int, x1: wp.vec3, x2: wp.vec3, v1: wp.vec3, v2: wp.vec3,
 
 
 @wp.func
-def pair_geometry(kind: int, x1: wp.vec3, x2: wp.vec3, radius1: float, radius2: float, wall_normal: wp.vec3):
-    """(unit normal from 1 to 2, overlap) of a sphere pair or a sphere and a wall plane."""
+def pair_geometry(kind: int, touch_separation: wp.vec3, displacement: wp.vec3, reach: float,
+                  wall_normal: wp.vec3):
+    """(unit normal from 1 to 2, overlap) from the separation at touch d0 (|d0| = reach = r1 + r2)
+    and the relative displacement since touch D, without cancellation:
+    overlap = reach - |d0 + D| = -(2 d0.D + D.D) / (reach + |d0 + D|); wall (n_wall pointing
+    towards sphere 1): overlap = D.n_wall."""
     if kind == TARGET_WALL:
-        n = -wall_normal
-        return n, radius1 + wp.dot(x1 - x2, n)
-    d = x2 - x1
+        return -wall_normal, wp.dot(displacement, wall_normal)
+    d = touch_separation + displacement
     dist = wp.length(d)
-    return d / dist, radius1 + radius2 - dist
+    overlap = -(2.0 * wp.dot(touch_separation, displacement) + wp.dot(displacement, displacement)) / (reach + dist)
+    return d / dist, overlap
 
 
 @wp.kernel
@@ -482,7 +491,11 @@ def step_pairs(bodies: PairBodies,
         record.time[i] = t + tau
         record.time_touch[i] = t + tau
         record.touched[i] = 1
-        n, overlap_geom = pair_geometry(kind, x1, x2, r1, r2, wall_normal)
+        n = -wall_normal
+        if kind != TARGET_WALL:
+            n = wp.normalize(x2 - x1)
+        state.touch_separation[i] = (r1 + r2) * n
+        state.displacement[i] = wp.vec3(0.0)
         arm1 = r1 * n
         arm2 = -r2 * n
         if kind == TARGET_WALL:
@@ -515,11 +528,11 @@ def step_pairs(bodies: PairBodies,
     v2h = state.v2[i] - f_old * (half * im2)
     w1h = state.omega1[i] + tq1_old * (half * ii1)
     w2h = state.omega2[i] + tq2_old * (half * ii2)
-    x1 = state.x1[i] + v1h * dt
-    x2 = state.x2[i] + v2h * dt
-    state.x1[i] = x1
-    state.x2[i] = x2
-    n, overlap = pair_geometry(kind, x1, x2, r1, r2, wall_normal)
+    state.x1[i] = state.x1[i] + v1h * dt
+    state.x2[i] = state.x2[i] + v2h * dt
+    displacement = state.displacement[i] + (v2h - v1h) * dt
+    state.displacement[i] = displacement
+    n, overlap = pair_geometry(kind, state.touch_separation[i], displacement, r1 + r2, wall_normal)
 
     force1 = wp.vec3(0.0)
     torque1 = wp.vec3(0.0)

@@ -437,3 +437,21 @@ def test_many_distinct_restitutions_use_the_table_accurately():
     c = damping_coefficient(e, "hertz")  # > TABLE_THRESHOLD distinct values: interpolated table
     for k in (0, 13, 27, 39):
         assert rk4_clipped_restitution(c[k], 1.5) == pytest.approx(e[k], abs=3e-4)
+
+
+def test_slow_impacts_keep_float32_resolution():
+    # at 1e-4 m/s delta_max ~ 1e-9 m = 1e-5 R: the overlap is computed from the displacement since
+    # touch, not from |x2 - x1| - (r1 + r2) (which float32 resolves only to ~1e-7 R = 2 % of it)
+    speeds = np.array([1e-4, 1e-3, 1e-4, 1e-3])
+    targets = np.array([0, 0, 1, 1])
+    v1, res = _normal_batch(targets, speeds)
+    m1 = sphere_mass(R)
+    for k in range(4):
+        wall = targets[k] == 1
+        m_eff, r_eff = (m1, R) if wall else (m1 / 2, R / 2)
+        e_eff = youngs_eff(E_MOD, NU) if wall else youngs_eff(E_MOD, NU, E_MOD, NU)
+        delta, force, t_c = johnson_elastic(m_eff, r_eff, e_eff, speeds[k])
+        assert res.max_overlap[k] == pytest.approx(delta, rel=0.01)
+        assert res.contact_duration[k] == pytest.approx(t_c, rel=0.01)
+    v1, res = _normal_batch(targets, speeds, restitution=0.5)
+    np.testing.assert_allclose((res.velocity1[:, 2] - res.velocity2[:, 2]) / speeds, 0.5, rtol=0.01)
