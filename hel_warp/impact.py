@@ -154,10 +154,12 @@ def place_just_apart(*, normal, velocity1, velocity2=0.0, radius1, radius2=0.0, 
     is larger at every earlier instant (a convex quadratic in time), so nothing starts overlapped.
     Returns ``(x1, x2)`` as float64 (N, 3) arrays.
     """
-    n_guess = np.asarray(normal, dtype=np.float64)
-    n = len(n_guess) if n_guess.ndim == 2 else max(np.size(dt), np.size(radius1), 1)
-    for arr in (velocity1, velocity2):
+    n = 1
+    for arr in (normal, velocity1, velocity2):
         if np.ndim(arr) == 2:
+            n = max(n, len(arr))
+    for arr in (radius1, radius2, dt, target):
+        if not isinstance(arr, str) and np.ndim(arr) == 1:
             n = max(n, len(arr))
     normal = _per_pair("normal", normal, n, 3)
     norm = np.linalg.norm(normal, axis=1)
