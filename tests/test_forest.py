@@ -1,0 +1,199 @@
+"""The flattened forest in Warp against XGBoost's own predict (the independent reference).
+
+Reference: ``Booster.predict`` on the standardised float32 features (eq. 17) — the
+flattened forest must give the same value up to float32 summation order (1e-5), because
+the folded thresholds take exactly the branch XGBoost takes (surrogate/flatten.py).
+Data: the analytic frictionless impacts of ``surrogate.features.synthetic_collisions``
+(a TEST FIXTURE, not DEM).
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+xgb = pytest.importorskip("xgboost")
+
+from hel_warp.errors import ConfigError
+from hel_warp.forest import ForestPredictor, load_forest, parse_forest
+from surrogate.features import (CANONICAL_FEATURES, apply_contact_model, form_rows, sphere_mass, standardize,
+                                synthetic_collisions, used_features)
+from surrogate.flatten import fold_thresholds, flatten_models, parse_base_score
+
+
+def _fit_forest(form, data, depths, *, nan_fraction=0.0, seed=0, n_estimators=30):
+    """XGBoost models (one per target, depth from ``depths``) on ``form`` rows; optional NaNs."""
+    rows = form_rows(form, data)
+    names = used_features(form, rows.features)
+    cols = [CANONICAL_FEATURES[form].index(f) for f in names]
+    raw = rows.features[:, cols].copy()
+    rng = np.random.default_rng(seed)
+    if nan_fraction:
+        raw[rng.random(raw.shape) < nan_fraction] = np.nan
+    mean = np.nanmean(raw.astype(np.float64), axis=0)
+    std = np.nanstd(raw.astype(np.float64), axis=0)
+    std = np.where(std > 0, std, 1.0)
+    xs = standardize(raw, mean, std)
+    targets = [f"t{k}" for k in range(rows.targets.shape[1])]
+    boosters, models = {}, {}
+    for k, target in enumerate(targets):
+        model = xgb.XGBRegressor(n_estimators=n_estimators, max_depth=depths[k % len(depths)], learning_rate=0.3,
+                                 tree_method="hist", n_jobs=1, random_state=seed)
+        model.fit(xs, rows.targets[:, k])
+        boosters[target] = model.get_booster()
+        models[target] = json.loads(boosters[target].save_raw("json"))
+    doc = flatten_models(form, list(CANONICAL_FEATURES[form]), names, targets, models, mean, std)
+    return rows, cols, raw, mean, std, boosters, doc
+
+
+def _full_features(rows, cols, raw):
+    """Canonical-width raw features with the used columns from ``raw`` (NaNs kept)."""
+    full = rows.features.copy()
+    full[:, cols] = raw
+    return full
+
+
+def _flat(doc, form):
+    # the engine's targets are named by the form; the test models use t0.. names
+    doc = dict(doc, targets={"paper": ["u", "v", "w"], "contact": ["impulse_n", "impulse_t"]}[form])
+    return parse_forest(json.loads(json.dumps(doc)))
+
+
+@pytest.mark.parametrize("form,depths", [("contact", (12, 2)), ("paper", (3, 6, 9))])
+def test_forest_equals_xgboost_predict(form, depths):
+    data = synthetic_collisions(1500, seed=11, polydisperse=True)
+    rows, cols, raw, mean, std, boosters, doc = _fit_forest(form, data, depths)
+    assert doc["max_depth"] == max(depths)
+    out = ForestPredictor(_flat(doc, form)).predict_features(_full_features(rows, cols, raw))
+    for k, booster in enumerate(boosters.values()):
+        reference = booster.predict(xgb.DMatrix(standardize(raw, mean, std)))
+        np.testing.assert_allclose(out[:, k], reference, rtol=1e-5, atol=1e-5)
+
+
+def test_missing_values_take_the_default_direction():
+    """NaN features go to XGBoost's learned default side; both sides must occur."""
+    data = synthetic_collisions(2000, seed=4)
+    rows, cols, raw, mean, std, boosters, doc = _fit_forest("contact", data, (4, 8), nan_fraction=0.15)
+    flat = _flat(doc, "contact")
+    split = flat.node_info >= 0
+    assert set(np.unique(flat.node_info[split] & 1)) == {0, 1}  # default_left both ways
+    assert np.isnan(raw).any(axis=1).mean() > 0.3
+    out = ForestPredictor(flat).predict_features(_full_features(rows, cols, raw))
+    for k, booster in enumerate(boosters.values()):
+        reference = booster.predict(xgb.DMatrix(standardize(raw, mean, std)))
+        np.testing.assert_allclose(out[:, k], reference, rtol=1e-5, atol=1e-5)
+
+
+def test_folded_thresholds_take_xgboosts_branch_for_every_float32():
+    """x < T  <=>  float32((x - mean)/std) < t, checked on the float32 neighbours of T."""
+    rng = np.random.default_rng(3)
+    t = rng.normal(size=2000).astype(np.float32)
+    mean = rng.normal(size=2000) * rng.choice([1e-4, 1.0, 1e3], size=2000)
+    std = np.exp(rng.normal(size=2000) * 3)
+    big_t = fold_thresholds(t, mean, std)
+    for steps in (-2, -1, 0, 1, 2):
+        x = big_t.copy()
+        for _ in range(abs(steps)):
+            x = np.nextafter(x, np.float32(np.sign(steps) * np.inf), dtype=np.float32)
+        xs = ((x.astype(np.float64) - mean) / std).astype(np.float32)
+        np.testing.assert_array_equal(x < big_t, xs < t)
+    naive = (t.astype(np.float64) * std + mean).astype(np.float32)
+    assert np.any(naive != big_t)  # the naive fold would disagree somewhere
+
+
+def test_base_score_forms():
+    assert parse_base_score("[5E-1]") == 0.5
+    assert parse_base_score("0.25") == 0.25
+    with pytest.raises(ConfigError):
+        parse_base_score("[1E0,2E0]")
+
+
+def test_contact_pairs_conserve_momentum_and_match_numpy():
+    """Warp pair kernels: momentum exact to float32 round-off; same as the numpy twin."""
+    data = synthetic_collisions(3000, seed=8, polydisperse=True)
+    rows, cols, raw, mean, std, boosters, doc = _fit_forest("contact", data, (6,))
+    c = data.col
+    v1 = np.column_stack([c("v1x"), c("v1y"), c("v1z")]).astype(np.float32)
+    v2 = np.column_stack([c("v2x"), c("v2y"), c("v2z")]).astype(np.float32)
+    n = np.column_stack([c("nx"), c("ny"), c("nz")]).astype(np.float32)
+    d1, d2, rho1, rho2 = (c(k).astype(np.float32) for k in ("d1", "d2", "rho1", "rho2"))
+    u1, u2 = ForestPredictor(_flat(doc, "contact")).predict_pairs(v1, v2, d1, d2, rho1, rho2, normal=n)
+    m1, m2 = sphere_mass(d1, rho1), sphere_mass(d2, rho2)
+    before = m1[:, None] * v1 + m2[:, None] * v2
+    after = m1[:, None] * u1.astype(np.float64) + m2[:, None] * u2
+    scale = m1 * np.linalg.norm(v1, axis=1) + m2 * np.linalg.norm(v2, axis=1)
+    assert np.max(np.linalg.norm(after - before, axis=1) / scale) < 1e-6
+    # step by step against the numpy twins: features, forest = XGBoost on those features, impulse
+    import warp as wp
+
+    from kernels import forest as kf
+    from surrogate.features import raw_features
+
+    vec = lambda a: wp.array(a, dtype=wp.vec3)
+    sca = lambda a: wp.array(a, dtype=wp.float32)
+    args = (vec(v1), vec(v2), vec(n), sca(d1), sca(d2), sca(rho1), sca(rho2))
+    feats = wp.zeros((len(v1), 6), dtype=wp.float32)
+    kf.contact_features(*args, feats)
+    reference = raw_features("contact", v1, v2, n, d1, d2, rho1, rho2)
+    scale_g = np.linalg.norm(v1 - v2, axis=1)[:, None] * np.array([1, 1, 0, 0, 0, 0])
+    assert_close_rows(feats.numpy(), reference, 2e-6 * (scale_g + np.abs(reference)) + 1e-7)
+    feats_np = feats.numpy()
+    targets = wp.zeros((len(v1), 2), dtype=wp.float32)
+    forest = _flat(doc, "contact").to_device("cpu")
+    kf.eval_forest(forest, feats, targets, rows_per_thread=16)
+    xgb_targets = np.column_stack([b.predict(xgb.DMatrix(standardize(feats_np[:, cols], mean, std)))
+                                   for b in boosters.values()])
+    np.testing.assert_allclose(targets.numpy(), xgb_targets, rtol=1e-5, atol=1e-5)
+    a1, a2 = wp.zeros(len(v1), dtype=wp.vec3), wp.zeros(len(v1), dtype=wp.vec3)
+    kf.apply_contact(*args, targets, a1, a2)
+    r1, r2 = apply_contact_model(v1, v2, n, d1, d2, rho1, rho2, xgb_targets)
+    speed = np.maximum(np.linalg.norm(v1, axis=1), np.linalg.norm(v2, axis=1))[:, None]
+    assert_close_rows(a1.numpy(), r1, 2e-6 * speed + 1e-6)
+    assert_close_rows(a2.numpy(), r2, 2e-6 * speed + 1e-6)
+
+
+def assert_close_rows(actual, expected, tolerance):
+    bad = np.abs(actual - expected) > tolerance
+    assert not bad.any(), f"{bad.any(axis=1).sum()} rows differ, worst {np.max(np.abs(actual - expected)):.3g}"
+
+
+def test_paper_pairs_use_the_swapped_pair_for_particle_2():
+    data = synthetic_collisions(1500, seed=9)
+    rows, cols, raw, mean, std, boosters, doc = _fit_forest("paper", data, (5,))
+    sub = rows.data
+    c = sub.col
+    v1 = np.column_stack([c("v1x"), c("v1y"), c("v1z")]).astype(np.float32)
+    v2 = np.column_stack([c("v2x"), c("v2y"), c("v2z")]).astype(np.float32)
+    u1, u2 = ForestPredictor(_flat(doc, "paper")).predict_pairs(v1, v2, c("d1"), c("d2"), c("rho1"), c("rho2"))
+    x12 = standardize(np.column_stack([v1, v2]), mean, std)
+    x21 = standardize(np.column_stack([v2, v1]), mean, std)
+    for k, booster in enumerate(boosters.values()):
+        np.testing.assert_allclose(u1[:, k], booster.predict(xgb.DMatrix(x12)), rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(u2[:, k], booster.predict(xgb.DMatrix(x21)), rtol=1e-5, atol=1e-5)
+
+
+def test_forest_file_errors(tmp_path):
+    data = synthetic_collisions(400, seed=2)
+    *_, doc = _fit_forest("contact", data, (3,), n_estimators=5)
+    doc = dict(doc, targets=["impulse_n", "impulse_t"])
+    path = tmp_path / "forest.json"
+    text = json.dumps(doc)
+    path.write_text(text[: len(text) // 2])
+    with pytest.raises(ConfigError, match="truncated or corrupted"):
+        load_forest(str(path))
+    bad = json.loads(text)
+    bad["features"] = ["g_n", "g_t"]
+    path.write_text(json.dumps(bad))
+    with pytest.raises(ConfigError, match="features"):
+        load_forest(str(path))
+    bad = json.loads(text)
+    bad["arrays"]["node_left"]["base64"] = bad["arrays"]["node_left"]["base64"][:-8]
+    path.write_text(json.dumps(bad))
+    with pytest.raises(ConfigError):
+        load_forest(str(path))
+    path.write_text(text)
+    (tmp_path / "metadata.json").write_text(json.dumps({"files": {"forest.json": "0" * 64}}))
+    with pytest.raises(ConfigError, match="sha256"):
+        load_forest(str(tmp_path))
+    with pytest.raises(ConfigError, match="shape"):
+        ForestPredictor(parse_forest(json.loads(text))).predict_features(np.zeros((3, 2), np.float32))
