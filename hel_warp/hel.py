@@ -1,8 +1,8 @@
 """The HEL (hybrid Euler-Lagrange / MP-PIC) step, as the algorithm reads (ARCHITECTURE.md, "The step"):
 
-    deposit -> gas step -> interpolate -> collide -> push
+    deposit -> gas step -> interpolate -> collide -> push -> outlets -> walls -> inject
 
-``HelSolver.step()`` is those five calls. The collision model is a strategy chosen per run:
+``HelSolver.step()`` is those calls. The collision model is a strategy chosen per run:
 
 - ``none``: no particle-particle interaction (a_coll = 0);
 - ``ktgf``: the paper's HEL baseline, a_coll = -grad(p_s)/(eps_s rho_p) with the Table 1 closures
@@ -23,18 +23,31 @@ minus that to the gas (one step later), so particles + gas + :meth:`HelSolver.mo
 (minus the drag impulses of the last push, owed to the gas) is conserved by the coupling. The float64 sums are copied into
 the gas solver's float32 arrays, so the gas side holds them to float32 round-off.
 
-Walls (SDF reflection, e_n = e_t = 0.8), injection timing and outlets are the integration step that
-follows; ``pool.remove_beyond_plane`` and ``pool.inject`` already exist.
+After the push (ARCHITECTURE.md step 5): parcels past an outlet plane are removed (``Outlet``,
+``ParcelPool.remove_beyond_plane``); parcels whose centre crossed the SDF wall are reflected with
+e_n, e_t (``Material.wall_restitution_*``, Table 1: 0.8, ``kernels/reflect.py``); scheduled volume
+injectors (``ScheduledInjection``) add the parcels due by the end of the step (``ParcelPool.inject``).
+Outlets come before walls: a parcel that left through an outlet at the end of a geometry shape
+has crossed the SDF boundary too and must be removed, not reflected.
+
+Everything a restart needs is :meth:`HelSolver.state` / :meth:`HelSolver.set_state` (host copies,
+at checkpoint intervals only); ``hel_warp.run`` writes them.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
+import time as _time
 from dataclasses import dataclass
+
+import numpy as np
 
 from hel_warp.coupling import (CouplingFields, GridSpec, PushConfig, deposit_parcels, interpolate_gas,
                                ktgf_collision, push_parcels)
-from hel_warp.errors import ConfigError, require_positive
-from hel_warp.parcels import ParcelPool
+from hel_warp.errors import ConfigError, require_finite, require_positive
+from hel_warp.material import Material
+from hel_warp.parcels import ParcelPool, VolumeInjection
 
 
 class NoCollision:
@@ -125,6 +138,69 @@ def collision_model(name: str, **kwargs):
 
 
 @dataclass(frozen=True, kw_only=True)
+class ScheduledInjection:
+    """A volume injector: ``injection`` (box, count or mass, speed and direction, size distribution)
+    released over the window [``t_start``, ``t_end``] (s), at a uniform rate.
+
+    By the end of each step the cumulative release is ``count * f`` parcels (rounded) or ``mass * f`` kg
+    (never more than one parcel over), ``f = (t - t_start) / (t_end - t_start)`` clipped to [0, 1];
+    ``t_end = t_start`` (default) releases everything at once: at construction of the solver when
+    ``t_start = 0``, else at the end of the step that reaches ``t_start``. Each release draws positions
+    and sizes with a seed derived from (``injection.seed``, injector index, release number), so a
+    restarted run injects the same parcels as an uninterrupted one.
+    """
+
+    injection: VolumeInjection
+    t_start: float = 0.0
+    """Start of the release window, s."""
+    t_end: float | None = None
+    """End of the release window, s (None: = t_start, an instantaneous release)."""
+
+    def __post_init__(self):
+        if not isinstance(self.injection, VolumeInjection):
+            raise ConfigError("ScheduledInjection.injection must be a hel_warp.parcels.VolumeInjection")
+        require_finite("injection t_start", self.t_start)
+        if self.t_start < 0:
+            raise ConfigError(f"injection t_start must be >= 0 (got {self.t_start} s)")
+        if self.t_end is None:
+            object.__setattr__(self, "t_end", float(self.t_start))
+        require_finite("injection t_end", self.t_end)
+        if self.t_end < self.t_start:
+            raise ConfigError(f"injection t_end {self.t_end} s must not precede t_start {self.t_start} s")
+
+    def fraction_due(self, t: float, tolerance: float) -> float:
+        """Fraction of the total released by time ``t`` (s); ``tolerance`` (s) absorbs time round-off."""
+        if t < self.t_start - tolerance:
+            return 0.0
+        window = self.t_end - self.t_start
+        if window <= tolerance:
+            return 1.0
+        return min(max((t + tolerance - self.t_start) / window, 0.0), 1.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Outlet:
+    """Outlet plane: parcels with ``(x - point) . normal > 0`` are removed (alive = 0)."""
+
+    point: tuple[float, float, float]
+    """A point of the plane, m."""
+    normal: tuple[float, float, float]
+    """Outward normal (out of the domain); normalised."""
+
+    def __post_init__(self):
+        point = np.asarray(self.point, float).reshape(-1)
+        normal = np.asarray(self.normal, float).reshape(-1)
+        if point.size != 3 or normal.size != 3:
+            raise ConfigError("outlet point and normal must each have three components")
+        require_finite("outlet point", point)
+        require_finite("outlet normal", normal)
+        if not np.linalg.norm(normal) > 0:
+            raise ConfigError(f"outlet normal must be non-zero (got {self.normal!r})")
+        object.__setattr__(self, "point", tuple(float(v) for v in point))
+        object.__setattr__(self, "normal", tuple(float(v) for v in normal / np.linalg.norm(normal)))
+
+
+@dataclass(frozen=True, kw_only=True)
 class HelConfig:
     """Settings of the HEL loop."""
 
@@ -132,9 +208,25 @@ class HelConfig:
     """Time step of gas and parcels, s (the paper's HEL runs use 1e-3, 1e-4, 7.14e-5)."""
     push: PushConfig = PushConfig()
     """Drag law and gas properties seen by the parcels (must match the gas solver's)."""
+    material: Material = Material()
+    """Particle material; its ``wall_restitution_normal``/``_tangential`` (0.8, 0.8) act at the walls."""
+    walls: bool = True
+    """Reflect parcels at the SDF walls of the gas geometry (False: periodic boxes, tests)."""
+    injectors: tuple = ()
+    """``ScheduledInjection``s, in order (the order fixes the parcel indices)."""
+    outlets: tuple = ()
+    """``Outlet`` planes."""
 
     def __post_init__(self):
         require_positive("dt", self.dt, "s")
+        object.__setattr__(self, "injectors", tuple(self.injectors))
+        object.__setattr__(self, "outlets", tuple(self.outlets))
+        for k, inj in enumerate(self.injectors):
+            if not isinstance(inj, ScheduledInjection):
+                raise ConfigError(f"injectors[{k}] must be a ScheduledInjection (got {type(inj).__name__})")
+        for k, out in enumerate(self.outlets):
+            if not isinstance(out, Outlet):
+                raise ConfigError(f"outlets[{k}] must be an Outlet (got {type(out).__name__})")
 
 
 class HelSolver:
@@ -143,16 +235,24 @@ class HelSolver:
     ``gas_solver``/``gas``: ``hel_warp.gas.GasSolver`` and its ``GasField`` (or any objects with
     ``step(gas, dt)`` and ``cell_velocity``, ``cell_grad_p``, ``cell_eps_s``, ``cell_momentum_source``,
     ``cell_drag_coeff`` float32 cell arrays). Updates ``pool.particles`` and ``gas`` in place.
+    Walls need the geometry: ``gas.domain.geometry`` (a ``hel_warp.grid.Geometry``).
+
+    Bad input is refused here with a ConfigError that names the fix: live parcels or injector boxes
+    outside the fluid (SDF >= 0), gas properties that differ from the gas solver's.
     """
 
     def __init__(self, *, pool: ParcelPool, gas_solver, gas, config: HelConfig, collision=None):
+        import warp as wp
+
+        from kernels.reflect import make_wall_params
+
         self.pool = pool
         self.gas_solver = gas_solver
         self.gas = gas
         self.config = config
         self.collision = collision if collision is not None else NoCollision()
-        grid = gas.domain.grid if hasattr(gas, "domain") else gas_solver.domain.grid
-        self.grid = GridSpec.of(grid)
+        domain = getattr(gas, "domain", None) or getattr(gas_solver, "domain", None)
+        self.grid = GridSpec.of(domain.grid)
         gas_config = getattr(gas_solver, "config", None)
         if gas_config is not None:
             for name, ours, theirs in (("density", config.push.fluid_density, gas_config.density),
@@ -160,11 +260,30 @@ class HelSolver:
                 if abs(ours - theirs) > 1e-12 * abs(theirs):
                     raise ConfigError(f"gas {name} differs between the parcels ({ours}) and the gas solver "
                                       f"({theirs}); give the same value to PushConfig and GasConfig")
-        self.fields = CouplingFields.allocate(self.grid, pool.capacity, device=pool.particles.device)
+        device = pool.particles.device
+        self.fields = CouplingFields.allocate(self.grid, pool.capacity, device=device)
         self.push_params = config.push.params(config.dt)
+        geometry = getattr(domain, "geometry", None)
+        self.shapes = geometry.shapes_struct(device) if geometry is not None else None
+        if config.walls and self.shapes is None:
+            raise ConfigError("walls need the gas geometry (gas.domain.geometry); set HelConfig(walls=False) "
+                              "for a geometry-free gas stand-in")
+        self.wall_params = make_wall_params(restitution_normal=config.material.wall_restitution_normal,
+                                            restitution_tangential=config.material.wall_restitution_tangential)
+        self._wall_hits = wp.zeros(1, dtype=wp.int32, device=device)
+        self._counter = wp.zeros(1, dtype=wp.int32, device=device)
+        self._injected_count = np.zeros(len(config.injectors), dtype=np.int64)
+        self._injected_mass = np.zeros(len(config.injectors), dtype=np.float64)
+        self._releases = np.zeros(len(config.injectors), dtype=np.int64)
         self.time = 0.0
+        self.step_count = 0
+        self.timings: dict[str, float] = {}
+        """Wall-clock seconds of each sub-step of the last step (device-synchronised on CUDA)."""
+        self.check_injectors_inside()
+        self._inject_due(self.time)
+        self.check_parcels_inside()
 
-    # ------------------------------------------------------------------ the five sub-steps
+    # ------------------------------------------------------------------ the sub-steps
     def deposit(self) -> None:
         """1. parcels -> cells; hand eps_s, momentum source, sum beta V to the gas."""
         import warp as wp
@@ -199,24 +318,231 @@ class HelSolver:
         else:
             push_parcels(self.pool.particles, self.fields, self.push_params)
 
+    def remove_at_outlets(self) -> None:
+        """Parcels past an outlet plane leave the run (alive = 0; counted in ``pool.removed_count()``)."""
+        for outlet in self.config.outlets:
+            self.pool.remove_beyond_plane(outlet.point, outlet.normal)
+
+    def reflect_at_walls(self) -> None:
+        """Parcels whose centre crossed the SDF wall come back with e_n, e_t (``kernels/reflect.py``)."""
+        if self.config.walls:
+            from kernels.reflect import reflect_at_walls
+
+            p = self.pool.particles
+            reflect_at_walls(self.shapes, self.wall_params, p.alive, p.x, p.v, self._wall_hits)
+
+    def inject(self) -> None:
+        """Scheduled injectors add the parcels due by the end of this step."""
+        self._inject_due(self.time + self.config.dt)
+
+    def step(self) -> None:
+        """One HEL step of ``config.dt`` (ARCHITECTURE.md, "The step")."""
+        self._timed(self.deposit)
+        self._timed(self.gas_step)
+        self._timed(self.interpolate)
+        self._timed(self.collide)
+        self._timed(self.push)
+        self._timed(self.remove_at_outlets)
+        self._timed(self.reflect_at_walls)
+        self._timed(self.inject)
+        self.time += self.config.dt
+        self.step_count += 1
+
+    # ------------------------------------------------------------------ helpers of the step
+    def _timed(self, sub_step) -> None:
+        import warp as wp
+
+        start = _time.perf_counter()
+        sub_step()
+        if self.pool.particles.device.is_cuda:
+            wp.synchronize_device(self.pool.particles.device)
+        self.timings[sub_step.__name__] = _time.perf_counter() - start
+
+    def _inject_due(self, t: float) -> None:
+        """Release what each injector owes by time ``t`` (s); host sampling only on release steps."""
+        tolerance = 1e-6 * self.config.dt
+        for k, scheduled in enumerate(self.config.injectors):
+            inj = scheduled.injection
+            frac = scheduled.fraction_due(t, tolerance)
+            if frac <= 0.0:
+                continue
+            seed = int(np.random.SeedSequence([inj.seed, k, int(self._releases[k])]).generate_state(1)[0])
+            if inj.count is not None:
+                due = int(round(inj.count * frac)) - int(self._injected_count[k])
+                if due <= 0:
+                    continue
+                release = dataclasses.replace(inj, count=due, seed=seed)
+            else:
+                due = inj.mass * frac - self._injected_mass[k]
+                if due <= 1e-9 * inj.mass:
+                    continue
+                release = dataclasses.replace(inj, mass=due, seed=seed)
+            diameters = 2.0 * release.sample()["radius"]
+            n = self.pool.inject(release)
+            self._injected_count[k] += n
+            self._injected_mass[k] += float(np.sum(inj.weight * inj.density * math.pi / 6.0 * diameters**3))
+            self._releases[k] += 1
+
+    def injected(self) -> list[dict]:
+        """Per injector: parcels and real-particle mass (kg) released so far."""
+        return [{"count": int(c), "mass": float(m)} for c, m in zip(self._injected_count, self._injected_mass)]
+
+    # ------------------------------------------------------------------ checks of the input
+    def _sdf(self, points: np.ndarray) -> np.ndarray:
+        import warp as wp
+
+        from kernels.sdf import eval_sdf
+
+        device = self.pool.particles.device
+        pts = wp.array(np.asarray(points, np.float32).reshape(-1, 3), dtype=wp.vec3, device=device)
+        distance = wp.zeros(pts.shape[0], dtype=float, device=device)
+        normal = wp.zeros(pts.shape[0], dtype=wp.vec3, device=device)
+        eval_sdf(self.shapes, pts, distance, normal)
+        return distance.numpy()
+
+    def check_injectors_inside(self, samples: int = 5) -> None:
+        """ConfigError when an injector box reaches outside the fluid (SDF >= 0 on a samples^3 lattice)."""
+        if self.shapes is None:
+            return
+        for k, scheduled in enumerate(self.config.injectors):
+            inj = scheduled.injection
+            axes = [np.linspace(lo, hi, samples) for lo, hi in zip(inj.box_lo, inj.box_hi)]
+            points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+            d = self._sdf(points)
+            if np.any(d >= 0.0):
+                worst = int(np.argmax(d))
+                raise ConfigError(
+                    f"injector {k}: box {list(inj.box_lo)}..{list(inj.box_hi)} reaches outside the fluid "
+                    f"(SDF {d[worst]:.3g} m >= 0 at {points[worst].round(6).tolist()}); move or shrink the box so "
+                    "that it lies inside the geometry")
+
+    def check_parcels_inside(self) -> None:
+        """ConfigError when a live parcel lies outside the fluid (SDF >= 0); one int read when all is well."""
+        if self.shapes is None:
+            return
+        from kernels.reflect import count_outside
+
+        p = self.pool.particles
+        self._counter.zero_()
+        count_outside(self.shapes, p.x, p.alive, self._counter)
+        outside = int(self._counter.numpy()[0])
+        if outside:
+            alive = p.alive.numpy().astype(bool)
+            x = p.x.numpy()
+            d = np.where(alive, self._sdf(x), -np.inf)
+            worst = int(np.argmax(d))
+            raise ConfigError(f"{outside} live parcel(s) lie outside the fluid (SDF >= 0), e.g. parcel {worst} at "
+                              f"{x[worst].round(6).tolist()} (SDF {d[worst]:.3g} m); place the parcels inside the "
+                              "geometry (or fix the geometry's boxes)")
+
+    def check_finite(self) -> None:
+        """HelWarpError naming the fields that hold NaN/inf: a device reduction, one small read (output
+        intervals, not every step)."""
+        import warp as wp
+
+        from hel_warp.errors import HelWarpError
+        from kernels.finite import count_nonfinite
+
+        p = self.pool.particles
+        named = [("particle x", p.x), ("particle v", p.v), ("gas cell_velocity", self.gas.cell_velocity),
+                 ("gas cell_pressure", self.gas.cell_pressure), ("gas cell_grad_p", self.gas.cell_grad_p),
+                 ("cell eps_s", self.fields.cell_eps_s), ("parcel drag impulse", self.fields.parcel_drag_impulse),
+                 ("parcel collision acceleration", self.fields.parcel_a_coll)]
+        bad = wp.zeros(len(named), dtype=wp.int32, device=p.device)
+        for slot, (_, array) in enumerate(named):
+            count_nonfinite(array, bad, slot)
+        counts = bad.numpy()
+        if counts.any():
+            which = ", ".join(f"{name} ({int(c)} entries)" for (name, _), c in zip(named, counts) if c)
+            raise HelWarpError(f"NaN/inf at step {self.step_count} (t = {self.time:.6g} s) in {which}; the run "
+                               "blew up: reduce dt, check the inputs for NaN, or restart from the last checkpoint")
+
+    # ------------------------------------------------------------------ restart state (host copies)
+    def _gas_arrays(self) -> dict:
+        import warp as wp
+
+        arrays = {}
+        for name, value in vars(self.gas).items():
+            if isinstance(value, wp.array):
+                arrays[name] = value
+            elif all(isinstance(getattr(value, a, None), wp.array) for a in "xyz"):
+                for a in "xyz":
+                    arrays[f"{name}.{a}"] = getattr(value, a)
+        return arrays
+
+    def state(self) -> dict[str, np.ndarray]:
+        """Everything a restart needs, as host arrays: parcels (all slots, incl. alive/stream/weight), pool
+        counters, coupling fields (the drag impulses owed to the gas), gas fields, time, step, injector
+        progress, wall hits, and the strategy's own ``state()`` if it has one. A sync: checkpoints only."""
+        from hel_warp.particles import FIELDS_FLOAT, FIELDS_INT, FIELDS_VEC3
+
+        p = self.pool.particles
+        out = {f"particles/{n}": getattr(p, n).numpy().copy() for n in FIELDS_VEC3 + FIELDS_FLOAT + FIELDS_INT}
+        out["pool/used"] = np.array(self.pool.used, np.int64)
+        out["pool/removed"] = self.pool._removed_counter.numpy().copy()
+        for f in dataclasses.fields(self.fields):
+            out[f"coupling/{f.name}"] = getattr(self.fields, f.name).numpy().copy()
+        for name, array in self._gas_arrays().items():
+            out[f"gas/{name}"] = array.numpy().copy()
+        out["gas/_started"] = np.array(bool(getattr(self.gas, "_started", True)))
+        out["time"] = np.array(self.time, np.float64)
+        out["step"] = np.array(self.step_count, np.int64)
+        out["inject/count"] = self._injected_count.copy()
+        out["inject/mass"] = self._injected_mass.copy()
+        out["inject/releases"] = self._releases.copy()
+        out["walls/hits"] = self._wall_hits.numpy().copy()
+        strategy_state = getattr(self.collision, "state", None)
+        if strategy_state is not None:
+            out.update({f"collision/{k}": np.asarray(v) for k, v in strategy_state().items()})
+        return out
+
+    def set_state(self, state: dict) -> None:
+        """Restore :meth:`state` (same capacity, grid and injectors); the run then continues bitwise."""
+        from hel_warp.particles import FIELDS_FLOAT, FIELDS_INT, FIELDS_VEC3
+
+        def put(array, name):
+            value = np.asarray(state[name])
+            if value.shape != tuple(array.numpy().shape):
+                raise ConfigError(f"checkpoint entry {name} has shape {value.shape}, the run has "
+                                  f"{tuple(array.numpy().shape)}; restart with the configuration that wrote it")
+            array.assign(value)
+
+        p = self.pool.particles
+        for n in FIELDS_VEC3 + FIELDS_FLOAT + FIELDS_INT:
+            put(getattr(p, n), f"particles/{n}")
+        self.pool.used = int(state["pool/used"])
+        put(self.pool._removed_counter, "pool/removed")
+        for f in dataclasses.fields(self.fields):
+            put(getattr(self.fields, f.name), f"coupling/{f.name}")
+        for name, array in self._gas_arrays().items():
+            put(array, f"gas/{name}")
+        if hasattr(self.gas, "_started"):
+            self.gas._started = bool(state["gas/_started"])
+        self.time = float(state["time"])
+        self.step_count = int(state["step"])
+        if np.asarray(state["inject/count"]).shape != self._injected_count.shape:
+            raise ConfigError("the checkpoint was written with another number of injectors; restart with the "
+                              "configuration that wrote it")
+        self._injected_count = np.asarray(state["inject/count"], np.int64).copy()
+        self._injected_mass = np.asarray(state["inject/mass"], np.float64).copy()
+        self._releases = np.asarray(state["inject/releases"], np.int64).copy()
+        put(self._wall_hits, "walls/hits")
+        set_strategy_state = getattr(self.collision, "set_state", None)
+        if set_strategy_state is not None:
+            prefix = "collision/"
+            set_strategy_state({k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)})
+
+    # ------------------------------------------------------------------ diagnostics (host reads)
     def collision_counts(self) -> dict:
         """This step's collision counts from the strategy's optional ``counts()`` ({} when it has none)."""
         counts = getattr(self.collision, "counts", None)
         return dict(counts()) if counts is not None else {}
 
-    def step(self) -> None:
-        """One HEL step of ``config.dt``."""
-        self.deposit()
-        self.gas_step()
-        self.interpolate()
-        self.collide()
-        self.push()
-        self.time += self.config.dt
+    def wall_hit_count(self) -> int:
+        """Parcel-wall reflections so far (host read)."""
+        return int(self._wall_hits.numpy()[0])
 
-    # ------------------------------------------------------------------ diagnostics (host reads)
     def momentum_in_flight(self):
         """Momentum (N s, numpy (3,)) the gas receives at the next deposit: minus the last push's drag impulses."""
-        import numpy as np
-
         alive = self.pool.particles.alive.numpy().astype(bool)
         return -self.fields.parcel_drag_impulse.numpy()[alive].sum(axis=0).astype(np.float64)
