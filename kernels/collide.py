@@ -1,0 +1,425 @@
+"""HELSCM collision kernels: end-of-step pair detection, surrogate impulses per pair, per-stream counts.
+
+What it computes (reference paper sec. 4.3; ARCHITECTURE.md "The step", item 4):
+
+- Detection: every pair of live parcels with ``|x_i - x_j| < r_i + r_j`` (the paper's
+  ``|P_A P_B| < r_A + r_B``), found on a ``wp.HashGrid`` (cell size ``2 r_max``). The compact
+  pair list holds ``i < j`` only, each row sorted by ``j``, so a pair appears exactly once and
+  the list does not depend on thread order.
+- ``pairwise`` resolution (contact form of surrogate/features.py): the pairs are resolved in
+  rounds of *disjoint* pairs (a greedy matching: a pending pair is taken in a round when it has
+  the lowest pair index among the pending pairs of both its parcels - integer ``atomic_min``,
+  deterministic). The lowest pending pair is always taken, so every round makes progress and the
+  loop ends after at most as many rounds as pairs (typically the largest number of partners of a
+  parcel). Inside a round no parcel is touched twice, so each impulse is applied once to velocities
+  that already carry the earlier rounds (sequential impulses, Gauss-Seidel order by pair index):
+  no double counting, and each parcel pair exchanges an equal and opposite impulse, so the total
+  momentum is conserved to float32 round-off of the velocity updates.
+  A pair is collided only while approaching, ``(v_j - v_i).(x_j - x_i) < 0``: an overlapping
+  pair that already separates (e.g. the one collided last step) is skipped - the repeated-detection
+  fix the paper names as missing (its sec. 8).
+  The impulse on particle 2 is ``J = m*|g| (impulse_n n + impulse_t t_hat)`` from the forest's two
+  targets (``kernels/forest.py`` ``contact_impulse``), ``n`` from 1 to 2 along the centre line.
+  Parcels of weight ``w``: ``min(w_i, w_j)`` real binary collisions happen (each real particle of the
+  parcel with fewer particles meets one of the other), so parcel i receives ``-min(w_i,w_j) J`` and
+  parcel j ``+min(w_i,w_j) J``: ``dv_i = -(min/w_i) J/m_i``, ``dv_j = +(min/w_j) J/m_j`` and the parcel
+  momentum ``w_i m_i v_i + w_j m_j v_j`` is conserved.
+- ``paper`` resolution (sec. 4.3 as written): per parcel the velocities of all overlapping partners
+  are summed and averaged (weighted by partner weight), and the paper-form forest maps
+  (own velocity, averaged partner velocity, d, mean partner d, rho, mean partner rho) to the new
+  velocity. No approach test and no momentum guarantee (the paper's scheme).
+- Counts (integer atomics, deterministic): detected pairs and surrogate calls per stream pair
+  ``(min(s_i, s_j), max(s_i, s_j))``, separating pairs skipped, matching rounds.
+- CFD-DEM helpers of the ``dem`` strategy: a held per-parcel fluid acceleration added to the DEM
+  contact force.
+
+Launch wrappers at the bottom; they never allocate (hel_warp/collision_models.py owns the arrays).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from kernels.forest import Forest, contact_impulse, sphere_mass, walk_tree
+
+PAIR_NONE = wp.constant(2147483647)
+"""``owner`` value of a parcel no pending pair has claimed in this round."""
+PAIR_PENDING = wp.constant(0)
+PAIR_DONE = wp.constant(1)
+
+
+@wp.func
+def stream_pair_index(s_i: wp.int32, s_j: wp.int32, n_streams: wp.int32):
+    """Row-major index of the unordered stream pair (min, max); tags are clamped to [0, n_streams)."""
+    a = wp.clamp(wp.min(s_i, s_j), 0, n_streams - 1)
+    b = wp.clamp(wp.max(s_i, s_j), 0, n_streams - 1)
+    return a * n_streams + b
+
+
+@wp.func
+def forest_target(forest: Forest, target: wp.int32, features: wp.array2d(dtype=wp.float32), row: wp.int32):
+    """Prediction of one target for one feature row: base_score + sum of the target's tree leaves."""
+    acc = forest.base_score[target]
+    for k in range(forest.tree_start[target], forest.tree_start[target + 1]):
+        acc = acc + walk_tree(forest, forest.tree_root[k], features, row)
+    return acc
+
+
+@wp.func
+def write_contact_features(v1: wp.vec3, v2: wp.vec3, n: wp.vec3, d1: float, d2: float, rho1: float, rho2: float,
+                           row: wp.int32, features: wp.array2d(dtype=wp.float32)):
+    """Contact-frame features g_n, g_t, g_n/|g|, d1, d2/d1, rho2/rho1 (as kernels/forest.py contact_features)."""
+    g = v1 - v2
+    g_n = wp.dot(g, n)
+    gt = g - g_n * n
+    gt = gt - wp.dot(gt, n) * n
+    features[row, 0] = g_n
+    features[row, 1] = wp.length(gt)
+    features[row, 2] = g_n / wp.length(g)
+    features[row, 3] = d1
+    features[row, 4] = d2 / d1
+    features[row, 5] = rho2 / rho1
+
+
+# ------------------------------------------------------------------------------------------ detection
+
+
+@wp.kernel
+def count_pairs(
+    grid: wp.uint64,
+    particle_x: wp.array(dtype=wp.vec3),
+    particle_radius: wp.array(dtype=wp.float32),
+    particle_alive: wp.array(dtype=wp.int32),
+    max_radius: float,
+    # outputs
+    pair_count: wp.array(dtype=wp.int32),
+):
+    """pair_count[i] = number of live partners j > i with |x_i - x_j| < r_i + r_j."""
+    i = wp.tid()
+    c = int(0)
+    if particle_alive[i] != 0:
+        xi = particle_x[i]
+        ri = particle_radius[i]
+        for j in wp.hash_grid_query(grid, xi, ri + max_radius):
+            if j > i and particle_alive[j] != 0:
+                cut = ri + particle_radius[j]
+                if wp.length_sq(particle_x[j] - xi) < cut * cut:
+                    c = c + 1
+    pair_count[i] = c
+
+
+@wp.kernel
+def fill_pairs(
+    grid: wp.uint64,
+    particle_x: wp.array(dtype=wp.vec3),
+    particle_radius: wp.array(dtype=wp.float32),
+    particle_alive: wp.array(dtype=wp.int32),
+    max_radius: float,
+    pair_offset: wp.array(dtype=wp.int32),
+    # outputs
+    pair_i: wp.array(dtype=wp.int32),
+    pair_j: wp.array(dtype=wp.int32),
+):
+    """Pairs (i, j > i) of row i at pair_offset[i] (exclusive scan of count_pairs), sorted by j."""
+    i = wp.tid()
+    if particle_alive[i] == 0:
+        return
+    start = pair_offset[i]
+    c = start
+    xi = particle_x[i]
+    ri = particle_radius[i]
+    for j in wp.hash_grid_query(grid, xi, ri + max_radius):
+        if j > i and particle_alive[j] != 0:
+            cut = ri + particle_radius[j]
+            if wp.length_sq(particle_x[j] - xi) < cut * cut:
+                k = c
+                while k > start and pair_j[k - 1] > j:  # sorted insert: the row does not depend on query order
+                    pair_j[k] = pair_j[k - 1]
+                    k = k - 1
+                pair_j[k] = j
+                pair_i[c] = i
+                c = c + 1
+
+
+@wp.kernel
+def count_detected(
+    pair_i: wp.array(dtype=wp.int32),
+    pair_j: wp.array(dtype=wp.int32),
+    particle_stream: wp.array(dtype=wp.int32),
+    n_streams: wp.int32,
+    # outputs
+    detected: wp.array(dtype=wp.int32),
+    pair_state: wp.array(dtype=wp.int32),
+):
+    """Count each detected pair under its stream pair; mark it pending for the resolution rounds."""
+    k = wp.tid()
+    s = stream_pair_index(particle_stream[pair_i[k]], particle_stream[pair_j[k]], n_streams)
+    wp.atomic_add(detected, s, 1)
+    pair_state[k] = PAIR_PENDING
+
+
+# ------------------------------------------------------------------------------------------ pairwise mode
+
+
+@wp.kernel
+def reset_owner(
+    # outputs
+    owner: wp.array(dtype=wp.int32),
+    more_rounds: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    owner[i] = PAIR_NONE
+    if i == 0:
+        more_rounds[0] = 0
+
+
+@wp.kernel
+def claim_pairs(
+    pair_i: wp.array(dtype=wp.int32),
+    pair_j: wp.array(dtype=wp.int32),
+    pair_state: wp.array(dtype=wp.int32),
+    # outputs
+    owner: wp.array(dtype=wp.int32),
+):
+    """Each parcel remembers the lowest pending pair index touching it (integer atomic_min)."""
+    k = wp.tid()
+    if pair_state[k] == PAIR_PENDING:
+        wp.atomic_min(owner, pair_i[k], k)
+        wp.atomic_min(owner, pair_j[k], k)
+
+
+@wp.struct
+class PairwiseArgs:
+    """Inputs of one resolution round (pairwise mode)."""
+
+    pair_i: wp.array(dtype=wp.int32)
+    pair_j: wp.array(dtype=wp.int32)
+    owner: wp.array(dtype=wp.int32)
+    particle_x: wp.array(dtype=wp.vec3)
+    particle_radius: wp.array(dtype=wp.float32)
+    particle_density: wp.array(dtype=wp.float32)
+    particle_weight: wp.array(dtype=wp.float32)
+    particle_stream: wp.array(dtype=wp.int32)
+    n_streams: wp.int32
+
+
+@wp.kernel
+def resolve_round(
+    args: PairwiseArgs,
+    forest: Forest,
+    # outputs
+    pair_state: wp.array(dtype=wp.int32),
+    features: wp.array2d(dtype=wp.float32),
+    particle_v: wp.array(dtype=wp.vec3),
+    calls: wp.array(dtype=wp.int32),
+    skipped: wp.array(dtype=wp.int32),
+    more_rounds: wp.array(dtype=wp.int32),
+):
+    """Resolve the pending pairs that own both their parcels (disjoint: each parcel is written once)."""
+    k = wp.tid()
+    if pair_state[k] != PAIR_PENDING:
+        return
+    i = args.pair_i[k]
+    j = args.pair_j[k]
+    if args.owner[i] != k or args.owner[j] != k:
+        more_rounds[0] = 1  # every writer stores the same value
+        return
+    pair_state[k] = PAIR_DONE
+    d = args.particle_x[j] - args.particle_x[i]
+    vi = particle_v[i]
+    vj = particle_v[j]
+    dist = wp.length(d)
+    if dist <= 0.0 or wp.dot(vj - vi, d) >= 0.0:
+        wp.atomic_add(skipped, 0, 1)  # separating (or coincident centres: no normal): not collided
+        return
+    n = d / dist
+    ri = args.particle_radius[i]
+    rj = args.particle_radius[j]
+    rho_i = args.particle_density[i]
+    rho_j = args.particle_density[j]
+    write_contact_features(vi, vj, n, 2.0 * ri, 2.0 * rj, rho_i, rho_j, k, features)
+    impulse_n = forest_target(forest, 0, features, k)
+    impulse_t = forest_target(forest, 1, features, k)
+    mi = sphere_mass(2.0 * ri, rho_i)
+    mj = sphere_mass(2.0 * rj, rho_j)
+    J = contact_impulse(vi, vj, n, mi, mj, impulse_n, impulse_t)  # on j; i gets -J
+    wi = args.particle_weight[i]
+    wj = args.particle_weight[j]
+    w_min = wp.min(wi, wj)
+    particle_v[i] = vi - J * (w_min / (wi * mi))
+    particle_v[j] = vj + J * (w_min / (wj * mj))
+    wp.atomic_add(calls, stream_pair_index(args.particle_stream[i], args.particle_stream[j], args.n_streams), 1)
+
+
+@wp.kernel
+def count_round(more_rounds: wp.array(dtype=wp.int32),
+                # outputs
+                rounds: wp.array(dtype=wp.int32)):
+    rounds[0] = rounds[0] + 1
+
+
+# ------------------------------------------------------------------------------------------ paper mode
+
+
+@wp.struct
+class PaperArgs:
+    """Inputs of the paper-mode cluster update."""
+
+    grid: wp.uint64
+    particle_x: wp.array(dtype=wp.vec3)
+    particle_v: wp.array(dtype=wp.vec3)
+    particle_radius: wp.array(dtype=wp.float32)
+    particle_density: wp.array(dtype=wp.float32)
+    particle_weight: wp.array(dtype=wp.float32)
+    particle_alive: wp.array(dtype=wp.int32)
+    particle_stream: wp.array(dtype=wp.int32)
+    max_radius: float
+    n_streams: wp.int32
+
+
+@wp.kernel
+def paper_cluster_update(
+    args: PaperArgs,
+    forest: Forest,
+    # outputs
+    features: wp.array2d(dtype=wp.float32),
+    particle_v_out: wp.array(dtype=wp.vec3),
+    calls: wp.array(dtype=wp.int32),
+):
+    """Sec. 4.3: partner velocities summed and averaged (weights w_j), then the paper-form forest (u, v, w).
+
+    ``calls[s]`` counts the pairs (j > i) whose stream pair is s (both members get a model call).
+    """
+    i = wp.tid()
+    vi = args.particle_v[i]
+    particle_v_out[i] = vi
+    if args.particle_alive[i] == 0:
+        return
+    xi = args.particle_x[i]
+    ri = args.particle_radius[i]
+    sum_w = float(0.0)
+    sum_v = wp.vec3(0.0)
+    sum_d = float(0.0)
+    sum_rho = float(0.0)
+    for j in wp.hash_grid_query(args.grid, xi, ri + args.max_radius):
+        if j != i and args.particle_alive[j] != 0:
+            rj = args.particle_radius[j]
+            cut = ri + rj
+            if wp.length_sq(args.particle_x[j] - xi) < cut * cut:
+                w = args.particle_weight[j]
+                sum_w = sum_w + w
+                sum_v = sum_v + w * args.particle_v[j]
+                sum_d = sum_d + w * 2.0 * rj
+                sum_rho = sum_rho + w * args.particle_density[j]
+                if j > i:
+                    wp.atomic_add(calls, stream_pair_index(args.particle_stream[i], args.particle_stream[j],
+                                                           args.n_streams), 1)
+    if sum_w <= 0.0:
+        return
+    v_avg = sum_v / sum_w
+    for c in range(3):
+        features[i, c] = vi[c]
+        features[i, 3 + c] = v_avg[c]
+    features[i, 6] = 2.0 * ri
+    features[i, 7] = sum_d / sum_w
+    features[i, 8] = args.particle_density[i]
+    features[i, 9] = sum_rho / sum_w
+    particle_v_out[i] = wp.vec3(forest_target(forest, 0, features, i), forest_target(forest, 1, features, i),
+                                forest_target(forest, 2, features, i))
+
+
+# ------------------------------------------------------------------------------------------ CFD-DEM helpers
+
+
+@wp.kernel
+def held_fluid_acceleration(
+    particle_v_start: wp.array(dtype=wp.vec3),
+    particle_v_push: wp.array(dtype=wp.vec3),
+    particle_alive: wp.array(dtype=wp.int32),
+    dt: float,
+    # outputs
+    parcel_a_fluid: wp.array(dtype=wp.vec3),
+):
+    """a_fluid = (v after the fluid-only push - v at the start) / dt: drag, gravity, grad p' of eq. (4)."""
+    i = wp.tid()
+    if particle_alive[i] == 0:
+        parcel_a_fluid[i] = wp.vec3(0.0)
+        return
+    parcel_a_fluid[i] = (particle_v_push[i] - particle_v_start[i]) / dt
+
+
+@wp.kernel
+def add_fluid_force(
+    parcel_a_fluid: wp.array(dtype=wp.vec3),
+    particle_radius: wp.array(dtype=wp.float32),
+    particle_density: wp.array(dtype=wp.float32),
+    # outputs
+    particle_f: wp.array(dtype=wp.vec3),
+):
+    """F_i <- F_i + m_i a_fluid_i (m = rho 4/3 pi r^3, the DEM integrator's mass)."""
+    i = wp.tid()
+    r = particle_radius[i]
+    m = particle_density[i] * (4.0 / 3.0 * wp.pi) * r * r * r
+    particle_f[i] = particle_f[i] + m * parcel_a_fluid[i]
+
+
+# ------------------------------------------------------------------------------------------ launch wrappers
+
+
+def detect_pairs(grid, particles, max_radius: float, pair_count, pair_offset) -> int:
+    """Count the overlapping pairs (i < j) per parcel, scan them; returns the total (one int read back)."""
+    n = particles.count
+    wp.launch(count_pairs, dim=n, device=particles.device,
+              inputs=[grid.id, particles.x, particles.radius, particles.alive, float(max_radius)],
+              outputs=[pair_count])
+    wp.utils.array_scan(pair_count, pair_offset, inclusive=False)
+    last = pair_offset[n - 1:n].numpy()[0] + pair_count[n - 1:n].numpy()[0]
+    return int(last)
+
+
+def fill_pair_list(grid, particles, max_radius: float, pair_offset, pair_i, pair_j) -> None:
+    wp.launch(fill_pairs, dim=particles.count, device=particles.device,
+              inputs=[grid.id, particles.x, particles.radius, particles.alive, float(max_radius), pair_offset],
+              outputs=[pair_i, pair_j])
+
+
+def launch_count_detected(n_pairs: int, pair_i, pair_j, particle_stream, n_streams: int, detected,
+                          pair_state) -> None:
+    if n_pairs:
+        wp.launch(count_detected, dim=n_pairs, device=pair_i.device,
+                  inputs=[pair_i, pair_j, particle_stream, int(n_streams)], outputs=[detected, pair_state])
+
+
+def resolve_pairwise(n_pairs: int, args: PairwiseArgs, forest: Forest, pair_state, features, particle_v, calls,
+                     skipped, more_rounds, rounds) -> None:
+    """Rounds of disjoint pairs until none is pending (``wp.capture_while``: a graph loop on CUDA)."""
+    if not n_pairs:
+        return
+    device = particle_v.device
+    n = particle_v.shape[0]
+
+    def one_round():
+        wp.launch(reset_owner, dim=n, device=device, outputs=[args.owner, more_rounds])
+        wp.launch(claim_pairs, dim=n_pairs, device=device, inputs=[args.pair_i, args.pair_j, pair_state],
+                  outputs=[args.owner])
+        wp.launch(resolve_round, dim=n_pairs, device=device, inputs=[args, forest],
+                  outputs=[pair_state, features, particle_v, calls, skipped, more_rounds])
+        wp.launch(count_round, dim=1, device=device, inputs=[more_rounds], outputs=[rounds])
+
+    more_rounds.fill_(1)
+    wp.capture_while(more_rounds, one_round)
+
+
+def launch_paper_update(args: PaperArgs, forest: Forest, features, particle_v_out, calls) -> None:
+    wp.launch(paper_cluster_update, dim=args.particle_x.shape[0], device=particle_v_out.device,
+              inputs=[args, forest], outputs=[features, particle_v_out, calls])
+
+
+def launch_held_fluid_acceleration(v_start, v_push, alive, dt: float, a_fluid) -> None:
+    wp.launch(held_fluid_acceleration, dim=v_start.shape[0], device=v_start.device,
+              inputs=[v_start, v_push, alive, float(dt)], outputs=[a_fluid])
+
+
+def launch_add_fluid_force(a_fluid, radius, density, force) -> None:
+    wp.launch(add_fluid_force, dim=a_fluid.shape[0], device=a_fluid.device, inputs=[a_fluid, radius, density],
+              outputs=[force])

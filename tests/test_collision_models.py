@@ -1,0 +1,321 @@
+"""Collision strategies of hel_warp/collision_models.py: surrogate (pairwise, paper) and dem.
+
+References (CONVENTIONS rule 9): XGBoost's own ``predict`` of the trained boosters with the numpy
+contact-form impulse of surrogate/features.py; the closed-form frictionless binary collision
+(PHYSICS-NOTES "Binary collision outcome"); momentum conservation; an O(N^2) brute-force pair search.
+The model is a tiny contact-form (and paper-form) XGBoost trained once per session on a few thousand
+frictionless Hertz DEM impacts (surrogate/dataset.py + surrogate/train.py, 1 trial).
+"""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+D = 315e-6  # paper's small particles, m
+RHO = 1000.0  # polyethylene, kg/m^3
+E_REST = 0.9  # Material() restitution, the data set's DEM calibrates it to < 0.3 % (surrogate/dataset.py)
+
+
+@pytest.fixture(scope="session")
+def trained_models(tmp_path_factory):
+    """{"contact": dir, "paper": dir} of models trained on 3000 frictionless DEM binary impacts."""
+    from hel_warp.material import Material
+    from surrogate import train as T
+    from surrogate.dataset import build_dataset, make_spec
+    from surrogate.features import load_collision_data
+
+    root = tmp_path_factory.mktemp("collision_models")
+    spec = make_spec(samples=3000, seed=0, diameter=D, diameter_std=0.0, material=Material(friction=0.0),
+                     chunk_size=3000)
+    build_dataset(root / "data", spec, progress=False)
+    data = load_collision_data(str(root / "data"))
+    saved = T.SEARCH_SPACE["n_estimators"]
+    T.SEARCH_SPACE["n_estimators"] = (100, 150)  # small forests: CI time
+    try:
+        out = {}
+        for form in ("contact", "paper"):
+            out[form] = str(root / f"model_{form}")
+            T.train(data, out[form], T.TrainConfig(form=form, trials=1, jobs=1, progress=False, report=False))
+    finally:
+        T.SEARCH_SPACE["n_estimators"] = saved
+    return out
+
+
+def xgboost_pairwise(model_dir, v1, v2, n, d1, d2, rho1, rho2):
+    """Reference: XGBoost's own predict on the contact features, then the numpy equal-and-opposite impulse."""
+    from surrogate.artifact import load_artifact
+    from surrogate.features import CANONICAL_FEATURES, apply_contact_model, raw_features, standardize
+
+    art = load_artifact(model_dir, boosters=True)
+    raw = raw_features("contact", v1, v2, n, d1, d2, rho1, rho2).astype(np.float32)
+    cols = [CANONICAL_FEATURES["contact"].index(f) for f in art.features]
+    x = standardize(raw[:, cols], art.scaler_mean, art.scaler_std)
+    targets = np.column_stack([art.boosters[t].inplace_predict(x) for t in art.targets])
+    return apply_contact_model(v1, v2, n, d1, d2, rho1, rho2, targets)
+
+
+def xgboost_paper(model_dir, v1, v2, d1, d2, rho1, rho2):
+    """Reference: XGBoost's own predict of u, v, w from the paper features (v1, v2, d1, d2, rho1, rho2)."""
+    from surrogate.artifact import load_artifact
+    from surrogate.features import CANONICAL_FEATURES, raw_features, standardize
+
+    art = load_artifact(model_dir, boosters=True)
+    raw = raw_features("paper", v1, v2, None, d1, d2, rho1, rho2).astype(np.float32)
+    cols = [CANONICAL_FEATURES["paper"].index(f) for f in art.features]
+    x = standardize(raw[:, cols], art.scaler_mean, art.scaler_std)
+    return np.column_stack([art.boosters[t].inplace_predict(x) for t in art.targets])
+
+
+def impulse_n_mae(model_dir) -> float:
+    import json
+    import os
+
+    with open(os.path.join(model_dir, "metadata.json")) as fh:
+        return float(json.load(fh)["metrics"]["targets"]["impulse_n"]["mae"])
+
+
+def make_particles(x, v, *, radius=0.5 * D, density=RHO, weight=1.0, stream=0):
+    from hel_warp.particles import Particles
+
+    return Particles.from_numpy(np.asarray(x, float), radius, v=np.asarray(v, float), density=density,
+                                weight=weight, stream=stream, check_overlap=False, device="cpu")
+
+
+def momentum(p) -> np.ndarray:
+    """Parcel momentum sum w m v, float64 (N s)."""
+    m = p.mass_numpy() * p.weight.numpy().astype(np.float64)
+    return (m[:, None] * p.v.numpy().astype(np.float64)).sum(axis=0)
+
+
+def closed_form(v1, v2, n, e):
+    """Frictionless binary collision of equal masses: v1' = v1 - (1+e)/2 (g.n) n, v2' = v2 + (1+e)/2 (g.n) n."""
+    g_n = float(np.dot(np.subtract(v1, v2), n))
+    return np.asarray(v1) - 0.5 * (1 + e) * g_n * np.asarray(n), np.asarray(v2) + 0.5 * (1 + e) * g_n * np.asarray(n)
+
+
+def pair_case(trained_models, offset_angle_deg):
+    """Two spheres overlapping by 10 % of d, centre line at ``offset_angle_deg`` to the relative velocity."""
+    from hel_warp.collision_models import SurrogateCollision
+
+    a = math.radians(offset_angle_deg)
+    n = np.array([math.cos(a), math.sin(a), 0.0])
+    x = np.array([[0.0, 0.0, 0.0], 0.9 * D * n])
+    v = np.array([[2.0, 0.3, 0.0], [-2.0, 0.3, 0.0]])
+    p = make_particles(x, v)
+    strategy = SurrogateCollision(model_dir=trained_models["contact"])
+    p0 = momentum(p)
+    strategy.collide(p)
+    return p, v, n, p0, strategy
+
+
+@pytest.mark.parametrize("angle", [0.0, 35.0])
+def test_pairwise_binary_collision_matches_xgboost_and_the_closed_form(trained_models, angle):
+    p, v, n, p0, strategy = pair_case(trained_models, angle)
+    after = p.v.numpy().astype(np.float64)
+    # exact reference: XGBoost's own predict + the numpy impulse (float32 features/velocities in the engine)
+    r1, r2 = xgboost_pairwise(trained_models["contact"], v[:1], v[1:], n[None], D, D, RHO, RHO)
+    g = np.linalg.norm(v[0] - v[1])
+    assert np.abs(after - np.vstack([r1, r2])).max() <= 1e-5 * g
+    # physics: frictionless restitution impulse; the model's error on impulse_n (test MAE, 5x for one
+    # point) scales by m*|g|/m = |g|/2 in the velocities; plus the DEM's restitution calibration (0.3 %)
+    c1, c2 = closed_form(v[0], v[1], n, E_REST)
+    tol = g * (0.5 * 5.0 * impulse_n_mae(trained_models["contact"]) + 0.003)
+    assert np.abs(after[0] - c1).max() <= tol and np.abs(after[1] - c2).max() <= tol
+    # momentum: equal and opposite impulses (float32 velocity round-off)
+    assert np.abs(momentum(p) - p0).max() <= 1e-6 * np.abs(p.mass_numpy()[0] * v).sum()
+    c = strategy.counts()
+    assert (c["detected_pairs"], c["surrogate_calls"], c["separating_skipped"]) == (1, 1, 0)
+
+
+def test_separating_overlapping_pair_is_not_collided(trained_models):
+    from hel_warp.collision_models import SurrogateCollision
+
+    x = [[0.0, 0.0, 0.0], [0.8 * D, 0.0, 0.0]]
+    v = np.array([[-1.0, 0.2, 0.0], [1.0, 0.0, 0.0]], np.float32)
+    p = make_particles(x, v)
+    strategy = SurrogateCollision(model_dir=trained_models["contact"])
+    strategy.collide(p)
+    assert np.array_equal(p.v.numpy(), v)
+    c = strategy.counts()
+    assert (c["detected_pairs"], c["surrogate_calls"], c["separating_skipped"]) == (1, 0, 1)
+
+
+def test_three_body_cluster_each_pair_once_sequential_impulses(trained_models):
+    # A - B - C on a line, A and C approach B; A and C do not touch. Pairs (0,1) then (1,2) (index order),
+    # the second with B's velocity after the first: the XGBoost reference applied sequentially.
+    from hel_warp.collision_models import SurrogateCollision
+
+    x = np.array([[0.0, 0.0, 0.0], [0.9 * D, 0.0, 0.0], [1.8 * D, 0.05 * D, 0.0]])
+    v = np.array([[3.0, 0.0, 0.0], [0.0, 0.0, 0.0], [-2.0, 0.1, 0.0]])
+    p = make_particles(x, v, stream=np.array([0, 1, 1]))
+    strategy = SurrogateCollision(model_dir=trained_models["contact"])
+    p0 = momentum(p)
+    strategy.collide(p)
+    after = p.v.numpy().astype(np.float64)
+
+    ref = v.copy()
+    for i, j in ((0, 1), (1, 2)):
+        d = x[j] - x[i]
+        if np.dot(ref[j] - ref[i], d) < 0:
+            n = d / np.linalg.norm(d)
+            a, b = xgboost_pairwise(trained_models["contact"], ref[i:i + 1], ref[j:j + 1], n[None], D, D, RHO, RHO)
+            ref[i], ref[j] = a[0], b[0]
+    assert np.abs(after - ref).max() <= 1e-5 * 5.0
+    assert np.abs(momentum(p) - p0).max() <= 1e-6 * np.abs(p.mass_numpy()[0] * v).sum()
+    c = strategy.counts()
+    assert c["detected_pairs"] == 2 and c["rounds"] == 2
+    assert c["detected_by_stream"] == {"0-1": 1, "1-1": 1}
+    assert c["surrogate_calls"] + c["separating_skipped"] == 2
+
+
+def test_weighted_parcels_conserve_parcel_momentum(trained_models):
+    # w_i = 3, w_j = 1: one real binary collision per particle of parcel j, so parcel j gets the binary
+    # velocity change and parcel i a third of its own binary change; sum w m v is conserved.
+    from hel_warp.collision_models import SurrogateCollision
+
+    x = [[0.0, 0.0, 0.0], [0.9 * D, 0.0, 0.0]]
+    v = np.array([[2.0, 0.0, 0.0], [-2.0, 0.5, 0.0]])
+    p = make_particles(x, v, weight=np.array([3.0, 1.0]))
+    strategy = SurrogateCollision(model_dir=trained_models["contact"])
+    p0 = momentum(p)
+    strategy.collide(p)
+    after = p.v.numpy().astype(np.float64)
+    r1, r2 = xgboost_pairwise(trained_models["contact"], v[:1], v[1:], np.array([[1.0, 0, 0]]), D, D, RHO, RHO)
+    assert np.abs(after[1] - r2[0]).max() <= 1e-5 * 4
+    assert np.abs(after[0] - (v[0] + (r1[0] - v[0]) / 3.0)).max() <= 1e-5 * 4
+    m = p.mass_numpy()[0]
+    assert np.abs(momentum(p) - p0).max() <= 1e-6 * m * 4 * 4.0
+
+
+def random_cloud(n=3000, seed=1, side=4e-3):
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(0.0, side, size=(n, 3))
+    v = rng.normal(0.0, 2.0, size=(n, 3))
+    radius = 0.5 * D * rng.uniform(0.7, 1.3, n)
+    density = RHO * rng.uniform(0.8, 1.25, n)
+    weight = rng.integers(1, 4, n).astype(float)
+    stream = rng.integers(0, 3, n)
+    return make_particles(x, v, radius=radius, density=density, weight=weight, stream=stream)
+
+
+def test_many_random_particles_momentum_exact_and_pairs_match_brute_force(trained_models):
+    # Collision only (no gas, no walls): 3000 polydisperse weighted parcels, ~30 % solids by volume.
+    from hel_warp.collision_models import SurrogateCollision
+
+    p = random_cloud()
+    x = p.x.numpy().astype(np.float64)
+    r = p.radius.numpy().astype(np.float64)
+    strategy = SurrogateCollision(model_dir=trained_models["contact"])
+    p0 = momentum(p)
+    m = p.mass_numpy() * p.weight.numpy()
+    scale = float(np.sum(m * np.linalg.norm(p.v.numpy().astype(np.float64), axis=1)))
+    strategy.collide(p)
+    # O(N^2) brute force of |x_i - x_j| < r_i + r_j (float32 positions as the kernel sees them)
+    xf = p.x.numpy()
+    dist = np.linalg.norm(xf[:, None, :] - xf[None, :, :], axis=2)
+    cut = (p.radius.numpy()[:, None] + p.radius.numpy()[None, :])
+    i, j = np.nonzero(np.triu(dist < cut, k=1))
+    assert np.array_equal(strategy.detector.pairs(), np.stack([i, j], axis=1))
+    c = strategy.counts()
+    assert c["detected_pairs"] == i.size > 500 and c["rounds"] >= 2
+    assert c["surrogate_calls"] + c["separating_skipped"] == i.size
+    # each update rounds one float32 velocity (relative 6e-8); a parcel is updated once per partner
+    assert np.abs(momentum(p) - p0).max() <= 1e-6 * scale
+    assert np.all(np.isfinite(p.v.numpy()))
+    del x, r
+
+
+def test_pairwise_is_deterministic(trained_models):
+    from hel_warp.collision_models import SurrogateCollision
+
+    results = []
+    for _ in range(2):
+        p = random_cloud(n=2000, seed=3)
+        strategy = SurrogateCollision(model_dir=trained_models["contact"])
+        strategy.collide(p)
+        results.append((p.v.numpy().copy(), strategy.counts()))
+    assert np.array_equal(results[0][0], results[1][0])
+    assert results[0][1] == results[1][1]
+
+
+def test_paper_mode_uses_the_cluster_averaged_partner_velocity(trained_models):
+    # B overlaps A and C: its partner velocity is the mean of A's and C's; A and C see B only.
+    from hel_warp.collision_models import SurrogateCollision
+
+    x = np.array([[0.0, 0.0, 0.0], [0.9 * D, 0.0, 0.0], [1.8 * D, 0.0, 0.0]])
+    v = np.array([[3.0, 0.0, 0.0], [0.0, 0.5, 0.0], [-2.0, 0.0, 0.0]])
+    p = make_particles(x, v)
+    strategy = SurrogateCollision(model_dir=trained_models["paper"], mode="paper")
+    strategy.collide(p)
+    partner = np.array([v[1], 0.5 * (v[0] + v[2]), v[1]])
+    ref = xgboost_paper(trained_models["paper"], v, partner, D, D, RHO, RHO)
+    assert np.abs(p.v.numpy() - ref).max() <= 1e-5 * 5
+    c = strategy.counts()
+    assert c["detected_pairs"] == 2 and c["surrogate_calls"] == 2
+
+
+def test_mode_and_model_form_must_agree(trained_models):
+    from hel_warp.collision_models import SurrogateCollision, make_collision
+    from hel_warp.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="contact"):
+        SurrogateCollision(model_dir=trained_models["paper"])
+    with pytest.raises(ConfigError, match="paper"):
+        make_collision("surrogate-paper", model_dir=trained_models["contact"])
+    assert make_collision("surrogate", model_dir=trained_models["contact"]).name == "surrogate"
+
+
+# ------------------------------------------------------------------------------------------ dem
+
+
+def dem_solver_stub(particles, dt, gravity=(0.0, 0.0, 0.0)):
+    """What DemCollision.advance reads of HelSolver: pool.particles, fields, push_params, config.dt."""
+    from hel_warp.coupling import CouplingFields, GridSpec, PushConfig
+
+    fields = CouplingFields.allocate(GridSpec(origin=(0, 0, 0), spacing=1.0, shape=(1, 1, 1)), particles.count,
+                                     device=particles.device)
+    return SimpleNamespace(pool=SimpleNamespace(particles=particles), fields=fields,
+                           push_params=PushConfig(gravity=gravity, drag="schiller-naumann").params(dt),
+                           config=SimpleNamespace(dt=dt))
+
+
+def test_dem_head_on_restitution_and_momentum_with_drag():
+    # Two spheres 1 um apart approach at 2 m/s each in still gas, frictionless; one fluid step of 1e-4 s.
+    # Closed form: relative normal velocity reverses with e (drag over 1e-4 s changes it by < 0.3 %:
+    # F_D ~ 13 1/s at Re ~ 80); momentum change = sum of the recorded drag impulses + gravity impulse.
+    from hel_warp.collision_models import DemCollision
+    from hel_warp.material import Material
+
+    dt = 1e-4
+    gravity = (0.0, 0.0, -9.80665)
+    x = [[0.0, 0.0, 0.0], [D + 1e-6, 0.0, 0.0]]
+    v = np.array([[2.0, 0.0, 0.0], [-2.0, 0.0, 0.0]])
+    p = make_particles(x, v)
+    solver = dem_solver_stub(p, dt, gravity)
+    strategy = DemCollision(material=Material(friction=0.0))
+    p0 = momentum(p)
+    strategy.accelerate(solver)
+    strategy.advance(solver)
+    after = p.v.numpy().astype(np.float64)
+    g_after = (after[0] - after[1])[0]
+    assert g_after == pytest.approx(-E_REST * 4.0, rel=0.01)
+    m = p.mass_numpy()
+    drag = solver.fields.parcel_drag_impulse.numpy().sum(axis=0)
+    expected = drag + m.sum() * np.asarray(gravity) * (1 - 1.205 / RHO) * dt
+    assert np.abs(momentum(p) - p0 - expected).max() <= 1e-6 * m[0] * 4.0
+    assert strategy.substeps >= math.ceil(dt / Material().time_step(0.5 * D).chosen)
+    # the particles really moved by the DEM: x advanced by ~ v dt minus the rebound
+    assert np.all(np.isfinite(p.x.numpy()))
+
+
+def test_dem_refuses_weighted_parcels():
+    from hel_warp.collision_models import DemCollision
+    from hel_warp.errors import ConfigError
+
+    p = make_particles([[0, 0, 0], [2 * D, 0, 0]], [[0, 0, 0], [0, 0, 0]], weight=2.0)
+    with pytest.raises(ConfigError, match="weight 1"):
+        DemCollision().advance(dem_solver_stub(p, 1e-4))
