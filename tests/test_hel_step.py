@@ -1,0 +1,258 @@
+"""The HEL step after the push: SDF wall reflection, scheduled injection, outlet removal; input checks;
+the collision-strategy interface (optional ``advance`` replaces the push, optional ``counts``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hel_warp.errors import ConfigError, HelWarpError
+
+E_N = E_T = 0.8  # Table 1 wall restitution (Material defaults)
+BOX_HI = (0.012, 0.006, 0.010)  # closed box of fluid, m; floor at z = 0
+H = 1.0e-3
+
+
+def make_solver(x=None, v=None, *, capacity=None, radius=0.5e-3, density=8000.0, injectors=(), outlets=(),
+                collision=None, gravity=(0.0, 0.0, -9.80665), walls=True, material=None):
+    """A closed box of still air (grid = geometry, 12 x 6 x 10 cells of 1 mm) with parcels at ``x``."""
+    import warp as wp
+
+    from hel_warp.coupling import PushConfig
+    from hel_warp.gas import GasConfig, GasField, GasSolver
+    from hel_warp.grid import Box, Geometry, Grid
+    from hel_warp.hel import HelConfig, HelSolver
+    from hel_warp.material import Material
+    from hel_warp.parcels import ParcelPool
+
+    grid = Grid(spacing=H, shape=tuple(int(round(b / H)) for b in BOX_HI))
+    domain = Geometry(shapes=(Box(lo=(0.0, 0.0, 0.0), hi=BOX_HI),)).build(grid)
+    push = PushConfig(drag="schiller-naumann", gravity=gravity)
+    gas_solver = GasSolver(domain, GasConfig(density=push.fluid_density, viscosity=push.fluid_viscosity))
+    gas = GasField(domain)
+    n = 0 if x is None else len(x)
+    pool = ParcelPool.empty(capacity or max(n, 1))
+    if n:
+        p = pool.particles
+        p.x.assign(np.asarray(x, np.float32))
+        p.v.assign(np.zeros((n, 3), np.float32) if v is None else np.asarray(v, np.float32))
+        p.radius.assign(np.full(n, radius, np.float32))
+        p.density.assign(np.full(n, density, np.float32))
+        p.alive.assign(np.ones(n, np.int32))
+        p.particle_id.assign(np.arange(n, dtype=np.int32))
+        pool.used = n
+    config = HelConfig(dt=1e-3, push=push, material=material or Material(), injectors=injectors,
+                       outlets=outlets, walls=walls)
+    return HelSolver(pool=pool, gas_solver=gas_solver, gas=gas, config=config, collision=collision)
+
+
+def test_wall_reflection_closed_form_in_one_step():
+    """v' = -e_n v_n + e_t v_t and x' = x - (1 + e_n) d n for a parcel that crossed the floor (d = -z)."""
+    solver = make_solver(x=[(0.004, 0.003, 0.0004)], v=[(0.3, 0.0, -1.0)], gravity=(0.0, 0.0, 0.0))
+    p = solver.pool.particles
+    solver.deposit(), solver.gas_step(), solver.interpolate(), solver.collide(), solver.push()
+    x_pre, v_pre = p.x.numpy()[0].astype(np.float64), p.v.numpy()[0].astype(np.float64)
+    assert x_pre[2] < 0.0  # the push carried the centre through the floor
+    solver.remove_at_outlets()
+    solver.reflect_at_walls()
+    x_post, v_post = p.x.numpy()[0].astype(np.float64), p.v.numpy()[0].astype(np.float64)
+    # float32 state: relative round-off ~1e-7
+    np.testing.assert_allclose(v_post, [E_T * v_pre[0], E_T * v_pre[1], -E_N * v_pre[2]], rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(x_post[:2], x_pre[:2], rtol=0, atol=1e-9)
+    assert x_post[2] == pytest.approx(-E_N * x_pre[2], rel=1e-5)
+    assert x_post[2] > 0.0
+    assert solver.wall_hit_count() == 1
+
+
+def test_dropped_parcel_rebounds_with_e_n_and_e_t_and_never_ends_in_the_wall():
+    """Full steps in still air with gravity: at every wall hit the velocity leaving the reflection is the closed
+    form of the one arriving (-e_n normal, e_t tangential); after every step the centre is in the fluid."""
+    solver = make_solver(x=[(0.002, 0.003, 0.004)], v=[(0.1, 0.0, 0.0)])
+    p = solver.pool.particles
+    hits = []
+    reflect = solver.reflect_at_walls
+
+    def recording_reflect():
+        v_in = p.v.numpy()[0].astype(np.float64)
+        reflect()
+        v_out = p.v.numpy()[0].astype(np.float64)
+        if not np.array_equal(v_in, v_out):
+            hits.append((v_in, v_out))
+
+    solver.reflect_at_walls = recording_reflect
+    lowest = math.inf
+    for _ in range(80):
+        solver.step()
+        lowest = min(lowest, float(p.x.numpy()[0, 2]))
+    assert lowest >= 0.0, f"the parcel ended inside the floor (z = {lowest})"
+    assert len(hits) >= 2  # it bounced, and bounced again
+    for v_in, v_out in hits:
+        assert v_in[2] < 0.0 < v_out[2]
+        assert v_out[2] == pytest.approx(-E_N * v_in[2], rel=1e-6)
+        assert v_out[0] == pytest.approx(E_T * v_in[0], rel=1e-6)
+    # first impact at the free-fall speed from 4 mm (sqrt(2 g h) = 0.280 m/s), to the step's O(dt g) accuracy
+    assert -hits[0][0][2] == pytest.approx(math.sqrt(2 * 9.80665 * 0.004), abs=2 * 9.80665e-3)
+    assert solver.wall_hit_count() == len(hits)
+
+
+def test_wall_restitution_comes_from_the_material():
+    from hel_warp.material import Material
+
+    solver = make_solver(x=[(0.004, 0.003, 0.0004)], v=[(0.3, 0.0, -1.0)], gravity=(0.0, 0.0, 0.0),
+                         material=Material(wall_restitution_normal=0.5, wall_restitution_tangential=1.0))
+    p = solver.pool.particles
+    solver.deposit(), solver.gas_step(), solver.interpolate(), solver.collide(), solver.push()
+    v_pre = p.v.numpy()[0].astype(np.float64)
+    solver.reflect_at_walls()
+    np.testing.assert_allclose(p.v.numpy()[0], [v_pre[0], 0.0, -0.5 * v_pre[2]], rtol=1e-6, atol=1e-7)
+
+
+def test_parcel_in_a_corner_ends_inside_both_walls():
+    solver = make_solver(x=[(0.0003, 0.003, 0.0003)], v=[(-1.0, 0.0, -1.0)], gravity=(0.0, 0.0, 0.0))
+    solver.step()
+    x, v = solver.pool.particles.x.numpy()[0], solver.pool.particles.v.numpy()[0]
+    assert x[0] > 0.0 and x[2] > 0.0
+    assert v[0] > 0.0 and v[2] > 0.0  # reflected off both walls
+
+
+def test_injection_count_window_speed_and_box():
+    from hel_warp.hel import ScheduledInjection
+    from hel_warp.parcels import VolumeInjection
+
+    box_lo, box_hi = (0.002, 0.001, 0.005), (0.006, 0.005, 0.008)
+    inj = VolumeInjection(box_lo=box_lo, box_hi=box_hi, diameter_mean=2e-4, count=1000, speed=2.0,
+                          direction=(0.0, 0.0, -1.0), stream=3, seed=7)
+    solver = make_solver(capacity=1500, injectors=(ScheduledInjection(injection=inj, t_start=0.0, t_end=0.005),))
+    assert solver.pool.used == 0  # a window starting at 0 has released nothing at t = 0
+    p = solver.pool.particles
+    for k in range(1, 8):
+        used_before = solver.pool.used
+        solver.step()
+        assert solver.pool.used == round(1000 * min(k * 1e-3 / 0.005, 1.0))  # uniform rate, then stops
+        new = slice(used_before, solver.pool.used)
+        x, v = p.x.numpy()[new], p.v.numpy()[new]
+        assert np.all(x >= np.float32(box_lo)) and np.all(x <= np.float32(box_hi))
+        np.testing.assert_allclose(v, np.tile([0.0, 0.0, -2.0], (len(x), 1)), atol=1e-7)
+        assert np.all(p.stream.numpy()[new] == 3) and np.all(p.alive.numpy()[new] == 1)
+    assert solver.injected() == [{"count": 1000, "mass": pytest.approx(1000 * 1000 * math.pi / 6 * 2e-4**3)}]
+
+
+def test_injection_by_mass_at_once():
+    """Mass mode: the released real-particle mass reaches the request and exceeds it by less than one parcel."""
+    from hel_warp.hel import ScheduledInjection
+    from hel_warp.parcels import VolumeInjection
+
+    mass = 2.0e-6  # kg
+    inj = VolumeInjection(box_lo=(0.002, 0.001, 0.002), box_hi=(0.010, 0.005, 0.008), diameter_mean=3e-4,
+                          diameter_std=3e-5, density=1000.0, mass=mass, speed=1.0, direction=(1.0, 1.0, 0.0))
+    solver = make_solver(capacity=400, injectors=(ScheduledInjection(injection=inj, t_start=0.0),))
+    p = solver.pool.particles
+    n = solver.pool.used
+    r = p.radius.numpy()[:n].astype(np.float64)
+    masses = 1000.0 * 4.0 / 3.0 * math.pi * r**3
+    assert mass <= masses.sum() < mass + masses.max() * (1 + 1e-6)
+    assert solver.injected()[0]["mass"] == pytest.approx(masses.sum(), rel=1e-6)
+    np.testing.assert_allclose(p.v.numpy()[:n], np.tile([math.sqrt(0.5), math.sqrt(0.5), 0.0], (n, 1)), atol=1e-6)
+
+
+def test_outlet_removes_exactly_the_parcels_past_the_plane():
+    from hel_warp.hel import Outlet
+
+    rng = np.random.default_rng(3)
+    n = 200
+    x = np.column_stack([rng.uniform(0.004, 0.0079, n), rng.uniform(0.001, 0.005, n), rng.uniform(0.002, 0.008, n)])
+    v = np.column_stack([rng.uniform(0.0, 2.0, n), np.zeros(n), np.zeros(n)])
+    solver = make_solver(x=x, v=v, radius=5e-5, density=1000.0,
+                         outlets=(Outlet(point=(0.008, 0.0, 0.0), normal=(2.0, 0.0, 0.0)),))
+    p = solver.pool.particles
+    solver.deposit(), solver.gas_step(), solver.interpolate(), solver.collide(), solver.push()
+    past = p.x.numpy()[:, 0] > np.float32(0.008)
+    assert 0 < past.sum() < n
+    solver.remove_at_outlets()
+    np.testing.assert_array_equal(p.alive.numpy() == 0, past)
+    assert solver.pool.removed_count() == past.sum()
+
+
+def test_parcels_or_injector_boxes_outside_the_fluid_are_refused():
+    from hel_warp.hel import ScheduledInjection
+    from hel_warp.parcels import VolumeInjection
+
+    with pytest.raises(ConfigError, match="outside the fluid.*place the parcels inside"):
+        make_solver(x=[(0.004, 0.003, 0.005), (0.004, 0.003, -0.001)])
+    inj = VolumeInjection(box_lo=(0.010, 0.001, 0.002), box_hi=(0.014, 0.005, 0.004), diameter_mean=2e-4, count=10)
+    with pytest.raises(ConfigError, match="injector 0.*outside the fluid.*move or shrink the box"):
+        make_solver(injectors=(ScheduledInjection(injection=inj),))
+    with pytest.raises(ConfigError, match="t_end"):
+        ScheduledInjection(injection=inj, t_start=0.2, t_end=0.1)
+
+
+def test_grid_too_coarse_for_the_geometry_names_the_spacing():
+    from hel_warp.grid import Channel, Geometry, Grid
+
+    geometry = Geometry(shapes=(Channel(start=(0, 0.01, 0.01), end=(0.05, 0.01, 0.01), width=0.004, height=0.004),))
+    with pytest.raises(ConfigError, match="too coarse.*use spacing <="):
+        geometry.build(Grid(spacing=2e-3, shape=(25, 10, 10)))
+
+
+def test_nan_in_a_field_is_found_on_the_device_and_named():
+    solver = make_solver(x=[(0.004, 0.003, 0.005)])
+    solver.step()
+    solver.check_finite()  # all finite: no error
+    u = solver.gas.cell_velocity.numpy()
+    u[3, 2, 4, 1] = np.nan
+    solver.gas.cell_velocity.assign(u)
+    with pytest.raises(HelWarpError, match="NaN/inf.*gas cell_velocity \\(1 entries\\).*reduce dt"):
+        solver.check_finite()
+
+
+class _Mover:
+    """A strategy that integrates the parcels itself: x += dt * (1, 0, 0) m/s; counts its calls."""
+
+    name = "mover"
+
+    def __init__(self):
+        self.accelerated = 0
+        self.advanced = 0
+
+    def accelerate(self, solver):
+        self.accelerated += 1
+        solver.fields.parcel_a_coll.zero_()
+
+    def advance(self, solver):
+        import warp as wp
+
+        self.advanced += 1
+        x = solver.pool.particles.x.numpy()
+        x[:, 0] += solver.config.dt
+        solver.pool.particles.x.assign(x)
+        solver.fields.parcel_drag_impulse.zero_()
+
+    def counts(self):
+        return {"pairs": 5 * self.advanced}
+
+
+def test_strategy_advance_replaces_the_push_and_counts_are_reported():
+    mover = _Mover()
+    solver = make_solver(x=[(0.004, 0.003, 0.005)], v=[(0.0, 0.0, 0.0)], collision=mover)
+    x0 = solver.pool.particles.x.numpy()[0].copy()
+    for _ in range(3):
+        solver.step()
+    x, v = solver.pool.particles.x.numpy()[0], solver.pool.particles.v.numpy()[0]
+    assert mover.accelerated == mover.advanced == 3
+    # the push would have given the parcel a downward velocity under gravity; advance() moved it in x only
+    np.testing.assert_array_equal(v, [0.0, 0.0, 0.0])
+    assert x[0] == pytest.approx(x0[0] + 3e-3, abs=1e-7) and x[2] == x0[2]
+    assert solver.collision_counts() == {"pairs": 15}
+    assert set(solver.timings) == {"deposit", "gas_step", "interpolate", "collide", "push", "remove_at_outlets",
+                                   "reflect_at_walls", "inject"}
+
+
+def test_collision_model_factory_names_the_valid_models():
+    from hel_warp.hel import COLLISION_MODELS, NoCollision, collision_model
+
+    assert isinstance(collision_model("none"), NoCollision)
+    assert {"none", "ktgf", "surrogate", "surrogate-paper", "dem"} <= set(COLLISION_MODELS)
+    with pytest.raises(ConfigError, match="unknown collision model 'surogate'; choose one of none, ktgf, surrogate"):
+        collision_model("surogate")
