@@ -78,6 +78,8 @@ class TrainConfig:
     """Write the parity plots and error histograms to MODEL_DIR/report/."""
     min_rows: int = 40
     """Fewest data-set rows accepted."""
+    search_space: dict | None = None
+    """Overrides of SEARCH_SPACE ranges, e.g. ``{"n_estimators": (20, 100)}`` (quick runs, tests)."""
 
     def __post_init__(self):
         if self.form not in TARGETS:
@@ -90,6 +92,9 @@ class TrainConfig:
             raise ConfigError(f"--nthread must be >= 1, got {self.nthread}")
         if self.jobs < 1:
             raise ConfigError(f"--jobs must be >= 1, got {self.jobs}")
+        unknown = set(self.search_space or {}) - set(SEARCH_SPACE)
+        if unknown:
+            raise ConfigError(f"unknown hyperparameter(s) {sorted(unknown)}; tunable: {sorted(SEARCH_SPACE)}")
 
 
 def split_groups(n_groups: int, seed: int):
@@ -113,8 +118,9 @@ def _xgb_params(params: dict, nthread: int, seed: int) -> dict:
 
 def run_study(x_train, y_train, x_val, y_val, *, study_name: str, storage: str, trials: int, seed: int = 0,
               nthread: int = 1, jobs: int = 1, timeout: float | None = None, progress: bool = False,
-              dataset_hash: str = ""):
+              dataset_hash: str = "", search_space: dict | None = None):
     """Tune one target; continues the study ``study_name`` until it holds ``trials`` finished trials."""
+    space = dict(SEARCH_SPACE, **(search_space or {}))
     import optuna
     import xgboost as xgb
     from optuna.study import MaxTrialsCallback
@@ -147,13 +153,12 @@ def run_study(x_train, y_train, x_val, y_val, *, study_name: str, storage: str, 
             return super().after_iteration(model, epoch, evals_log)
 
     def objective(trial):
-        lo_n, hi_n = SEARCH_SPACE["n_estimators"]
         params = {
-            "n_estimators": trial.suggest_int("n_estimators", lo_n, hi_n, step=10),
-            "max_depth": trial.suggest_int("max_depth", *SEARCH_SPACE["max_depth"]),
-            "learning_rate": trial.suggest_float("learning_rate", *SEARCH_SPACE["learning_rate"], log=True),
-            "colsample_bytree": trial.suggest_float("colsample_bytree", *SEARCH_SPACE["colsample_bytree"]),
-            "reg_alpha": trial.suggest_float("reg_alpha", *SEARCH_SPACE["reg_alpha"], log=True),
+            "n_estimators": trial.suggest_int("n_estimators", *space["n_estimators"], step=10),
+            "max_depth": trial.suggest_int("max_depth", *space["max_depth"]),
+            "learning_rate": trial.suggest_float("learning_rate", *space["learning_rate"], log=True),
+            "colsample_bytree": trial.suggest_float("colsample_bytree", *space["colsample_bytree"]),
+            "reg_alpha": trial.suggest_float("reg_alpha", *space["reg_alpha"], log=True),
         }
         model = xgb.XGBRegressor(**_xgb_params(params, nthread, seed),
                                  callbacks=[SparsePruningCallback(trial, "validation_0-mae")])
@@ -246,7 +251,7 @@ def train(data: CollisionData, model_dir: str, config: TrainConfig, *, log=print
         study = run_study(x_all[train_r], y[train_r], x_all[val_r], y[val_r],
                           study_name=f"{config.form}-{target}", storage=storage, trials=config.trials,
                           seed=config.seed, nthread=config.nthread, jobs=config.jobs, timeout=budget,
-                          progress=config.progress,
+                          progress=config.progress, search_space=config.search_space,
                           dataset_hash=data.dataset_hash)
         best = study.best_trial
         booster = fit_final(best.params, x_all[train_r], y[train_r], x_all[val_r], y[val_r],
@@ -282,7 +287,8 @@ def train(data: CollisionData, model_dir: str, config: TrainConfig, *, log=print
                                               "validation_fraction": VALIDATION_FRACTION},
                                     "optuna_storage": storage if config.storage else "study.db",
                                     "defaults": {k: float(np.mean(data.col(k))) for k in ("d1", "d2", "rho1", "rho2")},
-                                    "search_space": {k: list(v) for k, v in SEARCH_SPACE.items()}})
+                                    "search_space": {k: list(v) for k, v in
+                                                     dict(SEARCH_SPACE, **(config.search_space or {})).items()}})
     if config.report:
         from surrogate.report import write_report
 
