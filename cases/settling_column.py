@@ -51,6 +51,12 @@ def build(args):
     from hel_warp.material import Material
     from hel_warp.particles import Particles, lattice_positions
 
+    import warp as wp
+
+    try:
+        wp.get_device(args.device)
+    except Exception:
+        raise ConfigError(f"Warp device {args.device!r} is not available here; use --device cpu") from None
     if args.particles < 1:
         raise ConfigError(f"--particles must be >= 1 (got {args.particles})")
     d = args.diameter

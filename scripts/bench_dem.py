@@ -36,12 +36,14 @@ import statistics
 import sys
 import time
 
+import numpy as np
+
 
 LAMMPS_CHUTE = 1.16e7
 """LAMMPS gran/hooke/history particle-steps per second per CPU core (chute benchmark)."""
 
 
-def build_ours(n: int, device: str, sort_every: int, capacity: int):
+def build_ours(n: int, device: str, sort_every: int, capacity: int, shuffle: bool = False):
     from hel_warp.dem import DEMConfig, DEMSolver
     from hel_warp.material import Material
     from hel_warp.particles import Particles, lattice_positions
@@ -53,16 +55,19 @@ def build_ours(n: int, device: str, sort_every: int, capacity: int):
     spacing = (1.0 - 2e-4) * d  # every lattice neighbour touches (overlap 1.2 um ~ static load of the bed)
     hi = (per_side * d, per_side * d, (layers + 2) * d)
     x = lattice_positions(n, spacing, lo, hi) + 0.5 * (d - spacing)  # first layer just touches the walls
+    if shuffle:  # memory order unrelated to space: what spatial sorting is for
+        x = x[np.random.default_rng(0).permutation(n)]
     material = Material(restitution=0.5, friction=0.3)
     particles = Particles.from_numpy(x, 0.5 * d, density=material.density, check_overlap=False, device=device)
     config = DEMConfig(material=material, box_lo=lo, box_hi=hi, sort_every=sort_every, contact_capacity=capacity)
     return DEMSolver(config, particles)
 
 
-def time_ours(n: int, device: str, repeats: int, budget_s: float, sort_every: int, capacity: int) -> dict:
+def time_ours(n: int, device: str, repeats: int, budget_s: float, sort_every: int, capacity: int,
+              shuffle: bool = False) -> dict:
     import warp as wp
 
-    solver = build_ours(n, device, sort_every, capacity)
+    solver = build_ours(n, device, sort_every, capacity, shuffle)
     solver.simulate(5)  # compile + first rebuilds
     wp.synchronize_device(device)
     t0 = time.perf_counter()
@@ -138,8 +143,11 @@ def main(argv=None) -> int:
     parser.add_argument("--device", default="cpu", help="Warp device (default cpu)")
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats per size (default 5)")
     parser.add_argument("--budget", type=float, default=6.0, help="seconds of timed work per size and code (default 6)")
-    parser.add_argument("--sort-every", type=int, default=0, help="our spatial sort every k rebuilds (default 0)")
+    parser.add_argument("--sort-every", type=int, default=None,
+                        help="our spatial sort every k rebuilds (default: the solver default, 10 on the CPU)")
     parser.add_argument("--capacity", type=int, default=16, help="our contact-list capacity (default 16)")
+    parser.add_argument("--shuffle", action="store_true",
+                        help="our particles in random memory order (to measure --sort-every)")
     parser.add_argument("--skip-warp", action="store_true", help="time ours only")
     parser.add_argument("--json", help="also write the results to this JSON file")
     args = parser.parse_args(argv)
@@ -154,7 +162,7 @@ def main(argv=None) -> int:
     print(f"{'N':>9} {'ours':>22} {'warp example':>22} {'ours/warp':>9} {'ours ns':>8} {'warp ns':>8} "
           f"{'contacts/p':>10} {'rebuilds/steps':>15}")
     for n in args.sizes:
-        ours = time_ours(n, args.device, args.repeats, args.budget, args.sort_every, args.capacity)
+        ours = time_ours(n, args.device, args.repeats, args.budget, args.sort_every, args.capacity, args.shuffle)
         warp_ex = None
         if not args.skip_warp:
             with contextlib.redirect_stdout(io.StringIO()):  # the example's ScopedTimer prints

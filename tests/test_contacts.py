@@ -199,11 +199,17 @@ def test_touching_pair_list_equals_brute_force():
     cfg = DEMConfig(material=Material(density=2500.0), box_lo=(0, 0, 0), box_hi=(0.02, 0.02, 0.02), walls=(),
                     gravity=(0, 0, 0), contact_capacity=64)
     solver = DEMSolver(cfg, p)
-    pi, pj = solver.touching_pairs()
+    ids = p.particle_id.numpy()  # device order may be spatially sorted: compare in original ids
+    di, dj = solver.touching_pairs()
+    pi, pj = np.minimum(ids[di], ids[dj]), np.maximum(ids[di], ids[dj])
     xf = float32_positions(x)
     d = np.linalg.norm(xf[:, None] - xf[None], axis=2)
     rf = radius.astype(np.float32).astype(np.float64)
     ii, jj = np.nonzero(np.triu(d < rf[:, None] + rf[None, :], k=1))
     assert len(ii) > 300
     assert set(zip(pi.tolist(), pj.tolist())) == set(zip(ii.tolist(), jj.tolist()))
-    assert len(pi) == len(ii) and np.all(pi < pj)
+    assert len(pi) == len(ii) and np.all(di < dj)
+    gi, gj, gcount = solver.touching_pairs(as_numpy=False)  # device form for collision-rate kernels
+    assert int(gcount.numpy()[0]) == len(ii)
+    np.testing.assert_array_equal(gi.numpy()[: len(ii)], di)
+    np.testing.assert_array_equal(gj.numpy()[: len(ii)], dj)
