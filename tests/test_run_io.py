@@ -1,0 +1,190 @@
+"""The run loop (``hel_warp.run``): run.zarr contents, VTK, bitwise restart, failures keep the last checkpoint."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from hel_warp.errors import ConfigError, HelWarpError
+
+DT = 1e-3
+
+
+def build(collision="ktgf"):
+    """Closed 8 x 6 x 8 mm box of air, a windowed injector (parcels fall, bounce), an outlet plane at x = 7 mm."""
+    from hel_warp.coupling import PushConfig
+    from hel_warp.gas import GasConfig, GasField, GasSolver
+    from hel_warp.grid import Box, Geometry, Grid
+    from hel_warp.hel import HelConfig, HelSolver, Outlet, ScheduledInjection, collision_model
+    from hel_warp.parcels import ParcelPool, VolumeInjection
+
+    grid = Grid(spacing=1e-3, shape=(8, 6, 8))
+    domain = Geometry(shapes=(Box(lo=(0, 0, 0), hi=(0.008, 0.006, 0.008)),)).build(grid)
+    push = PushConfig(drag="gidaspow")
+    gas_solver = GasSolver(domain, GasConfig(density=push.fluid_density, viscosity=push.fluid_viscosity))
+    injection = VolumeInjection(box_lo=(0.001, 0.001, 0.0005), box_hi=(0.005, 0.005, 0.003), diameter_mean=3e-4,
+                                diameter_std=3e-5, count=300, speed=1.0, direction=(1.0, 0.2, -1.0), seed=11)
+    config = HelConfig(dt=DT, push=push, injectors=(ScheduledInjection(injection=injection, t_end=0.004),),
+                       outlets=(Outlet(point=(0.007, 0, 0), normal=(1, 0, 0)),))
+    strategy = (collision_model("ktgf", particle_diameter=3e-4, particle_density=1000.0) if collision == "ktgf"
+                else collision_model(collision))
+    return HelSolver(pool=ParcelPool.empty(400), gas_solver=gas_solver, gas=GasField(domain), config=config,
+                     collision=strategy)
+
+
+def run_config(out, steps, *, output_every=3, checkpoint_every=None, vtk=False):
+    from hel_warp.run import RunConfig
+
+    return RunConfig(out_dir=str(out), end_time=steps * DT, output_interval=output_every * DT,
+                     checkpoint_interval=None if checkpoint_every is None else checkpoint_every * DT, vtk=vtk)
+
+
+def test_run_zarr_holds_snapshots_gas_fields_timings_and_config(tmp_path):
+    import zarr
+
+    from hel_warp.io import read_snapshot
+    from hel_warp.run import Run
+
+    solver = build()
+    Run(solver, run_config(tmp_path, 6, vtk=True), case_config={"name": "test-case"}).run()
+    root = zarr.open_group(str(tmp_path / "run.zarr"), mode="r")
+    config = root.attrs["config"]
+    assert config["hel"]["dt"] == DT and config["collision"]["name"] == "ktgf"
+    assert config["hel"]["material"]["wall_restitution_normal"] == 0.8
+    assert config["case"] == {"name": "test-case"} and config["run"]["end_time"] == pytest.approx(6 * DT)
+    np.testing.assert_array_equal(root["step"][...], [0, 3, 6])
+    assert root.attrs["snapshot_count"] == 3 and root.attrs["gas_snapshot_count"] == 3
+    series = root["series"]
+    np.testing.assert_array_equal(series["step"][...], np.arange(1, 7))
+    for sub in ("deposit", "gas_step", "interpolate", "collide", "push", "remove_at_outlets", "reflect_at_walls",
+                "inject", "step"):
+        timing = series[f"timing_{sub}"][...]
+        assert timing.shape == (6,) and np.all(timing > 0)
+    assert np.all(series["timing_step"][...] >= series["timing_gas_step"][...])
+    arrays, attrs = read_snapshot(tmp_path, -1)
+    assert attrs["step"] == 6 and attrs["count"] == arrays["x"].shape[0] == solver.pool.alive_count()
+    assert arrays["x"].shape[0] > 0  # injected parcels are in the last snapshot
+    assert root["gas"]["000002"]["cell_velocity"].shape == (8, 6, 8, 3)
+    vtk = sorted(p.name for p in (tmp_path / "vtk").iterdir())
+    assert {"particles.pvd", "gas.pvd", "particles_0002.vtp", "gas_0002.vti"} <= set(vtk)
+    assert (tmp_path / "checkpoint.npz").exists()
+
+
+def test_collision_counts_hook_is_written_per_step(tmp_path):
+    import zarr
+
+    from hel_warp.hel import NoCollision
+    from hel_warp.run import Run
+
+    class Counting(NoCollision):
+        name = "counting"
+        calls = 0
+
+        def accelerate(self, solver):
+            super().accelerate(solver)
+            self.calls += 1
+
+        def counts(self):
+            return {"pairs": 2 * self.calls, "clusters": 1}
+
+    solver = build("none")
+    solver.collision = Counting()
+    Run(solver, run_config(tmp_path, 4, output_every=2)).run()
+    series = zarr.open_group(str(tmp_path / "run.zarr"), mode="r")["series"]
+    np.testing.assert_array_equal(series["collisions_pairs"][...], [2, 4, 6, 8])
+    np.testing.assert_array_equal(series["collisions_clusters"][...], [1, 1, 1, 1])
+
+
+def test_restart_continues_bitwise_identically(tmp_path):
+    """2N steps in one go == N steps, interruption a few steps later, restart from the checkpoint at N, N more."""
+    import zarr
+
+    from hel_warp.run import Run
+
+    n = 6
+    straight = build()
+    Run(straight, run_config(tmp_path / "a", 2 * n)).run()
+
+    class Interrupt(Exception):
+        pass
+
+    def stop_at(step):
+        def progress(solver):
+            if solver.step_count == step:
+                raise Interrupt
+
+        return progress
+
+    first = build()
+    with pytest.raises(Interrupt):  # checkpoints at 0 and 6 (every 6 steps), a snapshot at 9 that must be dropped
+        Run(first, run_config(tmp_path / "b", 2 * n, checkpoint_every=n)).run(progress=stop_at(n + 4))
+    resumed = build()
+    Run(resumed, run_config(tmp_path / "b", 2 * n, checkpoint_every=n), restart=True).run()
+    assert resumed.step_count == straight.step_count == 2 * n
+    a, b = straight.state(), resumed.state()
+    assert a.keys() == b.keys()
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)  # bitwise (NaN-free, so equality is exact)
+    za = zarr.open_group(str(tmp_path / "a" / "run.zarr"), mode="r")
+    zb = zarr.open_group(str(tmp_path / "b" / "run.zarr"), mode="r")
+    np.testing.assert_array_equal(za["step"][...], zb["step"][...])
+    np.testing.assert_array_equal(za["series"]["step"][...], zb["series"]["step"][...])
+    np.testing.assert_array_equal(za["series"]["wall_hits"][...], zb["series"]["wall_hits"][...])
+    for k in range(za.attrs["snapshot_count"]):
+        np.testing.assert_array_equal(za["snapshots"][f"{k:06d}"]["x"][...], zb["snapshots"][f"{k:06d}"]["x"][...])
+    # the run exercised injection, walls and the outlet
+    assert straight.pool.used == 300 and straight.wall_hit_count() > 0 and straight.pool.removed_count() > 0
+
+
+def test_restart_with_another_configuration_is_refused(tmp_path):
+    from hel_warp.run import Run
+
+    Run(build(), run_config(tmp_path, 3)).run()
+    with pytest.raises(ConfigError, match="another configuration"):
+        Run(build("none"), run_config(tmp_path, 6), restart=True)
+
+
+def test_nan_in_a_field_stops_the_run_and_keeps_the_last_checkpoint(tmp_path):
+    from hel_warp.run import Run, read_checkpoint
+
+    def poison(solver):
+        if solver.step_count == 6:  # after the step, before the output check of step 6
+            p = solver.gas.cell_pressure.numpy()
+            p[2, 2, 2] = np.nan
+            solver.gas.cell_pressure.assign(p)
+
+    solver = build()
+    with pytest.raises(HelWarpError, match=r"NaN/inf found at step 6.*gas cell_pressure.*last good checkpoint "
+                                           r"\(step 3\).*--restart"):
+        Run(solver, run_config(tmp_path, 9)).run(progress=poison)
+    state, _, path = read_checkpoint(tmp_path)
+    assert path.name == "checkpoint.npz" and int(state["step"]) == 3
+    assert np.all(np.isfinite(state["gas/cell_pressure"]))
+    import zarr
+
+    np.testing.assert_array_equal(zarr.open_group(str(tmp_path / "run.zarr"), mode="r")["step"][...], [0, 3])
+
+
+def test_pressure_solve_failure_keeps_the_checkpoint_and_gives_the_advice(tmp_path):
+    from hel_warp.run import Run, read_checkpoint
+
+    def starve(solver):
+        if solver.step_count == 4:
+            solver.gas_solver.config = dataclasses.replace(solver.gas_solver.config, pressure_max_iterations=1,
+                                                           pressure_tolerance=1e-12)
+
+    with pytest.raises(HelWarpError, match=r"step failed at step 4.*pressure solve did not converge.*raise "
+                                           r"pressure_max_iterations.*last good checkpoint \(step 3\)"):
+        Run(build(), run_config(tmp_path, 9)).run(progress=starve)
+    assert int(read_checkpoint(tmp_path)[0]["step"]) == 3
+
+
+def test_a_torn_checkpoint_falls_back_to_the_previous_one(tmp_path):
+    from hel_warp.run import Run, read_checkpoint
+
+    Run(build(), run_config(tmp_path, 6)).run()  # checkpoints at 0, 3, 6: prev holds step 3
+    (tmp_path / "checkpoint.npz").write_bytes(b"torn")
+    state, _, path = read_checkpoint(tmp_path)
+    assert path.name == "checkpoint.prev.npz" and int(state["step"]) == 3
