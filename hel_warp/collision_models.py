@@ -11,8 +11,9 @@ for ``dem`` also ``advance(solver)``, which replaces the push.
 - :class:`DemCollision`: Hertz-Mindlin contacts (``kernels/contacts.py``, ``kernels/hertz.py``) sub-stepped
   with velocity Verlet (``kernels/integrate.py``) at the DEM step of eq. (12) across the fluid step.
 
-Names for the run side: :data:`STRATEGIES` and :func:`make_collision` (``surrogate``, ``surrogate-paper``,
-``dem``).
+Names for the run side: ``hel_warp.hel.collision_model(name, ...)`` resolves ``surrogate``
+(:class:`SurrogateCollision`), ``surrogate-paper`` (:class:`SurrogatePaperCollision`) and ``dem``
+(:class:`DemCollision`) lazily from here; :data:`STRATEGIES` / :func:`make_collision` are the same map.
 """
 
 from __future__ import annotations
@@ -24,16 +25,17 @@ import numpy as np
 from hel_warp.errors import ConfigError, require_positive
 from hel_warp.material import Material
 
-DEFAULT_STREAMS = 8
+DEFAULT_STREAMS = 4
 """Stream tags counted separately (tags outside [0, n_streams) count as the nearest end)."""
 
 
-def _pair_counts_dict(matrix: np.ndarray) -> dict:
-    """{"a-b": count} for the non-zero entries of an (S, S) upper-triangular count matrix."""
-    out = {}
-    for a, b in zip(*np.nonzero(matrix)):
-        out[f"{int(a)}-{int(b)}"] = int(matrix[a, b])
-    return out
+def _pair_counts(prefix: str, matrix: np.ndarray) -> dict:
+    """{"<prefix>_<a>_<b>": count} for every stream pair a <= b of an (S, S) upper-triangular count matrix.
+
+    Every pair is listed (zeros too), so the keys are the same at every step (one column each in the run
+    output)."""
+    s = matrix.shape[0]
+    return {f"{prefix}_{a}_{b}": int(matrix[a, b]) for a in range(s) for b in range(a, s)}
 
 
 class _PairDetector:
@@ -113,8 +115,9 @@ class SurrogateCollision:
 
     Velocity jumps are applied in :meth:`accelerate` (before the push) to the positions at the end of
     the previous step ("end of step" detection, as in the paper). ``counts()`` returns the counts of the
-    last call: detected pairs, surrogate calls (pairwise: approaching pairs resolved; paper: the pairs
-    that fed the model), separating pairs skipped, matching rounds, each also per stream pair ``"a-b"``.
+    last call, ``{name: int}``: ``detected_pairs``, ``surrogate_calls`` (pairwise: approaching pairs
+    resolved; paper: the pairs that fed the model), ``separating_skipped``, ``rounds`` (matching rounds),
+    and per stream pair a <= b ``detected_pairs_<a>_<b>``, ``surrogate_calls_<a>_<b>``.
     """
 
     def __init__(self, *, model_dir: str, mode: str = "pairwise", n_streams: int = DEFAULT_STREAMS):
@@ -222,22 +225,19 @@ class SurrogateCollision:
         wp.copy(particles.v, self.v_out)
 
     def counts(self) -> dict:
-        """Counts of the last :meth:`accelerate` (host read): totals and per stream pair ``"a-b"``."""
+        """Counts of the last :meth:`accelerate` (host read): totals and per stream pair (see the class)."""
         if self._counts is None:
-            if self._device is None:
-                return {"detected_pairs": 0, "surrogate_calls": 0, "separating_skipped": 0, "rounds": 0,
-                        "detected_by_stream": {}, "calls_by_stream": {}}
             s = self.n_streams
-            detected = self.detected.numpy().reshape(s, s)
-            calls = self.calls.numpy().reshape(s, s)
-            self._counts = {
-                "detected_pairs": int(detected.sum()),
-                "surrogate_calls": int(calls.sum()),
-                "separating_skipped": int(self.skipped.numpy()[0]),
-                "rounds": int(self.rounds.numpy()[0]),
-                "detected_by_stream": _pair_counts_dict(detected),
-                "calls_by_stream": _pair_counts_dict(calls),
-            }
+            if self._device is None:
+                detected = calls = np.zeros((s, s), np.int64)
+                skipped = rounds = 0
+            else:
+                detected = self.detected.numpy().reshape(s, s)
+                calls = self.calls.numpy().reshape(s, s)
+                skipped, rounds = int(self.skipped.numpy()[0]), int(self.rounds.numpy()[0])
+            self._counts = {"detected_pairs": int(detected.sum()), "surrogate_calls": int(calls.sum()),
+                            "separating_skipped": skipped, "rounds": rounds,
+                            **_pair_counts("detected_pairs", detected), **_pair_counts("surrogate_calls", calls)}
         return dict(self._counts)
 
 
@@ -260,7 +260,8 @@ class DemCollision:
 
     Weight: DEM contacts are between real spheres, so every live parcel must have weight 1.
     Walls are not part of this strategy (the HEL wall step follows as for the push).
-    ``counts()``: overlapping pairs at the end of the step per stream pair, and the sub-steps taken.
+    ``counts()``: ``detected_pairs`` (overlapping at the end of the step; per stream pair
+    ``detected_pairs_<a>_<b>``), ``surrogate_calls`` (0) and ``dem_substeps``.
     """
 
     name = "dem"
@@ -427,15 +428,21 @@ class DemCollision:
                               self.n_streams, self.detected, self.detector.pair_state)
 
     def counts(self) -> dict:
-        """Overlapping pairs at the end of the last step (per stream pair ``"a-b"``) and the DEM sub-steps."""
+        """Overlapping pairs at the end of the last step (also per stream pair) and the DEM sub-steps."""
         if self._counts is None:
-            if self._capacity is None:
-                return {"detected_pairs": 0, "surrogate_calls": 0, "dem_substeps": 0, "detected_by_stream": {}}
             s = self.n_streams
-            detected = self.detected.numpy().reshape(s, s)
+            detected = (self.detected.numpy().reshape(s, s) if self._capacity is not None
+                        else np.zeros((s, s), np.int64))
             self._counts = {"detected_pairs": int(detected.sum()), "surrogate_calls": 0,
-                            "dem_substeps": int(self.substeps), "detected_by_stream": _pair_counts_dict(detected)}
+                            "dem_substeps": int(self.substeps), **_pair_counts("detected_pairs", detected)}
         return dict(self._counts)
+
+
+class SurrogatePaperCollision(SurrogateCollision):
+    """``surrogate-paper``: :class:`SurrogateCollision` in ``paper`` mode (a ``paper``-form model)."""
+
+    def __init__(self, *, model_dir: str, n_streams: int = DEFAULT_STREAMS):
+        super().__init__(model_dir=model_dir, mode="paper", n_streams=n_streams)
 
 
 def make_collision(name: str, **kwargs):
@@ -443,11 +450,11 @@ def make_collision(name: str, **kwargs):
     if name == "surrogate":
         return SurrogateCollision(mode="pairwise", **kwargs)
     if name == "surrogate-paper":
-        return SurrogateCollision(mode="paper", **kwargs)
+        return SurrogatePaperCollision(**kwargs)
     if name == "dem":
         return DemCollision(**kwargs)
     raise ConfigError(f"unknown collision model {name!r}; this module provides {', '.join(STRATEGIES)}")
 
 
-STRATEGIES = {"surrogate": SurrogateCollision, "surrogate-paper": SurrogateCollision, "dem": DemCollision}
-"""Run names -> strategy classes (``surrogate-paper`` is ``SurrogateCollision(mode="paper")``)."""
+STRATEGIES = {"surrogate": SurrogateCollision, "surrogate-paper": SurrogatePaperCollision, "dem": DemCollision}
+"""Run names -> strategy classes (``hel_warp.hel.COLLISION_MODELS`` resolves the same names lazily)."""

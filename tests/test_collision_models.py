@@ -20,29 +20,36 @@ RHO = 1000.0  # polyethylene, kg/m^3
 E_REST = 0.9  # Material() restitution, the data set's DEM calibrates it to < 0.3 % (surrogate/dataset.py)
 
 
-@pytest.fixture(scope="session")
-def trained_models(tmp_path_factory):
-    """{"contact": dir, "paper": dir} of models trained on 3000 frictionless DEM binary impacts."""
+def train_tiny_models(root) -> dict:
+    """{"contact": dir, "paper": dir}: models trained on 3000 frictionless DEM binary impacts (once per root)."""
     from hel_warp.material import Material
     from surrogate import train as T
     from surrogate.dataset import build_dataset, make_spec
     from surrogate.features import load_collision_data
 
-    root = tmp_path_factory.mktemp("collision_models")
+    out = {form: str(root / f"model_{form}") for form in ("contact", "paper")}
+    if all((root / f"model_{form}" / "forest.json").exists() for form in out):
+        return out
     spec = make_spec(samples=3000, seed=0, diameter=D, diameter_std=0.0, material=Material(friction=0.0),
                      chunk_size=3000)
-    build_dataset(root / "data", spec, progress=False)
+    build_dataset(root / "data", spec, progress=False, overwrite=True)
     data = load_collision_data(str(root / "data"))
     saved = T.SEARCH_SPACE["n_estimators"]
     T.SEARCH_SPACE["n_estimators"] = (100, 150)  # small forests: CI time
     try:
-        out = {}
         for form in ("contact", "paper"):
-            out[form] = str(root / f"model_{form}")
             T.train(data, out[form], T.TrainConfig(form=form, trials=1, jobs=1, progress=False, report=False))
     finally:
         T.SEARCH_SPACE["n_estimators"] = saved
     return out
+
+
+@pytest.fixture(scope="session")
+def trained_models(tmp_path_factory):
+    """Tiny contact- and paper-form models, cached in the session's base temp dir (shared across modules)."""
+    root = tmp_path_factory.getbasetemp() / "tiny_collision_models"
+    root.mkdir(exist_ok=True)
+    return train_tiny_models(root)
 
 
 def xgboost_pairwise(model_dir, v1, v2, n, d1, d2, rho1, rho2):
@@ -168,7 +175,7 @@ def test_three_body_cluster_each_pair_once_sequential_impulses(trained_models):
     assert np.abs(momentum(p) - p0).max() <= 1e-6 * np.abs(p.mass_numpy()[0] * v).sum()
     c = strategy.counts()
     assert c["detected_pairs"] == 2 and c["rounds"] == 2
-    assert c["detected_by_stream"] == {"0-1": 1, "1-1": 1}
+    assert (c["detected_pairs_0_1"], c["detected_pairs_1_1"], c["detected_pairs_0_0"]) == (1, 1, 0)
     assert c["surrogate_calls"] + c["separating_skipped"] == 2
 
 
@@ -238,6 +245,7 @@ def test_pairwise_is_deterministic(trained_models):
         strategy = SurrogateCollision(model_dir=trained_models["contact"])
         strategy.collide(p)
         results.append((p.v.numpy().copy(), strategy.counts()))
+    assert all(isinstance(k, str) and isinstance(v, int) for k, v in results[0][1].items())  # {name: int}
     assert np.array_equal(results[0][0], results[1][0])
     assert results[0][1] == results[1][1]
 
@@ -258,15 +266,20 @@ def test_paper_mode_uses_the_cluster_averaged_partner_velocity(trained_models):
     assert c["detected_pairs"] == 2 and c["surrogate_calls"] == 2
 
 
-def test_mode_and_model_form_must_agree(trained_models):
-    from hel_warp.collision_models import SurrogateCollision, make_collision
+def test_mode_and_model_form_must_agree_and_hel_resolves_the_names(trained_models):
+    from hel_warp.collision_models import DemCollision, SurrogateCollision, SurrogatePaperCollision, make_collision
     from hel_warp.errors import ConfigError
+    from hel_warp.hel import collision_model
 
     with pytest.raises(ConfigError, match="contact"):
         SurrogateCollision(model_dir=trained_models["paper"])
     with pytest.raises(ConfigError, match="paper"):
         make_collision("surrogate-paper", model_dir=trained_models["contact"])
     assert make_collision("surrogate", model_dir=trained_models["contact"]).name == "surrogate"
+    assert isinstance(collision_model("surrogate", model_dir=trained_models["contact"]), SurrogateCollision)
+    paper = collision_model("surrogate-paper", model_dir=trained_models["paper"])
+    assert isinstance(paper, SurrogatePaperCollision) and paper.mode == "paper" and paper.name == "surrogate-paper"
+    assert isinstance(collision_model("dem"), DemCollision)
 
 
 # ------------------------------------------------------------------------------------------ dem

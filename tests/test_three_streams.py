@@ -1,0 +1,112 @@
+"""cases/three_streams.py (paper sec. 7, Fig. 13) at CI size: 9 steps of 1e-4 s, every pair met.
+
+Physical facts: with no interaction the lateral velocities keep their sign (drag alone slows them);
+the CFD-DEM rebound reverses them with |v_y'| = e |v_y| (head-on in the relative frame, frictionless
+geometry: the relative velocity lies along the centre line) less the drag of 0.9 ms; the surrogate
+rebounds like the DEM within the model's accuracy, with one surrogate call per pair (the pair still
+overlapping at a later step end is never collided again); KTGF at eps_s < 0.06 sees no collision
+(paper sec. 7) — see the xfail below.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+
+from tests.test_collision_models import E_REST, impulse_n_mae, train_tiny_models  # noqa: E402
+
+STEPS = 9
+
+
+@pytest.fixture(scope="session")
+def tiny_models(tmp_path_factory):
+    root = tmp_path_factory.getbasetemp() / "tiny_collision_models"
+    root.mkdir(exist_ok=True)
+    return train_tiny_models(root)
+
+
+def run_case(collisions, out, model=None, render=False) -> dict:
+    from cases.three_streams import ThreeStreams, check, render as render_pictures
+
+    args = argparse.Namespace(collisions=collisions, model=model, out=str(out), device="cpu", steps=STEPS,
+                              no_render=not render)
+    case = ThreeStreams(args)
+    for _ in range(STEPS):
+        case.step()
+    result = check(case)
+    if render:
+        result["pictures"] = render_pictures(case, str(out))
+    return result
+
+
+@pytest.fixture(scope="module")
+def dem_result(tmp_path_factory):
+    return run_case("dem", tmp_path_factory.mktemp("streams_dem"))
+
+
+def lateral(result, stream):
+    return np.asarray(result["streams"][str(stream)]["vy_final"])
+
+
+def test_no_interaction_streams_pass_through(tmp_path):
+    from cases.three_streams import stream_velocity
+
+    result = run_case("none", tmp_path)
+    assert result["outcome"] == "pass-through"
+    for s in (0, 1):
+        vy0 = stream_velocity(s)[1]
+        # drag only: same sign, slower (F_D ~ 13 1/s over <= 0.9 ms: < 2 %)
+        assert np.all(lateral(result, s) / vy0 > 0.97) and np.all(lateral(result, s) / vy0 < 1.0)
+    assert result["max_cell_eps_s"] < 0.06  # the paper's dilute regime
+
+
+def test_dem_streams_rebound_with_the_restitution(dem_result):
+    from cases.three_streams import stream_velocity
+
+    assert dem_result["outcome"] == "rebound"
+    for s in (0, 1):
+        vy0 = stream_velocity(s)[1]
+        ratio = -lateral(dem_result, s) / vy0
+        # e = 0.9 reversal, less up to 2 % of drag over the run
+        assert np.all(ratio <= E_REST * 1.003) and np.all(ratio > E_REST * 0.97)
+
+
+def test_surrogate_streams_rebound_like_dem_once_per_pair(tiny_models, dem_result, tmp_path):
+    from cases.three_streams import stream_velocity
+
+    result = run_case("surrogate", tmp_path, model=tiny_models["contact"], render=True)
+    assert result["outcome"] == "rebound"
+    assert result["collision_counts_total"]["surrogate_calls"] == 3  # three pairs, each collided once
+    g = 2.0 * abs(stream_velocity(0)[1])  # lateral approach speed of a pair
+    tol = g * (0.5 * 5.0 * impulse_n_mae(tiny_models["contact"]) + 0.003)
+    for s in (0, 1):
+        assert np.abs(lateral(result, s) - lateral(dem_result, s)).max() <= tol
+    for path in result["pictures"]:
+        assert os.path.getsize(path) > 1000
+
+
+@pytest.mark.xfail(strict=False, reason="kernels/ktgf.py: the algebraic granular temperature reaches "
+                   "Theta ~ 1e3-1e4 m^2/s^2 around two isolated parcels (eps_s ~ 0.016), a_coll ~ 1e4 m/s^2 "
+                   "throws the particles apart; the paper's KTGF (eps_s < 0.06) lets them pass through")
+def test_ktgf_streams_pass_through(tmp_path):
+    result = run_case("ktgf", tmp_path)
+    assert result["max_cell_eps_s"] < 0.06
+    assert result["outcome"] == "pass-through"
+
+
+def test_case_writes_summary_and_refuses_too_few_steps(tmp_path):
+    from cases.three_streams import main
+    from hel_warp.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="steps"):
+        main(["--collisions", "none", "--steps", "5", "--out", str(tmp_path), "--no-render"])
+    assert main(["--collisions", "none", "--steps", str(STEPS), "--out", str(tmp_path), "--no-render"]) == 0
+    with open(tmp_path / "summary.json") as fh:
+        assert json.load(fh)["outcome"] == "pass-through"
