@@ -188,3 +188,18 @@ def test_a_torn_checkpoint_falls_back_to_the_previous_one(tmp_path):
     (tmp_path / "checkpoint.npz").write_bytes(b"torn")
     state, _, path = read_checkpoint(tmp_path)
     assert path.name == "checkpoint.prev.npz" and int(state["step"]) == 3
+
+
+def test_hel_warp_run_passes_the_options_to_the_case_script(tmp_path, capsys):
+    from hel_warp.cli import main
+
+    script = tmp_path / "my_case.py"
+    script.write_text("import json\n\ndef main(argv):\n    print(json.dumps(argv))\n    return 4\n")
+    assert main(["run", str(script), "--diameter", "3e-4", "--out", "x"]) == 4
+    assert capsys.readouterr().out.strip() == '["--diameter", "3e-4", "--out", "x"]'
+    plain = tmp_path / "plain.py"
+    plain.write_text("import sys\nprint('argv', sys.argv[1:])\n")  # no main(): run once as __main__
+    assert main(["run", str(plain), "--a", "1"]) == 0
+    assert capsys.readouterr().out.strip() == "argv ['--a', '1']"
+    assert main(["run", "no_such_case"]) == 2
+    assert "case script 'no_such_case' not found" in capsys.readouterr().err

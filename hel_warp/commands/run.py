@@ -1,0 +1,81 @@
+"""``hel-warp run CASE_SCRIPT [case options...]``: run a HEL case script, passing its options through.
+
+``CASE_SCRIPT`` is a path to a Python file (``cases/colliding_streams.py``) or the name of a script in
+``cases/`` (``colliding_streams``). The script is called, in order of preference, through
+
+- ``main(argv) -> int``: its own argument parsing (``argv`` = the options after the script);
+- ``add_arguments(parser)`` and ``run(args) -> int``: options parsed strictly here (a typo is an error);
+- otherwise it is executed as ``__main__`` with ``sys.argv = [CASE_SCRIPT, *options]``.
+
+Case scripts build a ``HelSolver`` and drive it with ``hel_warp.run.Run`` (``add_run_arguments`` gives
+them --out, --end-time, --output-interval, --checkpoint-interval, --restart, --no-vtk, --device).
+Example::
+
+    hel-warp run cases/colliding_streams.py --diameter 3.15e-4 --out runs/streams --end-time 0.1
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import runpy
+import sys
+from pathlib import Path
+
+from hel_warp.errors import ConfigError
+
+CASES_DIR = Path(__file__).resolve().parents[2] / "cases"
+
+
+def add_parser(subparsers):
+    p = subparsers.add_parser("run", help="run a HEL case script (e.g. cases/colliding_streams.py), options passed on",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("case", metavar="CASE_SCRIPT", help="case script path or name in cases/")
+    p.add_argument("case_args", nargs=argparse.REMAINDER, help="options of the case (see CASE_SCRIPT --help)")
+    return p
+
+
+def case_path(name: str) -> Path:
+    """The script file of ``name`` (a path, or a name in ``cases/``); ConfigError listing the known cases."""
+    path = Path(name)
+    if not path.suffix and not path.is_file():
+        path = CASES_DIR / f"{name}.py"
+    if not path.is_file():
+        known = sorted(p.stem for p in CASES_DIR.glob("*.py")) if CASES_DIR.is_dir() else []
+        raise ConfigError(f"case script {name!r} not found (looked for {path}); known cases in {CASES_DIR}: {known}")
+    return path
+
+
+def _top_level_functions(path: Path) -> set[str]:
+    """Names of the functions a script defines at top level (read without executing it)."""
+    import ast
+
+    tree = ast.parse(path.read_text(), filename=str(path))
+    return {node.name for node in tree.body if isinstance(node, ast.FunctionDef)}
+
+
+def run(args) -> int:
+    path = case_path(args.case)
+    argv = list(args.case_args)
+    if argv[:1] == ["--"]:
+        argv = argv[1:]
+    defined = _top_level_functions(path)
+    if "main" in defined or {"add_arguments", "run"} <= defined:
+        spec = importlib.util.spec_from_file_location(f"hel_warp_case_{path.stem}", path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    if "main" in defined:
+        return int(module.main(argv) or 0)
+    if {"add_arguments", "run"} <= defined:
+        parser = argparse.ArgumentParser(prog=f"hel-warp run {args.case}", description=module.__doc__)
+        module.add_arguments(parser)
+        return int(module.run(parser.parse_args(argv)) or 0)
+    saved = sys.argv
+    sys.argv = [str(path), *argv]
+    try:
+        runpy.run_path(str(path), run_name="__main__")
+    except SystemExit as exc:
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    finally:
+        sys.argv = saved
+    return 0
