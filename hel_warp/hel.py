@@ -279,6 +279,8 @@ class HelSolver:
         self.step_count = 0
         self.timings: dict[str, float] = {}
         """Wall-clock seconds of each sub-step of the last step (device-synchronised on CUDA)."""
+        self.time_sub_steps = True
+        """Record ``timings``; False skips the per-sub-step device syncs (CUDA graph capture, benchmarks)."""
         self.check_injectors_inside()
         self._inject_due(self.time)
         self.check_parcels_inside()
@@ -352,6 +354,9 @@ class HelSolver:
     def _timed(self, sub_step) -> None:
         import warp as wp
 
+        if not self.time_sub_steps:
+            sub_step()
+            return
         start = _time.perf_counter()
         sub_step()
         if self.pool.particles.device.is_cuda:
