@@ -116,6 +116,14 @@ class ContactList:
     shear: object
     """(N, capacity) vec3 Mindlin shear displacement, m."""
 
+    def rows(self):
+        """The ``kernels.contacts.ContactRows`` view of these arrays (no copy)."""
+        from kernels.contacts import ContactRows
+
+        r = ContactRows()
+        r.partner, r.count, r.shear = self.partner, self.count, self.shear
+        return r
+
     @classmethod
     def empty(cls, n: int, capacity: int, device) -> "ContactList":
         import warp as wp
@@ -222,6 +230,12 @@ class DEMSolver:
         self.force = wp.zeros(n, dtype=wp.vec3, device=self.device)
         self.torque = wp.zeros(n, dtype=wp.vec3, device=self.device)
         self.x_at_build = wp.zeros(n, dtype=wp.vec3, device=self.device)
+        # kernel views (the arrays are only ever updated in place, so the views stay valid)
+        from kernels.integrate import sphere_arrays
+
+        self.spheres = sphere_arrays(particles)
+        self.rows = self.contacts.rows()
+        self.old_rows = self._old_contacts.rows()
         self.rebuild_flag = wp.ones(1, dtype=wp.int32, device=self.device)
         self.overflow = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.rebuild_count = wp.zeros(1, dtype=wp.int32, device=self.device)
@@ -276,22 +290,22 @@ class DEMSolver:
         from kernels.contacts import launch_flag_rebuild
         from kernels.integrate import launch_kick, launch_kick_drift
 
-        launch_kick_drift(self.particles, self.force, self.torque, self.gravity, self.dt)
-        launch_flag_rebuild(self.particles, self.x_at_build, 0.5 * self.skin, self.rebuild_flag)
+        launch_kick_drift(self.spheres, self.force, self.torque, self.gravity, self.dt)
+        launch_flag_rebuild(self.spheres, self.x_at_build, 0.5 * self.skin, self.rebuild_flag)
         wp.capture_if(self.rebuild_flag, on_true=self._rebuild)
         self._compute_forces()
-        launch_kick(self.particles, self.force, self.torque, self.gravity, self.dt)
+        launch_kick(self.spheres, self.force, self.torque, self.gravity, self.dt)
 
     def _compute_forces(self) -> None:
         from kernels.contacts import launch_contact_forces
         from kernels.walls import launch_plane_wall_forces, launch_sdf_wall_forces
 
-        launch_contact_forces(self.particles, self.contacts, self.params, self.dt, self.force, self.torque)
+        launch_contact_forces(self.spheres, self.rows, self.params, self.dt, self.force, self.torque)
         if self.config.walls:
-            launch_plane_wall_forces(self.particles, self.wall_point, self.wall_normal, self.wall_params, self.dt,
+            launch_plane_wall_forces(self.spheres, self.wall_point, self.wall_normal, self.wall_params, self.dt,
                                      self.wall_shear, self.force, self.torque)
         for kernel, shear in zip(self.sdf_kernels, self.sdf_shear):
-            launch_sdf_wall_forces(kernel, self.particles, self.wall_params, self.dt, self.config.sdf_gradient_step,
+            launch_sdf_wall_forces(kernel, self.spheres, self.wall_params, self.dt, self.config.sdf_gradient_step,
                                    shear, self.force, self.torque)
 
     def _rebuild(self) -> None:
@@ -308,8 +322,8 @@ class DEMSolver:
             self.grid.build(self.particles.x, self.cell_size)
         else:
             self._old_contacts.copy_from(self.contacts)
-        launch_build_contact_list(self.grid, self.particles, self.r_max, self.skin, self._old_contacts,
-                                  self.contacts, self.x_at_build, self.overflow)
+        launch_build_contact_list(self.grid, self.spheres, self.r_max, self.skin, self.old_rows, self.rows,
+                                  self.x_at_build, self.overflow)
         self.rebuild_flag.zero_()
 
     def _spatial_sort(self) -> None:

@@ -24,6 +24,19 @@ from __future__ import annotations
 import warp as wp
 
 from kernels.hertz import ContactParams, contact_force, rolling_torque
+from kernels.integrate import SphereArrays, sphere_mass
+
+
+@wp.struct
+class ContactRows:
+    """Per-particle contact rows (layout in the module docstring)."""
+
+    partner: wp.array2d(dtype=wp.int32)
+    """(N, capacity) partner index, -1 where empty; row i sorted ascending."""
+    count: wp.array(dtype=wp.int32)
+    """(N,) entries used in row i."""
+    shear: wp.array2d(dtype=wp.vec3)
+    """(N, capacity) Mindlin shear displacement of each contact, m."""
 
 
 @wp.func
@@ -37,36 +50,29 @@ def with_bodies(base: ContactParams, radius_eff: float, mass_eff: float):
 
 @wp.kernel
 def flag_rebuild(
-    particle_x: wp.array[wp.vec3],
+    spheres: SphereArrays,
     particle_x_at_build: wp.array[wp.vec3],
-    particle_alive: wp.array[wp.int32],
     half_skin: float,
     # outputs
     rebuild_flag: wp.array[wp.int32],
 ):
     """Set ``rebuild_flag[0] = 1`` when a particle moved more than skin/2 since the last build."""
     i = wp.tid()
-    if particle_alive[i] == 0:
+    if spheres.alive[i] == 0:
         return
-    if wp.length(particle_x[i] - particle_x_at_build[i]) > half_skin:
+    if wp.length(spheres.x[i] - particle_x_at_build[i]) > half_skin:
         rebuild_flag[0] = 1  # every writer stores the same value: race-free in effect
 
 
 @wp.kernel
 def build_contact_list(
     grid: wp.uint64,
-    particle_x: wp.array[wp.vec3],
-    particle_radius: wp.array[wp.float32],
-    particle_alive: wp.array[wp.int32],
+    spheres: SphereArrays,
     max_radius: float,
     skin: float,
-    old_partner: wp.array2d[wp.int32],
-    old_count: wp.array[wp.int32],
-    old_shear: wp.array2d[wp.vec3],
+    old: ContactRows,
     # outputs
-    contact_partner: wp.array2d[wp.int32],
-    contact_count: wp.array[wp.int32],
-    contact_shear: wp.array2d[wp.vec3],
+    rows: ContactRows,
     particle_x_at_build: wp.array[wp.vec3],
     overflow: wp.array[wp.int32],
 ):
@@ -75,6 +81,11 @@ def build_contact_list(
     ``overflow[0]`` receives the largest candidate count of a row that did not fit (integer atomic max).
     """
     i = wp.tid()
+    particle_x = spheres.x
+    particle_radius = spheres.radius
+    particle_alive = spheres.alive
+    contact_partner = rows.partner
+    old_partner = old.partner
     capacity = contact_partner.shape[1]
     xi = particle_x[i]
     particle_x_at_build[i] = xi
@@ -101,11 +112,11 @@ def build_contact_list(
     if n > capacity:
         wp.atomic_max(overflow, 0, n)
     m = wp.min(n, capacity)
-    contact_count[i] = m
+    rows.count[i] = m
     for k in range(m, capacity):
         contact_partner[i, k] = -1
     # merge with the old row (both sorted by partner id) to carry the shear history
-    old_n = old_count[i]
+    old_n = old.count[i]
     o = int(0)
     for k in range(m):
         j = contact_partner[i, k]
@@ -114,29 +125,17 @@ def build_contact_list(
             o = o + 1
         if o < old_n:
             if old_partner[i, o] == j:
-                s = old_shear[i, o]
-        contact_shear[i, k] = s
-
-
-@wp.func
-def particle_mass(radius: float, density: float):
-    """m = rho 4/3 pi r^3, kg."""
-    return density * (4.0 / 3.0 * wp.pi) * radius * radius * radius
+                s = old.shear[i, o]
+        rows.shear[i, k] = s
 
 
 @wp.kernel
 def contact_forces(
-    particle_x: wp.array[wp.vec3],
-    particle_v: wp.array[wp.vec3],
-    particle_omega: wp.array[wp.vec3],
-    particle_radius: wp.array[wp.float32],
-    particle_density: wp.array[wp.float32],
-    contact_partner: wp.array2d[wp.int32],
-    contact_count: wp.array[wp.int32],
+    spheres: SphereArrays,
     params: ContactParams,
     dt: float,
-    # outputs (contact_shear is read and updated in place, row i by thread i only)
-    contact_shear: wp.array2d[wp.vec3],
+    # outputs (rows.shear is read and updated in place, row i by thread i only)
+    rows: ContactRows,
     particle_f: wp.array[wp.vec3],
     particle_torque: wp.array[wp.vec3],
 ):
@@ -149,14 +148,21 @@ def contact_forces(
     and loses its shear history.
     """
     i = wp.tid()
+    particle_x = spheres.x
+    particle_v = spheres.v
+    particle_omega = spheres.omega
+    particle_radius = spheres.radius
+    particle_density = spheres.density
+    contact_partner = rows.partner
+    contact_shear = rows.shear
     xi = particle_x[i]
     vi = particle_v[i]
     wi = particle_omega[i]
     ri = particle_radius[i]
-    mi = particle_mass(ri, particle_density[i])
+    mi = sphere_mass(ri, particle_density[i])
     f = wp.vec3(0.0)
     t = wp.vec3(0.0)
-    for k in range(contact_count[i]):
+    for k in range(rows.count[i]):
         j = contact_partner[i, k]
         d = particle_x[j] - xi
         dist = wp.length(d)
@@ -166,7 +172,7 @@ def contact_forces(
             n = d / dist
             wj = particle_omega[j]
             v_rel = vi - particle_v[j] + wp.cross(ri * wi + rj * wj, n)
-            mj = particle_mass(rj, particle_density[j])
+            mj = sphere_mass(rj, particle_density[j])
             p = with_bodies(params, ri * rj / (ri + rj), mi * mj / (mi + mj))
             fc, shear_new, fn = contact_force(n, overlap, v_rel, contact_shear[i, k], p, dt)
             contact_shear[i, k] = shear_new
@@ -307,22 +313,19 @@ def launch_count_rebuild(counter) -> None:
     wp.launch(count_rebuild, dim=1, device=counter.device, inputs=[counter])
 
 
-def launch_flag_rebuild(particles, x_at_build, half_skin: float, rebuild_flag) -> None:
-    wp.launch(flag_rebuild, dim=particles.count, device=particles.device,
-              inputs=[particles.x, x_at_build, particles.alive, half_skin], outputs=[rebuild_flag])
+def launch_flag_rebuild(spheres: SphereArrays, x_at_build, half_skin: float, rebuild_flag) -> None:
+    wp.launch(flag_rebuild, dim=spheres.x.shape[0], device=spheres.x.device,
+              inputs=[spheres, x_at_build, half_skin], outputs=[rebuild_flag])
 
 
-def launch_build_contact_list(grid, particles, max_radius: float, skin: float, old, new, x_at_build,
-                              overflow) -> None:
-    """Rebuild ``new`` (a ContactList) from ``old`` (its previous contents; shear carried by partner id)."""
-    wp.launch(build_contact_list, dim=particles.count, device=particles.device,
-              inputs=[grid.id, particles.x, particles.radius, particles.alive, max_radius, skin,
-                      old.partner, old.count, old.shear],
-              outputs=[new.partner, new.count, new.shear, x_at_build, overflow])
+def launch_build_contact_list(grid, spheres: SphereArrays, max_radius: float, skin: float, old: ContactRows,
+                              rows: ContactRows, x_at_build, overflow) -> None:
+    """Rebuild ``rows`` from ``old`` (their previous contents; shear carried by partner id)."""
+    wp.launch(build_contact_list, dim=spheres.x.shape[0], device=spheres.x.device,
+              inputs=[grid.id, spheres, max_radius, skin, old], outputs=[rows, x_at_build, overflow])
 
 
-def launch_contact_forces(particles, contacts, params, dt: float, force, torque) -> None:
-    wp.launch(contact_forces, dim=particles.count, device=particles.device,
-              inputs=[particles.x, particles.v, particles.omega, particles.radius, particles.density,
-                      contacts.partner, contacts.count, params, dt],
-              outputs=[contacts.shear, force, torque])
+def launch_contact_forces(spheres: SphereArrays, rows: ContactRows, params: ContactParams, dt: float,
+                          force, torque) -> None:
+    wp.launch(contact_forces, dim=spheres.x.shape[0], device=spheres.x.device,
+              inputs=[spheres, params, dt], outputs=[rows, force, torque])

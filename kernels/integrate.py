@@ -16,6 +16,24 @@ from __future__ import annotations
 import warp as wp
 
 
+@wp.struct
+class SphereArrays:
+    """The per-particle arrays DEM kernels read and update (views of ``hel_warp.particles.Particles``)."""
+
+    x: wp.array(dtype=wp.vec3)
+    """Centre positions, m."""
+    v: wp.array(dtype=wp.vec3)
+    """Velocities, m/s."""
+    omega: wp.array(dtype=wp.vec3)
+    """Angular velocities, rad/s."""
+    radius: wp.array(dtype=wp.float32)
+    """Radii, m."""
+    density: wp.array(dtype=wp.float32)
+    """Material densities, kg/m^3."""
+    alive: wp.array(dtype=wp.int32)
+    """1 while the particle takes part in the run."""
+
+
 @wp.func
 def sphere_mass(radius: float, density: float):
     """m = rho 4/3 pi r^3, kg."""
@@ -26,60 +44,57 @@ def sphere_mass(radius: float, density: float):
 def kick_drift(
     particle_f: wp.array[wp.vec3],
     particle_torque: wp.array[wp.vec3],
-    particle_radius: wp.array[wp.float32],
-    particle_density: wp.array[wp.float32],
-    particle_alive: wp.array[wp.int32],
     gravity: wp.vec3,
     dt: float,
-    # outputs (updated in place)
-    particle_x: wp.array[wp.vec3],
-    particle_v: wp.array[wp.vec3],
-    particle_omega: wp.array[wp.vec3],
+    # outputs (x, v, omega updated in place)
+    spheres: SphereArrays,
 ):
     """Half kick with the forces of the current positions, then a full drift."""
     i = wp.tid()
-    if particle_alive[i] == 0:
+    if spheres.alive[i] == 0:
         return
-    r = particle_radius[i]
-    m = sphere_mass(r, particle_density[i])
+    r = spheres.radius[i]
+    m = sphere_mass(r, spheres.density[i])
     half_dt = 0.5 * dt
-    v = particle_v[i] + (particle_f[i] / m + gravity) * half_dt
-    particle_v[i] = v
-    particle_omega[i] = particle_omega[i] + particle_torque[i] * (half_dt / (0.4 * m * r * r))
-    particle_x[i] = particle_x[i] + v * dt
+    v = spheres.v[i] + (particle_f[i] / m + gravity) * half_dt
+    spheres.v[i] = v
+    spheres.omega[i] = spheres.omega[i] + particle_torque[i] * (half_dt / (0.4 * m * r * r))
+    spheres.x[i] = spheres.x[i] + v * dt
 
 
 @wp.kernel
 def kick(
     particle_f: wp.array[wp.vec3],
     particle_torque: wp.array[wp.vec3],
-    particle_radius: wp.array[wp.float32],
-    particle_density: wp.array[wp.float32],
-    particle_alive: wp.array[wp.int32],
     gravity: wp.vec3,
     dt: float,
-    # outputs (updated in place)
-    particle_v: wp.array[wp.vec3],
-    particle_omega: wp.array[wp.vec3],
+    # outputs (v, omega updated in place)
+    spheres: SphereArrays,
 ):
     """Second half kick with the forces of the new positions."""
     i = wp.tid()
-    if particle_alive[i] == 0:
+    if spheres.alive[i] == 0:
         return
-    r = particle_radius[i]
-    m = sphere_mass(r, particle_density[i])
+    r = spheres.radius[i]
+    m = sphere_mass(r, spheres.density[i])
     half_dt = 0.5 * dt
-    particle_v[i] = particle_v[i] + (particle_f[i] / m + gravity) * half_dt
-    particle_omega[i] = particle_omega[i] + particle_torque[i] * (half_dt / (0.4 * m * r * r))
+    spheres.v[i] = spheres.v[i] + (particle_f[i] / m + gravity) * half_dt
+    spheres.omega[i] = spheres.omega[i] + particle_torque[i] * (half_dt / (0.4 * m * r * r))
 
 
-def launch_kick_drift(particles, force, torque, gravity, dt: float) -> None:
-    wp.launch(kick_drift, dim=particles.count, device=particles.device,
-              inputs=[force, torque, particles.radius, particles.density, particles.alive, gravity, dt],
-              outputs=[particles.x, particles.v, particles.omega])
+def sphere_arrays(particles) -> SphereArrays:
+    """The ``SphereArrays`` view of a ``hel_warp.particles.Particles`` (no copy)."""
+    s = SphereArrays()
+    s.x, s.v, s.omega = particles.x, particles.v, particles.omega
+    s.radius, s.density, s.alive = particles.radius, particles.density, particles.alive
+    return s
 
 
-def launch_kick(particles, force, torque, gravity, dt: float) -> None:
-    wp.launch(kick, dim=particles.count, device=particles.device,
-              inputs=[force, torque, particles.radius, particles.density, particles.alive, gravity, dt],
-              outputs=[particles.v, particles.omega])
+def launch_kick_drift(spheres: SphereArrays, force, torque, gravity, dt: float) -> None:
+    wp.launch(kick_drift, dim=spheres.x.shape[0], device=spheres.x.device,
+              inputs=[force, torque, gravity, dt], outputs=[spheres])
+
+
+def launch_kick(spheres: SphereArrays, force, torque, gravity, dt: float) -> None:
+    wp.launch(kick, dim=spheres.x.shape[0], device=spheres.x.device,
+              inputs=[force, torque, gravity, dt], outputs=[spheres])

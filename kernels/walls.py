@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import warp as wp
 
-from kernels.contacts import particle_mass, with_bodies
+from kernels.contacts import with_bodies
 from kernels.hertz import ContactParams, contact_force, rolling_torque
+from kernels.integrate import SphereArrays, sphere_mass
 
 
 @wp.func
@@ -42,12 +43,7 @@ def wall_contact(
 
 @wp.kernel
 def plane_wall_forces(
-    particle_x: wp.array[wp.vec3],
-    particle_v: wp.array[wp.vec3],
-    particle_omega: wp.array[wp.vec3],
-    particle_radius: wp.array[wp.float32],
-    particle_density: wp.array[wp.float32],
-    particle_alive: wp.array[wp.int32],
+    spheres: SphereArrays,
     wall_point: wp.array[wp.vec3],
     wall_normal: wp.array[wp.vec3],
     params: ContactParams,
@@ -58,11 +54,11 @@ def plane_wall_forces(
     particle_torque: wp.array[wp.vec3],
 ):
     i = wp.tid()
-    if particle_alive[i] == 0:
+    if spheres.alive[i] == 0:
         return
-    x = particle_x[i]
-    r = particle_radius[i]
-    m = particle_mass(r, particle_density[i])
+    x = spheres.x[i]
+    r = spheres.radius[i]
+    m = sphere_mass(r, spheres.density[i])
     f = wp.vec3(0.0)
     t = wp.vec3(0.0)
     touching = int(0)
@@ -70,7 +66,7 @@ def plane_wall_forces(
         n = wall_normal[w]
         gap = wp.dot(x - wall_point[w], n)
         if gap < r:
-            result = wall_contact(n, gap, r, m, particle_v[i], particle_omega[i], wall_shear[i, w], params, dt)
+            result = wall_contact(n, gap, r, m, spheres.v[i], spheres.omega[i], wall_shear[i, w], params, dt)
             f = f + result[0]
             wall_shear[i, w] = result[1]
             t = t + result[2]
@@ -85,18 +81,13 @@ def plane_wall_forces(
 def make_sdf_wall_kernel(sdf):
     """A force kernel for the wall ``phi = sdf(x)`` (a ``@wp.func`` vec3 -> float, m, > 0 in the domain).
 
-    The returned kernel takes (x, v, omega, radius, density, alive, params, dt, gradient_step,
+    The returned kernel takes (spheres, params, dt, gradient_step,
     # outputs: wall_shear (N,), force, torque) and adds the wall force and torque.
     """
 
     @wp.kernel(module="unique")
     def sdf_wall_forces(
-        particle_x: wp.array[wp.vec3],
-        particle_v: wp.array[wp.vec3],
-        particle_omega: wp.array[wp.vec3],
-        particle_radius: wp.array[wp.float32],
-        particle_density: wp.array[wp.float32],
-        particle_alive: wp.array[wp.int32],
+        spheres: SphereArrays,
         params: ContactParams,
         dt: float,
         gradient_step: float,
@@ -106,10 +97,10 @@ def make_sdf_wall_kernel(sdf):
         particle_torque: wp.array[wp.vec3],
     ):
         i = wp.tid()
-        if particle_alive[i] == 0:
+        if spheres.alive[i] == 0:
             return
-        x = particle_x[i]
-        r = particle_radius[i]
+        x = spheres.x[i]
+        r = spheres.radius[i]
         gap = sdf(x)
         if gap >= r:
             wall_shear[i] = wp.vec3(0.0)
@@ -124,8 +115,8 @@ def make_sdf_wall_kernel(sdf):
         if glen <= 0.0:
             return
         n = grad / glen
-        m = particle_mass(r, particle_density[i])
-        result = wall_contact(n, gap, r, m, particle_v[i], particle_omega[i], wall_shear[i], params, dt)
+        m = sphere_mass(r, spheres.density[i])
+        result = wall_contact(n, gap, r, m, spheres.v[i], spheres.omega[i], wall_shear[i], params, dt)
         wall_shear[i] = result[1]
         particle_f[i] = particle_f[i] + result[0]
         particle_torque[i] = particle_torque[i] + result[2]
@@ -133,15 +124,13 @@ def make_sdf_wall_kernel(sdf):
     return sdf_wall_forces
 
 
-def launch_plane_wall_forces(particles, wall_point, wall_normal, params, dt: float, wall_shear, force, torque):
-    wp.launch(plane_wall_forces, dim=particles.count, device=particles.device,
-              inputs=[particles.x, particles.v, particles.omega, particles.radius, particles.density,
-                      particles.alive, wall_point, wall_normal, params, dt],
-              outputs=[wall_shear, force, torque])
+def launch_plane_wall_forces(spheres: SphereArrays, wall_point, wall_normal, params: ContactParams, dt: float,
+                             wall_shear, force, torque) -> None:
+    wp.launch(plane_wall_forces, dim=spheres.x.shape[0], device=spheres.x.device,
+              inputs=[spheres, wall_point, wall_normal, params, dt], outputs=[wall_shear, force, torque])
 
 
-def launch_sdf_wall_forces(kernel, particles, params, dt: float, gradient_step: float, wall_shear, force, torque):
-    wp.launch(kernel, dim=particles.count, device=particles.device,
-              inputs=[particles.x, particles.v, particles.omega, particles.radius, particles.density,
-                      particles.alive, params, dt, gradient_step],
-              outputs=[wall_shear, force, torque])
+def launch_sdf_wall_forces(kernel, spheres: SphereArrays, params: ContactParams, dt: float, gradient_step: float,
+                           wall_shear, force, torque) -> None:
+    wp.launch(kernel, dim=spheres.x.shape[0], device=spheres.x.device,
+              inputs=[spheres, params, dt, gradient_step], outputs=[wall_shear, force, torque])

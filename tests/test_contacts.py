@@ -8,6 +8,7 @@ from hel_warp.dem import ContactList, ContactOverflowError, DEMConfig, DEMSolver
 from hel_warp.material import Material
 from hel_warp.particles import Particles
 from kernels import contacts as kc
+from kernels.integrate import sphere_arrays
 
 
 def random_polydisperse(n, seed, box=0.02, r_lo=0.4e-3, r_hi=1.2e-3):
@@ -35,7 +36,8 @@ def build_list(particles, skin, capacity, old=None):
         old = ContactList.empty(n, capacity, "cpu")
     x_at_build = wp.zeros(n, dtype=wp.vec3)
     overflow = wp.zeros(1, dtype=wp.int32)
-    kc.launch_build_contact_list(grid, particles, r_max, skin, old, new, x_at_build, overflow)
+    kc.launch_build_contact_list(grid, sphere_arrays(particles), r_max, skin, old.rows(), new.rows(), x_at_build,
+                                 overflow)
     return new, x_at_build, int(overflow.numpy()[0])
 
 
@@ -74,7 +76,7 @@ def test_verlet_guarantee_and_rebuild_after_moves():
     small = x + direction * 0.49 * skin / 2.0 * rng.uniform(0, 1, size=(len(x), 1))
     p.x.assign(small.astype(np.float32))
     flag = wp.zeros(1, dtype=wp.int32)
-    kc.launch_flag_rebuild(p, x_at_build, 0.5 * skin, flag)
+    kc.launch_flag_rebuild(sphere_arrays(p), x_at_build, 0.5 * skin, flag)
     assert int(flag.numpy()[0]) == 0
     touching = brute_force_rows(float32_positions(small), radius, 0.0)
     got = rows_of(contacts)
@@ -83,7 +85,7 @@ def test_verlet_guarantee_and_rebuild_after_moves():
 
     large = x + direction * 0.8 * skin
     p.x.assign(large.astype(np.float32))
-    kc.launch_flag_rebuild(p, x_at_build, 0.5 * skin, flag)
+    kc.launch_flag_rebuild(sphere_arrays(p), x_at_build, 0.5 * skin, flag)
     assert int(flag.numpy()[0]) == 1
     rebuilt, _, _ = build_list(p, skin, capacity=64, old=contacts)
     ref = brute_force_rows(float32_positions(large), radius.astype(np.float32).astype(np.float64), skin)
