@@ -1,0 +1,720 @@
+"""Colliding particle streams: the lab rig of the paper (sections 2, 5, 8; Figs. 1 and 10).
+
+Two side arms carry polyethylene particles into a main channel, where the two streams collide;
+particle velocity profiles are measured in ten sections downstream of the junction
+(``hel-warp report`` post-processes the run directory this script writes).
+
+Geometry (all assumed dimensions are named in :class:`RigDimensions` with the reason). Axes:
+x = main-channel axis (downstream = +x), y = across the channel (the width the camera sees and
+the direction the velocity profiles run along), z = depth (camera viewing direction)::
+
+        y
+        ^   supply (left arm, stream 0)        outlet (p' = 0)
+        |  ===========\\                              |
+        |              \\  inclined arm, 45 deg       |
+        |  ==main===========================|S1|..|S10|==>  x
+        |              //                             |
+        |  ===========//                              |
+            supply (right arm, stream 1)
+
+- main channel 20 mm x 10 mm (2.0e-4 m^2 = 240 l/min / 20 m/s), inlet on x = 0 at 240 l/min;
+- two side supply channels 4 mm x 8 mm (3.2e-5 m^2 = 38.4 l/min / 20 m/s), inlets on x = 0 at
+  38.4 l/min each, turning into arms inclined at 45 deg that open into the main channel;
+- grid h = 1 mm: 160 x 64 x 10 = 102,400 cells (the paper's mesh: 107,000 hexahedra);
+- ten measurement sections (boxes 8 mm long, full width and depth) downstream of the junction;
+- a volume-injection box in each supply channel releases parcels at 3.4 m/s along the channel
+  (the speed the paper's DEM run of the particle holder gave), at the experimental mass flow
+  rates per holder, until each holder has released half of the particles.
+
+Inlet speeds are set so that the discrete patch (faces x h^2) carries exactly the paper's volume
+flow; on the default grid every patch is aligned with the grid, so the speed is exactly 20 m/s.
+``--cells N`` shrinks the grid for CI: h grows as (102400/N)^(1/3), and a cross-section side
+narrower than 3 h is widened to 3 h (the flows stay 240 / 38.4 l/min, the speed drops).
+
+Usage::
+
+    python cases/colliding_streams.py --diameter 315e-6 --dt 1e-3 --collisions ktgf \
+        --end-time 0.02 --out runs/cs_ktgf_1e-3
+    python cases/colliding_streams.py --diameter 315e-6 --dt 1e-3 --collisions none \
+        --end-time 0.003 --cells 5000 --max-particles 200 --out runs/ci    # reduced rig
+
+Writes ``OUT/run.zarr`` (hel_warp.io.RunWriter layout: particle snapshots with x, v, radius,
+weight, stream, particle_id; series ``step_wall_s``, ``collisions``, ``injected``, ``removed``;
+attrs ``config`` with ``collisions``, ``dt``, ``diameter``, ``end_time``, ``wall_clock_s`` and the
+rig layout ``rig`` (sections, axes) that the report reads) and VTK files. ``check()`` verifies
+physical facts at the end (no parcel centre inside a wall, parcels alive = injected - removed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import sys
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:  # run as a script from anywhere
+    sys.path.insert(0, str(REPO))
+
+LITRE_PER_MIN = 1.0e-3 / 60.0
+"""1 l/min in m^3/s."""
+
+COLLISIONS = ("none", "ktgf", "surrogate", "surrogate-paper", "dem")
+
+PAPER_PARTICLES = {315e-6: 12000, 475e-6: 3600}
+"""Particles injected in the paper's runs (section 8), both holders together, one particle per parcel."""
+PAPER_DIAMETER_STD = {315e-6: 8.2e-6, 475e-6: 22e-6}
+"""Standard deviation of the measured size distributions (section 2), m."""
+PAPER_MASS_FLOW = {315e-6: (0.014, 0.018), 475e-6: (0.013, 0.019)}
+"""Measured mass flow rates of the left / right holder (section 2), kg/s."""
+DEFAULT_MASS_FLOW = (0.014, 0.018)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RigDimensions:
+    """Every assumed dimension of the rig, m (the paper gives flows, speeds and the mesh size, not the drawing)."""
+
+    main_flow: float = 240.0 * LITRE_PER_MIN
+    """Main inlet volume flow, m^3/s (paper section 2: 240 l/min)."""
+    side_flow: float = 38.4 * LITRE_PER_MIN
+    """Volume flow of each side inlet, m^3/s (paper section 2: 38.4 l/min)."""
+    supply_speed: float = 20.0
+    """Gas speed in every supply channel, m/s (paper section 2); sets the cross-sections."""
+    main_width: float = 20.0e-3
+    """Main channel width (y), m. With main_depth: 2.0e-4 m^2 = 240 l/min / 20 m/s; a 2:1 flat core, seen by
+    the camera across its width (assumed aspect ratio)."""
+    main_depth: float = 10.0e-3
+    """Main channel depth (z, viewing direction), m (see main_width)."""
+    side_width: float = 4.0e-3
+    """Side arm width (in the x-y plane), m. With side_depth: 3.2e-5 m^2 = 38.4 l/min / 20 m/s (assumed 1:2)."""
+    side_depth: float = 8.0e-3
+    """Side arm depth (z), m, centred in the main channel's depth (see side_width)."""
+    main_length: float = 160.0e-3
+    """Main channel length from the inlet plane (x = 0) to the outlet, m: 40 mm of main supply before the
+    junction, the collision region, the ten sections and 10 mm before the outlet (assumed)."""
+    supply_length: float = 20.0e-3
+    """Straight part of each side arm from the inlet plane, m: holds the injection box (assumed)."""
+    side_offset: float = 30.0e-3
+    """Distance of the side supply channels' axes from the main axis, m: with a 45 deg arm the arm axis meets the
+    main-channel wall 20 mm downstream of the supply channel (assumed)."""
+    arm_angle_deg: float = 45.0
+    """Inclination of the arms to the main axis, deg (assumed; the paper's drawing shows inclined arms)."""
+    arm_overlap: float = 3.0e-3
+    """How far each arm extends past the main-channel wall into the main channel, m (so the union of shapes is
+    connected; inside the main channel it changes nothing)."""
+    spacing: float = 1.0e-3
+    """Default grid spacing, m: all the sizes above are multiples of it, so every patch is grid-aligned and
+    160 x 64 x 10 = 102,400 cells (the paper's mesh had 107,000 hexahedra)."""
+    section_first: float = 55.0e-3
+    """x of the centre of the first measurement section, m (downstream of the junction: the arm axes cross
+    the main axis at x = 48 mm)."""
+    section_pitch: float = 10.0e-3
+    """Distance between section centres, m (ten sections, last centre at 145 mm)."""
+    section_length: float = 8.0e-3
+    """Length of each section box along x, m; each spans the full width and depth (assumed)."""
+    injection_x: tuple = (6.0e-3, 14.0e-3)
+    """x-range of the injection boxes inside the supply channels, m (assumed, within the 20 mm straight part)."""
+    injection_speed: float = 3.4
+    """Initial particle speed along the supply channel, m/s (paper section 5: DEM of the particle holder)."""
+
+    @property
+    def main_area(self) -> float:
+        return self.main_width * self.main_depth
+
+    @property
+    def side_area(self) -> float:
+        return self.side_width * self.side_depth
+
+    def side_centre_y(self, side: int) -> float:
+        """y of the supply channel axis of arm ``side`` (0 = left, +y; 1 = right, -y)."""
+        return self.side_offset if side == 0 else -self.side_offset
+
+    def domain(self) -> tuple:
+        """(lo, hi) of the grid box, m."""
+        half_y = self.side_offset + 0.5 * self.side_width
+        return (0.0, -half_y, 0.0), (self.main_length, half_y, self.main_depth)
+
+    def sections(self) -> list:
+        """The ten measurement boxes: dicts name, lo, hi (m)."""
+        out = []
+        for i in range(10):
+            xc = self.section_first + i * self.section_pitch
+            out.append({"name": f"S{i + 1}",
+                        "lo": [xc - 0.5 * self.section_length, -0.5 * self.main_width, 0.0],
+                        "hi": [xc + 0.5 * self.section_length, 0.5 * self.main_width, self.main_depth]})
+        return out
+
+    def arm_axis(self, side: int) -> tuple:
+        """(start, end) of the inclined arm's axis, m: from inside the supply channel to past the main wall."""
+        angle = math.radians(self.arm_angle_deg)
+        sign = 1.0 if side == 0 else -1.0
+        zc = 0.5 * self.main_depth
+        x0 = self.supply_length - 0.5 * self.side_width
+        y0 = sign * self.side_offset
+        drop = self.side_offset - 0.5 * self.main_width + self.arm_overlap  # lateral travel of the axis
+        x1 = x0 + drop / math.tan(angle)
+        y1 = sign * (self.side_offset - drop)
+        return (x0, y0, zc), (x1, y1, zc)
+
+    def injection_box(self, side: int, margin: float) -> tuple:
+        """(lo, hi) of the injection box of arm ``side``; ``margin`` (m, a particle radius) from the walls."""
+        yc = self.side_centre_y(side)
+        zc = 0.5 * self.main_depth
+        return ((self.injection_x[0], yc - 0.5 * self.side_width + margin, zc - 0.5 * self.side_depth + margin),
+                (self.injection_x[1], yc + 0.5 * self.side_width - margin, zc + 0.5 * self.side_depth - margin))
+
+
+def dimensions_for_cells(cells: int | None) -> RigDimensions:
+    """The rig for a grid of about ``cells`` cells (None: the default 102,400-cell grid).
+
+    A coarser grid has h = 1 mm x (102400/cells)^(1/3); a cross-section side narrower than 3 h is
+    widened to 3 h (grid.MIN_CELLS_ACROSS) and the section boxes keep their places.
+    """
+    dims = RigDimensions()
+    if cells is None:
+        return dims
+    if int(cells) != cells or cells < 1000:
+        from hel_warp.errors import ConfigError
+
+        raise ConfigError(f"--cells must be an integer >= 1000 (got {cells!r})")
+    lo, hi = dims.domain()
+    default_cells = np.prod([round((h - l) / dims.spacing) for l, h in zip(lo, hi)])
+    h = dims.spacing * (default_cells / cells) ** (1.0 / 3.0)
+    if h <= dims.spacing:
+        return replace(dims, spacing=h)
+    least = 3.0 * h * (1.0 + 1e-6)
+    return replace(dims, spacing=h, main_depth=max(dims.main_depth, least), side_width=max(dims.side_width, least),
+                   side_depth=max(dims.side_depth, least))
+
+
+def build_geometry(dims: RigDimensions):
+    """(Grid, Geometry, inlet speeds {patch: m/s}) of the rig; speeds make patch area x speed = the paper's flow."""
+    from hel_warp.grid import Box, Channel, Geometry, Grid, Patch
+
+    lo, hi = dims.domain()
+    h = dims.spacing
+    shape = tuple(max(1, int(math.ceil((b - a) / h - 1e-9))) for a, b in zip(lo, hi))
+    grid = Grid(origin=lo, spacing=h, shape=shape)
+    beyond = 5.0 * h  # shapes run past the inlet / outlet planes so that no wall sits on an open boundary
+    zc = 0.5 * dims.main_depth
+    shapes = [Box(lo=(-beyond, -0.5 * dims.main_width, 0.0),
+                  hi=(dims.main_length + beyond, 0.5 * dims.main_width, dims.main_depth), name="main")]
+    for side, label in ((0, "left"), (1, "right")):
+        yc = dims.side_centre_y(side)
+        shapes.append(Box(lo=(-beyond, yc - 0.5 * dims.side_width, zc - 0.5 * dims.side_depth),
+                          hi=(dims.supply_length, yc + 0.5 * dims.side_width, zc + 0.5 * dims.side_depth),
+                          name=f"{label}_supply"))
+        start, end = dims.arm_axis(side)
+        shapes.append(Channel(start=start, end=end, width=dims.side_width, height=dims.side_depth,
+                              up=(0.0, 0.0, 1.0), name=f"{label}_arm"))
+    big = 1.0
+    regions = {
+        "main_inlet": ((-big, -0.5 * dims.main_width, -big), (big, 0.5 * dims.main_width, big)),
+        "left_inlet": ((-big, dims.side_offset - 0.5 * dims.side_width, -big),
+                       (big, dims.side_offset + 0.5 * dims.side_width, big)),
+        "right_inlet": ((-big, -dims.side_offset - 0.5 * dims.side_width, -big),
+                        (big, -dims.side_offset + 0.5 * dims.side_width, big)),
+    }
+    flows = {"main_inlet": dims.main_flow, "left_inlet": dims.side_flow, "right_inlet": dims.side_flow}
+    # discrete patch areas: fluid cells of the first layer whose centres lie in the patch region
+    fluid = _fluid_mask(grid, Geometry(shapes=tuple(shapes)))
+    centres = grid.cell_centres()[0]
+    speeds = {}
+    for name, (rlo, rhi) in regions.items():
+        inside = ((centres[..., 1] >= rlo[1]) & (centres[..., 1] <= rhi[1]) & fluid[0])
+        area = float(inside.sum()) * h * h
+        if area == 0.0:
+            from hel_warp.errors import ConfigError
+
+            raise ConfigError(f"patch {name} covers no fluid cell at h = {h:.3g} m; use more --cells")
+        speeds[name] = flows[name] / area
+    patches = [Patch(name=name, kind="inlet", axis=0, side="min", lo=rlo, hi=rhi, velocity=(speeds[name], 0.0, 0.0))
+               for name, (rlo, rhi) in regions.items()]
+    patches.append(Patch(name="outlet", kind="outlet", axis=0, side="max", pressure=0.0))
+    return grid, Geometry(shapes=tuple(shapes), patches=tuple(patches)), speeds
+
+
+def _fluid_mask(grid, geometry) -> np.ndarray:
+    import warp as wp
+
+    from kernels import sdf as sdf_kernels
+
+    cell_fluid = wp.zeros(grid.shape, dtype=wp.int32, device="cpu")
+    sdf_kernels.eval_fluid_mask(geometry.shapes_struct("cpu"), grid.origin, grid.spacing, cell_fluid)
+    return cell_fluid.numpy().astype(bool)
+
+
+# ---------------------------------------------------------------------------------------------- walls
+# Stop-gap until the HEL step handles walls itself (engineer G): reflection of parcels at the SDF
+# wall with the paper's coefficients e_n = e_t = 0.8 (Table 1).
+import warp as wp  # noqa: E402  (after the sys.path set-up)
+
+from kernels.sdf import SdfShapes, sdf_union, sdf_union_normal  # noqa: E402
+
+
+@wp.kernel
+def reflect_at_walls(shapes: SdfShapes, restitution_normal: float, restitution_tangential: float,
+                     particle_radius: wp.array(dtype=float), particle_alive: wp.array(dtype=wp.int32),
+                     # outputs (updated in place)
+                     particle_x: wp.array(dtype=wp.vec3), particle_v: wp.array(dtype=wp.vec3)):
+    """A parcel closer to the wall than its radius is put back at distance r; its outward normal velocity
+    reverses with e_n and the tangential part keeps e_t of itself."""
+    i = wp.tid()
+    if particle_alive[i] == 0:
+        return
+    x = particle_x[i]
+    radius = particle_radius[i]
+    distance = sdf_union(shapes, x)
+    if distance > -radius:
+        normal = sdf_union_normal(shapes, x)  # out of the fluid
+        particle_x[i] = x - (distance + radius) * normal
+        v = particle_v[i]
+        v_n = wp.dot(v, normal)
+        if v_n > 0.0:
+            particle_v[i] = -restitution_normal * v_n * normal + restitution_tangential * (v - v_n * normal)
+
+
+# ---------------------------------------------------------------------------------------------- the case
+@dataclass(frozen=True, kw_only=True)
+class CaseConfig:
+    """One run of the rig (validated by :func:`make_config`)."""
+
+    diameter: float
+    """Mean particle diameter, m (paper: 315e-6 or 475e-6)."""
+    dt: float
+    """HEL time step, s (paper: 1e-3, 1e-4, 7.14e-5)."""
+    collisions: str
+    """Collision model: none, ktgf, surrogate, surrogate-paper, dem."""
+    end_time: float
+    """Simulated time after the particle release, s (paper: 0.02-0.03)."""
+    particles_per_parcel: float = 1.0
+    """Real particles per parcel (paper's second HEL run: 8); the parcel count stays, the mass scales."""
+    particles: int = 12000
+    """Parcels released, both holders together (paper: 12,000 at 315 um, 3,600 at 475 um)."""
+    diameter_std: float = 0.0
+    """Standard deviation of the diameter, m (paper: 8.2 um / 22 um)."""
+    density: float = 1000.0
+    """Particle density, kg/m^3 (polyethylene, paper section 2)."""
+    mass_flow: tuple = DEFAULT_MASS_FLOW
+    """Release rate of the left / right holder, kg/s of real particles (paper section 2)."""
+    cells: int | None = None
+    """Grid size (None: the default 102,400 cells)."""
+    gas_warmup: float = 0.01
+    """Gas-only time before the release (1e-3 s steps), s: "once the flow is stabilized" (section 2);
+    0.01 s at 20 m/s flushes the 160 mm rig 1.25 times."""
+    output_interval: float = 1.0e-3
+    """Simulated time between particle snapshots, s (the report averages over snapshots)."""
+    model: str | None = None
+    """Surrogate model directory (surrogate and surrogate-paper)."""
+    seed: int = 0
+    device: str = "cpu"
+    wall_restitution: tuple = (0.8, 0.8)
+    """Particle-wall e_n, e_t (paper Table 1)."""
+    gravity: tuple = (9.80665, 0.0, 0.0)
+    """m/s^2: the rig stands upright with the flow downwards (+x), holders above the arms (assumed)."""
+
+
+def make_config(args) -> CaseConfig:
+    from hel_warp.errors import ConfigError
+
+    if not args.diameter > 0:
+        raise ConfigError(f"--diameter must be > 0 m (got {args.diameter}); e.g. 315e-6")
+    if not args.dt > 0:
+        raise ConfigError(f"--dt must be > 0 s (got {args.dt})")
+    if not args.end_time > 0:
+        raise ConfigError(f"--end-time must be > 0 s (got {args.end_time})")
+    if not args.particles_per_parcel > 0:
+        raise ConfigError(f"--particles-per-parcel must be > 0 (got {args.particles_per_parcel})")
+    known = min(PAPER_PARTICLES, key=lambda d: abs(d - args.diameter))
+    paper_size = abs(known - args.diameter) < 1e-3 * known
+    particles = PAPER_PARTICLES[known] if paper_size else int(round(12000 * (315e-6 / args.diameter) ** 3))
+    if args.max_particles is not None:
+        if args.max_particles < 2:
+            raise ConfigError(f"--max-particles must be >= 2 (got {args.max_particles})")
+        particles = min(particles, int(args.max_particles))
+    std = PAPER_DIAMETER_STD[known] if paper_size else 0.0
+    if args.monodisperse:
+        std = 0.0
+    if (args.collisions.startswith("surrogate")) and not args.model:
+        raise ConfigError(f"--collisions {args.collisions} needs --model MODEL_DIR (a `hel-warp train` output)")
+    return CaseConfig(diameter=float(args.diameter), dt=float(args.dt), collisions=args.collisions,
+                      end_time=float(args.end_time), particles_per_parcel=float(args.particles_per_parcel),
+                      particles=particles, diameter_std=std,
+                      mass_flow=PAPER_MASS_FLOW[known] if paper_size else DEFAULT_MASS_FLOW, cells=args.cells,
+                      gas_warmup=float(args.gas_warmup), output_interval=float(args.output_interval),
+                      model=args.model, seed=int(args.seed), device=args.device)
+
+
+def check_model(model_dir: str, diameter: float, density: float, force: bool) -> dict:
+    """Refuse a surrogate trained for another particle size or material (metadata ``defaults``: mean d1, rho1).
+
+    Sizes within 10 % (the paper's size distributions are +-3 sigma = +-8 % at 315 um) and densities within
+    1 % pass; anything else, or a model whose metadata does not say, needs ``--force``. Returns the metadata.
+    """
+    from hel_warp.errors import ConfigError
+
+    path = os.path.join(model_dir, "metadata.json")
+    try:
+        with open(path) as fh:
+            meta = json.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"{path} not found; --model must be a directory written by `hel-warp train`") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path} is not valid JSON ({exc})") from None
+    defaults = meta.get("defaults") if isinstance(meta, dict) else None
+    problems = []
+    if not isinstance(defaults, dict) or "d1" not in defaults or "rho1" not in defaults:
+        problems.append("its metadata does not record the particle size and density it was trained for")
+    else:
+        d_model, rho_model = float(defaults["d1"]), float(defaults["rho1"])
+        if abs(d_model - diameter) > 0.10 * diameter:
+            problems.append(f"it was trained for d = {d_model * 1e6:.0f} um, the run has {diameter * 1e6:.0f} um")
+        if abs(rho_model - density) > 0.01 * density:
+            problems.append(f"it was trained for density {rho_model:g} kg/m^3, the run has {density:g} kg/m^3")
+    if problems and not force:
+        raise ConfigError(f"model {model_dir}: {'; '.join(problems)}; train a model for this particle or pass "
+                          "--force to use it anyway")
+    return meta
+
+
+class CollidingStreams:
+    """The rig: gas solver, parcel pool, HEL solver, injection schedule; :meth:`step` advances one dt."""
+
+    def __init__(self, config: CaseConfig):
+        import warp as wp
+
+        from hel_warp.coupling import PushConfig
+        from hel_warp.gas import GasConfig, GasField, GasSolver
+        from hel_warp.hel import HelConfig, HelSolver, collision_model
+        from hel_warp.parcels import ParcelPool
+
+        wp.config.quiet = True
+        self.config = config
+        self.dims = dimensions_for_cells(config.cells)
+        self.grid, self.geometry, self.inlet_speeds = build_geometry(self.dims)
+        device = config.device
+        self.domain = self.geometry.build(self.grid, device=device)
+        gas_config = GasConfig()
+        self.gas_solver = GasSolver(self.domain, gas_config, device=device)
+        self.gas = GasField(self.domain, device=device)
+        self.pool = ParcelPool.empty(config.particles, device=device)
+        push = PushConfig(fluid_density=gas_config.density, fluid_viscosity=gas_config.viscosity,
+                          gravity=config.gravity)
+        kwargs = {}
+        if config.collisions == "ktgf":
+            kwargs = {"particle_diameter": config.diameter, "particle_density": config.density}
+        elif config.collisions.startswith("surrogate"):
+            kwargs = {"model_dir": config.model}
+        self.collision = collision_model(config.collisions, **kwargs)
+        self.solver = HelSolver(pool=self.pool, gas_solver=self.gas_solver, gas=self.gas,
+                                config=HelConfig(dt=config.dt, push=push), collision=self.collision)
+        self._shapes = self.geometry.shapes_struct(device)
+        # injection schedule: each holder releases half of the parcels at its mass flow rate
+        self.holder_parcels = (config.particles // 2, config.particles - config.particles // 2)
+        d, s = config.diameter, config.diameter_std
+        self.parcel_mass = config.particles_per_parcel * config.density * math.pi / 6.0 * (d**3 + 3.0 * d * s**2)
+        self.released = [0, 0]
+        self._owed = [0.0, 0.0]
+        self.step_index = 0
+        self.time = 0.0
+        self.injected = 0
+
+    @property
+    def fluid_cells(self) -> int:
+        return int(self.domain.cell_fluid.numpy().sum())
+
+    def warm_up(self) -> int:
+        """Gas-only steps of at most 1e-3 s over ``gas_warmup`` s (the flow is established before the release)."""
+        if self.config.gas_warmup <= 0:
+            return 0
+        n = int(math.ceil(self.config.gas_warmup / 1e-3 - 1e-9))
+        for _ in range(n):
+            self.gas_solver.step(self.gas, self.config.gas_warmup / n)
+        return n
+
+    def inject(self) -> int:
+        """Release this step's parcels in the two injection boxes (3.4 m/s along +x)."""
+        from hel_warp.parcels import VolumeInjection
+
+        added = 0
+        margin = 0.5 * self.config.diameter + 3.0 * 0.5 * self.config.diameter_std
+        for side in (0, 1):
+            left = self.holder_parcels[side] - self.released[side]
+            if left <= 0:
+                continue
+            self._owed[side] += self.config.mass_flow[side] * self.config.particles_per_parcel * self.config.dt \
+                / self.parcel_mass
+            count = min(left, int(math.floor(self._owed[side] + 1e-9)))
+            if count < 1:
+                continue
+            self._owed[side] -= count
+            lo, hi = self.dims.injection_box(side, margin)
+            added += self.pool.inject(VolumeInjection(
+                box_lo=lo, box_hi=hi, diameter_mean=self.config.diameter, diameter_std=self.config.diameter_std,
+                density=self.config.density, count=count, speed=self.dims.injection_speed, direction=(1.0, 0.0, 0.0),
+                weight=self.config.particles_per_parcel, stream=side,
+                seed=self.config.seed * 1_000_003 + 2 * self.step_index + side))
+            self.released[side] += count
+        self.injected += added
+        return added
+
+    def walls_and_outlets(self) -> None:
+        """Remove parcels past the outlet (x = L) or back out of the inlet plane (x = 0); reflect at the walls."""
+        import warp as wp
+
+        p = self.pool.particles
+        self.pool.remove_beyond_plane((self.dims.main_length, 0.0, 0.0), (1.0, 0.0, 0.0))
+        self.pool.remove_beyond_plane((0.0, 0.0, 0.0), (-1.0, 0.0, 0.0))
+        e_n, e_t = self.config.wall_restitution
+        wp.launch(reflect_at_walls, dim=p.count, inputs=[self._shapes, float(e_n), float(e_t), p.radius, p.alive],
+                  outputs=[p.x, p.v], device=p.device)
+
+    def step(self) -> dict:
+        """inject -> HEL step (deposit, gas, interpolate, collide, push) -> walls / outlets; returns the counts."""
+        self.inject()
+        self.solver.step()
+        self.walls_and_outlets()
+        self.step_index += 1
+        self.time = self.step_index * self.config.dt
+        return self.solver.collision_counts()
+
+    def snapshot(self) -> dict:
+        """Host arrays of the live parcels (output intervals only)."""
+        p = self.pool.particles
+        alive = p.alive.numpy().astype(bool)
+        return {"x": p.x.numpy()[alive], "v": p.v.numpy()[alive], "radius": p.radius.numpy()[alive],
+                "weight": p.weight.numpy()[alive], "density": p.density.numpy()[alive],
+                "stream": p.stream.numpy()[alive], "particle_id": p.particle_id.numpy()[alive]}
+
+    def rig_layout(self) -> dict:
+        """What the report needs to know about the rig (stored in the run's attrs)."""
+        lo, hi = self.dims.domain()
+        return {"axial_axis": 0, "transverse_axis": 1, "depth_axis": 2, "downstream": [1.0, 0.0, 0.0],
+                "sections": self.dims.sections(), "domain_lo": list(lo), "domain_hi": list(hi),
+                "main_width": self.dims.main_width, "main_depth": self.dims.main_depth,
+                "streams": {"0": "left", "1": "right"}, "dimensions": asdict(self.dims)}
+
+
+def check(rig: CollidingStreams) -> list[str]:
+    """Physical facts at the end of the run; the list of violations (empty = pass).
+
+    - no live parcel centre lies in a wall (SDF >= 0) and every position / velocity is finite;
+    - parcels alive = parcels injected - parcels removed at the outlets;
+    - every holder released no more than its share.
+    """
+    import warp as wp
+
+    from kernels.sdf import eval_sdf
+
+    errors = []
+    p = rig.pool.particles
+    alive = p.alive.numpy().astype(bool)
+    x = p.x.numpy()[alive]
+    v = p.v.numpy()[alive]
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
+        errors.append("non-finite parcel positions or velocities")
+    if x.shape[0]:
+        points = wp.array(x, dtype=wp.vec3, device="cpu")
+        distance = wp.zeros(x.shape[0], dtype=float, device="cpu")
+        normal = wp.zeros(x.shape[0], dtype=wp.vec3, device="cpu")
+        eval_sdf(rig.geometry.shapes_struct("cpu"), points, distance, normal)
+        d = distance.numpy()
+        inside_wall = int(np.sum(d >= 0.0))
+        if inside_wall:
+            errors.append(f"{inside_wall} parcel centres inside a wall (largest SDF {d.max():.3e} m)")
+    removed = rig.pool.removed_count()
+    if int(alive.sum()) != rig.injected - removed:
+        errors.append(f"parcel count: {int(alive.sum())} alive != {rig.injected} injected - {removed} removed")
+    for side in (0, 1):
+        if rig.released[side] > rig.holder_parcels[side]:
+            errors.append(f"holder {side} released {rig.released[side]} > {rig.holder_parcels[side]} parcels")
+    return errors
+
+
+# ---------------------------------------------------------------------------------------------- running
+def prepare_out(out: str, overwrite: bool, resume: bool) -> str:
+    """'new' or 'resume-complete'; refuses an existing run directory without --overwrite / --resume."""
+    from hel_warp.errors import ConfigError
+
+    path = Path(out)
+    if overwrite and resume:
+        raise ConfigError("give at most one of --overwrite and --resume")
+    if not path.exists():
+        if resume:
+            raise ConfigError(f"--resume: run directory {out} does not exist")
+        return "new"
+    if resume:
+        return "resume"
+    if not overwrite:
+        raise ConfigError(f"run directory {out} exists; pass --overwrite to replace it or --resume to continue it")
+    if path.is_dir() and any(path.iterdir()) and not (path / "run.zarr").exists():
+        raise ConfigError(f"{out} is not a run directory (no run.zarr); --overwrite only replaces run directories")
+    shutil.rmtree(path) if path.is_dir() else path.unlink()
+    return "new"
+
+
+def _resume(args, config: CaseConfig) -> int:
+    """--resume: a finished run with the same settings is a no-op; continuing a cut-off run needs checkpoints."""
+    import zarr
+
+    from hel_warp.errors import ConfigError
+
+    try:
+        attrs = dict(zarr.open_group(str(Path(args.out) / "run.zarr"), mode="r").attrs)
+    except Exception as exc:  # noqa: BLE001 - any unreadable store is the same message
+        raise ConfigError(f"--resume: {args.out}/run.zarr cannot be read ({exc}); use --overwrite") from None
+    saved = attrs.get("config", {})
+    for key in ("collisions", "dt", "diameter", "particles_per_parcel", "particles", "cells"):
+        if saved.get(key) != _jsonable(getattr(config, key)):
+            raise ConfigError(f"--resume: {key} differs from the run in {args.out} ({saved.get(key)!r} there, "
+                              f"{getattr(config, key)!r} now); use another --out or --overwrite")
+    if saved.get("status") == "complete" and float(saved.get("end_time", -1)) >= config.end_time - 1e-12:
+        print(f"colliding_streams: {args.out} already holds a complete run to t = {saved['end_time']} s; nothing to do")
+        return 0
+    raise ConfigError(f"--resume: {args.out} holds an unfinished run and this checkout has no HEL checkpoints "
+                      "(hel_warp/run.py) to continue it from; rerun with --overwrite")
+
+
+def _jsonable(value):
+    from hel_warp.io import _jsonable as jsonable
+
+    return jsonable(value)
+
+
+def run(args, *, progress: bool = True) -> int:
+    from hel_warp.io import RunWriter
+
+    config = make_config(args)
+    mode = prepare_out(args.out, args.overwrite, args.resume)
+    if mode == "resume":
+        return _resume(args, config)
+    model_meta = None
+    if config.collisions.startswith("surrogate"):
+        model_meta = check_model(config.model, config.diameter, config.density, args.force)
+    t_setup = time.perf_counter()
+    rig = CollidingStreams(config)
+    warm_steps = rig.warm_up()
+    t_loop = time.perf_counter()
+    setup_s = t_loop - t_setup
+    resolved = {"case": "colliding_streams", **_jsonable(asdict(config)), "status": "running",
+                "grid_shape": list(rig.grid.shape), "grid_cells": int(np.prod(rig.grid.shape)),
+                "fluid_cells": rig.fluid_cells, "spacing": rig.grid.spacing, "inlet_speeds": rig.inlet_speeds,
+                "inlet_flows_l_per_min": {"main": rig.dims.main_flow / LITRE_PER_MIN,
+                                          "side": rig.dims.side_flow / LITRE_PER_MIN},
+                "rig": rig.rig_layout(), "setup_wall_clock_s": setup_s, "warmup_steps": warm_steps,
+                "model_metadata": {k: model_meta.get(k) for k in ("form", "dataset_hash", "defaults")}
+                if model_meta else None}
+    writer = RunWriter(args.out, config=resolved, vtk=not args.no_vtk)
+    n_steps = int(math.ceil(config.end_time / config.dt - 1e-9))
+    every = max(1, int(round(config.output_interval / config.dt)))
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n_steps, desc=f"colliding_streams {config.collisions} dt={config.dt:g}", unit="step")
+    step_wall, collisions, injected, removed = [], [], [], []
+    by_kind: dict[str, list] = {}
+    loop_s = 0.0
+    for k in range(n_steps):
+        t0 = time.perf_counter()
+        counts = rig.step()
+        if config.device != "cpu":
+            import warp as wp
+
+            wp.synchronize_device(config.device)
+        dt_wall = time.perf_counter() - t0
+        loop_s += dt_wall
+        step_wall.append(dt_wall)
+        collisions.append(int(sum(int(c) for c in counts.values())))
+        for name, c in counts.items():
+            by_kind.setdefault(name, [0] * k).append(int(c))
+        for name in by_kind:
+            if len(by_kind[name]) < k + 1:
+                by_kind[name].append(0)
+        injected.append(rig.injected)
+        if (k + 1) % every == 0 or k + 1 == n_steps:
+            removed.append(rig.pool.removed_count())
+            _write_snapshot(writer, rig.snapshot(), rig.time, k + 1, vtk=not args.no_vtk)
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    for name, values in (("step_wall_s", np.asarray(step_wall, np.float64)),
+                         ("collisions", np.asarray(collisions, np.int64)),
+                         ("injected", np.asarray(injected, np.int64)),
+                         ("removed_at_snapshots", np.asarray(removed, np.int64))):
+        if len(values):
+            writer.append_series(name, values)
+    for name, values in by_kind.items():
+        writer.append_series(f"collisions_{name}", np.asarray(values, np.int64))
+    errors = check(rig)
+    resolved.update({"status": "complete", "wall_clock_s": loop_s, "steps": n_steps, "simulated_time": rig.time,
+                     "injected": rig.injected, "removed": rig.pool.removed_count(),
+                     "collision_counts_available": hasattr(rig.collision, "counts"),
+                     "total_collisions": int(sum(collisions)), "check_errors": errors})
+    writer.root.attrs["config"] = _jsonable(resolved)
+    writer.root.attrs["wall_clock_s"] = loop_s
+    print(f"colliding_streams: {config.collisions}, d = {config.diameter * 1e6:.0f} um, dt = {config.dt:g} s, "
+          f"{n_steps} steps to t = {rig.time:.4g} s on {int(np.prod(rig.grid.shape))} cells "
+          f"({rig.fluid_cells} fluid), {rig.injected} parcels injected, {rig.pool.removed_count()} removed, "
+          f"{int(sum(collisions))} collisions; wall clock {loop_s:.2f} s (+ setup {setup_s:.2f} s) -> {args.out}")
+    for e in errors:
+        print(f"check failed: {e}", file=sys.stderr)
+    return 1 if errors else 0
+
+
+def _write_snapshot(writer, arrays: dict, time_s: float, step: int, *, vtk: bool) -> None:
+    """A snapshot; VTK cannot hold an empty point cloud, so an empty snapshot goes to run.zarr only."""
+    writer.vtk = vtk and len(arrays["x"]) > 0
+    writer.write_snapshot(arrays, time=time_s, step=step)
+    writer.vtk = vtk
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from hel_warp.commands._common import finite_float
+
+    parser.add_argument("--diameter", type=finite_float, required=True, help="mean particle diameter, m (315e-6, 475e-6)")
+    parser.add_argument("--dt", type=finite_float, required=True, help="HEL time step, s (1e-3, 1e-4, 7.14e-5)")
+    parser.add_argument("--collisions", choices=COLLISIONS, required=True, help="collision model")
+    parser.add_argument("--end-time", type=finite_float, required=True, help="simulated time after release, s")
+    parser.add_argument("--out", required=True, help="run directory (refused if it exists, see --overwrite/--resume)")
+    parser.add_argument("--model", default=None, help="surrogate model directory (hel-warp train output)")
+    parser.add_argument("--force", action="store_true", help="use a model trained for another particle")
+    parser.add_argument("--particles-per-parcel", type=finite_float, default=1.0,
+                        help="real particles per parcel (paper's second HEL run: 8); default 1")
+    parser.add_argument("--device", default="cpu", help="Warp device: cpu or cuda (default cpu)")
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--overwrite", action="store_true", help="replace an existing run directory")
+    group.add_argument("--resume", action="store_true", help="continue an existing run directory")
+    parser.add_argument("--cells", type=int, default=None, help="shrink the grid to about N cells (CI)")
+    parser.add_argument("--max-particles", type=int, default=None, help="cap the parcels released (CI)")
+    parser.add_argument("--monodisperse", action="store_true", help="all particles of the mean diameter")
+    parser.add_argument("--gas-warmup", type=finite_float, default=0.01, help="gas-only time before release, s")
+    parser.add_argument("--output-interval", type=finite_float, default=1e-3, help="time between snapshots, s")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the injection positions and sizes")
+    parser.add_argument("--no-vtk", action="store_true", help="write run.zarr only")
+
+
+def main(argv=None) -> int:
+    from hel_warp.errors import HelWarpError
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_arguments(parser)
+    parser.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args(argv)
+    try:
+        return run(args, progress=not args.no_progress)
+    except HelWarpError as exc:
+        print(f"colliding_streams: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
