@@ -206,3 +206,33 @@ def test_settling_column_case_writes_zarr_and_vtk(tmp_path, full_size):
     assert mesh.n_points == n and "radius" in mesh.point_data
     series = pv.get_reader(str(out / "vtk" / "particles.pvd"))
     assert len(series.time_values) == 3
+
+
+def wall_impact(theta_deg, restitution, friction, dt_fraction):
+    """One sphere (r = 1 mm) hits the floor at 1 m/s, angle theta from the normal; no gravity."""
+    r = 1e-3
+    material = Material(**GLASS_SOFT, restitution=restitution, friction=friction)
+    theta = math.radians(theta_deg)
+    p = Particles.from_numpy([[0.01, 0.01, 1.0001 * r]], r, v=[math.sin(theta), 0.0, -math.cos(theta)],
+                             density=material.density)
+    dt = dt_fraction * material.time_step(r).chosen
+    solver = DEMSolver(DEMConfig(material=material, box_lo=(0, 0, 0), box_hi=(0.02, 0.02, 0.02), walls=("z-",),
+                                 gravity=(0, 0, 0), dt=dt), p)
+    solver.simulate(int(3e-4 / dt))  # contact lasts ~8e-5 s
+    d = p.to_numpy()
+    return d["v"][0].astype(np.float64), d["omega"][0].astype(np.float64), math.sin(theta), math.cos(theta)
+
+
+def test_wall_impact_restitution_and_gross_sliding():
+    """Normal impact returns the material's e (damping c(e) of hel_warp.contact_law). Oblique impact in
+    gross sliding (tan theta >= 3.5 mu (1+e)): e_t = 1 - mu (1+e) cot theta and w = 2.5 mu (1+e) v cos theta / R
+    (PHYSICS-NOTES; Maw, Barber & Fawcett 1976). At dt = eq.(12)/4 (~60 steps per contact); measured at
+    eq. (12) itself (~15 steps): e = 0.508 for 0.5."""
+    e, mu = 0.5, 0.1
+    v, _, _, cos_t = wall_impact(0.0, e, 0.3, 0.25)
+    assert v[2] / cos_t == pytest.approx(e, rel=0.005)
+    v, omega, sin_t, cos_t = wall_impact(60.0, e, mu, 0.25)
+    assert math.tan(math.radians(60.0)) >= 3.5 * mu * (1 + e)
+    assert v[2] / cos_t == pytest.approx(e, rel=0.005)
+    assert v[0] / sin_t == pytest.approx(1.0 - mu * (1.0 + e) * cos_t / sin_t, rel=0.005)
+    assert omega[1] == pytest.approx(2.5 * mu * (1.0 + e) * cos_t / 1e-3, rel=0.01)  # rolls forward (+y)
