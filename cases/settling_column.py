@@ -13,7 +13,8 @@ CI size (default, a few seconds)::
 
     hel-warp dem settling_column --particles 2000 --end-time 0.02 --out runs/settling_ci
 
-Full size (>= 1e5 spheres, ~30 min on one CPU core)::
+Full size (>= 1e5 spheres; 66,700 steps, ~40 min on one uncontended CPU core at the measured
+2.5-4e6 particle-steps/s of scripts/bench_dem.py)::
 
     hel-warp dem settling_column --particles 100000 --end-time 0.3 --snapshots 30 --out runs/settling
 

@@ -183,8 +183,10 @@ def test_particles_validation(bad, match):
         Particles.from_numpy(args["x"], args["radius"], box_lo=(0, 0, 0), box_hi=(0.02, 0.02, 0.02))
 
 
+@pytest.mark.slow
 def test_settling_column_case_writes_zarr_and_vtk(tmp_path, full_size):
-    """Tiny settling column through the CLI: count conserved, zarr and .vtp read back with N points."""
+    """Settling column through the CLI: count conserved, zarr and .vtp read back with N points.
+    CI size 1000 spheres for 0.01 s (~3 s); HEL_WARP_FULL=1: 1e5 spheres for 0.3 s (~40 min)."""
     import pyvista as pv
 
     from hel_warp.cli import main
