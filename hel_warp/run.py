@@ -111,7 +111,8 @@ def _jsonable(value):
         return str(value)
     if isinstance(value, (str, int, float, bool)) or value is None:
         return value
-    return str(value)
+    text = str(value)
+    return type(value).__name__ if " at 0x" in text else text  # no memory addresses (restart compares configs)
 
 
 def resolved_config(solver, run_config: RunConfig, case_config: dict | None = None) -> dict:
@@ -274,19 +275,36 @@ class Run:
         row = {"step": np.int64(s.step_count), "time": np.float64(s.time), "timing_step": np.float64(wall)}
         row.update({f"timing_{name}": np.float64(t) for name, t in s.timings.items()})
         row.update({f"collisions_{name}": np.int64(c) for name, c in s.collision_counts().items()})
+        done = len(self._series.get("step", []))
+        for name in set(self._series) - set(row):  # a count not reported this step: 0
+            self._series[name].append(np.zeros((), dtype=np.asarray(self._series[name][0]).dtype)[()])
         for name, value in row.items():
-            self._series.setdefault(name, []).append(value)
+            buffer = self._series.setdefault(name, [])
+            buffer.extend([type(value)(0)] * (done - len(buffer)))  # first reported now: 0 before
+            buffer.append(value)
 
     def _flush_series(self) -> None:
+        """Append the buffered per-step rows. A count that a strategy reports only on some steps reads 0 on the
+        others, so every per-step series stays as long as ``series/step``."""
         series = self.root["series"]
-        for name, values in self._series.items():
-            if not values:
-                continue
-            arr = np.asarray(values)
+        rows = len(self._series.get("step", []))
+        if not rows:
+            return
+        before = series["step"].shape[0] if "step" in series else 0
+        names = set(self._series) | {name for name, _ in series.arrays()}
+        for name in sorted(names - {"output_step", "wall_hits"}):
+            values = self._series.get(name, [])
             if name not in series:
-                series.create_array(name, shape=(0,), chunks=(4096,), dtype=arr.dtype)
-            series[name].append(arr)
-            values.clear()
+                dtype = np.asarray(values).dtype if values else np.int64
+                series.create_array(name, shape=(0,), chunks=(4096,), dtype=dtype)
+            arr = series[name]
+            if arr.shape[0] < before:
+                arr.append(np.zeros(before - arr.shape[0], dtype=arr.dtype))
+            padded = np.zeros(rows, dtype=arr.dtype)
+            if values:
+                padded[rows - len(values):] = np.asarray(values, dtype=arr.dtype)
+            arr.append(padded)
+        self._series = {}
 
     def _append_series(self, name: str, values: np.ndarray) -> None:
         series = self.root["series"]

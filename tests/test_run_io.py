@@ -87,14 +87,16 @@ def test_collision_counts_hook_is_written_per_step(tmp_path):
             self.calls += 1
 
         def counts(self):
-            return {"pairs": 2 * self.calls, "clusters": 1}
+            return {"pairs": 2 * self.calls, "clusters": 1} if self.calls != 2 else {"late": 7}
 
     solver = build("none")
     solver.collision = Counting()
     Run(solver, run_config(tmp_path, 4, output_every=2)).run()
     series = zarr.open_group(str(tmp_path / "run.zarr"), mode="r")["series"]
-    np.testing.assert_array_equal(series["collisions_pairs"][...], [2, 4, 6, 8])
-    np.testing.assert_array_equal(series["collisions_clusters"][...], [1, 1, 1, 1])
+    # a count missing on a step reads 0 there; every series is one entry per step
+    np.testing.assert_array_equal(series["collisions_pairs"][...], [2, 0, 6, 8])
+    np.testing.assert_array_equal(series["collisions_clusters"][...], [1, 0, 1, 1])
+    np.testing.assert_array_equal(series["collisions_late"][...], [0, 7, 0, 0])
 
 
 def test_restart_continues_bitwise_identically(tmp_path):
