@@ -282,6 +282,7 @@ class DemCollision:
         self.contact_capacity = int(contact_capacity)
         self.n_streams = int(n_streams)
         self._capacity = None
+        self._particles = None
         self._counts = None
         self.substeps = 0
         self.dt_dem = None
@@ -307,13 +308,15 @@ class DemCollision:
 
         from hel_warp.dem import ContactList
 
-        if self._capacity == particles.count:
+        if self._particles is particles:
             return
         n = particles.count
         dev = particles.device
+        self._particles = particles
         self._capacity = n
         self.contacts = ContactList.empty(n, self.contact_capacity, dev)
         self._old_contacts = ContactList.empty(n, self.contact_capacity, dev)
+        self._spheres, self._rows, self._old_rows = self._kernel_views(particles)
         self.force = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.torque = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.x_at_build = wp.zeros(n, dtype=wp.vec3, device=dev)
@@ -329,6 +332,15 @@ class DemCollision:
         s2 = self.n_streams * self.n_streams
         self.detected = wp.zeros(s2, dtype=wp.int32, device=dev)
         self.pair_state = None
+
+    def _kernel_views(self, particles):
+        """What the kernels/contacts.py and kernels/integrate.py wrappers take: the ``SphereArrays`` /
+        ``ContactRows`` struct views where that API exists, else the Particles and ContactList themselves."""
+        try:
+            from kernels.integrate import sphere_arrays
+        except ImportError:
+            return particles, self.contacts, self._old_contacts
+        return sphere_arrays(particles), self.contacts.rows(), self._old_contacts.rows()
 
     # ------------------------------------------------------------------ the strategy interface
     def accelerate(self, solver) -> None:
@@ -393,13 +405,14 @@ class DemCollision:
         def rebuild():
             self._rebuild(particles, r_max, skin)
 
+        spheres = self._spheres
         for _ in range(n_sub):
-            launch_kick_drift(particles, self.force, self.torque, zero, h)
+            launch_kick_drift(spheres, self.force, self.torque, zero, h)
             self.rebuild_flag.zero_()
-            launch_flag_rebuild(particles, self.x_at_build, 0.5 * skin, self.rebuild_flag)
+            launch_flag_rebuild(spheres, self.x_at_build, 0.5 * skin, self.rebuild_flag)
             wp.capture_if(self.rebuild_flag, on_true=rebuild)
             self._forces(particles, h)
-            launch_kick(particles, self.force, self.torque, zero, h)
+            launch_kick(spheres, self.force, self.torque, zero, h)
         if int(self.overflow.numpy()[0]) > 0:
             raise ConfigError(f"a parcel had {int(self.overflow.numpy()[0])} contact candidates, more than "
                               f"contact_capacity = {self.contact_capacity}; raise contact_capacity")
@@ -409,14 +422,14 @@ class DemCollision:
 
         self.grid.build(particles.x, 2.0 * r_max + skin)
         self._old_contacts.copy_from(self.contacts)
-        launch_build_contact_list(self.grid, particles, r_max, skin, self._old_contacts, self.contacts,
+        launch_build_contact_list(self.grid, self._spheres, r_max, skin, self._old_rows, self._rows,
                                   self.x_at_build, self.overflow)
 
     def _forces(self, particles, h: float) -> None:
         from kernels.collide import launch_add_fluid_force
         from kernels.contacts import launch_contact_forces
 
-        launch_contact_forces(particles, self.contacts, self.params, h, self.force, self.torque)
+        launch_contact_forces(self._spheres, self._rows, self.params, h, self.force, self.torque)
         launch_add_fluid_force(self.a_fluid, particles.radius, particles.density, self.force)
 
     def _count_overlaps(self, particles, r_max: float) -> None:
