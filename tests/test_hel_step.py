@@ -256,3 +256,30 @@ def test_collision_model_factory_names_the_valid_models():
     assert {"none", "ktgf", "surrogate", "surrogate-paper", "dem"} <= set(COLLISION_MODELS)
     with pytest.raises(ConfigError, match="unknown collision model 'surogate'; choose one of none, ktgf, surrogate"):
         collision_model("surogate")
+
+
+def test_reflection_off_an_inclined_channel_floor_uses_the_sdf_normal():
+    """Rotated box (channel along (1,0,1)/sqrt 2): the floor normal is n = (1,0,-1)/sqrt 2 out of the fluid;
+    v' = -e_n (v.n) n + e_t v_t and the centre comes back to e_n times its depth past the floor."""
+    import warp as wp
+
+    from hel_warp.grid import Channel, Geometry
+    from kernels.reflect import make_wall_params, reflect_at_walls
+
+    channel = Channel(start=(0.0, 0.0, 0.0), end=(0.1, 0.0, 0.1), width=0.02, height=0.01)
+    shapes = Geometry(shapes=(channel,)).shapes_struct()
+    d, _, e3 = channel.axes()
+    n = -e3
+    np.testing.assert_allclose(n, np.array([1.0, 0.0, -1.0]) / math.sqrt(2.0), atol=1e-12)
+    centre = np.array([0.05, 0.0, 0.05])
+    depth = 2e-4
+    x = centre + 0.01 * d + (0.5 * 0.01 + depth) * n
+    v = 0.7 * d + 1.3 * n  # into the floor, with a tangential part
+    px = wp.array(x[None].astype(np.float32), dtype=wp.vec3)
+    pv = wp.array(v[None].astype(np.float32), dtype=wp.vec3)
+    hits = wp.zeros(1, dtype=wp.int32)
+    reflect_at_walls(shapes, make_wall_params(), wp.ones(1, dtype=wp.int32), px, pv, hits)
+    np.testing.assert_allclose(pv.numpy()[0], -E_N * 1.3 * n + E_T * 0.7 * d, atol=2e-6)
+    height_above_floor = float(np.dot(px.numpy()[0] - centre, -n)) + 0.5 * 0.01  # > 0 inside the fluid
+    assert height_above_floor == pytest.approx(E_N * depth, rel=1e-3)
+    assert int(hits.numpy()[0]) == 1
