@@ -28,6 +28,10 @@ from hel_warp.errors import ConfigError, HelWarpError, require_finite, require_p
 from hel_warp.grid import FlowDomain
 from kernels import gas as K
 
+FLOAT32_FLOOR = 1e-7
+"""Continuity residual below which the float32 face velocities cannot resolve it, relative to the
+gross face flux through the cells (floor of the pressure solver's absolute tolerance)."""
+
 
 @dataclass(frozen=True, kw_only=True)
 class GasConfig:
@@ -177,7 +181,9 @@ class GasSolver:
         self._x = wp.zeros(n_max, dtype=wp.float64, device=dev)
         self._diag = wp.zeros(n_max, dtype=wp.float64, device=dev)
         self._active = wp.zeros(self._n_cells, dtype=wp.int32, device=dev)
-        self._fluid_sum = wp.zeros(2, dtype=wp.float64, device=dev)
+        self._coef = wp.zeros((self._n_cells, 6), dtype=wp.float64, device=dev)
+        self._neighbour = wp.zeros((self._n_cells, 6), dtype=wp.int32, device=dev)
+        self._fluid_sum = wp.zeros(3, dtype=wp.float64, device=dev)
         self._pcg = [wp.zeros(n_max, dtype=wp.float64, device=dev) for _ in range(4)]  # r, z, p, Ap
         self._scalars = wp.zeros(4, dtype=wp.float64, device=dev)
         solver = self.config.linear_solver
@@ -204,11 +210,11 @@ class GasSolver:
     def _launch(self, kernel, dim, inputs):
         wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
 
-    def _solve(self, n: int, matvec, what: str, tol: float, maxiter: int) -> int:
+    def _solve(self, n: int, matvec, what: str, tol: float, maxiter: int, atol_floor: float = 0.0) -> int:
         """CG with a Jacobi preconditioner on the first ``n`` entries of the scratch vectors."""
         rhs, x, diag = self._rhs[:n], self._x[:n], self._diag[:n]
         if self.linear_solver == "native":
-            iterations, residual, atol = self._native_pcg(n, matvec, tol, maxiter)
+            iterations, residual, atol = self._native_pcg(n, matvec, tol, maxiter, atol_floor)
         else:
             A = wpl.LinearOperator(shape=(n, n), dtype=wp.float64, device=self.device, matvec=matvec)
 
@@ -217,7 +223,7 @@ class GasSolver:
                           outputs=[zv], device=self.device)
 
             M = wpl.LinearOperator(shape=(n, n), dtype=wp.float64, device=self.device, matvec=jacobi)
-            iterations, residual, atol = wpl.cg(A, rhs, x, tol=tol, maxiter=maxiter, M=M, check_every=10,
+            iterations, residual, atol = wpl.cg(A, rhs, x, tol=tol, atol=atol_floor, maxiter=maxiter, M=M, check_every=10,
                                                 use_cuda_graph=False)
         if not np.isfinite(residual):
             raise HelWarpError(f"{what} solve produced NaN/inf (residual {residual}); the gas state blew up: "
@@ -229,9 +235,10 @@ class GasSolver:
                 f"loosen {'pressure' if what == 'pressure' else 'viscous'}_tolerance, or reduce dt")
         return int(iterations)
 
-    def _native_pcg(self, n: int, matvec, tol: float, maxiter: int, check_every: int = 5) -> tuple:
-        """Jacobi-preconditioned CG (kernels/gas.py ``pcg_*``); stops at ||r|| <= tol ||b|| like
-        warp's cg. Returns (iterations, ||r||, tol ||b||)."""
+    def _native_pcg(self, n: int, matvec, tol: float, maxiter: int, atol_floor: float = 0.0,
+                    check_every: int = 5) -> tuple:
+        """Jacobi-preconditioned CG (kernels/gas.py ``pcg_*``); stops at ||r|| <= max(tol ||b||, atol_floor)
+        like warp's cg. Returns (iterations, ||r||, that bound)."""
         rhs, x, diag = self._rhs[:n], self._x[:n], self._diag[:n]
         r, z, p, ap = (v[:n] for v in self._pcg)
         s, dev = self._scalars, self.device
@@ -241,7 +248,7 @@ class GasSolver:
         wp.launch(K.pcg_dot_kernel, dim=n, inputs=[rhs, rhs, 1], outputs=[s], device=dev)
         wp.launch(K.pcg_dot_kernel, dim=n, inputs=[r, r, 3], outputs=[s], device=dev)
         host = s.numpy()
-        atol = tol * float(np.sqrt(host[1]))
+        atol = max(tol * float(np.sqrt(host[1])), atol_floor)
         residual = float(np.sqrt(host[3]))
         iterations = 0
         if residual <= atol:
@@ -317,19 +324,22 @@ class GasSolver:
         self._fluid_sum.zero_()
         self._launch(K.pressure_rhs_kernel, self._cells,
                      [g, params, dom.cell_fluid, dom.face_type, dom.face_bc, gas.face_eps, gas.face_velocity,
-                      gas.cell_eps_f, gas.cell_eps_f_prev, self._rhs, self._diag, self._active, self._fluid_sum])
+                      gas.cell_eps_f, gas.cell_eps_f_prev, self._rhs, self._diag, self._active, self._fluid_sum,
+                      self._coef, self._neighbour])
         if not dom.has_outlet:
             self._launch(K.remove_mean_kernel, n, [self._active, self._fluid_sum, self._rhs])
         wp.copy(self._x, gas.pressure_solution, count=n)  # warm start from the last step
-        active = self._active
+        diag, coef, neighbour = self._diag[:n], self._coef, self._neighbour
 
         def matvec(x, y, z, alpha, beta):
-            wp.launch(K.pressure_matvec_kernel, dim=self._cells,
-                      inputs=[g, active, dom.face_type, gas.face_eps, x, y, wp.float64(alpha), wp.float64(beta)],
+            wp.launch(K.stencil_matvec_kernel, dim=n,
+                      inputs=[diag, coef, neighbour, x, y, wp.float64(alpha), wp.float64(beta)],
                       outputs=[z], device=self.device)
 
+        # floor: float32 round-off of the stored face velocities, relative to the gross flux
+        gross = float(np.sqrt(self._fluid_sum.numpy()[2]))
         self.last_iterations["pressure"] = self._solve(n, matvec, "pressure", c.pressure_tolerance,
-                                                       c.pressure_max_iterations)
+                                                       c.pressure_max_iterations, atol_floor=FLOAT32_FLOOR * gross)
         p = self._x[:n]
         wp.copy(gas.pressure_solution, p)
         for axis in range(3):

@@ -582,18 +582,26 @@ def pressure_rhs_kernel(
     diag: wp.array(dtype=wp.float64),
     active: wp.array(dtype=wp.int32),
     fluid_sum: wp.array(dtype=wp.float64),
+    coef: wp.array2d(dtype=wp.float64),
+    neighbour: wp.array2d(dtype=wp.int32),
 ):
-    """b_c = -(rho h^2/dt)(div(eps u*) + d eps/dt) + sum_outlet 2 eps_f p_out; diag of A."""
+    """b_c = -(rho h^2/dt)(div(eps u*) + d eps/dt) + sum_outlet 2 eps_f p_out; and the matrix
+    (A p)_c = diag_c p_c - sum_m coef_cm p_nb(c,m): diag = sum_fluid eps_f + sum_outlet 2 eps_f,
+    coef = eps_f on the 6 faces (0 on walls, inlets, outlets)."""
     i, j, k = wp.tid()
     c = wp.vec3i(i, j, k)
     row = flat_index(g.shape, c)
     active[row] = 0
+    for m in range(6):
+        coef[row, m] = wp.float64(0.0)
+        neighbour[row, m] = row
     if cell_fluid[i, j, k] == 0:
         rhs[row] = wp.float64(0.0)
         diag[row] = wp.float64(1.0)
         return
     h = wp.float64(g.spacing)
     div = wp.float64(0.0)
+    gross = wp.float64(0.0)
     b = wp.float64(0.0)
     a_diag = wp.float64(0.0)
     for a in range(3):
@@ -602,9 +610,12 @@ def pressure_rhs_kernel(
             sign = wp.float64(2 * side - 1)
             eps = wp.float64(get_f(face_eps, a, f))
             div = div + sign * eps * wp.float64(get_f(vel, a, f)) / h
+            gross = gross + wp.abs(eps * wp.float64(get_f(vel, a, f))) / h
             t = get_t(types, a, f)
-            if t == FACE_FLUID:
+            if t == FACE_FLUID and cell_fluid[i, j, k] != 0:
                 a_diag = a_diag + eps
+                coef[row, 2 * a + side] = eps
+                neighbour[row, 2 * a + side] = flat_index(g.shape, wrap_cell(g, c + (2 * side - 1) * unit(a)))
             elif t == FACE_OUTLET:
                 a_diag = a_diag + wp.float64(2.0) * eps
                 b = b + wp.float64(2.0) * eps * wp.float64(get_f(bc.pressure, a, f))
@@ -618,8 +629,10 @@ def pressure_rhs_kernel(
     rhs[row] = b
     diag[row] = a_diag
     active[row] = 1
-    wp.atomic_add(fluid_sum, 0, wp.float64(b))
+    wp.atomic_add(fluid_sum, 0, b)
     wp.atomic_add(fluid_sum, 1, wp.float64(1.0))
+    gross = wp.float64(params.rho) * h * h / wp.float64(params.dt) * gross
+    wp.atomic_add(fluid_sum, 2, gross * gross)
 
 
 @wp.kernel
@@ -636,11 +649,10 @@ def remove_mean_kernel(
 
 
 @wp.kernel
-def pressure_matvec_kernel(
-    g: GridInfo,
-    active: wp.array(dtype=wp.int32),
-    types: FaceInt,
-    face_eps: FaceFloat,
+def stencil_matvec_kernel(
+    diag: wp.array(dtype=wp.float64),
+    coef: wp.array2d(dtype=wp.float64),
+    neighbour: wp.array2d(dtype=wp.int32),
     x: wp.array(dtype=wp.float64),
     y: wp.array(dtype=wp.float64),
     alpha: wp.float64,
@@ -648,25 +660,11 @@ def pressure_matvec_kernel(
     # outputs
     z: wp.array(dtype=wp.float64),
 ):
-    """z = alpha A x + beta y, (A p)_c = sum_fluid faces eps_f (p_c - p_nb) + sum_outlet 2 eps_f p_c."""
-    i, j, k = wp.tid()
-    c = wp.vec3i(i, j, k)
-    row = flat_index(g.shape, c)
-    ax = x[row]
-    if active[row] != 0:
-        acc = wp.float64(0.0)
-        pc = x[row]
-        for a in range(3):
-            for side in range(2):
-                f = wrap_face(g, a, c + side * unit(a))
-                t = get_t(types, a, f)
-                eps = wp.float64(get_f(face_eps, a, f))
-                if t == FACE_FLUID:
-                    nb = wrap_cell(g, c + (2 * side - 1) * unit(a))
-                    acc = acc + eps * (pc - x[flat_index(g.shape, nb)])
-                elif t == FACE_OUTLET:
-                    acc = acc + wp.float64(2.0) * eps * pc
-        ax = acc
+    """z = alpha A x + beta y for the 7-point pressure matrix of ``pressure_rhs_kernel``."""
+    row = wp.tid()
+    ax = diag[row] * x[row]
+    for m in range(6):
+        ax = ax - coef[row, m] * x[neighbour[row, m]]
     z[row] = alpha * ax + beta * y[row]
 
 
