@@ -147,13 +147,39 @@ def damping_for(restitution: float) -> float:
     return float(damping_coefficient(restitution))
 
 
+def contact_params(material: Material, other: Material | None, *, tangential_damping: float = 0.0):
+    """``kernels.hertz.ContactParams`` of a material pair (Johnson 1985 §4.2, Mindlin 1949):
+    ``1/E* = (1-nu1^2)/E1 + (1-nu2^2)/E2``, ``1/G* = 2(2-nu1)(1+nu1)/E1 + 2(2-nu2)(1+nu2)/E2``.
+    ``other = None`` is a rigid wall (its terms vanish) with the first material's e, mu and mu_r;
+    otherwise e, mu, mu_r are those of ``other`` (the wall's, for a wall material). R*, m* are set per contact.
+    """
+    from kernels.hertz import MODEL_HERTZ, ContactParams
+
+    def compliance(m: Material) -> tuple[float, float]:
+        nu, E = m.poisson_ratio, m.youngs_modulus
+        return (1.0 - nu**2) / E, 2.0 * (2.0 - nu) * (1.0 + nu) / E
+
+    inv_e, inv_g = compliance(material)
+    if other is not None:
+        inv_e2, inv_g2 = compliance(other)
+        inv_e, inv_g = inv_e + inv_e2, inv_g + inv_g2
+    props = material if other is None else other
+    p = ContactParams()
+    p.model = MODEL_HERTZ
+    p.youngs_eff = 1.0 / inv_e
+    p.shear_eff = 1.0 / inv_g
+    p.normal_damping = damping_for(props.restitution)
+    p.friction = props.friction
+    p.tangential_damping = tangential_damping
+    p.rolling_friction = props.rolling_friction
+    return p
+
+
 class DEMSolver:
     """N-body DEM: fixed :class:`DEMConfig`, changing :class:`Particles` (updated in place)."""
 
     def __init__(self, config: DEMConfig, particles: Particles):
         import warp as wp
-
-        from kernels.hertz import MODEL_HERTZ, ContactParams
 
         self.config = config
         self.particles = particles
@@ -183,28 +209,8 @@ class DEMSolver:
         self.gravity = wp.vec3(*config.gravity)
 
         # contact constants (E*, G* of the material pair; R*, m* are set per contact in the kernels)
-        E, nu = material.youngs_modulus, material.poisson_ratio
-        self.params = ContactParams()
-        self.params.model = MODEL_HERTZ
-        self.params.youngs_eff = 1.0 / (2.0 * (1.0 - nu**2) / E)
-        self.params.shear_eff = 1.0 / (4.0 * (2.0 - nu) * (1.0 + nu) / E)
-        self.params.normal_damping = damping_for(material.restitution)
-        self.params.friction = material.friction
-        self.params.tangential_damping = config.tangential_damping
-        self.params.rolling_friction = material.rolling_friction
-        wall = config.wall_material
-        inv_e = (1.0 - nu**2) / E + (0.0 if wall is None else (1.0 - wall.poisson_ratio**2) / wall.youngs_modulus)
-        inv_g = 2.0 * (2.0 - nu) * (1.0 + nu) / E + (
-            0.0 if wall is None else 2.0 * (2.0 - wall.poisson_ratio) * (1.0 + wall.poisson_ratio) / wall.youngs_modulus)
-        wall_props = material if wall is None else wall
-        self.wall_params = ContactParams()
-        self.wall_params.model = MODEL_HERTZ
-        self.wall_params.youngs_eff = 1.0 / inv_e
-        self.wall_params.shear_eff = 1.0 / inv_g
-        self.wall_params.normal_damping = damping_for(wall_props.restitution)
-        self.wall_params.friction = wall_props.friction
-        self.wall_params.tangential_damping = config.tangential_damping
-        self.wall_params.rolling_friction = wall_props.rolling_friction
+        self.params = contact_params(material, material, tangential_damping=config.tangential_damping)
+        self.wall_params = contact_params(material, config.wall_material, tangential_damping=config.tangential_damping)
 
         # plane walls of the box, inward normals
         points, normals = [], []
