@@ -20,8 +20,8 @@ returns this step's collision counts ``{name: int}`` for the run output.
 
 Momentum bookkeeping: the push records each parcel's drag impulse; the next step's deposit hands
 minus that to the gas (one step later), so particles + gas + :meth:`HelSolver.momentum_in_flight`
-(minus the drag impulses of the last push, owed to the gas) is conserved by the coupling. The float64 sums are copied into
-the gas solver's float32 arrays, so the gas side holds them to float32 round-off.
+(minus the drag impulses of the last push, owed to the gas) is conserved by the coupling. The float64
+sums are copied into the gas solver's float32 arrays, so the gas side holds them to float32 round-off.
 
 After the push (ARCHITECTURE.md step 5): parcels past an outlet plane are removed (``Outlet``,
 ``ParcelPool.remove_beyond_plane``); parcels whose centre crossed the SDF wall are reflected with

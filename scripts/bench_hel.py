@@ -6,8 +6,10 @@
   and the CG iterations of the pressure solve (CG iterations grow with the grid, so the cost per cell
   is not expected to stay flat).
 - Parcels: ``deposit_parcels``, ``interpolate_gas``, ``push_parcels`` on a fixed 32^3 grid with
-  1e4, 1e5, 1e6 parcels (``--parcels``) at random positions; median per call, per parcel, and the
-  ratio of the per-parcel cost to the smallest count (target: flat within 1.5x).
+  1e4, 1e5, 1e6 parcels (``--parcels``) at random positions; median per call, per parcel, the
+  ratio of the per-parcel cost to the smallest count (target: flat within 1.5x) and the marginal
+  cost of the added parcels (free of the fixed per-call grid work: zeroing and finishing the cells).
+  The SDF wall reflection (``kernels/reflect.py``) is timed beside it, not in the sum.
 
 Usage::
 
@@ -78,9 +80,15 @@ def bench_parcels(n: int, repeats: int, device, n_side: int = 32, seed: int = 0)
                              device=parts.device)
     cell_grad_p = wp.zeros((n_side,) * 3, dtype=wp.vec3, device=parts.device)
     params = PushConfig().params(1e-5)  # short step: parcels stay in the box over the repeats
+    from hel_warp.grid import Box, Geometry
+    from kernels.reflect import make_wall_params, reflect_at_walls
+
+    shapes = Geometry(shapes=(Box(lo=(0.0, 0.0, 0.0), hi=(n_side * h,) * 3),)).shapes_struct(parts.device)
+    wall_params, hits = make_wall_params(), wp.zeros(1, dtype=wp.int32, device=parts.device)
     subs = {"deposit": lambda: deposit_parcels(grid, parts, fields),
             "interpolate": lambda: interpolate_gas(grid, parts, cell_velocity, cell_grad_p, fields),
-            "push": lambda: push_parcels(parts, fields, params)}
+            "push": lambda: push_parcels(parts, fields, params),
+            "walls": lambda: reflect_at_walls(shapes, wall_params, parts.alive, parts.x, parts.v, hits)}
     times = {name: [] for name in subs}
     totals = []
     for r in range(repeats + 1):
@@ -91,7 +99,8 @@ def bench_parcels(n: int, repeats: int, device, n_side: int = 32, seed: int = 0)
             call()
             _sync(parts.device)
             elapsed = time.perf_counter() - start
-            total += elapsed
+            if name != "walls":  # the total is deposit + interpolate + push
+                total += elapsed
             if r:
                 times[name].append(elapsed)
         if r:
@@ -141,12 +150,13 @@ def main(argv=None) -> int:
     for g in gas:
         print(f"{g['cells']:>10} {g['median_s']:>10.4f} {g['per_cell_us']:>9.3f} {g['ratio_per_cell']:>6.2f} "
               f"{g['pressure_cg_iterations']:>7}")
-    print(f"{'parcels':>10} {'sum (s)':>10} {'deposit':>9} {'interp':>9} {'push':>9} {'ns/parcel':>10} {'ratio':>6} {'marginal':>9}")
+    print(f"{'parcels':>10} {'sum (s)':>10} {'deposit':>9} {'interp':>9} {'push':>9} {'ns/parcel':>10} "
+          f"{'ratio':>6} {'marginal':>9} {'(walls)':>8}")
     for p in parcels:
         print(f"{p['parcels']:>10} {p['median_s']:>10.4f} {p['deposit_ns_per_parcel']:>9.1f} "
               f"{p['interpolate_ns_per_parcel']:>9.1f} {p['push_ns_per_parcel']:>9.1f} "
               f"{p['total_ns_per_parcel']:>10.1f} {p['ratio_per_parcel']:>6.2f} "
-              f"{p.get('marginal_ns_per_parcel', float('nan')):>9.1f}")
+              f"{p.get('marginal_ns_per_parcel', float('nan')):>9.1f} {p['walls_ns_per_parcel']:>8.1f}")
     print(f"parcel cost per parcel flat within 1.5x: {result['parcel_cost_flat_within_1_5x']}")
     return 0
 

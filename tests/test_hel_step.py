@@ -221,8 +221,6 @@ class _Mover:
         solver.fields.parcel_a_coll.zero_()
 
     def advance(self, solver):
-        import warp as wp
-
         self.advanced += 1
         x = solver.pool.particles.x.numpy()
         x[:, 0] += solver.config.dt
