@@ -11,7 +11,8 @@ What it computes
   old row is merged with the new one by partner id, so contact history survives rebuilds.
 - Contact forces (:func:`contact_forces`): thread i sums its own contacts with the Hertz-Mindlin
   law of ``kernels/hertz.py`` — a *full* list (i sees j and j sees i), so no atomics and a sum
-  order fixed by the sorted row: bitwise deterministic on any device.
+  order fixed by the sorted row: bitwise deterministic by construction (tested on the CPU;
+  the CUDA path is untested here).
 - A compact pair list (i < j, touching only) for collision-rate and statistics kernels.
 - A spatial sort (gather by hash-grid cell order) that keeps neighbours close in memory.
 
