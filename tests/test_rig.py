@@ -1,0 +1,174 @@
+"""The colliding-streams rig (cases/colliding_streams.py): flows, connectivity, sections, a reduced run.
+
+References: the paper's section 2 (240 and 38.4 l/min, 20 m/s in the supply channels) for the
+inlet flows; a flood fill of the fluid mask and the analytic SDF for connectivity; the run
+directory contract of hel_warp/report.py for the reduced run.
+"""
+
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+LITRE_PER_MIN = 1e-3 / 60.0
+
+
+@pytest.fixture(scope="module")
+def cs():
+    spec = importlib.util.spec_from_file_location("colliding_streams", ROOT / "cases" / "colliding_streams.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["colliding_streams"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def full_rig(cs):
+    dims = cs.RigDimensions()
+    grid, geometry, speeds = cs.build_geometry(dims)
+    domain = geometry.build(grid, device="cpu")
+    return dims, grid, geometry, speeds, domain
+
+
+def _sdf(geometry, points):
+    import warp as wp
+
+    from kernels.sdf import eval_sdf
+
+    pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device="cpu")
+    dist = wp.zeros(len(points), dtype=float, device="cpu")
+    nrm = wp.zeros(len(points), dtype=wp.vec3, device="cpu")
+    eval_sdf(geometry.shapes_struct("cpu"), pts, dist, nrm)
+    return dist.numpy()
+
+
+def test_inlet_flows_match_the_paper(full_rig):
+    # Q = (inlet faces x h^2) x normal speed; the paper: 240 l/min main, 38.4 l/min per side arm, 20 m/s
+    dims, grid, geometry, speeds, domain = full_rig
+    expected = {"main_inlet": 240.0, "left_inlet": 38.4, "right_inlet": 38.4}
+    patches = {p.name: p for p in geometry.patches}
+    for name, litres in expected.items():
+        axis, mask = domain.patch_faces[name]
+        area = mask.sum() * grid.spacing**2
+        flow = area * patches[name].velocity[axis] / LITRE_PER_MIN
+        assert flow == pytest.approx(litres, rel=0.01), name
+        assert patches[name].velocity[axis] == pytest.approx(20.0, rel=0.01), name
+        assert area == pytest.approx(litres * LITRE_PER_MIN / 20.0, rel=0.01), name
+    assert np.prod(grid.shape) == pytest.approx(100_000, rel=0.1)  # "about 100,000 cells" (paper: 107,000)
+
+
+def test_reduced_grid_keeps_the_flows(cs):
+    dims = cs.dimensions_for_cells(5000)
+    grid, geometry, speeds = cs.build_geometry(dims)
+    domain = geometry.build(grid, device="cpu")
+    assert np.prod(grid.shape) == pytest.approx(5000, rel=0.3)
+    patches = {p.name: p for p in geometry.patches}
+    for name, litres in {"main_inlet": 240.0, "left_inlet": 38.4, "right_inlet": 38.4}.items():
+        axis, mask = domain.patch_faces[name]
+        assert mask.sum() * grid.spacing**2 * patches[name].velocity[axis] / LITRE_PER_MIN == pytest.approx(litres,
+                                                                                                           rel=1e-6)
+
+
+def test_junction_connected(full_rig, cs):
+    from scipy import ndimage
+
+    dims, grid, geometry, speeds, domain = full_rig
+    fluid = domain.cell_fluid.numpy().astype(bool)
+    labels, count = ndimage.label(fluid)  # face connectivity (6-neighbourhood)
+    assert count == 1
+    # SDF < 0 along each stream's path: injection box -> supply axis -> inclined arm -> main axis -> outlet
+    for side in (0, 1):
+        lo, hi = dims.injection_box(side, 0.0)
+        start = 0.5 * (np.asarray(lo) + np.asarray(hi))
+        arm_start, arm_end = (np.asarray(p) for p in dims.arm_axis(side))
+        main_point = np.array([arm_end[0] + abs(arm_end[1]), 0.0, 0.5 * dims.main_depth])
+        outlet = np.array([dims.main_length - 1e-3, 0.0, 0.5 * dims.main_depth])
+        path = [start, arm_start, arm_end, main_point, outlet]
+        points = np.concatenate([np.linspace(a, b, 200) for a, b in zip(path[:-1], path[1:])])
+        assert np.all(_sdf(geometry, points) < 0.0), f"arm {side} path leaves the fluid"
+
+
+def test_ten_sections_downstream_inside_fluid(full_rig):
+    dims, grid, geometry, speeds, domain = full_rig
+    sections = dims.sections()
+    assert len(sections) == 10
+    junction_x = max(max(dims.arm_axis(s)[1][0] for s in (0, 1)), 0.0)  # arm axes end inside the main channel
+    previous_hi = -math.inf
+    for s in sections:
+        lo, hi = np.asarray(s["lo"]), np.asarray(s["hi"])
+        assert lo[0] > junction_x and lo[0] >= previous_hi
+        previous_hi = hi[0]
+        # every point of the box (corners pulled in by 1 um) is fluid of the main channel
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        centre = 0.5 * (lo + hi)
+        pulled = corners + 1e-6 * np.sign(centre - corners)
+        assert np.all(_sdf(geometry, np.vstack([pulled, centre])) < 0.0), s["name"]
+    assert previous_hi < dims.main_length
+
+
+def _args(out, *extra):
+    return ["--diameter", "315e-6", "--dt", "1e-3", "--collisions", "none", "--end-time", "0.003", "--cells", "5000",
+            "--max-particles", "200", "--gas-warmup", "0.001", "--no-vtk", "--no-progress", "--out", str(out), *extra]
+
+
+def test_reduced_run_writes_what_the_report_needs(cs, tmp_path):
+    import zarr
+
+    from hel_warp.report import load_run, profiles
+
+    out = tmp_path / "run"
+    assert cs.main(_args(out)) == 0
+    run = load_run(str(out))
+    c = run.config
+    for key in ("collisions", "dt", "diameter", "end_time", "wall_clock_s", "rig"):
+        assert key in c
+    assert c["collisions"] == "none" and c["dt"] == 1e-3 and c["diameter"] == 315e-6 and c["end_time"] == 0.003
+    assert c["wall_clock_s"] > 0 and c["check_errors"] == []
+    assert len(run.rig["sections"]) == 10
+    assert run.series["step_wall_s"].shape == (3,) and run.series["collisions"].shape == (3,)
+    assert len(run.snapshots) == 3
+    last = run.snapshots[-1]
+    # both streams present, parcels alive = injected - removed (the count check of check())
+    assert set(np.unique(last["stream"]).tolist()) == {0, 1}
+    assert len(last["x"]) == c["injected"] - c["removed"] == 200 - c["removed"]
+    assert np.all(np.isfinite(last["v"]))
+    assert len(profiles(run, 20)) == 10
+    assert zarr.open_group(str(out / "run.zarr"), mode="r").attrs["wall_clock_s"] == c["wall_clock_s"]
+
+
+def test_existing_run_dir_refused(cs, tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "run.zarr").mkdir()
+    assert cs.main(_args(out)) == 2
+    assert "exists" in capsys.readouterr().err
+    other = tmp_path / "not_a_run"
+    other.mkdir()
+    (other / "precious.txt").write_text("keep me")
+    assert cs.main(_args(other, "--overwrite")) == 2
+    assert (other / "precious.txt").exists()
+
+
+def test_model_for_another_particle_refused(cs, tmp_path, capsys):
+    from hel_warp.errors import ConfigError
+
+    model = tmp_path / "model"
+    model.mkdir()
+    (model / "metadata.json").write_text(json.dumps({"format": "hel_warp.surrogate",
+                                                     "defaults": {"d1": 475e-6, "d2": 475e-6, "rho1": 1000.0,
+                                                                  "rho2": 1000.0}}))
+    with pytest.raises(ConfigError, match="475 um"):
+        cs.check_model(str(model), 315e-6, 1000.0, force=False)
+    assert cs.check_model(str(model), 315e-6, 1000.0, force=True)["defaults"]["d1"] == 475e-6
+    cs.check_model(str(model), 475e-6, 1000.0, force=False)  # the right particle passes
+    with pytest.raises(ConfigError, match="density"):
+        cs.check_model(str(model), 475e-6, 950.0, force=False)
+    args = _args(tmp_path / "run")
+    args[args.index("none")] = "surrogate"
+    assert cs.main(args + ["--model", str(model)]) == 2
+    assert "--force" in capsys.readouterr().err
