@@ -24,6 +24,8 @@ CANONICAL_FEATURES = {
     "contact": ("g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio"),
 }
 N_TARGETS = {"paper": 3, "contact": 2}
+PERFECT_MAX_DEPTH = 12
+"""Deepest tree padded to the perfect layout (2^D - 1 nodes per tree); deeper forests use explicit children."""
 
 
 def quiet_warp() -> None:
@@ -69,18 +71,86 @@ class FlatForest:
     def n_nodes(self) -> int:
         return int(self.node_info.size)
 
-    def to_device(self, device="cpu"):
+    def packed_nodes(self) -> np.ndarray:
+        """Nodes as the kernel's 8-byte ``Node`` records (kernels/forest.py): meta, value."""
+        split = self.node_info >= 0
+        if self.n_nodes >= 1 << 26:
+            raise ConfigError(f"forest has {self.n_nodes} nodes; the packed layout holds at most 2**26")
+        meta = np.where(split, (self.node_left.astype(np.int64) << 5) | self.node_info.astype(np.int64), -1)
+        nodes = np.zeros(self.n_nodes, dtype=[("meta", "<i4"), ("value", "<f4")])
+        nodes["meta"] = meta.astype(np.int32)
+        nodes["value"] = self.node_value
+        return nodes
+
+    def perfect_layout(self):
+        """Pad every tree to a perfect tree of its own depth D, level ordered (children 2i+1, 2i+2).
+
+        A leaf above level D becomes a pass-through subtree whose every leaf at level D holds
+        its value, so either branch gives the same result. Returns (nodes, tree_first_node,
+        tree_depth, tree_first_leaf, leaves).
+        """
+        node_parts, leaf_parts = [], []
+        first_node, depths, first_leaf = [], [], []
+        n_nodes = n_leaves = 0
+        left, info, value = self.node_left, self.node_info, self.node_value
+        for root in self.tree_root:
+            level = np.array([root], dtype=np.int64)
+            metas, values = [], []
+            while np.any(info[level] >= 0):
+                split = info[level] >= 0
+                metas.append(np.where(split, info[level], 0))
+                values.append(np.where(split, value[level], 0.0))
+                lft = np.where(split, left[level], level)
+                rgt = np.where(split, left[level] + 1, level)
+                level = np.stack([lft, rgt], axis=1).reshape(-1)
+            depth = len(metas)
+            nodes = np.zeros((1 << depth) - 1, dtype=[("meta", "<i4"), ("value", "<f4")])
+            if depth:
+                nodes["meta"] = np.concatenate(metas)
+                nodes["value"] = np.concatenate(values)
+            first_node.append(n_nodes)
+            depths.append(depth)
+            first_leaf.append(n_leaves)
+            node_parts.append(nodes)
+            leaf_parts.append(value[level].astype(np.float32))
+            n_nodes += nodes.size
+            n_leaves += level.size
+        if not node_parts or n_nodes == 0:
+            node_parts.append(np.zeros(1, dtype=[("meta", "<i4"), ("value", "<f4")]))
+        return (np.concatenate(node_parts), np.asarray(first_node, np.int32), np.asarray(depths, np.int32),
+                np.asarray(first_leaf, np.int32),
+                np.concatenate(leaf_parts) if leaf_parts else np.zeros(1, np.float32))
+
+    def to_device(self, device="cpu", *, layout: str = "auto"):
+        """The Warp ``Forest`` struct. ``layout``: "perfect" (padded level-ordered trees, used when
+        the deepest tree has depth <= PERFECT_MAX_DEPTH), "explicit" (children indices), "auto"."""
         import warp as wp
 
-        from kernels.forest import Forest
+        from kernels.forest import Forest, Node
 
+        if layout == "auto":
+            layout = "perfect" if self.max_depth <= PERFECT_MAX_DEPTH else "explicit"
+        if layout not in ("perfect", "explicit"):
+            raise ConfigError(f"forest layout must be perfect, explicit or auto, got {layout!r}")
         forest = Forest()
-        forest.tree_root = wp.array(self.tree_root, dtype=wp.int32, device=device)
         forest.tree_start = wp.array(self.tree_start, dtype=wp.int32, device=device)
-        forest.node_info = wp.array(self.node_info, dtype=wp.int32, device=device)
-        forest.node_value = wp.array(self.node_value, dtype=wp.float32, device=device)
-        forest.node_left = wp.array(self.node_left, dtype=wp.int32, device=device)
         forest.base_score = wp.array(self.base_score, dtype=wp.float32, device=device)
+        if layout == "perfect":
+            nodes, first, depth, first_leaf, leaves = self.perfect_layout()
+            forest.perfect = 1
+            forest.nodes = wp.array(nodes, dtype=Node, device=device)
+            forest.tree_root = wp.array(first, dtype=wp.int32, device=device)
+            forest.tree_depth = wp.array(depth, dtype=wp.int32, device=device)
+            forest.tree_leaf = wp.array(first_leaf, dtype=wp.int32, device=device)
+            forest.leaves = wp.array(leaves, dtype=wp.float32, device=device)
+        else:
+            forest.perfect = 0
+            forest.nodes = wp.array(self.packed_nodes(), dtype=Node, device=device)
+            forest.tree_root = wp.array(self.tree_root, dtype=wp.int32, device=device)
+            forest.tree_depth = wp.zeros(max(1, self.n_trees), dtype=wp.int32, device=device)
+            forest.tree_leaf = wp.zeros(max(1, self.n_trees), dtype=wp.int32, device=device)
+            forest.leaves = wp.zeros(1, dtype=wp.float32, device=device)
+        self.layout = layout
         return forest
 
 
@@ -134,7 +204,7 @@ def parse_forest(doc: dict) -> FlatForest:
     if root.size and (root.min() < 0 or root.max() >= n_nodes):
         raise ConfigError("forest tree_root index out of range")
     split = info >= 0
-    if np.any(info < -1) or np.any((info[split] >> 1) >= len(CANONICAL_FEATURES[form])):
+    if np.any(info < -1) or np.any((info[split] >> 1) >= min(len(CANONICAL_FEATURES[form]), 16)):
         raise ConfigError("forest node feature index out of range")
     if np.any(split & ((left < 0) | (left + 1 >= n_nodes))) or np.any(split & (left <= np.arange(n_nodes))):
         raise ConfigError("forest child index out of range (children must follow their parent)")
@@ -169,13 +239,15 @@ def load_forest(model_dir: str) -> FlatForest:
 class ForestPredictor:
     """Evaluate a flattened forest on a Warp device: raw features, or whole pairs (v1, v2, ...)."""
 
-    def __init__(self, flat: FlatForest, device="cpu", *, rows_per_thread: int | None = None):
+    def __init__(self, flat: FlatForest, device="cpu", *, rows_per_thread: int | None = None,
+                 layout: str = "auto"):
         import warp as wp
 
         quiet_warp()
         self.flat = flat
         self.device = wp.get_device(device)
-        self.forest = flat.to_device(self.device)
+        self.forest = flat.to_device(self.device, layout=layout)
+        self.layout = flat.layout
         # CPU: a block of rows per thread walks each tree for all of them (cache reuse);
         # GPU: one row per thread.
         self.rows_per_thread = rows_per_thread or (64 if self.device.is_cpu else 1)

@@ -19,20 +19,41 @@ CONTACT_FEATURES = 6  # g_n g_t cos_angle d1 size_ratio density_ratio
 TANGENT_EPS = 1.0e-6  # = surrogate.features.TANGENT_EPS: relative slip below which t_hat = 0
 
 
+NODE_FEATURE_BITS = 4  # features < 16
+NODE_CHILD_SHIFT = 1 + NODE_FEATURE_BITS
+
+
+@wp.struct
+class Node:
+    """One tree node, 8 bytes (one load per visited node).
+
+    ``meta``: -1 at a leaf; else ``left << 5 | feature << 1 | default_left`` (the right child is
+    ``left + 1``). ``value``: leaf value, or the raw-space split threshold T (left iff x < T).
+    """
+
+    meta: wp.int32
+    value: wp.float32
+
+
 @wp.struct
 class Forest:
-    """Flattened forest on the device (see surrogate/flatten.py for the layout)."""
+    """Flattened forest on the device (file layout: surrogate/flatten.py; packing: hel_warp/forest.py)."""
 
+    nodes: wp.array(dtype=Node)
+    """explicit layout: (n_nodes,) all trees' nodes, breadth first per tree, siblings adjacent;
+    perfect layout: each tree's 2^depth - 1 split nodes in level order (children of i: 2i+1, 2i+2)."""
     tree_root: wp.array(dtype=wp.int32)
-    """(n_trees,) root node of each tree."""
+    """(n_trees,) first node of each tree in ``nodes``."""
+    tree_depth: wp.array(dtype=wp.int32)
+    """(n_trees,) perfect layout: depth D of each tree (levels walked)."""
+    tree_leaf: wp.array(dtype=wp.int32)
+    """(n_trees,) perfect layout: first of the tree's 2^D leaf values in ``leaves``."""
+    leaves: wp.array(dtype=wp.float32)
+    """perfect layout: leaf values, level D of each padded tree, left to right."""
+    perfect: wp.int32
+    """1: perfect (level-ordered, padded) layout; 0: explicit children."""
     tree_start: wp.array(dtype=wp.int32)
     """(n_targets+1,) trees of target t: tree_start[t] .. tree_start[t+1]-1."""
-    node_info: wp.array(dtype=wp.int32)
-    """(n_nodes,) -1 at a leaf; else 2*feature + default_left."""
-    node_value: wp.array(dtype=wp.float32)
-    """(n_nodes,) leaf value, or the raw-space split threshold."""
-    node_left: wp.array(dtype=wp.int32)
-    """(n_nodes,) left child; the right child is node_left + 1."""
     base_score: wp.array(dtype=wp.float32)
     """(n_targets,) XGBoost base_score of each target."""
 
@@ -40,18 +61,25 @@ class Forest:
 @wp.func
 def walk_tree(forest: Forest, root: wp.int32, features: wp.array2d(dtype=wp.float32), row: wp.int32):
     """Leaf value of one tree for one row: left iff ``x < T``; NaN goes to the default side."""
-    i = root
-    info = forest.node_info[i]
-    while info >= 0:
-        x = features[row, info >> 1]
-        go_right = wp.int32(0)
-        if wp.isnan(x):
-            go_right = 1 - (info & 1)
-        elif x >= forest.node_value[i]:
-            go_right = 1
-        i = forest.node_left[i] + go_right
-        info = forest.node_info[i]
-    return forest.node_value[i]
+    node = forest.nodes[root]
+    while node.meta >= 0:
+        x = features[row, (node.meta >> 1) & 15]
+        # branch-free: a NaN compares false, then takes the default side
+        go_right = wp.where(x >= node.value, 1, 0)
+        go_right = wp.where(wp.isnan(x), 1 - (node.meta & 1), go_right)
+        node = forest.nodes[(node.meta >> 5) + go_right]
+    return node.value
+
+
+@wp.func
+def perfect_step(forest: Forest, first_node: wp.int32, i: wp.int32, features: wp.array2d(dtype=wp.float32),
+                 row: wp.int32):
+    """One level of a padded perfect tree: ``i -> 2i + 1 + go_right`` (same split rule as walk_tree)."""
+    node = forest.nodes[first_node + i]
+    x = features[row, (node.meta >> 1) & 15]
+    go_right = wp.where(x >= node.value, 1, 0)
+    go_right = wp.where(wp.isnan(x), 1 - (node.meta & 1), go_right)
+    return 2 * i + 1 + go_right
 
 
 @wp.kernel
@@ -59,7 +87,11 @@ def eval_forest_kernel(forest: Forest, features: wp.array2d(dtype=wp.float32), n
                        rows_per_thread: wp.int32,
                        # outputs
                        out: wp.array2d(dtype=wp.float32)):
-    """Every target for rows [tid*rows_per_thread, ...): trees outer, rows inner (cache reuse on CPU)."""
+    """Every target for rows [tid*rows_per_thread, ...): trees outer, rows inner (cache reuse on CPU).
+
+    Perfect layout: four rows walk each tree in lockstep (fixed trip count, independent loads
+    in flight); explicit layout: one row at a time with early exit at the leaf.
+    """
     tid = wp.tid()
     first = tid * rows_per_thread
     last = wp.min(first + rows_per_thread, n_rows)
@@ -70,8 +102,34 @@ def eval_forest_kernel(forest: Forest, features: wp.array2d(dtype=wp.float32), n
             out[row, t] = base
         for k in range(forest.tree_start[t], forest.tree_start[t + 1]):
             root = forest.tree_root[k]
-            for row in range(first, last):
-                out[row, t] = out[row, t] + walk_tree(forest, root, features, row)
+            if forest.perfect == 0:
+                for row in range(first, last):
+                    out[row, t] = out[row, t] + walk_tree(forest, root, features, row)
+            else:
+                depth = forest.tree_depth[k]
+                leaf0 = forest.tree_leaf[k] - ((1 << depth) - 1)
+                row = first
+                while row < last:
+                    r1 = wp.min(row + 1, last - 1)
+                    r2 = wp.min(row + 2, last - 1)
+                    r3 = wp.min(row + 3, last - 1)
+                    i0 = wp.int32(0)
+                    i1 = wp.int32(0)
+                    i2 = wp.int32(0)
+                    i3 = wp.int32(0)
+                    for level in range(depth):
+                        i0 = perfect_step(forest, root, i0, features, row)
+                        i1 = perfect_step(forest, root, i1, features, r1)
+                        i2 = perfect_step(forest, root, i2, features, r2)
+                        i3 = perfect_step(forest, root, i3, features, r3)
+                    out[row, t] = out[row, t] + forest.leaves[leaf0 + i0]
+                    if row + 1 < last:
+                        out[r1, t] = out[r1, t] + forest.leaves[leaf0 + i1]
+                    if row + 2 < last:
+                        out[r2, t] = out[r2, t] + forest.leaves[leaf0 + i2]
+                    if row + 3 < last:
+                        out[r3, t] = out[r3, t] + forest.leaves[leaf0 + i3]
+                    row += 4
 
 
 @wp.func

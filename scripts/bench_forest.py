@@ -1,0 +1,146 @@
+"""Throughput of the flattened Warp forest vs XGBoost's own predictor on the same model and rows.
+
+    python scripts/bench_forest.py --model MODEL_DIR [--samples 200000] [--repeats 7] [--device cpu|cuda]
+
+Without ``--model`` a model is trained first on the analytic TEST FIXTURE data
+(surrogate.features.synthetic_collisions; a few trials) — pass a real MODEL_DIR to measure
+the model you use. Rows: ``--samples`` impacts of the fixture (features of the model's form).
+CPU: Warp kernel (one CPU thread; Warp runs CPU kernels serially) vs
+``Booster.inplace_predict`` with ``nthread=1``. CUDA: the Warp kernel on the GPU vs XGBoost
+with ``device="cuda"`` (input already on the device as a CuPy array when CuPy is installed,
+else a NumPy array). Each figure is the median of ``--repeats`` timed runs after one warm-up;
+all targets of the model are evaluated. Warp is timed with the features already on the device
+(``kernel``) and including the host->device copy and the result copy back (``end-to-end``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+
+def _median_time(fn, repeats: int) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", help="model directory (default: train a small one on the test fixture)")
+    parser.add_argument("--samples", type=int, default=200_000)
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
+    parser.add_argument("--rows-per-thread", type=int, default=None,
+                        help="rows per Warp thread (default 64 on CPU, 1 on CUDA)")
+    parser.add_argument("--json", action="store_true")
+    args = parser.parse_args(argv)
+
+    import warp as wp
+    import xgboost as xgb
+
+    from hel_warp.forest import ForestPredictor, load_forest, quiet_warp
+    from kernels.forest import eval_forest
+    from surrogate.artifact import load_artifact
+    from surrogate.features import CANONICAL_FEATURES, form_rows, standardize, synthetic_collisions
+
+    quiet_warp()
+    model_dir = args.model
+    if model_dir is None:
+        from surrogate.train import TrainConfig, train
+
+        model_dir = os.path.join(tempfile.mkdtemp(prefix="bench_forest_"), "model")
+        train(synthetic_collisions(20_000, seed=1), model_dir,
+              TrainConfig(form="contact", trials=4, progress=False, report=False), log=lambda *_: None)
+    art = load_artifact(model_dir, boosters=True)
+    flat = load_forest(model_dir)
+    rows = form_rows(art.form, synthetic_collisions(args.samples if art.form == "contact" else args.samples,
+                                                    seed=123, central_fraction=0.5 if art.form == "contact" else 1.0,
+                                                    polydisperse="d1" in art.features))
+    raw = np.ascontiguousarray(rows.features[: args.samples])
+    cols = [CANONICAL_FEATURES[art.form].index(f) for f in art.features]
+    xs = standardize(raw[:, cols], art.scaler_mean, art.scaler_std)
+    n = raw.shape[0]
+
+    predictor = ForestPredictor(flat, device=args.device, rows_per_thread=args.rows_per_thread)
+    device = predictor.device
+    x_dev = wp.array(raw, dtype=wp.float32, device=device)
+    out_dev = wp.zeros((n, len(flat.targets)), dtype=wp.float32, device=device)
+
+    def warp_kernel():
+        eval_forest(predictor.forest, x_dev, out_dev, rows_per_thread=predictor.rows_per_thread)
+        wp.synchronize_device(device)
+
+    def warp_end_to_end():
+        predictor.predict_features(raw)
+
+    boosters = [art.boosters[t] for t in art.targets]
+    if args.device == "cuda":
+        for b in boosters:
+            b.set_param({"device": "cuda"})
+        try:
+            import cupy
+
+            x_in = cupy.asarray(xs)
+            sync = cupy.cuda.runtime.deviceSynchronize
+        except ImportError:
+            x_in, sync = xs, (lambda: None)
+    else:
+        for b in boosters:
+            b.set_param({"nthread": 1, "device": "cpu"})
+        x_in, sync = xs, (lambda: None)
+
+    def xgb_predict():
+        for b in boosters:
+            b.inplace_predict(x_in)
+        sync()
+
+    # correctness first: the two must agree
+    warp_kernel()
+    ref = np.column_stack([np.asarray(b.inplace_predict(x_in).get() if hasattr(b.inplace_predict(x_in), "get")
+                                      else b.inplace_predict(x_in)) for b in boosters])
+    max_diff = float(np.max(np.abs(out_dev.numpy() - ref)))
+
+    t_kernel = _median_time(warp_kernel, args.repeats)
+    t_e2e = _median_time(warp_end_to_end, args.repeats)
+    t_xgb = _median_time(xgb_predict, args.repeats)
+    result = {
+        "model": model_dir, "form": art.form, "device": str(device), "samples": n,
+        "targets": len(boosters), "trees": flat.n_trees, "nodes": flat.n_nodes, "max_depth": flat.max_depth,
+        "rows_per_thread": predictor.rows_per_thread, "repeats": args.repeats,
+        "warp_kernel_samples_per_s": n / t_kernel, "warp_end_to_end_samples_per_s": n / t_e2e,
+        "xgboost_samples_per_s": n / t_xgb,
+        "xgboost": f"inplace_predict, {'device=cuda' if args.device == 'cuda' else 'nthread=1'}, xgboost "
+                   f"{xgb.__version__}",
+        "ratio_kernel": t_xgb / t_kernel, "ratio_end_to_end": t_xgb / t_e2e,
+        "max_abs_diff_vs_xgboost": max_diff,
+    }
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(f"model {model_dir}: {art.form} form, {flat.n_trees} trees, {flat.n_nodes} nodes, "
+              f"depth <= {flat.max_depth}, {len(boosters)} targets; {n} samples, median of {args.repeats}")
+        print(f"Warp forest ({device}, {predictor.rows_per_thread} rows/thread): "
+              f"{result['warp_kernel_samples_per_s']:.3e} samples/s kernel, "
+              f"{result['warp_end_to_end_samples_per_s']:.3e} end-to-end")
+        print(f"XGBoost {result['xgboost']}: {result['xgboost_samples_per_s']:.3e} samples/s")
+        print(f"ratio Warp/XGBoost: {result['ratio_kernel']:.2f}x kernel, {result['ratio_end_to_end']:.2f}x "
+              f"end-to-end; max |diff| = {max_diff:.2e}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
