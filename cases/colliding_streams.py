@@ -119,8 +119,11 @@ class RigDimensions:
     """Distance between section centres, m (ten sections, last centre at 145 mm)."""
     section_length: float = 8.0e-3
     """Length of each section box along x, m; each spans the full width and depth (assumed)."""
-    injection_x: tuple = (6.0e-3, 14.0e-3)
-    """x-range of the injection boxes inside the supply channels, m (assumed, within the 20 mm straight part)."""
+    injection_x: tuple = (2.0e-3, 18.0e-3)
+    """x-range of the injection boxes inside the supply channels, m (assumed): nearly the whole 20 mm straight
+    part, so that the released parcels (0.014-0.019 kg/s, a mass loading of ~18 on the arm's gas) start at
+    eps_s ~ 0.05 rather than piling up in a small box (the explicit drag source of the gas step needs
+    rho_p eps_s F_D dt / rho_f below ~1)."""
     injection_speed: float = 3.4
     """Initial particle speed along the supply channel, m/s (paper section 5: DEM of the particle holder)."""
 
