@@ -181,8 +181,8 @@ class GasSolver:
         self._x = wp.zeros(n_max, dtype=wp.float64, device=dev)
         self._diag = wp.zeros(n_max, dtype=wp.float64, device=dev)
         self._active = wp.zeros(self._n_cells, dtype=wp.int32, device=dev)
-        self._coef = wp.zeros((self._n_cells, 6), dtype=wp.float64, device=dev)
-        self._neighbour = wp.zeros((self._n_cells, 6), dtype=wp.int32, device=dev)
+        self._coef = wp.zeros((n_max, 6), dtype=wp.float64, device=dev)
+        self._neighbour = wp.zeros((n_max, 6), dtype=wp.int32, device=dev)
         self._fluid_sum = wp.zeros(3, dtype=wp.float64, device=dev)
         self._pcg = [wp.zeros(n_max, dtype=wp.float64, device=dev) for _ in range(4)]  # r, z, p, Ap
         self._scalars = wp.zeros(4, dtype=wp.float64, device=dev)
@@ -306,12 +306,13 @@ class GasSolver:
             n = int(np.prod(shape))
             self._launch(K.viscous_rhs_kernel, shape,
                          [g, axis, params, dom.face_type, dom.face_bc, gas.face_eps, gas.face_kappa,
-                          gas.face_velocity, self._rhs, self._x, self._diag])
+                          gas.face_velocity, self._rhs, self._x, self._diag, self._coef, self._neighbour])
+            diag, coef, neighbour = self._diag[:n], self._coef[:n], self._neighbour[:n]
 
-            def matvec(x, y, z, alpha, beta, axis=axis, shape=shape):
-                wp.launch(K.viscous_matvec_kernel, dim=shape,
-                          inputs=[g, axis, params, dom.face_type, dom.face_bc, gas.face_eps, gas.face_kappa,
-                                  x, y, wp.float64(alpha), wp.float64(beta)], outputs=[z], device=self.device)
+            def matvec(x, y, z, alpha, beta, diag=diag, coef=coef, neighbour=neighbour, n=n):
+                wp.launch(K.stencil_matvec_kernel, dim=n,
+                          inputs=[diag, coef, neighbour, x, y, wp.float64(alpha), wp.float64(beta)],
+                          outputs=[z], device=self.device)
 
             self.last_iterations["viscous"][axis] = self._solve(
                 n, matvec, f"viscous ({'xyz'[axis]})", c.viscous_tolerance, c.viscous_max_iterations)
@@ -329,7 +330,7 @@ class GasSolver:
         if not dom.has_outlet:
             self._launch(K.remove_mean_kernel, n, [self._active, self._fluid_sum, self._rhs])
         wp.copy(self._x, gas.pressure_solution, count=n)  # warm start from the last step
-        diag, coef, neighbour = self._diag[:n], self._coef, self._neighbour
+        diag, coef, neighbour = self._diag[:n], self._coef[:n], self._neighbour[:n]
 
         def matvec(x, y, z, alpha, beta):
             wp.launch(K.stencil_matvec_kernel, dim=n,

@@ -479,13 +479,20 @@ def viscous_rhs_kernel(
     rhs: wp.array(dtype=wp.float64),
     guess: wp.array(dtype=wp.float64),
     diag: wp.array(dtype=wp.float64),
+    coef: wp.array2d(dtype=wp.float64),
+    neighbour: wp.array2d(dtype=wp.int32),
 ):
-    """Backward-Euler viscous system of one component: (rho eps/dt) u - div(kappa grad u) = (rho eps/dt) u*."""
+    """Backward-Euler viscous system of one component: (rho eps/dt) u - div(kappa grad u) = (rho eps/dt) u*,
+    as a 7-point stencil (diag, coef, neighbour) for ``stencil_matvec_kernel``; fixed faces: identity rows."""
     i, j, k = wp.tid()
     f = wp.vec3i(i, j, k)
-    row = flat_index(face_shape(g, axis), f)
+    shape = face_shape(g, axis)
+    row = flat_index(shape, f)
     u_star = get_f(vel, axis, f)
     guess[row] = wp.float64(u_star)
+    for m in range(6):
+        coef[row, m] = wp.float64(0.0)
+        neighbour[row, m] = row
     if not is_solved(get_t(types, axis, f)):
         rhs[row] = wp.float64(u_star)
         diag[row] = wp.float64(1.0)
@@ -500,54 +507,15 @@ def viscous_rhs_kernel(
             s = 2 * side - 1
             kind, nb, value, factor = viscous_neighbour(g, axis, types, bc, f, d, s)
             if kind == 1:
-                a_diag = a_diag + 0.5 * (kappa_f + get_f(face_kappa, axis, nb)) / h2
+                c = 0.5 * (kappa_f + get_f(face_kappa, axis, nb)) / h2
+                a_diag = a_diag + c
+                coef[row, 2 * d + side] = wp.float64(c)
+                neighbour[row, 2 * d + side] = flat_index(shape, nb)
             elif kind == 2:
                 a_diag = a_diag + factor * kappa_f / h2
                 b = b + factor * kappa_f * value / h2
     rhs[row] = wp.float64(b)
     diag[row] = wp.float64(a_diag)
-
-
-@wp.kernel
-def viscous_matvec_kernel(
-    g: GridInfo,
-    axis: int,
-    params: FlowParams,
-    types: FaceInt,
-    bc: FaceBc,
-    face_eps: FaceFloat,
-    face_kappa: FaceFloat,
-    x: wp.array(dtype=wp.float64),
-    y: wp.array(dtype=wp.float64),
-    alpha: wp.float64,
-    beta: wp.float64,
-    # outputs
-    z: wp.array(dtype=wp.float64),
-):
-    """z = alpha A x + beta y for the viscous system of ``viscous_rhs_kernel``."""
-    i, j, k = wp.tid()
-    f = wp.vec3i(i, j, k)
-    shape = face_shape(g, axis)
-    row = flat_index(shape, f)
-    ax = x[row]
-    if is_solved(get_t(types, axis, f)):
-        h2 = wp.float64(g.spacing * g.spacing)
-        kappa_f = wp.float64(get_f(face_kappa, axis, f))
-        a_diag = wp.float64(params.rho * get_f(face_eps, axis, f) / params.dt)
-        off = wp.float64(0.0)
-        xf = x[row]
-        for d in range(3):
-            for side in range(2):
-                s = 2 * side - 1
-                kind, nb, value, factor = viscous_neighbour(g, axis, types, bc, f, d, s)
-                if kind == 1:
-                    c = wp.float64(0.5) * (kappa_f + wp.float64(get_f(face_kappa, axis, nb))) / h2
-                    a_diag = a_diag + c
-                    off = off + c * x[flat_index(shape, nb)]
-                elif kind == 2:
-                    a_diag = a_diag + wp.float64(factor) * kappa_f / h2
-        ax = a_diag * xf - off
-    z[row] = alpha * ax + beta * y[row]
 
 
 @wp.kernel
