@@ -82,6 +82,12 @@ def perfect_step(forest: Forest, first_node: wp.int32, i: wp.int32, features: wp
     return 2 * i + 1 + go_right
 
 
+LOCKSTEP_ROWS = 8
+"""Rows one thread walks through each perfect-layout tree level by level, side by side."""
+RowIndex = wp.types.vector(length=LOCKSTEP_ROWS, dtype=wp.int32)
+RowSum = wp.types.vector(length=LOCKSTEP_ROWS, dtype=wp.float32)
+
+
 @wp.kernel
 def eval_forest_kernel(forest: Forest, features: wp.array2d(dtype=wp.float32), n_rows: wp.int32,
                        rows_per_thread: wp.int32,
@@ -89,8 +95,10 @@ def eval_forest_kernel(forest: Forest, features: wp.array2d(dtype=wp.float32), n
                        out: wp.array2d(dtype=wp.float32)):
     """Every target for rows [tid*rows_per_thread, ...): trees outer, rows inner (cache reuse on CPU).
 
-    Perfect layout: four rows walk each tree in lockstep (fixed trip count, independent loads
-    in flight); explicit layout: one row at a time with early exit at the leaf.
+    Perfect layout (rows_per_thread must be LOCKSTEP_ROWS): the rows walk each tree level by
+    level side by side (fixed trip count, independent loads in flight), sums kept locally;
+    explicit layout: one row at a time with early exit at the leaf. Either way the sum is
+    base_score + tree 0 + tree 1 + ..., XGBoost's order.
     """
     tid = wp.tid()
     first = tid * rows_per_thread
@@ -98,38 +106,29 @@ def eval_forest_kernel(forest: Forest, features: wp.array2d(dtype=wp.float32), n
     n_targets = forest.tree_start.shape[0] - 1
     for t in range(n_targets):
         base = forest.base_score[t]
-        for row in range(first, last):
-            out[row, t] = base
-        for k in range(forest.tree_start[t], forest.tree_start[t + 1]):
-            root = forest.tree_root[k]
-            if forest.perfect == 0:
+        if forest.perfect == 0:
+            for row in range(first, last):
+                out[row, t] = base
+            for k in range(forest.tree_start[t], forest.tree_start[t + 1]):
+                root = forest.tree_root[k]
                 for row in range(first, last):
                     out[row, t] = out[row, t] + walk_tree(forest, root, features, row)
-            else:
+        else:
+            acc = RowSum()
+            for r in range(LOCKSTEP_ROWS):
+                acc[r] = base
+            for k in range(forest.tree_start[t], forest.tree_start[t + 1]):
+                root = forest.tree_root[k]
                 depth = forest.tree_depth[k]
                 leaf0 = forest.tree_leaf[k] - ((1 << depth) - 1)
-                row = first
-                while row < last:
-                    r1 = wp.min(row + 1, last - 1)
-                    r2 = wp.min(row + 2, last - 1)
-                    r3 = wp.min(row + 3, last - 1)
-                    i0 = wp.int32(0)
-                    i1 = wp.int32(0)
-                    i2 = wp.int32(0)
-                    i3 = wp.int32(0)
-                    for level in range(depth):
-                        i0 = perfect_step(forest, root, i0, features, row)
-                        i1 = perfect_step(forest, root, i1, features, r1)
-                        i2 = perfect_step(forest, root, i2, features, r2)
-                        i3 = perfect_step(forest, root, i3, features, r3)
-                    out[row, t] = out[row, t] + forest.leaves[leaf0 + i0]
-                    if row + 1 < last:
-                        out[r1, t] = out[r1, t] + forest.leaves[leaf0 + i1]
-                    if row + 2 < last:
-                        out[r2, t] = out[r2, t] + forest.leaves[leaf0 + i2]
-                    if row + 3 < last:
-                        out[r3, t] = out[r3, t] + forest.leaves[leaf0 + i3]
-                    row += 4
+                idx = RowIndex()
+                for level in range(depth):
+                    for r in range(LOCKSTEP_ROWS):
+                        idx[r] = perfect_step(forest, root, idx[r], features, wp.min(first + r, last - 1))
+                for r in range(LOCKSTEP_ROWS):
+                    acc[r] = acc[r] + forest.leaves[leaf0 + idx[r]]
+            for r in range(last - first):
+                out[first + r, t] = acc[r]
 
 
 @wp.func
@@ -233,9 +232,12 @@ def paper_velocities_kernel(targets: wp.array2d(dtype=wp.float32),
 
 
 def eval_forest(forest: Forest, features, out, *, rows_per_thread: int = 1, device=None) -> None:
-    """``out[row, t]`` = prediction of target t for ``features[row]`` (raw float32 features)."""
+    """``out[row, t]`` = prediction of target t for ``features[row]`` (raw float32 features).
+
+    ``rows_per_thread`` applies to the explicit layout; the perfect layout uses LOCKSTEP_ROWS.
+    """
     n_rows = features.shape[0]
-    rows_per_thread = max(1, int(rows_per_thread))
+    rows_per_thread = LOCKSTEP_ROWS if forest.perfect else max(1, int(rows_per_thread))
     n_threads = (n_rows + rows_per_thread - 1) // rows_per_thread
     if n_threads == 0:
         return

@@ -59,18 +59,22 @@ def _flat(doc, form):
     return parse_forest(json.loads(json.dumps(doc)))
 
 
+@pytest.mark.parametrize("layout", ["perfect", "explicit"])
 @pytest.mark.parametrize("form,depths", [("contact", (12, 2)), ("paper", (3, 6, 9))])
-def test_forest_equals_xgboost_predict(form, depths):
+def test_forest_equals_xgboost_predict(form, depths, layout):
     data = synthetic_collisions(1500, seed=11, polydisperse=True)
     rows, cols, raw, mean, std, boosters, doc = _fit_forest(form, data, depths)
     assert doc["max_depth"] == max(depths)
-    out = ForestPredictor(_flat(doc, form)).predict_features(_full_features(rows, cols, raw))
+    n = 1001  # not a multiple of the rows walked per thread
+    out = ForestPredictor(_flat(doc, form), layout=layout, rows_per_thread=7).predict_features(
+        _full_features(rows, cols, raw)[:n])
     for k, booster in enumerate(boosters.values()):
-        reference = booster.predict(xgb.DMatrix(standardize(raw, mean, std)))
+        reference = booster.predict(xgb.DMatrix(standardize(raw[:n], mean, std)))
         np.testing.assert_allclose(out[:, k], reference, rtol=1e-5, atol=1e-5)
 
 
-def test_missing_values_take_the_default_direction():
+@pytest.mark.parametrize("layout", ["perfect", "explicit"])
+def test_missing_values_take_the_default_direction(layout):
     """NaN features go to XGBoost's learned default side; both sides must occur."""
     data = synthetic_collisions(2000, seed=4)
     rows, cols, raw, mean, std, boosters, doc = _fit_forest("contact", data, (4, 8), nan_fraction=0.15)
@@ -78,7 +82,7 @@ def test_missing_values_take_the_default_direction():
     split = flat.node_info >= 0
     assert set(np.unique(flat.node_info[split] & 1)) == {0, 1}  # default_left both ways
     assert np.isnan(raw).any(axis=1).mean() > 0.3
-    out = ForestPredictor(flat).predict_features(_full_features(rows, cols, raw))
+    out = ForestPredictor(flat, layout=layout).predict_features(_full_features(rows, cols, raw))
     for k, booster in enumerate(boosters.values()):
         reference = booster.predict(xgb.DMatrix(standardize(raw, mean, std)))
         np.testing.assert_allclose(out[:, k], reference, rtol=1e-5, atol=1e-5)
