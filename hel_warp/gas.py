@@ -4,7 +4,8 @@ Paper eqs. (1)-(3) with constant gas density, on the MAC grid of ``kernels/gas.p
 semi-Lagrangian advection, particle momentum source, backward-Euler viscous step with
 molecular + Smagorinsky viscosity, and a pressure projection onto
 ``d(eps_f)/dt + div(eps_f u) = 0``; both linear systems are solved with
-``warp.optim.linear.cg`` and a Jacobi preconditioner (matrix-free operators).
+``warp.optim.linear.cg`` with a Jacobi preconditioner (matrix-free operators) on CUDA, and on
+the CPU with a native IC(0)-preconditioned CG (``GasConfig.linear_solver``).
 
 Interface with the particle side (``kernels/deposit.py``, ``kernels/interp.py``):
 before ``GasSolver.step`` fill ``cell_eps_s``, ``cell_momentum_source`` (N s per cell over
@@ -54,9 +55,10 @@ class GasConfig:
     """Relative residual of each viscous system."""
     viscous_max_iterations: int = 1000
     linear_solver: str = "auto"
-    """'warp' (warp.optim.linear.cg, Jacobi preconditioner), 'native' (the same Jacobi PCG with
-    atomic reductions, kernels/gas.py), or 'auto': warp on CUDA, native on the CPU, where warp's
-    tile-based dot products cost ~0.1 s each at 1e5 unknowns."""
+    """'warp' (warp.optim.linear.cg, Jacobi preconditioner), 'native' (PCG with an IC(0)
+    preconditioner and atomic reductions, kernels/gas.py; sequential substitutions, for the CPU),
+    or 'auto': warp on CUDA, native on the CPU, where warp's tile-based dot products cost ~0.1 s
+    each at 1e5 unknowns."""
     check_finite: bool = True
     """Raise HelWarpError when a NaN/inf appears (one int read back per step)."""
 
@@ -186,6 +188,7 @@ class GasSolver:
         self._fluid_sum = wp.zeros(3, dtype=wp.float64, device=dev)
         self._pcg = [wp.zeros(n_max, dtype=wp.float64, device=dev) for _ in range(4)]  # r, z, p, Ap
         self._scalars = wp.zeros(4, dtype=wp.float64, device=dev)
+        self._pivot = wp.zeros(n_max, dtype=wp.float64, device=dev)
         solver = self.config.linear_solver
         self.linear_solver = ("warp" if self.device.is_cuda else "native") if solver == "auto" else solver
         """The linear solver actually used ('warp' or 'native')."""
@@ -211,7 +214,7 @@ class GasSolver:
         wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
 
     def _solve(self, n: int, matvec, what: str, tol: float, maxiter: int, atol_floor: float = 0.0) -> int:
-        """CG with a Jacobi preconditioner on the first ``n`` entries of the scratch vectors."""
+        """CG (see ``GasConfig.linear_solver``) on the first ``n`` entries of the scratch vectors."""
         rhs, x, diag = self._rhs[:n], self._x[:n], self._diag[:n]
         if self.linear_solver == "native":
             iterations, residual, atol = self._native_pcg(n, matvec, tol, maxiter, atol_floor)
@@ -237,13 +240,15 @@ class GasSolver:
 
     def _native_pcg(self, n: int, matvec, tol: float, maxiter: int, atol_floor: float = 0.0,
                     check_every: int = 5) -> tuple:
-        """Jacobi-preconditioned CG (kernels/gas.py ``pcg_*``); stops at ||r|| <= max(tol ||b||, atol_floor)
+        """CG preconditioned with IC(0) of the stencil (kernels/gas.py ``pcg_*``, ``ic0_*``); stops at ||r|| <= max(tol ||b||, atol_floor)
         like warp's cg. Returns (iterations, ||r||, that bound)."""
         rhs, x, diag = self._rhs[:n], self._x[:n], self._diag[:n]
+        coef, neighbour, pivot = self._coef[:n], self._neighbour[:n], self._pivot[:n]
         r, z, p, ap = (v[:n] for v in self._pcg)
         s, dev = self._scalars, self.device
+        wp.launch(K.ic0_factor_kernel, dim=1, inputs=[diag, coef, neighbour, n], outputs=[pivot], device=dev)
         matvec(x, rhs, ap, 1.0, 0.0)
-        wp.launch(K.pcg_start_kernel, dim=n, inputs=[diag, rhs, ap], outputs=[r, z, p], device=dev)
+        wp.launch(K.pcg_start_kernel, dim=n, inputs=[rhs, ap], outputs=[r], device=dev)
         s.zero_()
         wp.launch(K.pcg_dot_kernel, dim=n, inputs=[rhs, rhs, 1], outputs=[s], device=dev)
         wp.launch(K.pcg_dot_kernel, dim=n, inputs=[r, r, 3], outputs=[s], device=dev)
@@ -253,12 +258,15 @@ class GasSolver:
         iterations = 0
         if residual <= atol:
             return iterations, residual, atol
+        wp.launch(K.ic0_apply_kernel, dim=1, inputs=[pivot, coef, neighbour, r, n], outputs=[z], device=dev)
+        wp.copy(p, z)
         s.zero_()
         wp.launch(K.pcg_dot_kernel, dim=n, inputs=[r, z, 0], outputs=[s], device=dev)
         while iterations < maxiter:
             matvec(p, p, ap, 1.0, 0.0)
             wp.launch(K.pcg_dot_kernel, dim=n, inputs=[p, ap, 1], outputs=[s], device=dev)
-            wp.launch(K.pcg_step_kernel, dim=n, inputs=[diag, p, ap, s], outputs=[x, r, z], device=dev)
+            wp.launch(K.pcg_step_kernel, dim=n, inputs=[p, ap, s], outputs=[x, r], device=dev)
+            wp.launch(K.ic0_apply_kernel, dim=1, inputs=[pivot, coef, neighbour, r, n], outputs=[z], device=dev)
             wp.launch(K.pcg_dot_kernel, dim=n, inputs=[r, z, 2], outputs=[s], device=dev)
             wp.launch(K.pcg_direction_kernel, dim=n, inputs=[z, s], outputs=[p], device=dev)
             iterations += 1

@@ -736,7 +736,7 @@ def finite_check_kernel(
 # ----------------------------------------------------------------- native Jacobi-PCG (CPU path)
 # warp.optim.linear.cg reduces with tile kernels that cost ~0.1 s per dot product on the CPU at
 # 1e5 unknowns; this plain PCG (Hestenes & Stiefel 1952; Saad, *Iterative Methods*, alg. 9.1)
-# reduces with atomics instead. Scalars live in ``scalars``: 0 = r.z, 1 = p.Ap, 2 = new r.z, 3 = r.r.
+# reduces with atomics instead, preconditioned with IC(0) (sequential, fine on the CPU). Scalars live in ``scalars``: 0 = r.z, 1 = p.Ap, 2 = new r.z, 3 = r.r.
 
 
 @wp.kernel
@@ -753,42 +753,84 @@ def pcg_dot_kernel(
 
 @wp.kernel
 def pcg_start_kernel(
-    diag: wp.array(dtype=wp.float64),
     rhs: wp.array(dtype=wp.float64),
     ax: wp.array(dtype=wp.float64),
     # outputs
     r: wp.array(dtype=wp.float64),
-    z: wp.array(dtype=wp.float64),
-    p: wp.array(dtype=wp.float64),
 ):
-    """r = b - A x, z = D^-1 r, p = z."""
+    """r = b - A x."""
     i = wp.tid()
-    ri = rhs[i] - ax[i]
-    r[i] = ri
-    z[i] = ri / diag[i]
-    p[i] = ri / diag[i]
+    r[i] = rhs[i] - ax[i]
 
 
 @wp.kernel
 def pcg_step_kernel(
-    diag: wp.array(dtype=wp.float64),
     p: wp.array(dtype=wp.float64),
     ap: wp.array(dtype=wp.float64),
     scalars: wp.array(dtype=wp.float64),
     # outputs
     x: wp.array(dtype=wp.float64),
     r: wp.array(dtype=wp.float64),
-    z: wp.array(dtype=wp.float64),
 ):
-    """x += alpha p, r -= alpha Ap, z = D^-1 r with alpha = (r.z)/(p.Ap)."""
+    """x += alpha p, r -= alpha Ap with alpha = (r.z)/(p.Ap)."""
     i = wp.tid()
     alpha = wp.float64(0.0)
     if scalars[1] != wp.float64(0.0):
         alpha = scalars[0] / scalars[1]
     x[i] = x[i] + alpha * p[i]
-    ri = r[i] - alpha * ap[i]
-    r[i] = ri
-    z[i] = ri / diag[i]
+    r[i] = r[i] - alpha * ap[i]
+
+
+@wp.kernel
+def ic0_factor_kernel(
+    diag: wp.array(dtype=wp.float64),
+    coef: wp.array2d(dtype=wp.float64),
+    neighbour: wp.array2d(dtype=wp.int32),
+    n: int,
+    # outputs
+    pivot: wp.array(dtype=wp.float64),
+):
+    """Incomplete Cholesky IC(0) of the 7-point stencil, A ~ (D + L) D^-1 (D + L^T) with
+    d_i = a_ii - sum_{j<i} a_ij^2 / d_j (Meijerink & van der Vorst 1977). Sequential: one thread
+    (the CPU path; the CUDA path keeps Jacobi). A pivot that is not positive falls back to a_ii."""
+    for i in range(n):
+        d = diag[i]
+        for m in range(6):
+            j = neighbour[i, m]
+            if j < i and coef[i, m] != wp.float64(0.0):
+                d = d - coef[i, m] * coef[i, m] / pivot[j]
+        if d <= wp.float64(1.0e-3) * diag[i]:
+            d = diag[i]
+        pivot[i] = d
+
+
+@wp.kernel
+def ic0_apply_kernel(
+    pivot: wp.array(dtype=wp.float64),
+    coef: wp.array2d(dtype=wp.float64),
+    neighbour: wp.array2d(dtype=wp.int32),
+    r: wp.array(dtype=wp.float64),
+    n: int,
+    # outputs
+    z: wp.array(dtype=wp.float64),
+):
+    """z = [(D + L) D^-1 (D + L^T)]^-1 r: forward then backward substitution (one thread).
+    Off-diagonal entries of A are -coef."""
+    for i in range(n):
+        acc = r[i]
+        for m in range(6):
+            j = neighbour[i, m]
+            if j < i:
+                acc = acc + coef[i, m] * z[j]
+        z[i] = acc / pivot[i]
+    for step in range(n):
+        i = n - 1 - step
+        acc = wp.float64(0.0)
+        for m in range(6):
+            j = neighbour[i, m]
+            if j > i:
+                acc = acc + coef[i, m] * z[j]
+        z[i] = z[i] + acc / pivot[i]
 
 
 @wp.kernel
