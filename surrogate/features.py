@@ -106,40 +106,28 @@ def validate_data(data: CollisionData) -> None:
 
 
 def load_collision_data(path: str, *, samples_limit: int | None = None) -> CollisionData:
-    """Read the zarr group written by ``hel-warp dataset`` (schema: docs/TEAM-NOTES.md)."""
+    """Read the data set written by ``hel-warp dataset`` (schema: docs/TEAM-NOTES.md).
+
+    Goes through ``surrogate.dataset.load_dataset`` (which refuses an incomplete or corrupted
+    set: chunk flags, config ids, dataset_hash), then keeps the first ``samples_limit`` rows.
+    """
     import os
 
     if not os.path.isdir(path):
         raise ConfigError(f"data set {path!r} not found; give the directory written by `hel-warp dataset --out`")
-    import zarr
+    from surrogate.dataset import load_dataset
 
-    try:
-        group = zarr.open_group(path, mode="r")
-        attrs = dict(group.attrs)
-        inputs = group["inputs"]
-        outputs = group["outputs"]
-    except Exception as exc:  # zarr raises several types for a broken store
-        raise ConfigError(f"cannot read data set {path!r} as a zarr group with 'inputs' and 'outputs': {exc}") from None
+    ds = load_dataset(path)
+    attrs = dict(ds.attrs)
     if tuple(attrs.get("input_columns", INPUT_COLUMNS)) != INPUT_COLUMNS:
         raise ConfigError(f"data set {path!r} input_columns {attrs.get('input_columns')} differ from the "
                           f"agreed schema {list(INPUT_COLUMNS)}")
-    out_cols = tuple(attrs.get("output_columns", OUTPUT_COLUMNS))
-    if out_cols[:6] != OUTPUT_COLUMNS[:6]:
-        raise ConfigError(f"data set {path!r} output_columns start with {list(out_cols[:6])}, "
-                          f"expected {list(OUTPUT_COLUMNS[:6])}")
-    if "chunk_done" in group:
-        done = np.asarray(group["chunk_done"][...])
-        if done.size and not done.all():
-            raise ConfigError(f"data set {path!r} is incomplete ({int(done.sum())}/{done.size} chunks written); "
-                              "rerun `hel-warp dataset` with the same options to finish it")
-    n = inputs.shape[0] if samples_limit is None else min(int(samples_limit), inputs.shape[0])
-    family = np.asarray(group["family"][:n]) if "family" in group else None
-    data = CollisionData(np.asarray(inputs[:n], dtype=np.float64), np.asarray(outputs[:n], dtype=np.float64),
-                         str(attrs.get("dataset_hash", "")) if samples_limit is None else "", attrs, family)
-    if not data.dataset_hash:
-        import hashlib
-
-        data.dataset_hash = hashlib.sha256(data.inputs.tobytes() + data.outputs.tobytes()).hexdigest()
+    if tuple(attrs.get("output_columns", OUTPUT_COLUMNS))[:6] != OUTPUT_COLUMNS[:6]:
+        raise ConfigError(f"data set {path!r} output_columns {attrs.get('output_columns')} do not start with "
+                          f"{list(OUTPUT_COLUMNS[:6])}")
+    n = len(ds.inputs) if samples_limit is None else min(int(samples_limit), len(ds.inputs))
+    data = CollisionData(np.asarray(ds.inputs[:n], dtype=np.float64), np.asarray(ds.outputs[:n], dtype=np.float64),
+                         str(attrs.get("dataset_hash", "")), attrs, np.asarray(ds.family[:n]))
     validate_data(data)
     return data
 
