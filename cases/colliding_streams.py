@@ -38,11 +38,15 @@ Usage::
     python cases/colliding_streams.py --diameter 315e-6 --dt 1e-3 --collisions none \
         --end-time 0.003 --cells 5000 --max-particles 200 --out runs/ci    # reduced rig
 
-Writes ``OUT/run.zarr`` (hel_warp.io.RunWriter layout: particle snapshots with x, v, radius,
-weight, stream, particle_id; series ``step_wall_s``, ``collisions``, ``injected``, ``removed``;
-attrs ``config`` with ``collisions``, ``dt``, ``diameter``, ``end_time``, ``wall_clock_s`` and the
-rig layout ``rig`` (sections, axes) that the report reads) and VTK files. ``check()`` verifies
-physical facts at the end (no parcel centre inside a wall, parcels alive = injected - removed).
+The step is engineer G's ``HelSolver.step`` (deposit, gas, interpolate, collide, push, outlets,
+walls with e_n = e_t = 0.8, scheduled injection) driven by ``hel_warp.run.Run``, which writes
+``OUT/run.zarr`` (particle snapshots with x, v, radius, weight, stream, particle_id; gas fields;
+series ``timing_step``, ``timing_<sub-step>``, ``collisions_<kind>``), VTK files and checkpoints
+(``--resume`` continues from the last one). The case adds attrs ``config.case`` (the settings, the
+grid and the rig layout ``rig``: sections and axes, which ``hel-warp report`` reads) and, at the
+end, ``summary`` (``collisions``, ``dt``, ``diameter``, ``end_time``, ``wall_clock_s`` = the sum of
+the per-step wall clock, collision totals, ``check_errors``). ``check()`` verifies physical facts at
+the end (no parcel centre inside a wall, parcels alive = injected - removed).
 """
 
 from __future__ import annotations
@@ -254,36 +258,6 @@ def _fluid_mask(grid, geometry) -> np.ndarray:
     return cell_fluid.numpy().astype(bool)
 
 
-# ---------------------------------------------------------------------------------------------- walls
-# Stop-gap until the HEL step handles walls itself (engineer G): reflection of parcels at the SDF
-# wall with the paper's coefficients e_n = e_t = 0.8 (Table 1).
-import warp as wp  # noqa: E402  (after the sys.path set-up)
-
-from kernels.sdf import SdfShapes, sdf_union, sdf_union_normal  # noqa: E402
-
-
-@wp.kernel
-def reflect_at_walls(shapes: SdfShapes, restitution_normal: float, restitution_tangential: float,
-                     particle_radius: wp.array(dtype=float), particle_alive: wp.array(dtype=wp.int32),
-                     # outputs (updated in place)
-                     particle_x: wp.array(dtype=wp.vec3), particle_v: wp.array(dtype=wp.vec3)):
-    """A parcel closer to the wall than its radius is put back at distance r; its outward normal velocity
-    reverses with e_n and the tangential part keeps e_t of itself."""
-    i = wp.tid()
-    if particle_alive[i] == 0:
-        return
-    x = particle_x[i]
-    radius = particle_radius[i]
-    distance = sdf_union(shapes, x)
-    if distance > -radius:
-        normal = sdf_union_normal(shapes, x)  # out of the fluid
-        particle_x[i] = x - (distance + radius) * normal
-        v = particle_v[i]
-        v_n = wp.dot(v, normal)
-        if v_n > 0.0:
-            particle_v[i] = -restitution_normal * v_n * normal + restitution_tangential * (v - v_n * normal)
-
-
 # ---------------------------------------------------------------------------------------------- the case
 @dataclass(frozen=True, kw_only=True)
 class CaseConfig:
@@ -318,8 +292,6 @@ class CaseConfig:
     """Surrogate model directory (surrogate and surrogate-paper)."""
     seed: int = 0
     device: str = "cpu"
-    wall_restitution: tuple = (0.8, 0.8)
-    """Particle-wall e_n, e_t (paper Table 1)."""
     gravity: tuple = (9.80665, 0.0, 0.0)
     """m/s^2: the rig stands upright with the flow downwards (+x), holders above the arms (assumed)."""
 
@@ -388,15 +360,20 @@ def check_model(model_dir: str, diameter: float, density: float, force: bool) ->
 
 
 class CollidingStreams:
-    """The rig: gas solver, parcel pool, HEL solver, injection schedule; :meth:`step` advances one dt."""
+    """The rig: gas solver, parcel pool and ``HelSolver`` (walls, two scheduled injectors, two outlet planes).
+
+    ``step()`` is one HEL step (deposit, gas, interpolate, collide, push, outlets, walls, inject; engineer
+    G's ``HelSolver.step``); ``snapshot()`` the output hook; :func:`check` the physical facts.
+    """
 
     def __init__(self, config: CaseConfig):
         import warp as wp
 
         from hel_warp.coupling import PushConfig
         from hel_warp.gas import GasConfig, GasField, GasSolver
-        from hel_warp.hel import HelConfig, HelSolver, collision_model
-        from hel_warp.parcels import ParcelPool
+        from hel_warp.hel import HelConfig, HelSolver, Outlet, ScheduledInjection, collision_model
+        from hel_warp.material import Material
+        from hel_warp.parcels import ParcelPool, VolumeInjection
 
         wp.config.quiet = True
         self.config = config
@@ -408,6 +385,7 @@ class CollidingStreams:
         self.gas_solver = GasSolver(self.domain, gas_config, device=device)
         self.gas = GasField(self.domain, device=device)
         self.pool = ParcelPool.empty(config.particles, device=device)
+        material = Material(density=config.density)
         push = PushConfig(fluid_density=gas_config.density, fluid_viscosity=gas_config.viscosity,
                           gravity=config.gravity)
         kwargs = {}
@@ -415,23 +393,40 @@ class CollidingStreams:
             kwargs = {"particle_diameter": config.diameter, "particle_density": config.density}
         elif config.collisions.startswith("surrogate"):
             kwargs = {"model_dir": config.model}
+        elif config.collisions == "dem":
+            kwargs = {"material": material}
         self.collision = collision_model(config.collisions, **kwargs)
-        self.solver = HelSolver(pool=self.pool, gas_solver=self.gas_solver, gas=self.gas,
-                                config=HelConfig(dt=config.dt, push=push), collision=self.collision)
-        self._shapes = self.geometry.shapes_struct(device)
-        # injection schedule: each holder releases half of the parcels at its mass flow rate
+        # each holder releases half of the parcels at its measured mass flow (section 2): a window of
+        # (parcels x particle mass) / mass flow, the same for any particles-per-parcel (the parcel count stays)
+        d, sd = config.diameter, config.diameter_std
+        self.particle_mass = config.density * math.pi / 6.0 * (d**3 + 3.0 * d * sd**2)
         self.holder_parcels = (config.particles // 2, config.particles - config.particles // 2)
-        d, s = config.diameter, config.diameter_std
-        self.parcel_mass = config.particles_per_parcel * config.density * math.pi / 6.0 * (d**3 + 3.0 * d * s**2)
-        self.released = [0, 0]
-        self._owed = [0.0, 0.0]
-        self.step_index = 0
-        self.time = 0.0
-        self.injected = 0
+        margin = 0.5 * d + 1.5 * sd
+        injectors = []
+        for side in (0, 1):
+            lo, hi = self.dims.injection_box(side, margin)
+            window = self.holder_parcels[side] * self.particle_mass / config.mass_flow[side]
+            injectors.append(ScheduledInjection(
+                injection=VolumeInjection(box_lo=lo, box_hi=hi, diameter_mean=d, diameter_std=sd,
+                                          density=config.density, count=self.holder_parcels[side],
+                                          speed=self.dims.injection_speed, direction=(1.0, 0.0, 0.0),
+                                          weight=config.particles_per_parcel, stream=side, seed=config.seed),
+                t_start=0.0, t_end=window))
+        self.release_window = [inj.t_end for inj in injectors]
+        outlets = (Outlet(point=(self.dims.main_length, 0.0, 0.0), normal=(1.0, 0.0, 0.0)),
+                   Outlet(point=(0.0, 0.0, 0.0), normal=(-1.0, 0.0, 0.0)))  # back out through an inlet plane
+        self.solver = HelSolver(pool=self.pool, gas_solver=self.gas_solver, gas=self.gas,
+                                config=HelConfig(dt=config.dt, push=push, material=material, walls=True,
+                                                 injectors=tuple(injectors), outlets=outlets),
+                                collision=self.collision)
 
     @property
     def fluid_cells(self) -> int:
         return int(self.domain.cell_fluid.numpy().sum())
+
+    @property
+    def injected(self) -> int:
+        return int(sum(entry["count"] for entry in self.solver.injected()))
 
     def warm_up(self) -> int:
         """Gas-only steps of at most 1e-3 s over ``gas_warmup`` s (the flow is established before the release)."""
@@ -442,59 +437,17 @@ class CollidingStreams:
             self.gas_solver.step(self.gas, self.config.gas_warmup / n)
         return n
 
-    def inject(self) -> int:
-        """Release this step's parcels in the two injection boxes (3.4 m/s along +x)."""
-        from hel_warp.parcels import VolumeInjection
-
-        added = 0
-        margin = 0.5 * self.config.diameter + 3.0 * 0.5 * self.config.diameter_std
-        for side in (0, 1):
-            left = self.holder_parcels[side] - self.released[side]
-            if left <= 0:
-                continue
-            self._owed[side] += self.config.mass_flow[side] * self.config.particles_per_parcel * self.config.dt \
-                / self.parcel_mass
-            count = min(left, int(math.floor(self._owed[side] + 1e-9)))
-            if count < 1:
-                continue
-            self._owed[side] -= count
-            lo, hi = self.dims.injection_box(side, margin)
-            added += self.pool.inject(VolumeInjection(
-                box_lo=lo, box_hi=hi, diameter_mean=self.config.diameter, diameter_std=self.config.diameter_std,
-                density=self.config.density, count=count, speed=self.dims.injection_speed, direction=(1.0, 0.0, 0.0),
-                weight=self.config.particles_per_parcel, stream=side,
-                seed=self.config.seed * 1_000_003 + 2 * self.step_index + side))
-            self.released[side] += count
-        self.injected += added
-        return added
-
-    def walls_and_outlets(self) -> None:
-        """Remove parcels past the outlet (x = L) or back out of the inlet plane (x = 0); reflect at the walls."""
-        import warp as wp
-
-        p = self.pool.particles
-        self.pool.remove_beyond_plane((self.dims.main_length, 0.0, 0.0), (1.0, 0.0, 0.0))
-        self.pool.remove_beyond_plane((0.0, 0.0, 0.0), (-1.0, 0.0, 0.0))
-        e_n, e_t = self.config.wall_restitution
-        wp.launch(reflect_at_walls, dim=p.count, inputs=[self._shapes, float(e_n), float(e_t), p.radius, p.alive],
-                  outputs=[p.x, p.v], device=p.device)
-
     def step(self) -> dict:
-        """inject -> HEL step (deposit, gas, interpolate, collide, push) -> walls / outlets; returns the counts."""
-        self.inject()
+        """One HEL step; returns this step's collision counts."""
         self.solver.step()
-        self.walls_and_outlets()
-        self.step_index += 1
-        self.time = self.step_index * self.config.dt
         return self.solver.collision_counts()
 
     def snapshot(self) -> dict:
         """Host arrays of the live parcels (output intervals only)."""
         p = self.pool.particles
         alive = p.alive.numpy().astype(bool)
-        return {"x": p.x.numpy()[alive], "v": p.v.numpy()[alive], "radius": p.radius.numpy()[alive],
-                "weight": p.weight.numpy()[alive], "density": p.density.numpy()[alive],
-                "stream": p.stream.numpy()[alive], "particle_id": p.particle_id.numpy()[alive]}
+        return {name: getattr(p, name).numpy()[alive]
+                for name in ("x", "v", "radius", "weight", "density", "stream", "particle_id")}
 
     def rig_layout(self) -> dict:
         """What the report needs to know about the rig (stored in the run's attrs)."""
@@ -508,7 +461,8 @@ class CollidingStreams:
 def check(rig: CollidingStreams) -> list[str]:
     """Physical facts at the end of the run; the list of violations (empty = pass).
 
-    - no live parcel centre lies in a wall (SDF >= 0) and every position / velocity is finite;
+    - no live parcel centre lies in a wall (SDF > 0; MP-PIC parcels meet the wall as points, so a centre may
+      sit on it) and every position / velocity is finite;
     - parcels alive = parcels injected - parcels removed at the outlets;
     - every holder released no more than its share.
     """
@@ -529,15 +483,15 @@ def check(rig: CollidingStreams) -> list[str]:
         normal = wp.zeros(x.shape[0], dtype=wp.vec3, device="cpu")
         eval_sdf(rig.geometry.shapes_struct("cpu"), points, distance, normal)
         d = distance.numpy()
-        inside_wall = int(np.sum(d >= 0.0))
+        inside_wall = int(np.sum(d > 0.0))  # parcels meet the wall as points (kernels/reflect.py): d <= 0
         if inside_wall:
             errors.append(f"{inside_wall} parcel centres inside a wall (largest SDF {d.max():.3e} m)")
     removed = rig.pool.removed_count()
     if int(alive.sum()) != rig.injected - removed:
         errors.append(f"parcel count: {int(alive.sum())} alive != {rig.injected} injected - {removed} removed")
-    for side in (0, 1):
-        if rig.released[side] > rig.holder_parcels[side]:
-            errors.append(f"holder {side} released {rig.released[side]} > {rig.holder_parcels[side]} parcels")
+    for side, entry in enumerate(rig.solver.injected()):
+        if entry["count"] > rig.holder_parcels[side]:
+            errors.append(f"holder {side} released {entry['count']} > {rig.holder_parcels[side]} parcels")
     return errors
 
 
@@ -563,121 +517,91 @@ def prepare_out(out: str, overwrite: bool, resume: bool) -> str:
     return "new"
 
 
-def _resume(args, config: CaseConfig) -> int:
-    """--resume: a finished run with the same settings is a no-op; continuing a cut-off run needs checkpoints."""
-    import zarr
-
-    from hel_warp.errors import ConfigError
-
-    try:
-        attrs = dict(zarr.open_group(str(Path(args.out) / "run.zarr"), mode="r").attrs)
-    except Exception as exc:  # noqa: BLE001 - any unreadable store is the same message
-        raise ConfigError(f"--resume: {args.out}/run.zarr cannot be read ({exc}); use --overwrite") from None
-    saved = attrs.get("config", {})
-    for key in ("collisions", "dt", "diameter", "particles_per_parcel", "particles", "cells"):
-        if saved.get(key) != _jsonable(getattr(config, key)):
-            raise ConfigError(f"--resume: {key} differs from the run in {args.out} ({saved.get(key)!r} there, "
-                              f"{getattr(config, key)!r} now); use another --out or --overwrite")
-    if saved.get("status") == "complete" and float(saved.get("end_time", -1)) >= config.end_time - 1e-12:
-        print(f"colliding_streams: {args.out} already holds a complete run to t = {saved['end_time']} s; nothing to do")
-        return 0
-    raise ConfigError(f"--resume: {args.out} holds an unfinished run and this checkout has no HEL checkpoints "
-                      "(hel_warp/run.py) to continue it from; rerun with --overwrite")
-
-
 def _jsonable(value):
     from hel_warp.io import _jsonable as jsonable
 
     return jsonable(value)
 
 
+def case_attrs(rig: CollidingStreams, config: CaseConfig) -> dict:
+    """The case settings stored in the run's attrs (``config.case``); a --resume must match them, so the
+    end time and output settings (which a resume may change) are not among them."""
+    settings = {k: v for k, v in asdict(config).items() if k not in ("end_time", "output_interval")}
+    return _jsonable({"case": "colliding_streams", **settings,
+                      "grid_shape": list(rig.grid.shape), "grid_cells": int(np.prod(rig.grid.shape)),
+                      "fluid_cells": rig.fluid_cells, "spacing": rig.grid.spacing, "inlet_speeds": rig.inlet_speeds,
+                      "inlet_flows_l_per_min": {"main": rig.dims.main_flow / LITRE_PER_MIN,
+                                                "side": rig.dims.side_flow / LITRE_PER_MIN},
+                      "release_window_s": rig.release_window, "rig": rig.rig_layout(),
+                      "collision_counts_available": hasattr(rig.collision, "counts")})
+
+
 def run(args, *, progress: bool = True) -> int:
-    from hel_warp.io import RunWriter
+    """Build the rig, warm the gas up, step to --end-time with ``hel_warp.run.Run`` (checkpoints, --resume)."""
+    import zarr
+
+    from hel_warp.run import Run, RunConfig
 
     config = make_config(args)
     mode = prepare_out(args.out, args.overwrite, args.resume)
-    if mode == "resume":
-        return _resume(args, config)
     model_meta = None
     if config.collisions.startswith("surrogate"):
         model_meta = check_model(config.model, config.diameter, config.density, args.force)
     t_setup = time.perf_counter()
     rig = CollidingStreams(config)
-    warm_steps = rig.warm_up()
-    t_loop = time.perf_counter()
-    setup_s = t_loop - t_setup
-    resolved = {"case": "colliding_streams", **_jsonable(asdict(config)), "status": "running",
-                "grid_shape": list(rig.grid.shape), "grid_cells": int(np.prod(rig.grid.shape)),
-                "fluid_cells": rig.fluid_cells, "spacing": rig.grid.spacing, "inlet_speeds": rig.inlet_speeds,
-                "inlet_flows_l_per_min": {"main": rig.dims.main_flow / LITRE_PER_MIN,
-                                          "side": rig.dims.side_flow / LITRE_PER_MIN},
-                "rig": rig.rig_layout(), "setup_wall_clock_s": setup_s, "warmup_steps": warm_steps,
-                "model_metadata": {k: model_meta.get(k) for k in ("form", "dataset_hash", "defaults")}
-                if model_meta else None}
-    writer = RunWriter(args.out, config=resolved, vtk=not args.no_vtk)
-    n_steps = int(math.ceil(config.end_time / config.dt - 1e-9))
-    every = max(1, int(round(config.output_interval / config.dt)))
+    warm_steps = 0 if mode == "resume" else rig.warm_up()  # a resume restores the gas from the checkpoint
+    setup_s = time.perf_counter() - t_setup
+    if mode == "resume" and not (Path(args.out) / "checkpoint.npz").exists() \
+            and not (Path(args.out) / "checkpoint.prev.npz").exists():
+        from hel_warp.errors import ConfigError
+
+        raise ConfigError(f"--resume: {args.out} holds no checkpoint; rerun with --overwrite")
+    runner = Run(rig.solver, RunConfig(out_dir=args.out, end_time=config.end_time,
+                                       output_interval=config.output_interval, vtk=not args.no_vtk,
+                                       gas_snapshots=not args.no_gas_snapshots),
+                 case_config=case_attrs(rig, config), restart=mode == "resume")
     bar = None
+    callback = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=n_steps, desc=f"colliding_streams {config.collisions} dt={config.dt:g}", unit="step")
-    step_wall, collisions, injected, removed = [], [], [], []
-    by_kind: dict[str, list] = {}
-    loop_s = 0.0
-    for k in range(n_steps):
-        t0 = time.perf_counter()
-        counts = rig.step()
-        if config.device != "cpu":
-            import warp as wp
+        bar = tqdm(total=runner.total_steps, initial=rig.solver.step_count, unit="step",
+                   desc=f"colliding_streams {config.collisions} dt={config.dt:g}")
 
-            wp.synchronize_device(config.device)
-        dt_wall = time.perf_counter() - t0
-        loop_s += dt_wall
-        step_wall.append(dt_wall)
-        collisions.append(int(sum(int(c) for c in counts.values())))
-        for name, c in counts.items():
-            by_kind.setdefault(name, [0] * k).append(int(c))
-        for name in by_kind:
-            if len(by_kind[name]) < k + 1:
-                by_kind[name].append(0)
-        injected.append(rig.injected)
-        if (k + 1) % every == 0 or k + 1 == n_steps:
-            removed.append(rig.pool.removed_count())
-            _write_snapshot(writer, rig.snapshot(), rig.time, k + 1, vtk=not args.no_vtk)
-        if bar is not None:
+        def callback(_solver):
             bar.update(1)
+    t_loop = time.perf_counter()
+    taken = runner.run(progress=callback)
+    loop_total_s = time.perf_counter() - t_loop
     if bar is not None:
         bar.close()
-    for name, values in (("step_wall_s", np.asarray(step_wall, np.float64)),
-                         ("collisions", np.asarray(collisions, np.int64)),
-                         ("injected", np.asarray(injected, np.int64)),
-                         ("removed_at_snapshots", np.asarray(removed, np.int64))):
-        if len(values):
-            writer.append_series(name, values)
-    for name, values in by_kind.items():
-        writer.append_series(f"collisions_{name}", np.asarray(values, np.int64))
     errors = check(rig)
-    resolved.update({"status": "complete", "wall_clock_s": loop_s, "steps": n_steps, "simulated_time": rig.time,
-                     "injected": rig.injected, "removed": rig.pool.removed_count(),
-                     "collision_counts_available": hasattr(rig.collision, "counts"),
-                     "total_collisions": int(sum(collisions)), "check_errors": errors})
-    writer.root.attrs["config"] = _jsonable(resolved)
-    writer.root.attrs["wall_clock_s"] = loop_s
+    root = zarr.open_group(str(Path(args.out) / "run.zarr"), mode="r+")
+    series = root["series"]
+    step_wall = np.asarray(series["timing_step"][...], np.float64) if "timing_step" in series else np.zeros(0)
+    collisions = sum(int(np.sum(arr[...])) for name, arr in series.arrays() if name.startswith("collisions_"))
+    summary = {"collisions": config.collisions, "dt": config.dt, "diameter": config.diameter,
+               "end_time": config.end_time, "simulated_time": rig.solver.time, "steps": rig.solver.step_count,
+               "status": "complete" if rig.solver.step_count >= runner.total_steps else "running",
+               "wall_clock_s": float(step_wall.sum()),
+               "wall_clock_with_output_s": (root.attrs.get("summary", {}).get("wall_clock_with_output_s", 0.0)
+                                            if mode == "resume" else 0.0) + loop_total_s,
+               "setup_wall_clock_s": setup_s, "warmup_steps": warm_steps,
+               "particles_per_parcel": config.particles_per_parcel,
+               "injected": rig.injected, "removed": rig.pool.removed_count(), "total_collisions": collisions,
+               "collision_counts_available": hasattr(rig.collision, "counts"),
+               "model_metadata": ({k: model_meta.get(k) for k in ("form", "dataset_hash", "defaults")}
+                                  if model_meta else None),
+               "check_errors": errors}
+    root.attrs["summary"] = _jsonable(summary)
     print(f"colliding_streams: {config.collisions}, d = {config.diameter * 1e6:.0f} um, dt = {config.dt:g} s, "
-          f"{n_steps} steps to t = {rig.time:.4g} s on {int(np.prod(rig.grid.shape))} cells "
+          f"{taken} steps this call, t = {rig.solver.time:.4g} s on {int(np.prod(rig.grid.shape))} cells "
           f"({rig.fluid_cells} fluid), {rig.injected} parcels injected, {rig.pool.removed_count()} removed, "
-          f"{int(sum(collisions))} collisions; wall clock {loop_s:.2f} s (+ setup {setup_s:.2f} s) -> {args.out}")
+          f"{collisions} collisions; step wall clock {summary['wall_clock_s']:.2f} s (loop with output "
+          f"{loop_total_s:.2f} s, setup + gas warm-up {setup_s:.2f} s) -> {args.out}")
     for e in errors:
         print(f"check failed: {e}", file=sys.stderr)
     return 1 if errors else 0
-
-
-def _write_snapshot(writer, arrays: dict, time_s: float, step: int, *, vtk: bool) -> None:
-    """A snapshot; VTK cannot hold an empty point cloud, so an empty snapshot goes to run.zarr only."""
-    writer.vtk = vtk and len(arrays["x"]) > 0
-    writer.write_snapshot(arrays, time=time_s, step=step)
-    writer.vtk = vtk
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -703,6 +627,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--output-interval", type=finite_float, default=1e-3, help="time between snapshots, s")
     parser.add_argument("--seed", type=int, default=0, help="seed of the injection positions and sizes")
     parser.add_argument("--no-vtk", action="store_true", help="write run.zarr only")
+    parser.add_argument("--no-gas-snapshots", action="store_true", help="no gas cell fields at output times")
 
 
 def main(argv=None) -> int:

@@ -42,6 +42,9 @@ STREAM_COLOURS = {0: "#d62728", 1: "#1f77b4"}
 """Left stream red, right stream blue (as Fig. 11)."""
 
 
+_RUN_KEYS = ("hel", "collision", "grid", "gas", "capacity", "run", "case")
+
+
 @dataclass
 class RunData:
     """One run directory read from disk (host arrays)."""
@@ -83,9 +86,16 @@ def load_run(run_dir: str) -> RunData:
         attrs = dict(root.attrs)
     except Exception as exc:  # noqa: BLE001 - zarr raises many types for a damaged store
         raise ConfigError(f"{store} cannot be opened ({type(exc).__name__}: {exc}); the store is corrupt") from None
-    config = attrs.get("config")
-    if not isinstance(config, dict):
+    raw = attrs.get("config")
+    if not isinstance(raw, dict):
         raise ConfigError(f"{store} has no config attrs; the store is corrupt or was not written by a run")
+    # hel_warp.run.Run layout: config = {hel, collision, grid, gas, capacity, run, case}, plus the case's
+    # ``summary`` attrs at the end; a flat config (hand-made runs) is read as it is
+    config = {k: v for k, v in raw.items() if k not in _RUN_KEYS}
+    if isinstance(raw.get("case"), dict):
+        config.update(raw["case"])
+    if isinstance(attrs.get("summary"), dict):
+        config.update(attrs["summary"])
     for key in ("collisions", "dt", "diameter", "end_time", "rig"):
         _require(config, key, run_dir)
     if config.get("status") not in (None, "complete"):
@@ -178,12 +188,16 @@ def profile_rms(a: list, b: list) -> float | None:
 
 
 def collision_rate(run: RunData) -> float | None:
-    """Detected collisions per simulated second (None when the model does not count collisions)."""
+    """Detected collisions per simulated second: series ``collisions`` or the sum of ``collisions_<kind>``
+    (None when the model does not count collisions)."""
     if run.config.get("collision_counts_available") is False:
         return None
     counts = run.series.get("collisions")
     if counts is None:
-        return None
+        kinds = [arr for name, arr in run.series.items() if name.startswith("collisions_")]
+        if not kinds:
+            return None
+        counts = np.sum([np.sum(k) for k in kinds])
     simulated = float(run.config.get("simulated_time", run.config["end_time"]))
     return float(np.sum(counts)) / simulated if simulated > 0 else None
 
@@ -225,7 +239,7 @@ def build_report(run_dirs: list, *, boxes=DEFAULT_BOXES, downstream_only: bool =
                  "particles_per_parcel": c.get("particles_per_parcel"),
                  "wall_clock_s": (float(c["wall_clock_s"]) if c.get("wall_clock_s") is not None else None),
                  "collision_rate": collision_rate(r),
-                 "total_collisions": (int(np.sum(r.series["collisions"])) if "collisions" in r.series else None),
+                 "total_collisions": c.get("total_collisions"),
                  "snapshots": len(r.snapshots), "profiles": all_profiles[r.path]}
         ref = _dem_reference(r, runs)
         if ref is not None:

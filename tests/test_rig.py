@@ -111,8 +111,8 @@ def test_ten_sections_downstream_inside_fluid(full_rig):
     assert previous_hi < dims.main_length
 
 
-def _args(out, *extra):
-    return ["--diameter", "315e-6", "--dt", "1e-3", "--collisions", "none", "--end-time", "0.003", "--cells", "5000",
+def _args(out, *extra, end_time="0.003"):
+    return ["--diameter", "315e-6", "--dt", "1e-3", "--collisions", "none", "--end-time", end_time, "--cells", "5000",
             "--max-particles", "200", "--gas-warmup", "0.001", "--no-vtk", "--no-progress", "--out", str(out), *extra]
 
 
@@ -128,17 +128,23 @@ def test_reduced_run_writes_what_the_report_needs(cs, tmp_path):
     for key in ("collisions", "dt", "diameter", "end_time", "wall_clock_s", "rig"):
         assert key in c
     assert c["collisions"] == "none" and c["dt"] == 1e-3 and c["diameter"] == 315e-6 and c["end_time"] == 0.003
-    assert c["wall_clock_s"] > 0 and c["check_errors"] == []
+    assert c["check_errors"] == [] and c["status"] == "complete"
+    assert c["wall_clock_s"] == pytest.approx(float(np.sum(run.series["timing_step"])))
     assert len(run.rig["sections"]) == 10
-    assert run.series["step_wall_s"].shape == (3,) and run.series["collisions"].shape == (3,)
-    assert len(run.snapshots) == 3
+    assert run.series["timing_step"].shape == (3,)
+    assert len(run.snapshots) == 4  # t = 0 (before the first release) and after each step
     last = run.snapshots[-1]
     # both streams present, parcels alive = injected - removed (the count check of check())
     assert set(np.unique(last["stream"]).tolist()) == {0, 1}
     assert len(last["x"]) == c["injected"] - c["removed"] == 200 - c["removed"]
     assert np.all(np.isfinite(last["v"]))
     assert len(profiles(run, 20)) == 10
-    assert zarr.open_group(str(out / "run.zarr"), mode="r").attrs["wall_clock_s"] == c["wall_clock_s"]
+    assert zarr.open_group(str(out / "run.zarr"), mode="r").attrs["summary"]["wall_clock_s"] == c["wall_clock_s"]
+    # --resume to a later end time continues from the checkpoint: two more steps in the same directory
+    assert cs.main(_args(out, "--resume", end_time="0.005")) == 0
+    resumed = load_run(str(out))
+    assert resumed.config["steps"] == 5 and resumed.config["end_time"] == 0.005
+    assert resumed.series["step"].tolist() == [1, 2, 3, 4, 5] and len(resumed.snapshots) == 6
 
 
 def test_existing_run_dir_refused(cs, tmp_path, capsys):
