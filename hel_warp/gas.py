@@ -15,6 +15,13 @@ it read ``cell_velocity`` and ``cell_grad_p`` (gradient of the modified pressure
 
 The momentum source is applied explicitly (the gas gets exactly the impulse the particles
 lost); ``cell_drag_coeff`` is accepted but not used by this step.
+
+Known simplifications: the transposed-gradient and bulk parts of the stress, eq. (3), are
+dropped (exact for constant eps_f mu_eff and a solenoidal u); the viscous wall condition puts
+no-slip walls on cell faces (staircase for inclined channels); advection takes a zero-gradient
+tangential velocity just outside an inlet (the viscous step uses the inlet vector there); the
+projection is non-incremental (Chorin), first order in time; explicit drag on the gas can
+overshoot in dense cells at large dt.
 """
 
 from __future__ import annotations
