@@ -63,6 +63,12 @@ from pathlib import Path
 
 import numpy as np
 
+if __name__ not in sys.modules:
+    # loaded from its path without registration (``hel-warp run`` uses spec_from_file_location): the
+    # dataclasses below look their module up in sys.modules to read the string annotations
+    sys.modules[__name__] = type(sys)(__name__)
+    sys.modules[__name__].__dict__.update(globals())
+
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(REPO))
@@ -607,7 +613,8 @@ def run(args, *, progress: bool = True) -> int:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from hel_warp.commands._common import finite_float
 
-    parser.add_argument("--diameter", type=finite_float, required=True, help="mean particle diameter, m (315e-6, 475e-6)")
+    parser.add_argument("--diameter", type=finite_float, required=True,
+                        help="mean particle diameter, m (315e-6, 475e-6)")
     parser.add_argument("--dt", type=finite_float, required=True, help="HEL time step, s (1e-3, 1e-4, 7.14e-5)")
     parser.add_argument("--collisions", choices=COLLISIONS, required=True, help="collision model")
     parser.add_argument("--end-time", type=finite_float, required=True, help="simulated time after release, s")

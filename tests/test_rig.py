@@ -153,6 +153,10 @@ def test_existing_run_dir_refused(cs, tmp_path, capsys):
     (out / "run.zarr").mkdir()
     assert cs.main(_args(out)) == 2
     assert "exists" in capsys.readouterr().err
+    from hel_warp.cli import main as hel_warp_main  # the same through `hel-warp run CASE_SCRIPT ...`
+
+    assert hel_warp_main(["run", str(ROOT / "cases" / "colliding_streams.py"), *_args(out)]) == 2
+    assert "exists" in capsys.readouterr().err
     other = tmp_path / "not_a_run"
     other.mkdir()
     (other / "precious.txt").write_text("keep me")
