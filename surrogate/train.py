@@ -39,6 +39,8 @@ from surrogate.features import (CANONICAL_FEATURES, TARGETS, CollisionData, Form
 TEST_FRACTION = 0.05
 VALIDATION_FRACTION = 0.25
 EARLY_STOPPING_ROUNDS = 25
+HEARTBEAT_S = 30
+"""Optuna trial heartbeat, s (stale-trial detection for killed workers)."""
 PRUNING_REPORT_EVERY = 10
 """Boosting rounds between two reports to the pruner: each report is a storage write (sqlite
 commit) and each pruning check reads the study, so reporting every round costs more than
@@ -129,6 +131,14 @@ def run_study(x_train, y_train, x_val, y_val, *, study_name: str, storage: str, 
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     finished = (TrialState.COMPLETE, TrialState.PRUNED)
+    if isinstance(storage, str):
+        # heartbeats: a trial left RUNNING by a killed worker is marked FAIL after the grace period
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            storage = optuna.storages.RDBStorage(storage, heartbeat_interval=HEARTBEAT_S,
+                                                 grace_period=3 * HEARTBEAT_S)
     try:
         probe = optuna.load_study(study_name=study_name, storage=storage)
         n_done = len(probe.get_trials(deepcopy=False, states=finished))
@@ -266,9 +276,10 @@ def train(data: CollisionData, model_dir: str, config: TrainConfig, *, log=print
             "baseline_mae": float(np.mean(np.abs(y[train_r].mean() - y_test))),
             "r2": float(1.0 - np.sum((pred - y_test) ** 2) / ss_tot) if ss_tot > 0 else None,
         }
+        n_finished = sum(t.state.is_finished() and t.state.name != "FAIL" for t in study.trials)
         hyper[target] = dict(best.params, best_iteration=int(booster.num_boosted_rounds()) - 1,
-                             validation_mae=float(best.value), trials=len(study.trials))
-        log(f"  {target}: best validation MAE {best.value:.4g} after {len(study.trials)} trials "
+                             validation_mae=float(best.value), trials=n_finished)
+        log(f"  {target}: best validation MAE {best.value:.4g} after {n_finished} finished trials "
             f"({time.perf_counter() - t0:.1f} s), test MAE {target_metrics[target]['mae']:.4g}")
     lab, arrays = lab_metrics(config.form, rows, test_r, predicted, train_r)
     metrics = {"form": config.form, **lab, "n_test": int(test_g.size), "n_test_rows": int(test_r.size),
