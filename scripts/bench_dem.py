@@ -18,6 +18,13 @@ Printed: medians, ours/Warp, cost per particle-step (ns) and its flatness (max/m
 and the comparison with LAMMPS ``gran/hooke/history`` at 1.16e7 particle-steps/s/core (LAMMPS
 benchmark "chute", see https://docs.lammps.org/Speed_bench.html).
 
+Measured (2026-11-23, shared 2-core CPU machine, load ~6.5; CPU-time rates, particle-steps/s):
+N = 1e4 / 1e5 / 1e6: ours 3.72e6 / 3.03e6 / 3.22e6 (269 / 330 / 311 ns per particle-step, flatness
+1.23), Warp example 9.5e5 / 8.9e5 / 8.1e5, ours/Warp 3.9x / 3.4x / 4.0x; LAMMPS ratio 0.32x. The
+dense bed barely moves, so one list build served all timed steps (the settling column rebuilds
+every ~200 steps; a build costs ~0.7-0.9 us per particle). Spatial sort, 3e5 spheres in random
+memory order: 1250 ns per particle-step without, 385 ns with ``--sort-every 1``.
+
 Usage::
 
     python scripts/bench_dem.py                         # 1e4, 1e5, 1e6 on the CPU (a few minutes)
