@@ -3,8 +3,18 @@
 Node arrays as written by surrogate/flatten.py (format documented there): XGBoost split
 semantics (``x < T`` left, NaN -> default direction), thresholds already in raw-feature
 space (scaler of eq. 17 folded in), prediction = base_score + sum of leaf values, one tree
-group per target. Contact form: features in the contact frame and the equal-and-opposite
-impulse of surrogate/features.py ``apply_contact_model`` (momentum conserved exactly).
+group per target, summed in XGBoost's order (base, tree 0, tree 1, ...). Contact form:
+features in the contact frame and the equal-and-opposite impulse of surrogate/features.py
+``apply_contact_model`` (momentum conserved exactly).
+
+Device layouts (built by hel_warp/forest.py from the file): 8-byte ``Node`` records
+(packed split feature, default direction and child index + threshold or leaf value), either
+
+- ``perfect`` (default when every tree has depth <= 12): each tree padded to a perfect tree
+  of its own depth D, level ordered, walked with ``i = 2i + 1 + (x >= T)`` for exactly D
+  levels; a leaf above level D is replaced by pass-through nodes whose both subtrees carry
+  its value; LOCKSTEP_ROWS rows walk a tree side by side; or
+- ``explicit``: breadth-first nodes with child indices, one row at a time, early exit.
 
 Launch wrappers at the bottom; they never allocate (the host side, hel_warp/forest.py,
 owns the scratch arrays).
