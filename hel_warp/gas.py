@@ -20,7 +20,7 @@ Known simplifications: the transposed-gradient and bulk parts of the stress, eq.
 dropped (exact for constant eps_f mu_eff and a solenoidal u); the viscous wall condition puts
 no-slip walls on cell faces (staircase for inclined channels); advection takes a zero-gradient
 tangential velocity just outside an inlet (the viscous step uses the inlet vector there); the
-projection is non-incremental (Chorin), first order in time; explicit drag on the gas can
+projection is first order in time; explicit drag on the gas can
 overshoot in dense cells at large dt.
 """
 
@@ -126,7 +126,7 @@ class GasField:
         self.cell_nu_t = wp.zeros(shape, dtype=float, device=device)
         """Smagorinsky sub-grid kinematic viscosity, m^2/s."""
         self.pressure_solution = wp.zeros(int(np.prod(shape)), dtype=wp.float64, device=device)
-        """Last pressure solution (float64, flat), the initial guess of the next projection."""
+        """Pressure p^n (float64, flat, Pa) of the incremental projection."""
         self._started = False
         self.set_face_velocity(self.face_arrays())  # inlet faces start at their velocity
 
@@ -333,18 +333,27 @@ class GasSolver:
                 n, matvec, f"viscous ({'xyz'[axis]})", c.viscous_tolerance, c.viscous_max_iterations)
             self._launch(K.store_component_kernel, shape, [g, axis, self._x, gas.face_velocity])
 
+    def subtract_pressure_gradient(self, gas: GasField, dt: float) -> None:
+        """Predictor: u -= (dt/rho) grad p^n (incremental projection, Goda 1979), so that a steady
+        balance of force and pressure (e.g. a fluidised bed) is a fixed point of the step."""
+        g, dom, params = self.grid_info, self.domain, self._params(dt)
+        for axis in range(3):
+            self._launch(K.pressure_correct_kernel, self._face_shapes[axis],
+                         [g, axis, params, dom.face_type, dom.face_bc, gas.pressure_solution, 1.0, gas.face_velocity])
+
     def project(self, gas: GasField, dt: float) -> None:
-        """Pressure projection onto d(eps_f)/dt + div(eps_f u) = 0; sets pressure and its gradient."""
+        """Projection onto d(eps_f)/dt + div(eps_f u) = 0 with a pressure increment dp (outlet dp = 0);
+        p^{n+1} = p^n + dp; sets the cell pressure and its gradient."""
         g, dom, params, c = self.grid_info, self.domain, self._params(dt), self.config
         n = self._n_cells
         self._fluid_sum.zero_()
         self._launch(K.pressure_rhs_kernel, self._cells,
                      [g, params, dom.cell_fluid, dom.face_type, dom.face_bc, gas.face_eps, gas.face_velocity,
-                      gas.cell_eps_f, gas.cell_eps_f_prev, self._rhs, self._diag, self._active, self._fluid_sum,
+                      gas.cell_eps_f, gas.cell_eps_f_prev, 0.0, self._rhs, self._diag, self._active, self._fluid_sum,
                       self._coef, self._neighbour])
         if not dom.has_outlet:
             self._launch(K.remove_mean_kernel, n, [self._active, self._fluid_sum, self._rhs])
-        wp.copy(self._x, gas.pressure_solution, count=n)  # warm start from the last step
+        self._x.zero_()
         diag, coef, neighbour = self._diag[:n], self._coef[:n], self._neighbour[:n]
 
         def matvec(x, y, z, alpha, beta):
@@ -356,14 +365,15 @@ class GasSolver:
         gross = float(np.sqrt(self._fluid_sum.numpy()[2]))
         self.last_iterations["pressure"] = self._solve(n, matvec, "pressure", c.pressure_tolerance,
                                                        c.pressure_max_iterations, atol_floor=FLOAT32_FLOOR * gross)
-        p = self._x[:n]
-        wp.copy(gas.pressure_solution, p)
+        dp = self._x[:n]
+        self._launch(K.accumulate_kernel, n, [dp, gas.pressure_solution])
         for axis in range(3):
             self._launch(K.pressure_correct_kernel, self._face_shapes[axis],
-                         [g, axis, params, dom.face_type, dom.face_bc, p, gas.face_velocity])
+                         [g, axis, params, dom.face_type, dom.face_bc, dp, 0.0, gas.face_velocity])
             self._launch(K.periodic_sync_kernel, self._face_shapes[axis], [g, axis, gas.face_velocity])
         self._launch(K.cell_pressure_kernel, self._cells,
-                     [g, params, dom.cell_fluid, dom.face_type, dom.face_bc, p, gas.cell_pressure, gas.cell_grad_p])
+                     [g, params, dom.cell_fluid, dom.face_type, dom.face_bc, gas.pressure_solution,
+                      gas.cell_pressure, gas.cell_grad_p])
         self._launch(K.cell_velocity_kernel, self._cells, [g, dom.cell_fluid, gas.face_velocity, gas.cell_velocity])
 
     # ------------------------------------------------------------------ the step
@@ -381,6 +391,7 @@ class GasSolver:
         self.update_cell_state(gas)
         self.advect(gas, dt)
         self.add_sources(gas, dt)
+        self.subtract_pressure_gradient(gas, dt)
         self.diffuse(gas, dt)
         self.project(gas, dt)
         if self.config.check_finite:

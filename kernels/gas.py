@@ -12,10 +12,10 @@ kept as ``eps_f mu_eff grad u`` (the transposed-gradient and bulk terms vanish f
 constant eps_f mu_eff and a solenoidal u; they are dropped). ``mu_eff = mu + rho nu_t``,
 Smagorinsky (1963): ``nu_t = (C_s h)^2 sqrt(2 S:S)``.
 
-Splitting per step (Chorin 1968 projection, semi-Lagrangian advection after Stam 1999):
-advect (RK2 back-trace, stable at any CFL) -> momentum source and imposed mean pressure
-gradient -> implicit (backward-Euler) viscous step, one SPD system per velocity component
--> projection: ``sum_f eps_f (p_c - p_nb) = -(rho h^2/dt) (div(eps_f u*) + d(eps_f)/dt)``.
+Splitting per step (incremental projection, Goda 1979; semi-Lagrangian advection, Stam 1999):
+advect (RK2 back-trace, stable at any CFL) -> momentum source, imposed mean pressure gradient
+and the old pressure gradient -> implicit (backward-Euler) viscous step, one SPD system per velocity component
+-> projection for the increment: ``sum_f eps_f (dp_c - dp_nb) = -(rho h^2/dt) (div(eps_f u*) + d(eps_f)/dt)``.
 
 Layout: face arrays of axis ``a`` have shape ``shape + e_a``; face ``(i,j,k)`` of axis 0 sits
 at ``origin + (i, j+1/2, k+1/2) h`` between cells ``i-1`` and ``i``. On a periodic axis the
@@ -374,8 +374,10 @@ def momentum_source_kernel(
     # outputs
     vel: FaceFloat,
 ):
-    """u_f += dt body_accel + sum_c w_c J_c / (rho eps_f V): each cell's impulse J (N s) split
-    over its solved faces of this axis, so that sum_f rho eps_f V du_f = sum_c J_c exactly."""
+    """u_f += dt body_accel + sum_c J_c / (2 rho eps_f V): each cell's impulse J (N s) is split
+    evenly over its two faces of this axis, so sum_f rho eps_f V du_f = sum_c J_c where both faces
+    are free (periodic or interior); the half on a wall face goes to the wall, as the gas pressure
+    would carry it there (a uniform source then gives the uniform grad p = S/eps_f of eq. 2)."""
     i, j, k = wp.tid()
     f = wp.vec3i(i, j, k)
     t = get_t(types, axis, f)
@@ -387,13 +389,7 @@ def momentum_source_kernel(
         c = wrap_cell(g, f - (1 - side) * unit(axis))
         if c[0] >= 0:
             if cell_fluid[c[0], c[1], c[2]] != 0:
-                # number of solved faces of this axis on cell c
-                n_solved = float(0.0)
-                for s2 in range(2):
-                    fc = wrap_face(g, axis, c + s2 * unit(axis))
-                    if is_solved(get_t(types, axis, fc)):
-                        n_solved = n_solved + 1.0
-                impulse = impulse + cell_momentum_source[c[0], c[1], c[2]][axis] / n_solved
+                impulse = impulse + 0.5 * cell_momentum_source[c[0], c[1], c[2]][axis]
     du = params.dt * params.body_accel[axis] + impulse / (params.rho * get_f(face_eps, axis, f) * volume)
     set_f(vel, axis, f, get_f(vel, axis, f) + du)
 
@@ -545,6 +541,7 @@ def pressure_rhs_kernel(
     vel: FaceFloat,
     cell_eps_f: wp.array3d(dtype=float),
     cell_eps_f_prev: wp.array3d(dtype=float),
+    outlet_weight: float,
     # outputs
     rhs: wp.array(dtype=wp.float64),
     diag: wp.array(dtype=wp.float64),
@@ -586,7 +583,7 @@ def pressure_rhs_kernel(
                 neighbour[row, 2 * a + side] = flat_index(g.shape, wrap_cell(g, c + (2 * side - 1) * unit(a)))
             elif t == FACE_OUTLET:
                 a_diag = a_diag + wp.float64(2.0) * eps
-                b = b + wp.float64(2.0) * eps * wp.float64(get_f(bc.pressure, a, f))
+                b = b + wp.float64(2.0) * eps * wp.float64(outlet_weight * get_f(bc.pressure, a, f))
     d_eps_dt = wp.float64(cell_eps_f[i, j, k] - cell_eps_f_prev[i, j, k]) / wp.float64(params.dt)
     b = b - wp.float64(params.rho) * h * h / wp.float64(params.dt) * (div + d_eps_dt)
     if a_diag == wp.float64(0.0):
@@ -637,6 +634,17 @@ def stencil_matvec_kernel(
 
 
 @wp.kernel
+def accumulate_kernel(
+    increment: wp.array(dtype=wp.float64),
+    # outputs
+    total: wp.array(dtype=wp.float64),
+):
+    """total += increment (pressure p^{n+1} = p^n + dp)."""
+    i = wp.tid()
+    total[i] = total[i] + increment[i]
+
+
+@wp.kernel
 def jacobi_kernel(
     diag: wp.array(dtype=wp.float64),
     x: wp.array(dtype=wp.float64),
@@ -653,8 +661,9 @@ def jacobi_kernel(
 
 @wp.func
 def face_pressure_gradient(g: GridInfo, types: FaceInt, bc: FaceBc, p: wp.array(dtype=wp.float64),
-                           axis: int, f: wp.vec3i):
-    """d p / d x_axis at a solved face (Dirichlet outlet pressure sits on the face, h/2 away)."""
+                           outlet_weight: float, axis: int, f: wp.vec3i):
+    """d p / d x_axis at a solved face (Dirichlet outlet pressure ``outlet_weight p_out`` sits on the
+    face, h/2 away; weight 0 for a pressure increment)."""
     t = get_t(types, axis, f)
     h = g.spacing
     if t == FACE_FLUID:
@@ -662,7 +671,7 @@ def face_pressure_gradient(g: GridInfo, types: FaceInt, bc: FaceBc, p: wp.array(
         c_hi = wrap_cell(g, f)
         return float(p[flat_index(g.shape, c_hi)] - p[flat_index(g.shape, c_lo)]) / h
     # outlet
-    p_out = get_f(bc.pressure, axis, f)
+    p_out = outlet_weight * get_f(bc.pressure, axis, f)
     if f[axis] == 0:
         return 2.0 * (float(p[flat_index(g.shape, f)]) - p_out) / h
     return 2.0 * (p_out - float(p[flat_index(g.shape, f - unit(axis))])) / h
@@ -676,6 +685,7 @@ def pressure_correct_kernel(
     types: FaceInt,
     bc: FaceBc,
     p: wp.array(dtype=wp.float64),
+    outlet_weight: float,
     # outputs
     vel: FaceFloat,
 ):
@@ -683,7 +693,7 @@ def pressure_correct_kernel(
     i, j, k = wp.tid()
     f = wp.vec3i(i, j, k)
     if is_solved(get_t(types, axis, f)):
-        gp = face_pressure_gradient(g, types, bc, p, axis, f)
+        gp = face_pressure_gradient(g, types, bc, p, outlet_weight, axis, f)
         set_f(vel, axis, f, get_f(vel, axis, f) - params.dt / params.rho * gp)
 
 
@@ -710,7 +720,7 @@ def cell_pressure_kernel(
             for side in range(2):
                 f = wrap_face(g, a, c + side * unit(a))
                 if is_solved(get_t(types, a, f)):
-                    acc = acc + face_pressure_gradient(g, types, bc, p, a, f)
+                    acc = acc + face_pressure_gradient(g, types, bc, p, 1.0, a, f)
                     n = n + 1.0
             if n > 0.0:
                 grad[a] = grad[a] + acc / n
