@@ -128,12 +128,12 @@ def test_duct_series_reference():
     a, b, mu, G = 1.0, 0.5, 1.0, -1.0
     series = sum(math.tanh(n * math.pi * b / (2 * a)) / n**5 for n in range(1, 400, 2))
     flow = 4 * b * a**3 * (-G) / (3 * mu) * (1 - 192 * a / (math.pi**5 * b) * series)
-    m = 1600
+    m = 400  # midpoint rule, error ~ (2b/m)^2 / 24 relative to the curvature: < 1e-4
     y = -a + (np.arange(m) + 0.5) * 2 * a / m
     z = -b + (np.arange(m) + 0.5) * 2 * b / m
     yy, zz = np.meshgrid(y, z, indexing="ij")
-    midpoint = duct_series(yy, zz, a, b, G, mu).sum() * (2 * a / m) * (2 * b / m)
-    assert midpoint == pytest.approx(flow, rel=1e-5)
+    midpoint = duct_series(yy, zz, a, b, G, mu, terms=100).sum() * (2 * a / m) * (2 * b / m)
+    assert midpoint == pytest.approx(flow, rel=1e-4)
     assert duct_series(0.0, 0.0, a, a, G, mu) == pytest.approx(0.2947, abs=2e-4)
 
 
