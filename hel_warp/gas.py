@@ -4,8 +4,9 @@ Paper eqs. (1)-(3) with constant gas density, on the MAC grid of ``kernels/gas.p
 semi-Lagrangian advection, particle momentum source, backward-Euler viscous step with
 molecular + Smagorinsky viscosity, and a pressure projection onto
 ``d(eps_f)/dt + div(eps_f u) = 0``; both linear systems are solved with
-``warp.optim.linear.cg`` with a Jacobi preconditioner (matrix-free operators) on CUDA, and on
-the CPU with a native IC(0)-preconditioned CG (``GasConfig.linear_solver``).
+``warp.optim.linear.cg`` with a Jacobi preconditioner (7-point stencils assembled once per step,
+applied through ``LinearOperator``s) on CUDA, and on the CPU with a native IC(0)-preconditioned
+CG (``GasConfig.linear_solver``).
 
 Interface with the particle side (``kernels/deposit.py``, ``kernels/interp.py``):
 before ``GasSolver.step`` fill ``cell_eps_s``, ``cell_momentum_source`` (N s per cell over
@@ -13,8 +14,10 @@ the step, = minus the drag impulses the particles received) and ``cell_drag_coef
 it read ``cell_velocity`` and ``cell_grad_p`` (gradient of the modified pressure
 ``p' = p - rho_f g.x``, including any imposed mean gradient).
 
-The momentum source is applied explicitly (the gas gets exactly the impulse the particles
-lost); ``cell_drag_coeff`` is accepted but not used by this step.
+The momentum source is applied explicitly: each cell's impulse is split evenly over its two
+faces per axis, so the gas gets exactly the impulse the particles lost, except the half of a
+wall cell's wall-normal impulse that goes straight to that wall (where the gas pressure would
+carry it anyway). ``cell_drag_coeff`` is accepted but not used by this step.
 
 Known simplifications: the transposed-gradient and bulk parts of the stress, eq. (3), are
 dropped (exact for constant eps_f mu_eff and a solenoidal u); the viscous wall condition puts
