@@ -76,7 +76,7 @@ def walk_tree(forest: Forest, root: wp.int32, features: wp.array2d(dtype=wp.floa
         x = features[row, (node.meta >> 1) & 15]
         # branch-free: a NaN compares false, then takes the default side
         go_right = wp.where(x >= node.value, 1, 0)
-        go_right = wp.where(wp.isnan(x), 1 - (node.meta & 1), go_right)
+        go_right = wp.where(x != x, 1 - (node.meta & 1), go_right)  # x != x: NaN, inlined (wp.isnan is a libm call on CPU)
         node = forest.nodes[(node.meta >> 5) + go_right]
     return node.value
 
@@ -88,7 +88,7 @@ def perfect_step(forest: Forest, first_node: wp.int32, i: wp.int32, features: wp
     node = forest.nodes[first_node + i]
     x = features[row, (node.meta >> 1) & 15]
     go_right = wp.where(x >= node.value, 1, 0)
-    go_right = wp.where(wp.isnan(x), 1 - (node.meta & 1), go_right)
+    go_right = wp.where(x != x, 1 - (node.meta & 1), go_right)  # x != x: NaN, inlined (wp.isnan is a libm call on CPU)
     return 2 * i + 1 + go_right
 
 
