@@ -585,7 +585,9 @@ def run(args, *, progress: bool = True) -> int:
     root = zarr.open_group(str(Path(args.out) / "run.zarr"), mode="r+")
     series = root["series"]
     step_wall = np.asarray(series["timing_step"][...], np.float64) if "timing_step" in series else np.zeros(0)
-    collisions = sum(int(np.sum(arr[...])) for name, arr in series.arrays() if name.startswith("collisions_"))
+    # detected pairs per step (hel_warp.collision_models counts(); the other counts are per stream pair,
+    # surrogate calls, DEM sub-steps and stay in their own series)
+    collisions = int(np.sum(series["collisions_detected_pairs"][...])) if "collisions_detected_pairs" in series else 0
     summary = {"collisions": config.collisions, "dt": config.dt, "diameter": config.diameter,
                "end_time": config.end_time, "simulated_time": rig.solver.time, "steps": rig.solver.step_count,
                "status": "complete" if rig.solver.step_count >= runner.total_steps else "running",

@@ -42,6 +42,8 @@ STREAM_COLOURS = {0: "#d62728", 1: "#1f77b4"}
 """Left stream red, right stream blue (as Fig. 11)."""
 
 
+COLLISION_SERIES = "collisions_detected_pairs"
+"""The per-step count a collision rate is made of (``counts()['detected_pairs']`` of hel_warp.collision_models)."""
 _RUN_KEYS = ("hel", "collision", "grid", "gas", "capacity", "run", "case")
 
 
@@ -188,16 +190,14 @@ def profile_rms(a: list, b: list) -> float | None:
 
 
 def collision_rate(run: RunData) -> float | None:
-    """Detected collisions per simulated second: series ``collisions`` or the sum of ``collisions_<kind>``
-    (None when the model does not count collisions)."""
+    """Detected collisions per simulated second: the sum of series ``collisions`` (hand-made runs) or
+    ``collisions_detected_pairs`` (the strategies' ``counts()``: pairs found overlapping in a step) over the
+    simulated time; None when the model does not count collisions (none, ktgf)."""
     if run.config.get("collision_counts_available") is False:
         return None
-    counts = run.series.get("collisions")
+    counts = run.series.get("collisions", run.series.get(COLLISION_SERIES))
     if counts is None:
-        kinds = [arr for name, arr in run.series.items() if name.startswith("collisions_")]
-        if not kinds:
-            return None
-        counts = np.sum([np.sum(k) for k in kinds])
+        return None
     simulated = float(run.config.get("simulated_time", run.config["end_time"]))
     return float(np.sum(counts)) / simulated if simulated > 0 else None
 
