@@ -121,9 +121,12 @@ class FlatForest:
                 np.asarray(first_leaf, np.int32),
                 np.concatenate(leaf_parts) if leaf_parts else np.zeros(1, np.float32))
 
-    def to_device(self, device="cpu", *, layout: str = "auto"):
-        """The Warp ``Forest`` struct. ``layout``: "perfect" (padded level-ordered trees, used when
-        the deepest tree has depth <= PERFECT_MAX_DEPTH), "explicit" (children indices), "auto"."""
+    def to_device(self, device="cpu", *, layout: str = "explicit"):
+        """The Warp ``Forest`` struct. ``layout``: "explicit" (children indices; what
+        ``kernels.forest.walk_tree`` walks — the default, so kernels that call ``walk_tree`` with
+        ``tree_root[k]`` keep working), "perfect" (padded level-ordered trees, faster; evaluate with
+        ``eval_forest`` or ``tree_value``), or "auto" (perfect when the deepest tree has depth
+        <= PERFECT_MAX_DEPTH)."""
         import warp as wp
 
         from kernels.forest import Forest, Node

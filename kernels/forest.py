@@ -70,7 +70,7 @@ class Forest:
 
 @wp.func
 def walk_tree(forest: Forest, root: wp.int32, features: wp.array2d(dtype=wp.float32), row: wp.int32):
-    """Leaf value of one tree for one row: left iff ``x < T``; NaN goes to the default side."""
+    """Leaf value of one tree for one row, EXPLICIT layout: left iff ``x < T``; NaN -> default side."""
     node = forest.nodes[root]
     while node.meta >= 0:
         x = features[row, (node.meta >> 1) & 15]
@@ -96,6 +96,17 @@ LOCKSTEP_ROWS = 8
 """Rows one thread walks through each perfect-layout tree level by level, side by side."""
 RowIndex = wp.types.vector(length=LOCKSTEP_ROWS, dtype=wp.int32)
 RowSum = wp.types.vector(length=LOCKSTEP_ROWS, dtype=wp.float32)
+
+
+@wp.func
+def tree_value(forest: Forest, k: wp.int32, features: wp.array2d(dtype=wp.float32), row: wp.int32):
+    """Leaf value of tree ``k`` for one row, in either layout (single-row use in other kernels)."""
+    if forest.perfect == 0:
+        return walk_tree(forest, forest.tree_root[k], features, row)
+    i = wp.int32(0)
+    for level in range(forest.tree_depth[k]):
+        i = perfect_step(forest, forest.tree_root[k], i, features, row)
+    return forest.leaves[forest.tree_leaf[k] + i - ((1 << forest.tree_depth[k]) - 1)]
 
 
 @wp.kernel

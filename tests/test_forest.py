@@ -16,6 +16,7 @@ xgb = pytest.importorskip("xgboost")
 
 from hel_warp.errors import ConfigError
 from hel_warp.forest import ForestPredictor, load_forest, parse_forest
+from kernels.forest import Forest as kf_Forest
 from surrogate.features import (CANONICAL_FEATURES, apply_contact_model, form_rows, sphere_mass, standardize,
                                 synthetic_collisions, used_features)
 from surrogate.flatten import fold_thresholds, flatten_models, parse_base_score
@@ -103,6 +104,31 @@ def test_folded_thresholds_take_xgboosts_branch_for_every_float32():
         np.testing.assert_array_equal(x < big_t, xs < t)
     naive = (t.astype(np.float64) * std + mean).astype(np.float32)
     assert np.any(naive != big_t)  # the naive fold would disagree somewhere
+
+
+def test_tree_value_walks_both_layouts():
+    """The single-row tree walk used by other kernels gives the same sums in both layouts."""
+    import warp as wp
+
+    from kernels.forest import tree_value
+
+    @wp.kernel
+    def sum_trees(forest: kf_Forest, features: wp.array2d(dtype=wp.float32), out: wp.array(dtype=wp.float32)):
+        row = wp.tid()
+        acc = forest.base_score[0]
+        for k in range(forest.tree_start[0], forest.tree_start[1]):
+            acc = acc + tree_value(forest, k, features, row)
+        out[row] = acc
+
+    data = synthetic_collisions(600, seed=6)
+    rows, cols, raw, mean, std, boosters, doc = _fit_forest("contact", data, (7,), nan_fraction=0.05)
+    x = wp.array(_full_features(rows, cols, raw), dtype=wp.float32)
+    reference = next(iter(boosters.values())).predict(xgb.DMatrix(standardize(raw, mean, std)))
+    for layout in ("explicit", "perfect"):
+        out = wp.zeros(x.shape[0], dtype=wp.float32)
+        wp.launch(sum_trees, dim=x.shape[0], inputs=[_flat(doc, "contact").to_device("cpu", layout=layout), x],
+                  outputs=[out])
+        np.testing.assert_allclose(out.numpy(), reference, rtol=1e-5, atol=1e-5)
 
 
 def test_base_score_forms():
