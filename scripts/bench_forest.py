@@ -48,6 +48,8 @@ def main(argv=None) -> int:
     parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     parser.add_argument("--rows-per-thread", type=int, default=None,
                         help="rows per Warp thread (default 64 on CPU, 1 on CUDA)")
+    parser.add_argument("--layout", default="auto", choices=("auto", "perfect", "explicit"),
+                        help="device layout of the forest (default auto: perfect when depth <= 12)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
 
@@ -77,7 +79,7 @@ def main(argv=None) -> int:
     xs = standardize(raw[:, cols], art.scaler_mean, art.scaler_std)
     n = raw.shape[0]
 
-    predictor = ForestPredictor(flat, device=args.device, rows_per_thread=args.rows_per_thread)
+    predictor = ForestPredictor(flat, device=args.device, rows_per_thread=args.rows_per_thread, layout=args.layout)
     device = predictor.device
     x_dev = wp.array(raw, dtype=wp.float32, device=device)
     out_dev = wp.zeros((n, len(flat.targets)), dtype=wp.float32, device=device)
