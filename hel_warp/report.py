@@ -22,6 +22,17 @@ A run directory is what ``cases/colliding_streams.py`` writes: ``run.zarr`` with
 ``collisions``, ``dt``, ``diameter``, ``end_time``, ``wall_clock_s`` and ``rig`` (``axial_axis``,
 ``transverse_axis``, ``downstream``, ``sections``: ten boxes ``{name, lo, hi}`` in m).
 Figures are rendered with pyvista off-screen, or with matplotlib when pyvista cannot render.
+
+``report.json``::
+
+    {"runs": [{"run", "label", "collisions", "dt" (s), "diameter" (m), "end_time" (simulated s),
+               "particles_per_parcel", "wall_clock_s" (sum of the per-step wall clock), "collision_rate" (1/s
+               or null), "total_collisions", "snapshots",
+               "profiles": {"20": [{"section", "centres" (m), "mean_axial_velocity" (m/s, null where empty),
+                                    "samples"}, ... ten sections], "88": [...], "126": [...]},
+               "dem_reference" and "profile_rms_vs_dem": {"20": m/s, ...} (null for the reference itself),
+               only when a dem run is in the report}, ...],
+     "boxes", "downstream_only", "from_time", "figures", "renderer"}
 """
 
 from __future__ import annotations
