@@ -9,13 +9,11 @@ x = main-channel axis (downstream = +x), y = across the channel (the width the c
 the direction the velocity profiles run along), z = depth (camera viewing direction)::
 
         y
-        ^   supply (left arm, stream 0)        outlet (p' = 0)
-        |  ===========\\                              |
-        |              \\  inclined arm, 45 deg       |
-        |  ==main===========================|S1|..|S10|==>  x
-        |              //                             |
-        |  ===========//                              |
-            supply (right arm, stream 1)
+        ^  left supply ==========\\               (stream 0, inlet on x = 0)
+        |                          \\  arm at 45 deg
+        |  main ==================================|S1|..|S10|==> outlet (x = 160 mm, p' = 0)
+        |                          //
+        |  right supply =========//               (stream 1, inlet on x = 0)
 
 - main channel 20 mm x 10 mm (2.0e-4 m^2 = 240 l/min / 20 m/s), inlet on x = 0 at 240 l/min;
 - two side supply channels 4 mm x 8 mm (3.2e-5 m^2 = 38.4 l/min / 20 m/s), inlets on x = 0 at
@@ -47,6 +45,10 @@ grid and the rig layout ``rig``: sections and axes, which ``hel-warp report`` re
 end, ``summary`` (``collisions``, ``dt``, ``diameter``, ``end_time``, ``wall_clock_s`` = the sum of
 the per-step wall clock, collision totals, ``check_errors``). ``check()`` verifies physical facts at
 the end (no parcel centre inside a wall, parcels alive = injected - removed).
+
+Further assumptions: gravity along +x (the rig upright, flow downwards, holders above the arms);
+the gas runs alone for ``--gas-warmup`` (0.01 s) before the release ("once the flow is
+stabilized", section 2); diameters normal with the paper's sigma (8.2 / 22 um), truncated at 3 sigma.
 """
 
 from __future__ import annotations
