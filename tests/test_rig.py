@@ -182,3 +182,23 @@ def test_model_for_another_particle_refused(cs, tmp_path, capsys):
     args[args.index("none")] = "surrogate"
     assert cs.main(args + ["--model", str(model)]) == 2
     assert "--force" in capsys.readouterr().err
+
+
+def test_paper_particle_sets(cs):
+    # paper section 8: 12,000 particles of 315 um = 0.000196 kg; 3,600 of 475 um; one particle per parcel
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    cs.add_arguments(parser)
+
+    def config(*extra):
+        return cs.make_config(parser.parse_args(["--diameter", extra[0], "--dt", "1e-3", "--collisions", "none",
+                                                 "--end-time", "0.02", "--out", "x", *extra[1:]]))
+
+    small, large = config("315e-6"), config("475e-6")
+    assert (small.particles, small.diameter_std, small.mass_flow) == (12000, 8.2e-6, (0.014, 0.018))
+    assert (large.particles, large.diameter_std, large.mass_flow) == (3600, 22e-6, (0.013, 0.019))
+    mass = small.particles * 1000.0 * math.pi / 6.0 * 315e-6**3
+    assert mass == pytest.approx(0.000196, rel=0.01)
+    eight = config("315e-6", "--particles-per-parcel", "8")
+    assert eight.particles == 12000 and eight.particles_per_parcel == 8.0  # parcel count kept, mass x 8
