@@ -1,0 +1,157 @@
+"""``hel-warp demo``: the main job on an embedded default, end to end.
+
+The whole HELSCM pipeline, each stage cached so a rerun continues where it stopped:
+
+1. collision data set of DEM binary impacts (315 um polyethylene; resumable zarr);
+2. surrogate training, ``contact`` form (a quick Optuna search; skipped when the model exists);
+3. the three-particle streams of the paper's Fig. 13 with ``ktgf``, ``dem`` and ``surrogate``;
+4. the colliding-streams rig at 315 um with ``ktgf``, ``surrogate`` and a short ``dem`` reference;
+5. ``hel-warp report`` over the rig runs (profiles, pictures, wall clock, collision rates).
+
+Every stage shows its own progress; the defaults fit in about ten minutes on two cores. The
+full-size versions of each stage are the commands printed in README.md.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+from hel_warp.commands._common import finite_float
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def add_parser(subparsers):
+    p = subparsers.add_parser("demo", help="the main job: data set -> training -> three streams -> rig -> report",
+                              description=__doc__)
+    p.add_argument("--out", default="demo_out", help="output directory (default demo_out); reruns reuse it")
+    p.add_argument("--samples", type=int, default=20000, help="collision data-set size (default 20000)")
+    p.add_argument("--trials", type=int, default=4, help="Optuna trials per target (default 4)")
+    p.add_argument("--diameter", type=finite_float, default=315e-6, help="particle diameter, m (default 315e-6)")
+    p.add_argument("--dt", type=finite_float, default=1e-3, help="HEL time step of the rig, s (default 1e-3)")
+    p.add_argument("--end-time", type=finite_float, default=0.02, help="rig simulated time after release, s")
+    p.add_argument("--dem-end-time", type=finite_float, default=None,
+                   help="simulated time of the dem reference, s (default: --end-time)")
+    p.add_argument("--cells", type=int, default=None, help="shrink the rig grid to about N cells")
+    p.add_argument("--max-particles", type=int, default=None, help="cap the rig's parcels")
+    p.add_argument("--device", default="cpu", help="Warp device: cpu or cuda (default cpu)")
+    p.add_argument("--skip-rig", action="store_true", help="stop after the three-streams case")
+    return p
+
+
+def _load_case(name: str):
+    path = REPO / "cases" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"hel_warp_case_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+class _Stages:
+    """Numbered stage headings with their wall-clock times (the summary of the run)."""
+
+    def __init__(self, total: int):
+        self.total, self.index, self.times = total, 0, {}
+
+    def run(self, name: str, func):
+        self.index += 1
+        print(f"\n[{self.index}/{self.total}] {name}", flush=True)
+        start = time.perf_counter()
+        result = func()
+        self.times[name] = round(time.perf_counter() - start, 2)
+        print(f"    done in {self.times[name]:.1f} s", flush=True)
+        return result
+
+
+def _check(code, what: str) -> None:
+    from hel_warp.errors import HelWarpError
+
+    if code:
+        raise HelWarpError(f"demo stage '{what}' failed (exit code {code}); see the message above")
+
+
+def run(args) -> int:
+    from hel_warp.cli import main as cli_main
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    data_dir, model_dir = out / "dataset", out / "model_contact"
+    stages = _Stages(5 if not args.skip_rig else 3)
+    start = time.perf_counter()
+
+    stages.run("collision data set (DEM binary impacts)", lambda: _check(cli_main([
+        "dataset", "--out", str(data_dir), "--samples", str(args.samples), "--diameter", repr(args.diameter),
+        "--seed", "0"]), "dataset"))
+
+    def train():
+        if (model_dir / "metrics.json").exists():
+            from surrogate.artifact import load_artifact
+
+            load_artifact(str(model_dir))  # validates hashes; a corrupt model is an error, not reused
+            print(f"    model exists: {model_dir} (delete it to retrain)")
+            return
+        _check(cli_main(["train", "--data", str(data_dir), "--out", str(model_dir), "--form", "contact",
+                         "--trials", str(args.trials)]), "train")
+
+    stages.run("surrogate training (contact form, XGBoost + Optuna)", train)
+    metrics = json.loads((model_dir / "metrics.json").read_text())
+
+    three = _load_case("three_streams")
+    outcomes = {}
+
+    def three_streams():
+        for model in ("ktgf", "dem", "surrogate"):
+            argv = ["--collisions", model, "--out", str(out / "three_streams" / model), "--device", args.device]
+            if model == "surrogate":
+                argv += ["--model", str(model_dir)]
+            _check(three.main(argv), f"three streams {model}")
+            summary = json.loads((out / "three_streams" / model / "summary.json").read_text())
+            outcomes[model] = summary["outcome"]
+
+    stages.run("three-particle streams, Fig. 13 (ktgf / dem / surrogate)", three_streams)
+
+    rig_runs = []
+    if not args.skip_rig:
+        rig = _load_case("colliding_streams")
+
+        def rig_stage():
+            for model in ("ktgf", "surrogate", "dem"):
+                end = args.end_time if model != "dem" or args.dem_end_time is None else args.dem_end_time
+                run_dir = out / "rig" / f"{model}_dt{args.dt:g}"
+                argv = ["--diameter", repr(args.diameter), "--dt", repr(args.dt), "--collisions", model,
+                        "--end-time", repr(end), "--out", str(run_dir), "--device", args.device, "--overwrite"]
+                if model == "surrogate":
+                    argv += ["--model", str(model_dir)]
+                if args.cells:
+                    argv += ["--cells", str(args.cells)]
+                if args.max_particles:
+                    argv += ["--max-particles", str(args.max_particles)]
+                print(f"    rig: {model}", flush=True)
+                _check(rig.main(argv), f"rig {model}")
+                rig_runs.append(str(run_dir))
+
+        stages.run("colliding-streams rig (ktgf / surrogate / dem)", rig_stage)
+        stages.run("report", lambda: _check(cli_main(["report", *rig_runs, "--out", str(out / "report")]), "report"))
+
+    summary = {
+        "out": str(out),
+        "stage_seconds": stages.times,
+        "total_seconds": round(time.perf_counter() - start, 2),
+        "surrogate_mae": metrics.get("mae"),
+        "three_streams": outcomes,
+        "report": str(out / "report" / "report.json") if rig_runs else None,
+    }
+    (out / "demo_summary.json").write_text(json.dumps(summary, indent=2))
+    print("\n" + json.dumps(summary, indent=2))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    from hel_warp.cli import main
+
+    sys.exit(main(["demo", *sys.argv[1:]]))
