@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+
 PAPER_FEATURES = 10  # v1x v1y v1z v2x v2y v2z d1 d2 rho1 rho2
 CONTACT_FEATURES = 6  # g_n g_t cos_angle d1 size_ratio density_ratio
 TANGENT_EPS = 1.0e-6  # = surrogate.features.TANGENT_EPS: relative slip below which t_hat = 0
@@ -92,10 +94,14 @@ def perfect_step(forest: Forest, first_node: wp.int32, i: wp.int32, features: wp
     return 2 * i + 1 + go_right
 
 
-LOCKSTEP_ROWS = 8
-"""Rows one thread walks through each perfect-layout tree level by level, side by side."""
+LOCKSTEP_ROWS = 16
+"""Rows one thread walks through a perfect-layout tree level by level, side by side (unrolled)."""
+BLOCK_GROUPS = 4
+"""Lockstep groups per thread: a thread owns BLOCK_GROUPS * LOCKSTEP_ROWS rows and walks each tree
+for all of them before the next tree (the tree stays in L1 across the groups)."""
+BLOCK_ROWS = BLOCK_GROUPS * LOCKSTEP_ROWS
 RowIndex = wp.types.vector(length=LOCKSTEP_ROWS, dtype=wp.int32)
-RowSum = wp.types.vector(length=LOCKSTEP_ROWS, dtype=wp.float32)
+BlockSum = wp.types.vector(length=BLOCK_ROWS, dtype=wp.float32)
 
 
 @wp.func
@@ -110,46 +116,64 @@ def tree_value(forest: Forest, k: wp.int32, features: wp.array2d(dtype=wp.float3
 
 
 @wp.kernel
-def eval_forest_kernel(forest: Forest, features: wp.array2d(dtype=wp.float32), n_rows: wp.int32,
-                       rows_per_thread: wp.int32,
-                       # outputs
-                       out: wp.array2d(dtype=wp.float32)):
-    """Every target for rows [tid*rows_per_thread, ...): trees outer, rows inner (cache reuse on CPU).
-
-    Perfect layout (rows_per_thread must be LOCKSTEP_ROWS): the rows walk each tree level by
-    level side by side (fixed trip count, independent loads in flight), sums kept locally;
-    explicit layout: one row at a time with early exit at the leaf. Either way the sum is
-    base_score + tree 0 + tree 1 + ..., XGBoost's order.
-    """
+def eval_forest_explicit_kernel(forest: Forest, features: wp.array2d(dtype=wp.float32), n_rows: wp.int32,
+                                rows_per_thread: wp.int32,
+                                # outputs
+                                out: wp.array2d(dtype=wp.float32)):
+    """Every target for rows [tid*rows_per_thread, ...), EXPLICIT layout: trees outer, rows inner,
+    one row at a time with early exit at the leaf; sum base_score + tree 0 + tree 1 + ... (XGBoost's order)."""
     tid = wp.tid()
     first = tid * rows_per_thread
     last = wp.min(first + rows_per_thread, n_rows)
     n_targets = forest.tree_start.shape[0] - 1
     for t in range(n_targets):
         base = forest.base_score[t]
-        if forest.perfect == 0:
+        for row in range(first, last):
+            out[row, t] = base
+        for k in range(forest.tree_start[t], forest.tree_start[t + 1]):
+            root = forest.tree_root[k]
             for row in range(first, last):
-                out[row, t] = base
-            for k in range(forest.tree_start[t], forest.tree_start[t + 1]):
-                root = forest.tree_root[k]
-                for row in range(first, last):
-                    out[row, t] = out[row, t] + walk_tree(forest, root, features, row)
-        else:
-            acc = RowSum()
-            for r in range(LOCKSTEP_ROWS):
-                acc[r] = base
-            for k in range(forest.tree_start[t], forest.tree_start[t + 1]):
-                root = forest.tree_root[k]
-                depth = forest.tree_depth[k]
-                leaf0 = forest.tree_leaf[k] - ((1 << depth) - 1)
+                out[row, t] = out[row, t] + walk_tree(forest, root, features, row)
+
+
+@wp.kernel
+def eval_forest_perfect_kernel(forest: Forest, features: wp.array2d(dtype=wp.float32), n_rows: wp.int32,
+                               # outputs
+                               out: wp.array2d(dtype=wp.float32)):
+    """Every target for the BLOCK_ROWS rows [tid*BLOCK_ROWS, ...), PERFECT layout.
+
+    Tree-major: each tree is walked for the whole block (BLOCK_GROUPS groups of LOCKSTEP_ROWS
+    rows side by side, fixed trip count, independent loads in flight) before the next tree, so
+    its nodes stay in cache; sums kept locally in XGBoost's order base + tree 0 + tree 1 + ...
+    Rows past ``n_rows`` repeat the last row and are not written.
+    """
+    tid = wp.tid()
+    first = tid * BLOCK_ROWS
+    last = wp.min(first + BLOCK_ROWS, n_rows)
+    n_targets = forest.tree_start.shape[0] - 1
+    for t in range(n_targets):
+        acc = BlockSum()
+        base = forest.base_score[t]
+        for r in range(BLOCK_ROWS):
+            acc[r] = base
+        for k in range(forest.tree_start[t], forest.tree_start[t + 1]):
+            root = forest.tree_root[k]
+            depth = forest.tree_depth[k]
+            leaf0 = forest.tree_leaf[k] - ((1 << depth) - 1)
+            for g in range(BLOCK_GROUPS):
+                group_first = first + g * LOCKSTEP_ROWS
                 idx = RowIndex()
                 for level in range(depth):
                     for r in range(LOCKSTEP_ROWS):
-                        idx[r] = perfect_step(forest, root, idx[r], features, wp.min(first + r, last - 1))
+                        node = forest.nodes[root + idx[r]]
+                        x = features[wp.min(group_first + r, last - 1), (node.meta >> 1) & 15]
+                        go_right = wp.where(x >= node.value, 1, 0)
+                        go_right = wp.where(x != x, 1 - (node.meta & 1), go_right)  # NaN: default side
+                        idx[r] = 2 * idx[r] + 1 + go_right
                 for r in range(LOCKSTEP_ROWS):
-                    acc[r] = acc[r] + forest.leaves[leaf0 + idx[r]]
-            for r in range(last - first):
-                out[first + r, t] = acc[r]
+                    acc[g * LOCKSTEP_ROWS + r] = acc[g * LOCKSTEP_ROWS + r] + forest.leaves[leaf0 + idx[r]]
+        for r in range(last - first):
+            out[first + r, t] = acc[r]
 
 
 @wp.func
@@ -255,15 +279,19 @@ def paper_velocities_kernel(targets: wp.array2d(dtype=wp.float32),
 def eval_forest(forest: Forest, features, out, *, rows_per_thread: int = 1, device=None) -> None:
     """``out[row, t]`` = prediction of target t for ``features[row]`` (raw float32 features).
 
-    ``rows_per_thread`` applies to the explicit layout; the perfect layout uses LOCKSTEP_ROWS.
+    ``rows_per_thread`` applies to the explicit layout; the perfect layout uses BLOCK_ROWS.
     """
     n_rows = features.shape[0]
-    rows_per_thread = LOCKSTEP_ROWS if forest.perfect else max(1, int(rows_per_thread))
-    n_threads = (n_rows + rows_per_thread - 1) // rows_per_thread
-    if n_threads == 0:
+    if n_rows == 0:
         return
-    wp.launch(eval_forest_kernel, dim=n_threads, inputs=[forest, features, n_rows, rows_per_thread],
-              outputs=[out], device=device or features.device)
+    device = device or features.device
+    if forest.perfect:
+        wp.launch(eval_forest_perfect_kernel, dim=(n_rows + BLOCK_ROWS - 1) // BLOCK_ROWS,
+                  inputs=[forest, features, n_rows], outputs=[out], device=device)
+    else:
+        rows_per_thread = max(1, int(rows_per_thread))
+        wp.launch(eval_forest_explicit_kernel, dim=(n_rows + rows_per_thread - 1) // rows_per_thread,
+                  inputs=[forest, features, n_rows, rows_per_thread], outputs=[out], device=device)
 
 
 def contact_features(v1, v2, n, d1, d2, rho1, rho2, features, *, device=None) -> None:
