@@ -479,7 +479,8 @@ def _plot_bars(report: dict, key: str, ylabel: str, path: str) -> str:
             vals = [e[key] for e in report["runs"] if (e["diameter"], e["dt"]) == g and e["collisions"] == model
                     and e[key] is not None]
             values.append(float(np.mean(vals)) if vals else np.nan)
-        ax.bar(np.arange(len(groups)) + (m - (len(models) - 1) / 2) * width, values, width, label=model)
+        bars = ax.bar(np.arange(len(groups)) + (m - (len(models) - 1) / 2) * width, values, width, label=model)
+        ax.bar_label(bars, labels=["" if np.isnan(v) else f"{v:.3g}" for v in values], fontsize=7)
     ax.set_xticks(np.arange(len(groups)))
     ax.set_xticklabels([f"{d * 1e6:.0f} um\ndt={dt:g} s" for d, dt in groups])
     ax.set_ylabel(ylabel)
