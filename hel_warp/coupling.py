@@ -211,13 +211,16 @@ def interpolate_gas(grid: GridSpec, particles, cell_velocity, cell_grad_p, field
 def ktgf_collision(grid: GridSpec, particles, fields: CouplingFields, params) -> None:
     """Step 4 (KTGF): cell Theta, p_s from the deposited solids; a_coll = -grad p_s / (eps_s rho_p) at parcels.
 
-    ``params``: a ``kernels.ktgf.KtgfParams`` (see ``make_ktgf_params``). Needs :func:`deposit_parcels` first.
+    Theta is the algebraic root of eq. (8) including the gas-solid exchange 3 K_sg Theta, with
+    K_sg = sum(beta V) / V_cell from the deposited ``fields.cell_drag_coeff`` (the drag coefficients of
+    the last push). ``params``: a ``kernels.ktgf.KtgfParams`` (see ``make_ktgf_params``). Needs
+    :func:`deposit_parcels` first.
     """
     from kernels.ktgf import cell_gradient, collision_acceleration, ktgf_cells
 
     ktgf_cells(params, grid.spacing, fields.cell_eps_s, fields.cell_solid_velocity, cell_g0=fields.cell_g0,
                cell_theta=fields.cell_theta, cell_p_s=fields.cell_p_s, cell_mu_s=fields.cell_mu_s,
-               cell_mu_fric=fields.cell_mu_fric, periodic=grid.periodic)
+               cell_mu_fric=fields.cell_mu_fric, periodic=grid.periodic, cell_drag_coeff=fields.cell_drag_coeff)
     cell_gradient(grid.spacing, fields.cell_p_s, fields.cell_grad_p_s, periodic=grid.periodic)
     collision_acceleration(grid.cell_grid(), params.eps_s_min, particles.x, particles.density,
                            fields.cell_grad_p_s, fields.cell_eps_s, fields.parcel_a_coll)

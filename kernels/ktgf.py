@@ -15,20 +15,34 @@ i.e. Gidaspow's (1994) convention, equal to Fluent's eps_s * mu_s):
 - bulk viscosity (Lun et al. 1984):  lambda_s = 4/3 eps_s^2 rho_s d g0 (1 + e) sqrt(Theta/pi)
 - frictional viscosity (Schaeffer 1987): mu_fr = p_s sin(phi) / (2 sqrt(I_2D)) for
   eps_s > eps_s,fric (0.61), zero below; frictional pressure "based-ktgf" = p_s.
-- algebraic granular temperature (Syamlal, Rogers & O'Brien 1993, MFIX ``calc_mu_s.f``):
-      sqrt(Theta) = [-K1 eps_s trD + sqrt(K1^2 eps_s^2 trD^2 + 4 K4 eps_s (K2 trD^2 + 2 K3 tr(D^2)))] / (2 K4 eps_s)
+- algebraic granular temperature: the paper's eq. (8) (Fluent's algebraic form, "neglecting
+  convection and diffusion"; Gidaspow 1994, ch. 9) with the closures of Syamlal, Rogers & O'Brien
+  (1993, MFIX ``calc_mu_s.f``):
+      0 = (-p_s I + tau_s) : grad u - gamma - 3 K_sg Theta
+        = -p_s trD + lambda_s trD^2 + 2 mu_s D:D - gamma - 3 K_sg Theta
+  with p_s = K1 eps_s^2 Theta, lambda_s = K2 eps_s sqrt(Theta), mu_s = K3 eps_s sqrt(Theta),
+  gamma = K4 eps_s^2 Theta^(3/2) = 12 (1 - e^2) g0 rho_s eps_s^2 Theta^(3/2) / (d sqrt(pi)),
   K1 = 2 (1 + e) rho_s g0,
   K3 = d rho_s / 2 {sqrt(pi) / (3 (3 - e)) [1/2 (3e + 1) + 0.4 (1 + e)(3e - 1) eps_s g0] + 8 eps_s g0 (1 + e) / (5 sqrt(pi))},
   K2 = 4 d rho_s (1 + e) eps_s g0 / (3 sqrt(pi)) - 2/3 K3,   K4 = 12 (1 - e^2) rho_s g0 / (d sqrt(pi)),
-  the root of the local balance  -p_s trD + lambda_s trD^2 + 2 mu_s tr(D^2) - gamma = 0 with
-  p_s = K1 eps_s^2 Theta, lambda_s = K2 eps_s sqrt(Theta), mu_s = K3 eps_s sqrt(Theta),
-  gamma = K4 eps_s^2 Theta^(3/2) (production = dissipation; convection, diffusion and the gas
-  exchange term of eq. (8) neglected, as in MFIX).
+  K_sg the gas-solid exchange coefficient (kg/(m^3 s)) of the cell, = sum(beta V) / V_cell from the
+  deposit's ``cell_drag_coeff``. With x = sqrt(Theta) > 0, dividing by eps_s x:
+      A x^2 + B x - C = 0,  A = K4 eps_s,  B = K1 eps_s trD + 3 K_sg / eps_s,  C = K2 trD^2 + 2 K3 D:D,
+  C >= 0 because D:D >= trD^2/3 (C >= 4 d rho_s (1+e) eps_s g0 trD^2 / (3 sqrt(pi))), so there is
+  exactly one non-negative root, x = 2C / (B + sqrt(B^2 + 4AC)) for B >= 0 (no cancellation),
+  (-B + sqrt(B^2 + 4AC)) / (2A) for B < 0. K_sg = 0 gives back the MFIX root
+      sqrt(Theta) = [-K1 eps_s trD + sqrt(K1^2 eps_s^2 trD^2 + 4 K4 eps_s (K2 trD^2 + 2 K3 tr(D^2)))] / (2 K4 eps_s).
+  The pressure work uses MFIX's p_s = K1 eps_s^2 Theta (as Syamlal et al.), not the kinetic part
+  eps_s rho_s Theta of the Lun p_s below.
+- solids velocity gradient for D: the solids phase (and its velocity) exists only in cells with
+  eps_s >= eps_s_min; an empty cell's deposited velocity is a placeholder 0, not a solids velocity.
+  Per axis: central difference when both neighbours hold solids, one-sided against the centre cell
+  when only one does, zero when neither does (a lone parcel has no resolved solids strain).
 - MP-PIC collision acceleration at a parcel (Snider 2001; Andrews & O'Rourke 1996):
       a_coll = -grad(p_s) / (eps_s rho_p)                        (eq. (5)-(6) with sigma_s = -p_s I)
 
 Cell-centred fields, uniform spacing h; derivatives by central differences (one-sided at the
-grid boundary).
+grid boundary; the solids velocity gradient also one-sided / zero next to cells without solids).
 """
 
 from __future__ import annotations
@@ -87,10 +101,12 @@ def second_invariant_deviatoric(strain_rate: wp.mat33):
 
 @wp.func
 def algebraic_theta(eps_s: float, rho_s: float, diameter: float, restitution: float, g0: float, tr_d: float,
-                    tr_d2: float):
-    """Theta (m^2/s^2) zeroing production - dissipation (Syamlal et al. 1993; MFIX calc_mu_s.f).
+                    tr_d2: float, k_sg: float):
+    """Theta (m^2/s^2) zeroing production - dissipation - 3 K_sg Theta (paper eq. (8); closures of
+    Syamlal et al. 1993 / MFIX calc_mu_s.f; see the module docstring for the quadratic in sqrt(Theta)).
 
-    tr_d = trace(D), tr_d2 = D:D, D the solids strain-rate tensor (1/s). 0 where eps_s <= 0.
+    tr_d = trace(D), tr_d2 = D:D, D the solids strain-rate tensor (1/s); k_sg the gas-solid exchange
+    coefficient, kg/(m^3 s) (0: the MFIX root). 0 where eps_s <= 0.
     """
     if eps_s <= 0.0:
         return 0.0
@@ -102,10 +118,16 @@ def algebraic_theta(eps_s: float, rho_s: float, diameter: float, restitution: fl
                                    + 8.0 * eps_s * g0 * (1.0 + e) / (5.0 * sqrt_pi))
     k2 = 4.0 * diameter * rho_s * (1.0 + e) * eps_s * g0 / (3.0 * sqrt_pi) - 2.0 / 3.0 * k3
     k4 = 12.0 * (1.0 - e * e) * rho_s * g0 / (diameter * sqrt_pi)
-    production = k2 * tr_d * tr_d + 2.0 * k3 * tr_d2
-    disc = k1 * k1 * eps_s * eps_s * tr_d * tr_d + 4.0 * k4 * eps_s * production
-    root = (-k1 * eps_s * tr_d + wp.sqrt(wp.max(disc, 0.0))) / (2.0 * k4 * eps_s)
-    root = wp.max(root, 0.0)
+    a = k4 * eps_s
+    b = k1 * eps_s * tr_d + 3.0 * wp.max(k_sg, 0.0) / eps_s
+    c = wp.max(k2 * tr_d * tr_d + 2.0 * k3 * tr_d2, 0.0)
+    sq = wp.sqrt(b * b + 4.0 * a * c)
+    root = 0.0
+    if b >= 0.0:
+        if c > 0.0:
+            root = 2.0 * c / (b + sq)
+    else:
+        root = (sq - b) / (2.0 * a)
     return root * root
 
 
@@ -140,6 +162,20 @@ def _index_pair(i: int, n: int, periodic: int):
     return lo, hi, hi - lo
 
 
+@wp.func
+def _solids_difference(u_c: wp.vec3, u_lo: wp.vec3, u_hi: wp.vec3, lo_ok: bool, hi_ok: bool, span: int,
+                       spacing: float):
+    """d u / d x along one axis from the neighbours that hold solids: central (over ``span`` spacings)
+    when both do, one-sided against the centre when one does, zero when neither does."""
+    if lo_ok and hi_ok:
+        return (u_hi - u_lo) / (float(span) * spacing)
+    if hi_ok:
+        return (u_hi - u_c) / spacing
+    if lo_ok:
+        return (u_c - u_lo) / spacing
+    return wp.vec3(0.0)
+
+
 @wp.kernel
 def ktgf_cells_kernel(
     params: KtgfParams,
@@ -147,6 +183,7 @@ def ktgf_cells_kernel(
     periodic: wp.vec3i,
     cell_eps_s: wp.array3d(dtype=float),
     cell_solid_velocity: wp.array3d(dtype=wp.vec3),
+    cell_drag_coeff: wp.array3d(dtype=wp.float64),
     # outputs
     cell_g0: wp.array3d(dtype=float),
     cell_theta: wp.array3d(dtype=float),
@@ -166,26 +203,28 @@ def ktgf_cells_kernel(
         cell_mu_s[i, j, k] = 0.0
         cell_mu_fric[i, j, k] = 0.0
         return
-    # velocity gradient G[a, b] = d u_a / d x_b by central differences
+    # velocity gradient G[a, b] = d u_a / d x_b, differences only between cells holding solids
     il, ih, si = _index_pair(i, nx, periodic[0])
     jl, jh, sj = _index_pair(j, ny, periodic[1])
     kl, kh, sk = _index_pair(k, nz, periodic[2])
-    dudx = wp.vec3(0.0)
-    dudy = wp.vec3(0.0)
-    dudz = wp.vec3(0.0)
-    if si > 0:
-        dudx = (cell_solid_velocity[ih, j, k] - cell_solid_velocity[il, j, k]) / (float(si) * spacing)
-    if sj > 0:
-        dudy = (cell_solid_velocity[i, jh, k] - cell_solid_velocity[i, jl, k]) / (float(sj) * spacing)
-    if sk > 0:
-        dudz = (cell_solid_velocity[i, j, kh] - cell_solid_velocity[i, j, kl]) / (float(sk) * spacing)
+    u_c = cell_solid_velocity[i, j, k]
+    dudx = _solids_difference(u_c, cell_solid_velocity[il, j, k], cell_solid_velocity[ih, j, k],
+                              il != i and cell_eps_s[il, j, k] >= params.eps_s_min,
+                              ih != i and cell_eps_s[ih, j, k] >= params.eps_s_min, si, spacing)
+    dudy = _solids_difference(u_c, cell_solid_velocity[i, jl, k], cell_solid_velocity[i, jh, k],
+                              jl != j and cell_eps_s[i, jl, k] >= params.eps_s_min,
+                              jh != j and cell_eps_s[i, jh, k] >= params.eps_s_min, sj, spacing)
+    dudz = _solids_difference(u_c, cell_solid_velocity[i, j, kl], cell_solid_velocity[i, j, kh],
+                              kl != k and cell_eps_s[i, j, kl] >= params.eps_s_min,
+                              kh != k and cell_eps_s[i, j, kh] >= params.eps_s_min, sk, spacing)
     grad = wp.mat33(dudx[0], dudy[0], dudz[0], dudx[1], dudy[1], dudz[1], dudx[2], dudy[2], dudz[2])
     strain = 0.5 * (grad + wp.transpose(grad))
     tr_d = wp.trace(strain)
     tr_d2 = wp.ddot(strain, strain)
     g0 = radial_distribution_lun(eps, params.packing)
+    k_sg = float(cell_drag_coeff[i, j, k]) / (spacing * spacing * spacing)  # sum beta V / V_cell
     theta = algebraic_theta(eps, params.particle_density, params.particle_diameter, params.restitution, g0,
-                            tr_d, tr_d2)
+                            tr_d, tr_d2, k_sg)
     p_s = solids_pressure_lun(eps, params.particle_density, params.restitution, g0, theta)
     cell_g0[i, j, k] = g0
     cell_theta[i, j, k] = theta
@@ -254,7 +293,8 @@ def closures_kernel(
     tr_d: wp.array(dtype=float),
     tr_d2: wp.array(dtype=float),
     i2d: wp.array(dtype=float),
-    # outputs: rows g0, algebraic theta (from tr_d, tr_d2), then at the given theta: p_s, mu_s, lambda_s, mu_fric
+    k_sg: wp.array(dtype=float),
+    # outputs: rows g0, algebraic theta (from tr_d, tr_d2, k_sg), then at the given theta: p_s, mu_s, lambda_s, mu_fric
     out: wp.array2d(dtype=float),
 ):
     """Point evaluation of the closures (tests, diagnostics)."""
@@ -264,7 +304,7 @@ def closures_kernel(
     g0 = radial_distribution_lun(eps, params.packing)
     out[0, tid] = g0
     out[1, tid] = algebraic_theta(eps, params.particle_density, params.particle_diameter, params.restitution, g0,
-                                  tr_d[tid], tr_d2[tid])
+                                  tr_d[tid], tr_d2[tid], k_sg[tid])
     p_s = solids_pressure_lun(eps, params.particle_density, params.restitution, g0, th)
     out[2, tid] = p_s
     out[3, tid] = granular_viscosity_gidaspow(eps, params.particle_density, params.particle_diameter,
@@ -295,11 +335,16 @@ def make_ktgf_params(*, particle_diameter: float, particle_density: float, resti
 
 
 def ktgf_cells(params: KtgfParams, spacing: float, cell_eps_s, cell_solid_velocity, *, cell_g0, cell_theta,
-               cell_p_s, cell_mu_s, cell_mu_fric, periodic=(False, False, False)):
-    """g0, algebraic Theta, p_s, mu_s and Schaeffer mu_fr in every cell."""
+               cell_p_s, cell_mu_s, cell_mu_fric, periodic=(False, False, False), cell_drag_coeff=None):
+    """g0, algebraic Theta, p_s, mu_s and Schaeffer mu_fr in every cell.
+
+    ``cell_drag_coeff``: float64 sum of beta V per cell (kg/s, the deposit's), giving the exchange
+    term 3 K_sg Theta of eq. (8) with K_sg = cell_drag_coeff / h^3; None = no gas-solid exchange."""
+    if cell_drag_coeff is None:
+        cell_drag_coeff = wp.zeros(cell_eps_s.shape, dtype=wp.float64, device=cell_eps_s.device)
     wp.launch(ktgf_cells_kernel, dim=cell_eps_s.shape, device=cell_eps_s.device,
               inputs=[params, float(spacing), wp.vec3i(*[int(bool(p)) for p in periodic]), cell_eps_s,
-                      cell_solid_velocity],
+                      cell_solid_velocity, cell_drag_coeff],
               outputs=[cell_g0, cell_theta, cell_p_s, cell_mu_s, cell_mu_fric])
 
 
@@ -318,8 +363,10 @@ def collision_acceleration(grid: CellGrid, eps_s_min: float, particle_x, particl
               outputs=[parcel_a_coll])
 
 
-def eval_closures(params: KtgfParams, eps_s, theta, tr_d, tr_d2, i2d, out):
-    """Rows of ``out`` (6, n): g0, algebraic Theta(tr_d, tr_d2), and at the given ``theta``: p_s, mu_s,
-    lambda_s, Schaeffer mu_fric(i2d)."""
+def eval_closures(params: KtgfParams, eps_s, theta, tr_d, tr_d2, i2d, out, k_sg=None):
+    """Rows of ``out`` (6, n): g0, algebraic Theta(tr_d, tr_d2, k_sg), and at the given ``theta``: p_s, mu_s,
+    lambda_s, Schaeffer mu_fric(i2d). ``k_sg``: gas-solid exchange coefficient, kg/(m^3 s) (None = 0)."""
+    if k_sg is None:
+        k_sg = wp.zeros(eps_s.shape[0], dtype=float, device=eps_s.device)
     wp.launch(closures_kernel, dim=eps_s.shape[0], device=eps_s.device,
-              inputs=[params, eps_s, theta, tr_d, tr_d2, i2d], outputs=[out])
+              inputs=[params, eps_s, theta, tr_d, tr_d2, i2d, k_sg], outputs=[out])

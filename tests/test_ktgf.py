@@ -1,6 +1,7 @@
 """KTGF closures (Table 1) against values worked out by hand from the published formulas, their limits,
-the algebraic granular temperature as the root of the local energy balance, and the MP-PIC
-collision acceleration -grad(p_s)/(eps_s rho_p)."""
+the algebraic granular temperature as the root of the local energy balance of eq. (8) (with the
+gas-solid exchange 3 K_sg Theta), the solids strain taken only between cells holding solids, and the
+MP-PIC collision acceleration -grad(p_s)/(eps_s rho_p)."""
 
 import math
 
@@ -13,7 +14,7 @@ from kernels import ktgf
 RHO_S, D, E, EPS_MAX = 1000.0, 315e-6, 0.9, 0.63
 
 
-def closures(eps_s, theta=0.01, tr_d=0.0, tr_d2=0.0, i2d=0.0):
+def closures(eps_s, theta=0.01, tr_d=0.0, tr_d2=0.0, i2d=0.0, k_sg=0.0):
     """Evaluate the kernel-side closures at points; returns (6, n) float64 rows (see eval_closures)."""
     eps_s = np.atleast_1d(np.asarray(eps_s, np.float32))
     n = eps_s.size
@@ -23,7 +24,7 @@ def closures(eps_s, theta=0.01, tr_d=0.0, tr_d2=0.0, i2d=0.0):
 
     out = wp.zeros((6, n), dtype=float)
     params = ktgf.make_ktgf_params(particle_diameter=D, particle_density=RHO_S, restitution=E, packing=EPS_MAX)
-    ktgf.eval_closures(params, arr(eps_s), arr(theta), arr(tr_d), arr(tr_d2), arr(i2d), out)
+    ktgf.eval_closures(params, arr(eps_s), arr(theta), arr(tr_d), arr(tr_d2), arr(i2d), out, k_sg=arr(k_sg))
     return out.numpy().astype(np.float64)
 
 
@@ -53,12 +54,29 @@ def test_algebraic_theta_simple_shear_hand_value():
     assert theta == pytest.approx(9.48304e-6, rel=1e-5)
 
 
-@pytest.mark.parametrize("eps_s,tr_d,tr_d2", [(0.05, 0.0, 200.0), (0.3, -4.0, 60.0), (0.3, 3.0, 40.0),
-                                              (0.55, -1.0, 5.0), (0.001, 0.5, 800.0)])
-def test_algebraic_theta_zeroes_energy_balance(eps_s, tr_d, tr_d2):
-    # Syamlal et al. (1993): 0 = -p_s trD + lambda_s trD^2 + 2 mu_s D:D - gamma with p_s = K1 eps^2 Theta,
-    # lambda_s = K2 eps sqrt(Theta), mu_s = K3 eps sqrt(Theta), gamma = K4 eps^2 Theta^1.5 (written here again).
-    theta = closures(eps_s, tr_d=tr_d, tr_d2=tr_d2)[1, 0]
+def test_algebraic_theta_with_gas_exchange_hand_value():
+    # Same shear and eps_s, now with K_sg = 3000 kg/(m^3 s). Eq. (8) divided by eps_s sqrt(Theta) = x:
+    # A x^2 + B x - C = 0, A = K4 eps_s = 5.591414e6, B = K1 eps_s trD + 3 K_sg/eps_s = 0 + 3e4,
+    # C = K2 trD^2 + 2 K3 D:D = 2*0.530236*50 = 53.02360;
+    # B^2 + 4AC = 9e8 + 1.185908e9 = 2.085908e9, sqrt = 45671.74;
+    # x = 2C/(B + sqrt) = 106.0472/75671.74 = 1.401411e-3, Theta = 1.963953e-6 m^2/s^2 (4.8x below the
+    # 9.48304e-6 without exchange).
+    theta = closures(0.3, tr_d=0.0, tr_d2=50.0, k_sg=3000.0)[1, 0]
+    assert theta == pytest.approx(1.963953e-6, rel=1e-5)
+    # no strain: no production, Theta = 0 whatever the exchange
+    assert closures(0.3, tr_d=0.0, tr_d2=0.0, k_sg=3000.0)[1, 0] == 0.0
+
+
+@pytest.mark.parametrize("eps_s,tr_d,tr_d2,k_sg", [(0.05, 0.0, 200.0, 0.0), (0.3, -4.0, 60.0, 0.0),
+                                                   (0.3, 3.0, 40.0, 0.0), (0.55, -1.0, 5.0, 0.0),
+                                                   (0.001, 0.5, 800.0, 0.0), (0.016, 0.0, 2.0e6, 210.0),
+                                                   (0.016, -800.0, 1.0e6, 210.0), (0.3, 3.0, 40.0, 5.0e4),
+                                                   (0.001, 0.5, 800.0, 13.0)])
+def test_algebraic_theta_zeroes_energy_balance(eps_s, tr_d, tr_d2, k_sg):
+    # Eq. (8) with Syamlal et al. (1993) closures: 0 = -p_s trD + lambda_s trD^2 + 2 mu_s D:D - gamma - 3 K_sg Theta
+    # with p_s = K1 eps^2 Theta, lambda_s = K2 eps sqrt(Theta), mu_s = K3 eps sqrt(Theta),
+    # gamma = K4 eps^2 Theta^1.5 (written here again).
+    theta = closures(eps_s, tr_d=tr_d, tr_d2=tr_d2, k_sg=k_sg)[1, 0]
     assert theta > 0
     e, rho, d = E, RHO_S, D
     g0 = 1.0 / (1.0 - (eps_s / EPS_MAX) ** (1.0 / 3.0))
@@ -70,9 +88,58 @@ def test_algebraic_theta_zeroes_energy_balance(eps_s, tr_d, tr_d2):
     k4 = 12 * (1 - e * e) * rho * g0 / (d * sp)
     s = math.sqrt(theta)
     production = -k1 * eps_s**2 * theta * tr_d + k2 * eps_s * s * tr_d**2 + 2 * k3 * eps_s * s * tr_d2
-    dissipation = k4 * eps_s**2 * theta**1.5
-    # float32 kernel: residual relative to the dissipation at the float32 level
-    assert abs(production - dissipation) <= 1e-4 * dissipation
+    sinks = k4 * eps_s**2 * theta**1.5 + 3 * k_sg * theta
+    # float32 kernel: residual relative to the sinks at the float32 level
+    assert abs(production - sinks) <= 1e-4 * sinks
+
+
+def _cells(eps_row, u_row, drag_coeff_row=None, h=1e-3):
+    """ktgf_cells on a (n, 1, 1) row of cells; returns (theta, p_s) as float64 rows."""
+    n = len(eps_row)
+    params = ktgf.make_ktgf_params(particle_diameter=D, particle_density=RHO_S, restitution=E, packing=EPS_MAX)
+    out = {k: wp.zeros((n, 1, 1), dtype=float) for k in ("g0", "theta", "p_s", "mu_s", "mu_fric")}
+    drag = None
+    if drag_coeff_row is not None:
+        drag = wp.array(np.asarray(drag_coeff_row, np.float64).reshape(n, 1, 1), dtype=wp.float64)
+    ktgf.ktgf_cells(params, h, wp.array(np.asarray(eps_row, np.float32).reshape(n, 1, 1), dtype=float),
+                    wp.array(np.asarray(u_row, np.float32).reshape(n, 1, 1, 3), dtype=wp.vec3),
+                    cell_g0=out["g0"], cell_theta=out["theta"], cell_p_s=out["p_s"], cell_mu_s=out["mu_s"],
+                    cell_mu_fric=out["mu_fric"], cell_drag_coeff=drag)
+    return out["theta"].numpy().ravel().astype(np.float64), out["p_s"].numpy().ravel().astype(np.float64)
+
+
+def test_isolated_moving_parcel_has_no_solids_strain():
+    # One parcel moving at (5, 0.87, 0) m/s, spread by the cloud-in-cell weights over cells 2 and 3 of a
+    # row of 6 (eps_s 0.010 and 0.006); the other cells are empty (deposited velocity 0 there). The solids
+    # velocity gradient exists only between cells holding solids: one-sided 2 -> 3 and 3 -> 2, both 0, so
+    # D = 0, Theta = 0, p_s = 0. (Central differences against the empty cells gave a false strain
+    # |v|/(2h) = 2500 1/s in both cells.)
+    eps = [0.0, 0.0, 0.010, 0.006, 0.0, 0.0]
+    v = [5.0, 0.87, 0.0]
+    u = [[0, 0, 0], [0, 0, 0], v, v, [0, 0, 0], [0, 0, 0]]
+    theta, p_s = _cells(eps, u)
+    assert np.all(theta == 0.0) and np.all(p_s == 0.0)
+    # a single occupied cell: no neighbour with solids on any axis, no strain either
+    theta, p_s = _cells([0.0, 0.016, 0.0], [[0, 0, 0], v, [0, 0, 0]])
+    assert np.all(theta == 0.0) and np.all(p_s == 0.0)
+
+
+def test_solids_strain_is_one_sided_next_to_empty_cells():
+    # Solids in cells 1..3 of a row of 5 with u_y = gamma x (simple shear D_xy = gamma/2, tr D = 0,
+    # D:D = gamma^2/2 = 50 for gamma = 10 1/s): cell 2 central, cells 1 and 3 one-sided against the
+    # centre, both exact for a linear profile, so all three take the simple-shear hand value of
+    # test_algebraic_theta_simple_shear_hand_value at eps_s = 0.3: Theta = 9.48304e-6.
+    h, gamma = 1e-3, 10.0
+    x = (np.arange(5) + 0.5) * h
+    eps = [0.0, 0.3, 0.3, 0.3, 0.0]
+    u = [[0.0, gamma * xi if 1 <= n <= 3 else 0.0, 0.0] for n, xi in enumerate(x)]
+    theta, _ = _cells(eps, u, h=h)
+    assert theta[1:4] == pytest.approx([9.48304e-6] * 3, rel=1e-4)
+    assert theta[0] == 0.0 and theta[4] == 0.0
+    # the deposit's sum beta V per cell enters as K_sg = sum beta V / h^3: 3e-6 kg/s in 1e-9 m^3 = 3000
+    # kg/(m^3 s), the hand value of test_algebraic_theta_with_gas_exchange_hand_value: Theta = 1.963953e-6
+    theta, _ = _cells(eps, u, drag_coeff_row=[0.0, 3e-6, 3e-6, 3e-6, 0.0], h=h)
+    assert theta[1:4] == pytest.approx([1.963953e-6] * 3, rel=1e-4)
 
 
 def test_radial_distribution_diverges_at_packing():
