@@ -47,17 +47,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def build(args):
     """The solver of the settling column (particles on a jittered lattice in a closed box)."""
+    from hel_warp._warp import init_warp
     from hel_warp.dem import DEMConfig, DEMSolver
     from hel_warp.errors import ConfigError
     from hel_warp.material import Material
     from hel_warp.particles import Particles, lattice_positions
 
-    import warp as wp
-
-    try:
-        wp.get_device(args.device)
-    except Exception:
-        raise ConfigError(f"Warp device {args.device!r} is not available here; use --device cpu") from None
+    init_warp(args.device)
     if args.particles < 1:
         raise ConfigError(f"--particles must be >= 1 (got {args.particles})")
     d = args.diameter
@@ -103,12 +99,9 @@ def check(solver, n_initial: int) -> list[str]:
 
 
 def run(args, *, progress: bool = True) -> int:
-    import warp as wp
-
     from hel_warp.dem import run_with_output
     from hel_warp.io import RunWriter
 
-    wp.config.quiet = True
     solver = build(args)
     n = solver.particles.count
     writer = RunWriter(args.out, config={"case": "settling_column", "args": vars(args), **solver.resolved_config()},

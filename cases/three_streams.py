@@ -263,9 +263,9 @@ def render(case: ThreeStreams, out: str) -> list[str]:
 
 
 def run(args) -> int:
-    import warp as wp
+    from hel_warp._warp import init_warp
 
-    wp.config.quiet = True
+    init_warp(args.device)
     case = ThreeStreams(args)
     for _ in range(args.steps):
         case.step()

@@ -159,10 +159,9 @@ def main(argv=None) -> int:
     parser.add_argument("--json", help="also write the results to this JSON file")
     args = parser.parse_args(argv)
 
-    import warp as wp
+    from hel_warp._warp import init_warp
 
-    wp.config.quiet = True
-    wp.init()
+    init_warp(args.device)
     results = []
     print(f"device {args.device}; {args.repeats} repeats, ~{args.budget:.0f} s of timed work per size and code")
     print("rates in particle-steps/s from CPU time (wall-clock in brackets); ns per particle-step from CPU time")

@@ -123,13 +123,9 @@ def main(argv=None) -> int:
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     args = parser.parse_args(argv)
 
-    import warp as wp
+    from hel_warp._warp import init_warp
 
-    from hel_warp.forest import quiet_warp
-
-    quiet_warp()
-    wp.init()
-    device = wp.get_device(args.device)
+    device = init_warp(args.device)
     gas = [bench_gas(n, args.repeats, device) for n in args.cells]
     parcels = [bench_parcels(n, args.repeats, device) for n in args.parcels]
     base_cell, base_parcel = gas[0]["per_cell_us"], parcels[0]["total_ns_per_parcel"]

@@ -78,16 +78,11 @@ def _stored_chunk_size(out: str) -> int | None:
 
 
 def run(args) -> int:
-    import warp as wp
-
+    from hel_warp._warp import init_warp
     from hel_warp.material import Material
     from surrogate.dataset import DEFAULT_CHUNK_SIZE, build_dataset, make_spec
 
-    # no greeting or per-module load lines around the progress bar (Warp >= 1.19: log_level; older: quiet)
-    if hasattr(wp, "LOG_WARNING"):
-        wp.config.log_level = wp.LOG_WARNING
-    else:
-        wp.config.quiet = True
+    init_warp()  # no greeting or per-module load lines around the progress bar
     chunk_size = args.chunk_size
     if chunk_size is None:
         chunk_size = (None if args.overwrite else _stored_chunk_size(args.out)) or DEFAULT_CHUNK_SIZE

@@ -49,13 +49,10 @@ def add_parser(subparsers):
 
 def run(args) -> int:
     import numpy as np
-    import warp as wp
 
-    # stdout carries the result (one JSON object with --json): no greeting or module-load lines
-    if hasattr(wp, "LOG_WARNING"):  # Warp >= 1.19
-        wp.config.log_level = wp.LOG_WARNING
-    else:
-        wp.config.quiet = True
+    from hel_warp._warp import init_warp
+
+    init_warp()  # stdout carries the result (one JSON object with --json): no greeting or module-load lines
 
     from hel_warp.errors import ConfigError, require_positive
     from hel_warp.impact import place_just_apart, simulate_pairs, stable_time_step

@@ -49,11 +49,9 @@ def run(args) -> int:
             "for the particle to settle")
     require(args.dt <= 0.1, f"--dt {args.dt} s is too long for a settling particle; give at most 0.1 s")
 
-    import warp as wp
+    from hel_warp._warp import init_warp
 
-    wp.config.quiet = True
-    if hasattr(wp, "LOG_WARNING"):
-        wp.config.log_level = wp.LOG_WARNING
+    init_warp()
     from hel_warp.coupling import PushConfig, single_particle_response
 
     config = PushConfig(drag=args.drag, fluid_density=args.gas_density, fluid_viscosity=args.gas_viscosity,
