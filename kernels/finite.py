@@ -4,47 +4,22 @@ Used at output intervals (not per step) to catch a blown-up field before it is w
 ``count_nonfinite`` adds the number of non-finite entries of an array to ``bad[slot]``.
 """
 
+from typing import Any
+
 import warp as wp
 
 
 @wp.kernel
-def nonfinite_float_kernel(values: wp.array(dtype=float), slot: int,
-                           # outputs
-                           bad: wp.array(dtype=wp.int32)):
+def nonfinite_kernel(values: wp.array(dtype=Any), slot: int,
+                     # outputs
+                     bad: wp.array(dtype=wp.int32)):
     tid = wp.tid()
     if not wp.isfinite(values[tid]):
         wp.atomic_add(bad, slot, 1)
 
 
-@wp.kernel
-def nonfinite_vec3_kernel(values: wp.array(dtype=wp.vec3), slot: int,
-                          # outputs
-                          bad: wp.array(dtype=wp.int32)):
-    tid = wp.tid()
-    if not wp.isfinite(values[tid]):
-        wp.atomic_add(bad, slot, 1)
-
-
-@wp.kernel
-def nonfinite_float64_kernel(values: wp.array(dtype=wp.float64), slot: int,
-                             # outputs
-                             bad: wp.array(dtype=wp.int32)):
-    tid = wp.tid()
-    if not wp.isfinite(values[tid]):
-        wp.atomic_add(bad, slot, 1)
-
-
-@wp.kernel
-def nonfinite_vec3d_kernel(values: wp.array(dtype=wp.vec3d), slot: int,
-                           # outputs
-                           bad: wp.array(dtype=wp.int32)):
-    tid = wp.tid()
-    if not wp.isfinite(values[tid]):
-        wp.atomic_add(bad, slot, 1)
-
-
-_KERNELS = {wp.float32: nonfinite_float_kernel, wp.vec3: nonfinite_vec3_kernel,
-            wp.float64: nonfinite_float64_kernel, wp.vec3d: nonfinite_vec3d_kernel}
+_KERNELS = {dtype: wp.overload(nonfinite_kernel, [wp.array(dtype=dtype), int, wp.array(dtype=wp.int32)])
+            for dtype in (wp.float32, wp.vec3, wp.float64, wp.vec3d)}
 
 
 def count_nonfinite(values, bad, slot: int = 0) -> None:
