@@ -137,15 +137,17 @@ def eval_forest_explicit_kernel(forest: Forest, features: wp.array2d(dtype=wp.fl
 
 
 @wp.kernel
-def eval_forest_perfect_kernel(forest: Forest, features: wp.array2d(dtype=wp.float32), n_rows: wp.int32,
+def eval_forest_perfect_kernel(forest: Forest, features: wp.array(dtype=wp.float32), n_rows: wp.int32,
+                               n_features: wp.int32,
                                # outputs
                                out: wp.array2d(dtype=wp.float32)):
     """Every target for the BLOCK_ROWS rows [tid*BLOCK_ROWS, ...), PERFECT layout.
 
-    Tree-major: each tree is walked for the whole block (BLOCK_GROUPS groups of LOCKSTEP_ROWS
-    rows side by side, fixed trip count, independent loads in flight) before the next tree, so
-    its nodes stay in cache; sums kept locally in XGBoost's order base + tree 0 + tree 1 + ...
-    Rows past ``n_rows`` repeat the last row and are not written.
+    ``features``: the (n_rows, n_features) row-major features, flattened. Tree-major: each tree
+    is walked for the whole block (BLOCK_GROUPS groups of LOCKSTEP_ROWS rows side by side, fixed
+    trip count, independent loads in flight) before the next tree, so its nodes stay in cache;
+    sums kept locally in XGBoost's order base + tree 0 + tree 1 + ... Rows past ``n_rows``
+    repeat the last row and are not written.
     """
     tid = wp.tid()
     first = tid * BLOCK_ROWS
@@ -161,12 +163,47 @@ def eval_forest_perfect_kernel(forest: Forest, features: wp.array2d(dtype=wp.flo
             depth = forest.tree_depth[k]
             leaf0 = forest.tree_leaf[k] - ((1 << depth) - 1)
             for g in range(BLOCK_GROUPS):
-                group_first = first + g * LOCKSTEP_ROWS
+                row_offset = RowIndex()
+                for r in range(LOCKSTEP_ROWS):
+                    row_offset[r] = wp.min(first + g * LOCKSTEP_ROWS + r, last - 1) * n_features
                 idx = RowIndex()
-                for level in range(depth):
+                if depth > 0:  # level 0: every row at the root (one node load, no gather)
+                    node = forest.nodes[root]
+                    feature = (node.meta >> 1) & 15
+                    nan_right = 1 - (node.meta & 1)
+                    for r in range(LOCKSTEP_ROWS):
+                        x = features[row_offset[r] + feature]
+                        go_right = wp.where(x >= node.value, 1, 0)
+                        go_right = wp.where(x != x, nan_right, go_right)  # NaN: default side
+                        idx[r] = 1 + go_right
+                if depth > 1:  # level 1: node 1 or 2, picked by a select
+                    left = forest.nodes[root + 1]
+                    right = forest.nodes[root + 2]
+                    for r in range(LOCKSTEP_ROWS):
+                        meta = wp.where(idx[r] == 2, right.meta, left.meta)
+                        threshold = wp.where(idx[r] == 2, right.value, left.value)
+                        x = features[row_offset[r] + ((meta >> 1) & 15)]
+                        go_right = wp.where(x >= threshold, 1, 0)
+                        go_right = wp.where(x != x, 1 - (meta & 1), go_right)  # NaN: default side
+                        idx[r] = 2 * idx[r] + 1 + go_right
+                if depth > 2:  # level 2: nodes 3..6, picked by selects
+                    n3 = forest.nodes[root + 3]
+                    n4 = forest.nodes[root + 4]
+                    n5 = forest.nodes[root + 5]
+                    n6 = forest.nodes[root + 6]
+                    for r in range(LOCKSTEP_ROWS):
+                        meta = wp.where(idx[r] >= 5, wp.where(idx[r] == 6, n6.meta, n5.meta),
+                                        wp.where(idx[r] == 4, n4.meta, n3.meta))
+                        threshold = wp.where(idx[r] >= 5, wp.where(idx[r] == 6, n6.value, n5.value),
+                                             wp.where(idx[r] == 4, n4.value, n3.value))
+                        x = features[row_offset[r] + ((meta >> 1) & 15)]
+                        go_right = wp.where(x >= threshold, 1, 0)
+                        go_right = wp.where(x != x, 1 - (meta & 1), go_right)  # NaN: default side
+                        idx[r] = 2 * idx[r] + 1 + go_right
+                for level in range(3, depth):
                     for r in range(LOCKSTEP_ROWS):
                         node = forest.nodes[root + idx[r]]
-                        x = features[wp.min(group_first + r, last - 1), (node.meta >> 1) & 15]
+                        x = features[row_offset[r] + ((node.meta >> 1) & 15)]
                         go_right = wp.where(x >= node.value, 1, 0)
                         go_right = wp.where(x != x, 1 - (node.meta & 1), go_right)  # NaN: default side
                         idx[r] = 2 * idx[r] + 1 + go_right
@@ -286,8 +323,10 @@ def eval_forest(forest: Forest, features, out, *, rows_per_thread: int = 1, devi
         return
     device = device or features.device
     if forest.perfect:
+        if not features.is_contiguous:
+            raise ValueError("eval_forest: the perfect layout needs contiguous (row-major) features")
         wp.launch(eval_forest_perfect_kernel, dim=(n_rows + BLOCK_ROWS - 1) // BLOCK_ROWS,
-                  inputs=[forest, features, n_rows], outputs=[out], device=device)
+                  inputs=[forest, features.flatten(), n_rows, features.shape[1]], outputs=[out], device=device)
     else:
         rows_per_thread = max(1, int(rows_per_thread))
         wp.launch(eval_forest_explicit_kernel, dim=(n_rows + rows_per_thread - 1) // rows_per_thread,
