@@ -65,12 +65,6 @@ from pathlib import Path
 
 import numpy as np
 
-if __name__ not in sys.modules:
-    # loaded from its path without registration (``hel-warp run`` uses spec_from_file_location): the
-    # dataclasses below look their module up in sys.modules to read the string annotations
-    sys.modules[__name__] = type(sys)(__name__)
-    sys.modules[__name__].__dict__.update(globals())
-
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(REPO))

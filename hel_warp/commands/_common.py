@@ -61,3 +61,42 @@ def emit(result: dict, as_json: bool, text_lines: list[str] | None = None) -> No
 def require(condition: bool, message: str) -> None:
     if not condition:
         raise ConfigError(message)
+
+
+CASES_DIR = __import__("pathlib").Path(__file__).resolve().parents[2] / "cases"
+"""The repository's case scripts."""
+
+
+def case_path(name: str):
+    """The script file of ``name`` (a path, or a name in ``cases/``); ConfigError listing the known cases."""
+    from pathlib import Path
+
+    path = Path(name)
+    if not path.suffix and not path.is_file():
+        path = CASES_DIR / f"{name}.py"
+    if not path.is_file():
+        known = sorted(p.stem for p in CASES_DIR.glob("*.py")) if CASES_DIR.is_dir() else []
+        raise ConfigError(f"case script {name!r} not found (looked for {path}); known cases in {CASES_DIR}: {known}")
+    return path
+
+
+def load_case_module(name: str):
+    """Import a case script (path or name in ``cases/``) as module ``hel_warp_case_<stem>``.
+
+    The module is registered in ``sys.modules`` before it runs, as a normal import would be, so
+    dataclasses and pickling-free introspection that look the module up by name work.
+    """
+    import importlib.util
+    import sys
+
+    path = case_path(name)
+    module_name = f"hel_warp_case_{path.stem}"
+    spec = importlib.util.spec_from_file_location(module_name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[module_name] = module
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        sys.modules.pop(module_name, None)
+        raise
+    return module

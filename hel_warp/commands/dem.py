@@ -10,12 +10,9 @@ case's options.
 from __future__ import annotations
 
 import argparse
-import importlib.util
-from pathlib import Path
 
 from hel_warp.errors import ConfigError
 
-CASES_DIR = Path(__file__).resolve().parents[2] / "cases"
 
 
 def add_parser(subparsers):
@@ -28,15 +25,10 @@ def add_parser(subparsers):
 
 def load_case(name: str):
     """Import a case script from a path or from ``cases/NAME.py``."""
-    path = Path(name)
-    if not path.suffix:
-        path = CASES_DIR / f"{name}.py"
-    if not path.is_file():
-        known = sorted(p.stem for p in CASES_DIR.glob("*.py")) if CASES_DIR.is_dir() else []
-        raise ConfigError(f"case {name!r} not found (looked for {path}); known cases: {known}")
-    spec = importlib.util.spec_from_file_location(f"hel_warp_case_{path.stem}", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    from hel_warp.commands._common import case_path, load_case_module
+
+    path = case_path(name)
+    module = load_case_module(str(path))
     for attr in ("add_arguments", "run"):
         if not hasattr(module, attr):
             raise ConfigError(f"case {path} defines no {attr}(); a case exposes add_arguments(parser) and "

@@ -14,9 +14,7 @@ full-size versions of each stage are the commands printed in README.md.
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -45,11 +43,9 @@ def add_parser(subparsers):
 
 
 def _load_case(name: str):
-    path = REPO / "cases" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(f"hel_warp_case_{name}", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    from hel_warp.commands._common import load_case_module
+
+    return load_case_module(name)
 
 
 class _Stages:

@@ -17,14 +17,12 @@ Example::
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import runpy
 import sys
 from pathlib import Path
 
-from hel_warp.errors import ConfigError
+from hel_warp.commands._common import case_path, load_case_module
 
-CASES_DIR = Path(__file__).resolve().parents[2] / "cases"
 
 
 def add_parser(subparsers):
@@ -33,17 +31,6 @@ def add_parser(subparsers):
     p.add_argument("case", metavar="CASE_SCRIPT", help="case script path or name in cases/")
     p.add_argument("case_args", nargs=argparse.REMAINDER, help="options of the case (see CASE_SCRIPT --help)")
     return p
-
-
-def case_path(name: str) -> Path:
-    """The script file of ``name`` (a path, or a name in ``cases/``); ConfigError listing the known cases."""
-    path = Path(name)
-    if not path.suffix and not path.is_file():
-        path = CASES_DIR / f"{name}.py"
-    if not path.is_file():
-        known = sorted(p.stem for p in CASES_DIR.glob("*.py")) if CASES_DIR.is_dir() else []
-        raise ConfigError(f"case script {name!r} not found (looked for {path}); known cases in {CASES_DIR}: {known}")
-    return path
 
 
 def _top_level_functions(path: Path) -> set[str]:
@@ -61,9 +48,7 @@ def run(args) -> int:
         argv = argv[1:]
     defined = _top_level_functions(path)
     if "main" in defined or {"add_arguments", "run"} <= defined:
-        spec = importlib.util.spec_from_file_location(f"hel_warp_case_{path.stem}", path)
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
+        module = load_case_module(str(path))
     if "main" in defined:
         return int(module.main(argv) or 0)
     if {"add_arguments", "run"} <= defined:
