@@ -40,6 +40,18 @@ def sphere_mass(radius: float, density: float):
     return density * (4.0 / 3.0 * wp.pi) * radius * radius * radius
 
 
+@wp.func
+def half_kick(spheres: SphereArrays, i: int, force: wp.vec3, torque: wp.vec3, gravity: wp.vec3, dt: float):
+    """v += (F/m + g) dt/2, omega += T dt / (2 I) with I = 2/5 m r^2 (solid sphere); returns the new v."""
+    r = spheres.radius[i]
+    m = sphere_mass(r, spheres.density[i])
+    half_dt = 0.5 * dt
+    v = spheres.v[i] + (force / m + gravity) * half_dt
+    spheres.v[i] = v
+    spheres.omega[i] = spheres.omega[i] + torque * (half_dt / (0.4 * m * r * r))
+    return v
+
+
 @wp.kernel
 def kick_drift(
     particle_f: wp.array[wp.vec3],
@@ -53,12 +65,7 @@ def kick_drift(
     i = wp.tid()
     if spheres.alive[i] == 0:
         return
-    r = spheres.radius[i]
-    m = sphere_mass(r, spheres.density[i])
-    half_dt = 0.5 * dt
-    v = spheres.v[i] + (particle_f[i] / m + gravity) * half_dt
-    spheres.v[i] = v
-    spheres.omega[i] = spheres.omega[i] + particle_torque[i] * (half_dt / (0.4 * m * r * r))
+    v = half_kick(spheres, i, particle_f[i], particle_torque[i], gravity, dt)
     spheres.x[i] = spheres.x[i] + v * dt
 
 
@@ -75,11 +82,7 @@ def kick(
     i = wp.tid()
     if spheres.alive[i] == 0:
         return
-    r = spheres.radius[i]
-    m = sphere_mass(r, spheres.density[i])
-    half_dt = 0.5 * dt
-    spheres.v[i] = spheres.v[i] + (particle_f[i] / m + gravity) * half_dt
-    spheres.omega[i] = spheres.omega[i] + particle_torque[i] * (half_dt / (0.4 * m * r * r))
+    half_kick(spheres, i, particle_f[i], particle_torque[i], gravity, dt)
 
 
 def sphere_arrays(particles) -> SphereArrays:
