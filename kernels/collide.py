@@ -41,6 +41,7 @@ from __future__ import annotations
 import warp as wp
 
 from kernels.forest import Forest, contact_impulse, sphere_mass, walk_tree
+from kernels.integrate import sphere_mass as dem_sphere_mass
 
 PAIR_NONE = wp.constant(2147483647)
 """``owner`` value of a parcel no pending pair has claimed in this round."""
@@ -84,6 +85,16 @@ def write_contact_features(v1: wp.vec3, v2: wp.vec3, n: wp.vec3, d1: float, d2: 
 # ------------------------------------------------------------------------------------------ detection
 
 
+@wp.func
+def is_new_overlap(particle_x: wp.array(dtype=wp.vec3), particle_radius: wp.array(dtype=wp.float32),
+                   particle_alive: wp.array(dtype=wp.int32), i: int, xi: wp.vec3, ri: float, j: int):
+    """True for a live partner j > i of parcel i (at xi, radius ri) with |x_i - x_j| < r_i + r_j."""
+    if j > i and particle_alive[j] != 0:
+        cut = ri + particle_radius[j]
+        return wp.length_sq(particle_x[j] - xi) < cut * cut
+    return False
+
+
 @wp.kernel
 def count_pairs(
     grid: wp.uint64,
@@ -101,10 +112,8 @@ def count_pairs(
         xi = particle_x[i]
         ri = particle_radius[i]
         for j in wp.hash_grid_query(grid, xi, ri + max_radius):
-            if j > i and particle_alive[j] != 0:
-                cut = ri + particle_radius[j]
-                if wp.length_sq(particle_x[j] - xi) < cut * cut:
-                    c = c + 1
+            if is_new_overlap(particle_x, particle_radius, particle_alive, i, xi, ri, j):
+                c = c + 1
     pair_count[i] = c
 
 
@@ -129,16 +138,14 @@ def fill_pairs(
     xi = particle_x[i]
     ri = particle_radius[i]
     for j in wp.hash_grid_query(grid, xi, ri + max_radius):
-        if j > i and particle_alive[j] != 0:
-            cut = ri + particle_radius[j]
-            if wp.length_sq(particle_x[j] - xi) < cut * cut:
-                k = c
-                while k > start and pair_j[k - 1] > j:  # sorted insert: the row does not depend on query order
-                    pair_j[k] = pair_j[k - 1]
-                    k = k - 1
-                pair_j[k] = j
-                pair_i[c] = i
-                c = c + 1
+        if is_new_overlap(particle_x, particle_radius, particle_alive, i, xi, ri, j):
+            k = c
+            while k > start and pair_j[k - 1] > j:  # sorted insert: the row does not depend on query order
+                pair_j[k] = pair_j[k - 1]
+                k = k - 1
+            pair_j[k] = j
+            pair_i[c] = i
+            c = c + 1
 
 
 @wp.kernel
@@ -358,8 +365,7 @@ def add_fluid_force(
 ):
     """F_i <- F_i + m_i a_fluid_i (m = rho 4/3 pi r^3, the DEM integrator's mass)."""
     i = wp.tid()
-    r = particle_radius[i]
-    m = particle_density[i] * (4.0 / 3.0 * wp.pi) * r * r * r
+    m = dem_sphere_mass(particle_radius[i], particle_density[i])
     particle_f[i] = particle_f[i] + m * parcel_a_fluid[i]
 
 
