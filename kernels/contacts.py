@@ -187,6 +187,14 @@ def contact_forces(
     particle_torque[i] = t
 
 
+@wp.func
+def is_touching_partner(particle_x: wp.array[wp.vec3], particle_radius: wp.array[wp.float32], i: int, j: int):
+    """True for a partner j > i that overlaps sphere i: |x_i - x_j| < r_i + r_j."""
+    if j > i:
+        return wp.length(particle_x[i] - particle_x[j]) < particle_radius[i] + particle_radius[j]
+    return False
+
+
 @wp.kernel
 def count_touching_pairs(
     particle_x: wp.array[wp.vec3],
@@ -200,10 +208,8 @@ def count_touching_pairs(
     i = wp.tid()
     c = int(0)
     for k in range(contact_count[i]):
-        j = contact_partner[i, k]
-        if j > i:
-            if wp.length(particle_x[i] - particle_x[j]) < particle_radius[i] + particle_radius[j]:
-                c = c + 1
+        if is_touching_partner(particle_x, particle_radius, i, contact_partner[i, k]):
+            c = c + 1
     pair_count[i] = c
 
 
@@ -223,11 +229,10 @@ def fill_touching_pairs(
     c = pair_offset[i]
     for k in range(contact_count[i]):
         j = contact_partner[i, k]
-        if j > i:
-            if wp.length(particle_x[i] - particle_x[j]) < particle_radius[i] + particle_radius[j]:
-                pair_i[c] = i
-                pair_j[c] = j
-                c = c + 1
+        if is_touching_partner(particle_x, particle_radius, i, j):
+            pair_i[c] = i
+            pair_j[c] = j
+            c = c + 1
 
 
 @wp.kernel
