@@ -93,18 +93,24 @@ def test_verlet_guarantee_and_rebuild_after_moves():
         np.testing.assert_array_equal(row, ref[i])
 
 
+def tag_shear_with_pair(rows, marker: float):
+    """Set the shear history of every entry (i, k) of ``rows`` to (i, partner j, marker); returns (partner, count)."""
+    partner, count = rows.partner.numpy(), rows.count.numpy()
+    tags = np.zeros(partner.shape + (3,), np.float32)
+    for i in range(partner.shape[0]):
+        for k in range(count[i]):
+            tags[i, k] = (i, partner[i, k], marker)
+    rows.shear.assign(tags)
+    return partner, count
+
+
 def test_shear_history_carried_by_partner_id():
     x, radius = random_polydisperse(800, seed=4)
     skin = 0.3e-3
     p = Particles.from_numpy(x, radius, check_overlap=False)
     old, _, _ = build_list(p, skin, capacity=64)
     # tag each history entry with its (i, j) pair
-    partner, count = old.partner.numpy(), old.count.numpy()
-    tags = np.zeros(partner.shape + (3,), np.float32)
-    for i in range(len(x)):
-        for k in range(count[i]):
-            tags[i, k] = (i, partner[i, k], 0.5)
-    old.shear.assign(tags)
+    tag_shear_with_pair(old, 0.5)
     # move so that some partners leave and new ones enter, then rebuild
     rng = np.random.default_rng(5)
     moved = x + rng.normal(scale=0.5e-3, size=x.shape)
@@ -129,12 +135,7 @@ def test_gather_rows_follow_a_permutation():
     x, radius = random_polydisperse(700, seed=6)
     p = Particles.from_numpy(x, radius, check_overlap=False)
     old, _, _ = build_list(p, 0.3e-3, capacity=64)
-    partner, count = old.partner.numpy(), old.count.numpy()
-    tags = np.zeros(partner.shape + (3,), np.float32)
-    for i in range(len(x)):
-        for k in range(count[i]):
-            tags[i, k] = (i, partner[i, k], 2.0)
-    old.shear.assign(tags)
+    partner, count = tag_shear_with_pair(old, 2.0)
     new_to_old = np.random.default_rng(9).permutation(len(x)).astype(np.int32)
     old_to_new = np.argsort(new_to_old).astype(np.int32)
     dst = ContactList.empty(len(x), 64, "cpu")
