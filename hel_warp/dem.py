@@ -353,13 +353,13 @@ class DEMSolver:
                   device=self.device)
         p = self.particles
         for arr in (p.x, p.v, p.omega, self.force, self.torque, *self.sdf_shear):
-            wp.launch(kc.gather_vec3, dim=n, inputs=[arr, s["new_to_old"], s["vec3"]], device=self.device)
+            kc.launch_gather(arr, s["new_to_old"], s["vec3"])
             wp.copy(arr, s["vec3"])
         for arr in (p.radius, p.density, p.weight):
-            wp.launch(kc.gather_float, dim=n, inputs=[arr, s["new_to_old"], s["float"]], device=self.device)
+            kc.launch_gather(arr, s["new_to_old"], s["float"])
             wp.copy(arr, s["float"])
         for arr in (p.stream, p.alive, p.particle_id):
-            wp.launch(kc.gather_int, dim=n, inputs=[arr, s["new_to_old"], s["int"]], device=self.device)
+            kc.launch_gather(arr, s["new_to_old"], s["int"])
             wp.copy(arr, s["int"])
         wp.launch(kc.gather_rows_vec3, dim=n, inputs=[self.wall_shear, s["new_to_old"], s["wall"]], device=self.device)
         wp.copy(self.wall_shear, s["wall"])

@@ -22,6 +22,8 @@ Layout: ``contact_partner`` (N, capacity) int32, -1 where empty; ``contact_count
 
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
 
 from kernels.hertz import ContactParams, contact_force, rolling_torque
@@ -250,21 +252,16 @@ def sorted_order(
 
 
 @wp.kernel
-def gather_vec3(src: wp.array[wp.vec3], new_to_old: wp.array[wp.int32], dst: wp.array[wp.vec3]):
+def gather(src: wp.array(dtype=Any), new_to_old: wp.array[wp.int32],
+           # outputs
+           dst: wp.array(dtype=Any)):
+    """dst[k] = src[new_to_old[k]]: one per-particle array in the new order."""
     k = wp.tid()
     dst[k] = src[new_to_old[k]]
 
 
-@wp.kernel
-def gather_float(src: wp.array[wp.float32], new_to_old: wp.array[wp.int32], dst: wp.array[wp.float32]):
-    k = wp.tid()
-    dst[k] = src[new_to_old[k]]
-
-
-@wp.kernel
-def gather_int(src: wp.array[wp.int32], new_to_old: wp.array[wp.int32], dst: wp.array[wp.int32]):
-    k = wp.tid()
-    dst[k] = src[new_to_old[k]]
+_GATHER = {dtype: wp.overload(gather, [wp.array(dtype=dtype), wp.array(dtype=wp.int32), wp.array(dtype=dtype)])
+           for dtype in (wp.vec3, wp.float32, wp.int32)}
 
 
 @wp.kernel
@@ -313,6 +310,11 @@ def count_rebuild(counter: wp.array[wp.int32]):
 
 # ---------------------------------------------------------------------------------------------
 # launch wrappers
+
+
+def launch_gather(src, new_to_old, dst) -> None:
+    """``dst[k] = src[new_to_old[k]]`` for a per-particle vec3, float32 or int32 array."""
+    wp.launch(_GATHER[src.dtype], dim=src.shape[0], device=src.device, inputs=[src, new_to_old], outputs=[dst])
 
 
 def launch_count_rebuild(counter) -> None:
