@@ -77,6 +77,10 @@ class CollisionData:
             return self.inputs[:, INPUT_COLUMNS.index(name)]
         return self.outputs[:, OUTPUT_COLUMNS.index(name)]
 
+    def vec3(self, prefix: str) -> np.ndarray:
+        """(N, 3) columns ``prefix + x, y, z`` (e.g. ``v1``, ``u2``, ``n``)."""
+        return np.column_stack([self.col(prefix + "x"), self.col(prefix + "y"), self.col(prefix + "z")])
+
     def take(self, rows: np.ndarray) -> "CollisionData":
         family = None if self.family is None else self.family[rows]
         return CollisionData(self.inputs[rows], self.outputs[rows], self.dataset_hash, self.attrs, family)
@@ -221,10 +225,7 @@ def form_rows(form: str, data: CollisionData) -> FormRows:
                               "use --form contact")
         sub = data.take(central)
         c = sub.col
-        v1 = np.column_stack([c("v1x"), c("v1y"), c("v1z")])
-        v2 = np.column_stack([c("v2x"), c("v2y"), c("v2z")])
-        u1 = np.column_stack([c("u1x"), c("u1y"), c("u1z")])
-        u2 = np.column_stack([c("u2x"), c("u2y"), c("u2z")])
+        v1, v2, u1, u2 = sub.vec3("v1"), sub.vec3("v2"), sub.vec3("u1"), sub.vec3("u2")
         f_12 = raw_features("paper", v1, v2, None, c("d1"), c("d2"), c("rho1"), c("rho2"))
         f_21 = raw_features("paper", v2, v1, None, c("d2"), c("d1"), c("rho2"), c("rho1"))
         idx = np.arange(len(sub))
@@ -232,11 +233,7 @@ def form_rows(form: str, data: CollisionData) -> FormRows:
                         np.concatenate([idx, idx]), sub)
     if form == "contact":
         c = data.col
-        v1 = np.column_stack([c("v1x"), c("v1y"), c("v1z")])
-        v2 = np.column_stack([c("v2x"), c("v2y"), c("v2z")])
-        n = np.column_stack([c("nx"), c("ny"), c("nz")])
-        u1 = np.column_stack([c("u1x"), c("u1y"), c("u1z")])
-        u2 = np.column_stack([c("u2x"), c("u2y"), c("u2z")])
+        v1, v2, n, u1, u2 = data.vec3("v1"), data.vec3("v2"), data.vec3("n"), data.vec3("u1"), data.vec3("u2")
         g_n, g_t, t_hat, g_mag = contact_frame(v1, v2, n)
         if np.any(g_mag <= 0):
             raise ConfigError(f"{int(np.sum(g_mag <= 0))} data-set row(s) have zero relative velocity "
@@ -287,10 +284,9 @@ def predictions_to_lab(form: str, data: CollisionData, group: np.ndarray, predic
     Returns ``(rows, u1_pred, u2_pred)`` with ``rows`` the data-set rows (index into ``data``).
     """
     if form == "contact":
-        c = data.take(group).col
-        v1 = np.column_stack([c("v1x"), c("v1y"), c("v1z")])
-        v2 = np.column_stack([c("v2x"), c("v2y"), c("v2z")])
-        n = np.column_stack([c("nx"), c("ny"), c("nz")])
+        sel = data.take(group)
+        c = sel.col
+        v1, v2, n = sel.vec3("v1"), sel.vec3("v2"), sel.vec3("n")
         u1, u2 = apply_contact_model(v1, v2, n, c("d1"), c("d2"), c("rho1"), c("rho2"), predicted)
         return group, u1, u2
     half = predicted.shape[0] // 2

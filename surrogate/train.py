@@ -202,11 +202,9 @@ def lab_metrics(form: str, rows: FormRows, test_rows: np.ndarray, predicted: np.
                 train_rows: np.ndarray) -> tuple[dict, dict]:
     """Test-set lab-frame metrics and the arrays behind the report figures."""
     data_rows, u1_pred, u2_pred = predictions_to_lab(form, rows.data, rows.group[test_rows], predicted)
-    c = rows.data.take(data_rows).col
-    v1 = np.column_stack([c("v1x"), c("v1y"), c("v1z")])
-    v2 = np.column_stack([c("v2x"), c("v2y"), c("v2z")])
-    u1 = np.column_stack([c("u1x"), c("u1y"), c("u1z")])
-    u2 = np.column_stack([c("u2x"), c("u2y"), c("u2z")])
+    sel = rows.data.take(data_rows)
+    c = sel.col
+    v1, v2, u1, u2 = sel.vec3("v1"), sel.vec3("v2"), sel.vec3("u1"), sel.vec3("u2")
     m1, m2 = sphere_mass(c("d1"), c("rho1")), sphere_mass(c("d2"), c("rho2"))
     p_before = m1[:, None] * v1 + m2[:, None] * v2
     p_after = m1[:, None] * u1_pred + m2[:, None] * u2_pred
