@@ -52,29 +52,29 @@ def trained_models(tmp_path_factory):
     return train_tiny_models(root)
 
 
-def xgboost_pairwise(model_dir, v1, v2, n, d1, d2, rho1, rho2):
-    """Reference: XGBoost's own predict on the contact features, then the numpy equal-and-opposite impulse."""
+def xgboost_targets(model_dir, form, v1, v2, n, d1, d2, rho1, rho2):
+    """Reference: XGBoost's own predict of the ``form``'s targets from its raw features (n None: paper form)."""
     from surrogate.artifact import load_artifact
-    from surrogate.features import CANONICAL_FEATURES, apply_contact_model, raw_features, standardize
+    from surrogate.features import CANONICAL_FEATURES, raw_features, standardize
 
     art = load_artifact(model_dir, boosters=True)
-    raw = raw_features("contact", v1, v2, n, d1, d2, rho1, rho2).astype(np.float32)
-    cols = [CANONICAL_FEATURES["contact"].index(f) for f in art.features]
+    raw = raw_features(form, v1, v2, n, d1, d2, rho1, rho2).astype(np.float32)
+    cols = [CANONICAL_FEATURES[form].index(f) for f in art.features]
     x = standardize(raw[:, cols], art.scaler_mean, art.scaler_std)
-    targets = np.column_stack([art.boosters[t].inplace_predict(x) for t in art.targets])
+    return np.column_stack([art.boosters[t].inplace_predict(x) for t in art.targets])
+
+
+def xgboost_pairwise(model_dir, v1, v2, n, d1, d2, rho1, rho2):
+    """Reference: XGBoost's own predict on the contact features, then the numpy equal-and-opposite impulse."""
+    from surrogate.features import apply_contact_model
+
+    targets = xgboost_targets(model_dir, "contact", v1, v2, n, d1, d2, rho1, rho2)
     return apply_contact_model(v1, v2, n, d1, d2, rho1, rho2, targets)
 
 
 def xgboost_paper(model_dir, v1, v2, d1, d2, rho1, rho2):
     """Reference: XGBoost's own predict of u, v, w from the paper features (v1, v2, d1, d2, rho1, rho2)."""
-    from surrogate.artifact import load_artifact
-    from surrogate.features import CANONICAL_FEATURES, raw_features, standardize
-
-    art = load_artifact(model_dir, boosters=True)
-    raw = raw_features("paper", v1, v2, None, d1, d2, rho1, rho2).astype(np.float32)
-    cols = [CANONICAL_FEATURES["paper"].index(f) for f in art.features]
-    x = standardize(raw[:, cols], art.scaler_mean, art.scaler_std)
-    return np.column_stack([art.boosters[t].inplace_predict(x) for t in art.targets])
+    return xgboost_targets(model_dir, "paper", v1, v2, None, d1, d2, rho1, rho2)
 
 
 def impulse_n_mae(model_dir) -> float:
