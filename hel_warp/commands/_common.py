@@ -20,6 +20,21 @@ def finite_float(text: str) -> float:
     return value
 
 
+def int_at_least(minimum: int):
+    """argparse type: an integer >= ``minimum`` (anything else is refused with a one-line error)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        return value
+
+    return parse
+
+
 def vector3(text: str) -> tuple[float, float, float]:
     """argparse type: ``VX,VY,VZ`` -> a tuple of three finite floats."""
     parts = text.split(",")

@@ -4,47 +4,23 @@ to resume."""
 
 from __future__ import annotations
 
-from hel_warp.commands._common import add_json_flag, add_material_options, emit, finite_float
-
-
-def _positive_int(text: str) -> int:
-    import argparse
-
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
-
-
-def _seed(text: str) -> int:
-    import argparse
-
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
-    return value
+from hel_warp.commands._common import add_json_flag, add_material_options, emit, finite_float, int_at_least
 
 
 def add_parser(subparsers):
     p = subparsers.add_parser("dataset", help="collision data set (DEM binary impacts) in a resumable zarr group",
                               description=__doc__)
     p.add_argument("--out", required=True, help="output directory (zarr group); an existing one is resumed")
-    p.add_argument("--samples", type=_positive_int, default=60000, help="number of configurations (default 60000)")
+    p.add_argument("--samples", type=int_at_least(1), default=60000, help="number of configurations (default 60000)")
     p.add_argument("--diameter", type=finite_float, default=315e-6, help="mean particle diameter, m (default 315e-6)")
     p.add_argument("--diameter-std", type=finite_float, default=None,
                    help="diameter standard deviation, m (default: the paper's 8.2e-6 for 315e-6, 22e-6 for 475e-6)")
     p.add_argument("--density-std", type=finite_float, default=0.0,
                    help="particle density standard deviation, kg/m^3 (default 0)")
-    p.add_argument("--seed", type=_seed, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=int_at_least(0), default=0, help="random seed (default 0)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="Dask distributed scheduler address (e.g. tcp://host:8786); default: compute locally")
-    p.add_argument("--chunk-size", type=_positive_int, default=None,
+    p.add_argument("--chunk-size", type=int_at_least(1), default=None,
                    help="rows per chunk (default 4096, or the stored value when resuming)")
     p.add_argument("--model", choices=("hertz", "linear"), default="hertz", help="DEM contact law (default hertz)")
     p.add_argument("--central-fraction", type=finite_float, default=0.5,
