@@ -71,6 +71,7 @@ def run(args) -> int:
 
     import numpy as np
 
+    from hel_warp._warp import init_warp
     from hel_warp.forest import ForestPredictor, load_forest
 
     flat = load_forest(args.model)
@@ -83,6 +84,7 @@ def run(args) -> int:
     if not rows:
         return 0
     col = lambda key: np.asarray([r[key] for r in rows], dtype=np.float64)
+    init_warp(args.device)  # stdout carries the predictions: no Warp greeting; a missing device is a ConfigError
     predictor = ForestPredictor(flat, device=args.device)
     v1_after, v2_after = predictor.predict_pairs(col("v1"), col("v2"), col("d1"), col("d2"), col("rho1"),
                                                  col("rho2"), normal=col("normal") if flat.form == "contact" else None)
