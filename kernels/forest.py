@@ -13,7 +13,10 @@ Device layouts (built by hel_warp/forest.py from the file): 8-byte ``Node`` reco
 - ``perfect`` (default when every tree has depth <= 12): each tree padded to a perfect tree
   of its own depth D, level ordered, walked with ``i = 2i + 1 + (x >= T)`` for exactly D
   levels; a leaf above level D is replaced by pass-through nodes whose both subtrees carry
-  its value; LOCKSTEP_ROWS rows walk a tree side by side; or
+  its value. A CPU thread owns BLOCK_ROWS rows and walks each tree for all of them before
+  the next tree (tree-major: the tree stays in L1), LOCKSTEP_ROWS rows side by side (one
+  AVX-512 vector after LLVM's vectorizer); levels 0-2 read their 1, 2 and 4 nodes once and
+  pick by selects, deeper levels gather; or
 - ``explicit``: breadth-first nodes with child indices, one row at a time, early exit.
 
 Launch wrappers at the bottom; they never allocate (the host side, hel_warp/forest.py,

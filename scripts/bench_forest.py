@@ -54,7 +54,8 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     parser.add_argument("--rows-per-thread", type=int, default=None,
-                        help="rows per Warp thread (default 64 on CPU, 1 on CUDA)")
+                        help="rows per Warp thread, explicit layout (default 64 on CPU, 1 on CUDA); the perfect "
+                             "layout always uses kernels.forest.BLOCK_ROWS")
     parser.add_argument("--layout", default="auto", choices=("auto", "perfect", "explicit"),
                         help="device layout of the forest (default auto: perfect when depth <= 12)")
     parser.add_argument("--json", action="store_true")
