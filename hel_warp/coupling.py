@@ -208,13 +208,14 @@ def interpolate_gas(grid: GridSpec, particles, cell_velocity, cell_grad_p, field
     interpolate_scalar(g, particles.x, fields.cell_eps_s, fields.parcel_eps_s)
 
 
-def ktgf_collision(grid: GridSpec, particles, fields: CouplingFields, params) -> None:
+def ktgf_collision(grid: GridSpec, particles, fields: CouplingFields, params, *, dt: float | None = None) -> None:
     """Step 4 (KTGF): cell Theta, p_s from the deposited solids; a_coll = -grad p_s / (eps_s rho_p) at parcels.
 
     Theta is the algebraic root of eq. (8) including the gas-solid exchange 3 K_sg Theta, with
     K_sg = sum(beta V) / V_cell from the deposited ``fields.cell_drag_coeff`` (the drag coefficients of
     the last push). ``params``: a ``kernels.ktgf.KtgfParams`` (see ``make_ktgf_params``). Needs
-    :func:`deposit_parcels` first.
+    :func:`deposit_parcels` first. ``dt`` (s, the HEL step): given, |a_coll| is limited to h / dt^2 (one step's
+    collision velocity moves a parcel at most one cell; ``kernels/ktgf.py``, "Stability"); None: unlimited.
     """
     from kernels.ktgf import cell_gradient, collision_acceleration, ktgf_cells
 
@@ -223,7 +224,7 @@ def ktgf_collision(grid: GridSpec, particles, fields: CouplingFields, params) ->
                cell_mu_fric=fields.cell_mu_fric, periodic=grid.periodic, cell_drag_coeff=fields.cell_drag_coeff)
     cell_gradient(grid.spacing, fields.cell_p_s, fields.cell_grad_p_s, periodic=grid.periodic)
     collision_acceleration(grid.cell_grid(), params.eps_s_min, particles.x, particles.density,
-                           fields.cell_grad_p_s, fields.cell_eps_s, fields.parcel_a_coll)
+                           fields.cell_grad_p_s, fields.cell_eps_s, fields.parcel_a_coll, dt=dt)
 
 
 def push_parcels(particles, fields: CouplingFields, push_params) -> None:

@@ -63,7 +63,8 @@ class KtgfCollision:
     """``ktgf``: granular-pressure collision acceleration (paper eqs. (5)-(8), Table 1).
 
     Monodisperse closures: ``particle_diameter`` (m) and ``particle_density`` (kg/m^3) are the ones
-    of the KTGF solids phase.
+    of the KTGF solids phase. The collision acceleration is limited to h / dt^2 with the step's dt (at most
+    one cell of collision displacement per step; ``kernels/ktgf.py``, "Stability").
     """
 
     name = "ktgf"
@@ -83,7 +84,7 @@ class KtgfCollision:
                                        friction_angle_deg=friction_angle_deg)
 
     def accelerate(self, solver: "HelSolver") -> None:
-        ktgf_collision(solver.grid, solver.pool.particles, solver.fields, self.params)
+        ktgf_collision(solver.grid, solver.pool.particles, solver.fields, self.params, dt=solver.config.dt)
 
 
 class _CollisionModels:
