@@ -63,7 +63,7 @@ def _flat(doc, form):
 @pytest.mark.parametrize("layout", ["perfect", "explicit"])
 # depths 1..4 and 12: the kernel reads levels 0, 1 and 2 of a padded tree without a gather and
 # gathers from level 3 on, so every path of kernels/forest.py's perfect walk is taken
-@pytest.mark.parametrize("form,depths", [("contact", (12, 2)), ("paper", (3, 6, 9)), ("contact", (1, 4))])
+@pytest.mark.parametrize("form,depths", [("contact", (12, 2)), ("paper", (3, 6, 9)), ("paper", (1, 4, 2))])
 def test_forest_equals_xgboost_predict(form, depths, layout):
     data = synthetic_collisions(1500, seed=11, polydisperse=True)
     rows, cols, raw, mean, std, boosters, doc = _fit_forest(form, data, depths)
