@@ -32,11 +32,13 @@ def add_parser(subparsers):
     p.add_argument("--trials", type=int, default=4, help="Optuna trials per target (default 4)")
     p.add_argument("--diameter", type=finite_float, default=315e-6, help="particle diameter, m (default 315e-6)")
     p.add_argument("--dt", type=finite_float, default=1e-3, help="HEL time step of the rig, s (default 1e-3)")
-    p.add_argument("--end-time", type=finite_float, default=0.02, help="rig simulated time after release, s")
+    p.add_argument("--end-time", type=finite_float, default=0.01,
+                   help="rig simulated time after release, s (default 0.01; the paper's runs: 0.02)")
     p.add_argument("--dem-end-time", type=finite_float, default=None,
                    help="simulated time of the dem reference, s (default: --end-time)")
     p.add_argument("--cells", type=int, default=None, help="shrink the rig grid to about N cells")
-    p.add_argument("--max-particles", type=int, default=None, help="cap the rig's parcels")
+    p.add_argument("--max-particles", type=int, default=2000,
+                   help="cap the rig's parcels (default 2000 so the dem reference fits the demo; 0: the paper's 12,000)")
     p.add_argument("--device", default="cpu", help="Warp device: cpu or cuda (default cpu)")
     p.add_argument("--skip-rig", action="store_true", help="stop after the three-streams case")
     return p
@@ -125,7 +127,7 @@ def run(args) -> int:
                     argv += ["--model", str(model_dir)]
                 if args.cells:
                     argv += ["--cells", str(args.cells)]
-                if args.max_particles:
+                if args.max_particles and args.max_particles > 0:
                     argv += ["--max-particles", str(args.max_particles)]
                 print(f"    rig: {model}", flush=True)
                 _check(rig.main(argv), f"rig {model}")
