@@ -14,8 +14,8 @@ Device layouts (built by hel_warp/forest.py from the file): 8-byte ``Node`` reco
   of its own depth D, level ordered, walked with ``i = 2i + 1 + (x >= T)`` for exactly D
   levels; a leaf above level D is replaced by pass-through nodes whose both subtrees carry
   its value. A CPU thread owns BLOCK_ROWS rows and walks each tree for all of them before
-  the next tree (tree-major: the tree stays in L1), LOCKSTEP_ROWS rows side by side (one
-  AVX-512 vector after LLVM's vectorizer); levels 0-2 read their 1, 2 and 4 nodes once and
+  the next tree (tree-major: the tree stays in L1), LOCKSTEP_ROWS rows side by side (two
+  AVX-512 vectors after LLVM's vectorizer); levels 0-2 read their 1, 2 and 4 nodes once and
   pick by selects, deeper levels gather; or
 - ``explicit``: breadth-first nodes with child indices, one row at a time, early exit.
 
@@ -27,11 +27,13 @@ from __future__ import annotations
 
 import warp as wp
 
-# Forward only; -O3; on CPU, let LLVM use full-width (AVX-512) vectors for the LOCKSTEP_ROWS rows walked
-# side by side (the default prefers 256-bit vectors). Appended to the configured CPU flags.
+# Forward only; -O3; loops of up to 32 iterations unrolled (the LOCKSTEP_ROWS rows walked side by side);
+# on CPU, LLVM may use full-width (AVX-512) vectors for them (its default prefers 256-bit ones); the flag
+# is appended to the configured CPU flags.
 wp.set_module_options({
     "enable_backward": False,
     "optimization_level": 3,
+    "max_unroll": 32,
     "cpu_compiler_flags": (wp.config.cpu_compiler_flags or "-march=native") + " -mprefer-vector-width=512",
 })
 
@@ -103,9 +105,9 @@ def perfect_step(forest: Forest, first_node: wp.int32, i: wp.int32, features: wp
     return 2 * i + 1 + go_right
 
 
-LOCKSTEP_ROWS = 16
+LOCKSTEP_ROWS = 32
 """Rows one thread walks through a perfect-layout tree level by level, side by side (unrolled)."""
-BLOCK_GROUPS = 4
+BLOCK_GROUPS = 2
 """Lockstep groups per thread: a thread owns BLOCK_GROUPS * LOCKSTEP_ROWS rows and walks each tree
 for all of them before the next tree (the tree stays in L1 across the groups)."""
 BLOCK_ROWS = BLOCK_GROUPS * LOCKSTEP_ROWS
