@@ -1,17 +1,28 @@
 """HEL parcels on the host side: a fixed-capacity pool of ``Particles``, volume injection, outlet removal.
 
 A parcel stands for ``weight`` identical real particles (the paper's runs use weight 1; its
-second HEL configuration uses 8). Parcels may overlap (MP-PIC), so no overlap check is made.
+second HEL configuration uses 8). Parcels may come to overlap in flight (MP-PIC), but an injection
+never creates an overlap (see below).
 
 The pool is a ``hel_warp.particles.Particles`` of fixed capacity; unused slots have
 ``alive = 0``. Injected parcels fill slots ``[used, used + n)`` in order and removed parcels
 are not reused, so the parcel index is stable for the whole run (deterministic output). A
 run that injects more than the capacity stops with a ConfigError that names the capacity.
 
-Volume injection (paper section 8): parcels at uniformly random positions in a box, all with
-one velocity ``speed * direction``, diameters from a normal distribution truncated at
-mean +- 3 sigma (and at 10 % of the mean), either a given number of parcels or as many as
-carry a given mass.
+Volume injection (paper section 8): parcels at random positions in a box, all with one velocity
+``speed * direction``, diameters from a normal distribution truncated at mean +- 3 sigma (and at
+10 % of the mean), either a given number of parcels or as many as carry a given mass.
+
+Positions never overlap (paper sec. 4.1: overlapped starts are resolved explosively by a DEM, the
+"100 m/s" artefact). The box is cut into a lattice of ``floor(L / s)`` cells per axis with
+``s = d_max (1 + PLACEMENT_CLEARANCE)`` (``d_max`` the largest diameter of the release); each parcel
+takes a distinct cell, drawn in random order with the release's seed, at a jittered point that stays
+``s / 2`` from the cell faces, so any two parcels of one release are at least ``s >= r_i + r_j`` apart.
+``ParcelPool.inject`` also rejects a site within ``(r_i + r_j)(1 + PLACEMENT_CLEARANCE)`` of a live parcel
+already in the pool (``kernels/collide.py`` ``flag_blocked_sites``) and moves that parcel to the next
+cell of the random order. A release that does not fit (too few free cells) is refused with a
+ConfigError naming the fix (a longer injection window or a larger box); nothing is carried over.
+Same seed and same pool state give the same positions (a restarted run injects bit-identically).
 """
 
 from __future__ import annotations
@@ -23,6 +34,9 @@ import numpy as np
 
 from hel_warp.errors import ConfigError, require_finite, require_positive
 from hel_warp.particles import Particles
+
+PLACEMENT_CLEARANCE = 1e-3
+"""Relative gap kept between injected parcels and their neighbours: absorbs the float32 rounding of positions."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -83,8 +97,13 @@ class VolumeInjection:
         if self.mass is not None:
             require_positive("mass", self.mass, "kg")
 
-    def sample(self) -> dict[str, np.ndarray]:
-        """Host arrays ``x`` (n,3), ``v`` (n,3), ``radius`` (n,) of the parcels to inject."""
+    def sample(self, blocked=None) -> dict[str, np.ndarray]:
+        """Host arrays ``x`` (n,3), ``v`` (n,3), ``radius`` (n,) of the parcels to inject.
+
+        Parcels of the release never overlap each other. ``blocked`` (optional): a function
+        ``(x (m,3) float32, radius (m,) float32) -> bool (m,)`` that flags candidates overlapping a parcel
+        already present; flagged parcels move to other lattice cells. The diameters do not depend on it.
+        """
         rng = np.random.default_rng(self.seed)
         lo, hi = np.asarray(self.box_lo, float), np.asarray(self.box_hi, float)
 
@@ -108,11 +127,54 @@ class VolumeInjection:
                 cum = np.cumsum(self.weight * self.density * math.pi / 6.0 * d**3)
             n = int(np.searchsorted(cum, self.mass * (1.0 - 1e-12))) + 1
             d = d[:n]
+        x = self._place(rng, lo, hi, 0.5 * d, blocked)
         n = d.size
-        x = lo + rng.uniform(size=(n, 3)) * (hi - lo)
         direction = np.asarray(self.direction, float) / np.linalg.norm(self.direction)
         v = np.tile(self.speed * direction, (n, 1))
         return {"x": x, "v": v, "radius": 0.5 * d}
+
+    def _place(self, rng, lo, hi, radius, blocked) -> np.ndarray:
+        """Non-overlapping centres (n,3) in the box for parcels of ``radius`` (module docstring)."""
+        n = radius.size
+        spacing = 2.0 * float(radius.max()) * (1.0 + PLACEMENT_CLEARANCE)
+        cells = np.floor((hi - lo) / spacing).astype(np.int64)
+        n_sites = int(np.prod([int(c) for c in cells]))
+
+        def refuse(places: str):
+            raise ConfigError(
+                f"injection box {list(self.box_lo)}..{list(self.box_hi)} has {places} for non-overlapping parcels "
+                f"of diameter {spacing:.4g} m, but the release has {n} parcels; spread the release over a longer "
+                "injection window (ScheduledInjection t_end) or enlarge the box")
+
+        if n_sites < n:
+            refuse(f"{n_sites} places")
+        cell = (hi - lo) / cells
+        queue = np.empty(0, np.int64)
+        queue_x = np.empty((0, 3))
+
+        def extend(size):
+            nonlocal queue, queue_x
+            more = rng.choice(n_sites, size=min(n_sites, size), replace=False).astype(np.int64)
+            more = more[~np.isin(more, queue)]
+            ijk = np.stack(np.unravel_index(more, tuple(int(c) for c in cells)), axis=1)
+            jitter = rng.uniform(-0.5, 0.5, size=(more.size, 3)) * (cell - spacing)
+            queue = np.concatenate([queue, more])
+            queue_x = np.concatenate([queue_x, lo + (ijk + 0.5) * cell + jitter])
+
+        extend(max(2 * n, 64))
+        slot = np.arange(n)  # queue entry of each parcel
+        next_entry = n
+        todo = np.arange(n) if blocked is not None else np.empty(0, np.int64)
+        while todo.size:
+            flags = np.asarray(blocked(queue_x[slot[todo]].astype(np.float32), radius[todo].astype(np.float32)))
+            todo = todo[flags.astype(bool)]
+            while queue.size - next_entry < todo.size:
+                if queue.size == n_sites:
+                    refuse(f"fewer than {n} of its {n_sites} places free of the parcels already there")
+                extend(2 * queue.size)
+            slot[todo] = np.arange(next_entry, next_entry + todo.size)
+            next_entry += todo.size
+        return queue_x[slot]
 
 
 @dataclass
@@ -122,6 +184,8 @@ class ParcelPool:
     particles: Particles
     used: int = 0
     _removed_counter: object = field(default=None, repr=False)
+    _grid: object = field(default=None, repr=False)
+    """Hash grid of the pool's positions for the injection overlap check (built per release)."""
 
     @classmethod
     def empty(cls, capacity: int, *, device=None) -> "ParcelPool":
@@ -144,7 +208,7 @@ class ParcelPool:
         """Fill the next free slots with the parcels of ``injection``; returns how many were added."""
         import warp as wp
 
-        s = injection.sample()
+        s = injection.sample(blocked=self._blocked_sites())
         n = s["x"].shape[0]
         if self.used + n > self.capacity:
             raise ConfigError(f"injecting {n} parcels overflows the pool ({self.used} of {self.capacity} slots "
@@ -166,6 +230,33 @@ class ParcelPool:
         put(p.particle_id, np.arange(self.used, self.used + n, dtype=np.int32), wp.int32)
         self.used += n
         return n
+
+    def _blocked_sites(self):
+        """``blocked`` for :meth:`VolumeInjection.sample`: flags sites a live parcel overlaps (None: pool empty)."""
+        import warp as wp
+
+        from kernels.collide import launch_flag_blocked_sites
+
+        p = self.particles
+        alive = p.alive.numpy()[:self.used].astype(bool)
+        if not alive.any():
+            return None
+        max_radius = float(p.radius.numpy()[:self.used][alive].max())
+        if self._grid is None:
+            self._grid = wp.HashGrid(128, 128, 128, device=p.device)
+        built = []
+
+        def blocked(site_x, site_radius):
+            if not built:  # hashed once per release, on the first call
+                self._grid.build(p.x, float(max_radius + site_radius.max()))
+                built.append(True)
+            flags = wp.zeros(site_x.shape[0], dtype=wp.int32, device=p.device)
+            launch_flag_blocked_sites(self._grid, p, max_radius, PLACEMENT_CLEARANCE,
+                                      wp.array(site_x, dtype=wp.vec3, device=p.device),
+                                      wp.array(site_radius, dtype=wp.float32, device=p.device), flags)
+            return flags.numpy() != 0
+
+        return blocked
 
     def remove_beyond_plane(self, point, normal) -> None:
         """Outlet: parcels past the plane through ``point`` with outward ``normal`` are removed (alive = 0).
