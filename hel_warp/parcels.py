@@ -137,7 +137,9 @@ class VolumeInjection:
         """Non-overlapping centres (n,3) in the box for parcels of ``radius`` (module docstring)."""
         n = radius.size
         spacing = 2.0 * float(radius.max()) * (1.0 + PLACEMENT_CLEARANCE)
-        cells = np.floor((hi - lo) / spacing).astype(np.int64)
+        # one layer along an axis thinner than the spacing (e.g. a point or sheet box): sites then
+        # differ along another axis, whose cells are at least one spacing wide, so they cannot overlap
+        cells = np.maximum(np.floor((hi - lo) / spacing), 1).astype(np.int64)
         n_sites = int(np.prod([int(c) for c in cells]))
 
         def refuse(places: str):
@@ -157,7 +159,7 @@ class VolumeInjection:
             more = rng.choice(n_sites, size=min(n_sites, size), replace=False).astype(np.int64)
             more = more[~np.isin(more, queue)]
             ijk = np.stack(np.unravel_index(more, tuple(int(c) for c in cells)), axis=1)
-            jitter = rng.uniform(-0.5, 0.5, size=(more.size, 3)) * (cell - spacing)
+            jitter = rng.uniform(-0.5, 0.5, size=(more.size, 3)) * np.maximum(cell - spacing, 0.0)
             queue = np.concatenate([queue, more])
             queue_x = np.concatenate([queue_x, lo + (ijk + 0.5) * cell + jitter])
 
