@@ -259,12 +259,20 @@ class DemCollision:
     + gas momentum balances as with the push. Positions are those of the DEM integration.
 
     Weight: DEM contacts are between real spheres, so every live parcel must have weight 1.
-    Walls are not part of this strategy (the HEL wall step follows as for the push).
+    Walls: when the solver has walls (``solver.config.walls`` and the geometry's ``solver.shapes``), every
+    sub-step adds the Hertz-Mindlin sphere-wall contact against the geometry's SDF
+    (``kernels/collide.py`` ``geometry_wall_forces``, the law of ``kernels/walls.py``): the wall is of the
+    particle material (E*, G* of the pair), its dashpot gives ``Material.wall_restitution_normal``, friction
+    as between particles; the parcel meets the wall with its radius at the DEM resolution. The strategy
+    declares ``handles_walls = True``, so ``HelSolver`` skips the point reflection of ``kernels/reflect.py``
+    for it (that reflection, applied after the sub-steps, moved parcels onto their neighbours).
     ``counts()``: ``detected_pairs`` (overlapping at the end of the step; per stream pair
     ``detected_pairs_<a>_<b>``), ``surrogate_calls`` (0) and ``dem_substeps``.
     """
 
     name = "dem"
+    handles_walls = True
+    """``HelSolver.reflect_at_walls`` skips its point reflection: the wall contacts act inside :meth:`advance`."""
 
     def __init__(self, *, material: Material | None = None, dt_dem: float | None = None, max_speed: float = 20.0,
                  skin: float | None = None, contact_capacity: int = 32, n_streams: int = DEFAULT_STREAMS):
@@ -286,10 +294,11 @@ class DemCollision:
         self._counts = None
         self.substeps = 0
         self.dt_dem = None
+        self._shapes = None
         self._params()
 
     def _params(self) -> None:
-        from hel_warp.dem import damping_for
+        from hel_warp.dem import contact_params, damping_for
         from kernels.hertz import MODEL_HERTZ, ContactParams
 
         m = self.material
@@ -302,6 +311,9 @@ class DemCollision:
         self.params.friction = m.friction
         self.params.tangential_damping = 0.0
         self.params.rolling_friction = m.rolling_friction
+        # walls of the particle material; the dashpot gives the wall restitution
+        self.wall_params = contact_params(m, m)
+        self.wall_params.normal_damping = damping_for(m.wall_restitution_normal)
 
     def _setup(self, particles) -> None:
         import warp as wp
@@ -326,6 +338,7 @@ class DemCollision:
         self.x_push = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.v_push = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.a_fluid = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.wall_shear = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.grid = wp.HashGrid(128, 128, 128, device=dev)
         self.grid.reserve(n)
         self.detector = _PairDetector(dev, n)
@@ -354,6 +367,8 @@ class DemCollision:
         p = solver.pool.particles
         fields = solver.fields
         self._setup(p)
+        walls = bool(getattr(solver.config, "walls", False))
+        self._shapes = getattr(solver, "shapes", None) if walls else None
         alive = p.alive.numpy().astype(bool)
         self._counts = None
         if not alive.any():
@@ -431,6 +446,11 @@ class DemCollision:
 
         launch_contact_forces(self._spheres, self._rows, self.params, h, self.force, self.torque)
         launch_add_fluid_force(self.a_fluid, particles.radius, particles.density, self.force)
+        if self._shapes is not None:
+            from kernels.collide import launch_geometry_wall_forces
+
+            launch_geometry_wall_forces(self._spheres, self._shapes, self.wall_params, h, self.wall_shear,
+                                        self.force, self.torque)
 
     def _count_overlaps(self, particles, r_max: float) -> None:
         from kernels.collide import launch_count_detected

@@ -327,8 +327,10 @@ class HelSolver:
             self.pool.remove_beyond_plane(outlet.point, outlet.normal)
 
     def reflect_at_walls(self) -> None:
-        """Parcels whose centre crossed the SDF wall come back with e_n, e_t (``kernels/reflect.py``)."""
-        if self.config.walls:
+        """Parcels whose centre crossed the SDF wall come back with e_n, e_t (``kernels/reflect.py``).
+
+        Skipped for a strategy with ``handles_walls = True`` (``dem``: sphere-wall contacts in its sub-steps)."""
+        if self.config.walls and not getattr(self.collision, "handles_walls", False):
             from kernels.reflect import reflect_at_walls
 
             p = self.pool.particles

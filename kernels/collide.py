@@ -44,7 +44,11 @@ from __future__ import annotations
 import warp as wp
 
 from kernels.forest import Forest, contact_impulse, sphere_mass, walk_tree
+from kernels.hertz import ContactParams
+from kernels.integrate import SphereArrays
 from kernels.integrate import sphere_mass as dem_sphere_mass
+from kernels.sdf import SdfShapes, sdf_union, sdf_union_normal
+from kernels.walls import wall_contact
 
 PAIR_NONE = wp.constant(2147483647)
 """``owner`` value of a parcel no pending pair has claimed in this round."""
@@ -466,3 +470,42 @@ def launch_flag_blocked_sites(grid, particles, max_radius: float, clearance: flo
     wp.launch(flag_blocked_sites, dim=site_x.shape[0], device=site_x.device,
               inputs=[grid.id, particles.x, particles.radius, particles.alive, float(max_radius), float(clearance),
                       site_x, site_radius], outputs=[site_blocked])
+
+
+@wp.kernel
+def geometry_wall_forces(
+    spheres: SphereArrays,
+    shapes: SdfShapes,
+    params: ContactParams,
+    dt: float,
+    # outputs (wall_shear updated in place; force and torque accumulated)
+    wall_shear: wp.array(dtype=wp.vec3),
+    particle_f: wp.array(dtype=wp.vec3),
+    particle_torque: wp.array(dtype=wp.vec3),
+):
+    """Hertz-Mindlin sphere-wall contact against the flow geometry's SDF (``kernels/sdf.py``, negative in
+    the fluid): gap ``-sdf_union(x)``, inward normal ``-sdf_union_normal(x)``, the contact law of
+    ``kernels/walls.py`` (``wall_contact``); one wall history per parcel, forgotten when the contact opens."""
+    i = wp.tid()
+    if spheres.alive[i] == 0:
+        wall_shear[i] = wp.vec3(0.0)
+        return
+    x = spheres.x[i]
+    r = spheres.radius[i]
+    gap = -sdf_union(shapes, x)
+    if gap >= r:
+        wall_shear[i] = wp.vec3(0.0)
+        return
+    n = -sdf_union_normal(shapes, x)
+    m = dem_sphere_mass(r, spheres.density[i])
+    result = wall_contact(n, gap, r, m, spheres.v[i], spheres.omega[i], wall_shear[i], params, dt)
+    wall_shear[i] = result[1]
+    particle_f[i] = particle_f[i] + result[0]
+    particle_torque[i] = particle_torque[i] + result[2]
+
+
+def launch_geometry_wall_forces(spheres: SphereArrays, shapes: SdfShapes, params: ContactParams, dt: float,
+                                wall_shear, force, torque) -> None:
+    """Add the SDF-geometry wall contact force and torque of every live sphere (``geometry_wall_forces``)."""
+    wp.launch(geometry_wall_forces, dim=spheres.x.shape[0], device=spheres.x.device,
+              inputs=[spheres, shapes, params, dt], outputs=[wall_shear, force, torque])
