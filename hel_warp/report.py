@@ -214,16 +214,12 @@ def collision_rate(run: RunData) -> float | None:
 
 
 def _dem_reference(run: RunData, runs: list) -> RunData | None:
-    dems = [r for r in runs if r.config["collisions"] == "dem"]
+    """The ``dem`` run to compare ``run`` with: same particle diameter (required), same dt preferred."""
+    dems = [r for r in runs if r.config["collisions"] == "dem"
+            and abs(float(r.config["diameter"]) - float(run.config["diameter"])) <= 1e-9]
     if not dems:
         return None
-
-    def key(r):
-        same_d = abs(float(r.config["diameter"]) - float(run.config["diameter"])) <= 1e-9
-        same_dt = abs(float(r.config["dt"]) - float(run.config["dt"])) <= 1e-12
-        return (not same_d, not same_dt)
-
-    return sorted(dems, key=key)[0]
+    return sorted(dems, key=lambda r: abs(float(r.config["dt"]) - float(run.config["dt"])) > 1e-12)[0]
 
 
 # ------------------------------------------------------------------------------------------ the report

@@ -18,11 +18,11 @@ BOXES = 4
 CENTRES = [(b + 0.5) / BOXES for b in range(BOXES)]
 
 
-def make_run(path, collisions, snapshots, *, dt=1e-3, collision_series=(0, 0, 0, 0), wall=1.5):
+def make_run(path, collisions, snapshots, *, dt=1e-3, collision_series=(0, 0, 0, 0), wall=1.5, diameter=315e-6):
     """A run directory in the layout of cases/colliding_streams.py; snapshots: list of (time, parcels list)."""
     from hel_warp.io import RunWriter
 
-    config = {"case": "synthetic", "collisions": collisions, "dt": dt, "diameter": 315e-6, "end_time": 0.004,
+    config = {"case": "synthetic", "collisions": collisions, "dt": dt, "diameter": diameter, "end_time": 0.004,
               "simulated_time": 0.004, "wall_clock_s": wall, "status": "complete", "spacing": 0.1,
               "collision_counts_available": True, "particles_per_parcel": 1.0,
               "rig": {"axial_axis": 0, "transverse_axis": 1, "downstream": [1.0, 0.0, 0.0], "sections": SECTIONS,
@@ -140,3 +140,14 @@ def test_missing_and_corrupt_run_dirs(tmp_path, capsys):
     assert main(["report", str(tmp_path / "bad"), "--out", str(tmp_path / "rep")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("hel-warp: error:") and "corrupt" in err[0]
+
+
+def test_dem_reference_must_have_the_same_diameter(runs, tmp_path):
+    # a 475 um run is never compared with a 315 um dem run: its RMS is absent, not a cross-size number
+    from hel_warp.report import build_report
+
+    dem_dir, _ = runs
+    other = make_run(tmp_path / "sur475", "surrogate", [(0.004, [parcel(0, 0, 1.0)])], diameter=475e-6)
+    report, _ = build_report([dem_dir, other], boxes=(BOXES,))
+    run475 = next(r for r in report["runs"] if r["diameter"] == 475e-6)
+    assert run475.get("profile_rms_vs_dem") is None
