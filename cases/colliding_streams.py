@@ -369,15 +369,14 @@ class CollidingStreams:
     """
 
     def __init__(self, config: CaseConfig):
-        import warp as wp
-
+        from hel_warp._warp import init_warp
         from hel_warp.coupling import PushConfig
         from hel_warp.gas import GasConfig, GasField, GasSolver
         from hel_warp.hel import HelConfig, HelSolver, Outlet, ScheduledInjection, collision_model
         from hel_warp.material import Material
         from hel_warp.parcels import ParcelPool, VolumeInjection
 
-        wp.config.quiet = True
+        init_warp()
         self.config = config
         self.dims = dimensions_for_cells(config.cells)
         self.grid, self.geometry, self.inlet_speeds = build_geometry(self.dims)

@@ -29,16 +29,14 @@ PERFECT_MAX_DEPTH = 12
 
 
 def quiet_warp() -> None:
-    """No greeting or module-load lines from Warp on stdout (Warp >= 1.19: log_level; older: quiet)."""
-    import warp as wp
+    """No greeting or module-load lines from Warp on stdout (see ``hel_warp._warp.init_warp``)."""
+    from hel_warp._warp import init_warp
 
-    if hasattr(wp, "LOG_WARNING"):
-        wp.config.log_level = wp.LOG_WARNING
-    else:
-        wp.config.quiet = True
+    init_warp()
 
 
-def _sha256(path: str) -> str:
+def sha256_file(path: str) -> str:
+    """Hex SHA-256 of a file, read in 1 MiB blocks."""
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
@@ -229,7 +227,7 @@ def load_forest(model_dir: str) -> FlatForest:
                 expected = json.load(fh).get("files", {}).get(os.path.basename(path))
         except (json.JSONDecodeError, AttributeError, OSError) as exc:
             raise ConfigError(f"cannot read {meta_path}: {exc}") from None
-        if expected is not None and expected != _sha256(path):
+        if expected is not None and expected != sha256_file(path):
             raise ConfigError(f"{path} does not match the sha256 recorded in metadata.json (corrupted or replaced)")
     try:
         with open(path) as fh:

@@ -19,7 +19,6 @@ from the metadata, features that differ from the form's or from the data's.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from dataclasses import dataclass, field
@@ -27,19 +26,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hel_warp.errors import ConfigError
+from hel_warp.forest import sha256_file  # noqa: F401 (one implementation; tests import it from here)
 from surrogate.features import CANONICAL_FEATURES, TARGETS
 
 FORMAT = "hel_warp.surrogate"
 VERSION = 1
 METADATA = "metadata.json"
-
-
-def sha256_file(path: str) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 @dataclass
