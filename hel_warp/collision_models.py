@@ -74,7 +74,9 @@ class _PairDetector:
         from kernels.collide import detect_pairs, fill_pair_list
 
         self.build(particles, max_radius)
-        n_pairs = detect_pairs(self.grid, particles, max_radius, self.pair_count, self.pair_offset)
+        detect_pairs(self.grid, particles, max_radius, self.pair_count, self.pair_offset)
+        n = particles.count  # total pairs: the one host read of the detection (exclusive scan + last count)
+        n_pairs = int(self.pair_offset[n - 1:n].numpy()[0] + self.pair_count[n - 1:n].numpy()[0])
         if n_pairs > self.pair_capacity:
             self._grow_pairs(n_pairs)
         if n_pairs:

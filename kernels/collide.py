@@ -405,15 +405,13 @@ def flag_blocked_sites(
 # ------------------------------------------------------------------------------------------ launch wrappers
 
 
-def detect_pairs(grid, particles, max_radius: float, pair_count, pair_offset) -> int:
-    """Count the overlapping pairs (i < j) per parcel, scan them; returns the total (one int read back)."""
-    n = particles.count
-    wp.launch(count_pairs, dim=n, device=particles.device,
+def detect_pairs(grid, particles, max_radius: float, pair_count, pair_offset) -> None:
+    """Count the overlapping pairs (i < j) per parcel and scan them (exclusive) into ``pair_offset``;
+    the total is ``pair_offset[-1] + pair_count[-1]``, read by the host caller."""
+    wp.launch(count_pairs, dim=particles.count, device=particles.device,
               inputs=[grid.id, particles.x, particles.radius, particles.alive, float(max_radius)],
               outputs=[pair_count])
     wp.utils.array_scan(pair_count, pair_offset, inclusive=False)
-    last = pair_offset[n - 1:n].numpy()[0] + pair_count[n - 1:n].numpy()[0]
-    return int(last)
 
 
 def fill_pair_list(grid, particles, max_radius: float, pair_offset, pair_i, pair_j) -> None:
