@@ -248,9 +248,9 @@ class DemCollision:
 
     :meth:`advance` replaces the push. Per fluid step dt:
 
-    1. the push of eq. (4) (``kernels/push.py``, semi-implicit drag at the interpolated gas velocity,
-       buoyancy-corrected gravity, grad p', a_coll = 0) is evaluated into scratch arrays; it records
-       each parcel's drag impulse exactly as the push does, so the next deposit hands the gas the same
+    1. the solver's push of eq. (4) (``HelSolver.fluid_push``: the implicit drag exchange with the gas,
+       buoyancy-corrected gravity, grad p', a_coll = 0) is evaluated into scratch arrays; it records the
+       gas's share of the exchange exactly as the push does, so the next gas step receives the same
        momentum; the fluid acceleration ``a_f = (v_push - v)/dt`` is then held over the step;
     2. ``ceil(dt / dt_DEM)`` velocity-Verlet sub-steps (``kernels/integrate.py``) with the Hertz-Mindlin
        contact forces of the persistent contact list (``kernels/contacts.py``; rebuilt at the start of
@@ -364,8 +364,6 @@ class DemCollision:
 
     def advance(self, solver) -> None:
         """Replaces the push: fluid acceleration held, DEM sub-steps across ``solver.config.dt``."""
-        from kernels.push import push
-
         p = solver.pool.particles
         fields = solver.fields
         self._setup(p)
@@ -398,9 +396,7 @@ class DemCollision:
 
         fields.parcel_a_coll.zero_()
         wp.copy(self.v_start, p.v)
-        push(solver.push_params, p.x, p.v, p.radius, p.density, p.weight, p.alive, fields.parcel_u_f,
-             fields.parcel_grad_p, fields.parcel_eps_s, fields.parcel_a_coll, fields.parcel_drag_impulse,
-             fields.parcel_drag_coeff, particle_x_out=self.x_push, particle_v_out=self.v_push)
+        solver.fluid_push(particle_x_out=self.x_push, particle_v_out=self.v_push)
         launch_held_fluid_acceleration(self.v_start, self.v_push, p.alive, dt, self.a_fluid)
 
         # 2. DEM sub-steps

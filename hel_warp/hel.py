@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hel_warp.coupling import (CouplingFields, GridSpec, PushConfig, deposit_parcels, interpolate_gas,
-                               ktgf_collision, push_parcels)
+                               exchange_push, ktgf_collision, push_parcels)
 from hel_warp.errors import ConfigError, require_finite, require_positive
 from hel_warp.material import Material
 from hel_warp.parcels import ParcelPool, VolumeInjection
@@ -217,9 +217,16 @@ class HelConfig:
     """``ScheduledInjection``s, in order (the order fixes the parcel indices)."""
     outlets: tuple = ()
     """``Outlet`` planes."""
+    coupling: str = "implicit"
+    """Drag exchange between parcels and gas: ``implicit`` (default; gas and parcels relax together per
+    cell, stable at any solids loading, momentum to round-off, ``coupling.exchange_push``) or ``explicit``
+    (the parcels' impulses handed to the next gas step as a source; overshoots where
+    dt K_sg / (eps_f rho_f) > 2, i.e. in dense cells at the paper's steps - kept for comparison)."""
 
     def __post_init__(self):
         require_positive("dt", self.dt, "s")
+        if self.coupling not in ("implicit", "explicit"):
+            raise ConfigError(f"coupling must be 'implicit' or 'explicit' (got {self.coupling!r})")
         object.__setattr__(self, "injectors", tuple(self.injectors))
         object.__setattr__(self, "outlets", tuple(self.outlets))
         for k, inj in enumerate(self.injectors):
@@ -264,6 +271,11 @@ class HelSolver:
         device = pool.particles.device
         self.fields = CouplingFields.allocate(self.grid, pool.capacity, device=device)
         self.push_params = config.push.params(config.dt)
+        cell_fluid = getattr(domain, "cell_fluid", None)
+        if cell_fluid is None:
+            cell_fluid = wp.full(tuple(int(n) for n in self.grid.shape), 1, dtype=wp.int32, device=device)
+        self.cell_fluid = cell_fluid
+        self.eps_f_min = float(getattr(gas_config, "eps_f_min", 1.0 - config.push.packing))
         geometry = getattr(domain, "geometry", None)
         self.shapes = geometry.shapes_struct(device) if geometry is not None else None
         if config.walls and self.shapes is None:
@@ -294,6 +306,8 @@ class HelSolver:
         from kernels.deposit import to_float32
 
         deposit_parcels(self.grid, self.pool.particles, self.fields)
+        if self.config.coupling == "implicit":
+            wp.copy(self.fields.cell_momentum_source, self.fields.cell_gas_impulse)
         wp.copy(self.gas.cell_eps_s, self.fields.cell_eps_s)
         to_float32(self.fields.cell_momentum_source, self.fields.cell_drag_coeff,
                    cell_momentum_source_f32=self.gas.cell_momentum_source,
@@ -319,7 +333,25 @@ class HelSolver:
         if advance is not None:
             advance(self)
         else:
-            push_parcels(self.pool.particles, self.fields, self.push_params)
+            self.fluid_push()
+
+    def fluid_push(self, *, particle_x_out=None, particle_v_out=None) -> None:
+        """Eq. (4) with the configured drag exchange (``HelConfig.coupling``), in place unless ``*_out`` given;
+        records the drag impulses (and, ``implicit``, the gas impulse of the next step)."""
+        p = self.pool.particles
+        if self.config.coupling == "implicit":
+            exchange_push(self.grid, p, self.fields, self.push_params, cell_velocity=self.gas.cell_velocity,
+                          cell_fluid=self.cell_fluid, gas_density=self.config.push.fluid_density,
+                          eps_f_min=self.eps_f_min, particle_x_out=particle_x_out, particle_v_out=particle_v_out)
+        elif particle_x_out is None and particle_v_out is None:
+            push_parcels(p, self.fields, self.push_params)
+        else:
+            from kernels.push import push
+
+            f = self.fields
+            push(self.push_params, p.x, p.v, p.radius, p.density, p.weight, p.alive, f.parcel_u_f, f.parcel_grad_p,
+                 f.parcel_eps_s, f.parcel_a_coll, f.parcel_drag_impulse, f.parcel_drag_coeff,
+                 particle_x_out=particle_x_out, particle_v_out=particle_v_out)
 
     def remove_at_outlets(self) -> None:
         """Parcels past an outlet plane leave the run (alive = 0; counted in ``pool.removed_count()``)."""
@@ -551,6 +583,10 @@ class HelSolver:
         return int(self._wall_hits.numpy()[0])
 
     def momentum_in_flight(self):
-        """Momentum (N s, numpy (3,)) the gas receives at the next deposit: minus the last push's drag impulses."""
+        """Momentum (N s, numpy (3,)) the gas receives at the next deposit: ``implicit``, the cell gas impulses
+        in the fluid; ``explicit``, minus the last push's drag impulses."""
+        if self.config.coupling == "implicit":
+            fluid = self.cell_fluid.numpy().astype(bool)
+            return self.fields.cell_gas_impulse.numpy()[fluid].sum(axis=0).astype(np.float64)
         alive = self.pool.particles.alive.numpy().astype(bool)
         return -self.fields.parcel_drag_impulse.numpy()[alive].sum(axis=0).astype(np.float64)

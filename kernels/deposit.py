@@ -24,6 +24,7 @@ import math
 import warp as wp
 
 from kernels.interp import CellGrid, cic_corner, cic_stencil
+from kernels.push import PushParams, body_acceleration, parcel_drag_rate, parcel_mass
 
 SPHERE_VOLUME_FACTOR = wp.constant(wp.float64(4.0 * math.pi / 3.0))  # float64 (wp.pi is float32)
 
@@ -106,6 +107,160 @@ def to_float32_kernel(
     cell_drag_coeff_f32[i, j, k] = float(cell_drag_coeff[i, j, k])
 
 
+# ---------------------------------------------------------------- implicit momentum exchange
+#
+# The drag exchange of a step, solved implicitly for gas and parcels together (the explicit hand-back
+# of the parcels' impulses to the gas overshoots by ~ dt K_sg / (eps_f rho_f), e.g. x40 at eps_s = 0.3,
+# dt = 1e-3 s: the gas velocity then grows without bound in dense cells). Per cell c, with
+# D_i = weight m_i dt F_D / (1 + dt F_D) (kg; the semi-implicit push moves v*_i = v_i + dt a_body
+# by D_i/(weight m_i) (u - v*_i)) and the CIC weights w_ic:
+#
+#   A_c = sum_i w_ic D_i,   B_c = sum_i w_ic D_i v*_i,   M_c = rho_f eps_f V_c  (gas mass)
+#   u_eq_c = (M_c u_c + B_c) / (M_c + A_c)      -- the joint backward-Euler solution of the cell
+#   G_c = M_c (u_eq_c - u_c)                    -- the impulse the gas receives (next gas step)
+#
+# the parcels are pushed towards u_eq interpolated with the same weights (impulses J_i), and the
+# mismatch delta_c = G_c + sum_i w_ic J_i (non-zero only because interpolation mixes cells) is taken
+# back from the parcels in proportion to w_ic D_i / A_c: dJ_i = -D_i sum_c w_ic delta_c / A_c. Then
+# sum_i (J_i + dJ_i) = -sum_c G_c exactly (float64): the exchange conserves momentum, and neither
+# phase overshoots the common velocity. Cells outside the fluid keep the explicit hand-back (their
+# impulses go to the walls in the gas step, as before).
+
+
+@wp.kernel
+def exchange_deposit_kernel(
+    grid: CellGrid,
+    params: PushParams,
+    particle_v: wp.array(dtype=wp.vec3),
+    particle_x: wp.array(dtype=wp.vec3),
+    particle_radius: wp.array(dtype=float),
+    particle_density: wp.array(dtype=float),
+    particle_weight: wp.array(dtype=float),
+    particle_alive: wp.array(dtype=wp.int32),
+    parcel_u_f: wp.array(dtype=wp.vec3),
+    parcel_eps_s: wp.array(dtype=float),
+    parcel_grad_p: wp.array(dtype=wp.vec3),
+    parcel_a_coll: wp.array(dtype=wp.vec3),
+    # outputs (cell arrays accumulated into; zero them first)
+    parcel_rate: wp.array(dtype=float),
+    parcel_exchange: wp.array(dtype=wp.float64),
+    cell_exchange_coeff: wp.array3d(dtype=wp.float64),
+    cell_exchange_momentum: wp.array3d(dtype=wp.vec3d),
+):
+    """F_D at the interpolated gas velocity, D_i, and A_c, B_c (see above)."""
+    tid = wp.tid()
+    if particle_alive[tid] == 0:
+        parcel_rate[tid] = 0.0
+        parcel_exchange[tid] = wp.float64(0.0)
+        return
+    v = particle_v[tid]
+    rho_p = particle_density[tid]
+    diameter = 2.0 * particle_radius[tid]
+    f_d = parcel_drag_rate(params, parcel_u_f[tid], v, parcel_eps_s[tid], diameter, rho_p)
+    parcel_rate[tid] = f_d
+    fdt = wp.float64(params.dt) * wp.float64(f_d)
+    d = parcel_mass(particle_weight[tid], rho_p, diameter) * fdt / (wp.float64(1.0) + fdt)
+    parcel_exchange[tid] = d
+    v_star = v + params.dt * body_acceleration(params, rho_p, parcel_grad_p[tid], parcel_a_coll[tid])
+    dv = d * wp.vec3d(wp.float64(v_star[0]), wp.float64(v_star[1]), wp.float64(v_star[2]))
+    base, frac = cic_stencil(grid, particle_x[tid])
+    for corner in range(8):
+        idx, w = cic_corner(grid, base, frac, corner)
+        wp.atomic_add(cell_exchange_coeff, idx[0], idx[1], idx[2], w * d)
+        wp.atomic_add(cell_exchange_momentum, idx[0], idx[1], idx[2], w * dv)
+
+
+@wp.kernel
+def exchange_cells_kernel(
+    gas_mass_full: wp.float64,
+    eps_f_min: float,
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    cell_eps_s: wp.array3d(dtype=float),
+    cell_velocity: wp.array3d(dtype=wp.vec3),
+    cell_exchange_coeff: wp.array3d(dtype=wp.float64),
+    cell_exchange_momentum: wp.array3d(dtype=wp.vec3d),
+    # outputs
+    cell_u_eq: wp.array3d(dtype=wp.vec3),
+    cell_gas_impulse: wp.array3d(dtype=wp.vec3d),
+    cell_mismatch: wp.array3d(dtype=wp.vec3d),
+):
+    """u_eq_c and G_c (``gas_mass_full`` = rho_f V_c, the gas mass of a particle-free cell); mismatch = G_c."""
+    i, j, k = wp.tid()
+    u = cell_velocity[i, j, k]
+    a = cell_exchange_coeff[i, j, k]
+    zero = wp.vec3d(0.0, 0.0, 0.0)
+    if cell_fluid[i, j, k] == 0 or a <= wp.float64(0.0):
+        cell_u_eq[i, j, k] = u
+        cell_gas_impulse[i, j, k] = zero
+        cell_mismatch[i, j, k] = zero
+        return
+    eps_f = wp.max(1.0 - cell_eps_s[i, j, k], eps_f_min)
+    m = gas_mass_full * wp.float64(eps_f)
+    ud = wp.vec3d(wp.float64(u[0]), wp.float64(u[1]), wp.float64(u[2]))
+    u_eq = (m * ud + cell_exchange_momentum[i, j, k]) / (m + a)
+    g = m * (u_eq - ud)
+    cell_u_eq[i, j, k] = wp.vec3(float(u_eq[0]), float(u_eq[1]), float(u_eq[2]))
+    cell_gas_impulse[i, j, k] = g
+    cell_mismatch[i, j, k] = g
+
+
+@wp.kernel
+def impulse_deposit_kernel(
+    grid: CellGrid,
+    particle_x: wp.array(dtype=wp.vec3),
+    particle_alive: wp.array(dtype=wp.int32),
+    parcel_drag_impulse: wp.array(dtype=wp.vec3d),
+    # outputs (accumulated into)
+    cell_mismatch: wp.array3d(dtype=wp.vec3d),
+):
+    """cell_mismatch += sum_i w_ic J_i at the parcels' positions before the push (``particle_x``)."""
+    tid = wp.tid()
+    if particle_alive[tid] == 0:
+        return
+    j = parcel_drag_impulse[tid]
+    base, frac = cic_stencil(grid, particle_x[tid])
+    for corner in range(8):
+        idx, w = cic_corner(grid, base, frac, corner)
+        wp.atomic_add(cell_mismatch, idx[0], idx[1], idx[2], w * j)
+
+
+@wp.kernel
+def exchange_correct_kernel(
+    grid: CellGrid,
+    dt: float,
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    cell_exchange_coeff: wp.array3d(dtype=wp.float64),
+    cell_mismatch: wp.array3d(dtype=wp.vec3d),
+    particle_x: wp.array(dtype=wp.vec3),
+    particle_radius: wp.array(dtype=float),
+    particle_density: wp.array(dtype=float),
+    particle_weight: wp.array(dtype=float),
+    particle_alive: wp.array(dtype=wp.int32),
+    parcel_exchange: wp.array(dtype=wp.float64),
+    # in/out: the pushed state and impulses
+    particle_x_out: wp.array(dtype=wp.vec3),
+    particle_v_out: wp.array(dtype=wp.vec3),
+    parcel_drag_impulse: wp.array(dtype=wp.vec3d),
+):
+    """dJ_i = -D_i sum_c w_ic delta_c / A_c over fluid cells with A_c > 0; v and x (= x + dt v) follow."""
+    tid = wp.tid()
+    if particle_alive[tid] == 0:
+        return
+    corr = wp.vec3d(0.0, 0.0, 0.0)
+    base, frac = cic_stencil(grid, particle_x[tid])
+    for corner in range(8):
+        idx, w = cic_corner(grid, base, frac, corner)
+        a = cell_exchange_coeff[idx[0], idx[1], idx[2]]
+        if cell_fluid[idx[0], idx[1], idx[2]] != 0 and a > wp.float64(0.0):
+            corr = corr + (w / a) * cell_mismatch[idx[0], idx[1], idx[2]]
+    dj = -parcel_exchange[tid] * corr
+    parcel_drag_impulse[tid] = parcel_drag_impulse[tid] + dj
+    dv64 = dj / parcel_mass(particle_weight[tid], particle_density[tid], 2.0 * particle_radius[tid])
+    dv = wp.vec3(float(dv64[0]), float(dv64[1]), float(dv64[2]))
+    particle_v_out[tid] = particle_v_out[tid] + dv
+    particle_x_out[tid] = particle_x_out[tid] + dt * dv
+
+
 # ---------------------------------------------------------------- launch wrappers
 
 def deposit(grid: CellGrid, particle_x, particle_v, particle_radius, particle_density, particle_weight,
@@ -134,3 +289,36 @@ def to_float32(cell_momentum_source, cell_drag_coeff, *, cell_momentum_source_f3
     wp.launch(to_float32_kernel, dim=cell_drag_coeff.shape, device=cell_drag_coeff.device,
               inputs=[cell_momentum_source, cell_drag_coeff],
               outputs=[cell_momentum_source_f32, cell_drag_coeff_f32])
+
+
+def exchange_deposit(grid: CellGrid, params, particle_v, particle_x, particle_radius, particle_density,
+                     particle_weight, particle_alive, parcel_u_f, parcel_eps_s, parcel_grad_p, parcel_a_coll, *,
+                     parcel_rate, parcel_exchange, cell_exchange_coeff, cell_exchange_momentum):
+    """Zero A, B and deposit D_i, D_i v*_i (implicit exchange, step 1)."""
+    cell_exchange_coeff.zero_()
+    cell_exchange_momentum.zero_()
+    wp.launch(exchange_deposit_kernel, dim=particle_x.shape[0], device=particle_x.device,
+              inputs=[grid, params, particle_v, particle_x, particle_radius, particle_density, particle_weight,
+                      particle_alive, parcel_u_f, parcel_eps_s, parcel_grad_p, parcel_a_coll],
+              outputs=[parcel_rate, parcel_exchange, cell_exchange_coeff, cell_exchange_momentum])
+
+
+def exchange_cells(gas_mass_full: float, eps_f_min: float, cell_fluid, cell_eps_s, cell_velocity,
+                   cell_exchange_coeff, cell_exchange_momentum, *, cell_u_eq, cell_gas_impulse, cell_mismatch):
+    """u_eq, the gas impulse G and the mismatch's start value G per cell (implicit exchange, step 2)."""
+    wp.launch(exchange_cells_kernel, dim=cell_eps_s.shape, device=cell_eps_s.device,
+              inputs=[wp.float64(gas_mass_full), float(eps_f_min), cell_fluid, cell_eps_s, cell_velocity,
+                      cell_exchange_coeff, cell_exchange_momentum],
+              outputs=[cell_u_eq, cell_gas_impulse, cell_mismatch])
+
+
+def exchange_correct(grid: CellGrid, dt: float, cell_fluid, cell_exchange_coeff, cell_mismatch, particle_x,
+                     particle_radius, particle_density, particle_weight, particle_alive, parcel_exchange,
+                     parcel_drag_impulse, *, particle_x_out, particle_v_out):
+    """Deposit the push's impulses into the mismatch and take it back from the parcels (steps 4-5)."""
+    wp.launch(impulse_deposit_kernel, dim=particle_x.shape[0], device=particle_x.device,
+              inputs=[grid, particle_x, particle_alive, parcel_drag_impulse], outputs=[cell_mismatch])
+    wp.launch(exchange_correct_kernel, dim=particle_x.shape[0], device=particle_x.device,
+              inputs=[grid, float(dt), cell_fluid, cell_exchange_coeff, cell_mismatch, particle_x, particle_radius,
+                      particle_density, particle_weight, particle_alive, parcel_exchange],
+              outputs=[particle_x_out, particle_v_out, parcel_drag_impulse])

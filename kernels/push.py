@@ -105,6 +105,43 @@ class PushParams:
     dt: float
 
 
+@wp.func
+def body_acceleration(params: PushParams, rho_p: float, grad_p: wp.vec3, a_coll: wp.vec3):
+    """Non-drag terms of eq. (4): buoyancy-corrected gravity, -grad(p')/rho_p, a_coll (m/s^2)."""
+    return params.gravity * ((rho_p - params.fluid_density) / rho_p) - grad_p / rho_p + a_coll
+
+
+@wp.func
+def parcel_drag_rate(params: PushParams, u_f: wp.vec3, v: wp.vec3, eps_s: float, diameter: float, rho_p: float):
+    """F_D (1/s) of the configured law at the slip |u_f - v| and the clipped eps_s."""
+    eps = wp.clamp(eps_s, 0.0, params.eps_s_max)
+    return drag_rate(params.drag_law, eps, wp.length(u_f - v), diameter, rho_p, params.fluid_density,
+                     params.fluid_viscosity, params.gidaspow_switch)
+
+
+@wp.func
+def parcel_mass(weight: float, rho_p: float, diameter: float):
+    """weight * rho_p * pi d^3 / 6 (kg, float64): the mass a parcel stands for."""
+    d = wp.float64(diameter)
+    return wp.float64(weight) * wp.float64(rho_p) * PI_OVER_SIX * d * d * d
+
+
+@wp.func
+def push_step(params: PushParams, x: wp.vec3, v: wp.vec3, u_f: wp.vec3, f_d: float, rho_p: float,
+              diameter: float, weight: float, body: wp.vec3):
+    """One semi-implicit step of eq. (4) towards the gas velocity ``u_f`` at the drag rate ``f_d``.
+
+    Returns x_new, v_new, the drag impulse weight * m * F_D dt (u_f - v_new) (N s, float64) and the
+    rate weight * m * F_D (kg/s, float64)."""
+    dt = params.dt
+    v_new = (v + dt * (f_d * u_f + body)) / (1.0 + dt * f_d)
+    rate = parcel_mass(weight, rho_p, diameter) * wp.float64(f_d)
+    du = u_f - v_new
+    rdt = rate * wp.float64(dt)
+    impulse = wp.vec3d(rdt * wp.float64(du[0]), rdt * wp.float64(du[1]), rdt * wp.float64(du[2]))
+    return x + dt * v_new, v_new, impulse, rate
+
+
 @wp.kernel
 def push_kernel(
     params: PushParams,
@@ -129,28 +166,54 @@ def push_kernel(
         parcel_drag_impulse[tid] = wp.vec3d(0.0, 0.0, 0.0)
         parcel_drag_coeff[tid] = wp.float64(0.0)
         return
-    x = particle_x[tid]
     v = particle_v[tid]
     u_f = parcel_u_f[tid]
     rho_p = particle_density[tid]
     diameter = 2.0 * particle_radius[tid]
-    eps_s = wp.clamp(parcel_eps_s[tid], 0.0, params.eps_s_max)
-    slip = wp.length(u_f - v)
-    f_d = drag_rate(params.drag_law, eps_s, slip, diameter, rho_p, params.fluid_density, params.fluid_viscosity,
-                    params.gidaspow_switch)
-    dt = params.dt
-    body = params.gravity * ((rho_p - params.fluid_density) / rho_p) - parcel_grad_p[tid] / rho_p + parcel_a_coll[tid]
-    v_new = (v + dt * (f_d * u_f + body)) / (1.0 + dt * f_d)
+    f_d = parcel_drag_rate(params, u_f, v, parcel_eps_s[tid], diameter, rho_p)
+    body = body_acceleration(params, rho_p, parcel_grad_p[tid], parcel_a_coll[tid])
+    x_new, v_new, impulse, rate = push_step(params, particle_x[tid], v, u_f, f_d, rho_p, diameter,
+                                            particle_weight[tid], body)
     particle_v_out[tid] = v_new
-    particle_x_out[tid] = x + dt * v_new
-    # impulse the gas gives the parcel: weight * m * F_D dt (u_f - v_new), float64 for the balance
-    mass = wp.float64(particle_weight[tid]) * wp.float64(rho_p) * PI_OVER_SIX * wp.float64(diameter) \
-        * wp.float64(diameter) * wp.float64(diameter)
-    rate = mass * wp.float64(f_d)
-    du = u_f - v_new
-    parcel_drag_impulse[tid] = wp.vec3d(rate * wp.float64(dt) * wp.float64(du[0]),
-                                        rate * wp.float64(dt) * wp.float64(du[1]),
-                                        rate * wp.float64(dt) * wp.float64(du[2]))
+    particle_x_out[tid] = x_new
+    parcel_drag_impulse[tid] = impulse
+    parcel_drag_coeff[tid] = rate
+
+
+@wp.kernel
+def push_at_rate_kernel(
+    params: PushParams,
+    particle_x: wp.array(dtype=wp.vec3),
+    particle_v: wp.array(dtype=wp.vec3),
+    particle_radius: wp.array(dtype=float),
+    particle_density: wp.array(dtype=float),
+    particle_weight: wp.array(dtype=float),
+    particle_alive: wp.array(dtype=wp.int32),
+    parcel_u_target: wp.array(dtype=wp.vec3),
+    parcel_rate: wp.array(dtype=float),
+    parcel_grad_p: wp.array(dtype=wp.vec3),
+    parcel_a_coll: wp.array(dtype=wp.vec3),
+    # outputs (may alias particle_x / particle_v)
+    particle_x_out: wp.array(dtype=wp.vec3),
+    particle_v_out: wp.array(dtype=wp.vec3),
+    parcel_drag_impulse: wp.array(dtype=wp.vec3d),
+    parcel_drag_coeff: wp.array(dtype=wp.float64),
+):
+    """The push of :func:`push_kernel` with F_D given (``parcel_rate``) and drag towards ``parcel_u_target``
+    (the implicit-exchange gas velocity of ``kernels/deposit.py``)."""
+    tid = wp.tid()
+    if particle_alive[tid] == 0:
+        parcel_drag_impulse[tid] = wp.vec3d(0.0, 0.0, 0.0)
+        parcel_drag_coeff[tid] = wp.float64(0.0)
+        return
+    rho_p = particle_density[tid]
+    body = body_acceleration(params, rho_p, parcel_grad_p[tid], parcel_a_coll[tid])
+    x_new, v_new, impulse, rate = push_step(params, particle_x[tid], particle_v[tid], parcel_u_target[tid],
+                                            parcel_rate[tid], rho_p, 2.0 * particle_radius[tid],
+                                            particle_weight[tid], body)
+    particle_v_out[tid] = v_new
+    particle_x_out[tid] = x_new
+    parcel_drag_impulse[tid] = impulse
     parcel_drag_coeff[tid] = rate
 
 
@@ -199,6 +262,16 @@ def push(params: PushParams, particle_x, particle_v, particle_radius, particle_d
               inputs=[params, particle_x, particle_v, particle_radius, particle_density, particle_weight,
                       particle_alive, parcel_u_f, parcel_grad_p, parcel_eps_s, parcel_a_coll],
               outputs=[x_out, v_out, parcel_drag_impulse, parcel_drag_coeff])
+
+
+def push_at_rate(params: PushParams, particle_x, particle_v, particle_radius, particle_density, particle_weight,
+                 particle_alive, parcel_u_target, parcel_rate, parcel_grad_p, parcel_a_coll, parcel_drag_impulse,
+                 parcel_drag_coeff, *, particle_x_out, particle_v_out):
+    """:func:`push` with the drag rate given per parcel and drag towards ``parcel_u_target``."""
+    wp.launch(push_at_rate_kernel, dim=particle_x.shape[0], device=particle_x.device,
+              inputs=[params, particle_x, particle_v, particle_radius, particle_density, particle_weight,
+                      particle_alive, parcel_u_target, parcel_rate, parcel_grad_p, parcel_a_coll],
+              outputs=[particle_x_out, particle_v_out, parcel_drag_impulse, parcel_drag_coeff])
 
 
 def eval_drag_rate(law: int, eps_s, slip, diameter, rho_p, rho_f: float, mu_f: float, rate,
