@@ -5,15 +5,34 @@
   pressure / viscous solve does real CG work; median wall clock of ``--repeats`` steps, per cell,
   and the CG iterations of the pressure solve (CG iterations grow with the grid, so the cost per cell
   is not expected to stay flat).
-- Parcels: ``deposit_parcels``, ``interpolate_gas``, ``push_parcels`` on a fixed 32^3 grid with
-  1e4, 1e5, 1e6 parcels (``--parcels``) at random positions; median per call, per parcel, the
-  ratio of the per-parcel cost to the smallest count (target: flat within 1.5x) and the marginal
-  cost of the added parcels (free of the fixed per-call grid work: zeroing and finishing the cells).
-  The SDF wall reflection (``kernels/reflect.py``) is timed beside it, not in the sum.
+- Parcels: the parcel phase as ``HelSolver.step`` runs it, ``HelSolver.deposit`` + ``interpolate`` +
+  ``push`` (with ``HelConfig.coupling = "implicit"``, the default, the push is the implicit drag
+  exchange ``coupling.exchange_push``: 3 Picard passes of parcel and cell kernels), for 1e4, 1e5, 1e6
+  parcels (``--parcels``) at random positions in a closed box, gas velocity random, no collisions.
+  The phase does per-call work on every cell (zeroing, ``finish_cells``, the exchange's cell passes)
+  as well as per-parcel work, so it is timed on two kinds of grid:
+
+  * ``ppc``: the grid grows with the parcel count at a constant ``--parcels-per-cell`` (default 8;
+    near-cubic shapes chosen so that the actual parcels per cell stays within a few % of it) -- the
+    way a real case scales, and the figure for the issue-4 target (flat within 1.5x per parcel);
+  * ``fixed``: one ``--fixed-side``^3 grid (default 32^3) for every count, as the benchmark used to
+    run: at small counts the fixed cell work dominates the per-parcel cost;
+  * ``ppc sorted`` (``--cell-sorted``, off by default): the ``ppc`` grids with the parcels stored in
+    cell order -- a diagnostic of what random parcel order in memory (the default, as parcels are after
+    some mixing) costs in cache misses of the atomic deposits and the gathers on the larger grids.
+
+  Parcel state (x, v) is reset before every repeat (outside the timing) so that every repeat does the
+  same work; no gas step runs between repeats. The repeats are interleaved over all sizes and grids
+  (one round of each, ``--repeats`` times, after one warm-up round), so that load changes on a shared
+  machine hit every size alike. Reported: medians (of ``--repeats``, default 7) per sub-step and of the
+  sum, per parcel, the ratio of the per-parcel cost to the smallest count, and its max/min over the
+  counts; for ``fixed`` also the marginal cost of the added parcels (free of the fixed per-call cell
+  work). The SDF wall reflection (``HelSolver.reflect_at_walls``) is timed beside it, not in the sum.
 
 Usage::
 
-    python scripts/bench_hel.py                     # CPU
+    python scripts/bench_hel.py                     # CPU, full size (under a minute on 2 loaded cores)
+    python scripts/bench_hel.py --quick             # smoke run (seconds)
     python scripts/bench_hel.py --device cuda       # GPU (timings synchronise the device)
     python scripts/bench_hel.py --json              # one JSON object
 """
@@ -22,10 +41,19 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import statistics
+import sys
 import time
 
 import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+H = 1e-3  # cell size, m
+SUB_STEPS = ("deposit", "interpolate", "push")
+QUICK = {"cells": [10, 16], "parcels": [2_000, 20_000], "repeats": 2, "fixed_side": 16}
 
 
 def _sync(device):
@@ -36,12 +64,10 @@ def _sync(device):
 
 
 def bench_gas(n_side: int, repeats: int, device, seed: int = 0) -> dict:
-    import warp as wp
-
     from hel_warp.gas import GasConfig, GasField, GasSolver
     from hel_warp.grid import Box, Geometry, Grid
 
-    h = 1e-3
+    h = H
     grid = Grid(spacing=h, shape=(n_side,) * 3)
     domain = Geometry(shapes=(Box(lo=(0, 0, 0), hi=(n_side * h,) * 3),)).build(grid, device=device)
     solver = GasSolver(domain, GasConfig(), device=device)
@@ -64,96 +90,212 @@ def bench_gas(n_side: int, repeats: int, device, seed: int = 0) -> dict:
             "pressure_cg_iterations": int(statistics.median(iterations))}
 
 
-def bench_parcels(n: int, repeats: int, device, n_side: int = 32, seed: int = 0) -> dict:
-    import warp as wp
+def grid_shape_for(cells: float, max_aspect: float = 2.0) -> tuple[int, int, int]:
+    """Near-cubic (nx, ny, nz), longest side at most ``max_aspect`` times the shortest, whose cell count is
+    closest to ``cells`` (ties: the more cubic one)."""
+    cells = max(float(cells), 1.0)
+    side = cells ** (1.0 / 3.0)
+    best = None
+    lo, hi = max(1, int(side / max_aspect)), int(side * max_aspect) + 1
+    for a in range(lo, max(lo, int(side)) + 1):
+        for b in range(a, hi + 1):
+            for c in {max(b, math.floor(cells / (a * b))), max(b, math.ceil(cells / (a * b)))}:
+                if c > max_aspect * a:
+                    continue
+                key = (abs(a * b * c - cells) / cells, c / a)
+                if best is None or key < best[0]:
+                    best = (key, (a, b, c))
+    if best is None:  # tiny counts: a single cube
+        n = max(1, round(side))
+        return (n, n, n)
+    return best[1]
 
-    from hel_warp.coupling import CouplingFields, GridSpec, PushConfig, deposit_parcels, interpolate_gas, push_parcels
-    from hel_warp.particles import Particles
 
-    h = 1e-3
-    grid = GridSpec(origin=(0.0, 0.0, 0.0), spacing=h, shape=(n_side,) * 3)
+def make_solver(shape, n: int, device, *, coupling: str, seed: int = 0):
+    """A HelSolver on a closed box of ``shape`` cells of H with ``n`` parcels (radius 0.1 mm, 1000 kg/m^3) at
+    uniformly random positions; gas velocity random (0.5 m/s rms), grad p' zero. Returns (solver, x, v) with
+    the host copies of the initial parcel state."""
+    from hel_warp.gas import GasConfig, GasField, GasSolver
+    from hel_warp.grid import Box, Geometry, Grid
+    from hel_warp.hel import HelConfig, HelSolver
+    from hel_warp.coupling import PushConfig
+    from hel_warp.parcels import ParcelPool
+
+    shape = tuple(int(s) for s in shape)
+    grid = Grid(spacing=H, shape=shape)
+    hi = tuple(s * H for s in shape)
+    domain = Geometry(shapes=(Box(lo=(0.0, 0.0, 0.0), hi=hi),)).build(grid, device=device)
+    push = PushConfig()
+    gas_solver = GasSolver(domain, GasConfig(density=push.fluid_density, viscosity=push.fluid_viscosity),
+                           device=device)
+    gas = GasField(domain, device=device)
     rng = np.random.default_rng(seed)
-    x = rng.uniform(0.5 * h, (n_side - 0.5) * h, size=(n, 3))
-    parts = Particles.from_numpy(x, 1e-4, v=rng.normal(0.0, 0.1, size=(n, 3)), check_overlap=False, device=device)
-    fields = CouplingFields.allocate(grid, n, device=parts.device)
-    cell_velocity = wp.array(rng.normal(0, 0.5, (n_side,) * 3 + (3,)).astype(np.float32), dtype=wp.vec3,
-                             device=parts.device)
-    cell_grad_p = wp.zeros((n_side,) * 3, dtype=wp.vec3, device=parts.device)
-    params = PushConfig().params(1e-5)  # short step: parcels stay in the box over the repeats
-    from hel_warp.grid import Box, Geometry
-    from kernels.reflect import make_wall_params, reflect_at_walls
+    gas.cell_velocity.assign(rng.normal(0.0, 0.5, shape + (3,)).astype(np.float32))
+    x = rng.uniform([0.5 * H] * 3, [s - 0.5 * H for s in hi], size=(n, 3)).astype(np.float32)
+    v = rng.normal(0.0, 0.1, size=(n, 3)).astype(np.float32)
+    pool = ParcelPool.empty(n, device=device)
+    p = pool.particles
+    p.x.assign(x)
+    p.v.assign(v)
+    p.radius.assign(np.full(n, 1e-4, np.float32))
+    p.density.assign(np.full(n, 1000.0, np.float32))
+    p.alive.assign(np.ones(n, np.int32))
+    p.particle_id.assign(np.arange(n, dtype=np.int32))
+    pool.used = n
+    solver = HelSolver(pool=pool, gas_solver=gas_solver, gas=gas, config=HelConfig(push=push, coupling=coupling))
+    solver.time_sub_steps = False
+    return solver, x, v
 
-    shapes = Geometry(shapes=(Box(lo=(0.0, 0.0, 0.0), hi=(n_side * h,) * 3),)).shapes_struct(parts.device)
-    wall_params, hits = make_wall_params(), wp.zeros(1, dtype=wp.int32, device=parts.device)
-    subs = {"deposit": lambda: deposit_parcels(grid, parts, fields),
-            "interpolate": lambda: interpolate_gas(grid, parts, cell_velocity, cell_grad_p, fields),
-            "push": lambda: push_parcels(parts, fields, params),
-            "walls": lambda: reflect_at_walls(shapes, wall_params, parts.alive, parts.x, parts.v, hits)}
-    times = {name: [] for name in subs}
-    totals = []
-    for r in range(repeats + 1):
-        total = 0.0
-        for name, call in subs.items():
-            _sync(parts.device)
-            start = time.perf_counter()
-            call()
-            _sync(parts.device)
-            elapsed = time.perf_counter() - start
-            if name != "walls":  # the total is deposit + interpolate + push
-                total += elapsed
-            if r:
-                times[name].append(elapsed)
-        if r:
-            totals.append(total)
-    out = {"parcels": n}
-    for name, values in times.items():
+
+def parcel_case(n: int, shape, device, *, coupling: str = "implicit", cell_sorted: bool = False,
+                seed: int = 0) -> dict:
+    """One timed configuration: a solver with ``n`` parcels on a ``shape`` grid (``make_solver``); with
+    ``cell_sorted`` the parcels are stored in cell order (diagnostic: the memory-order cost of random order)."""
+    solver, x0, v0 = make_solver(shape, n, device, coupling=coupling, seed=seed)
+    if cell_sorted:
+        ijk = np.floor(x0 / H).astype(np.int64)
+        order = np.argsort((ijk[:, 0] * shape[1] + ijk[:, 1]) * shape[2] + ijk[:, 2], kind="stable")
+        x0, v0 = x0[order], v0[order]
+    calls = {"deposit": solver.deposit, "interpolate": solver.interpolate, "push": solver.push,
+             "walls": solver.reflect_at_walls}
+    return {"n": n, "shape": tuple(int(s) for s in shape), "solver": solver, "x0": x0, "v0": v0, "calls": calls,
+            "times": {name: [] for name in calls}, "totals": []}
+
+
+def time_round(case: dict, record: bool) -> None:
+    """One round of HelSolver.deposit, .interpolate, .push (and .reflect_at_walls, beside, not in the sum)
+    from the same initial parcel state; appended to the case's times when ``record``."""
+    solver = case["solver"]
+    p = solver.pool.particles
+    p.x.assign(case["x0"])  # same work every round
+    p.v.assign(case["v0"])
+    solver.collide()  # 'none': a_coll = 0, as in the step (untimed)
+    total = 0.0
+    for name, call in case["calls"].items():
+        _sync(p.device)
+        start = time.perf_counter()
+        call()
+        _sync(p.device)
+        elapsed = time.perf_counter() - start
+        if name in SUB_STEPS:
+            total += elapsed
+        if record:
+            case["times"][name].append(elapsed)
+    if record:
+        case["totals"].append(total)
+
+
+def case_result(case: dict) -> dict:
+    n, shape = case["n"], case["shape"]
+    cells = int(np.prod(shape))
+    out = {"parcels": n, "grid": list(shape), "cells": cells, "parcels_per_cell": n / cells}
+    for name, values in case["times"].items():
         out[f"{name}_ns_per_parcel"] = 1e9 * statistics.median(values) / n
-    out["median_s"] = statistics.median(totals)
+    out["median_s"] = statistics.median(case["totals"])
     out["total_ns_per_parcel"] = 1e9 * out["median_s"] / n
+    out["total_min_ns_per_parcel"] = 1e9 * min(case["totals"]) / n
     return out
+
+
+def _summarise(rows: list[dict]) -> dict:
+    base = rows[0]["total_ns_per_parcel"]
+    for row in rows:
+        row["ratio_per_parcel"] = row["total_ns_per_parcel"] / base
+    per_parcel = [row["total_ns_per_parcel"] for row in rows]
+    ratio = max(per_parcel) / min(per_parcel)
+    return {"rows": rows, "max_over_min": ratio, "flat_within_1_5x": bool(ratio <= 1.5)}
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cpu", help="Warp device: cpu or cuda (default cpu)")
-    parser.add_argument("--cells", type=int, nargs="+", default=[22, 47],
+    parser.add_argument("--cells", type=int, nargs="+", default=None,
                         help="cube sides of the gas grids (default 22 47: 1.06e4 and 1.04e5 cells)")
-    parser.add_argument("--parcels", type=int, nargs="+", default=[10_000, 100_000, 1_000_000])
-    parser.add_argument("--repeats", type=int, default=5, help="timed repeats per size (median reported)")
+    parser.add_argument("--parcels", type=int, nargs="+", default=None,
+                        help="parcel counts (default 10000 100000 1000000)")
+    parser.add_argument("--parcels-per-cell", type=float, default=8.0,
+                        help="parcels per cell of the growing grid (default 8)")
+    parser.add_argument("--fixed-side", type=int, default=None,
+                        help="cube side of the fixed grid the parcels are also timed on (default 32; 0: skip)")
+    parser.add_argument("--coupling", choices=("implicit", "explicit"), default="implicit",
+                        help="HelConfig.coupling of the timed push (default implicit, the solver's default)")
+    parser.add_argument("--repeats", type=int, default=None, help="timed repeats per size (median reported; "
+                        "default 7)")
+    parser.add_argument("--quick", action="store_true",
+                        help="smoke run: gas 10^3 and 16^3 cells, 2e3 and 2e4 parcels, fixed 16^3, 2 repeats "
+                             "(options given explicitly win)")
+    parser.add_argument("--cell-sorted", action="store_true",
+                        help="also time the parcels-per-cell grids with the parcels stored in cell order "
+                             "(diagnostic: the cost of random parcel order in memory)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     args = parser.parse_args(argv)
+    defaults = QUICK if args.quick else {"cells": [22, 47], "parcels": [10_000, 100_000, 1_000_000],
+                                         "repeats": 7, "fixed_side": 32}
+    for key, value in defaults.items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+    if args.parcels_per_cell <= 0 or args.repeats < 1 or min(args.parcels) < 1:
+        parser.error("--parcels-per-cell, --repeats and --parcels must be positive")
 
     from hel_warp._warp import init_warp
 
+    wall_start = time.perf_counter()
     device = init_warp(args.device)
     gas = [bench_gas(n, args.repeats, device) for n in args.cells]
-    parcels = [bench_parcels(n, args.repeats, device) for n in args.parcels]
-    base_cell, base_parcel = gas[0]["per_cell_us"], parcels[0]["total_ns_per_parcel"]
+    base_cell = gas[0]["per_cell_us"]
     for g in gas:
         g["ratio_per_cell"] = g["per_cell_us"] / base_cell
-    for p in parcels:
-        p["ratio_per_parcel"] = p["total_ns_per_parcel"] / base_parcel
-    for prev, p in zip(parcels, parcels[1:]):  # cost of the added parcels, free of the fixed per-call grid work
-        p["marginal_ns_per_parcel"] = 1e9 * (p["median_s"] - prev["median_s"]) / (p["parcels"] - prev["parcels"])
-    result = {"device": str(device), "repeats": args.repeats, "gas": gas, "parcels": parcels,
-              "parcel_cost_flat_within_1_5x": bool(max(p["ratio_per_parcel"] for p in parcels) <= 1.5
-                                                   and min(p["ratio_per_parcel"] for p in parcels) >= 1 / 1.5)}
+    ppc_label = f"ppc {args.parcels_per_cell:g}"
+    specs = {"parcels": (ppc_label, lambda n: grid_shape_for(n / args.parcels_per_cell), False)}
+    if args.fixed_side > 0:
+        specs["parcels_fixed_grid"] = (f"fixed {args.fixed_side}^3", lambda n: (args.fixed_side,) * 3, False)
+    if args.cell_sorted:
+        specs["parcels_cell_sorted"] = (f"{ppc_label} sorted", specs["parcels"][1], True)
+    cases = {key: [parcel_case(n, shape_of(n), device, coupling=args.coupling, cell_sorted=cell_sorted)
+                   for n in args.parcels] for key, (_, shape_of, cell_sorted) in specs.items()}
+    every = [case for group in cases.values() for case in group]
+    for case in every:  # warm-up round (kernel load, first touch of the memory), not counted
+        time_round(case, record=False)
+    for _ in range(args.repeats):  # interleaved: load changes on a shared machine hit every size alike
+        for case in every:
+            time_round(case, record=True)
+    result = {"device": str(device), "repeats": args.repeats, "coupling": args.coupling, "gas": gas,
+              "parcels_per_cell_target": args.parcels_per_cell}
+    variants = {}
+    for key, (label, _, _) in specs.items():
+        variant = _summarise([case_result(case) for case in cases[key]])
+        variant["label"] = label
+        if key == "parcels_fixed_grid":
+            rows = variant["rows"]
+            for prev, row in zip(rows, rows[1:]):  # cost of the added parcels, free of the fixed per-call cell work
+                row["marginal_ns_per_parcel"] = (1e9 * (row["median_s"] - prev["median_s"])
+                                                 / (row["parcels"] - prev["parcels"]))
+        result[key] = variants[label] = variant
+    del cases, every
+    result["wall_s"] = time.perf_counter() - wall_start
     if args.json:
         print(json.dumps(result))
         return 0
     print(f"device {device}, medians of {args.repeats} repeats")
-    print(f"{'gas cells':>10} {'step (s)':>10} {'us/cell':>9} {'ratio':>6} {'CG its':>7}")
+    print("gas step (GasSolver.step)")
+    print(f"{'cells':>10} {'step (s)':>10} {'us/cell':>9} {'ratio':>6} {'CG its':>7}")
     for g in gas:
         print(f"{g['cells']:>10} {g['median_s']:>10.4f} {g['per_cell_us']:>9.3f} {g['ratio_per_cell']:>6.2f} "
               f"{g['pressure_cg_iterations']:>7}")
-    print(f"{'parcels':>10} {'sum (s)':>10} {'deposit':>9} {'interp':>9} {'push':>9} {'ns/parcel':>10} "
-          f"{'ratio':>6} {'marginal':>9} {'(walls)':>8}")
-    for p in parcels:
-        print(f"{p['parcels']:>10} {p['median_s']:>10.4f} {p['deposit_ns_per_parcel']:>9.1f} "
-              f"{p['interpolate_ns_per_parcel']:>9.1f} {p['push_ns_per_parcel']:>9.1f} "
-              f"{p['total_ns_per_parcel']:>10.1f} {p['ratio_per_parcel']:>6.2f} "
-              f"{p.get('marginal_ns_per_parcel', float('nan')):>9.1f} {p['walls_ns_per_parcel']:>8.1f}")
-    print(f"parcel cost per parcel flat within 1.5x: {result['parcel_cost_flat_within_1_5x']}")
+    print(f"parcel phase (HelSolver.deposit + interpolate + push, coupling {args.coupling}), ns per parcel")
+    print(f"{'grid':>12} {'parcels':>9} {'shape':>10} {'ppc':>6} {'sum (s)':>9} {'deposit':>8} {'interp':>8} "
+          f"{'push':>8} {'ns/parcel':>10} {'ratio':>6} {'marginal':>9} {'(walls)':>8}")
+    for label, variant in variants.items():
+        for p in variant["rows"]:
+            marginal = p.get("marginal_ns_per_parcel")
+            print(f"{label:>12} {p['parcels']:>9} {'x'.join(map(str, p['grid'])):>10} {p['parcels_per_cell']:>6.2f} "
+                  f"{p['median_s']:>9.4f} {p['deposit_ns_per_parcel']:>8.1f} {p['interpolate_ns_per_parcel']:>8.1f} "
+                  f"{p['push_ns_per_parcel']:>8.1f} {p['total_ns_per_parcel']:>10.1f} {p['ratio_per_parcel']:>6.2f} "
+                  f"{'-' if marginal is None else format(marginal, '.1f'):>9} {p['walls_ns_per_parcel']:>8.1f}")
+    for label, variant in variants.items():
+        print(f"{label}: per-parcel cost max/min over {min(args.parcels):.0e}..{max(args.parcels):.0e} parcels "
+              f"{variant['max_over_min']:.2f}x, flat within 1.5x: {variant['flat_within_1_5x']}")
+    print(f"wall time {result['wall_s']:.1f} s")
     return 0
 
 
