@@ -64,13 +64,17 @@ class KtgfCollision:
 
     Monodisperse closures: ``particle_diameter`` (m) and ``particle_density`` (kg/m^3) are the ones
     of the KTGF solids phase. The collision acceleration is limited to h / dt^2 with the step's dt (at most
-    one cell of collision displacement per step; ``kernels/ktgf.py``, "Stability").
+    one cell of collision displacement per step; ``kernels/ktgf.py``, "Stability"). The dilute viscosity
+    in the algebraic Theta is limited by the mean free path (Hrenya & Sinclair 1997) with
+    L = ``mean_free_path_length`` (None: the cell size h, the smallest resolved shear length; 0: off):
+    without it Theta ~ 1/eps_s in near-empty cells and heats the fringe parcels at dt <= 1e-4 s.
     """
 
     name = "ktgf"
 
     def __init__(self, *, particle_diameter: float, particle_density: float, restitution: float = 0.9,
-                 packing: float = 0.63, friction_packing: float = 0.61, friction_angle_deg: float = 30.0):
+                 packing: float = 0.63, friction_packing: float = 0.61, friction_angle_deg: float = 30.0,
+                 mean_free_path_length: float | None = None):
         from kernels.ktgf import make_ktgf_params
 
         require_positive("particle_diameter", particle_diameter, "m")
@@ -82,8 +86,14 @@ class KtgfCollision:
         self.params = make_ktgf_params(particle_diameter=particle_diameter, particle_density=particle_density,
                                        restitution=restitution, packing=packing, friction_packing=friction_packing,
                                        friction_angle_deg=friction_angle_deg)
+        if mean_free_path_length is not None and not mean_free_path_length >= 0.0:
+            raise ConfigError(f"mean_free_path_length must be >= 0 m (got {mean_free_path_length}); 0 switches "
+                              "the limit off, None takes the cell size")
+        self.mean_free_path_length = mean_free_path_length
 
     def accelerate(self, solver: "HelSolver") -> None:
+        length = self.mean_free_path_length
+        self.params.mfp_length = float(solver.grid.spacing if length is None else length)
         ktgf_collision(solver.grid, solver.pool.particles, solver.fields, self.params, dt=solver.config.dt)
 
 

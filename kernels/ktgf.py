@@ -133,20 +133,31 @@ def second_invariant_deviatoric(strain_rate: wp.mat33):
 
 
 @wp.func
+def mean_free_path_factor(eps_s: float, diameter: float, g0: float, length: float):
+    """1 / (1 + lambda / L), lambda = d / (6 sqrt(2) eps_s g0) the mean free path (Chapman & Cowling; Hrenya &
+    Sinclair 1997, AIChE J. 43:853, who limit the dilute granular viscosity by it); 1 when L <= 0 (off)."""
+    if length <= 0.0:
+        return 1.0
+    return 1.0 / (1.0 + diameter / (6.0 * wp.sqrt(2.0) * eps_s * g0 * length))
+
+
+@wp.func
 def algebraic_theta(eps_s: float, rho_s: float, diameter: float, restitution: float, g0: float, tr_d: float,
-                    tr_d2: float, k_sg: float):
+                    tr_d2: float, k_sg: float, mfp_length: float):
     """Theta (m^2/s^2) zeroing production - dissipation - 3 K_sg Theta (paper eq. (8); closures of
     Syamlal et al. 1993 / MFIX calc_mu_s.f; see the module docstring for the quadratic in sqrt(Theta)).
 
     tr_d = trace(D), tr_d2 = D:D, D the solids strain-rate tensor (1/s); k_sg the gas-solid exchange
-    coefficient, kg/(m^3 s) (0: the MFIX root). 0 where eps_s <= 0.
+    coefficient, kg/(m^3 s) (0: the MFIX root). 0 where eps_s <= 0. ``mfp_length`` L > 0 multiplies the
+    dilute (streaming) viscosity term of K3 by :func:`mean_free_path_factor` (0: the closure as published).
     """
     if eps_s <= 0.0:
         return 0.0
     e = restitution
     sqrt_pi = wp.sqrt(wp.pi)
     k1 = 2.0 * (1.0 + e) * rho_s * g0
-    k3 = 0.5 * diameter * rho_s * (sqrt_pi / (3.0 * (3.0 - e)) * (0.5 * (3.0 * e + 1.0)
+    dilute = 0.5 * (3.0 * e + 1.0) * mean_free_path_factor(eps_s, diameter, g0, mfp_length)
+    k3 = 0.5 * diameter * rho_s * (sqrt_pi / (3.0 * (3.0 - e)) * (dilute
                                    + 0.4 * (1.0 + e) * (3.0 * e - 1.0) * eps_s * g0)
                                    + 8.0 * eps_s * g0 * (1.0 + e) / (5.0 * sqrt_pi))
     k2 = 4.0 * diameter * rho_s * (1.0 + e) * eps_s * g0 / (3.0 * sqrt_pi) - 2.0 / 3.0 * k3
@@ -182,6 +193,9 @@ class KtgfParams:
     """below this solid fraction a cell carries no granular pressure and a parcel no collision force."""
     particle_diameter: float
     particle_density: float
+    mfp_length: float
+    """L of the mean-free-path limit of the dilute viscosity in the algebraic Theta, m (0: off, the published
+    closure; the HEL strategy uses the cell size: no solids shear is resolved below it)."""
 
 
 @wp.func
@@ -257,7 +271,7 @@ def ktgf_cells_kernel(
     g0 = radial_distribution_lun(eps, params.packing)
     k_sg = float(cell_drag_coeff[i, j, k]) / (spacing * spacing * spacing)  # sum beta V / V_cell
     theta = algebraic_theta(eps, params.particle_density, params.particle_diameter, params.restitution, g0,
-                            tr_d, tr_d2, k_sg)
+                            tr_d, tr_d2, k_sg, params.mfp_length)
     p_s = solids_pressure_lun(eps, params.particle_density, params.restitution, g0, theta)
     cell_g0[i, j, k] = g0
     cell_theta[i, j, k] = theta
@@ -343,7 +357,7 @@ def closures_kernel(
     g0 = radial_distribution_lun(eps, params.packing)
     out[0, tid] = g0
     out[1, tid] = algebraic_theta(eps, params.particle_density, params.particle_diameter, params.restitution, g0,
-                                  tr_d[tid], tr_d2[tid], k_sg[tid])
+                                  tr_d[tid], tr_d2[tid], k_sg[tid], params.mfp_length)
     p_s = solids_pressure_lun(eps, params.particle_density, params.restitution, g0, th)
     out[2, tid] = p_s
     out[3, tid] = granular_viscosity_gidaspow(eps, params.particle_density, params.particle_diameter,
@@ -357,7 +371,8 @@ def closures_kernel(
 
 def make_ktgf_params(*, particle_diameter: float, particle_density: float, restitution: float = 0.9,
                      packing: float = 0.63, friction_packing: float = 0.61, friction_angle_deg: float = 30.0,
-                     max_fraction_of_packing: float = 0.999, eps_s_min: float = 1e-8) -> KtgfParams:
+                     max_fraction_of_packing: float = 0.999, eps_s_min: float = 1e-8,
+                     mfp_length: float = 0.0) -> KtgfParams:
     """``KtgfParams`` with Table 1 defaults (e_ss 0.9, packing 0.63, friction packing 0.61)."""
     import math
 
@@ -370,6 +385,7 @@ def make_ktgf_params(*, particle_diameter: float, particle_density: float, resti
     p.eps_s_min = float(eps_s_min)
     p.particle_diameter = float(particle_diameter)
     p.particle_density = float(particle_density)
+    p.mfp_length = float(mfp_length)
     return p
 
 

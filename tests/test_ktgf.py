@@ -14,7 +14,7 @@ from kernels import ktgf
 RHO_S, D, E, EPS_MAX = 1000.0, 315e-6, 0.9, 0.63
 
 
-def closures(eps_s, theta=0.01, tr_d=0.0, tr_d2=0.0, i2d=0.0, k_sg=0.0):
+def closures(eps_s, theta=0.01, tr_d=0.0, tr_d2=0.0, i2d=0.0, k_sg=0.0, mfp_length=0.0):
     """Evaluate the kernel-side closures at points; returns (6, n) float64 rows (see eval_closures)."""
     eps_s = np.atleast_1d(np.asarray(eps_s, np.float32))
     n = eps_s.size
@@ -23,7 +23,8 @@ def closures(eps_s, theta=0.01, tr_d=0.0, tr_d2=0.0, i2d=0.0, k_sg=0.0):
         return wp.array(np.broadcast_to(np.asarray(v, np.float32), (n,)).copy(), dtype=float)
 
     out = wp.zeros((6, n), dtype=float)
-    params = ktgf.make_ktgf_params(particle_diameter=D, particle_density=RHO_S, restitution=E, packing=EPS_MAX)
+    params = ktgf.make_ktgf_params(particle_diameter=D, particle_density=RHO_S, restitution=E, packing=EPS_MAX,
+                                   mfp_length=mfp_length)
     ktgf.eval_closures(params, arr(eps_s), arr(theta), arr(tr_d), arr(tr_d2), arr(i2d), out, k_sg=arr(k_sg))
     return out.numpy().astype(np.float64)
 
@@ -65,6 +66,30 @@ def test_algebraic_theta_with_gas_exchange_hand_value():
     assert theta == pytest.approx(1.963953e-6, rel=1e-5)
     # no strain: no production, Theta = 0 whatever the exchange
     assert closures(0.3, tr_d=0.0, tr_d2=0.0, k_sg=3000.0)[1, 0] == 0.0
+
+
+def test_mean_free_path_limit_keeps_dilute_theta_finite():
+    # Simple shear D:D = 50, K_sg = 0: Theta = 2 K3 D:D / (K4 eps_s). As published, K3 -> its dilute term
+    # d rho sqrt(pi) (3e+1) / (12 (3-e)) as eps_s -> 0, so Theta ~ 1/eps_s. With the mean-free-path limit
+    # (Hrenya & Sinclair 1997) that term carries 1/(1 + lambda/L), lambda = d/(6 sqrt(2) eps_s g0) -> L/lambda,
+    # and Theta tends to (g0 -> 1)
+    #   2 D:D d sqrt(pi) / (12 (1-e^2)) * [sqrt(2 pi) (3e+1) L / (2 (3-e))
+    #                                      + d/2 (sqrt(pi) 0.4 (1+e)(3e-1) / (3 (3-e)) + 8 (1+e) / (5 sqrt(pi)))].
+    L, dd = 1e-3, 50.0
+    sp = math.sqrt(math.pi)
+    limit = 2 * dd * D * sp / (12 * (1 - E**2)) * (math.sqrt(2 * math.pi) * (3 * E + 1) * L / (2 * (3 - E))
+                                                  + D / 2 * (sp * 0.4 * (1 + E) * (3 * E - 1) / (3 * (3 - E))
+                                                             + 8 * (1 + E) / (5 * sp)))
+    eps = np.array([1e-6, 1e-5, 1e-4])
+    limited = closures(eps, tr_d2=dd, mfp_length=L)[1]
+    assert limited[0] == pytest.approx(limit, rel=1e-3)
+    assert np.all(limited <= limit * (1 + 1e-3))
+    published = closures(eps, tr_d2=dd)[1]
+    # ~1/eps_s without the limit (g0 = 1.057 at eps_s = 1e-4 and 1.012 at 1e-6 make it 104)
+    assert published[0] / published[2] == pytest.approx(100.0, rel=0.06)
+    # dense cells: lambda << L, the limit changes Theta by about lambda/L (eps_s = 0.3: lambda = 16 um, 1.6 %)
+    dense = closures(0.3, tr_d2=dd, mfp_length=L)[1, 0]
+    assert dense < 9.48304e-6 and dense == pytest.approx(9.48304e-6, rel=0.02)
 
 
 @pytest.mark.parametrize("eps_s,tr_d,tr_d2,k_sg", [(0.05, 0.0, 200.0, 0.0), (0.3, -4.0, 60.0, 0.0),
