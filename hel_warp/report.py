@@ -9,8 +9,8 @@ What the paper compares (sections 6 and 8; Figs. 11-23):
   particles). ``downstream_only`` keeps samples with ``u > 0`` only, as the experimental tracking
   did (it "tracks only particles that move in the downstream direction", section 8);
 - the RMS difference of two runs' profiles, over the ten sections and the sub-boxes where both
-  have samples: ``sqrt(mean_b (u_b - u_b^dem)^2)`` (m/s), taken against a ``dem`` run of the same
-  report (same diameter and dt preferred);
+  have at least ``min_samples`` (default 10) samples: ``sqrt(mean_b (u_b - u_b^dem)^2)`` (m/s), taken
+  against a ``dem`` run of the same report (same diameter and dt preferred);
 - particle dispersion coloured by stream and the solid volume fraction on a log scale (Figs. 11,
   17, 20): eps_s of the last snapshot, particle volume binned on the grid spacing in the x-y plane
   and divided by the bin volume (bin area x channel depth);
@@ -32,7 +32,7 @@ Figures are rendered with pyvista off-screen, or with matplotlib when pyvista ca
                                     "samples"}, ... ten sections], "88": [...], "126": [...]},
                "dem_reference" and "profile_rms_vs_dem": {"20": m/s, ...} (null for the reference itself),
                only when a dem run is in the report}, ...],
-     "boxes", "downstream_only", "from_time", "figures", "renderer"}
+     "boxes", "downstream_only", "from_time", "min_samples", "figures", "renderer"}
 """
 
 from __future__ import annotations
@@ -186,16 +186,25 @@ def profiles(run: RunData, boxes: int, *, downstream_only: bool = False, from_ti
             for s in run.rig["sections"]]
 
 
-def profile_rms(a: list, b: list) -> float | None:
-    """RMS of the differences of two runs' profiles over all sections and the sub-boxes both have samples in."""
+DEFAULT_MIN_SAMPLES = 10
+"""Sub-boxes with fewer (snapshot, parcel) samples than this in either run are left out of the RMS: the mean
+of n samples of a velocity spread sigma has a standard error sigma / sqrt(n), ~0.3 sigma at 10 (at the front
+of the cloud a box may hold one or two parcels, whose noise would swamp the comparison)."""
+
+
+def profile_rms(a: list, b: list, *, min_samples: int = 1) -> float | None:
+    """RMS of the differences of two runs' profiles over all sections and the sub-boxes where both runs have at
+    least ``min_samples`` samples."""
     if len(a) != len(b):
         raise ConfigError(f"the runs have {len(a)} and {len(b)} sections; compare runs of the same rig")
     diffs = []
     for pa, pb in zip(a, b):
         if len(pa["mean_axial_velocity"]) != len(pb["mean_axial_velocity"]):
             raise ConfigError("profiles with different sub-box counts cannot be compared")
-        for ua, ub in zip(pa["mean_axial_velocity"], pb["mean_axial_velocity"]):
-            if ua is not None and ub is not None:
+        na = pa.get("samples") or [min_samples] * len(pa["mean_axial_velocity"])
+        nb = pb.get("samples") or [min_samples] * len(pb["mean_axial_velocity"])
+        for ua, ub, ka, kb in zip(pa["mean_axial_velocity"], pb["mean_axial_velocity"], na, nb):
+            if ua is not None and ub is not None and ka >= min_samples and kb >= min_samples:
                 diffs.append(ua - ub)
     return float(np.sqrt(np.mean(np.square(diffs)))) if diffs else None
 
@@ -224,11 +233,13 @@ def _dem_reference(run: RunData, runs: list) -> RunData | None:
 
 # ------------------------------------------------------------------------------------------ the report
 def build_report(run_dirs: list, *, boxes=DEFAULT_BOXES, downstream_only: bool = False,
-                 from_time: float = 0.0) -> tuple:
+                 from_time: float = 0.0, min_samples: int = DEFAULT_MIN_SAMPLES) -> tuple:
     """(the report.json document, the loaded ``RunData``s) for ``run_dirs``; no files written."""
     if not run_dirs:
         raise ConfigError("give at least one run directory")
     boxes = [int(b) for b in boxes]
+    if int(min_samples) < 1:
+        raise ConfigError(f"--min-samples must be >= 1 (got {min_samples})")
     if any(b < 1 for b in boxes):
         raise ConfigError(f"--boxes must be positive integers (got {boxes})")
     runs = [load_run(d) for d in run_dirs]
@@ -253,17 +264,21 @@ def build_report(run_dirs: list, *, boxes=DEFAULT_BOXES, downstream_only: bool =
             entry["dem_reference"] = ref.label
             entry["profile_rms_vs_dem"] = (None if ref is r else
                                            {str(b): profile_rms(all_profiles[r.path][str(b)],
-                                                                all_profiles[ref.path][str(b)]) for b in boxes})
+                                                                all_profiles[ref.path][str(b)],
+                                                                min_samples=int(min_samples)) for b in boxes})
         entries.append(entry)
     return {"runs": entries, "boxes": boxes, "downstream_only": bool(downstream_only), "from_time": from_time,
+            "min_samples": int(min_samples),
             "velocity": "mean axial (downstream) particle velocity, m/s, weighted by parcel weight",
-            "profile_rms_vs_dem": "m/s, RMS over the ten sections and the sub-boxes where both runs have samples"}, runs
+            "profile_rms_vs_dem": "m/s, RMS over the ten sections and the sub-boxes where both runs have at least "
+                                  "min_samples samples"}, runs
 
 
 def write_report(run_dirs: list, out_dir: str, *, boxes=DEFAULT_BOXES, downstream_only: bool = False,
-                 from_time: float = 0.0, figures: bool = True) -> dict:
+                 from_time: float = 0.0, figures: bool = True, min_samples: int = DEFAULT_MIN_SAMPLES) -> dict:
     """Write ``out_dir/report.json`` and the PNG figures; returns the report document."""
-    report, runs = build_report(run_dirs, boxes=boxes, downstream_only=downstream_only, from_time=from_time)
+    report, runs = build_report(run_dirs, boxes=boxes, downstream_only=downstream_only, from_time=from_time,
+                                min_samples=min_samples)
     os.makedirs(out_dir, exist_ok=True)
     written = []
     if figures:

@@ -73,12 +73,26 @@ def expected_sur(downstream_only):
     return table
 
 
+def test_rms_leaves_out_sparse_sub_boxes():
+    from hel_warp.errors import ConfigError
+    from hel_warp.report import build_report, profile_rms
+
+    a = [{"mean_axial_velocity": [1.0, 2.0, 3.0], "samples": [50, 12, 2]}]
+    b = [{"mean_axial_velocity": [2.0, 4.0, 30.0], "samples": [40, 10, 9]}]
+    assert profile_rms(a, b, min_samples=1) == pytest.approx(math.sqrt((1 + 4 + 27**2) / 3))
+    assert profile_rms(a, b, min_samples=10) == pytest.approx(math.sqrt((1 + 4) / 2))  # 2 and 9 samples: out
+    assert profile_rms(a, b, min_samples=40) == pytest.approx(1.0)
+    assert profile_rms(a, b, min_samples=41) is None
+    with pytest.raises(ConfigError, match="min-samples"):
+        build_report(["unused"], min_samples=0)
+
+
 @pytest.mark.parametrize("downstream_only", [False, True])
 def test_profiles_and_rms_exact(runs, tmp_path, downstream_only):
     from hel_warp.report import write_report
 
     report = write_report(list(runs), str(tmp_path / "rep"), boxes=[BOXES], downstream_only=downstream_only,
-                          figures=False)
+                          figures=False, min_samples=1)
     on_disk = json.loads((tmp_path / "rep" / "report.json").read_text())
     assert on_disk["runs"][1]["profiles"] == report["runs"][1]["profiles"]
     dem, sur = report["runs"]

@@ -22,6 +22,8 @@ def add_parser(subparsers):
                    help="sub-boxes per section (default 20 88 126)")
     p.add_argument("--from-time", type=finite_float, default=0.0,
                    help="average snapshots from this simulated time on, s (default 0: all)")
+    p.add_argument("--min-samples", type=int, default=10, metavar="N",
+                   help="leave sub-boxes with fewer samples than N in either run out of the RMS vs dem (default 10)")
     p.add_argument("--no-figures", action="store_true", help="write report.json only")
     return p
 
@@ -30,7 +32,7 @@ def run(args) -> int:
     from hel_warp.report import write_report
 
     report = write_report(args.runs, args.out, boxes=args.boxes, downstream_only=args.downstream_only,
-                          from_time=args.from_time, figures=not args.no_figures)
+                          from_time=args.from_time, figures=not args.no_figures, min_samples=args.min_samples)
     for entry in report["runs"]:
         rate = entry["collision_rate"]
         rms = entry.get("profile_rms_vs_dem")
