@@ -273,6 +273,8 @@ class DemCollision:
     """
 
     name = "dem"
+    has_parcel_memory = True
+    """Contact and wall shear histories are per parcel slot: :meth:`permute_parcels` moves them."""
     handles_walls = True
     """``HelSolver.reflect_at_walls`` skips its point reflection: the wall contacts act inside :meth:`advance`."""
 
@@ -347,6 +349,23 @@ class DemCollision:
         s2 = self.n_streams * self.n_streams
         self.detected = wp.zeros(s2, dtype=wp.int32, device=dev)
         self.pair_state = None
+
+    def permute_parcels(self, new_to_old, old_to_new) -> None:
+        """``HelSolver.sort_parcels`` reordered the parcels: move the contact rows (partners renumbered, shear
+        history kept) and the wall shear history with them."""
+        import warp as wp
+
+        from kernels import contacts as kc
+
+        if self._capacity is None:
+            return
+        n = self._capacity
+        wp.launch(kc.gather_contact_rows, dim=n, device=self.force.device,
+                  inputs=[self.contacts.partner, self.contacts.count, self.contacts.shear, new_to_old, old_to_new],
+                  outputs=[self._old_contacts.partner, self._old_contacts.count, self._old_contacts.shear])
+        self.contacts.copy_from(self._old_contacts)
+        kc.launch_gather(self.wall_shear, new_to_old, self.v_start)
+        wp.copy(self.wall_shear, self.v_start)
 
     def _kernel_views(self, particles):
         """What the kernels/contacts.py and kernels/integrate.py wrappers take: the ``SphereArrays`` /

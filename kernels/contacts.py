@@ -261,7 +261,7 @@ def gather(src: wp.array(dtype=Any), new_to_old: wp.array[wp.int32],
 
 
 _GATHER = {dtype: wp.overload(gather, [wp.array(dtype=dtype), wp.array(dtype=wp.int32), wp.array(dtype=dtype)])
-           for dtype in (wp.vec3, wp.float32, wp.int32)}
+           for dtype in (wp.vec3, wp.float32, wp.int32, wp.vec3d, wp.float64)}
 
 
 @wp.kernel
@@ -313,7 +313,7 @@ def count_rebuild(counter: wp.array[wp.int32]):
 
 
 def launch_gather(src, new_to_old, dst) -> None:
-    """``dst[k] = src[new_to_old[k]]`` for a per-particle vec3, float32 or int32 array."""
+    """``dst[k] = src[new_to_old[k]]`` for a per-particle vec3, float32, int32, vec3d or float64 array."""
     wp.launch(_GATHER[src.dtype], dim=src.shape[0], device=src.device, inputs=[src, new_to_old], outputs=[dst])
 
 

@@ -138,6 +138,48 @@ def stencil_weights_kernel(
 
 # ---------------------------------------------------------------- launch wrappers
 
+@wp.kernel
+def cell_sort_keys_kernel(
+    grid: CellGrid,
+    n_used: int,
+    particle_x: wp.array(dtype=wp.vec3),
+    particle_alive: wp.array(dtype=wp.int32),
+    # outputs (length >= 2 * len(particle_x): the radix sort's scratch)
+    keys: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.int32),
+):
+    """Key = linear index of the cell holding the parcel (live slots below ``n_used``), the cell count for
+    dead or unused slots (sorted to the end, in slot order); value = the slot."""
+    k = wp.tid()
+    n_cells = grid.shape[0] * grid.shape[1] * grid.shape[2]
+    key = n_cells
+    if k < n_used and particle_alive[k] != 0:
+        x = particle_x[k]
+        c = wp.vec3i(0, 0, 0)
+        for a in range(3):
+            s = int(wp.floor((wp.float64(x[a]) - grid.origin[a]) / grid.spacing))
+            c[a] = wp.clamp(s, 0, grid.shape[a] - 1)
+        key = (c[0] * grid.shape[1] + c[1]) * grid.shape[2] + c[2]
+    keys[k] = key
+    values[k] = k
+
+
+@wp.kernel
+def inverse_permutation_kernel(new_to_old: wp.array(dtype=wp.int32), old_to_new: wp.array(dtype=wp.int32)):
+    k = wp.tid()
+    old_to_new[new_to_old[k]] = k
+
+
+def cell_order(grid: CellGrid, n_used: int, particle_x, particle_alive, keys, values, old_to_new) -> None:
+    """Stable radix sort of the slots by cell (dead and unused slots last): ``values[:n]`` = new_to_old,
+    ``old_to_new`` its inverse; ``keys``/``values`` of length 2 n (n = len(particle_x))."""
+    n = particle_x.shape[0]
+    wp.launch(cell_sort_keys_kernel, dim=n, device=particle_x.device,
+              inputs=[grid, int(n_used), particle_x, particle_alive], outputs=[keys, values])
+    wp.utils.radix_sort_pairs(keys, values, n)
+    wp.launch(inverse_permutation_kernel, dim=n, device=particle_x.device, inputs=[values], outputs=[old_to_new])
+
+
 def make_cell_grid(origin, spacing: float, shape, periodic=(False, False, False)) -> CellGrid:
     """A ``CellGrid`` from plain values (origin m, spacing m, shape and periodic flags of three entries)."""
     grid = CellGrid()
