@@ -17,10 +17,12 @@
     way a real case scales, and the figure for the issue-4 target (flat within 1.5x per parcel);
   * ``fixed``: one ``--fixed-side``^3 grid (default 32^3) for every count, as the benchmark used to
     run: at small counts the fixed cell work dominates the per-parcel cost;
-  * ``ppc sorted`` (``--cell-sorted``, off by default): the ``ppc`` grids with the parcels stored in
-    cell order -- a diagnostic of what random parcel order in memory (the default, as parcels are after
-    some mixing) costs in cache misses of the atomic deposits and the gathers on the larger grids.
+  * ``ppc rand`` (``--random-order``, off by default): the ``ppc`` grids with the parcel slots left in
+    random order (``HelConfig(sort_every=0)``) -- a diagnostic of what unsorted memory costs in cache
+    misses of the atomic deposits and the gathers on the larger grids.
 
+  The ``ppc`` and ``fixed`` cases first put the slots in cell order with ``HelSolver.sort_parcels``, as the
+  step does every ``HelConfig.sort_every`` (20) steps.
   Parcel state (x, v) is reset before every repeat (outside the timing) so that every repeat does the
   same work; no gas step runs between repeats. The repeats are interleaved over all sizes and grids
   (one round of each, ``--repeats`` times, after one warm-up round), so that load changes on a shared
@@ -147,15 +149,15 @@ def make_solver(shape, n: int, device, *, coupling: str, seed: int = 0):
     return solver, x, v
 
 
-def parcel_case(n: int, shape, device, *, coupling: str = "implicit", cell_sorted: bool = False,
-                seed: int = 0) -> dict:
-    """One timed configuration: a solver with ``n`` parcels on a ``shape`` grid (``make_solver``); with
-    ``cell_sorted`` the parcels are stored in cell order (diagnostic: the memory-order cost of random order)."""
+def parcel_case(n: int, shape, device, *, coupling: str = "implicit", sort: bool = True, seed: int = 0) -> dict:
+    """One timed configuration: a solver with ``n`` parcels on a ``shape`` grid (``make_solver``); with ``sort``
+    the slots are first put in cell order by ``HelSolver.sort_parcels``, as the step does every
+    ``HelConfig.sort_every`` steps (parcels move less than a cell per step, so the order holds in between);
+    without, they stay in random order (diagnostic: the cost of unsorted memory)."""
     solver, x0, v0 = make_solver(shape, n, device, coupling=coupling, seed=seed)
-    if cell_sorted:
-        ijk = np.floor(x0 / H).astype(np.int64)
-        order = np.argsort((ijk[:, 0] * shape[1] + ijk[:, 1]) * shape[2] + ijk[:, 2], kind="stable")
-        x0, v0 = x0[order], v0[order]
+    if sort:
+        solver.sort_parcels()
+        x0, v0 = solver.pool.particles.x.numpy().copy(), solver.pool.particles.v.numpy().copy()
     calls = {"deposit": solver.deposit, "interpolate": solver.interpolate, "push": solver.push,
              "walls": solver.reflect_at_walls}
     return {"n": n, "shape": tuple(int(s) for s in shape), "solver": solver, "x0": x0, "v0": v0, "calls": calls,
@@ -224,9 +226,9 @@ def main(argv=None) -> int:
     parser.add_argument("--quick", action="store_true",
                         help="smoke run: gas 10^3 and 16^3 cells, 2e3 and 2e4 parcels, fixed 16^3, 2 repeats "
                              "(options given explicitly win)")
-    parser.add_argument("--cell-sorted", action="store_true",
-                        help="also time the parcels-per-cell grids with the parcels stored in cell order "
-                             "(diagnostic: the cost of random parcel order in memory)")
+    parser.add_argument("--random-order", action="store_true",
+                        help="also time the parcels-per-cell grids with the parcel slots in random order, as "
+                             "with HelConfig(sort_every=0) (diagnostic: the cost of unsorted memory)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     args = parser.parse_args(argv)
     defaults = QUICK if args.quick else {"cells": [22, 47], "parcels": [10_000, 100_000, 1_000_000],
@@ -246,13 +248,13 @@ def main(argv=None) -> int:
     for g in gas:
         g["ratio_per_cell"] = g["per_cell_us"] / base_cell
     ppc_label = f"ppc {args.parcels_per_cell:g}"
-    specs = {"parcels": (ppc_label, lambda n: grid_shape_for(n / args.parcels_per_cell), False)}
+    specs = {"parcels": (ppc_label, lambda n: grid_shape_for(n / args.parcels_per_cell), True)}
     if args.fixed_side > 0:
-        specs["parcels_fixed_grid"] = (f"fixed {args.fixed_side}^3", lambda n: (args.fixed_side,) * 3, False)
-    if args.cell_sorted:
-        specs["parcels_cell_sorted"] = (f"{ppc_label} sorted", specs["parcels"][1], True)
-    cases = {key: [parcel_case(n, shape_of(n), device, coupling=args.coupling, cell_sorted=cell_sorted)
-                   for n in args.parcels] for key, (_, shape_of, cell_sorted) in specs.items()}
+        specs["parcels_fixed_grid"] = (f"fixed {args.fixed_side}^3", lambda n: (args.fixed_side,) * 3, True)
+    if args.random_order:
+        specs["parcels_random_order"] = (f"{ppc_label} rand", specs["parcels"][1], False)
+    cases = {key: [parcel_case(n, shape_of(n), device, coupling=args.coupling, sort=sort)
+                   for n in args.parcels] for key, (_, shape_of, sort) in specs.items()}
     every = [case for group in cases.values() for case in group]
     for case in every:  # warm-up round (kernel load, first touch of the memory), not counted
         time_round(case, record=False)
