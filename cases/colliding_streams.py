@@ -617,7 +617,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--end-time", type=finite_float, required=True, help="simulated time after release, s")
     parser.add_argument("--out", required=True, help="run directory (refused if it exists, see --overwrite/--resume)")
     parser.add_argument("--model", default=None, help="surrogate model directory (hel-warp train output)")
-    parser.add_argument("--force", action="store_true", help="use a model trained for another particle")
+    parser.add_argument("--force", action="store_true",
+                        help="use a model trained for another particle size or material (refused otherwise)")
     parser.add_argument("--particles-per-parcel", type=finite_float, default=1.0,
                         help="real particles per parcel (paper's second HEL run: 8); default 1")
     parser.add_argument("--device", default="cpu", help="Warp device: cpu or cuda (default cpu)")
