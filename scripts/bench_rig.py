@@ -1,0 +1,122 @@
+"""Wall clock of the collision models on the colliding-streams rig, side by side in one process.
+
+The issue-5 ratios: HELSCM / HEL (``surrogate`` over ``ktgf``, target <= 1.2) and DEM / HELSCM (``dem`` over
+``surrogate``, the paper claims two to three orders of magnitude) for the same simulated time, at one particle
+size and time step. Every model runs the same case (``cases/colliding_streams.py``: same grid, gas warm-up,
+injection, seed) from the release to ``--end-time`` in this one process, one after the other (after an untimed
+two-step run of each model on a small grid that loads every kernel module); the time loop alone is timed (``HelSolver.step``, synchronised per step on CUDA), the gas warm-up and set-up are not.
+Reported per model: the total step wall clock, the median step, the detected pairs per simulated second, and
+the ratios. On a shared machine the models see whatever load there is in turn; rerun to judge the noise.
+
+Usage::
+
+    python scripts/bench_rig.py --model MODEL_DIR [--paper-model PAPER_DIR]                  # 315 um, 1e-3 s
+    python scripts/bench_rig.py --diameter 475e-6 --dt 1e-4 --end-time 0.005 --model DIR
+    python scripts/bench_rig.py --models none ktgf --end-time 0.003 --cells 20000             # smoke run
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+MODELS = ("none", "ktgf", "surrogate", "surrogate-paper", "dem")
+
+
+def time_model(case, name: str, args) -> dict:
+    """Build the rig for model ``name``, warm the gas up, step to ``args.end_time``; per-step wall clock."""
+    import warp as wp
+
+    ns = argparse.Namespace(diameter=args.diameter, dt=args.dt, collisions=name, end_time=args.end_time,
+                            particles_per_parcel=1.0, max_particles=args.max_particles, monodisperse=False,
+                            model=(args.paper_model if name == "surrogate-paper" else args.model),
+                            cells=args.cells, gas_warmup=0.01, output_interval=args.end_time, seed=0,
+                            device=args.device)
+    config = case.make_config(ns)
+    if name.startswith("surrogate"):
+        case.check_model(config.model, config.diameter, config.density, False)
+    rig = case.CollidingStreams(config)
+    rig.warm_up()
+    rig.solver.time_sub_steps = False
+    device = rig.pool.particles.device
+    steps = int(round(config.end_time / config.dt))
+    walls, detected = [], 0
+    for _ in range(steps):
+        start = time.perf_counter()
+        rig.solver.step()
+        if device.is_cuda:
+            wp.synchronize_device(device)
+        walls.append(time.perf_counter() - start)
+        detected += int(rig.solver.collision_counts().get("detected_pairs", 0))
+    return {"model": name, "steps": steps, "total_s": sum(walls), "median_step_s": statistics.median(walls),
+            "detected_pairs_per_s": detected / (steps * config.dt) if name not in ("none", "ktgf") else None,
+            "parcels": rig.injected}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--diameter", type=float, default=315e-6, help="particle diameter, m (default 315e-6)")
+    parser.add_argument("--dt", type=float, default=1e-3, help="HEL time step, s (default 1e-3)")
+    parser.add_argument("--end-time", type=float, default=0.01,
+                        help="simulated time after the release, s (default 0.01: the release is over at ~6 ms)")
+    parser.add_argument("--models", nargs="+", choices=MODELS, default=None,
+                        help="models to time, in this order (default: all that have what they need)")
+    parser.add_argument("--model", default=None, help="contact-form surrogate model directory (surrogate)")
+    parser.add_argument("--paper-model", default=None, help="paper-form surrogate model directory")
+    parser.add_argument("--cells", type=int, default=None, help="shrink the grid to about N cells (smoke runs)")
+    parser.add_argument("--max-particles", type=int, default=None, help="cap the parcels released")
+    parser.add_argument("--device", default="cpu", help="Warp device (default cpu)")
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    args = parser.parse_args(argv)
+    models = args.models
+    if models is None:
+        models = [m for m in MODELS if not (m == "surrogate" and not args.model)
+                  and not (m == "surrogate-paper" and not args.paper_model)]
+    if "surrogate" in models and not args.model:
+        parser.error("--models surrogate needs --model MODEL_DIR")
+    if "surrogate-paper" in models and not args.paper_model:
+        parser.error("--models surrogate-paper needs --paper-model MODEL_DIR")
+    if not (args.end_time > 0 and args.dt > 0 and args.end_time >= args.dt):
+        parser.error("need --end-time >= --dt > 0")
+
+    from hel_warp.forest import quiet_warp
+    from hel_warp.commands._common import load_case_module
+
+    quiet_warp()
+    case = load_case_module("colliding_streams")
+    small = argparse.Namespace(**{**vars(args), "cells": 5000, "max_particles": 40, "end_time": 2 * args.dt})
+    for m in models:  # load every kernel module once, untimed, so no model pays the first-launch cost
+        time_model(case, m, small)
+    rows = {m: time_model(case, m, args) for m in models}
+    ratios = {}
+    if "surrogate" in rows and "ktgf" in rows:
+        ratios["helscm_over_hel"] = rows["surrogate"]["total_s"] / rows["ktgf"]["total_s"]
+    if "dem" in rows and "surrogate" in rows:
+        ratios["dem_over_helscm"] = rows["dem"]["total_s"] / rows["surrogate"]["total_s"]
+    if "surrogate-paper" in rows and "ktgf" in rows:
+        ratios["helscm_paper_over_hel"] = rows["surrogate-paper"]["total_s"] / rows["ktgf"]["total_s"]
+    result = {"diameter": args.diameter, "dt": args.dt, "end_time": args.end_time, "device": args.device,
+              "models": list(rows.values()), "ratios": ratios}
+    if args.json:
+        print(json.dumps(result))
+        return 0
+    print(f"colliding-streams rig, d = {args.diameter * 1e6:.0f} um, dt = {args.dt:g} s, "
+          f"{args.end_time:g} s simulated, device {args.device}")
+    print(f"{'model':>16} {'steps':>6} {'total (s)':>10} {'median step (s)':>16} {'pairs/s':>10} {'parcels':>8}")
+    for r in rows.values():
+        rate = r["detected_pairs_per_s"]
+        print(f"{r['model']:>16} {r['steps']:>6} {r['total_s']:>10.2f} {r['median_step_s']:>16.4f} "
+              f"{'-' if rate is None else format(rate, '.3g'):>10} {r['parcels']:>8}")
+    for key, value in ratios.items():
+        print(f"{key}: {value:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
