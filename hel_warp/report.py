@@ -462,7 +462,7 @@ def _plot_profiles(report: dict, boxes: int, path: str) -> str:
         for k, prof in enumerate(entry["profiles"][str(boxes)][:10]):
             u = np.array([np.nan if v is None else v for v in prof["mean_axial_velocity"]])
             axes.flat[k].plot(np.asarray(prof["centres"]) * 1e3, u, ".-", ms=3,
-                              label=f"{entry['collisions']} dt={entry['dt']:g}")
+                              label=f"{entry['collisions']} d={entry['diameter'] * 1e6:.0f}um dt={entry['dt']:g}")
             axes.flat[k].set_title(prof["section"])
     for ax in axes[-1]:
         ax.set_xlabel("y, mm")
