@@ -31,7 +31,8 @@ Figures are rendered with pyvista off-screen, or with matplotlib when pyvista ca
                "profiles": {"20": [{"section", "centres" (m), "mean_axial_velocity" (m/s, null where empty),
                                     "samples"}, ... ten sections], "88": [...], "126": [...]},
                "dem_reference" and "profile_rms_vs_dem": {"20": m/s, ...} (null for the reference itself),
-               only when a dem run is in the report}, ...],
+               "paper_experimental_uncertainty" (m/s: 0.63 at 315 um, 0.71 at 475 um, else null), only when a
+               dem run is in the report}, ...],
      "boxes", "downstream_only", "from_time", "min_samples", "figures", "renderer"}
 """
 
@@ -209,6 +210,19 @@ def profile_rms(a: list, b: list, *, min_samples: int = 1) -> float | None:
     return float(np.sqrt(np.mean(np.square(diffs)))) if diffs else None
 
 
+PAPER_UNCERTAINTY = {315e-6: 0.63, 475e-6: 0.71}
+"""The paper's experimental uncertainty of the measured velocity profiles, m/s, per particle size (section 8):
+the bar an RMS against dem is read against."""
+
+
+def paper_uncertainty(diameter: float) -> float | None:
+    """The paper's experimental uncertainty (m/s) for a run of this diameter (within 1e-3), else None."""
+    for d, value in PAPER_UNCERTAINTY.items():
+        if abs(float(diameter) - d) <= 1e-3 * d:
+            return value
+    return None
+
+
 def collision_rate(run: RunData) -> float | None:
     """Detected collisions per simulated second: the sum of series ``collisions`` (hand-made runs) or
     ``collisions_detected_pairs`` (the strategies' ``counts()``: pairs found overlapping in a step) over the
@@ -262,6 +276,7 @@ def build_report(run_dirs: list, *, boxes=DEFAULT_BOXES, downstream_only: bool =
         ref = _dem_reference(r, runs)
         if ref is not None:
             entry["dem_reference"] = ref.label
+            entry["paper_experimental_uncertainty"] = paper_uncertainty(c["diameter"])
             entry["profile_rms_vs_dem"] = (None if ref is r else
                                            {str(b): profile_rms(all_profiles[r.path][str(b)],
                                                                 all_profiles[ref.path][str(b)],

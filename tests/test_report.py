@@ -113,6 +113,7 @@ def test_profiles_and_rms_exact(runs, tmp_path, downstream_only):
     assert len(diffs) == 39
     assert sur["profile_rms_vs_dem"][str(BOXES)] == pytest.approx(math.sqrt(np.mean(np.square(diffs))), abs=1e-6)
     assert dem["profile_rms_vs_dem"] is None and sur["dem_reference"] == "dem_run"
+    assert sur["paper_experimental_uncertainty"] == 0.63  # the paper's bar for 315 um (section 8)
     # collision rate = detected collisions / simulated time; the rest as stored
     assert dem["collision_rate"] == pytest.approx(10 / 0.004)
     assert sur["collision_rate"] == pytest.approx(4 / 0.004)

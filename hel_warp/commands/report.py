@@ -38,6 +38,9 @@ def run(args) -> int:
         rms = entry.get("profile_rms_vs_dem")
         rms_text = "" if not rms else "  rms vs dem " + ", ".join(
             f"{b}: {'-' if v is None else f'{v:.3f}'} m/s" for b, v in rms.items())
+        bar = entry.get("paper_experimental_uncertainty")
+        if rms and bar is not None:
+            rms_text += f" (paper's uncertainty {bar} m/s)"
         wall = entry["wall_clock_s"]
         print(f"{entry['label']}: {entry['collisions']} dt={entry['dt']:g} s d={entry['diameter'] * 1e6:.0f} um "
               f"t={entry['end_time']:g} s  wall {'-' if wall is None else f'{wall:.2f}'} s  "
