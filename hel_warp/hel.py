@@ -227,6 +227,10 @@ class HelConfig:
     """``ScheduledInjection``s, in order (the order fixes the parcel indices)."""
     outlets: tuple = ()
     """``Outlet`` planes."""
+    wall_friction: float | None = None
+    """Coulomb cap of the tangential wall impulse (mu x the normal one; ``kernels/reflect.py``): None takes
+    ``material.friction`` (0.3), 0 gives the bare e_t reflection (a parcel sliding along a wall then loses a
+    factor e_t per step, i.e. more the smaller dt)."""
     coupling: str = "implicit"
     """Drag exchange between parcels and gas: ``implicit`` (default; gas and parcels relax together per
     cell, stable at any solids loading, momentum to round-off, ``coupling.exchange_push``) or ``explicit``
@@ -299,7 +303,11 @@ class HelSolver:
         if config.walls and self.shapes is None:
             raise ConfigError("walls need the gas geometry (gas.domain.geometry); set HelConfig(walls=False) "
                               "for a geometry-free gas stand-in")
-        self.wall_params = make_wall_params(restitution_normal=config.material.wall_restitution_normal,
+        wall_friction = config.material.friction if config.wall_friction is None else config.wall_friction
+        if not wall_friction >= 0.0:
+            raise ConfigError(f"wall_friction must be >= 0 (got {wall_friction}); 0 switches the Coulomb cap off")
+        self.wall_params = make_wall_params(friction=wall_friction,
+                                            restitution_normal=config.material.wall_restitution_normal,
                                             restitution_tangential=config.material.wall_restitution_tangential)
         self._wall_hits = wp.zeros(1, dtype=wp.int32, device=device)
         self._counter = wp.zeros(1, dtype=wp.int32, device=device)

@@ -16,7 +16,8 @@ H = 1.0e-3
 
 
 def make_solver(x=None, v=None, *, capacity=None, radius=0.5e-3, density=8000.0, injectors=(), outlets=(),
-                collision=None, gravity=(0.0, 0.0, -9.80665), walls=True, material=None, sort_every=0):
+                collision=None, gravity=(0.0, 0.0, -9.80665), walls=True, material=None, sort_every=0, dt=1e-3,
+                wall_friction=None):
     """A closed box of still air (grid = geometry, 12 x 6 x 10 cells of 1 mm) with parcels at ``x``."""
     import warp as wp
 
@@ -43,8 +44,8 @@ def make_solver(x=None, v=None, *, capacity=None, radius=0.5e-3, density=8000.0,
         p.alive.assign(np.ones(n, np.int32))
         p.particle_id.assign(np.arange(n, dtype=np.int32))
         pool.used = n
-    config = HelConfig(dt=1e-3, push=push, material=material or Material(), injectors=injectors,
-                       outlets=outlets, walls=walls, sort_every=sort_every)
+    config = HelConfig(dt=dt, push=push, material=material or Material(), injectors=injectors,
+                       outlets=outlets, walls=walls, sort_every=sort_every, wall_friction=wall_friction)
     return HelSolver(pool=pool, gas_solver=gas_solver, gas=gas, config=config, collision=collision)
 
 
@@ -95,6 +96,40 @@ def test_dropped_parcel_rebounds_with_e_n_and_e_t_and_never_ends_in_the_wall():
     # first impact at the free-fall speed from 4 mm (sqrt(2 g h) = 0.280 m/s), to the step's O(dt g) accuracy
     assert -hits[0][0][2] == pytest.approx(math.sqrt(2 * 9.80665 * 0.004), abs=2 * 9.80665e-3)
     assert solver.wall_hit_count() == len(hits)
+
+
+def test_grazing_wall_impact_loses_at_most_the_coulomb_share():
+    # v = (5, 0, -0.1) m/s onto the floor, e_n = e_t = 0.8, mu = 0.3 (Material.friction): the bare e_t would
+    # take 1.0 m/s of the tangential speed, more than mu times the normal impulse allows:
+    # |dv_t| = mu (1 + e_n) |v_n| = 0.3 * 1.8 * 0.1 = 0.054 m/s.
+    solver = make_solver(x=[(0.004, 0.003, 0.00005)], v=[(5.0, 0.0, -0.1)], gravity=(0.0, 0.0, 0.0))
+    p = solver.pool.particles
+    solver.deposit(), solver.gas_step(), solver.interpolate(), solver.collide(), solver.push()
+    v_pre = p.v.numpy()[0].astype(np.float64)
+    assert p.x.numpy()[0, 2] < 0.0
+    solver.reflect_at_walls()
+    v_post = p.v.numpy()[0].astype(np.float64)
+    assert v_post[2] == pytest.approx(-E_N * v_pre[2], rel=1e-6)
+    assert v_post[0] == pytest.approx(v_pre[0] - 0.3 * (1 + E_N) * abs(v_pre[2]), rel=1e-6)
+
+
+@pytest.mark.parametrize("wall_friction", [None, 0.0])
+def test_parcel_sliding_on_a_wall_slows_by_coulomb_friction_at_any_step(wall_friction):
+    # A parcel resting on the floor (centre on the wall) launched along it at 0.25 m/s under gravity, in still
+    # air, for 0.03 s at dt = 1e-3 and 1e-4 s. Gravity presses it into the floor every step or two; the wall's
+    # normal impulse then averages m g per unit time, so with the Coulomb cap the tangential speed falls at
+    # mu g: 0.25 - 0.3 g 0.03 = 0.162 m/s (drag on this 8000 kg/m^3, 1 mm sphere: tau = 25 s, negligible),
+    # whatever dt. With the bare e_t (wall_friction = 0) each hit keeps 0.8 of it: it stops within 0.03 s.
+    coulomb = 0.25 - 0.3 * 9.80665 * 0.03
+    for dt in (1e-3, 1e-4):
+        solver = make_solver(x=[(0.001, 0.003, 1e-7)], v=[(0.25, 0.0, 0.0)], dt=dt, wall_friction=wall_friction)
+        for _ in range(int(round(0.03 / dt))):
+            solver.step()
+        v_x = float(solver.pool.particles.v.numpy()[0, 0])
+        if wall_friction is None:
+            assert v_x == pytest.approx(coulomb, abs=0.02)
+        else:
+            assert v_x < 0.05
 
 
 def test_wall_restitution_comes_from_the_material():
