@@ -282,24 +282,22 @@ def test_periodic_axis_wraps_the_stencil():
     assert vol[4].sum() == pytest.approx(vol.sum() / 4, rel=1e-5)
 
 
-def test_hel_solver_with_gas_hindered_settling_conserves_momentum():
-    # Periodic box, uniform suspension (parcels on a lattice, eps_s = 0.1 in every cell), engineer F's gas
-    # solver, mean grad p' = eps_s (rho_p - rho_f) g balancing the mixture weight. External forces then sum to
-    # zero, so particles + gas keep zero momentum (up to the impulse of the last push, still owed to the gas),
-    # and the slip tends to the Gidaspow (Wen-Yu branch) balance beta |slip| = eps_s eps_f (rho_p - rho_f) g.
+def periodic_suspension(eps_s, *, gravity=(0.0, 0.0, 0.0), mean_pressure_gradient=(0.0, 0.0, 0.0), v0=None,
+                        coupling="implicit", per_axis=12, d=315e-6, rho_p=1000.0, dt=1e-3):
+    """A triply periodic box of 4^3 cells of 2 mm with engineer F's gas solver and a uniform suspension of
+    ``per_axis``^3 parcels on a lattice (solid fraction ``eps_s`` in every cell, velocity ``v0``), Gidaspow drag.
+    Returns (HelSolver, GasField, grid, push config, parcel masses m_p weight)."""
     from hel_warp.gas import GasConfig, GasField, GasSolver
     from hel_warp.grid import Box, Geometry, Grid
     from hel_warp.hel import HelConfig, HelSolver, NoCollision
 
-    eps_s, d, rho_p, g = 0.1, 315e-6, 1000.0, 9.80665
-    n, h, per_axis = 4, 2e-3, 12
+    n, h = 4, 2e-3
     side = n * h
-    push = PushConfig(drag="gidaspow", gravity=(0.0, 0.0, -g))
+    push = PushConfig(drag="gidaspow", gravity=gravity)
     grid = Grid(spacing=h, shape=(n, n, n), periodic=(True, True, True))
     domain = Geometry(shapes=(Box(lo=(-1, -1, -1), hi=(1, 1, 1)),)).build(grid)
-    grad = -eps_s * (rho_p - push.fluid_density) * g
     solver = GasSolver(domain, GasConfig(density=push.fluid_density, viscosity=push.fluid_viscosity,
-                                         mean_pressure_gradient=(0.0, 0.0, grad)))
+                                         mean_pressure_gradient=mean_pressure_gradient))
     gas = GasField(domain)
     c = (np.arange(per_axis) + 0.5) * side / per_axis
     x = np.stack(np.meshgrid(c, c, c, indexing="ij"), -1).reshape(-1, 3)
@@ -309,20 +307,36 @@ def test_hel_solver_with_gas_hindered_settling_conserves_momentum():
     pool.inject(VolumeInjection(box_lo=(0, 0, 0), box_hi=(side,) * 3, diameter_mean=d, density=rho_p,
                                 count=x.shape[0], weight=weight))
     pool.particles.x.assign(x.astype(np.float32))  # lattice instead of random positions
-    hel = HelSolver(pool=pool, gas_solver=solver, gas=gas, config=HelConfig(dt=1e-3, push=push),
-                    collision=NoCollision())
-    m = pool.particles.mass_numpy() * weight
-    for _ in range(30):  # the light gas relaxes within ~5 steps (measured), the particles barely move
-        hel.step()
-    v = pool.particles.v.numpy().astype(np.float64)
+    if v0 is not None:
+        pool.particles.v.assign(np.tile(np.float32(v0), (x.shape[0], 1)))
+    hel = HelSolver(pool=pool, gas_solver=solver, gas=gas,
+                    config=HelConfig(dt=dt, push=push, walls=False, coupling=coupling), collision=NoCollision())
+    return hel, gas, grid, push, pool.particles.mass_numpy() * weight
+
+
+def gas_momentum(gas, grid, push, eps_s):
+    """Gas momentum (N s, per axis) of the periodic box: rho_f eps_f V_cell sum of the face velocities."""
     u = gas.face_arrays()
     inner = tuple(slice(0, k) for k in grid.shape)
-    gas_momentum = np.array([push.fluid_density * (1 - eps_s) * grid.cell_volume * u[a][inner].sum()
-                             for a in range(3)])
-    particle_momentum = (m[:, None] * v).sum(axis=0)
-    total = particle_momentum + gas_momentum + hel.momentum_in_flight()
+    return np.array([push.fluid_density * (1 - eps_s) * grid.cell_volume * u[a][inner].sum() for a in range(3)])
+
+
+def test_hel_solver_with_gas_hindered_settling_conserves_momentum():
+    # Periodic box, uniform suspension (parcels on a lattice, eps_s = 0.1 in every cell), engineer F's gas
+    # solver, mean grad p' = eps_s (rho_p - rho_f) g balancing the mixture weight. External forces then sum to
+    # zero, so particles + gas keep zero momentum (up to the impulse of the last push, still owed to the gas),
+    # and the slip tends to the Gidaspow (Wen-Yu branch) balance beta |slip| = eps_s eps_f (rho_p - rho_f) g.
+    eps_s, d, rho_p, g = 0.1, 315e-6, 1000.0, 9.80665
+    grad = -eps_s * (rho_p - PushConfig().fluid_density) * g
+    hel, gas, grid, push, m = periodic_suspension(eps_s, gravity=(0.0, 0.0, -g),
+                                                  mean_pressure_gradient=(0.0, 0.0, grad))
+    for _ in range(30):  # the light gas relaxes within ~5 steps (measured), the particles barely move
+        hel.step()
+    v = hel.pool.particles.v.numpy().astype(np.float64)
+    gas_p = gas_momentum(gas, grid, push, eps_s)
+    total = (m[:, None] * v).sum(axis=0) + gas_p + hel.momentum_in_flight()
     # float32 gas and particle velocities; the scale is the gas momentum (the larger one here)
-    assert np.abs(total).max() <= 1e-4 * np.abs(gas_momentum).max()
+    assert np.abs(total).max() <= 1e-4 * np.abs(gas_p).max()
     # the slip the drag acts on: against the exchange velocity u_eq (gas and parcels relaxed together)
     slip = v[:, 2].mean() - hel.fields.parcel_u_eq.numpy()[:, 2].astype(np.float64).mean()
     expect = _beta_balance_slip(eps_s, d, rho_p, push.fluid_density, push.fluid_viscosity, g)
@@ -350,31 +364,10 @@ def test_dense_suspension_relaxes_to_the_mixture_velocity_without_overshoot(coup
     # internal force: gas and parcels must relax to the mixture velocity U = m_p v0 / (m_p + m_g) (momentum
     # conservation), the gas monotonically from 0 to U. dt K_sg / (eps_f rho_f) ~ 30 here: the explicit hand-back
     # of the parcels' impulses overshoots U many times over (kept as the discriminating case).
-    from hel_warp.gas import GasConfig, GasField, GasSolver
-    from hel_warp.grid import Box, Geometry, Grid
-    from hel_warp.hel import HelConfig, HelSolver, NoCollision
-
-    eps_s, d, rho_p, v0 = 0.3, 315e-6, 1000.0, 5.0
-    n, h, per_axis = 4, 2e-3, 12
-    side = n * h
-    push = PushConfig(drag="gidaspow", gravity=(0.0, 0.0, 0.0))
-    grid = Grid(spacing=h, shape=(n, n, n), periodic=(True, True, True))
-    domain = Geometry(shapes=(Box(lo=(-1, -1, -1), hi=(1, 1, 1)),)).build(grid)
-    solver = GasSolver(domain, GasConfig(density=push.fluid_density, viscosity=push.fluid_viscosity))
-    gas = GasField(domain)
-    c = (np.arange(per_axis) + 0.5) * side / per_axis
-    x = np.stack(np.meshgrid(c, c, c, indexing="ij"), -1).reshape(-1, 3)
-    v_p = math.pi / 6 * float(np.float32(d / 2) * 2) ** 3
-    weight = eps_s * side**3 / (x.shape[0] * v_p)
-    pool = ParcelPool.empty(x.shape[0])
-    pool.inject(VolumeInjection(box_lo=(0, 0, 0), box_hi=(side,) * 3, diameter_mean=d, density=rho_p,
-                                count=x.shape[0], weight=weight, speed=v0, direction=(1.0, 0.0, 0.0)))
-    pool.particles.x.assign(x.astype(np.float32))
-    pool.particles.v.assign(np.tile(np.float32([v0, 0.0, 0.0]), (x.shape[0], 1)))
-    hel = HelSolver(pool=pool, gas_solver=solver, gas=gas,
-                    config=HelConfig(dt=1e-3, push=push, walls=False, coupling=coupling), collision=NoCollision())
-    m_p = float((pool.particles.mass_numpy() * weight).sum())
-    m_g = push.fluid_density * (1 - eps_s) * side**3
+    eps_s, v0 = 0.3, 5.0
+    hel, gas, grid, push, m = periodic_suspension(eps_s, v0=(v0, 0.0, 0.0), coupling=coupling)
+    m_p = float(m.sum())
+    m_g = push.fluid_density * (1 - eps_s) * grid.cell_volume * np.prod(grid.shape)
     mixture = m_p * v0 / (m_p + m_g)
     inner = tuple(slice(0, k) for k in grid.shape)
     gas_peak = 0.0
@@ -389,7 +382,7 @@ def test_dense_suspension_relaxes_to_the_mixture_velocity_without_overshoot(coup
         assert gas_peak > 2.0 * mixture  # the hazard the implicit exchange removes
         return
     assert gas_peak <= mixture * (1 + 1e-4)
-    v = pool.particles.v.numpy()[:, 0].astype(np.float64)
+    v = hel.pool.particles.v.numpy()[:, 0].astype(np.float64)
     assert v.mean() == pytest.approx(mixture, rel=1e-3)
     assert u.mean() == pytest.approx(mixture, rel=2e-3)
 
@@ -399,40 +392,16 @@ def test_closed_periodic_box_momentum_change_is_the_gravity_impulse():
     # (eps_s = 0.05) falling from rest with the gas. In the modified pressure p' = p - rho_f g.x the gas weight is
     # carried by the hydrostatic part, so the only net external force is the parcels' buoyancy-corrected weight:
     # d/dt (P_gas + P_parcels) = sum m_p (1 - rho_f/rho_p) g. Checked after 20 steps, drag exchange implicit.
-    from hel_warp.gas import GasConfig, GasField, GasSolver
-    from hel_warp.grid import Box, Geometry, Grid
-    from hel_warp.hel import HelConfig, HelSolver, NoCollision
-
-    eps_s, d, rho_p, g = 0.05, 315e-6, 1000.0, 9.80665
-    n, h, per_axis, steps, dt = 4, 2e-3, 10, 20, 1e-3
-    side = n * h
-    push = PushConfig(drag="gidaspow", gravity=(0.0, 0.0, -g))
-    grid = Grid(spacing=h, shape=(n, n, n), periodic=(True, True, True))
-    domain = Geometry(shapes=(Box(lo=(-1, -1, -1), hi=(1, 1, 1)),)).build(grid)
-    solver = GasSolver(domain, GasConfig(density=push.fluid_density, viscosity=push.fluid_viscosity))
-    gas = GasField(domain)
-    c = (np.arange(per_axis) + 0.5) * side / per_axis
-    x = np.stack(np.meshgrid(c, c, c, indexing="ij"), -1).reshape(-1, 3)
-    v_p = math.pi / 6 * float(np.float32(d / 2) * 2) ** 3
-    weight = eps_s * side**3 / (x.shape[0] * v_p)
-    pool = ParcelPool.empty(x.shape[0])
-    pool.inject(VolumeInjection(box_lo=(0, 0, 0), box_hi=(side,) * 3, diameter_mean=d, density=rho_p,
-                                count=x.shape[0], weight=weight))
-    pool.particles.x.assign(x.astype(np.float32))
-    hel = HelSolver(pool=pool, gas_solver=solver, gas=gas, config=HelConfig(dt=dt, push=push, walls=False),
-                    collision=NoCollision())
-    m = pool.particles.mass_numpy() * weight
+    eps_s, rho_p, g, steps, dt = 0.05, 1000.0, 9.80665, 20, 1e-3
+    hel, gas, grid, push, m = periodic_suspension(eps_s, gravity=(0.0, 0.0, -g), per_axis=10, dt=dt)
     for _ in range(steps):
         hel.step()
-    v = pool.particles.v.numpy().astype(np.float64)
-    u = gas.face_arrays()
-    inner = tuple(slice(0, k) for k in grid.shape)
-    gas_momentum = np.array([push.fluid_density * (1 - eps_s) * grid.cell_volume * u[a][inner].sum()
-                             for a in range(3)])
-    total = (m[:, None] * v).sum(axis=0) + gas_momentum + hel.momentum_in_flight()
+    v = hel.pool.particles.v.numpy().astype(np.float64)
+    gas_p = gas_momentum(gas, grid, push, eps_s)
+    total = (m[:, None] * v).sum(axis=0) + gas_p + hel.momentum_in_flight()
     impulse = m.sum() * (1 - push.fluid_density / rho_p) * g * steps * dt
     assert total[2] == pytest.approx(-impulse, rel=1e-5)
     assert np.abs(total[:2]).max() <= 1e-6 * impulse
     # the gas is dragged along, never faster than the parcels: it holds at most its mass share of the impulse
     mass_share = push.fluid_density * (1 - eps_s) / (eps_s * rho_p)
-    assert gas_momentum[2] < 0.0 and abs(gas_momentum[2]) <= mass_share * impulse * 1.001
+    assert gas_p[2] < 0.0 and abs(gas_p[2]) <= mass_share * impulse * 1.001
