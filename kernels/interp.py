@@ -13,6 +13,10 @@ is held constant there and the weights still sum to one (no momentum leaves the 
 ``kernels/deposit.py`` uses these same functions, so what a parcel reads and what it
 deposits are weighted identically and the exchange is equal and opposite.
 Weights are computed in float64.
+
+``ParcelArrays`` is the per-parcel view (x, v, radius, density, weight, alive) that the parcel
+kernels of ``kernels/push.py`` and ``kernels/deposit.py`` take as one argument; build it with
+:func:`parcel_arrays`.
 """
 
 from __future__ import annotations
@@ -28,6 +32,24 @@ class CellGrid:
     spacing: wp.float64
     shape: wp.vec3i
     periodic: wp.vec3i
+
+
+@wp.struct
+class ParcelArrays:
+    """The per-parcel arrays the push and deposit kernels read (views of ``hel_warp.particles.Particles``)."""
+
+    x: wp.array(dtype=wp.vec3)
+    """Centre positions, m."""
+    v: wp.array(dtype=wp.vec3)
+    """Velocities, m/s."""
+    radius: wp.array(dtype=float)
+    """Radii, m."""
+    density: wp.array(dtype=float)
+    """Material densities, kg/m^3."""
+    weight: wp.array(dtype=float)
+    """Real particles per parcel."""
+    alive: wp.array(dtype=wp.int32)
+    """1 while the parcel takes part in the run."""
 
 
 @wp.func
@@ -178,6 +200,16 @@ def cell_order(grid: CellGrid, n_used: int, particle_x, particle_alive, keys, va
               inputs=[grid, int(n_used), particle_x, particle_alive], outputs=[keys, values])
     wp.utils.radix_sort_pairs(keys, values, n)
     wp.launch(inverse_permutation_kernel, dim=n, device=particle_x.device, inputs=[values], outputs=[old_to_new])
+
+
+def parcel_arrays(particles, *, x=None, v=None) -> ParcelArrays:
+    """The ``ParcelArrays`` view of a ``hel_warp.particles.Particles`` (no copy); ``x``/``v`` replace the
+    particles' positions/velocities (e.g. the implicit exchange's start positions)."""
+    p = ParcelArrays()
+    p.x = particles.x if x is None else x
+    p.v = particles.v if v is None else v
+    p.radius, p.density, p.weight, p.alive = particles.radius, particles.density, particles.weight, particles.alive
+    return p
 
 
 def make_cell_grid(origin, spacing: float, shape, periodic=(False, False, False)) -> CellGrid:
