@@ -246,11 +246,11 @@ def ktgf_collision(grid: GridSpec, particles, fields: CouplingFields, params, *,
 
 def push_parcels(particles, fields: CouplingFields, push_params) -> None:
     """Step 5: eq. (4) in place on ``particles.x``/``particles.v``; records drag impulses for the next deposit."""
+    from kernels.interp import parcel_arrays
     from kernels.push import push
 
-    p = particles
-    push(push_params, p.x, p.v, p.radius, p.density, p.weight, p.alive, fields.parcel_u_f, fields.parcel_grad_p,
-         fields.parcel_eps_s, fields.parcel_a_coll, fields.parcel_drag_impulse, fields.parcel_drag_coeff)
+    push(push_params, parcel_arrays(particles), fields.parcel_u_f, fields.parcel_grad_p, fields.parcel_eps_s,
+         fields.parcel_a_coll, fields.parcel_drag_impulse, fields.parcel_drag_coeff)
 
 
 EXCHANGE_PASSES = 3
@@ -273,7 +273,7 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
     import warp as wp
 
     from kernels.deposit import exchange_cells, exchange_correct, exchange_deposit
-    from kernels.interp import interpolate_vec3
+    from kernels.interp import interpolate_vec3, parcel_arrays
     from kernels.push import push_at_rate
 
     p = particles
@@ -293,9 +293,9 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
                        cell_gas_impulse=f.cell_gas_impulse, cell_mismatch=f.cell_mismatch)
         interpolate_vec3(g, f.parcel_x_start, f.cell_u_eq, f.parcel_u_eq)
         slip_against = f.parcel_u_eq
-    push_at_rate(push_params, f.parcel_x_start, p.v, p.radius, p.density, p.weight, p.alive, f.parcel_u_eq,
-                 f.parcel_rate, f.parcel_grad_p, f.parcel_a_coll, f.parcel_drag_impulse, f.parcel_drag_coeff,
-                 particle_x_out=x_out, particle_v_out=v_out)
+    push_at_rate(push_params, parcel_arrays(p, x=f.parcel_x_start), f.parcel_u_eq, f.parcel_rate, f.parcel_grad_p,
+                 f.parcel_a_coll, f.parcel_drag_impulse, f.parcel_drag_coeff, particle_x_out=x_out,
+                 particle_v_out=v_out)
     exchange_correct(g, push_params.dt, cell_fluid, f.cell_exchange_coeff, f.cell_mismatch, f.parcel_x_start,
                      p.radius, p.density, p.weight, p.alive, f.parcel_exchange, f.parcel_drag_impulse,
                      particle_x_out=x_out, particle_v_out=v_out)

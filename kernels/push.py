@@ -31,6 +31,8 @@ import math
 
 import warp as wp
 
+from kernels.interp import ParcelArrays
+
 PI_OVER_SIX = wp.constant(wp.float64(math.pi / 6.0))  # float64 (wp.pi is float32)
 
 DRAG_SCHILLER_NAUMANN = wp.constant(0)
@@ -145,35 +147,30 @@ def push_step(params: PushParams, x: wp.vec3, v: wp.vec3, u_f: wp.vec3, f_d: flo
 @wp.kernel
 def push_kernel(
     params: PushParams,
-    particle_x: wp.array(dtype=wp.vec3),
-    particle_v: wp.array(dtype=wp.vec3),
-    particle_radius: wp.array(dtype=float),
-    particle_density: wp.array(dtype=float),
-    particle_weight: wp.array(dtype=float),
-    particle_alive: wp.array(dtype=wp.int32),
+    parcels: ParcelArrays,
     parcel_u_f: wp.array(dtype=wp.vec3),
     parcel_grad_p: wp.array(dtype=wp.vec3),
     parcel_eps_s: wp.array(dtype=float),
     parcel_a_coll: wp.array(dtype=wp.vec3),
-    # outputs (may alias particle_x / particle_v: each thread reads its parcel before writing it)
+    # outputs (may alias parcels.x / parcels.v: each thread reads its parcel before writing it)
     particle_x_out: wp.array(dtype=wp.vec3),
     particle_v_out: wp.array(dtype=wp.vec3),
     parcel_drag_impulse: wp.array(dtype=wp.vec3d),
     parcel_drag_coeff: wp.array(dtype=wp.float64),
 ):
     tid = wp.tid()
-    if particle_alive[tid] == 0:
+    if parcels.alive[tid] == 0:
         parcel_drag_impulse[tid] = wp.vec3d(0.0, 0.0, 0.0)
         parcel_drag_coeff[tid] = wp.float64(0.0)
         return
-    v = particle_v[tid]
+    v = parcels.v[tid]
     u_f = parcel_u_f[tid]
-    rho_p = particle_density[tid]
-    diameter = 2.0 * particle_radius[tid]
+    rho_p = parcels.density[tid]
+    diameter = 2.0 * parcels.radius[tid]
     f_d = parcel_drag_rate(params, u_f, v, parcel_eps_s[tid], diameter, rho_p)
     body = body_acceleration(params, rho_p, parcel_grad_p[tid], parcel_a_coll[tid])
-    x_new, v_new, impulse, rate = push_step(params, particle_x[tid], v, u_f, f_d, rho_p, diameter,
-                                            particle_weight[tid], body)
+    x_new, v_new, impulse, rate = push_step(params, parcels.x[tid], v, u_f, f_d, rho_p, diameter,
+                                            parcels.weight[tid], body)
     particle_v_out[tid] = v_new
     particle_x_out[tid] = x_new
     parcel_drag_impulse[tid] = impulse
@@ -183,17 +180,12 @@ def push_kernel(
 @wp.kernel
 def push_at_rate_kernel(
     params: PushParams,
-    particle_x: wp.array(dtype=wp.vec3),
-    particle_v: wp.array(dtype=wp.vec3),
-    particle_radius: wp.array(dtype=float),
-    particle_density: wp.array(dtype=float),
-    particle_weight: wp.array(dtype=float),
-    particle_alive: wp.array(dtype=wp.int32),
+    parcels: ParcelArrays,
     parcel_u_target: wp.array(dtype=wp.vec3),
     parcel_rate: wp.array(dtype=float),
     parcel_grad_p: wp.array(dtype=wp.vec3),
     parcel_a_coll: wp.array(dtype=wp.vec3),
-    # outputs (may alias particle_x / particle_v)
+    # outputs (may alias parcels.x / parcels.v)
     particle_x_out: wp.array(dtype=wp.vec3),
     particle_v_out: wp.array(dtype=wp.vec3),
     parcel_drag_impulse: wp.array(dtype=wp.vec3d),
@@ -202,15 +194,15 @@ def push_at_rate_kernel(
     """The push of :func:`push_kernel` with F_D given (``parcel_rate``) and drag towards ``parcel_u_target``
     (the implicit-exchange gas velocity of ``kernels/deposit.py``)."""
     tid = wp.tid()
-    if particle_alive[tid] == 0:
+    if parcels.alive[tid] == 0:
         parcel_drag_impulse[tid] = wp.vec3d(0.0, 0.0, 0.0)
         parcel_drag_coeff[tid] = wp.float64(0.0)
         return
-    rho_p = particle_density[tid]
+    rho_p = parcels.density[tid]
     body = body_acceleration(params, rho_p, parcel_grad_p[tid], parcel_a_coll[tid])
-    x_new, v_new, impulse, rate = push_step(params, particle_x[tid], particle_v[tid], parcel_u_target[tid],
-                                            parcel_rate[tid], rho_p, 2.0 * particle_radius[tid],
-                                            particle_weight[tid], body)
+    x_new, v_new, impulse, rate = push_step(params, parcels.x[tid], parcels.v[tid], parcel_u_target[tid],
+                                            parcel_rate[tid], rho_p, 2.0 * parcels.radius[tid],
+                                            parcels.weight[tid], body)
     particle_v_out[tid] = v_new
     particle_x_out[tid] = x_new
     parcel_drag_impulse[tid] = impulse
@@ -252,25 +244,22 @@ def remove_beyond_plane_kernel(
 
 # ---------------------------------------------------------------- launch wrappers
 
-def push(params: PushParams, particle_x, particle_v, particle_radius, particle_density, particle_weight,
-         particle_alive, parcel_u_f, parcel_grad_p, parcel_eps_s, parcel_a_coll,
+def push(params: PushParams, parcels: ParcelArrays, parcel_u_f, parcel_grad_p, parcel_eps_s, parcel_a_coll,
          parcel_drag_impulse, parcel_drag_coeff, *, particle_x_out=None, particle_v_out=None):
-    """Advance velocities and positions by eq. (4) (in place unless ``*_out`` are given); record drag impulses."""
-    x_out = particle_x if particle_x_out is None else particle_x_out
-    v_out = particle_v if particle_v_out is None else particle_v_out
-    wp.launch(push_kernel, dim=particle_x.shape[0], device=particle_x.device,
-              inputs=[params, particle_x, particle_v, particle_radius, particle_density, particle_weight,
-                      particle_alive, parcel_u_f, parcel_grad_p, parcel_eps_s, parcel_a_coll],
+    """Advance velocities and positions by eq. (4) (into ``parcels.x``/``parcels.v`` unless ``*_out`` are
+    given); record drag impulses. ``parcels``: see ``kernels.interp.parcel_arrays``."""
+    x_out = parcels.x if particle_x_out is None else particle_x_out
+    v_out = parcels.v if particle_v_out is None else particle_v_out
+    wp.launch(push_kernel, dim=parcels.x.shape[0], device=parcels.x.device,
+              inputs=[params, parcels, parcel_u_f, parcel_grad_p, parcel_eps_s, parcel_a_coll],
               outputs=[x_out, v_out, parcel_drag_impulse, parcel_drag_coeff])
 
 
-def push_at_rate(params: PushParams, particle_x, particle_v, particle_radius, particle_density, particle_weight,
-                 particle_alive, parcel_u_target, parcel_rate, parcel_grad_p, parcel_a_coll, parcel_drag_impulse,
-                 parcel_drag_coeff, *, particle_x_out, particle_v_out):
+def push_at_rate(params: PushParams, parcels: ParcelArrays, parcel_u_target, parcel_rate, parcel_grad_p,
+                 parcel_a_coll, parcel_drag_impulse, parcel_drag_coeff, *, particle_x_out, particle_v_out):
     """:func:`push` with the drag rate given per parcel and drag towards ``parcel_u_target``."""
-    wp.launch(push_at_rate_kernel, dim=particle_x.shape[0], device=particle_x.device,
-              inputs=[params, particle_x, particle_v, particle_radius, particle_density, particle_weight,
-                      particle_alive, parcel_u_target, parcel_rate, parcel_grad_p, parcel_a_coll],
+    wp.launch(push_at_rate_kernel, dim=parcels.x.shape[0], device=parcels.x.device,
+              inputs=[params, parcels, parcel_u_target, parcel_rate, parcel_grad_p, parcel_a_coll],
               outputs=[particle_x_out, particle_v_out, parcel_drag_impulse, parcel_drag_coeff])
 
 

@@ -289,6 +289,7 @@ def dem_solver_stub(particles, dt, gravity=(0.0, 0.0, 0.0)):
     """What DemCollision.advance reads of HelSolver: pool.particles, fields, push_params, config.dt, fluid_push."""
     from hel_warp.coupling import CouplingFields, GridSpec, PushConfig
 
+    from kernels.interp import parcel_arrays
     from kernels.push import push
 
     fields = CouplingFields.allocate(GridSpec(origin=(0, 0, 0), spacing=1.0, shape=(1, 1, 1)), particles.count,
@@ -297,9 +298,9 @@ def dem_solver_stub(particles, dt, gravity=(0.0, 0.0, 0.0)):
     p, f = particles, fields
 
     def fluid_push(*, particle_x_out, particle_v_out):  # HelSolver's explicit push (still gas: no exchange)
-        push(params, p.x, p.v, p.radius, p.density, p.weight, p.alive, f.parcel_u_f, f.parcel_grad_p,
-             f.parcel_eps_s, f.parcel_a_coll, f.parcel_drag_impulse, f.parcel_drag_coeff,
-             particle_x_out=particle_x_out, particle_v_out=particle_v_out)
+        push(params, parcel_arrays(p), f.parcel_u_f, f.parcel_grad_p, f.parcel_eps_s, f.parcel_a_coll,
+             f.parcel_drag_impulse, f.parcel_drag_coeff, particle_x_out=particle_x_out,
+             particle_v_out=particle_v_out)
 
     return SimpleNamespace(pool=SimpleNamespace(particles=particles), fields=fields, push_params=params,
                            config=SimpleNamespace(dt=dt), fluid_push=fluid_push)
