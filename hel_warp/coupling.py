@@ -205,10 +205,10 @@ class CouplingFields:
 def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields) -> None:
     """Step 1: parcels -> cells (volume, momentum source from the last push, sum beta V, solids momentum)."""
     from kernels.deposit import deposit, finish_cells
+    from kernels.interp import parcel_arrays
 
-    p = particles
-    deposit(grid.cell_grid(), p.x, p.v, p.radius, p.density, p.weight, p.alive, fields.parcel_drag_impulse,
-            fields.parcel_drag_coeff, cell_solid_volume=fields.cell_solid_volume,
+    deposit(grid.cell_grid(), parcel_arrays(particles), fields.parcel_drag_impulse, fields.parcel_drag_coeff,
+            cell_solid_volume=fields.cell_solid_volume,
             cell_momentum_source=fields.cell_momentum_source, cell_drag_coeff=fields.cell_drag_coeff,
             cell_solid_mass=fields.cell_solid_mass, cell_solid_momentum=fields.cell_solid_momentum)
     finish_cells(grid.cell_volume, fields.cell_solid_volume, fields.cell_solid_mass, fields.cell_solid_momentum,
@@ -282,23 +282,21 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
     x_out = p.x if particle_x_out is None else particle_x_out
     v_out = p.v if particle_v_out is None else particle_v_out
     wp.copy(f.parcel_x_start, p.x)
+    start = parcel_arrays(p, x=f.parcel_x_start)  # the parcels as they were before the push
     slip_against = f.parcel_u_f
     for _ in range(EXCHANGE_PASSES):
-        exchange_deposit(g, push_params, p.v, f.parcel_x_start, p.radius, p.density, p.weight, p.alive,
-                         slip_against, f.parcel_eps_s, f.parcel_grad_p, f.parcel_a_coll, parcel_rate=f.parcel_rate,
-                         parcel_exchange=f.parcel_exchange, cell_exchange_coeff=f.cell_exchange_coeff,
-                         cell_exchange_momentum=f.cell_exchange_momentum)
+        exchange_deposit(g, push_params, start, slip_against, f.parcel_eps_s, f.parcel_grad_p, f.parcel_a_coll,
+                         parcel_rate=f.parcel_rate, parcel_exchange=f.parcel_exchange,
+                         cell_exchange_coeff=f.cell_exchange_coeff, cell_exchange_momentum=f.cell_exchange_momentum)
         exchange_cells(float(gas_density) * grid.cell_volume, eps_f_min, cell_fluid, f.cell_eps_s, cell_velocity,
                        f.cell_exchange_coeff, f.cell_exchange_momentum, cell_u_eq=f.cell_u_eq,
                        cell_gas_impulse=f.cell_gas_impulse, cell_mismatch=f.cell_mismatch)
         interpolate_vec3(g, f.parcel_x_start, f.cell_u_eq, f.parcel_u_eq)
         slip_against = f.parcel_u_eq
-    push_at_rate(push_params, parcel_arrays(p, x=f.parcel_x_start), f.parcel_u_eq, f.parcel_rate, f.parcel_grad_p,
-                 f.parcel_a_coll, f.parcel_drag_impulse, f.parcel_drag_coeff, particle_x_out=x_out,
-                 particle_v_out=v_out)
-    exchange_correct(g, push_params.dt, cell_fluid, f.cell_exchange_coeff, f.cell_mismatch, f.parcel_x_start,
-                     p.radius, p.density, p.weight, p.alive, f.parcel_exchange, f.parcel_drag_impulse,
-                     particle_x_out=x_out, particle_v_out=v_out)
+    push_at_rate(push_params, start, f.parcel_u_eq, f.parcel_rate, f.parcel_grad_p, f.parcel_a_coll,
+                 f.parcel_drag_impulse, f.parcel_drag_coeff, particle_x_out=x_out, particle_v_out=v_out)
+    exchange_correct(g, push_params.dt, cell_fluid, f.cell_exchange_coeff, f.cell_mismatch, start, f.parcel_exchange,
+                     f.parcel_drag_impulse, particle_x_out=x_out, particle_v_out=v_out)
 
 
 def single_particle_response(*, diameter: float, density: float, config: PushConfig, dt: float,

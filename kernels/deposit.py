@@ -23,7 +23,7 @@ import math
 
 import warp as wp
 
-from kernels.interp import CellGrid, cic_corner, cic_stencil
+from kernels.interp import CellGrid, ParcelArrays, cic_corner, cic_stencil
 from kernels.push import PushParams, body_acceleration, parcel_drag_rate, parcel_mass
 
 SPHERE_VOLUME_FACTOR = wp.constant(wp.float64(4.0 * math.pi / 3.0))  # float64 (wp.pi is float32)
@@ -35,12 +35,7 @@ if hasattr(wp.config, "DeterministicMode"):
 @wp.kernel
 def deposit_kernel(
     grid: CellGrid,
-    particle_x: wp.array(dtype=wp.vec3),
-    particle_v: wp.array(dtype=wp.vec3),
-    particle_radius: wp.array(dtype=float),
-    particle_density: wp.array(dtype=float),
-    particle_weight: wp.array(dtype=float),
-    particle_alive: wp.array(dtype=wp.int32),
+    parcels: ParcelArrays,
     parcel_drag_impulse: wp.array(dtype=wp.vec3d),
     parcel_drag_coeff: wp.array(dtype=wp.float64),
     # outputs (accumulated into; zero them first)
@@ -51,16 +46,16 @@ def deposit_kernel(
     cell_solid_momentum: wp.array3d(dtype=wp.vec3d),
 ):
     tid = wp.tid()
-    if particle_alive[tid] == 0:
+    if parcels.alive[tid] == 0:
         return
-    r = wp.float64(particle_radius[tid])
-    volume = wp.float64(particle_weight[tid]) * SPHERE_VOLUME_FACTOR * r * r * r
-    mass = volume * wp.float64(particle_density[tid])
-    v = particle_v[tid]
+    r = wp.float64(parcels.radius[tid])
+    volume = wp.float64(parcels.weight[tid]) * SPHERE_VOLUME_FACTOR * r * r * r
+    mass = volume * wp.float64(parcels.density[tid])
+    v = parcels.v[tid]
     momentum = mass * wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
     source = -parcel_drag_impulse[tid]
     coeff = parcel_drag_coeff[tid]
-    base, frac = cic_stencil(grid, particle_x[tid])
+    base, frac = cic_stencil(grid, parcels.x[tid])
     for corner in range(8):
         idx, w = cic_corner(grid, base, frac, corner)
         i = idx[0]
@@ -131,12 +126,7 @@ def to_float32_kernel(
 def exchange_deposit_kernel(
     grid: CellGrid,
     params: PushParams,
-    particle_v: wp.array(dtype=wp.vec3),
-    particle_x: wp.array(dtype=wp.vec3),
-    particle_radius: wp.array(dtype=float),
-    particle_density: wp.array(dtype=float),
-    particle_weight: wp.array(dtype=float),
-    particle_alive: wp.array(dtype=wp.int32),
+    parcels: ParcelArrays,
     parcel_u_f: wp.array(dtype=wp.vec3),
     parcel_eps_s: wp.array(dtype=float),
     parcel_grad_p: wp.array(dtype=wp.vec3),
@@ -149,21 +139,21 @@ def exchange_deposit_kernel(
 ):
     """F_D at the interpolated gas velocity, D_i, and A_c, B_c (see above)."""
     tid = wp.tid()
-    if particle_alive[tid] == 0:
+    if parcels.alive[tid] == 0:
         parcel_rate[tid] = 0.0
         parcel_exchange[tid] = wp.float64(0.0)
         return
-    v = particle_v[tid]
-    rho_p = particle_density[tid]
-    diameter = 2.0 * particle_radius[tid]
+    v = parcels.v[tid]
+    rho_p = parcels.density[tid]
+    diameter = 2.0 * parcels.radius[tid]
     f_d = parcel_drag_rate(params, parcel_u_f[tid], v, parcel_eps_s[tid], diameter, rho_p)
     parcel_rate[tid] = f_d
     fdt = wp.float64(params.dt) * wp.float64(f_d)
-    d = parcel_mass(particle_weight[tid], rho_p, diameter) * fdt / (wp.float64(1.0) + fdt)
+    d = parcel_mass(parcels.weight[tid], rho_p, diameter) * fdt / (wp.float64(1.0) + fdt)
     parcel_exchange[tid] = d
     v_star = v + params.dt * body_acceleration(params, rho_p, parcel_grad_p[tid], parcel_a_coll[tid])
     dv = d * wp.vec3d(wp.float64(v_star[0]), wp.float64(v_star[1]), wp.float64(v_star[2]))
-    base, frac = cic_stencil(grid, particle_x[tid])
+    base, frac = cic_stencil(grid, parcels.x[tid])
     for corner in range(8):
         idx, w = cic_corner(grid, base, frac, corner)
         wp.atomic_add(cell_exchange_coeff, idx[0], idx[1], idx[2], w * d)
@@ -207,18 +197,17 @@ def exchange_cells_kernel(
 @wp.kernel
 def impulse_deposit_kernel(
     grid: CellGrid,
-    particle_x: wp.array(dtype=wp.vec3),
-    particle_alive: wp.array(dtype=wp.int32),
+    parcels: ParcelArrays,
     parcel_drag_impulse: wp.array(dtype=wp.vec3d),
     # outputs (accumulated into)
     cell_mismatch: wp.array3d(dtype=wp.vec3d),
 ):
-    """cell_mismatch += sum_i w_ic J_i at the parcels' positions before the push (``particle_x``)."""
+    """cell_mismatch += sum_i w_ic J_i at the parcels' positions before the push (``parcels.x``)."""
     tid = wp.tid()
-    if particle_alive[tid] == 0:
+    if parcels.alive[tid] == 0:
         return
     j = parcel_drag_impulse[tid]
-    base, frac = cic_stencil(grid, particle_x[tid])
+    base, frac = cic_stencil(grid, parcels.x[tid])
     for corner in range(8):
         idx, w = cic_corner(grid, base, frac, corner)
         wp.atomic_add(cell_mismatch, idx[0], idx[1], idx[2], w * j)
@@ -231,23 +220,19 @@ def exchange_correct_kernel(
     cell_fluid: wp.array3d(dtype=wp.int32),
     cell_exchange_coeff: wp.array3d(dtype=wp.float64),
     cell_mismatch: wp.array3d(dtype=wp.vec3d),
-    particle_x: wp.array(dtype=wp.vec3),
-    particle_radius: wp.array(dtype=float),
-    particle_density: wp.array(dtype=float),
-    particle_weight: wp.array(dtype=float),
-    particle_alive: wp.array(dtype=wp.int32),
+    parcels: ParcelArrays,
     parcel_exchange: wp.array(dtype=wp.float64),
-    # in/out: the pushed state and impulses
+    # in/out: the pushed state and impulses (parcels.x: the positions before the push)
     particle_x_out: wp.array(dtype=wp.vec3),
     particle_v_out: wp.array(dtype=wp.vec3),
     parcel_drag_impulse: wp.array(dtype=wp.vec3d),
 ):
     """dJ_i = -D_i sum_c w_ic delta_c / A_c over fluid cells with A_c > 0; v and x (= x + dt v) follow."""
     tid = wp.tid()
-    if particle_alive[tid] == 0:
+    if parcels.alive[tid] == 0:
         return
     corr = wp.vec3d(0.0, 0.0, 0.0)
-    base, frac = cic_stencil(grid, particle_x[tid])
+    base, frac = cic_stencil(grid, parcels.x[tid])
     for corner in range(8):
         idx, w = cic_corner(grid, base, frac, corner)
         a = cell_exchange_coeff[idx[0], idx[1], idx[2]]
@@ -255,7 +240,7 @@ def exchange_correct_kernel(
             corr = corr + (w / a) * cell_mismatch[idx[0], idx[1], idx[2]]
     dj = -parcel_exchange[tid] * corr
     parcel_drag_impulse[tid] = parcel_drag_impulse[tid] + dj
-    dv64 = dj / parcel_mass(particle_weight[tid], particle_density[tid], 2.0 * particle_radius[tid])
+    dv64 = dj / parcel_mass(parcels.weight[tid], parcels.density[tid], 2.0 * parcels.radius[tid])
     dv = wp.vec3(float(dv64[0]), float(dv64[1]), float(dv64[2]))
     particle_v_out[tid] = particle_v_out[tid] + dv
     particle_x_out[tid] = particle_x_out[tid] + dt * dv
@@ -263,15 +248,14 @@ def exchange_correct_kernel(
 
 # ---------------------------------------------------------------- launch wrappers
 
-def deposit(grid: CellGrid, particle_x, particle_v, particle_radius, particle_density, particle_weight,
-            particle_alive, parcel_drag_impulse, parcel_drag_coeff, *, cell_solid_volume, cell_momentum_source,
-            cell_drag_coeff, cell_solid_mass, cell_solid_momentum):
-    """Zero the five accumulators and deposit every live parcel into them."""
+def deposit(grid: CellGrid, parcels: ParcelArrays, parcel_drag_impulse, parcel_drag_coeff, *, cell_solid_volume,
+            cell_momentum_source, cell_drag_coeff, cell_solid_mass, cell_solid_momentum):
+    """Zero the five accumulators and deposit every live parcel into them (``parcels``: see
+    ``kernels.interp.parcel_arrays``)."""
     for arr in (cell_solid_volume, cell_momentum_source, cell_drag_coeff, cell_solid_mass, cell_solid_momentum):
         arr.zero_()
-    wp.launch(deposit_kernel, dim=particle_x.shape[0], device=particle_x.device,
-              inputs=[grid, particle_x, particle_v, particle_radius, particle_density, particle_weight,
-                      particle_alive, parcel_drag_impulse, parcel_drag_coeff],
+    wp.launch(deposit_kernel, dim=parcels.x.shape[0], device=parcels.x.device,
+              inputs=[grid, parcels, parcel_drag_impulse, parcel_drag_coeff],
               outputs=[cell_solid_volume, cell_momentum_source, cell_drag_coeff, cell_solid_mass,
                        cell_solid_momentum])
 
@@ -291,15 +275,13 @@ def to_float32(cell_momentum_source, cell_drag_coeff, *, cell_momentum_source_f3
               outputs=[cell_momentum_source_f32, cell_drag_coeff_f32])
 
 
-def exchange_deposit(grid: CellGrid, params, particle_v, particle_x, particle_radius, particle_density,
-                     particle_weight, particle_alive, parcel_u_f, parcel_eps_s, parcel_grad_p, parcel_a_coll, *,
-                     parcel_rate, parcel_exchange, cell_exchange_coeff, cell_exchange_momentum):
+def exchange_deposit(grid: CellGrid, params, parcels: ParcelArrays, parcel_u_f, parcel_eps_s, parcel_grad_p,
+                     parcel_a_coll, *, parcel_rate, parcel_exchange, cell_exchange_coeff, cell_exchange_momentum):
     """Zero A, B and deposit D_i, D_i v*_i (implicit exchange, step 1)."""
     cell_exchange_coeff.zero_()
     cell_exchange_momentum.zero_()
-    wp.launch(exchange_deposit_kernel, dim=particle_x.shape[0], device=particle_x.device,
-              inputs=[grid, params, particle_v, particle_x, particle_radius, particle_density, particle_weight,
-                      particle_alive, parcel_u_f, parcel_eps_s, parcel_grad_p, parcel_a_coll],
+    wp.launch(exchange_deposit_kernel, dim=parcels.x.shape[0], device=parcels.x.device,
+              inputs=[grid, params, parcels, parcel_u_f, parcel_eps_s, parcel_grad_p, parcel_a_coll],
               outputs=[parcel_rate, parcel_exchange, cell_exchange_coeff, cell_exchange_momentum])
 
 
@@ -312,13 +294,13 @@ def exchange_cells(gas_mass_full: float, eps_f_min: float, cell_fluid, cell_eps_
               outputs=[cell_u_eq, cell_gas_impulse, cell_mismatch])
 
 
-def exchange_correct(grid: CellGrid, dt: float, cell_fluid, cell_exchange_coeff, cell_mismatch, particle_x,
-                     particle_radius, particle_density, particle_weight, particle_alive, parcel_exchange,
-                     parcel_drag_impulse, *, particle_x_out, particle_v_out):
-    """Deposit the push's impulses into the mismatch and take it back from the parcels (steps 4-5)."""
-    wp.launch(impulse_deposit_kernel, dim=particle_x.shape[0], device=particle_x.device,
-              inputs=[grid, particle_x, particle_alive, parcel_drag_impulse], outputs=[cell_mismatch])
-    wp.launch(exchange_correct_kernel, dim=particle_x.shape[0], device=particle_x.device,
-              inputs=[grid, float(dt), cell_fluid, cell_exchange_coeff, cell_mismatch, particle_x, particle_radius,
-                      particle_density, particle_weight, particle_alive, parcel_exchange],
+def exchange_correct(grid: CellGrid, dt: float, cell_fluid, cell_exchange_coeff, cell_mismatch,
+                     parcels: ParcelArrays, parcel_exchange, parcel_drag_impulse, *, particle_x_out, particle_v_out):
+    """Deposit the push's impulses into the mismatch and take it back from the parcels (steps 4-5);
+    ``parcels.x``: the positions before the push."""
+    n = parcels.x.shape[0]
+    wp.launch(impulse_deposit_kernel, dim=n, device=parcels.x.device,
+              inputs=[grid, parcels, parcel_drag_impulse], outputs=[cell_mismatch])
+    wp.launch(exchange_correct_kernel, dim=n, device=parcels.x.device,
+              inputs=[grid, float(dt), cell_fluid, cell_exchange_coeff, cell_mismatch, parcels, parcel_exchange],
               outputs=[particle_x_out, particle_v_out, parcel_drag_impulse])
