@@ -32,13 +32,15 @@ def add_parser(subparsers):
     p.add_argument("--trials", type=int, default=4, help="Optuna trials per target (default 4)")
     p.add_argument("--diameter", type=finite_float, default=315e-6, help="particle diameter, m (default 315e-6)")
     p.add_argument("--dt", type=finite_float, default=1e-3, help="HEL time step of the rig, s (default 1e-3)")
-    p.add_argument("--end-time", type=finite_float, default=0.01,
-                   help="rig simulated time after release, s (default 0.01; the paper's runs: 0.02)")
+    p.add_argument("--end-time", type=finite_float, default=0.02,
+                   help="rig simulated time after release, s (default 0.02, as the paper's runs: the parcels "
+                        "reach the downstream sections, so the profiles can be compared with dem)")
     p.add_argument("--dem-end-time", type=finite_float, default=None,
                    help="simulated time of the dem reference, s (default: --end-time)")
     p.add_argument("--cells", type=int, default=None, help="shrink the rig grid to about N cells")
-    p.add_argument("--max-particles", type=int, default=2000,
-                   help="cap the rig's parcels (default 2000 so the dem reference fits the demo; 0: the paper's 12,000)")
+    p.add_argument("--max-particles", type=int, default=4000,
+                   help="cap the rig's parcels (default 4000 so the dem reference fits the demo; 0: the paper's "
+                        "12,000)")
     p.add_argument("--device", default="cpu", help="Warp device: cpu or cuda (default cpu)")
     p.add_argument("--skip-rig", action="store_true", help="stop after the three-streams case")
     return p
