@@ -389,13 +389,7 @@ class _Renderer:
             plotter.add_mesh(pv.Box(bounds=(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])), style="wireframe",
                              color="grey")
         plotter.add_text(f"{run.label}: t = {run.times[-1]:.4g} s (red: left, blue: right)", font_size=10)
-        plotter.view_xy()
-        plotter.enable_parallel_projection()
-        plotter.reset_camera(bounds=_plane_bounds(run))
-        plotter.camera.zoom(1.4)
-        plotter.screenshot(path)
-        plotter.close()
-        return path
+        return _screenshot_plane(plotter, run, path)
 
     @staticmethod
     def _pv_volume_fraction(run: RunData, path: str) -> str:
@@ -415,13 +409,18 @@ class _Renderer:
         plotter.add_mesh(grid, scalars="log10_eps_s", clim=clim, nan_color="white", cmap="viridis",
                          scalar_bar_args={"title": "log10 eps_s"})
         plotter.add_text(f"{run.label}: solid volume fraction, t = {run.times[-1]:.4g} s", font_size=10)
-        plotter.view_xy()
-        plotter.enable_parallel_projection()
-        plotter.reset_camera(bounds=_plane_bounds(run))
-        plotter.camera.zoom(1.4)
-        plotter.screenshot(path)
-        plotter.close()
-        return path
+        return _screenshot_plane(plotter, run, path)
+
+
+def _screenshot_plane(plotter, run: RunData, path: str) -> str:
+    """Top view (x-y) of the rig plane, parallel projection, written to ``path``; closes the plotter."""
+    plotter.view_xy()
+    plotter.enable_parallel_projection()
+    plotter.reset_camera(bounds=_plane_bounds(run))
+    plotter.camera.zoom(1.4)
+    plotter.screenshot(path)
+    plotter.close()
+    return path
 
 
 def _mpl():
