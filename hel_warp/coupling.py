@@ -244,13 +244,16 @@ def ktgf_collision(grid: GridSpec, particles, fields: CouplingFields, params, *,
                            fields.cell_grad_p_s, fields.cell_eps_s, fields.parcel_a_coll, dt=dt)
 
 
-def push_parcels(particles, fields: CouplingFields, push_params) -> None:
-    """Step 5: eq. (4) in place on ``particles.x``/``particles.v``; records drag impulses for the next deposit."""
+def push_parcels(particles, fields: CouplingFields, push_params, *, particle_x_out=None,
+                 particle_v_out=None) -> None:
+    """Step 5: eq. (4) on ``particles.x``/``particles.v`` (in place unless ``particle_*_out`` are given);
+    records drag impulses for the next deposit (the explicit exchange)."""
     from kernels.interp import parcel_arrays
     from kernels.push import push
 
     push(push_params, parcel_arrays(particles), fields.parcel_u_f, fields.parcel_grad_p, fields.parcel_eps_s,
-         fields.parcel_a_coll, fields.parcel_drag_impulse, fields.parcel_drag_coeff)
+         fields.parcel_a_coll, fields.parcel_drag_impulse, fields.parcel_drag_coeff, particle_x_out=particle_x_out,
+         particle_v_out=particle_v_out)
 
 
 EXCHANGE_PASSES = 3

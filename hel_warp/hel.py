@@ -369,16 +369,9 @@ class HelSolver:
             exchange_push(self.grid, p, self.fields, self.push_params, cell_velocity=self.gas.cell_velocity,
                           cell_fluid=self.cell_fluid, gas_density=self.config.push.fluid_density,
                           eps_f_min=self.eps_f_min, particle_x_out=particle_x_out, particle_v_out=particle_v_out)
-        elif particle_x_out is None and particle_v_out is None:
-            push_parcels(p, self.fields, self.push_params)
         else:
-            from kernels.interp import parcel_arrays
-            from kernels.push import push
-
-            f = self.fields
-            push(self.push_params, parcel_arrays(p), f.parcel_u_f, f.parcel_grad_p, f.parcel_eps_s, f.parcel_a_coll,
-                 f.parcel_drag_impulse, f.parcel_drag_coeff, particle_x_out=particle_x_out,
-                 particle_v_out=particle_v_out)
+            push_parcels(p, self.fields, self.push_params, particle_x_out=particle_x_out,
+                         particle_v_out=particle_v_out)
 
     def sort_parcels(self) -> bool:
         """Reorder the used parcel slots by grid cell (dead ones last), with every per-parcel array of the
