@@ -743,6 +743,56 @@ def finite_check_kernel(
         wp.atomic_add(bad_count, 0, 1)
 
 
+# ----------------------------------------------------------------- compacted systems
+# The assembly kernels write one row per cell (or face) of the box; rows of solid cells and fixed faces are
+# identity rows that never couple to the rest. The solvers work on the solved rows only (``rows``: their
+# box indices in ascending order, so IC(0) sees the same ordering and the arithmetic is unchanged): on the
+# colliding-streams rig 34,768 of 102,400 cells are fluid.
+
+
+@wp.kernel
+def gather_system_kernel(
+    rows: wp.array(dtype=wp.int32),
+    box_to_row: wp.array(dtype=wp.int32),
+    rhs: wp.array(dtype=wp.float64),
+    x: wp.array(dtype=wp.float64),
+    diag: wp.array(dtype=wp.float64),
+    coef: wp.array2d(dtype=wp.float64),
+    neighbour: wp.array2d(dtype=wp.int32),
+    # outputs
+    c_rhs: wp.array(dtype=wp.float64),
+    c_x: wp.array(dtype=wp.float64),
+    c_diag: wp.array(dtype=wp.float64),
+    c_coef: wp.array2d(dtype=wp.float64),
+    c_neighbour: wp.array2d(dtype=wp.int32),
+):
+    """Copy the solved rows of a box-sized system into compact arrays, neighbours renumbered. A nonzero
+    coupling always points at another solved row (fluid cell to fluid cell, solved face to solved face)."""
+    r = wp.tid()
+    row = rows[r]
+    c_rhs[r] = rhs[row]
+    c_x[r] = x[row]
+    c_diag[r] = diag[row]
+    for m in range(6):
+        c = coef[row, m]
+        nb = r
+        if c != wp.float64(0.0):
+            nb = box_to_row[neighbour[row, m]]
+        c_coef[r, m] = c
+        c_neighbour[r, m] = nb
+
+
+@wp.kernel
+def scatter_solution_kernel(
+    rows: wp.array(dtype=wp.int32),
+    c_x: wp.array(dtype=wp.float64),
+    # outputs
+    x: wp.array(dtype=wp.float64),
+):
+    r = wp.tid()
+    x[rows[r]] = c_x[r]
+
+
 # ----------------------------------------------------------------- native Jacobi-PCG (CPU path)
 # warp.optim.linear.cg reduces with tile kernels that cost ~0.1 s per dot product on the CPU at
 # 1e5 unknowns; this plain PCG (Hestenes & Stiefel 1952; Saad, *Iterative Methods*, alg. 9.1)
@@ -797,19 +847,33 @@ def ic0_factor_kernel(
     coef: wp.array2d(dtype=wp.float64),
     neighbour: wp.array2d(dtype=wp.int32),
     n: int,
+    relaxation: wp.float64,
     # outputs
     pivot: wp.array(dtype=wp.float64),
 ):
-    """Incomplete Cholesky IC(0) of the 7-point stencil, A ~ (D + L) D^-1 (D + L^T) with
-    d_i = a_ii - sum_{j<i} a_ij^2 / d_j (Meijerink & van der Vorst 1977). Sequential: one thread
-    (the CPU path; the CUDA path keeps Jacobi). A pivot that is not positive falls back to a_ii."""
+    """Incomplete Cholesky of the 7-point stencil, A ~ (D + L) D^-1 (D + L^T), one thread (the CPU
+    path; the CUDA path keeps Jacobi). IC(0) (``relaxation`` 0): d_i = a_ii - sum_{j<i} a_ij^2 / d_j
+    (Meijerink & van der Vorst 1977). Modified IC(0) (``relaxation`` tau in (0, 1]): the fill-in
+    a_ij a_jk / d_j that IC(0) drops (k > j, k != i, a neighbour of j) is moved onto the diagonal, times
+    tau, so that row sums are kept (Gustafsson 1978; tau = 0.97 as Bridson, *Fluid Simulation for
+    Computer Graphics*, 2015, sec. 5.5). A pivot below 1/4 of a_ii falls back to a_ii (IC(0): 1e-3)."""
+    floor = wp.float64(1.0e-3)
+    if relaxation > wp.float64(0.0):
+        floor = wp.float64(0.25)
     for i in range(n):
         d = diag[i]
         for m in range(6):
             j = neighbour[i, m]
-            if j < i and coef[i, m] != wp.float64(0.0):
-                d = d - coef[i, m] * coef[i, m] / pivot[j]
-        if d <= wp.float64(1.0e-3) * diag[i]:
+            c = coef[i, m]
+            if j < i and c != wp.float64(0.0):
+                fill = wp.float64(0.0)
+                if relaxation > wp.float64(0.0):
+                    for m2 in range(6):
+                        k = neighbour[j, m2]
+                        if k > j and k != i:
+                            fill = fill + coef[j, m2]
+                d = d - c * (c + relaxation * fill) / pivot[j]
+        if d <= floor * diag[i]:
             d = diag[i]
         pivot[i] = d
 
