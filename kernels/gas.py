@@ -793,6 +793,126 @@ def scatter_solution_kernel(
     x[rows[r]] = c_x[r]
 
 
+# ----------------------------------------------------------------- aggregation multigrid (pressure)
+# A V-cycle preconditioner for the pressure CG (hel_warp/multigrid.py): 2x2x2 blocks of cells aggregate
+# into one coarse row, coarse matrices by Galerkin products with the piecewise-constant prolongation
+# (A_c = P^T A P, again a 7-point stencil; Braess 1995), multi-colour symmetric Gauss-Seidel smoothing
+# (parallel within a colour), a scaled coarse correction.
+
+
+@wp.kernel
+def mg_clear_kernel(
+    # outputs
+    diag: wp.array(dtype=wp.float64),
+    coef: wp.array2d(dtype=wp.float64),
+    neighbour: wp.array2d(dtype=wp.int32),
+):
+    r = wp.tid()
+    diag[r] = wp.float64(0.0)
+    for m in range(6):
+        coef[r, m] = wp.float64(0.0)
+        neighbour[r, m] = r
+
+
+@wp.kernel
+def mg_coarsen_kernel(
+    parent: wp.array(dtype=wp.int32),
+    diag: wp.array(dtype=wp.float64),
+    coef: wp.array2d(dtype=wp.float64),
+    neighbour: wp.array2d(dtype=wp.int32),
+    # outputs
+    c_diag: wp.array(dtype=wp.float64),
+    c_coef: wp.array2d(dtype=wp.float64),
+    c_neighbour: wp.array2d(dtype=wp.int32),
+):
+    """A_c = P^T A P: a coupling inside a block moves onto the block's diagonal, one between blocks adds
+    to the coarse coupling of the same direction (the neighbouring block in that direction is unique)."""
+    r = wp.tid()
+    C = parent[r]
+    wp.atomic_add(c_diag, C, diag[r])
+    for m in range(6):
+        c = coef[r, m]
+        if c != wp.float64(0.0):
+            D = parent[neighbour[r, m]]
+            if D == C:
+                wp.atomic_add(c_diag, C, -c)
+            else:
+                wp.atomic_add(c_coef, C, m, c)
+                c_neighbour[C, m] = D
+
+
+@wp.kernel
+def mg_smooth_kernel(
+    diag: wp.array(dtype=wp.float64),
+    coef: wp.array2d(dtype=wp.float64),
+    neighbour: wp.array2d(dtype=wp.int32),
+    colour: wp.array(dtype=wp.int32),
+    which: int,
+    b: wp.array(dtype=wp.float64),
+    # outputs
+    z: wp.array(dtype=wp.float64),
+):
+    """Gauss-Seidel update of the rows of one colour (no two neighbours share a colour)."""
+    r = wp.tid()
+    if colour[r] != which:
+        return
+    acc = b[r]
+    for m in range(6):
+        acc = acc + coef[r, m] * z[neighbour[r, m]]
+    if diag[r] > wp.float64(0.0):  # a block of an all-Neumann system can close on itself: A_c = 0
+        z[r] = acc / diag[r]
+
+
+@wp.kernel
+def mg_restrict_kernel(
+    parent: wp.array(dtype=wp.int32),
+    residual: wp.array(dtype=wp.float64),
+    # outputs
+    c_b: wp.array(dtype=wp.float64),
+):
+    r = wp.tid()
+    wp.atomic_add(c_b, parent[r], residual[r])
+
+
+@wp.kernel
+def mg_prolong_kernel(
+    parent: wp.array(dtype=wp.int32),
+    c_z: wp.array(dtype=wp.float64),
+    scale: wp.float64,
+    # outputs
+    z: wp.array(dtype=wp.float64),
+):
+    r = wp.tid()
+    z[r] = z[r] + scale * c_z[parent[r]]
+
+
+@wp.kernel
+def mg_coarsest_kernel(
+    diag: wp.array(dtype=wp.float64),
+    coef: wp.array2d(dtype=wp.float64),
+    neighbour: wp.array2d(dtype=wp.int32),
+    b: wp.array(dtype=wp.float64),
+    n: int,
+    sweeps: int,
+    # outputs
+    z: wp.array(dtype=wp.float64),
+):
+    """Symmetric Gauss-Seidel sweeps (forward then backward) from z = 0 on the coarsest level, one thread
+    (a few dozen rows)."""
+    for i in range(n):
+        z[i] = wp.float64(0.0)
+    for s in range(sweeps):
+        for step in range(2 * n):
+            i = step
+            if step >= n:
+                i = 2 * n - 1 - step
+            acc = b[i]
+            for m in range(6):
+                acc = acc + coef[i, m] * z[neighbour[i, m]]
+            if diag[i] > wp.float64(0.0):
+                z[i] = acc / diag[i]
+
+
 # ----------------------------------------------------------------- native Jacobi-PCG (CPU path)
 # warp.optim.linear.cg reduces with tile kernels that cost ~0.1 s per dot product on the CPU at
 # 1e5 unknowns; this plain PCG (Hestenes & Stiefel 1952; Saad, *Iterative Methods*, alg. 9.1)

@@ -55,9 +55,10 @@ def continuity_residual(grid, fluid, face_u, cell_eps_f, cell_eps_prev, dt):
     return np.where(fluid, div, 0.0)
 
 
-@pytest.mark.parametrize("case,linear_solver,relaxation", [("periodic", "native", 0.97), ("walls", "native", 0.97),
-                                                           ("walls", "native", 0.0), ("walls", "warp", 0.0)])
-def test_projection_divergence_free(case, linear_solver, relaxation):
+@pytest.mark.parametrize("case,linear_solver,preconditioner,relaxation", [
+    ("periodic", "native", "multigrid", 0.0), ("walls", "native", "multigrid", 0.0), ("walls", "native", "ic", 0.97),
+    ("walls", "native", "ic", 0.0), ("walls", "warp", "multigrid", 0.0), ("walls", "warp", "ic", 0.0)])
+def test_projection_divergence_free(case, linear_solver, preconditioner, relaxation):
     """After the projection, div(eps_f u) + d eps_f/dt = 0 to the CG tolerance.
 
     The CG stops at ||r|| <= tol ||b|| with r = (rho h^2/dt)(continuity residual) and
@@ -76,6 +77,7 @@ def test_projection_divergence_free(case, linear_solver, relaxation):
     domain = geometry.build(grid)
     tol = 1e-6
     solver = GasSolver(domain, GasConfig(pressure_tolerance=tol, linear_solver=linear_solver,
+                                         pressure_preconditioner=preconditioner,
                                          pressure_preconditioner_relaxation=relaxation))
     gas = GasField(domain)
     gas.set_face_velocity([rng.normal(size=a.shape) for a in gas.face_arrays()])
@@ -104,7 +106,7 @@ def test_projection_divergence_free(case, linear_solver, relaxation):
     ratio = np.linalg.norm(after) / np.linalg.norm(before)
     assert np.linalg.norm(after) <= tol * np.linalg.norm(before) + rounding, ratio
     assert ratio < 1e-5
-    print(f"{case}/{linear_solver}/{relaxation}: |continuity residual| after/before = {ratio:.2e} "
+    print(f"{case}/{linear_solver}/{preconditioner}/{relaxation}: |continuity residual| after/before = {ratio:.2e} "
           f"({solver.last_iterations['pressure']} CG iterations)")
 
 
