@@ -215,6 +215,39 @@ class PairwiseArgs:
     particle_weight: wp.array(dtype=wp.float32)
     particle_stream: wp.array(dtype=wp.int32)
     n_streams: wp.int32
+    touched: wp.array(dtype=wp.int32)
+    """1 once a round has changed the parcel's velocity (reset per step)."""
+    prefetched: wp.array2d(dtype=wp.float32)
+    """(pairs, 2) impulse_n, impulse_t predicted in one batch at the velocities before the rounds."""
+    use_prefetched: wp.int32
+
+
+@wp.kernel
+def pair_start_features(
+    args: PairwiseArgs,
+    particle_v: wp.array(dtype=wp.vec3),
+    pair_state: wp.array(dtype=wp.int32),
+    # outputs
+    features: wp.array2d(dtype=wp.float32),
+):
+    """Contact features of every pending approaching pair at the velocities before the rounds (zeros
+    otherwise), for one batched forest evaluation: a pair whose parcels no earlier round has touched is
+    resolved with exactly these features, so its prediction can be taken from the batch."""
+    k = wp.tid()
+    for f in range(6):
+        features[k, f] = 0.0
+    if pair_state[k] != PAIR_PENDING:
+        return
+    i = args.pair_i[k]
+    j = args.pair_j[k]
+    d = args.particle_x[j] - args.particle_x[i]
+    vi = particle_v[i]
+    vj = particle_v[j]
+    dist = wp.length(d)
+    if dist <= 0.0 or wp.dot(vj - vi, d) >= 0.0:
+        return
+    write_contact_features(vi, vj, d / dist, 2.0 * args.particle_radius[i], 2.0 * args.particle_radius[j],
+                           args.particle_density[i], args.particle_density[j], k, features)
 
 
 @wp.kernel
@@ -251,9 +284,17 @@ def resolve_round(
     rj = args.particle_radius[j]
     rho_i = args.particle_density[i]
     rho_j = args.particle_density[j]
-    write_contact_features(vi, vj, n, 2.0 * ri, 2.0 * rj, rho_i, rho_j, k, features)
-    impulse_n = forest_target(forest, 0, features, k)
-    impulse_t = forest_target(forest, 1, features, k)
+    impulse_n = float(0.0)
+    impulse_t = float(0.0)
+    if args.use_prefetched != 0 and args.touched[i] == 0 and args.touched[j] == 0:
+        impulse_n = args.prefetched[k, 0]  # same features, same summation order: the same numbers
+        impulse_t = args.prefetched[k, 1]
+    else:
+        write_contact_features(vi, vj, n, 2.0 * ri, 2.0 * rj, rho_i, rho_j, k, features)
+        impulse_n = forest_target(forest, 0, features, k)
+        impulse_t = forest_target(forest, 1, features, k)
+    args.touched[i] = 1
+    args.touched[j] = 1
     mi = sphere_mass(2.0 * ri, rho_i)
     mj = sphere_mass(2.0 * rj, rho_j)
     J = contact_impulse(vi, vj, n, mi, mj, impulse_n, impulse_t)  # on j; i gets -J
@@ -428,12 +469,26 @@ def launch_count_detected(n_pairs: int, pair_i, pair_j, particle_stream, n_strea
 
 
 def resolve_pairwise(n_pairs: int, args: PairwiseArgs, forest: Forest, pair_state, features, particle_v, calls,
-                     skipped, more_rounds, rounds) -> None:
-    """Rounds of disjoint pairs until none is pending (``wp.capture_while``: a graph loop on CUDA)."""
+                     skipped, more_rounds, rounds, batch_forest: Forest | None = None) -> None:
+    """Rounds of disjoint pairs until none is pending (``wp.capture_while``: a graph loop on CUDA).
+
+    With ``batch_forest`` (the same model, any layout; ``args.prefetched`` and ``args.touched`` sized) every
+    pending pair is first predicted in one batched evaluation (``eval_forest``: perfect layout, blocks of rows
+    per thread on the CPU), and a round takes that prediction for a pair whose parcels are still untouched —
+    most pairs — evaluating the forest inline only for the later partners of a cluster. Same results."""
     if not n_pairs:
         return
     device = particle_v.device
     n = particle_v.shape[0]
+    args.touched.zero_()
+    args.use_prefetched = 0
+    if batch_forest is not None:
+        from kernels.forest import eval_forest
+
+        wp.launch(pair_start_features, dim=n_pairs, device=device, inputs=[args, particle_v, pair_state],
+                  outputs=[features])
+        eval_forest(batch_forest, features[:n_pairs], args.prefetched[:n_pairs], rows_per_thread=64, device=device)
+        args.use_prefetched = 1
 
     def one_round():
         wp.launch(reset_owner, dim=n, device=device, outputs=[args.owner, more_rounds])

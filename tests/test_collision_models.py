@@ -250,6 +250,24 @@ def test_pairwise_is_deterministic(trained_models):
     assert results[0][1] == results[1][1]
 
 
+def test_batched_prediction_changes_nothing(trained_models):
+    # The batched pre-prediction is a shortcut: the rounds must give bit for bit what inline walks give
+    # (same features, same float32 summation order), in clusters too (later partners walk inline).
+    from hel_warp.collision_models import SurrogateCollision
+
+    results = []
+    for prefetch in (False, True):
+        p = random_cloud(n=3000, seed=4)
+        strategy = SurrogateCollision(model_dir=trained_models["contact"], prefetch=prefetch)
+        v0 = p.v.numpy().copy()
+        strategy.collide(p)
+        results.append((p.v.numpy().copy(), strategy.counts()))
+    assert results[0][1] == results[1][1]
+    assert results[0][1]["rounds"] >= 2 and results[0][1]["surrogate_calls"] > 300
+    assert not np.array_equal(results[0][0], v0)
+    assert np.array_equal(results[0][0], results[1][0])
+
+
 def test_paper_mode_uses_the_cluster_averaged_partner_velocity(trained_models):
     # B overlaps A and C: its partner velocity is the mean of A's and C's; A and C see B only.
     from hel_warp.collision_models import SurrogateCollision
