@@ -3,10 +3,12 @@
 The issue-5 ratios: HELSCM / HEL (``surrogate`` over ``ktgf``, target <= 1.2) and DEM / HELSCM (``dem`` over
 ``surrogate``, the paper claims two to three orders of magnitude) for the same simulated time, at one particle
 size and time step. Every model runs the same case (``cases/colliding_streams.py``: same grid, gas warm-up,
-injection, seed) from the release to ``--end-time`` in this one process, one after the other (after an untimed
-two-step run of each model on a small grid that loads every kernel module); the time loop alone is timed (``HelSolver.step``, synchronised per step on CUDA), the gas warm-up and set-up are not.
+injection, seed) from the release to ``--end-time`` in this one process, round robin (step n of every model, then
+step n + 1: a load on the machine falls on all models alike), after an untimed two-step run of each model on a
+small grid that loads every kernel module; the steps alone are timed (``HelSolver.step``, synchronised per step
+on CUDA), the gas warm-up and set-up are not.
 Reported per model: the total step wall clock, the median step, the detected pairs per simulated second, and
-the ratios. On a shared machine the models see whatever load there is in turn; rerun to judge the noise.
+the ratios. Rerun to judge the noise.
 
 Usage::
 
@@ -29,10 +31,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 MODELS = ("none", "ktgf", "surrogate", "surrogate-paper", "dem")
 
 
-def time_model(case, name: str, args) -> dict:
-    """Build the rig for model ``name``, warm the gas up, step to ``args.end_time``; per-step wall clock."""
-    import warp as wp
-
+def build_model(case, name: str, args):
+    """The rig for model ``name`` after its gas warm-up (untimed); the release starts with the next step."""
     ns = argparse.Namespace(diameter=args.diameter, dt=args.dt, collisions=name, end_time=args.end_time,
                             particles_per_parcel=1.0, max_particles=args.max_particles, monodisperse=False,
                             model=(args.paper_model if name == "surrogate-paper" else args.model),
@@ -44,19 +44,32 @@ def time_model(case, name: str, args) -> dict:
     rig = case.CollidingStreams(config)
     rig.warm_up()
     rig.solver.time_sub_steps = False
-    device = rig.pool.particles.device
-    steps = int(round(config.end_time / config.dt))
-    walls, detected = [], 0
+    return rig
+
+
+def time_models(case, names, args) -> dict:
+    """Step every model's rig to ``args.end_time``, round robin: step n of each model, then step n + 1, so
+    that whatever load the machine carries falls on all models alike. Per-step wall clock per model."""
+    import warp as wp
+
+    rigs = {name: build_model(case, name, args) for name in names}
+    steps = int(round(args.end_time / args.dt))
+    walls = {name: [] for name in names}
+    detected = dict.fromkeys(names, 0)
     for _ in range(steps):
-        start = time.perf_counter()
-        rig.solver.step()
-        if device.is_cuda:
-            wp.synchronize_device(device)
-        walls.append(time.perf_counter() - start)
-        detected += int(rig.solver.collision_counts().get("detected_pairs", 0))
-    return {"model": name, "steps": steps, "total_s": sum(walls), "median_step_s": statistics.median(walls),
-            "detected_pairs_per_s": detected / (steps * config.dt) if name not in ("none", "ktgf") else None,
-            "parcels": rig.injected}
+        for name, rig in rigs.items():
+            device = rig.pool.particles.device
+            start = time.perf_counter()
+            rig.solver.step()
+            if device.is_cuda:
+                wp.synchronize_device(device)
+            walls[name].append(time.perf_counter() - start)
+            detected[name] += int(rig.solver.collision_counts().get("detected_pairs", 0))
+    return {name: {"model": name, "steps": steps, "total_s": sum(walls[name]),
+                   "median_step_s": statistics.median(walls[name]),
+                   "detected_pairs_per_s": (detected[name] / (steps * args.dt)
+                                            if name not in ("none", "ktgf") else None),
+                   "parcels": rigs[name].injected} for name in names}
 
 
 def main(argv=None) -> int:
@@ -91,9 +104,8 @@ def main(argv=None) -> int:
     quiet_warp()
     case = load_case_module("colliding_streams")
     small = argparse.Namespace(**{**vars(args), "cells": 5000, "max_particles": 40, "end_time": 2 * args.dt})
-    for m in models:  # load every kernel module once, untimed, so no model pays the first-launch cost
-        time_model(case, m, small)
-    rows = {m: time_model(case, m, args) for m in models}
+    time_models(case, models, small)  # load every kernel module once, untimed: no model pays the first launch
+    rows = time_models(case, models, args)
     ratios = {}
     if "surrogate" in rows and "ktgf" in rows:
         ratios["helscm_over_hel"] = rows["surrogate"]["total_s"] / rows["ktgf"]["total_s"]
