@@ -123,7 +123,7 @@ class SurrogateCollision:
     """
 
     def __init__(self, *, model_dir: str, mode: str = "pairwise", n_streams: int = DEFAULT_STREAMS,
-                 prefetch: bool = True):
+                 batched: bool = True):
         from hel_warp.forest import load_forest
 
         if mode not in ("pairwise", "paper"):
@@ -139,8 +139,9 @@ class SurrogateCollision:
                               f"{self.flat.form!r}-form one; train with `hel-warp train --form {want}`")
         self.model_dir = model_dir
         self.n_streams = int(n_streams)
-        self.prefetch = bool(prefetch) and mode == "pairwise"
-        """pairwise: predict every detected pair in one batch before the rounds (same results, faster)."""
+        self.batched = bool(batched) and mode == "pairwise"
+        """pairwise: predict each round's pairs in one batched forest evaluation (same results, faster);
+        forests deeper than the perfect layout allows walk inline."""
         self._device = None
         self._counts = None
 
@@ -154,8 +155,12 @@ class SurrogateCollision:
         n = particles.count
         self._device = dev
         self._capacity = n
-        # pairwise: one batched prediction per step in the fast layout, inline walks in the explicit one
-        self.batch_forest = self.flat.to_device(dev, layout="auto") if self.prefetch else None
+        from hel_warp.forest import PERFECT_MAX_DEPTH
+
+        # pairwise: each round's pairs predicted in one batch (perfect layout), else inline walks (explicit)
+        self.batch_forest = None
+        if self.batched and self.flat.max_depth <= PERFECT_MAX_DEPTH:
+            self.batch_forest = self.flat.to_device(dev, layout="perfect")
         self.forest = self.flat.to_device(dev)
         self.detector = _PairDetector(dev, n)
         s2 = self.n_streams * self.n_streams
@@ -168,8 +173,8 @@ class SurrogateCollision:
         self.v_out = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.paper_features = wp.zeros((n, 10), dtype=wp.float32, device=dev)
         self.pair_features = wp.zeros((16, 6), dtype=wp.float32, device=dev)
-        self.pair_prefetched = wp.zeros((16, 2), dtype=wp.float32, device=dev)
-        self.touched = wp.zeros(n, dtype=wp.int32, device=dev)
+        self._grow_batch(16)
+        self.batch_count = wp.zeros(1, dtype=wp.int32, device=dev)
 
     # ------------------------------------------------------------------ the strategy interface
     def accelerate(self, solver) -> None:
@@ -203,7 +208,7 @@ class SurrogateCollision:
             return
         if self.pair_features.shape[0] < det.pair_capacity:
             self.pair_features = wp.zeros((det.pair_capacity, 6), dtype=wp.float32, device=self._device)
-            self.pair_prefetched = wp.zeros((det.pair_capacity, 2), dtype=wp.float32, device=self._device)
+            self._grow_batch(det.pair_capacity)
         launch_count_detected(n_pairs, det.pair_i, det.pair_j, particles.stream, self.n_streams, self.detected,
                               det.pair_state)
         args = PairwiseArgs()
@@ -211,9 +216,18 @@ class SurrogateCollision:
         args.particle_x, args.particle_radius = particles.x, particles.radius
         args.particle_density, args.particle_weight = particles.density, particles.weight
         args.particle_stream, args.n_streams = particles.stream, self.n_streams
-        args.touched, args.prefetched = self.touched, self.pair_prefetched
+        args.batch_row, args.batch_count = self.batch_row, self.batch_count
+        args.batch_features, args.batch_out = self.batch_features, self.batch_out
         resolve_pairwise(n_pairs, args, self.forest, det.pair_state, self.pair_features, particles.v, self.calls,
                          self.skipped, self.more_rounds, self.rounds, batch_forest=self.batch_forest)
+
+    def _grow_batch(self, capacity: int) -> None:
+        import warp as wp
+
+        dev = self._device
+        self.batch_row = wp.zeros(capacity, dtype=wp.int32, device=dev)
+        self.batch_features = wp.zeros((capacity, 6), dtype=wp.float32, device=dev)
+        self.batch_out = wp.zeros((capacity, 2), dtype=wp.float32, device=dev)
 
     def _collide_paper(self, particles, r_max: float) -> None:
         import warp as wp

@@ -149,7 +149,7 @@ def eval_forest_explicit_kernel(forest: Forest, features: wp.array2d(dtype=wp.fl
 
 @wp.kernel
 def eval_forest_perfect_kernel(forest: Forest, features: wp.array(dtype=wp.float32), n_rows: wp.int32,
-                               n_features: wp.int32,
+                               n_features: wp.int32, row_count: wp.array(dtype=wp.int32),
                                # outputs
                                out: wp.array2d(dtype=wp.float32)):
     """Every target for the BLOCK_ROWS rows [tid*BLOCK_ROWS, ...), PERFECT layout.
@@ -158,11 +158,17 @@ def eval_forest_perfect_kernel(forest: Forest, features: wp.array(dtype=wp.float
     is walked for the whole block (BLOCK_GROUPS groups of LOCKSTEP_ROWS rows side by side, fixed
     trip count, independent loads in flight) before the next tree, so its nodes stay in cache;
     sums kept locally in XGBoost's order base + tree 0 + tree 1 + ... Rows past ``n_rows``
-    repeat the last row and are not written.
+    repeat the last row and are not written. ``row_count`` (optional, on the device): evaluate only the
+    first ``min(n_rows, row_count[0])`` rows (a count known only on the device; other blocks return).
     """
     tid = wp.tid()
     first = tid * BLOCK_ROWS
-    last = wp.min(first + BLOCK_ROWS, n_rows)
+    rows = n_rows
+    if row_count.shape[0] > 0:
+        rows = wp.min(rows, row_count[0])
+    if first >= rows:
+        return
+    last = wp.min(first + BLOCK_ROWS, rows)
     n_targets = forest.tree_start.shape[0] - 1
     for t in range(n_targets):
         acc = BlockSum()
@@ -324,10 +330,11 @@ def paper_velocities_kernel(targets: wp.array2d(dtype=wp.float32),
 # ------------------------------------------------------------------------------ launch wrappers
 
 
-def eval_forest(forest: Forest, features, out, *, rows_per_thread: int = 1, device=None) -> None:
+def eval_forest(forest: Forest, features, out, *, rows_per_thread: int = 1, device=None, row_count=None) -> None:
     """``out[row, t]`` = prediction of target t for ``features[row]`` (raw float32 features).
 
-    ``rows_per_thread`` applies to the explicit layout; the perfect layout uses BLOCK_ROWS.
+    ``rows_per_thread`` applies to the explicit layout; the perfect layout uses BLOCK_ROWS and takes an
+    optional device ``row_count`` (int32 array: only the first row_count[0] rows).
     """
     n_rows = features.shape[0]
     if n_rows == 0:
@@ -337,8 +344,11 @@ def eval_forest(forest: Forest, features, out, *, rows_per_thread: int = 1, devi
         if not features.is_contiguous:
             raise ValueError("eval_forest: the perfect layout needs contiguous (row-major) features")
         wp.launch(eval_forest_perfect_kernel, dim=(n_rows + BLOCK_ROWS - 1) // BLOCK_ROWS,
-                  inputs=[forest, features.flatten(), n_rows, features.shape[1]], outputs=[out], device=device)
+                  inputs=[forest, features.flatten(), n_rows, features.shape[1], row_count], outputs=[out],
+                  device=device)
     else:
+        if row_count is not None:
+            raise ValueError("eval_forest: row_count needs the perfect layout")
         rows_per_thread = max(1, int(rows_per_thread))
         wp.launch(eval_forest_explicit_kernel, dim=(n_rows + rows_per_thread - 1) // rows_per_thread,
                   inputs=[forest, features, n_rows, rows_per_thread], outputs=[out], device=device)

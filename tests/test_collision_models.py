@@ -251,14 +251,14 @@ def test_pairwise_is_deterministic(trained_models):
 
 
 def test_batched_prediction_changes_nothing(trained_models):
-    # The batched pre-prediction is a shortcut: the rounds must give bit for bit what inline walks give
-    # (same features, same float32 summation order), in clusters too (later partners walk inline).
+    # The per-round batched prediction is a shortcut: the rounds must give bit for bit what inline walks
+    # give (same features, same float32 summation order), in clusters of several partners too.
     from hel_warp.collision_models import SurrogateCollision
 
     results = []
-    for prefetch in (False, True):
+    for batched in (False, True):
         p = random_cloud(n=3000, seed=4)
-        strategy = SurrogateCollision(model_dir=trained_models["contact"], prefetch=prefetch)
+        strategy = SurrogateCollision(model_dir=trained_models["contact"], batched=batched)
         v0 = p.v.numpy().copy()
         strategy.collide(p)
         results.append((p.v.numpy().copy(), strategy.counts()))
@@ -266,6 +266,7 @@ def test_batched_prediction_changes_nothing(trained_models):
     assert results[0][1]["rounds"] >= 2 and results[0][1]["surrogate_calls"] > 300
     assert not np.array_equal(results[0][0], v0)
     assert np.array_equal(results[0][0], results[1][0])
+    assert strategy.batch_forest is not None  # the tiny model fits the perfect layout: the batch path ran
 
 
 def test_paper_mode_uses_the_cluster_averaged_partner_velocity(trained_models):
