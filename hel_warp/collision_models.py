@@ -139,9 +139,9 @@ class SurrogateCollision:
                               f"{self.flat.form!r}-form one; train with `hel-warp train --form {want}`")
         self.model_dir = model_dir
         self.n_streams = int(n_streams)
-        self.batched = bool(batched) and mode == "pairwise"
-        """pairwise: predict each round's pairs in one batched forest evaluation (same results, faster);
-        forests deeper than the perfect layout allows walk inline."""
+        self.batched = bool(batched)
+        """Predict in batched forest evaluations (pairwise: each round's pairs; paper: the clustered
+        particles): same results, faster; forests deeper than the perfect layout allows walk inline."""
         self._device = None
         self._counts = None
 
@@ -172,6 +172,8 @@ class SurrogateCollision:
         self.owner = wp.zeros(n, dtype=wp.int32, device=dev)
         self.v_out = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.paper_features = wp.zeros((n, 10), dtype=wp.float32, device=dev)
+        self.paper_batch_row = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.paper_batch_out = wp.zeros((n, 3), dtype=wp.float32, device=dev)
         self.pair_features = wp.zeros((16, 6), dtype=wp.float32, device=dev)
         self._grow_batch(16)
         self.batch_count = wp.zeros(1, dtype=wp.int32, device=dev)
@@ -246,7 +248,9 @@ class SurrogateCollision:
         args.particle_radius, args.particle_density = particles.radius, particles.density
         args.particle_weight, args.particle_alive = particles.weight, particles.alive
         args.particle_stream, args.max_radius, args.n_streams = particles.stream, float(r_max), self.n_streams
-        launch_paper_update(args, self.forest, self.paper_features, self.v_out, self.calls)
+        args.batch_row, args.batch_count = self.paper_batch_row, self.batch_count
+        launch_paper_update(args, self.forest, self.paper_features, self.v_out, self.calls,
+                            batch_forest=self.batch_forest, batch_out=self.paper_batch_out)
         wp.copy(particles.v, self.v_out)
 
     def counts(self) -> dict:

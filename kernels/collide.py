@@ -338,6 +338,11 @@ class PaperArgs:
     particle_stream: wp.array(dtype=wp.int32)
     max_radius: float
     n_streams: wp.int32
+    batched: wp.int32
+    """1: write each clustered particle's features into the next batch row (``batch_row``, counter
+    ``batch_count``) for one batched forest evaluation (``paper_apply_batch``); 0: walk the forest inline."""
+    batch_row: wp.array(dtype=wp.int32)
+    batch_count: wp.array(dtype=wp.int32)
 
 
 @wp.kernel
@@ -356,6 +361,8 @@ def paper_cluster_update(
     i = wp.tid()
     vi = args.particle_v[i]
     particle_v_out[i] = vi
+    if args.batched != 0:
+        args.batch_row[i] = -1
     if args.particle_alive[i] == 0:
         return
     xi = args.particle_x[i]
@@ -380,15 +387,34 @@ def paper_cluster_update(
     if sum_w <= 0.0:
         return
     v_avg = sum_v / sum_w
+    row = i
+    if args.batched != 0:
+        row = wp.atomic_add(args.batch_count, 0, 1)  # a row's place changes nothing in its prediction
+        args.batch_row[i] = row
     for c in range(3):
-        features[i, c] = vi[c]
-        features[i, 3 + c] = v_avg[c]
-    features[i, 6] = 2.0 * ri
-    features[i, 7] = sum_d / sum_w
-    features[i, 8] = args.particle_density[i]
-    features[i, 9] = sum_rho / sum_w
-    particle_v_out[i] = wp.vec3(forest_target(forest, 0, features, i), forest_target(forest, 1, features, i),
-                                forest_target(forest, 2, features, i))
+        features[row, c] = vi[c]
+        features[row, 3 + c] = v_avg[c]
+    features[row, 6] = 2.0 * ri
+    features[row, 7] = sum_d / sum_w
+    features[row, 8] = args.particle_density[i]
+    features[row, 9] = sum_rho / sum_w
+    if args.batched == 0:
+        particle_v_out[i] = wp.vec3(forest_target(forest, 0, features, i), forest_target(forest, 1, features, i),
+                                    forest_target(forest, 2, features, i))
+
+
+@wp.kernel
+def paper_apply_batch(
+    batch_row: wp.array(dtype=wp.int32),
+    batch_out: wp.array2d(dtype=wp.float32),
+    # outputs
+    particle_v_out: wp.array(dtype=wp.vec3),
+):
+    """The batched predictions (u, v, w) back to their particles."""
+    i = wp.tid()
+    row = batch_row[i]
+    if row >= 0:
+        particle_v_out[i] = wp.vec3(batch_out[row, 0], batch_out[row, 1], batch_out[row, 2])
 
 
 # ------------------------------------------------------------------------------------------ CFD-DEM helpers
@@ -511,9 +537,22 @@ def resolve_pairwise(n_pairs: int, args: PairwiseArgs, forest: Forest, pair_stat
     wp.capture_while(more_rounds, one_round)
 
 
-def launch_paper_update(args: PaperArgs, forest: Forest, features, particle_v_out, calls) -> None:
-    wp.launch(paper_cluster_update, dim=args.particle_x.shape[0], device=particle_v_out.device,
+def launch_paper_update(args: PaperArgs, forest: Forest, features, particle_v_out, calls,
+                        batch_forest: Forest | None = None, batch_out=None) -> None:
+    """Paper-mode update of every particle; with ``batch_forest`` (perfect layout; ``args.batch_*`` and
+    ``batch_out`` sized to the particles) the clustered particles are predicted in one batched launch."""
+    from kernels.forest import eval_forest
+
+    device = particle_v_out.device
+    args.batched = 0 if batch_forest is None else 1
+    if batch_forest is not None:
+        args.batch_count.zero_()
+    wp.launch(paper_cluster_update, dim=args.particle_x.shape[0], device=device,
               inputs=[args, forest], outputs=[features, particle_v_out, calls])
+    if batch_forest is not None:
+        eval_forest(batch_forest, features, batch_out, device=device, row_count=args.batch_count)
+        wp.launch(paper_apply_batch, dim=args.particle_x.shape[0], device=device,
+                  inputs=[args.batch_row, batch_out], outputs=[particle_v_out])
 
 
 def launch_held_fluid_acceleration(v_start, v_push, alive, dt: float, a_fluid) -> None:

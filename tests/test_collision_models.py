@@ -250,20 +250,25 @@ def test_pairwise_is_deterministic(trained_models):
     assert results[0][1] == results[1][1]
 
 
-def test_batched_prediction_changes_nothing(trained_models):
-    # The per-round batched prediction is a shortcut: the rounds must give bit for bit what inline walks
-    # give (same features, same float32 summation order), in clusters of several partners too.
+@pytest.mark.parametrize("mode", ["pairwise", "paper"])
+def test_batched_prediction_changes_nothing(trained_models, mode):
+    # The batched prediction (pairwise: per round; paper: all clustered particles) is a shortcut: it must
+    # give bit for bit what inline walks give (same features, same float32 summation order), in clusters
+    # of several partners too.
     from hel_warp.collision_models import SurrogateCollision
 
     results = []
     for batched in (False, True):
         p = random_cloud(n=3000, seed=4)
-        strategy = SurrogateCollision(model_dir=trained_models["contact"], batched=batched)
+        strategy = SurrogateCollision(model_dir=trained_models["contact" if mode == "pairwise" else "paper"],
+                                      mode=mode, batched=batched)
         v0 = p.v.numpy().copy()
         strategy.collide(p)
         results.append((p.v.numpy().copy(), strategy.counts()))
     assert results[0][1] == results[1][1]
-    assert results[0][1]["rounds"] >= 2 and results[0][1]["surrogate_calls"] > 300
+    assert results[0][1]["surrogate_calls"] > 300
+    if mode == "pairwise":
+        assert results[0][1]["rounds"] >= 2
     assert not np.array_equal(results[0][0], v0)
     assert np.array_equal(results[0][0], results[1][0])
     assert strategy.batch_forest is not None  # the tiny model fits the perfect layout: the batch path ran
