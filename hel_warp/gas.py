@@ -318,6 +318,7 @@ class GasSolver:
         r, z, p, ap = (v[:n] for v in self._pcg)
         s, dev = self._scalars, self.device
         check_every = 1  # the residual check (one dot product) costs a fraction of an iteration
+        dot_dim = (n + K.DOT_CHUNK - 1) // K.DOT_CHUNK
         if multigrid is None:
             wp.launch(K.ic0_factor_kernel, dim=1, inputs=[diag, coef, neighbour, n, wp.float64(relaxation)],
                       outputs=[pivot], device=dev)
@@ -331,8 +332,8 @@ class GasSolver:
         matvec(x, rhs, ap, 1.0, 0.0)
         wp.launch(K.pcg_start_kernel, dim=n, inputs=[rhs, ap], outputs=[r], device=dev)
         s.zero_()
-        wp.launch(K.pcg_dot_kernel, dim=n, inputs=[rhs, rhs, 1], outputs=[s], device=dev)
-        wp.launch(K.pcg_dot_kernel, dim=n, inputs=[r, r, 3], outputs=[s], device=dev)
+        wp.launch(K.pcg_dot_kernel, dim=dot_dim, inputs=[rhs, rhs, 1], outputs=[s], device=dev)
+        wp.launch(K.pcg_dot_kernel, dim=dot_dim, inputs=[r, r, 3], outputs=[s], device=dev)
         host = s.numpy()
         atol = max(tol * float(np.sqrt(host[1])), atol_floor)
         residual = float(np.sqrt(host[3]))
@@ -342,17 +343,17 @@ class GasSolver:
         precondition()
         wp.copy(p, z)
         s.zero_()
-        wp.launch(K.pcg_dot_kernel, dim=n, inputs=[r, z, 0], outputs=[s], device=dev)
+        wp.launch(K.pcg_dot_kernel, dim=dot_dim, inputs=[r, z, 0], outputs=[s], device=dev)
         while iterations < maxiter:
             matvec(p, p, ap, 1.0, 0.0)
-            wp.launch(K.pcg_dot_kernel, dim=n, inputs=[p, ap, 1], outputs=[s], device=dev)
+            wp.launch(K.pcg_dot_kernel, dim=dot_dim, inputs=[p, ap, 1], outputs=[s], device=dev)
             wp.launch(K.pcg_step_kernel, dim=n, inputs=[p, ap, s], outputs=[x, r], device=dev)
             precondition()
-            wp.launch(K.pcg_dot_kernel, dim=n, inputs=[r, z, 2], outputs=[s], device=dev)
+            wp.launch(K.pcg_dot_kernel, dim=dot_dim, inputs=[r, z, 2], outputs=[s], device=dev)
             wp.launch(K.pcg_direction_kernel, dim=n, inputs=[z, s], outputs=[p], device=dev)
             iterations += 1
             if iterations % check_every == 0 or iterations == maxiter:
-                wp.launch(K.pcg_dot_kernel, dim=n, inputs=[r, r, 3], outputs=[s], device=dev)
+                wp.launch(K.pcg_dot_kernel, dim=dot_dim, inputs=[r, r, 3], outputs=[s], device=dev)
                 residual = float(np.sqrt(s.numpy()[3]))
                 if not residual > atol:  # converged, or NaN (reported by the caller)
                     break

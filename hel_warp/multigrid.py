@@ -49,6 +49,8 @@ class _Level:
         self.residual = wp.zeros(n, dtype=wp.float64, device=device)
         self.colour = wp.array(colour, dtype=wp.int32, device=device)
         self.n_colours = n_colours
+        self.colour_rows = [wp.array(np.flatnonzero(colour == c).astype(np.int32), dtype=wp.int32, device=device)
+                            for c in range(n_colours)]
         self.parent = None  # row of the next level, per row
 
 
@@ -100,9 +102,11 @@ class AggregationMultigrid:
     def _smooth(self, level: _Level, b, z, colours) -> None:
         for _ in range(self.sweeps):
             for c in colours:
-                wp.launch(K.mg_smooth_kernel, dim=level.n,
-                          inputs=[level.diag, level.coef, level.neighbour, level.colour, c, b], outputs=[z],
-                          device=self.device)
+                rows = level.colour_rows[c]
+                if rows.shape[0]:
+                    wp.launch(K.mg_smooth_kernel, dim=rows.shape[0],
+                              inputs=[level.diag, level.coef, level.neighbour, rows, b], outputs=[z],
+                              device=self.device)
 
     def apply(self, r, z) -> None:
         """z = M^-1 r (one V-cycle from z = 0)."""

@@ -846,16 +846,13 @@ def mg_smooth_kernel(
     diag: wp.array(dtype=wp.float64),
     coef: wp.array2d(dtype=wp.float64),
     neighbour: wp.array2d(dtype=wp.int32),
-    colour: wp.array(dtype=wp.int32),
-    which: int,
+    rows: wp.array(dtype=wp.int32),
     b: wp.array(dtype=wp.float64),
     # outputs
     z: wp.array(dtype=wp.float64),
 ):
-    """Gauss-Seidel update of the rows of one colour (no two neighbours share a colour)."""
-    r = wp.tid()
-    if colour[r] != which:
-        return
+    """Gauss-Seidel update of ``rows``, the rows of one colour (no two neighbours share a colour)."""
+    r = rows[wp.tid()]
     acc = b[r]
     for m in range(6):
         acc = acc + coef[r, m] * z[neighbour[r, m]]
@@ -919,6 +916,11 @@ def mg_coarsest_kernel(
 # reduces with atomics instead, preconditioned with IC(0) (sequential, fine on the CPU). Scalars live in ``scalars``: 0 = r.z, 1 = p.Ap, 2 = new r.z, 3 = r.r.
 
 
+DOT_CHUNK = 512
+"""Entries one thread of ``pcg_dot_kernel`` sums before its single atomic add (the CPU runs the
+threads one after another: one atomic per entry cost more than the products)."""
+
+
 @wp.kernel
 def pcg_dot_kernel(
     a: wp.array(dtype=wp.float64),
@@ -927,8 +929,14 @@ def pcg_dot_kernel(
     # outputs
     scalars: wp.array(dtype=wp.float64),
 ):
-    i = wp.tid()
-    wp.atomic_add(scalars, slot, a[i] * b[i])
+    """scalars[slot] += a . b over the chunk [tid * DOT_CHUNK, ...) (launch ceil(n / DOT_CHUNK) threads)."""
+    t = wp.tid()
+    first = t * DOT_CHUNK
+    last = wp.min(first + DOT_CHUNK, a.shape[0])
+    acc = wp.float64(0.0)
+    for i in range(first, last):
+        acc = acc + a[i] * b[i]
+    wp.atomic_add(scalars, slot, acc)
 
 
 @wp.kernel
