@@ -8,7 +8,8 @@ application z = M^-1 r is a V-cycle from z = 0: per level ``sweeps`` multi-colou
 before (colours ascending) and after (descending), the residual restricted by summation, the coarse
 correction prolonged times ``scale`` (piecewise-constant prolongation under-corrects smooth errors;
 Braess 1995 scales by ~1.8, Notay 2010 discusses why), symmetric Gauss-Seidel sweeps on the coarsest level.
-The cycle is a fixed symmetric linear map, as CG needs. Colours: parity of i + j + k, or (with a periodic
+The cycle is a fixed symmetric linear map, as CG needs. Coarse matrices and restricted residuals are gathered per coarse row from its fine rows in a fixed order
+(no float atomics: the same numbers on any device). Colours: parity of i + j + k, or (with a periodic
 axis of odd count, where parity does not separate neighbours across the wrap) the sum mod 3 of per-axis
 colours {0, 1} with 2 on the last cell of such an axis — a proper colouring of the product graph.
 
@@ -52,6 +53,8 @@ class _Level:
         self.colour_rows = [wp.array(np.flatnonzero(colour == c).astype(np.int32), dtype=wp.int32, device=device)
                             for c in range(n_colours)]
         self.parent = None  # row of the next level, per row
+        self.child_start = None  # rows of the previous level in this row's block: children[child_start[r]:...]
+        self.children = None
 
 
 class AggregationMultigrid:
@@ -72,6 +75,10 @@ class AggregationMultigrid:
             level = _Level(coords.shape[0], self.device, colour, n_colours)
             if fine is not None:
                 fine.parent = wp.array(parent, dtype=wp.int32, device=self.device)
+                order = np.argsort(parent, kind="stable").astype(np.int32)  # fine rows by block, ascending
+                start = np.concatenate([[0], np.cumsum(np.bincount(parent, minlength=level.n))]).astype(np.int32)
+                level.children = wp.array(order, dtype=wp.int32, device=self.device)
+                level.child_start = wp.array(start, dtype=wp.int32, device=self.device)
             self.levels.append(level)
             factor = [2 if shape[a] > 1 and not (periodic[a] and shape[a] % 2 == 1) else 1 for a in range(3)]
             if level.n <= COARSEST_ROWS or factor == [1, 1, 1]:
@@ -94,10 +101,9 @@ class AggregationMultigrid:
         fine = self.levels[0]
         fine.diag, fine.coef, fine.neighbour = diag, coef, neighbour
         for level, coarse in zip(self.levels[:-1], self.levels[1:]):
-            wp.launch(K.mg_clear_kernel, dim=coarse.n, inputs=[], outputs=[coarse.diag, coarse.coef, coarse.neighbour],
-                      device=dev)
-            wp.launch(K.mg_coarsen_kernel, dim=level.n, inputs=[level.parent, level.diag, level.coef, level.neighbour],
-                      outputs=[coarse.diag, coarse.coef, coarse.neighbour], device=dev)
+            wp.launch(K.mg_coarsen_kernel, dim=coarse.n,
+                      inputs=[coarse.child_start, coarse.children, level.parent, level.diag, level.coef,
+                              level.neighbour], outputs=[coarse.diag, coarse.coef, coarse.neighbour], device=dev)
 
     def _smooth(self, level: _Level, b, z, colours) -> None:
         for _ in range(self.sweeps):
@@ -126,9 +132,8 @@ class AggregationMultigrid:
                   inputs=[level.diag, level.coef, level.neighbour, z, b, wp.float64(-1.0), wp.float64(1.0)],
                   outputs=[level.residual], device=dev)
         coarse = self.levels[index + 1]
-        coarse.b.zero_()
-        wp.launch(K.mg_restrict_kernel, dim=level.n, inputs=[level.parent, level.residual], outputs=[coarse.b],
-                  device=dev)
+        wp.launch(K.mg_restrict_kernel, dim=coarse.n, inputs=[coarse.child_start, coarse.children, level.residual],
+                  outputs=[coarse.b], device=dev)
         self._cycle(index + 1, coarse.b, coarse.z)
         wp.launch(K.mg_prolong_kernel, dim=level.n, inputs=[level.parent, coarse.z, wp.float64(self.scale)],
                   outputs=[z], device=dev)

@@ -801,21 +801,9 @@ def scatter_solution_kernel(
 
 
 @wp.kernel
-def mg_clear_kernel(
-    # outputs
-    diag: wp.array(dtype=wp.float64),
-    coef: wp.array2d(dtype=wp.float64),
-    neighbour: wp.array2d(dtype=wp.int32),
-):
-    r = wp.tid()
-    diag[r] = wp.float64(0.0)
-    for m in range(6):
-        coef[r, m] = wp.float64(0.0)
-        neighbour[r, m] = r
-
-
-@wp.kernel
 def mg_coarsen_kernel(
+    child_start: wp.array(dtype=wp.int32),
+    children: wp.array(dtype=wp.int32),
     parent: wp.array(dtype=wp.int32),
     diag: wp.array(dtype=wp.float64),
     coef: wp.array2d(dtype=wp.float64),
@@ -825,20 +813,28 @@ def mg_coarsen_kernel(
     c_coef: wp.array2d(dtype=wp.float64),
     c_neighbour: wp.array2d(dtype=wp.int32),
 ):
-    """A_c = P^T A P: a coupling inside a block moves onto the block's diagonal, one between blocks adds
-    to the coarse coupling of the same direction (the neighbouring block in that direction is unique)."""
-    r = wp.tid()
-    C = parent[r]
-    wp.atomic_add(c_diag, C, diag[r])
+    """Row C of A_c = P^T A P, gathered from its fine rows ``children[child_start[C]:child_start[C+1]]``
+    in a fixed order (no atomics: the same sums on any device): a coupling inside the block moves onto
+    its diagonal, one to another block adds to the coarse coupling of the same direction (the
+    neighbouring block in that direction is unique)."""
+    C = wp.tid()
+    d = wp.float64(0.0)
     for m in range(6):
-        c = coef[r, m]
-        if c != wp.float64(0.0):
-            D = parent[neighbour[r, m]]
-            if D == C:
-                wp.atomic_add(c_diag, C, -c)
-            else:
-                wp.atomic_add(c_coef, C, m, c)
-                c_neighbour[C, m] = D
+        c_coef[C, m] = wp.float64(0.0)
+        c_neighbour[C, m] = C
+    for idx in range(child_start[C], child_start[C + 1]):
+        r = children[idx]
+        d = d + diag[r]
+        for m in range(6):
+            c = coef[r, m]
+            if c != wp.float64(0.0):
+                D = parent[neighbour[r, m]]
+                if D == C:
+                    d = d - c
+                else:
+                    c_coef[C, m] = c_coef[C, m] + c
+                    c_neighbour[C, m] = D
+    c_diag[C] = d
 
 
 @wp.kernel
@@ -862,13 +858,18 @@ def mg_smooth_kernel(
 
 @wp.kernel
 def mg_restrict_kernel(
-    parent: wp.array(dtype=wp.int32),
+    child_start: wp.array(dtype=wp.int32),
+    children: wp.array(dtype=wp.int32),
     residual: wp.array(dtype=wp.float64),
     # outputs
     c_b: wp.array(dtype=wp.float64),
 ):
-    r = wp.tid()
-    wp.atomic_add(c_b, parent[r], residual[r])
+    """c_b = P^T residual: the sum over the block's fine rows, in a fixed order."""
+    C = wp.tid()
+    acc = wp.float64(0.0)
+    for idx in range(child_start[C], child_start[C + 1]):
+        acc = acc + residual[children[idx]]
+    c_b[C] = acc
 
 
 @wp.kernel
