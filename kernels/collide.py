@@ -227,6 +227,27 @@ class PairwiseArgs:
     """(pairs, 2) impulse_n, impulse_t of the batch rows."""
 
 
+@wp.func
+def owns_both(args: PairwiseArgs, k: int):
+    """Pair k holds the lowest pending index at both its parcels: it is resolved in this round."""
+    return args.owner[args.pair_i[k]] == k and args.owner[args.pair_j[k]] == k
+
+
+@wp.func
+def pair_now(args: PairwiseArgs, particle_v: wp.array(dtype=wp.vec3), k: int):
+    """Pair k at the current velocities: i, j, d = x_j - x_i, |d|, v_i, v_j."""
+    i = args.pair_i[k]
+    j = args.pair_j[k]
+    d = args.particle_x[j] - args.particle_x[i]
+    return i, j, d, wp.length(d), particle_v[i], particle_v[j]
+
+
+@wp.func
+def approaching(d: wp.vec3, dist: float, vi: wp.vec3, vj: wp.vec3):
+    """Centres apart (d = x_j - x_i, dist = |d| > 0) and closing: (v_j - v_i).(x_j - x_i) < 0."""
+    return dist > 0.0 and wp.dot(vj - vi, d) < 0.0
+
+
 @wp.kernel
 def select_round(
     args: PairwiseArgs,
@@ -242,16 +263,11 @@ def select_round(
     args.batch_row[k] = -1
     if pair_state[k] != PAIR_PENDING:
         return
-    i = args.pair_i[k]
-    j = args.pair_j[k]
-    if args.owner[i] != k or args.owner[j] != k:
+    if not owns_both(args, k):
         more_rounds[0] = 1  # every writer stores the same value
         return
-    d = args.particle_x[j] - args.particle_x[i]
-    vi = particle_v[i]
-    vj = particle_v[j]
-    dist = wp.length(d)
-    if dist <= 0.0 or wp.dot(vj - vi, d) >= 0.0:
+    i, j, d, dist, vi, vj = pair_now(args, particle_v, k)
+    if not approaching(d, dist, vi, vj):
         return
     row = wp.atomic_add(args.batch_count, 0, 1)
     args.batch_row[k] = row
@@ -275,17 +291,12 @@ def resolve_round(
     k = wp.tid()
     if pair_state[k] != PAIR_PENDING:
         return
-    i = args.pair_i[k]
-    j = args.pair_j[k]
-    if args.owner[i] != k or args.owner[j] != k:
+    if not owns_both(args, k):
         more_rounds[0] = 1  # every writer stores the same value
         return
     pair_state[k] = PAIR_DONE
-    d = args.particle_x[j] - args.particle_x[i]
-    vi = particle_v[i]
-    vj = particle_v[j]
-    dist = wp.length(d)
-    if dist <= 0.0 or wp.dot(vj - vi, d) >= 0.0:
+    i, j, d, dist, vi, vj = pair_now(args, particle_v, k)
+    if not approaching(d, dist, vi, vj):
         wp.atomic_add(skipped, 0, 1)  # separating (or coincident centres: no normal): not collided
         return
     n = d / dist
