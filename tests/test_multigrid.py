@@ -53,9 +53,14 @@ def to_warp(diag, coef, neighbour):
             wp.array(neighbour.astype(np.int32), dtype=wp.int32))
 
 
-def masked_box(shape, rng, solid_fraction=0.3):
+def built(shape, periodic, seed, solid_fraction=0.3):
+    """A random masked-box system (``stencil_system``) and its multigrid, set up: (mg, dense A, rows)."""
+    rng = np.random.default_rng(seed)
     fluid = rng.uniform(size=shape) > solid_fraction
-    return fluid
+    diag, coef, neighbour, dense, rows = stencil_system(shape, periodic, fluid, rng)
+    mg = AggregationMultigrid(rows, shape, periodic, "cpu")
+    mg.setup(*to_warp(diag, coef, neighbour))
+    return mg, dense, rows
 
 
 CASES = [((8, 6, 4), (False, False, False)), ((7, 5, 3), (True, False, True)), ((6, 4, 5), (True, True, True))]
@@ -63,11 +68,7 @@ CASES = [((8, 6, 4), (False, False, False)), ((7, 5, 3), (True, False, True)), (
 
 @pytest.mark.parametrize("shape,periodic", CASES)
 def test_coarse_matrix_is_galerkin_product(shape, periodic):
-    rng = np.random.default_rng(3)
-    fluid = masked_box(shape, rng)
-    diag, coef, neighbour, dense, rows = stencil_system(shape, periodic, fluid, rng)
-    mg = AggregationMultigrid(rows, shape, periodic, "cpu")
-    mg.setup(*to_warp(diag, coef, neighbour))
+    mg, dense, rows = built(shape, periodic, seed=3)
     assert len(mg.levels) >= 2
     fine_dense = dense
     for level, coarse in zip(mg.levels[:-1], mg.levels[1:]):
@@ -87,11 +88,7 @@ def test_coarse_matrix_is_galerkin_product(shape, periodic):
 
 @pytest.mark.parametrize("shape,periodic", CASES)
 def test_colouring_separates_neighbours(shape, periodic):
-    rng = np.random.default_rng(4)
-    fluid = masked_box(shape, rng, solid_fraction=0.0)
-    diag, coef, neighbour, dense, rows = stencil_system(shape, periodic, fluid, rng)
-    mg = AggregationMultigrid(rows, shape, periodic, "cpu")
-    mg.setup(*to_warp(diag, coef, neighbour))
+    mg, dense, rows = built(shape, periodic, seed=4, solid_fraction=0.0)
     for level in mg.levels[:-1]:
         colour = level.colour.numpy()
         c_coef, c_nb = level.coef.numpy(), level.neighbour.numpy()
@@ -103,11 +100,7 @@ def test_colouring_separates_neighbours(shape, periodic):
 
 @pytest.mark.parametrize("shape,periodic", CASES)
 def test_vcycle_is_symmetric_positive_definite(shape, periodic):
-    rng = np.random.default_rng(5)
-    fluid = masked_box(shape, rng)
-    diag, coef, neighbour, dense, rows = stencil_system(shape, periodic, fluid, rng)
-    mg = AggregationMultigrid(rows, shape, periodic, "cpu")
-    mg.setup(*to_warp(diag, coef, neighbour))
+    mg, dense, rows = built(shape, periodic, seed=5)
     n = rows.size
     M_inv = np.zeros((n, n))
     z = wp.zeros(n, dtype=wp.float64)
