@@ -208,6 +208,7 @@ class GasSolver:
         self._active = wp.zeros(self._n_cells, dtype=wp.int32, device=dev)
         self._coef = wp.zeros((n_max, 6), dtype=wp.float64, device=dev)
         self._neighbour = wp.zeros((n_max, 6), dtype=wp.int32, device=dev)
+        self._box = K.make_stencil(self._diag, self._coef, self._neighbour)  # what the assembly kernels write
         self._fluid_sum = wp.zeros(3, dtype=wp.float64, device=dev)
         # solved rows only (kernels/gas.py "compacted systems"): fluid cells, solved faces per axis
         self._systems = {"pressure": self._row_map(domain.cell_fluid.numpy().ravel() != 0)}
@@ -257,6 +258,10 @@ class GasSolver:
         return (wp.array(rows, dtype=wp.int32, device=self.device),
                 wp.array(box_to_row, dtype=wp.int32, device=self.device))
 
+    def _compact(self, n: int) -> K.Stencil:
+        """The first ``n`` rows of the compact system arrays."""
+        return K.make_stencil(self._c_diag[:n], self._c_coef[:n], self._c_neighbour[:n])
+
     def _solve(self, system, what: str, tol: float, maxiter: int, atol_floor: float = 0.0,
                relaxation: float = 0.0, multigrid: AggregationMultigrid | None = None) -> int:
         """CG (see ``GasConfig.linear_solver``) of the box-sized system in the scratch arrays (``_rhs``,
@@ -268,22 +273,20 @@ class GasSolver:
         if n == 0:
             return 0
         rhs, x, diag = self._c_rhs[:n], self._c_x[:n], self._c_diag[:n]
-        coef, neighbour = self._c_coef[:n], self._c_neighbour[:n]
-        wp.launch(K.gather_system_kernel, dim=n,
-                  inputs=[rows, box_to_row, self._rhs, self._x, self._diag, self._coef, self._neighbour],
-                  outputs=[rhs, x, diag, coef, neighbour], device=self.device)
+        A = self._compact(n)
+        wp.launch(K.gather_system_kernel, dim=n, inputs=[rows, box_to_row, self._rhs, self._x, self._box],
+                  outputs=[rhs, x, A], device=self.device)
 
         def matvec(xv, yv, zv, alpha, beta):
-            wp.launch(K.stencil_matvec_kernel, dim=n,
-                      inputs=[diag, coef, neighbour, xv, yv, wp.float64(alpha), wp.float64(beta)],
+            wp.launch(K.stencil_matvec_kernel, dim=n, inputs=[A, xv, yv, wp.float64(alpha), wp.float64(beta)],
                       outputs=[zv], device=self.device)
 
         if multigrid is not None:
-            multigrid.setup(diag, coef, neighbour)
+            multigrid.setup(A)
         if self.linear_solver == "native":
             iterations, residual, atol = self._native_pcg(n, matvec, tol, maxiter, atol_floor, relaxation, multigrid)
         else:
-            A = wpl.LinearOperator(shape=(n, n), dtype=wp.float64, device=self.device, matvec=matvec)
+            operator = wpl.LinearOperator(shape=(n, n), dtype=wp.float64, device=self.device, matvec=matvec)
 
             def jacobi(xv, yv, zv, alpha, beta):
                 wp.launch(K.jacobi_kernel, dim=n, inputs=[diag, xv, yv, wp.float64(alpha), wp.float64(beta)],
@@ -295,7 +298,7 @@ class GasSolver:
 
             M = wpl.LinearOperator(shape=(n, n), dtype=wp.float64, device=self.device,
                                    matvec=jacobi if multigrid is None else vcycle)
-            iterations, residual, atol = wpl.cg(A, rhs, x, tol=tol, atol=atol_floor, maxiter=maxiter, M=M, check_every=10,
+            iterations, residual, atol = wpl.cg(operator, rhs, x, tol=tol, atol=atol_floor, maxiter=maxiter, M=M, check_every=10,
                                                 use_cuda_graph=False)
         wp.launch(K.scatter_solution_kernel, dim=n, inputs=[rows, x], outputs=[self._x], device=self.device)
         if not np.isfinite(residual):
@@ -313,18 +316,17 @@ class GasSolver:
         """CG on the compact system, preconditioned with ``multigrid`` (set up) or (modified, ``relaxation`` > 0)
         IC(0) of the stencil (kernels/gas.py ``pcg_*``, ``ic0_*``); stops at ||r|| <= max(tol ||b||, atol_floor)
         like warp's cg. Returns (iterations, ||r||, that bound)."""
-        rhs, x, diag = self._c_rhs[:n], self._c_x[:n], self._c_diag[:n]
-        coef, neighbour, pivot = self._c_coef[:n], self._c_neighbour[:n], self._pivot[:n]
+        rhs, x, pivot = self._c_rhs[:n], self._c_x[:n], self._pivot[:n]
+        A = self._compact(n)
         r, z, p, ap = (v[:n] for v in self._pcg)
         s, dev = self._scalars, self.device
         check_every = 1  # the residual check (one dot product) costs a fraction of an iteration
         dot_dim = (n + K.DOT_CHUNK - 1) // K.DOT_CHUNK
         if multigrid is None:
-            wp.launch(K.ic0_factor_kernel, dim=1, inputs=[diag, coef, neighbour, n, wp.float64(relaxation)],
-                      outputs=[pivot], device=dev)
+            wp.launch(K.ic0_factor_kernel, dim=1, inputs=[A, n, wp.float64(relaxation)], outputs=[pivot], device=dev)
 
             def precondition():
-                wp.launch(K.ic0_apply_kernel, dim=1, inputs=[pivot, coef, neighbour, r, n], outputs=[z], device=dev)
+                wp.launch(K.ic0_apply_kernel, dim=1, inputs=[pivot, A, r, n], outputs=[z], device=dev)
         else:
             def precondition():
                 multigrid.apply(r, z)
@@ -395,7 +397,7 @@ class GasSolver:
             shape = self._face_shapes[axis]
             self._launch(K.viscous_rhs_kernel, shape,
                          [g, axis, params, dom.face_type, dom.face_bc, gas.face_eps, gas.face_kappa,
-                          gas.face_velocity, self._rhs, self._x, self._diag, self._coef, self._neighbour])
+                          gas.face_velocity, self._rhs, self._x, self._box])
             self.last_iterations["viscous"][axis] = self._solve(
                 axis, f"viscous ({'xyz'[axis]})", c.viscous_tolerance, c.viscous_max_iterations)
             self._launch(K.store_component_kernel, shape, [g, axis, self._x, gas.face_velocity])
@@ -416,8 +418,7 @@ class GasSolver:
         self._fluid_sum.zero_()
         self._launch(K.pressure_rhs_kernel, self._cells,
                      [g, params, dom.cell_fluid, dom.face_type, dom.face_bc, gas.face_eps, gas.face_velocity,
-                      gas.cell_eps_f, gas.cell_eps_f_prev, 0.0, self._rhs, self._diag, self._active, self._fluid_sum,
-                      self._coef, self._neighbour])
+                      gas.cell_eps_f, gas.cell_eps_f_prev, 0.0, self._rhs, self._box, self._active, self._fluid_sum])
         if not dom.has_outlet:
             self._launch(K.remove_mean_kernel, n, [self._active, self._fluid_sum, self._rhs])
         self._x.zero_()

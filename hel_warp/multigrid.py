@@ -45,6 +45,7 @@ class _Level:
         self.diag = wp.zeros(n, dtype=wp.float64, device=device)
         self.coef = wp.zeros((n, 6), dtype=wp.float64, device=device)
         self.neighbour = wp.zeros((n, 6), dtype=wp.int32, device=device)
+        self.A = K.make_stencil(self.diag, self.coef, self.neighbour)
         self.b = wp.zeros(n, dtype=wp.float64, device=device)
         self.z = wp.zeros(n, dtype=wp.float64, device=device)
         self.residual = wp.zeros(n, dtype=wp.float64, device=device)
@@ -95,15 +96,15 @@ class AggregationMultigrid:
     def rows_per_level(self) -> list[int]:
         return [level.n for level in self.levels]
 
-    def setup(self, diag, coef, neighbour) -> None:
+    def setup(self, A: K.Stencil) -> None:
         """Take the fine matrix (compact arrays, n rows) and build the coarse ones."""
         dev = self.device
         fine = self.levels[0]
-        fine.diag, fine.coef, fine.neighbour = diag, coef, neighbour
+        fine.A, fine.diag, fine.coef, fine.neighbour = A, A.diag, A.coef, A.neighbour
         for level, coarse in zip(self.levels[:-1], self.levels[1:]):
             wp.launch(K.mg_coarsen_kernel, dim=coarse.n,
-                      inputs=[coarse.child_start, coarse.children, level.parent, level.diag, level.coef,
-                              level.neighbour], outputs=[coarse.diag, coarse.coef, coarse.neighbour], device=dev)
+                      inputs=[coarse.child_start, coarse.children, level.parent, level.A], outputs=[coarse.A],
+                      device=dev)
 
     def _smooth(self, level: _Level, b, z, colours) -> None:
         for _ in range(self.sweeps):
@@ -111,7 +112,7 @@ class AggregationMultigrid:
                 rows = level.colour_rows[c]
                 if rows.shape[0]:
                     wp.launch(K.mg_smooth_kernel, dim=rows.shape[0],
-                              inputs=[level.diag, level.coef, level.neighbour, rows, b], outputs=[z],
+                              inputs=[level.A, rows, b], outputs=[z],
                               device=self.device)
 
     def apply(self, r, z) -> None:
@@ -122,14 +123,14 @@ class AggregationMultigrid:
         level, dev = self.levels[index], self.device
         if index == len(self.levels) - 1:
             wp.launch(K.mg_coarsest_kernel, dim=1,
-                      inputs=[level.diag, level.coef, level.neighbour, b, level.n, self.coarsest_sweeps],
+                      inputs=[level.A, b, level.n, self.coarsest_sweeps],
                       outputs=[z], device=dev)
             return
         z.zero_()
         self._smooth(level, b, z, range(level.n_colours))
         # residual = b - A z
         wp.launch(K.stencil_matvec_kernel, dim=level.n,
-                  inputs=[level.diag, level.coef, level.neighbour, z, b, wp.float64(-1.0), wp.float64(1.0)],
+                  inputs=[level.A, z, b, wp.float64(-1.0), wp.float64(1.0)],
                   outputs=[level.residual], device=dev)
         coarse = self.levels[index + 1]
         wp.launch(K.mg_restrict_kernel, dim=coarse.n, inputs=[coarse.child_start, coarse.children, level.residual],

@@ -86,6 +86,23 @@ class FlowParams:
     dt: float
 
 
+@wp.struct
+class Stencil:
+    """A 7-point system row by row: (A x)_r = diag[r] x_r - sum_m coef[r, m] x[neighbour[r, m]], slots
+    m = -x, +x, -y, +y, -z, +z (an unused slot has coef 0 and points at r itself). Box-sized as the
+    assembly kernels write it, or compact (the solved rows, ``gather_system_kernel``)."""
+
+    diag: wp.array(dtype=wp.float64)
+    coef: wp.array2d(dtype=wp.float64)
+    neighbour: wp.array2d(dtype=wp.int32)
+
+
+def make_stencil(diag, coef, neighbour) -> Stencil:
+    A = Stencil()
+    A.diag, A.coef, A.neighbour = diag, coef, neighbour
+    return A
+
+
 # ----------------------------------------------------------------- index helpers
 
 
@@ -474,9 +491,7 @@ def viscous_rhs_kernel(
     # outputs
     rhs: wp.array(dtype=wp.float64),
     guess: wp.array(dtype=wp.float64),
-    diag: wp.array(dtype=wp.float64),
-    coef: wp.array2d(dtype=wp.float64),
-    neighbour: wp.array2d(dtype=wp.int32),
+    A: Stencil,
 ):
     """Backward-Euler viscous system of one component: (rho eps/dt) u - div(kappa grad u) = (rho eps/dt) u*,
     as a 7-point stencil (diag, coef, neighbour) for ``stencil_matvec_kernel``; fixed faces: identity rows."""
@@ -487,11 +502,11 @@ def viscous_rhs_kernel(
     u_star = get_f(vel, axis, f)
     guess[row] = wp.float64(u_star)
     for m in range(6):
-        coef[row, m] = wp.float64(0.0)
-        neighbour[row, m] = row
+        A.coef[row, m] = wp.float64(0.0)
+        A.neighbour[row, m] = row
     if not is_solved(get_t(types, axis, f)):
         rhs[row] = wp.float64(u_star)
-        diag[row] = wp.float64(1.0)
+        A.diag[row] = wp.float64(1.0)
         return
     h2 = g.spacing * g.spacing
     mass = params.rho * get_f(face_eps, axis, f) / params.dt
@@ -505,13 +520,13 @@ def viscous_rhs_kernel(
             if kind == 1:
                 c = 0.5 * (kappa_f + get_f(face_kappa, axis, nb)) / h2
                 a_diag = a_diag + c
-                coef[row, 2 * d + side] = wp.float64(c)
-                neighbour[row, 2 * d + side] = flat_index(shape, nb)
+                A.coef[row, 2 * d + side] = wp.float64(c)
+                A.neighbour[row, 2 * d + side] = flat_index(shape, nb)
             elif kind == 2:
                 a_diag = a_diag + factor * kappa_f / h2
                 b = b + factor * kappa_f * value / h2
     rhs[row] = wp.float64(b)
-    diag[row] = wp.float64(a_diag)
+    A.diag[row] = wp.float64(a_diag)
 
 
 @wp.kernel
@@ -544,11 +559,9 @@ def pressure_rhs_kernel(
     outlet_weight: float,
     # outputs
     rhs: wp.array(dtype=wp.float64),
-    diag: wp.array(dtype=wp.float64),
+    A: Stencil,
     active: wp.array(dtype=wp.int32),
     fluid_sum: wp.array(dtype=wp.float64),
-    coef: wp.array2d(dtype=wp.float64),
-    neighbour: wp.array2d(dtype=wp.int32),
 ):
     """b_c = -(rho h^2/dt)(div(eps u*) + d eps/dt) + sum_outlet 2 eps_f p_out; and the matrix
     (A p)_c = diag_c p_c - sum_m coef_cm p_nb(c,m): diag = sum_fluid eps_f + sum_outlet 2 eps_f,
@@ -558,11 +571,11 @@ def pressure_rhs_kernel(
     row = flat_index(g.shape, c)
     active[row] = 0
     for m in range(6):
-        coef[row, m] = wp.float64(0.0)
-        neighbour[row, m] = row
+        A.coef[row, m] = wp.float64(0.0)
+        A.neighbour[row, m] = row
     if cell_fluid[i, j, k] == 0:
         rhs[row] = wp.float64(0.0)
-        diag[row] = wp.float64(1.0)
+        A.diag[row] = wp.float64(1.0)
         return
     h = wp.float64(g.spacing)
     div = wp.float64(0.0)
@@ -579,8 +592,8 @@ def pressure_rhs_kernel(
             t = get_t(types, a, f)
             if t == FACE_FLUID and cell_fluid[i, j, k] != 0:
                 a_diag = a_diag + eps
-                coef[row, 2 * a + side] = eps
-                neighbour[row, 2 * a + side] = flat_index(g.shape, wrap_cell(g, c + (2 * side - 1) * unit(a)))
+                A.coef[row, 2 * a + side] = eps
+                A.neighbour[row, 2 * a + side] = flat_index(g.shape, wrap_cell(g, c + (2 * side - 1) * unit(a)))
             elif t == FACE_OUTLET:
                 a_diag = a_diag + wp.float64(2.0) * eps
                 b = b + wp.float64(2.0) * eps * wp.float64(outlet_weight * get_f(bc.pressure, a, f))
@@ -589,10 +602,10 @@ def pressure_rhs_kernel(
     if a_diag == wp.float64(0.0):
         # enclosed fluid cell: nothing can flow, keep p = 0
         rhs[row] = wp.float64(0.0)
-        diag[row] = wp.float64(1.0)
+        A.diag[row] = wp.float64(1.0)
         return
     rhs[row] = b
-    diag[row] = a_diag
+    A.diag[row] = a_diag
     active[row] = 1
     wp.atomic_add(fluid_sum, 0, b)
     wp.atomic_add(fluid_sum, 1, wp.float64(1.0))
@@ -615,9 +628,7 @@ def remove_mean_kernel(
 
 @wp.kernel
 def stencil_matvec_kernel(
-    diag: wp.array(dtype=wp.float64),
-    coef: wp.array2d(dtype=wp.float64),
-    neighbour: wp.array2d(dtype=wp.int32),
+    A: Stencil,
     x: wp.array(dtype=wp.float64),
     y: wp.array(dtype=wp.float64),
     alpha: wp.float64,
@@ -627,9 +638,9 @@ def stencil_matvec_kernel(
 ):
     """z = alpha A x + beta y for the 7-point pressure matrix of ``pressure_rhs_kernel``."""
     row = wp.tid()
-    ax = diag[row] * x[row]
+    ax = A.diag[row] * x[row]
     for m in range(6):
-        ax = ax - coef[row, m] * x[neighbour[row, m]]
+        ax = ax - A.coef[row, m] * x[A.neighbour[row, m]]
     z[row] = alpha * ax + beta * y[row]
 
 
@@ -756,15 +767,11 @@ def gather_system_kernel(
     box_to_row: wp.array(dtype=wp.int32),
     rhs: wp.array(dtype=wp.float64),
     x: wp.array(dtype=wp.float64),
-    diag: wp.array(dtype=wp.float64),
-    coef: wp.array2d(dtype=wp.float64),
-    neighbour: wp.array2d(dtype=wp.int32),
+    A: Stencil,
     # outputs
     c_rhs: wp.array(dtype=wp.float64),
     c_x: wp.array(dtype=wp.float64),
-    c_diag: wp.array(dtype=wp.float64),
-    c_coef: wp.array2d(dtype=wp.float64),
-    c_neighbour: wp.array2d(dtype=wp.int32),
+    Ac: Stencil,
 ):
     """Copy the solved rows of a box-sized system into compact arrays, neighbours renumbered. A nonzero
     coupling always points at another solved row (fluid cell to fluid cell, solved face to solved face)."""
@@ -772,14 +779,14 @@ def gather_system_kernel(
     row = rows[r]
     c_rhs[r] = rhs[row]
     c_x[r] = x[row]
-    c_diag[r] = diag[row]
+    Ac.diag[r] = A.diag[row]
     for m in range(6):
-        c = coef[row, m]
+        c = A.coef[row, m]
         nb = r
         if c != wp.float64(0.0):
-            nb = box_to_row[neighbour[row, m]]
-        c_coef[r, m] = c
-        c_neighbour[r, m] = nb
+            nb = box_to_row[A.neighbour[row, m]]
+        Ac.coef[r, m] = c
+        Ac.neighbour[r, m] = nb
 
 
 @wp.kernel
@@ -805,13 +812,9 @@ def mg_coarsen_kernel(
     child_start: wp.array(dtype=wp.int32),
     children: wp.array(dtype=wp.int32),
     parent: wp.array(dtype=wp.int32),
-    diag: wp.array(dtype=wp.float64),
-    coef: wp.array2d(dtype=wp.float64),
-    neighbour: wp.array2d(dtype=wp.int32),
+    A: Stencil,
     # outputs
-    c_diag: wp.array(dtype=wp.float64),
-    c_coef: wp.array2d(dtype=wp.float64),
-    c_neighbour: wp.array2d(dtype=wp.int32),
+    Ac: Stencil,
 ):
     """Row C of A_c = P^T A P, gathered from its fine rows ``children[child_start[C]:child_start[C+1]]``
     in a fixed order (no atomics: the same sums on any device): a coupling inside the block moves onto
@@ -820,28 +823,26 @@ def mg_coarsen_kernel(
     C = wp.tid()
     d = wp.float64(0.0)
     for m in range(6):
-        c_coef[C, m] = wp.float64(0.0)
-        c_neighbour[C, m] = C
+        Ac.coef[C, m] = wp.float64(0.0)
+        Ac.neighbour[C, m] = C
     for idx in range(child_start[C], child_start[C + 1]):
         r = children[idx]
-        d = d + diag[r]
+        d = d + A.diag[r]
         for m in range(6):
-            c = coef[r, m]
+            c = A.coef[r, m]
             if c != wp.float64(0.0):
-                D = parent[neighbour[r, m]]
+                D = parent[A.neighbour[r, m]]
                 if D == C:
                     d = d - c
                 else:
-                    c_coef[C, m] = c_coef[C, m] + c
-                    c_neighbour[C, m] = D
-    c_diag[C] = d
+                    Ac.coef[C, m] = Ac.coef[C, m] + c
+                    Ac.neighbour[C, m] = D
+    Ac.diag[C] = d
 
 
 @wp.kernel
 def mg_smooth_kernel(
-    diag: wp.array(dtype=wp.float64),
-    coef: wp.array2d(dtype=wp.float64),
-    neighbour: wp.array2d(dtype=wp.int32),
+    A: Stencil,
     rows: wp.array(dtype=wp.int32),
     b: wp.array(dtype=wp.float64),
     # outputs
@@ -851,9 +852,9 @@ def mg_smooth_kernel(
     r = rows[wp.tid()]
     acc = b[r]
     for m in range(6):
-        acc = acc + coef[r, m] * z[neighbour[r, m]]
-    if diag[r] > wp.float64(0.0):  # a block of an all-Neumann system can close on itself: A_c = 0
-        z[r] = acc / diag[r]
+        acc = acc + A.coef[r, m] * z[A.neighbour[r, m]]
+    if A.diag[r] > wp.float64(0.0):  # a block of an all-Neumann system can close on itself: A_c = 0
+        z[r] = acc / A.diag[r]
 
 
 @wp.kernel
@@ -886,9 +887,7 @@ def mg_prolong_kernel(
 
 @wp.kernel
 def mg_coarsest_kernel(
-    diag: wp.array(dtype=wp.float64),
-    coef: wp.array2d(dtype=wp.float64),
-    neighbour: wp.array2d(dtype=wp.int32),
+    A: Stencil,
     b: wp.array(dtype=wp.float64),
     n: int,
     sweeps: int,
@@ -906,9 +905,9 @@ def mg_coarsest_kernel(
                 i = 2 * n - 1 - step
             acc = b[i]
             for m in range(6):
-                acc = acc + coef[i, m] * z[neighbour[i, m]]
-            if diag[i] > wp.float64(0.0):
-                z[i] = acc / diag[i]
+                acc = acc + A.coef[i, m] * z[A.neighbour[i, m]]
+            if A.diag[i] > wp.float64(0.0):
+                z[i] = acc / A.diag[i]
 
 
 # ----------------------------------------------------------------- native Jacobi-PCG (CPU path)
@@ -972,9 +971,7 @@ def pcg_step_kernel(
 
 @wp.kernel
 def ic0_factor_kernel(
-    diag: wp.array(dtype=wp.float64),
-    coef: wp.array2d(dtype=wp.float64),
-    neighbour: wp.array2d(dtype=wp.int32),
+    A: Stencil,
     n: int,
     relaxation: wp.float64,
     # outputs
@@ -990,28 +987,27 @@ def ic0_factor_kernel(
     if relaxation > wp.float64(0.0):
         floor = wp.float64(0.25)
     for i in range(n):
-        d = diag[i]
+        d = A.diag[i]
         for m in range(6):
-            j = neighbour[i, m]
-            c = coef[i, m]
+            j = A.neighbour[i, m]
+            c = A.coef[i, m]
             if j < i and c != wp.float64(0.0):
                 fill = wp.float64(0.0)
                 if relaxation > wp.float64(0.0):
                     for m2 in range(6):
-                        k = neighbour[j, m2]
+                        k = A.neighbour[j, m2]
                         if k > j and k != i:
-                            fill = fill + coef[j, m2]
+                            fill = fill + A.coef[j, m2]
                 d = d - c * (c + relaxation * fill) / pivot[j]
-        if d <= floor * diag[i]:
-            d = diag[i]
+        if d <= floor * A.diag[i]:
+            d = A.diag[i]
         pivot[i] = d
 
 
 @wp.kernel
 def ic0_apply_kernel(
     pivot: wp.array(dtype=wp.float64),
-    coef: wp.array2d(dtype=wp.float64),
-    neighbour: wp.array2d(dtype=wp.int32),
+    A: Stencil,
     r: wp.array(dtype=wp.float64),
     n: int,
     # outputs
@@ -1022,17 +1018,17 @@ def ic0_apply_kernel(
     for i in range(n):
         acc = r[i]
         for m in range(6):
-            j = neighbour[i, m]
+            j = A.neighbour[i, m]
             if j < i:
-                acc = acc + coef[i, m] * z[j]
+                acc = acc + A.coef[i, m] * z[j]
         z[i] = acc / pivot[i]
     for step in range(n):
         i = n - 1 - step
         acc = wp.float64(0.0)
         for m in range(6):
-            j = neighbour[i, m]
+            j = A.neighbour[i, m]
             if j > i:
-                acc = acc + coef[i, m] * z[j]
+                acc = acc + A.coef[i, m] * z[j]
         z[i] = z[i] + acc / pivot[i]
 
 

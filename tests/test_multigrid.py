@@ -10,6 +10,7 @@ import pytest
 import warp as wp
 
 from hel_warp.multigrid import AggregationMultigrid
+from kernels.gas import make_stencil
 
 
 def stencil_system(shape, periodic, fluid, rng, outlet_cells=4):
@@ -49,8 +50,8 @@ def stencil_system(shape, periodic, fluid, rng, outlet_cells=4):
 
 
 def to_warp(diag, coef, neighbour):
-    return (wp.array(diag, dtype=wp.float64), wp.array(coef, dtype=wp.float64),
-            wp.array(neighbour.astype(np.int32), dtype=wp.int32))
+    return make_stencil(wp.array(diag, dtype=wp.float64), wp.array(coef, dtype=wp.float64),
+                        wp.array(neighbour.astype(np.int32), dtype=wp.int32))
 
 
 def built(shape, periodic, seed, solid_fraction=0.3):
@@ -59,7 +60,7 @@ def built(shape, periodic, seed, solid_fraction=0.3):
     fluid = rng.uniform(size=shape) > solid_fraction
     diag, coef, neighbour, dense, rows = stencil_system(shape, periodic, fluid, rng)
     mg = AggregationMultigrid(rows, shape, periodic, "cpu")
-    mg.setup(*to_warp(diag, coef, neighbour))
+    mg.setup(to_warp(diag, coef, neighbour))
     return mg, dense, rows
 
 
