@@ -284,7 +284,8 @@ class GasSolver:
         if multigrid is not None:
             multigrid.setup(A)
         if self.linear_solver == "native":
-            iterations, residual, atol = self._native_pcg(n, matvec, tol, maxiter, atol_floor, relaxation, multigrid)
+            iterations, residual, atol = self._native_pcg(n, A, matvec, tol, maxiter, atol_floor, relaxation,
+                                                          multigrid)
         else:
             operator = wpl.LinearOperator(shape=(n, n), dtype=wp.float64, device=self.device, matvec=matvec)
 
@@ -311,13 +312,12 @@ class GasSolver:
                 f"loosen {'pressure' if what == 'pressure' else 'viscous'}_tolerance, or reduce dt")
         return int(iterations)
 
-    def _native_pcg(self, n: int, matvec, tol: float, maxiter: int, atol_floor: float = 0.0,
+    def _native_pcg(self, n: int, A: K.Stencil, matvec, tol: float, maxiter: int, atol_floor: float = 0.0,
                     relaxation: float = 0.0, multigrid: AggregationMultigrid | None = None) -> tuple:
         """CG on the compact system, preconditioned with ``multigrid`` (set up) or (modified, ``relaxation`` > 0)
         IC(0) of the stencil (kernels/gas.py ``pcg_*``, ``ic0_*``); stops at ||r|| <= max(tol ||b||, atol_floor)
         like warp's cg. Returns (iterations, ||r||, that bound)."""
         rhs, x, pivot = self._c_rhs[:n], self._c_x[:n], self._pivot[:n]
-        A = self._compact(n)
         r, z, p, ap = (v[:n] for v in self._pcg)
         s, dev = self._scalars, self.device
         check_every = 1  # the residual check (one dot product) costs a fraction of an iteration

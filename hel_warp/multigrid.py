@@ -40,14 +40,14 @@ def _colours(coords: np.ndarray, shape: tuple, periodic: tuple) -> tuple[np.ndar
 
 
 class _Level:
-    def __init__(self, n: int, device, colour: np.ndarray, n_colours: int):
+    def __init__(self, n: int, device, colour: np.ndarray, n_colours: int, fine: bool):
         self.n = n
-        self.diag = wp.zeros(n, dtype=wp.float64, device=device)
-        self.coef = wp.zeros((n, 6), dtype=wp.float64, device=device)
-        self.neighbour = wp.zeros((n, 6), dtype=wp.int32, device=device)
-        self.A = K.make_stencil(self.diag, self.coef, self.neighbour)
-        self.b = wp.zeros(n, dtype=wp.float64, device=device)
-        self.z = wp.zeros(n, dtype=wp.float64, device=device)
+        # the finest level takes the solver's matrix (``setup``) and its r, z (``apply``); coarse ones own theirs
+        self.A = None if fine else K.make_stencil(wp.zeros(n, dtype=wp.float64, device=device),
+                                                  wp.zeros((n, 6), dtype=wp.float64, device=device),
+                                                  wp.zeros((n, 6), dtype=wp.int32, device=device))
+        self.b = None if fine else wp.zeros(n, dtype=wp.float64, device=device)
+        self.z = None if fine else wp.zeros(n, dtype=wp.float64, device=device)
         self.residual = wp.zeros(n, dtype=wp.float64, device=device)
         self.colour = wp.array(colour, dtype=wp.int32, device=device)
         self.n_colours = n_colours
@@ -73,7 +73,7 @@ class AggregationMultigrid:
         fine = None
         while True:
             colour, n_colours = _colours(coords, shape, periodic)
-            level = _Level(coords.shape[0], self.device, colour, n_colours)
+            level = _Level(coords.shape[0], self.device, colour, n_colours, fine=fine is None)
             if fine is not None:
                 fine.parent = wp.array(parent, dtype=wp.int32, device=self.device)
                 order = np.argsort(parent, kind="stable").astype(np.int32)  # fine rows by block, ascending
@@ -100,7 +100,7 @@ class AggregationMultigrid:
         """Take the fine matrix (compact arrays, n rows) and build the coarse ones."""
         dev = self.device
         fine = self.levels[0]
-        fine.A, fine.diag, fine.coef, fine.neighbour = A, A.diag, A.coef, A.neighbour
+        fine.A = A
         for level, coarse in zip(self.levels[:-1], self.levels[1:]):
             wp.launch(K.mg_coarsen_kernel, dim=coarse.n,
                       inputs=[coarse.child_start, coarse.children, level.parent, level.A], outputs=[coarse.A],

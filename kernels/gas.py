@@ -840,6 +840,17 @@ def mg_coarsen_kernel(
     Ac.diag[C] = d
 
 
+@wp.func
+def gauss_seidel_row(A: Stencil, b: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.float64), r: int):
+    """z_r = (b_r + sum_m coef z_neighbour) / diag_r in place; a row with diag 0 is left alone (a block of an
+    all-Neumann system can close on itself: A_c = 0)."""
+    acc = b[r]
+    for m in range(6):
+        acc = acc + A.coef[r, m] * z[A.neighbour[r, m]]
+    if A.diag[r] > wp.float64(0.0):
+        z[r] = acc / A.diag[r]
+
+
 @wp.kernel
 def mg_smooth_kernel(
     A: Stencil,
@@ -849,12 +860,7 @@ def mg_smooth_kernel(
     z: wp.array(dtype=wp.float64),
 ):
     """Gauss-Seidel update of ``rows``, the rows of one colour (no two neighbours share a colour)."""
-    r = rows[wp.tid()]
-    acc = b[r]
-    for m in range(6):
-        acc = acc + A.coef[r, m] * z[A.neighbour[r, m]]
-    if A.diag[r] > wp.float64(0.0):  # a block of an all-Neumann system can close on itself: A_c = 0
-        z[r] = acc / A.diag[r]
+    gauss_seidel_row(A, b, z, rows[wp.tid()])
 
 
 @wp.kernel
@@ -903,11 +909,7 @@ def mg_coarsest_kernel(
             i = step
             if step >= n:
                 i = 2 * n - 1 - step
-            acc = b[i]
-            for m in range(6):
-                acc = acc + A.coef[i, m] * z[A.neighbour[i, m]]
-            if A.diag[i] > wp.float64(0.0):
-                z[i] = acc / A.diag[i]
+            gauss_seidel_row(A, b, z, i)
 
 
 # ----------------------------------------------------------------- native Jacobi-PCG (CPU path)

@@ -77,8 +77,8 @@ def test_coarse_matrix_is_galerkin_product(shape, periodic):
         P = np.zeros((level.n, coarse.n))
         P[np.arange(level.n), parent] = 1.0
         expected = P.T @ fine_dense @ P
-        got = np.diag(coarse.diag.numpy()).astype(float)
-        c_coef, c_nb = coarse.coef.numpy(), coarse.neighbour.numpy()
+        got = np.diag(coarse.A.diag.numpy()).astype(float)
+        c_coef, c_nb = coarse.A.coef.numpy(), coarse.A.neighbour.numpy()
         for r in range(coarse.n):
             for m in range(6):
                 if c_coef[r, m] != 0.0:
@@ -92,7 +92,7 @@ def test_colouring_separates_neighbours(shape, periodic):
     mg, dense, rows = built(shape, periodic, seed=4, solid_fraction=0.0)
     for level in mg.levels[:-1]:
         colour = level.colour.numpy()
-        c_coef, c_nb = level.coef.numpy(), level.neighbour.numpy()
+        c_coef, c_nb = level.A.coef.numpy(), level.A.neighbour.numpy()
         for r in range(level.n):
             for m in range(6):
                 if c_coef[r, m] != 0.0:
