@@ -219,7 +219,8 @@ class SurrogateCollision:
         args.particle_density, args.particle_weight = particles.density, particles.weight
         args.particle_stream, args.n_streams = particles.stream, self.n_streams
         args.batch_row, args.batch_count = self.batch_row, self.batch_count
-        args.batch_features, args.batch_out = self.batch_features, self.batch_out
+        # batched rounds write their rows into the same feature array the inline walks use (never both)
+        args.batch_features, args.batch_out = self.pair_features, self.batch_out
         resolve_pairwise(n_pairs, args, self.forest, det.pair_state, self.pair_features, particles.v, self.calls,
                          self.skipped, self.more_rounds, self.rounds, batch_forest=self.batch_forest)
 
@@ -228,7 +229,6 @@ class SurrogateCollision:
 
         dev = self._device
         self.batch_row = wp.zeros(capacity, dtype=wp.int32, device=dev)
-        self.batch_features = wp.zeros((capacity, 6), dtype=wp.float32, device=dev)
         self.batch_out = wp.zeros((capacity, 2), dtype=wp.float32, device=dev)
 
     def _collide_paper(self, particles, r_max: float) -> None:

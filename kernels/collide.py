@@ -222,7 +222,8 @@ class PairwiseArgs:
     batch_count: wp.array(dtype=wp.int32)
     """(1,) rows in this round's batch."""
     batch_features: wp.array2d(dtype=wp.float32)
-    """(pairs, 6) the batch's contact features, rows 0 .. batch_count - 1."""
+    """(pairs, 6) the batch's contact features, rows 0 .. batch_count - 1 (the ``features`` array that
+    inline walks use; a round is either batched or inline)."""
     batch_out: wp.array2d(dtype=wp.float32)
     """(pairs, 2) impulse_n, impulse_t of the batch rows."""
 
