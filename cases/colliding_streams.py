@@ -608,7 +608,7 @@ def run(args, *, progress: bool = True) -> int:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from hel_warp.commands._common import finite_float
+    from hel_warp.errors import finite_float
 
     parser.add_argument("--diameter", type=finite_float, required=True,
                         help="mean particle diameter, m (315e-6, 475e-6)")

@@ -33,7 +33,7 @@ import numpy as np
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from hel_warp.commands._common import finite_float
+    from hel_warp.errors import finite_float
 
     parser.add_argument("--particles", type=int, default=2000, help="number of spheres (default 2000)")
     parser.add_argument("--end-time", type=finite_float, default=0.02, help="simulated time, s (default 0.02)")

@@ -23,3 +23,17 @@ def require_positive(name: str, value: float, unit: str = "") -> None:
     require_finite(name, value)
     if not value > 0:
         raise ConfigError(f"{name} must be > 0 (got {value!r}{' ' + unit if unit else ''}); give a positive value")
+
+
+def finite_float(text: str) -> float:
+    """argparse type: a finite float (NaN and infinity are refused with a one-line error)."""
+    import argparse
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
+    return value

@@ -19,7 +19,7 @@ Positions never overlap (paper sec. 4.1: overlapped starts are resolved explosiv
 takes a distinct cell, drawn in random order with the release's seed, at a jittered point that stays
 ``s / 2`` from the cell faces, so any two parcels of one release are at least ``s >= r_i + r_j`` apart.
 ``ParcelPool.inject`` also rejects a site within ``(r_i + r_j)(1 + PLACEMENT_CLEARANCE)`` of a live parcel
-already in the pool (``kernels/collide.py`` ``flag_blocked_sites``) and moves that parcel to the next
+already in the pool (``kernels/injection.py`` ``flag_blocked_sites``) and moves that parcel to the next
 cell of the random order. A release that does not fit (too few free cells) is refused with a
 ConfigError naming the fix (a longer injection window or a larger box); nothing is carried over.
 Same seed and same pool state give the same positions (a restarted run injects bit-identically).
@@ -237,7 +237,7 @@ class ParcelPool:
         """``blocked`` for :meth:`VolumeInjection.sample`: flags sites a live parcel overlaps (None: pool empty)."""
         import warp as wp
 
-        from kernels.collide import launch_flag_blocked_sites
+        from kernels.injection import launch_flag_blocked_sites
 
         p = self.particles
         alive = p.alive.numpy()[:self.used].astype(bool)

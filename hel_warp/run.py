@@ -80,7 +80,7 @@ class RunConfig:
 def add_run_arguments(parser) -> None:
     """The run options every HEL case shares: --out, --end-time, --output-interval, --checkpoint-interval,
     --restart, --no-vtk, --device."""
-    from hel_warp.commands._common import finite_float
+    from hel_warp.errors import finite_float
 
     parser.add_argument("--out", required=True, help="run directory")
     parser.add_argument("--end-time", type=finite_float, required=True, help="simulated time, s")

@@ -30,11 +30,6 @@ What it computes (reference paper sec. 4.3; ARCHITECTURE.md "The step", item 4):
   velocity. No approach test and no momentum guarantee (the paper's scheme).
 - Counts (integer atomics, deterministic): detected pairs and surrogate calls per stream pair
   ``(min(s_i, s_j), max(s_i, s_j))``, separating pairs skipped, matching rounds.
-- CFD-DEM helpers of the ``dem`` strategy: a held per-parcel fluid acceleration added to the DEM
-  contact force.
-- Injection sites (``hel_warp.parcels``): a candidate position of a new parcel is blocked when a live
-  parcel lies within ``(r_i + r_j)(1 + clearance)`` of it (the same test as the pair detection, one
-  thread per candidate on the hash grid of the pool), so a volume injection never starts an overlap.
 
 Launch wrappers at the bottom; they never allocate (hel_warp/collision_models.py owns the arrays).
 """
@@ -44,11 +39,6 @@ from __future__ import annotations
 import warp as wp
 
 from kernels.forest import Forest, contact_impulse, sphere_mass, walk_tree
-from kernels.hertz import ContactParams
-from kernels.integrate import SphereArrays
-from kernels.integrate import sphere_mass as dem_sphere_mass
-from kernels.sdf import SdfShapes, sdf_union, sdf_union_normal
-from kernels.walls import wall_contact
 
 PAIR_NONE = wp.constant(2147483647)
 """``owner`` value of a parcel no pending pair has claimed in this round."""
@@ -429,66 +419,6 @@ def paper_apply_batch(
         particle_v_out[i] = wp.vec3(batch_out[row, 0], batch_out[row, 1], batch_out[row, 2])
 
 
-# ------------------------------------------------------------------------------------------ CFD-DEM helpers
-
-
-@wp.kernel
-def held_fluid_acceleration(
-    particle_v_start: wp.array(dtype=wp.vec3),
-    particle_v_push: wp.array(dtype=wp.vec3),
-    particle_alive: wp.array(dtype=wp.int32),
-    dt: float,
-    # outputs
-    parcel_a_fluid: wp.array(dtype=wp.vec3),
-):
-    """a_fluid = (v after the fluid-only push - v at the start) / dt: drag, gravity, grad p' of eq. (4)."""
-    i = wp.tid()
-    if particle_alive[i] == 0:
-        parcel_a_fluid[i] = wp.vec3(0.0)
-        return
-    parcel_a_fluid[i] = (particle_v_push[i] - particle_v_start[i]) / dt
-
-
-@wp.kernel
-def add_fluid_force(
-    parcel_a_fluid: wp.array(dtype=wp.vec3),
-    particle_radius: wp.array(dtype=wp.float32),
-    particle_density: wp.array(dtype=wp.float32),
-    # outputs
-    particle_f: wp.array(dtype=wp.vec3),
-):
-    """F_i <- F_i + m_i a_fluid_i (m = rho 4/3 pi r^3, the DEM integrator's mass)."""
-    i = wp.tid()
-    m = dem_sphere_mass(particle_radius[i], particle_density[i])
-    particle_f[i] = particle_f[i] + m * parcel_a_fluid[i]
-
-
-@wp.kernel
-def flag_blocked_sites(
-    grid: wp.uint64,
-    particle_x: wp.array(dtype=wp.vec3),
-    particle_radius: wp.array(dtype=wp.float32),
-    particle_alive: wp.array(dtype=wp.int32),
-    max_radius: float,
-    clearance: float,
-    site_x: wp.array(dtype=wp.vec3),
-    site_radius: wp.array(dtype=wp.float32),
-    # outputs
-    site_blocked: wp.array(dtype=wp.int32),
-):
-    """site_blocked[k] = 1 when a live parcel j has |x_k - x_j| < (r_k + r_j)(1 + clearance), else 0."""
-    k = wp.tid()
-    xk = site_x[k]
-    rk = site_radius[k]
-    blocked = int(0)
-    for j in wp.hash_grid_query(grid, xk, (rk + max_radius) * (1.0 + clearance)):
-        if particle_alive[j] != 0:
-            cut = (rk + particle_radius[j]) * (1.0 + clearance)
-            if wp.length_sq(particle_x[j] - xk) < cut * cut:
-                blocked = 1
-    site_blocked[k] = blocked
-
-
 # ------------------------------------------------------------------------------------------ launch wrappers
 
 
@@ -565,60 +495,3 @@ def launch_paper_update(args: PaperArgs, forest: Forest, features, particle_v_ou
         eval_forest(batch_forest, features, batch_out, device=device, row_count=args.batch_count)
         wp.launch(paper_apply_batch, dim=args.particle_x.shape[0], device=device,
                   inputs=[args.batch_row, batch_out], outputs=[particle_v_out])
-
-
-def launch_held_fluid_acceleration(v_start, v_push, alive, dt: float, a_fluid) -> None:
-    wp.launch(held_fluid_acceleration, dim=v_start.shape[0], device=v_start.device,
-              inputs=[v_start, v_push, alive, float(dt)], outputs=[a_fluid])
-
-
-def launch_add_fluid_force(a_fluid, radius, density, force) -> None:
-    wp.launch(add_fluid_force, dim=a_fluid.shape[0], device=a_fluid.device, inputs=[a_fluid, radius, density],
-              outputs=[force])
-
-
-def launch_flag_blocked_sites(grid, particles, max_radius: float, clearance: float, site_x, site_radius,
-                              site_blocked) -> None:
-    """Flag the candidate sites that a live parcel of ``particles`` (hashed in ``grid``) overlaps."""
-    wp.launch(flag_blocked_sites, dim=site_x.shape[0], device=site_x.device,
-              inputs=[grid.id, particles.x, particles.radius, particles.alive, float(max_radius), float(clearance),
-                      site_x, site_radius], outputs=[site_blocked])
-
-
-@wp.kernel
-def geometry_wall_forces(
-    spheres: SphereArrays,
-    shapes: SdfShapes,
-    params: ContactParams,
-    dt: float,
-    # outputs (wall_shear updated in place; force and torque accumulated)
-    wall_shear: wp.array(dtype=wp.vec3),
-    particle_f: wp.array(dtype=wp.vec3),
-    particle_torque: wp.array(dtype=wp.vec3),
-):
-    """Hertz-Mindlin sphere-wall contact against the flow geometry's SDF (``kernels/sdf.py``, negative in
-    the fluid): gap ``-sdf_union(x)``, inward normal ``-sdf_union_normal(x)``, the contact law of
-    ``kernels/walls.py`` (``wall_contact``); one wall history per parcel, forgotten when the contact opens."""
-    i = wp.tid()
-    if spheres.alive[i] == 0:
-        wall_shear[i] = wp.vec3(0.0)
-        return
-    x = spheres.x[i]
-    r = spheres.radius[i]
-    gap = -sdf_union(shapes, x)
-    if gap >= r:
-        wall_shear[i] = wp.vec3(0.0)
-        return
-    n = -sdf_union_normal(shapes, x)
-    m = dem_sphere_mass(r, spheres.density[i])
-    result = wall_contact(n, gap, r, m, spheres.v[i], spheres.omega[i], wall_shear[i], params, dt)
-    wall_shear[i] = result[1]
-    particle_f[i] = particle_f[i] + result[0]
-    particle_torque[i] = particle_torque[i] + result[2]
-
-
-def launch_geometry_wall_forces(spheres: SphereArrays, shapes: SdfShapes, params: ContactParams, dt: float,
-                                wall_shear, force, torque) -> None:
-    """Add the SDF-geometry wall contact force and torque of every live sphere (``geometry_wall_forces``)."""
-    wp.launch(geometry_wall_forces, dim=spheres.x.shape[0], device=spheres.x.device,
-              inputs=[spheres, shapes, params, dt], outputs=[wall_shear, force, torque])

@@ -101,3 +101,46 @@ def launch_kick_drift(spheres: SphereArrays, force, torque, gravity, dt: float) 
 def launch_kick(spheres: SphereArrays, force, torque, gravity, dt: float) -> None:
     wp.launch(kick, dim=spheres.x.shape[0], device=spheres.x.device,
               inputs=[force, torque, gravity, dt], outputs=[spheres])
+
+
+# ------------------------------------------------------------------------------------------ CFD-DEM: held fluid force
+
+@wp.kernel
+def held_fluid_acceleration(
+    particle_v_start: wp.array(dtype=wp.vec3),
+    particle_v_push: wp.array(dtype=wp.vec3),
+    particle_alive: wp.array(dtype=wp.int32),
+    dt: float,
+    # outputs
+    parcel_a_fluid: wp.array(dtype=wp.vec3),
+):
+    """a_fluid = (v after the fluid-only push - v at the start) / dt: drag, gravity, grad p' of eq. (4)."""
+    i = wp.tid()
+    if particle_alive[i] == 0:
+        parcel_a_fluid[i] = wp.vec3(0.0)
+        return
+    parcel_a_fluid[i] = (particle_v_push[i] - particle_v_start[i]) / dt
+
+
+@wp.kernel
+def add_fluid_force(
+    parcel_a_fluid: wp.array(dtype=wp.vec3),
+    particle_radius: wp.array(dtype=wp.float32),
+    particle_density: wp.array(dtype=wp.float32),
+    # outputs
+    particle_f: wp.array(dtype=wp.vec3),
+):
+    """F_i <- F_i + m_i a_fluid_i (m = rho 4/3 pi r^3, the DEM integrator's mass)."""
+    i = wp.tid()
+    m = sphere_mass(particle_radius[i], particle_density[i])
+    particle_f[i] = particle_f[i] + m * parcel_a_fluid[i]
+
+
+def launch_held_fluid_acceleration(v_start, v_push, alive, dt: float, a_fluid) -> None:
+    wp.launch(held_fluid_acceleration, dim=v_start.shape[0], device=v_start.device,
+              inputs=[v_start, v_push, alive, float(dt)], outputs=[a_fluid])
+
+
+def launch_add_fluid_force(a_fluid, radius, density, force) -> None:
+    wp.launch(add_fluid_force, dim=a_fluid.shape[0], device=a_fluid.device, inputs=[a_fluid, radius, density],
+              outputs=[force])

@@ -19,6 +19,7 @@ import warp as wp
 from kernels.contacts import with_bodies
 from kernels.hertz import ContactParams, contact_force, rolling_torque
 from kernels.integrate import SphereArrays, sphere_mass
+from kernels.sdf import SdfShapes, sdf_union, sdf_union_normal
 
 
 @wp.func
@@ -134,3 +135,44 @@ def launch_sdf_wall_forces(kernel, spheres: SphereArrays, params: ContactParams,
                            wall_shear, force, torque) -> None:
     wp.launch(kernel, dim=spheres.x.shape[0], device=spheres.x.device,
               inputs=[spheres, params, dt, gradient_step], outputs=[wall_shear, force, torque])
+
+
+# ------------------------------------------------------------------------------------------ flow-geometry (SDF) walls of the CFD-DEM
+
+@wp.kernel
+def geometry_wall_forces(
+    spheres: SphereArrays,
+    shapes: SdfShapes,
+    params: ContactParams,
+    dt: float,
+    # outputs (wall_shear updated in place; force and torque accumulated)
+    wall_shear: wp.array(dtype=wp.vec3),
+    particle_f: wp.array(dtype=wp.vec3),
+    particle_torque: wp.array(dtype=wp.vec3),
+):
+    """Hertz-Mindlin sphere-wall contact against the flow geometry's SDF (``kernels/sdf.py``, negative in
+    the fluid): gap ``-sdf_union(x)``, inward normal ``-sdf_union_normal(x)``, the contact law of
+    ``kernels/walls.py`` (``wall_contact``); one wall history per parcel, forgotten when the contact opens."""
+    i = wp.tid()
+    if spheres.alive[i] == 0:
+        wall_shear[i] = wp.vec3(0.0)
+        return
+    x = spheres.x[i]
+    r = spheres.radius[i]
+    gap = -sdf_union(shapes, x)
+    if gap >= r:
+        wall_shear[i] = wp.vec3(0.0)
+        return
+    n = -sdf_union_normal(shapes, x)
+    m = sphere_mass(r, spheres.density[i])
+    result = wall_contact(n, gap, r, m, spheres.v[i], spheres.omega[i], wall_shear[i], params, dt)
+    wall_shear[i] = result[1]
+    particle_f[i] = particle_f[i] + result[0]
+    particle_torque[i] = particle_torque[i] + result[2]
+
+
+def launch_geometry_wall_forces(spheres: SphereArrays, shapes: SdfShapes, params: ContactParams, dt: float,
+                                wall_shear, force, torque) -> None:
+    """Add the SDF-geometry wall contact force and torque of every live sphere (``geometry_wall_forces``)."""
+    wp.launch(geometry_wall_forces, dim=spheres.x.shape[0], device=spheres.x.device,
+              inputs=[spheres, shapes, params, dt], outputs=[wall_shear, force, torque])

@@ -4,20 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 
-from hel_warp.errors import ConfigError
-
-
-def finite_float(text: str) -> float:
-    """argparse type: a finite float (NaN and infinity are refused with a one-line error)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
-    return value
+from hel_warp.errors import ConfigError, finite_float  # noqa: F401  (re-exported for the commands)
 
 
 def int_at_least(minimum: int):
