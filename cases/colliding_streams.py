@@ -273,6 +273,9 @@ class CaseConfig:
     """Collision model: none, ktgf, surrogate, surrogate-paper, dem."""
     end_time: float
     """Simulated time after the particle release, s (paper: 0.02-0.03)."""
+    particle_contacts: bool = True
+    """``dem`` only: False switches the particle-particle contacts off (walls, drag, injection unchanged): the
+    like-with-like run that, beside ``none``, shows how much of a gap the walls alone make (issue 11)."""
     particles_per_parcel: float = 1.0
     """Real particles per parcel (paper's second HEL run: 8); the parcel count stays, the mass scales."""
     particles: int = 12000
@@ -307,6 +310,12 @@ def make_config(args) -> CaseConfig:
         raise ConfigError(f"--dt must be > 0 s (got {args.dt})")
     if not args.end_time > 0:
         raise ConfigError(f"--end-time must be > 0 s (got {args.end_time})")
+    if args.end_time < args.dt * (1.0 - 1e-9):
+        raise ConfigError(f"--end-time {args.end_time:g} s is shorter than one step (--dt {args.dt:g} s), so the "
+                          "run would take no step; give an end time of at least one step")
+    from hel_warp.run import check_device
+
+    check_device(args.device)
     if not args.particles_per_parcel > 0:
         raise ConfigError(f"--particles-per-parcel must be > 0 (got {args.particles_per_parcel})")
     known = min(PAPER_PARTICLES, key=lambda d: abs(d - args.diameter))
@@ -319,10 +328,14 @@ def make_config(args) -> CaseConfig:
     std = PAPER_DIAMETER_STD[known] if paper_size else 0.0
     if args.monodisperse:
         std = 0.0
+    if args.no_particle_contacts and args.collisions != "dem":
+        raise ConfigError(f"--no-particle-contacts is a dem option (got --collisions {args.collisions}); none "
+                          "already has no particle-particle collisions")
     if (args.collisions.startswith("surrogate")) and not args.model:
         raise ConfigError(f"--collisions {args.collisions} needs --model MODEL_DIR (a `hel-warp train` output)")
     return CaseConfig(diameter=float(args.diameter), dt=float(args.dt), collisions=args.collisions,
                       end_time=float(args.end_time), particles_per_parcel=float(args.particles_per_parcel),
+                      particle_contacts=not args.no_particle_contacts,
                       particles=particles, diameter_std=std,
                       mass_flow=PAPER_MASS_FLOW[known] if paper_size else DEFAULT_MASS_FLOW, cells=args.cells,
                       gas_warmup=float(args.gas_warmup), output_interval=float(args.output_interval),
@@ -396,6 +409,8 @@ class CollidingStreams:
             kwargs = {"model_dir": config.model}
         elif config.collisions == "dem":
             kwargs = {"material": material}
+            if not config.particle_contacts:
+                kwargs["particle_contacts"] = _dem_particle_contacts_option(False)
         self.collision = collision_model(config.collisions, **kwargs)
         # each holder releases half of the parcels at its measured mass flow (section 2): a window of
         # (parcels x particle mass) / mass flow, the same for any particles-per-parcel (the parcel count stays)
@@ -456,7 +471,22 @@ class CollidingStreams:
         return {"axial_axis": 0, "transverse_axis": 1, "depth_axis": 2, "downstream": [1.0, 0.0, 0.0],
                 "sections": self.dims.sections(), "domain_lo": list(lo), "domain_hi": list(hi),
                 "main_width": self.dims.main_width, "main_depth": self.dims.main_depth,
-                "streams": {"0": "left", "1": "right"}, "dimensions": asdict(self.dims)}
+                "streams": {"0": "left", "1": "right"}, "axis_transverse": 0.0,
+                "stream_sides": {"0": 1.0, "1": -1.0},  # sign of y - axis on each stream's own arm (left = +y)
+                "dimensions": asdict(self.dims)}
+
+
+def _dem_particle_contacts_option(value: bool) -> bool:
+    """``value`` if ``DemCollision`` takes ``particle_contacts``, else a ConfigError (an engine without it)."""
+    import inspect
+
+    from hel_warp.hel import COLLISION_MODELS
+    from hel_warp.errors import ConfigError
+
+    if "particle_contacts" not in inspect.signature(COLLISION_MODELS["dem"].__init__).parameters:
+        raise ConfigError("--no-particle-contacts: this engine's DemCollision has no particle_contacts option yet; "
+                          "run dem with contacts")
+    return value
 
 
 def check(rig: CollidingStreams) -> list[str]:
@@ -541,13 +571,14 @@ def run(args, *, progress: bool = True) -> int:
     """Build the rig, warm the gas up, step to --end-time with ``hel_warp.run.Run`` (checkpoints, --resume)."""
     import zarr
 
-    from hel_warp.run import Run, RunConfig
+    from hel_warp.run import Run, RunConfig, load_kernels
 
     config = make_config(args)
     mode = prepare_out(args.out, args.overwrite, args.resume)
     model_meta = None
     if config.collisions.startswith("surrogate"):
         model_meta = check_model(config.model, config.diameter, config.density, args.force)
+    kernel_load_s = load_kernels(config.device)  # compile before anything is timed (the rig build launches kernels)
     t_setup = time.perf_counter()
     rig = CollidingStreams(config)
     warm_steps = 0 if mode == "resume" else rig.warm_up()  # a resume restores the gas from the checkpoint
@@ -578,11 +609,13 @@ def run(args, *, progress: bool = True) -> int:
         bar.close()
     errors = check(rig)
     root = zarr.open_group(str(Path(args.out) / "run.zarr"), mode="r+")
+    root.attrs["kernel_load_s"] = float(root.attrs.get("kernel_load_s", 0.0)) + kernel_load_s
     series = root["series"]
     step_wall = np.asarray(series["timing_step"][...], np.float64) if "timing_step" in series else np.zeros(0)
-    # detected pairs per step (hel_warp.collision_models counts(); the other counts are per stream pair,
-    # surrogate calls, DEM sub-steps and stay in their own series)
-    collisions = int(np.sum(series["collisions_detected_pairs"][...])) if "collisions_detected_pairs" in series else 0
+    # real binary collisions (counts() "collisions": dem contact onsets, surrogate resolved collisions weighted by
+    # min(w_i, w_j)) and the pairs overlapping at step ends ("detected_pairs"); per stream pair in their own series
+    collisions = float(np.sum(series["collisions_collisions"][...])) if "collisions_collisions" in series else None
+    overlaps = int(np.sum(series["collisions_detected_pairs"][...])) if "collisions_detected_pairs" in series else 0
     summary = {"collisions": config.collisions, "dt": config.dt, "diameter": config.diameter,
                "end_time": config.end_time, "simulated_time": rig.solver.time, "steps": rig.solver.step_count,
                "status": "complete" if rig.solver.step_count >= runner.total_steps else "running",
@@ -591,7 +624,10 @@ def run(args, *, progress: bool = True) -> int:
                                             if mode == "resume" else 0.0) + loop_total_s,
                "setup_wall_clock_s": setup_s, "warmup_steps": warm_steps,
                "particles_per_parcel": config.particles_per_parcel,
+               "kernel_load_s": float(root.attrs.get("kernel_load_s", 0.0)),
+               "particle_contacts": config.particle_contacts,
                "injected": rig.injected, "removed": rig.pool.removed_count(), "total_collisions": collisions,
+               "total_overlap_pairs": overlaps,
                "collision_counts_available": hasattr(rig.collision, "counts"),
                "model_metadata": ({k: model_meta.get(k) for k in ("form", "dataset_hash", "defaults")}
                                   if model_meta else None),
@@ -600,8 +636,10 @@ def run(args, *, progress: bool = True) -> int:
     print(f"colliding_streams: {config.collisions}, d = {config.diameter * 1e6:.0f} um, dt = {config.dt:g} s, "
           f"{taken} steps this call, t = {rig.solver.time:.4g} s on {int(np.prod(rig.grid.shape))} cells "
           f"({rig.fluid_cells} fluid), {rig.injected} parcels injected, {rig.pool.removed_count()} removed, "
-          f"{collisions} collisions; step wall clock {summary['wall_clock_s']:.2f} s (loop with output "
-          f"{loop_total_s:.2f} s, setup + gas warm-up {setup_s:.2f} s) -> {args.out}")
+          f"{'-' if collisions is None else f'{collisions:g}'} collisions ({overlaps} overlapping pairs at step "
+          f"ends); step wall clock {summary['wall_clock_s']:.2f} s (loop with output "
+          f"{loop_total_s:.2f} s, Warp kernel loading {summary['kernel_load_s']:.2f} s, setup + gas warm-up "
+          f"{setup_s:.2f} s) -> {args.out}")
     for e in errors:
         print(f"check failed: {e}", file=sys.stderr)
     return 1 if errors else 0
@@ -619,6 +657,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default=None, help="surrogate model directory (hel-warp train output)")
     parser.add_argument("--force", action="store_true",
                         help="use a model trained for another particle size or material (refused otherwise)")
+    parser.add_argument("--no-particle-contacts", action="store_true",
+                        help="dem only: no particle-particle contacts (walls, drag, injection as with contacts)")
     parser.add_argument("--particles-per-parcel", type=finite_float, default=1.0,
                         help="real particles per parcel (paper's second HEL run: 8); default 1")
     parser.add_argument("--device", default="cpu", help="Warp device: cpu or cuda (default cpu)")

@@ -4,7 +4,9 @@ One run directory ``DIR``::
 
     DIR/run.zarr/                        zarr v3 group; attrs ``config`` (resolved: HEL config, run
                                          settings, case arguments), ``code_version``, ``created``,
-                                         ``snapshot_count``, ``gas_snapshot_count``
+                                         ``snapshot_count``, ``gas_snapshot_count``, ``kernel_load_s``
+                                         (Warp compilation / module loading before the timed steps, s,
+                                         summed over restarts; never part of ``series/timing_*``)
         snapshots/000000/{name}          live parcels at an output time: x, v (n, 3); radius, density,
                                          weight (n,); stream, particle_id (n,); attrs time, step, count
                                          (the layout of ``hel_warp.io``, so ``io.read_snapshot`` reads it)
@@ -14,7 +16,8 @@ One run directory ``DIR``::
         series/step, series/time         one entry per step
         series/timing_{sub_step}         wall clock of each sub-step of ``HelSolver.step``, s
         series/timing_step               wall clock of the whole step, s
-        series/collisions_{name}         the strategy's ``counts()`` per step (if it has one)
+        series/collisions_{name}         the strategy's ``counts()`` per step (if it has one): int64, or
+                                         float64 for a weight-aware count (``collisions`` of parcels)
         series/wall_hits                 parcel-wall reflections so far (at output steps; series/output_step)
     DIR/vtk/particles_0000.vtp, particles.pvd   parcels (``hel_warp.io.write_vtp`` / ``write_pvd``)
     DIR/vtk/gas_0000.vti, gas.pvd               cell fields on the grid (pyvista ImageData, cell data)
@@ -90,6 +93,45 @@ def add_run_arguments(parser) -> None:
     parser.add_argument("--restart", action="store_true", help="continue from OUT/checkpoint.npz")
     parser.add_argument("--no-vtk", action="store_true", help="write run.zarr only")
     parser.add_argument("--device", default="cpu", help="Warp device: cpu or cuda (default cpu)")
+
+
+def check_device(name: str) -> str:
+    """``name`` if Warp has that device here (``cpu``, ``cuda``, ``cuda:N``), else a ConfigError saying to use
+    ``--device cpu`` (asked for ``cuda`` on a machine without a GPU, Warp raises a RuntimeError deep in the first
+    allocation)."""
+    from hel_warp._warp import init_warp
+
+    if not isinstance(name, str) or not (name == "cpu" or name == "cuda" or name.startswith("cuda:")):
+        raise ConfigError(f"--device must be cpu, cuda or cuda:N (got {name!r})")
+    import warp as wp
+
+    init_warp()
+    if name != "cpu" and not wp.is_cuda_available():
+        raise ConfigError(f"--device {name}: Warp finds no CUDA device on this machine (no GPU or no driver); "
+                          "use --device cpu")
+    init_warp(name)  # cuda:N beyond the GPUs present: ConfigError naming --device cpu
+    return name
+
+
+def load_kernels(device) -> float:
+    """Compile (or load from Warp's kernel cache) every Warp module of ``kernels/`` and any other imported module
+    with Warp code, on ``device``; returns the seconds it took.
+
+    Warp compiles a module at its first launch, so without this the first steps of a run on a cold cache carry
+    the compilation (on a fresh machine the first model run looked 3x slower than the next); ``Run.run`` calls it
+    before it times any step and reports the time apart (``kernel_load_s``)."""
+    import importlib
+    import pkgutil
+
+    import warp as wp
+
+    import kernels
+
+    start = _time.perf_counter()
+    for info in pkgutil.iter_modules(kernels.__path__):
+        importlib.import_module(f"kernels.{info.name}")
+    wp.force_load(device=device)
+    return _time.perf_counter() - start
 
 
 def run_config_from_args(args) -> RunConfig:
@@ -213,6 +255,11 @@ class Run:
         self.vtk_dir = self.out_dir / "vtk"
         dt = solver.config.dt
         self.total_steps = int(round(config.end_time / dt))
+        if config.end_time < dt * (1.0 - 1e-9):
+            raise ConfigError(f"--end-time {config.end_time:g} s is shorter than one step (dt = {dt:g} s), so the "
+                              "run would take no step; give an end time of at least one step")
+        self.kernel_load_s = 0.0
+        """Seconds this Run spent compiling / loading Warp modules before the timed steps (:func:`load_kernels`)."""
         self.output_every = max(1, int(round(config.output_interval / dt)))
         interval = config.checkpoint_interval if config.checkpoint_interval is not None else config.output_interval
         self.checkpoint_every = self.output_every * max(1, int(round(interval / (self.output_every * dt))))
@@ -274,7 +321,9 @@ class Run:
         s = self.solver
         row = {"step": np.int64(s.step_count), "time": np.float64(s.time), "timing_step": np.float64(wall)}
         row.update({f"timing_{name}": np.float64(t) for name, t in s.timings.items()})
-        row.update({f"collisions_{name}": np.int64(c) for name, c in s.collision_counts().items()})
+        # integer counts stay integers; a weight-aware count (real collisions of parcels, min(w_i, w_j) each) is float
+        row.update({f"collisions_{name}": (np.int64(c) if isinstance(c, (int, np.integer)) else np.float64(c))
+                    for name, c in s.collision_counts().items()})
         done = len(self._series.get("step", []))
         for name in set(self._series) - set(row):  # a count not reported this step: 0
             self._series[name].append(np.zeros((), dtype=np.asarray(self._series[name][0]).dtype)[()])
@@ -371,6 +420,10 @@ class Run:
         """Step to ``end_time``; returns the number of steps taken by this call."""
         s = self.solver
         taken = 0
+        if s.step_count < self.total_steps:  # compile before the first timed step, and say how long it took
+            took = load_kernels(s.pool.particles.device)
+            self.kernel_load_s += took
+            self.root.attrs["kernel_load_s"] = float(self.root.attrs.get("kernel_load_s", 0.0)) + took
         if s.step_count == 0 and self._checkpoint_step is None:
             self._output_and_checkpoint(force_checkpoint=True)
         while s.step_count < self.total_steps:

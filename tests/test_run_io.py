@@ -205,3 +205,113 @@ def test_hel_warp_run_passes_the_options_to_the_case_script(tmp_path, capsys):
     assert capsys.readouterr().out.strip() == "argv ['--a', '1']"
     assert main(["run", "no_such_case"]) == 2
     assert "case script 'no_such_case' not found" in capsys.readouterr().err
+
+
+def test_an_end_time_shorter_than_one_step_is_refused(tmp_path, capsys):
+    # round(end / dt) = 0 steps would write a run of no step and exit 0; the run refuses it instead
+    from hel_warp.run import Run, RunConfig
+
+    with pytest.raises(ConfigError, match="shorter than one step"):
+        Run(build(), RunConfig(out_dir=str(tmp_path / "a"), end_time=0.4 * DT, output_interval=DT))
+    Run(build(), RunConfig(out_dir=str(tmp_path / "b"), end_time=DT, output_interval=DT)).run()  # one step: fine
+    from hel_warp.cli import main  # through the case script: one line, exit 2, before any rig is built
+
+    args = ["run", "colliding_streams", "--diameter", "315e-6", "--dt", "1e-3", "--collisions", "none",
+            "--end-time", "5e-4", "--out", str(tmp_path / "c"), "--no-progress"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "shorter than one step" in err[0]
+    assert not (tmp_path / "c").exists()
+
+
+def test_cuda_without_a_gpu_is_a_one_line_error(tmp_path, capsys):
+    import warp as wp
+
+    from hel_warp.cli import main
+    from hel_warp.run import check_device
+
+    wp.init()
+    if wp.is_cuda_available():
+        pytest.skip("this machine has a CUDA device")
+    with pytest.raises(ConfigError, match="--device cpu"):
+        check_device("cuda")
+    with pytest.raises(ConfigError, match="cpu, cuda or cuda:N"):
+        check_device("gpu")
+    assert check_device("cpu") == "cpu"
+    for argv in (["run", "colliding_streams", "--diameter", "315e-6", "--dt", "1e-3", "--collisions", "none",
+                  "--end-time", "0.003", "--out", str(tmp_path / "c"), "--no-progress", "--device", "cuda"],
+                 ["demo", "--out", str(tmp_path / "demo"), "--device", "cuda"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "no CUDA device" in err[0] and "Traceback" not in err[0], argv
+    assert not (tmp_path / "demo" / "dataset").exists()  # refused before the first stage
+
+
+def test_weight_aware_counts_stay_fractional(tmp_path):
+    # a surrogate collision between parcels of weights 0.5 and 2 is min(w_i, w_j) = 0.5 real collisions: the
+    # series must keep the fraction (an int64 series would store 0)
+    import zarr
+
+    from hel_warp.hel import NoCollision
+    from hel_warp.run import Run
+
+    class Weighted(NoCollision):
+        name = "weighted"
+
+        def counts(self):
+            return {"collisions": 0.5, "detected_pairs": 1}
+
+    solver = build("none")
+    solver.collision = Weighted()
+    Run(solver, run_config(tmp_path, 3)).run()
+    series = zarr.open_group(str(tmp_path / "run.zarr"), mode="r")["series"]
+    np.testing.assert_array_equal(series["collisions_collisions"][...], [0.5, 0.5, 0.5])
+    assert series["collisions_detected_pairs"].dtype == np.int64
+
+
+KERNEL_SOURCE = '''
+import warp as wp
+
+@wp.kernel
+def fresh_kernel(values: wp.array(dtype=float)):
+    i = wp.tid()
+    values[i] = values[i] * {factor!r} + wp.sin(values[i])
+'''
+
+
+def test_kernel_compilation_is_timed_apart_from_the_steps(tmp_path):
+    """A strategy whose kernel no cache holds (a module made fresh for this test): compiling it takes seconds on
+    the CPU, the step itself microseconds. The run compiles every imported Warp module before the first timed
+    step, so the step timings exclude it and ``kernel_load_s`` holds it."""
+    import importlib.util
+    import uuid
+
+    import warp as wp
+    import zarr
+
+    from hel_warp.hel import NoCollision
+    from hel_warp.run import Run
+
+    source = tmp_path / f"fresh_{uuid.uuid4().hex}.py"
+    source.write_text(KERNEL_SOURCE.format(factor=1.0 + uuid.uuid4().int % 1000 / 1e6))
+    spec = importlib.util.spec_from_file_location(source.stem, source)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+
+    class Fresh(NoCollision):
+        name = "fresh"
+
+        def accelerate(self, solver):
+            super().accelerate(solver)
+            values = wp.ones(8, dtype=float, device=solver.pool.particles.device)
+            wp.launch(module.fresh_kernel, dim=8, inputs=[values], device=values.device)
+
+    solver = build("none")
+    solver.collision = Fresh()
+    runner = Run(solver, run_config(tmp_path / "run", 2))
+    runner.run()
+    root = zarr.open_group(str(tmp_path / "run" / "run.zarr"), mode="r")
+    collide = root["series"]["timing_collide"][...]
+    assert root.attrs["kernel_load_s"] == pytest.approx(runner.kernel_load_s)
+    # the compilation landed in kernel_load_s, not in the first step's collide timing
+    assert collide[0] < 0.2 * runner.kernel_load_s, (collide, runner.kernel_load_s)

@@ -77,7 +77,9 @@ def _check(code, what: str) -> None:
 
 def run(args) -> int:
     from hel_warp.cli import main as cli_main
+    from hel_warp.run import check_device
 
+    check_device(args.device)  # before the first stage: a GPU asked for on a machine without one is one line
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     data_dir, model_dir = out / "dataset", out / "model_contact"
