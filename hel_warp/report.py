@@ -14,26 +14,64 @@ What the paper compares (sections 6 and 8; Figs. 11-23):
 - particle dispersion coloured by stream and the solid volume fraction on a log scale (Figs. 11,
   17, 20): eps_s of the last snapshot, particle volume binned on the grid spacing in the x-y plane
   and divided by the bin volume (bin area x channel depth);
-- wall clock per model and time step (Figs. 12, 22) and collision rates, detected collisions per
-  simulated second (Fig. 23).
+- wall clock per model and time step (Figs. 12, 22), Warp kernel loading apart (``kernel_load_s``);
+- what tells collision models apart (issue 11), from the particles in each section over the snapshots of a
+  window (default: the second half of each run), weighted by parcel weight: the stream composition per sub-box,
+  the **stream crossing** (the fraction of a stream found on the far side of the channel axis from its own arm:
+  0 = both streams stay on their side, 1 = they pass through each other, 1/2 = mixed), the transverse spread
+  (std of y per stream) and the transverse velocity (v_y profiles per sub-box, rms over the section), each
+  against the ``dem`` run (``*_vs_dem``);
+- real collision rates (Fig. 23): binary collisions per simulated second, series ``collisions_collisions``
+  (``dem``: contact onsets between spheres; ``surrogate``: resolved collisions, min(w_i, w_j) each), per stream
+  pair (left-left, left-right, right-right); the pairs overlapping at step ends (``collisions_detected_pairs``,
+  the count before issue 11) stay as ``overlap_pair_rate``;
+- like with like: what still differs between ``dem`` and the HEL runs besides the particle collisions
+  (:data:`MODEL_DIFFERENCES`, and each run's config differences), and the gap the walls alone make, measured
+  as ``none`` against ``dem`` with the particle contacts off (``model`` ``dem-no-contacts``).
 
 A run directory is what ``cases/colliding_streams.py`` writes: ``run.zarr`` with snapshots
-(``x``, ``v``, ``weight``, ``stream`` per parcel), series ``collisions`` and attrs ``config`` holding
-``collisions``, ``dt``, ``diameter``, ``end_time``, ``wall_clock_s`` and ``rig`` (``axial_axis``,
-``transverse_axis``, ``downstream``, ``sections``: ten boxes ``{name, lo, hi}`` in m).
+(``x``, ``v``, ``weight``, ``stream`` per parcel), per-step series and attrs ``config`` (``hel``, ``collision``,
+``case`` ...) and ``summary`` holding ``collisions``, ``dt``, ``diameter``, ``end_time``, ``wall_clock_s`` and
+``rig`` (``axial_axis``, ``transverse_axis``, ``downstream``, ``sections``: ten boxes ``{name, lo, hi}`` in m;
+``streams`` {tag: name}, ``stream_sides`` {tag: +1/-1}, ``axis_transverse`` m).
 Figures are rendered with pyvista off-screen, or with matplotlib when pyvista cannot render.
 
 ``report.json``::
 
-    {"runs": [{"run", "label", "collisions", "dt" (s), "diameter" (m), "end_time" (simulated s),
-               "particles_per_parcel", "wall_clock_s" (sum of the per-step wall clock), "collision_rate" (1/s
-               or null), "total_collisions", "snapshots",
+    {"runs": [{"run", "label", "collisions", "model" (collisions, or dem-no-contacts), "particle_contacts",
+               "dt" (s), "diameter" (m), "end_time" (simulated s), "particles_per_parcel",
+               "wall_clock_s" (sum of the per-step wall clock), "kernel_load_s" (Warp compilation, not in it),
+               "collision_rate" (1/s or null), "collision_rate_per_stream_pair" {"left-right": 1/s, ...},
+               "collision_rate_note" (why 0 or null), "overlap_pair_rate", "overlap_pair_rate_per_stream_pair",
+               "total_collisions", "snapshots",
                "profiles": {"20": [{"section", "centres" (m), "mean_axial_velocity" (m/s, null where empty),
                                     "samples"}, ... ten sections], "88": [...], "126": [...]},
-               "dem_reference" and "profile_rms_vs_dem": {"20": m/s, ...} (null for the reference itself),
-               "paper_experimental_uncertainty" (m/s: 0.63 at 315 um, 0.71 at 475 um, else null), only when a
-               dem run is in the report}, ...],
-     "boxes", "downstream_only", "from_time", "min_samples", "figures", "renderer"}
+               "stream_metrics": {"window_s", "snapshots", "streams", "stream_sides", "axis_transverse",
+                                  "sections": [{"section", "samples", "samples_per_stream", "crossing" {stream: f},
+                                                "stream_crossing", "transverse_spread_mm" {stream: mm},
+                                                "transverse_velocity_rms" (m/s),
+                                                "transverse_velocity_rms_per_stream"}, ...],
+                                  "stream_crossing", "transverse_velocity_rms", "transverse_spread_mm" (means over
+                                  the sections), "composition" {"20": [{"section", "centres", "fractions"
+                                  {stream: [...]}, "samples"}]}, "transverse_velocity_profiles" {"20": [{"section",
+                                  "centres", "mean_transverse_velocity", "samples"}]}},
+               only when a dem run is in the report: "dem_reference", "paper_experimental_uncertainty" (m/s: 0.63
+               at 315 um, 0.71 at 475 um, else null) and, null or absent for the reference itself,
+               "profile_rms_vs_dem" {"20": m/s, ...}, "stream_crossing_vs_dem" {"difference", "per_section",
+               "sections_compared"}, "transverse_velocity_rms_vs_dem" {"relative_difference", "difference",
+               "per_section", "sections_compared"}, "transverse_spread_vs_dem" {"difference_mm"},
+               "stream_composition_vs_dem" {"20": RMS of fractions}, "transverse_velocity_profile_rms_vs_dem"
+               {"20": m/s}, "collision_rate_vs_dem" (relative), "config_differences_vs_dem" [{"key", "dem",
+               "run"}]}, ...],
+     "summary_table": [{"label", "model", "diameter", "dt", "stream_crossing", "stream_crossing_vs_dem",
+                        "transverse_velocity_rms", "transverse_velocity_rms_vs_dem", "collision_rate",
+                        "collision_rate_vs_dem", "profile_rms_vs_dem" (first box count), "wall_clock_s"}, ...],
+     "like_with_like": {"model_differences": [{"what", "dem", "hel", "intended"}], "wall_effect": [{"diameter",
+                        "dt", "none", "dem_no_contacts", "stream_crossing_difference",
+                        "transverse_velocity_rms_relative_difference", "transverse_spread_difference_mm",
+                        "profile_rms"}], "wall_effect_note"},
+     "boxes", "downstream_only", "from_time", "min_samples", "stream_window", "composition_section", "figures",
+     "renderer"}
 """
 
 from __future__ import annotations
@@ -54,8 +92,6 @@ STREAM_COLOURS = {0: "#d62728", 1: "#1f77b4"}
 """Left stream red, right stream blue (as Fig. 11)."""
 
 
-COLLISION_SERIES = "collisions_detected_pairs"
-"""The per-step count a collision rate is made of (``counts()['detected_pairs']`` of hel_warp.collision_models)."""
 _RUN_KEYS = ("hel", "collision", "grid", "gas", "capacity", "run", "case")
 
 
@@ -72,6 +108,11 @@ class RunData:
     """Per snapshot: dict of arrays (x, v, weight, stream, radius, ...)."""
     series: dict = field(default_factory=dict)
     """name -> 1-d array (per step)."""
+    raw_config: dict = field(default_factory=dict)
+    """The ``config`` attrs as stored (``hel``, ``collision``, ``grid``, ``gas``, ``run``, ``case``): what the
+    like-with-like comparison diffs."""
+    kernel_load_s: float | None = None
+    """Warp compilation / module loading before the timed steps, s (attrs ``kernel_load_s``; None: not recorded)."""
 
     @property
     def rig(self) -> dict:
@@ -143,8 +184,10 @@ def load_run(run_dir: str) -> RunData:
         raise ConfigError(f"{store} cannot be read ({type(exc).__name__}: {exc}); the store is corrupt") from None
     if not snapshots:
         raise ConfigError(f"{run_dir}: run.zarr holds no particle snapshot")
+    kernel_load = attrs.get("kernel_load_s", config.get("kernel_load_s"))
     return RunData(path=str(path), label=path.name, config=config, times=np.asarray(times), snapshots=snapshots,
-                   series=series)
+                   series=series, raw_config=raw,
+                   kernel_load_s=float(kernel_load) if kernel_load is not None else None)
 
 
 # ------------------------------------------------------------------------------------------ profiles
@@ -193,18 +236,18 @@ of n samples of a velocity spread sigma has a standard error sigma / sqrt(n), ~0
 of the cloud a box may hold one or two parcels, whose noise would swamp the comparison)."""
 
 
-def profile_rms(a: list, b: list, *, min_samples: int = 1) -> float | None:
-    """RMS of the differences of two runs' profiles over all sections and the sub-boxes where both runs have at
-    least ``min_samples`` samples."""
+def profile_rms(a: list, b: list, *, min_samples: int = 1, key: str = "mean_axial_velocity") -> float | None:
+    """RMS of the differences of two runs' profiles (of ``key``) over all sections and the sub-boxes where both runs
+    have at least ``min_samples`` samples."""
     if len(a) != len(b):
         raise ConfigError(f"the runs have {len(a)} and {len(b)} sections; compare runs of the same rig")
     diffs = []
     for pa, pb in zip(a, b):
-        if len(pa["mean_axial_velocity"]) != len(pb["mean_axial_velocity"]):
+        if len(pa[key]) != len(pb[key]):
             raise ConfigError("profiles with different sub-box counts cannot be compared")
-        na = pa.get("samples") or [min_samples] * len(pa["mean_axial_velocity"])
-        nb = pb.get("samples") or [min_samples] * len(pb["mean_axial_velocity"])
-        for ua, ub, ka, kb in zip(pa["mean_axial_velocity"], pb["mean_axial_velocity"], na, nb):
+        na = pa.get("samples") or [min_samples] * len(pa[key])
+        nb = pb.get("samples") or [min_samples] * len(pb[key])
+        for ua, ub, ka, kb in zip(pa[key], pb[key], na, nb):
             if ua is not None and ub is not None and ka >= min_samples and kb >= min_samples:
                 diffs.append(ua - ub)
     return float(np.sqrt(np.mean(np.square(diffs)))) if diffs else None
@@ -223,31 +266,439 @@ def paper_uncertainty(diameter: float) -> float | None:
     return None
 
 
+# ------------------------------------------------------------------------------------------ stream metrics
+DEFAULT_STREAM_WINDOW = (0.5, 1.0)
+"""The stream metrics average the snapshots from this fraction of each run's simulated time to that one: the
+second half by default, when the streams have reached the sections and the release is under way (issue 11)."""
+DEFAULT_COMPOSITION_SECTION = "S5"
+"""The section whose stream composition the stacked-bar picture shows (the middle one of the ten)."""
+
+
+def stream_layout(rig: dict) -> tuple:
+    """({tag: name}, {tag: side}, axis) of the rig: side = the sign of (transverse position - axis) on the stream's
+    own arm (left = +1), axis the transverse position of the main-channel axis (m; None: each section's centre).
+
+    Runs written before the rig stored ``stream_sides`` read stream 0 = left = +1, stream 1 = right = -1, as
+    ``cases/colliding_streams.py`` lays them out."""
+    names = {int(k): str(v) for k, v in (rig.get("streams") or {"0": "left", "1": "right"}).items()}
+    sides = {int(k): float(np.sign(v)) for k, v in (rig.get("stream_sides") or {"0": 1.0, "1": -1.0}).items()}
+    axis = rig.get("axis_transverse")
+    return names, sides, (None if axis is None else float(axis))
+
+
+def _run_time(run: RunData) -> float:
+    return float(run.config.get("simulated_time", run.config["end_time"]))
+
+
+def stream_window(run: RunData, window=DEFAULT_STREAM_WINDOW) -> tuple:
+    """(t_from, t_to) in s: the fractions ``window`` of the run's simulated time."""
+    total = _run_time(run)
+    return float(window[0]) * total, float(window[1]) * total
+
+
+def _section_samples(run: RunData, section: dict, window_s: tuple) -> dict:
+    """Every (snapshot, parcel) sample inside ``section`` from the snapshots in ``window_s``: transverse position
+    ``y`` (m), transverse velocity ``v_y`` (m/s), ``weight``, ``stream``; ``snapshots`` = how many were used."""
+    rig = run.rig
+    transverse = int(rig["transverse_axis"])
+    lo, hi = np.asarray(section["lo"], float), np.asarray(section["hi"], float)
+    tol = 1e-9 * max(1.0, abs(window_s[1]))
+    parts, used = [], 0
+    for t, snap in zip(run.times, run.snapshots):
+        if t < window_s[0] - tol or t > window_s[1] + tol:
+            continue
+        used += 1
+        x = np.asarray(snap["x"], np.float64)
+        if x.shape[0] == 0:
+            continue
+        inside = np.all((x >= lo) & (x < hi), axis=1)
+        parts.append((x[inside, transverse], np.asarray(snap["v"], np.float64)[inside, transverse],
+                      np.asarray(snap["weight"], np.float64)[inside], np.asarray(snap["stream"])[inside]))
+    if parts:
+        y, vy, w, tag = (np.concatenate(column) for column in zip(*parts))
+    else:
+        y, vy, w, tag = np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0, np.int32)
+    return {"y": y, "v_y": vy, "weight": w, "stream": tag.astype(np.int64), "snapshots": used}
+
+
+def _mean_or_none(values) -> float | None:
+    kept = [v for v in values if v is not None]
+    return float(np.mean(kept)) if kept else None
+
+
+def section_stream_metrics(samples: dict, section: dict, transverse: int, names: dict, sides: dict,
+                           axis: float | None, *, min_samples: int = 1) -> dict:
+    """Stream metrics of one section from its samples (weights = real particles per parcel):
+
+    - ``crossing[name]``: the weight fraction of the stream's samples on the far side of the channel axis from
+      its own arm, ``sum_{side (y - axis) < 0} w / sum w``; ``stream_crossing`` the mean over the streams
+      (0: both stay on their side, 1: they pass through each other, 1/2: mixed);
+    - ``transverse_spread_mm[name]``: the weighted standard deviation of y, mm;
+    - ``transverse_velocity_rms``: ``sqrt(sum w v_y^2 / sum w)`` over all samples, m/s (and per stream).
+    A stream (a section) with fewer than ``min_samples`` samples gets None."""
+    lo, hi = float(section["lo"][transverse]), float(section["hi"][transverse])
+    centre = 0.5 * (lo + hi) if axis is None else axis
+    y, vy, w, tag = samples["y"], samples["v_y"], samples["weight"], samples["stream"]
+    crossing, spread, rms_stream, counts = {}, {}, {}, {}
+    for s in sorted(set(names) | set(np.unique(tag).tolist())):
+        name = names.get(s, str(s))
+        keep = tag == s
+        n, ws = int(keep.sum()), w[keep]
+        counts[name] = n
+        if n < min_samples or ws.sum() <= 0:
+            crossing[name] = spread[name] = rms_stream[name] = None
+            continue
+        ys = y[keep]
+        mean_y = float(np.sum(ws * ys) / ws.sum())
+        spread[name] = 1e3 * float(np.sqrt(np.sum(ws * (ys - mean_y) ** 2) / ws.sum()))
+        rms_stream[name] = float(np.sqrt(np.sum(ws * vy[keep] ** 2) / ws.sum()))
+        side = sides.get(s)
+        crossing[name] = (float(np.sum(ws[side * (ys - centre) < 0.0]) / ws.sum()) if side else None)
+    total_ok = len(w) >= min_samples and w.sum() > 0
+    return {"section": section.get("name", ""), "samples": int(len(w)), "samples_per_stream": counts,
+            "crossing": crossing, "stream_crossing": _mean_or_none(crossing.values()),
+            "transverse_spread_mm": spread,
+            "transverse_velocity_rms": float(np.sqrt(np.sum(w * vy**2) / w.sum())) if total_ok else None,
+            "transverse_velocity_rms_per_stream": rms_stream}
+
+
+def section_box_profiles(samples: dict, section: dict, transverse: int, boxes: int, names: dict) -> tuple:
+    """(stream composition, transverse velocity profile) of one section over ``boxes`` sub-boxes across the
+    channel: per sub-box the weight fraction of each stream, ``W_bs / sum_s W_bs``, and the weighted mean v_y
+    (None where empty), with the sample counts."""
+    lo, hi = float(section["lo"][transverse]), float(section["hi"][transverse])
+    edges = np.linspace(lo, hi, boxes + 1)
+    y, vy, w, tag = samples["y"], samples["v_y"], samples["weight"], samples["stream"]
+    index = np.clip(np.searchsorted(edges, y, side="right") - 1, 0, boxes - 1)
+    weight = np.zeros(boxes)
+    np.add.at(weight, index, w)
+    momentum = np.zeros(boxes)
+    np.add.at(momentum, index, w * vy)
+    count = np.bincount(index, minlength=boxes) if len(index) else np.zeros(boxes, np.int64)
+    fractions = {}
+    for s in sorted(set(names) | set(np.unique(tag).tolist())):
+        ws = np.zeros(boxes)
+        np.add.at(ws, index[tag == s], w[tag == s])
+        fractions[names.get(s, str(s))] = [float(ws[b] / weight[b]) if weight[b] > 0 else None for b in range(boxes)]
+    centres = (0.5 * (edges[:-1] + edges[1:])).tolist()
+    composition = {"section": section.get("name", ""), "centres": centres, "fractions": fractions,
+                   "samples": count.tolist()}
+    velocity = {"section": section.get("name", ""), "centres": centres, "samples": count.tolist(),
+                "mean_transverse_velocity": [float(momentum[b] / weight[b]) if weight[b] > 0 else None
+                                             for b in range(boxes)]}
+    return composition, velocity
+
+
+def stream_metrics(run: RunData, boxes, *, window=DEFAULT_STREAM_WINDOW, min_samples: int = 1) -> dict:
+    """The stream metrics of ``run`` per section (see :func:`section_stream_metrics`, :func:`section_box_profiles`)
+    over the snapshots of ``window``, and their means over the sections that have a value."""
+    rig = run.rig
+    transverse = int(rig["transverse_axis"])
+    names, sides, axis = stream_layout(rig)
+    window_s = stream_window(run, window)
+    sections, composition, velocity = [], {str(b): [] for b in boxes}, {str(b): [] for b in boxes}
+    used = 0
+    for section in rig["sections"]:
+        samples = _section_samples(run, section, window_s)
+        used = samples["snapshots"]
+        sections.append(section_stream_metrics(samples, section, transverse, names, sides, axis,
+                                               min_samples=min_samples))
+        for b in boxes:
+            comp, vel = section_box_profiles(samples, section, transverse, int(b), names)
+            composition[str(b)].append(comp)
+            velocity[str(b)].append(vel)
+    stream_names = list(sections[0]["crossing"]) if sections else []
+    return {"window_s": list(window_s), "snapshots": used, "streams": {str(k): v for k, v in names.items()},
+            "stream_sides": {names.get(k, str(k)): v for k, v in sides.items()}, "axis_transverse": axis,
+            "sections": sections,
+            "stream_crossing": _mean_or_none(s["stream_crossing"] for s in sections),
+            "transverse_velocity_rms": _mean_or_none(s["transverse_velocity_rms"] for s in sections),
+            "transverse_spread_mm": {n: _mean_or_none(s["transverse_spread_mm"].get(n) for s in sections)
+                                     for n in stream_names},
+            "composition": composition, "transverse_velocity_profiles": velocity}
+
+
+def composition_rms(a: list, b: list, *, min_samples: int = 1) -> float | None:
+    """RMS of the differences of two runs' stream fractions over the sections, the sub-boxes where both have at
+    least ``min_samples`` samples and every stream either names."""
+    diffs = []
+    for ca, cb in zip(a, b):
+        for name in set(ca["fractions"]) | set(cb["fractions"]):
+            fa = ca["fractions"].get(name) or [0.0] * len(ca["samples"])
+            fb = cb["fractions"].get(name) or [0.0] * len(cb["samples"])
+            for va, vb, na, nb in zip(fa, fb, ca["samples"], cb["samples"]):
+                if va is not None and vb is not None and na >= min_samples and nb >= min_samples:
+                    diffs.append(va - vb)
+    return float(np.sqrt(np.mean(np.square(diffs)))) if diffs else None
+
+
+def _relative(value, reference):
+    return None if value is None or reference is None or reference == 0 else (value - reference) / reference
+
+
+def stream_metrics_vs(metrics: dict, ref: dict, boxes, *, min_samples: int = 1) -> dict:
+    """``*_vs_dem`` of a run's stream metrics against a reference's, over the sections where both have a value:
+    crossing as a difference (model - reference; target 0.05), transverse rms velocity as a relative difference
+    (target 5 %), spread per stream as a difference (mm), composition and v_y profiles as RMS over sub-boxes."""
+    out = {}
+    pairs = list(zip(metrics["sections"], ref["sections"]))
+    diffs = [None if a["stream_crossing"] is None or b["stream_crossing"] is None
+             else a["stream_crossing"] - b["stream_crossing"] for a, b in pairs]
+    out["stream_crossing_vs_dem"] = {"difference": _mean_or_none(diffs), "per_section": diffs,
+                                     "sections_compared": sum(d is not None for d in diffs)}
+    both = [(a["transverse_velocity_rms"], b["transverse_velocity_rms"]) for a, b in pairs
+            if a["transverse_velocity_rms"] is not None and b["transverse_velocity_rms"] is not None]
+    mean_a = float(np.mean([p[0] for p in both])) if both else None
+    mean_b = float(np.mean([p[1] for p in both])) if both else None
+    out["transverse_velocity_rms_vs_dem"] = {
+        "relative_difference": _relative(mean_a, mean_b),
+        "difference": None if mean_a is None else mean_a - mean_b,
+        "per_section": [_relative(a["transverse_velocity_rms"], b["transverse_velocity_rms"]) for a, b in pairs],
+        "sections_compared": len(both)}
+    spread = {}
+    for name in metrics["transverse_spread_mm"]:
+        d = [a["transverse_spread_mm"].get(name) - b["transverse_spread_mm"].get(name) for a, b in pairs
+             if a["transverse_spread_mm"].get(name) is not None and b["transverse_spread_mm"].get(name) is not None]
+        spread[name] = float(np.mean(d)) if d else None
+    out["transverse_spread_vs_dem"] = {"difference_mm": spread}
+    out["stream_composition_vs_dem"] = {str(b): composition_rms(metrics["composition"][str(b)],
+                                                                ref["composition"][str(b)], min_samples=min_samples)
+                                        for b in boxes}
+    out["transverse_velocity_profile_rms_vs_dem"] = {
+        str(b): profile_rms(metrics["transverse_velocity_profiles"][str(b)], ref["transverse_velocity_profiles"][str(b)],
+                            min_samples=min_samples, key="mean_transverse_velocity") for b in boxes}
+    return out
+
+
+# ------------------------------------------------------------------------------------------ collision rates
+REAL_COLLISIONS = "collisions_collisions"
+"""Series of real binary collisions per step (``counts()['collisions']``: ``dem`` contact onsets between spheres
+during the sub-steps; ``surrogate`` resolved collisions, each min(w_i, w_j) real ones); per stream pair
+``collisions_collisions_<a>_<b>``."""
+OVERLAP_PAIRS = "collisions_detected_pairs"
+"""Series of parcel pairs overlapping at the end of a step (``counts()['detected_pairs']``); per stream pair
+``collisions_detected_pairs_<a>_<b>``. Not a collision rate: it depends on dt and on how long contacts last."""
+COLLISION_SERIES = OVERLAP_PAIRS  # the name before issue 11
+
+
+def _pair_rates(run: RunData, prefix: str, total_time: float) -> dict:
+    """{"left-right": 1/s, ...} from the series ``<prefix>_<a>_<b>``: every pair of named streams, and any other
+    pair that counted something."""
+    import re
+
+    names = stream_layout(run.rig)[0]
+    pattern = re.compile(rf"^{re.escape(prefix)}_(\d+)_(\d+)$")
+    rates = {}
+    for series_name, values in sorted(run.series.items()):
+        match = pattern.match(series_name)
+        if not match:
+            continue
+        a, b = int(match.group(1)), int(match.group(2))
+        total = float(np.sum(values))
+        if (a in names and b in names) or total:
+            rates[f"{names.get(a, str(a))}-{names.get(b, str(b))}"] = total / total_time
+    return rates
+
+
+def collision_rates(run: RunData) -> dict:
+    """Real collision rate (1/s of simulated time) and the per-stream-pair rates, beside the rate of pairs
+    overlapping at step ends; ``collision_rate_note`` says why a rate is 0 or null."""
+    model = run.config["collisions"]
+    total_time = _run_time(run)
+    out = {"collision_rate": None, "collision_rate_per_stream_pair": None, "collision_rate_note": None,
+           "overlap_pair_rate": None, "overlap_pair_rate_per_stream_pair": None}
+    if total_time <= 0:
+        out["collision_rate_note"] = "the run simulated no time"
+        return out
+    if OVERLAP_PAIRS in run.series:
+        out["overlap_pair_rate"] = float(np.sum(run.series[OVERLAP_PAIRS])) / total_time
+        out["overlap_pair_rate_per_stream_pair"] = _pair_rates(run, OVERLAP_PAIRS, total_time)
+    if REAL_COLLISIONS in run.series:
+        out["collision_rate"] = float(np.sum(run.series[REAL_COLLISIONS])) / total_time
+        out["collision_rate_per_stream_pair"] = _pair_rates(run, REAL_COLLISIONS, total_time)
+        if run.config.get("particle_contacts") is False:
+            out["collision_rate_note"] = "dem with particle-particle contacts off: no collision can happen"
+    elif model == "none":
+        out["collision_rate"] = 0.0
+        out["collision_rate_note"] = "none resolves no particle-particle collision (rate 0 by construction)"
+    elif model == "ktgf":
+        out["collision_rate_note"] = ("ktgf acts through a continuum solids pressure and counts no collision; "
+                                      "its rate is undefined (null)")
+    else:
+        out["collision_rate_note"] = (f"the run has no series {REAL_COLLISIONS} (real collisions, written by "
+                                      "engines whose strategy counts() reports 'collisions'); rerun it with such an "
+                                      "engine. overlap_pair_rate holds the pairs overlapping at step ends")
+    return out
+
+
 def collision_rate(run: RunData) -> float | None:
-    """Detected collisions per simulated second: the sum of series ``collisions`` (hand-made runs) or
-    ``collisions_detected_pairs`` (the strategies' ``counts()``: pairs found overlapping in a step) over the
-    simulated time; None when the model does not count collisions (none, ktgf)."""
-    if run.config.get("collision_counts_available") is False:
-        return None
-    counts = run.series.get("collisions", run.series.get(COLLISION_SERIES))
-    if counts is None:
-        return None
-    simulated = float(run.config.get("simulated_time", run.config["end_time"]))
-    return float(np.sum(counts)) / simulated if simulated > 0 else None
+    """Real binary collisions per simulated second (:func:`collision_rates`)."""
+    return collision_rates(run)["collision_rate"]
+
+
+# ------------------------------------------------------------------------------------------ like with like
+MODEL_DIFFERENCES = (
+    {"what": "particle-particle collisions", "intended": True,
+     "dem": "Hertz-Mindlin contacts between the spheres, resolved at the DEM step (eq. 12)",
+     "hel": "the collision model under test (none, ktgf, surrogate, ...)"},
+    {"what": "walls", "intended": False,
+     "dem": "Hertz-Mindlin sphere-wall contact against the SDF at every DEM sub-step: the sphere meets the wall with "
+            "its surface (radius), normal restitution from the wall dashpot (Material.wall_restitution_normal), "
+            "Coulomb friction of the material, rolling carried by the spin",
+     "hel": "point reflection of the parcel centre once per step (kernels/reflect.py): e_n, e_t "
+            "(Material.wall_restitution_*), tangential loss capped by Coulomb friction (HelConfig.wall_friction); no "
+            "spin"},
+    {"what": "parcel integration", "intended": False,
+     "dem": "velocity-Verlet sub-steps at the DEM step with the fluid acceleration of the push held over the fluid "
+            "step (same fluid impulse per step)",
+     "hel": "one implicit drag-exchange push per fluid step"},
+    {"what": "parcel weight", "intended": False,
+     "dem": "every parcel one real sphere (weight 1)",
+     "hel": "parcels of any weight (--particles-per-parcel)"},
+)
+"""What still differs between the ``dem`` reference and an HEL run besides the particle-particle collisions
+(injection, drag law and exchange, gas solver, wall restitution and friction values are shared)."""
+_NOT_A_DIFFERENCE = ("collision", "run", "case.collisions", "case.model", "case.force", "case.particle_contacts",
+                     "case.model_metadata")
+
+
+def _flatten(value, prefix: str = "") -> dict:
+    if isinstance(value, dict):
+        out = {}
+        for k, v in value.items():
+            out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out
+    return {prefix: value}
+
+
+def config_differences(run: RunData, ref: RunData) -> list:
+    """Settings in which ``run`` and ``ref`` differ, other than the collision model and the run/output settings:
+    [{"key": "hel.material.friction", "dem": ..., "run": ...}, ...]."""
+    a, b = _flatten(run.raw_config), _flatten(ref.raw_config)
+    out = []
+    for key in sorted(set(a) | set(b)):
+        if any(key == skip or key.startswith(skip + ".") for skip in _NOT_A_DIFFERENCE):
+            continue
+        if a.get(key) != b.get(key):
+            out.append({"key": key, "dem": b.get(key), "run": a.get(key)})
+    return out
+
+
+def model_name(config: dict) -> str:
+    """The model a run stands for in tables and pictures: ``collisions``, ``dem-no-contacts`` for a dem run with
+    the particle-particle contacts off, and the surrogate's ``detection`` where the run records one."""
+    name = str(config["collisions"])
+    if name == "dem" and config.get("particle_contacts") is False:
+        return "dem-no-contacts"
+    if name.startswith("surrogate") and config.get("detection"):
+        return f"{name}/{config['detection']}"
+    return name
+
+
+def _same_size_and_step(a: RunData, b: RunData) -> bool:
+    return (abs(float(a.config["diameter"]) - float(b.config["diameter"])) <= 1e-9
+            and abs(float(a.config["dt"]) - float(b.config["dt"])) <= 1e-12)
+
+
+def wall_effect(runs: list, metrics: dict, all_profiles: dict, boxes, *, min_samples: int) -> list:
+    """Per (diameter, dt) with a ``none`` run and a ``dem-no-contacts`` run: the gap the walls (and the parcel
+    integration) alone make, in the stream metrics and the axial profiles (dem-no-contacts - none)."""
+    out = []
+    for free in [r for r in runs if model_name(r.config) == "none"]:
+        for walls in [r for r in runs if model_name(r.config) == "dem-no-contacts" and _same_size_and_step(r, free)]:
+            vs = stream_metrics_vs(metrics[free.path], metrics[walls.path], boxes, min_samples=min_samples)
+            out.append({"diameter": float(free.config["diameter"]), "dt": float(free.config["dt"]),
+                        "none": free.label, "dem_no_contacts": walls.label,
+                        "stream_crossing_difference": vs["stream_crossing_vs_dem"]["difference"],
+                        "transverse_velocity_rms_relative_difference":
+                            vs["transverse_velocity_rms_vs_dem"]["relative_difference"],
+                        "transverse_spread_difference_mm": vs["transverse_spread_vs_dem"]["difference_mm"],
+                        "profile_rms": {str(b): profile_rms(all_profiles[free.path][str(b)],
+                                                            all_profiles[walls.path][str(b)],
+                                                            min_samples=min_samples) for b in boxes},
+                        "sign": "none minus dem-no-contacts, as a model minus the dem reference"})
+    return out
 
 
 def _dem_reference(run: RunData, runs: list) -> RunData | None:
-    """The ``dem`` run to compare ``run`` with: same particle diameter (required), same dt preferred."""
-    dems = [r for r in runs if r.config["collisions"] == "dem"
+    """The ``dem`` run (contacts on) to compare ``run`` with: same particle diameter (required), same dt preferred."""
+    dems = [r for r in runs if model_name(r.config) == "dem"
             and abs(float(r.config["diameter"]) - float(run.config["diameter"])) <= 1e-9]
     if not dems:
         return None
     return sorted(dems, key=lambda r: abs(float(r.config["dt"]) - float(run.config["dt"])) > 1e-12)[0]
 
 
+# ------------------------------------------------------------------------------------------ the summary table
+MODEL_ORDER = ("none", "ktgf", "surrogate", "surrogate-paper", "dem-no-contacts", "dem")
+SUMMARY_COLUMNS = (("model", "model", "{}"), ("stream_crossing", "crossing", "{:.3f}"),
+                   ("stream_crossing_vs_dem", "d crossing", "{:+.3f}"),
+                   ("transverse_velocity_rms", "v_y rms m/s", "{:.3f}"),
+                   ("transverse_velocity_rms_vs_dem", "v_y rms vs dem", "{:+.1%}"),
+                   ("collision_rate", "collisions 1/s", "{:.4g}"), ("collision_rate_vs_dem", "vs dem", "{:+.1%}"),
+                   ("profile_rms_vs_dem", "axial RMS m/s", "{:.3f}"), ("wall_clock_s", "wall s", "{:.1f}"))
+"""(row key, heading, format) of the summary table: per (diameter, dt) the numbers a collision model is judged by."""
+
+
+def _model_rank(name: str) -> tuple:
+    base = name.split("/")[0]
+    return (MODEL_ORDER.index(base) if base in MODEL_ORDER else len(MODEL_ORDER), name)
+
+
+def summary_rows(report: dict) -> list:
+    """One row per run, sorted by diameter, dt (largest first) and model: the columns of :data:`SUMMARY_COLUMNS`."""
+    boxes = str(report["boxes"][0])
+    rows = []
+    for e in report["runs"]:
+        sm = e["stream_metrics"]
+        rms = e.get("profile_rms_vs_dem")
+        rows.append({"label": e["label"], "model": e["model"], "diameter": e["diameter"], "dt": e["dt"],
+                     "stream_crossing": sm["stream_crossing"],
+                     "stream_crossing_vs_dem": (e.get("stream_crossing_vs_dem") or {}).get("difference"),
+                     "transverse_velocity_rms": sm["transverse_velocity_rms"],
+                     "transverse_velocity_rms_vs_dem":
+                         (e.get("transverse_velocity_rms_vs_dem") or {}).get("relative_difference"),
+                     "collision_rate": e["collision_rate"], "collision_rate_vs_dem": e.get("collision_rate_vs_dem"),
+                     "profile_rms_vs_dem": rms.get(boxes) if rms else None, "wall_clock_s": e["wall_clock_s"]})
+    return sorted(rows, key=lambda r: (r["diameter"], -r["dt"], _model_rank(r["model"])))
+
+
+def format_summary_table(rows: list, *, boxes=None) -> str:
+    """The summary rows as Markdown tables, one per (diameter, dt); '-' where a value is null."""
+    lines = []
+    groups = []
+    for r in rows:
+        if (r["diameter"], r["dt"]) not in groups:
+            groups.append((r["diameter"], r["dt"]))
+    for diameter, dt in groups:
+        lines.append(f"d = {diameter * 1e6:.0f} um, dt = {dt:g} s"
+                     + (f" (axial RMS over {boxes} sub-boxes)" if boxes else ""))
+        lines.append("| " + " | ".join(h for _, h, _ in SUMMARY_COLUMNS) + " |")
+        lines.append("|" + "|".join("---" for _ in SUMMARY_COLUMNS) + "|")
+        for r in rows:
+            if (r["diameter"], r["dt"]) != (diameter, dt):
+                continue
+            cells = ["-" if r[key] is None else fmt.format(r[key]) for key, _, fmt in SUMMARY_COLUMNS]
+            lines.append("| " + " | ".join(cells) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
 # ------------------------------------------------------------------------------------------ the report
+def _check_window(window) -> tuple:
+    try:
+        lo, hi = (float(v) for v in window)
+    except (TypeError, ValueError):
+        raise ConfigError(f"--stream-window needs two fractions FROM TO of the run time (got {window!r})") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo <= hi <= 1.0):
+        raise ConfigError(f"--stream-window must satisfy 0 <= FROM <= TO <= 1 (fractions of each run's simulated "
+                          f"time; got {lo:g} {hi:g}); e.g. 0.5 1 for the second half")
+    return lo, hi
+
+
 def build_report(run_dirs: list, *, boxes=DEFAULT_BOXES, downstream_only: bool = False,
-                 from_time: float = 0.0, min_samples: int = DEFAULT_MIN_SAMPLES) -> tuple:
+                 from_time: float = 0.0, min_samples: int = DEFAULT_MIN_SAMPLES,
+                 stream_window=DEFAULT_STREAM_WINDOW, composition_section: str = DEFAULT_COMPOSITION_SECTION) -> tuple:
     """(the report.json document, the loaded ``RunData``s) for ``run_dirs``; no files written."""
     if not run_dirs:
         raise ConfigError("give at least one run directory")
@@ -256,44 +707,82 @@ def build_report(run_dirs: list, *, boxes=DEFAULT_BOXES, downstream_only: bool =
         raise ConfigError(f"--min-samples must be >= 1 (got {min_samples})")
     if any(b < 1 for b in boxes):
         raise ConfigError(f"--boxes must be positive integers (got {boxes})")
+    window = _check_window(stream_window)
     runs = [load_run(d) for d in run_dirs]
+    section_names = [s.get("name", "") for s in runs[0].rig["sections"]]
+    if composition_section not in section_names:
+        raise ConfigError(f"--composition-section {composition_section!r} is not a section of the rig; choose one "
+                          f"of {', '.join(section_names)}")
     labels = [r.label for r in runs]
     for i, r in enumerate(runs):  # unique labels for the figures
         if labels.count(r.label) > 1:
             r.label = f"{r.label}_{i}"
     all_profiles = {r.path: {str(b): profiles(r, b, downstream_only=downstream_only, from_time=from_time)
                              for b in boxes} for r in runs}
+    metrics = {r.path: stream_metrics(r, boxes, window=window, min_samples=int(min_samples)) for r in runs}
     entries = []
     for r in runs:
         c = r.config
-        entry = {"run": r.path, "label": r.label, "collisions": c["collisions"], "dt": float(c["dt"]),
+        entry = {"run": r.path, "label": r.label, "collisions": c["collisions"], "model": model_name(c),
+                 "particle_contacts": c.get("particle_contacts"), "dt": float(c["dt"]),
                  "diameter": float(c["diameter"]), "end_time": float(c["end_time"]),
                  "particles_per_parcel": c.get("particles_per_parcel"),
                  "wall_clock_s": (float(c["wall_clock_s"]) if c.get("wall_clock_s") is not None else None),
-                 "collision_rate": collision_rate(r),
+                 "kernel_load_s": r.kernel_load_s,
+                 **collision_rates(r),
                  "total_collisions": c.get("total_collisions"),
-                 "snapshots": len(r.snapshots), "profiles": all_profiles[r.path]}
+                 "snapshots": len(r.snapshots), "profiles": all_profiles[r.path], "stream_metrics": metrics[r.path]}
         ref = _dem_reference(r, runs)
         if ref is not None:
             entry["dem_reference"] = ref.label
             entry["paper_experimental_uncertainty"] = paper_uncertainty(c["diameter"])
-            entry["profile_rms_vs_dem"] = (None if ref is r else
-                                           {str(b): profile_rms(all_profiles[r.path][str(b)],
-                                                                all_profiles[ref.path][str(b)],
-                                                                min_samples=int(min_samples)) for b in boxes})
+            if ref is r:
+                entry["profile_rms_vs_dem"] = None
+            else:
+                entry["profile_rms_vs_dem"] = {str(b): profile_rms(all_profiles[r.path][str(b)],
+                                                                   all_profiles[ref.path][str(b)],
+                                                                   min_samples=int(min_samples)) for b in boxes}
+                entry.update(stream_metrics_vs(metrics[r.path], metrics[ref.path], boxes,
+                                               min_samples=int(min_samples)))
+                entry["collision_rate_vs_dem"] = _relative(entry["collision_rate"], collision_rate(ref))
+                entry["config_differences_vs_dem"] = config_differences(r, ref)
         entries.append(entry)
-    return {"runs": entries, "boxes": boxes, "downstream_only": bool(downstream_only), "from_time": from_time,
-            "min_samples": int(min_samples),
-            "velocity": "mean axial (downstream) particle velocity, m/s, weighted by parcel weight",
-            "profile_rms_vs_dem": "m/s, RMS over the ten sections and the sub-boxes where both runs have at least "
-                                  "min_samples samples"}, runs
+    effect = wall_effect(runs, metrics, all_profiles, boxes, min_samples=int(min_samples))
+    report = {
+        "runs": entries, "boxes": boxes, "downstream_only": bool(downstream_only), "from_time": from_time,
+        "min_samples": int(min_samples), "stream_window": list(window), "composition_section": composition_section,
+        "velocity": "mean axial (downstream) particle velocity, m/s, weighted by parcel weight",
+        "profile_rms_vs_dem": "m/s, RMS over the ten sections and the sub-boxes where both runs have at least "
+                              "min_samples samples",
+        "stream_metrics": "per section, over the snapshots of stream_window (fractions of each run's simulated "
+                          "time), weighted by parcel weight: crossing = fraction of a stream on the far side of the "
+                          "channel axis from its own arm (0 stay, 1 pass through each other, 0.5 mixed), "
+                          "stream_crossing its mean over the streams; transverse_spread_mm = std of y per stream; "
+                          "transverse_velocity_rms = sqrt(mean v_y^2), m/s; composition = stream fractions per "
+                          "sub-box; run values are means over the sections with at least min_samples samples",
+        "vs_dem": "stream_crossing_vs_dem: difference (target |d| <= 0.05); transverse_velocity_rms_vs_dem and "
+                  "collision_rate_vs_dem: relative differences (targets 5 %, 15 %); composition and v_y profiles: "
+                  "RMS over sub-boxes",
+        "collision_rate": "real binary collisions per simulated second (dem: contact onsets between spheres; "
+                          "surrogate: resolved collisions, min(w_i, w_j) each); overlap_pair_rate: pairs found "
+                          "overlapping at step ends per simulated second (depends on dt)",
+        "like_with_like": {
+            "model_differences": list(MODEL_DIFFERENCES),
+            "wall_effect": effect,
+            "wall_effect_note": None if effect else (
+                "to measure how much of a gap the walls make, add a `none` run and a dem run with "
+                "--no-particle-contacts of the same size and step to the report")}}
+    report["summary_table"] = summary_rows(report)
+    return report, runs
 
 
 def write_report(run_dirs: list, out_dir: str, *, boxes=DEFAULT_BOXES, downstream_only: bool = False,
-                 from_time: float = 0.0, figures: bool = True, min_samples: int = DEFAULT_MIN_SAMPLES) -> dict:
-    """Write ``out_dir/report.json`` and the PNG figures; returns the report document."""
+                 from_time: float = 0.0, figures: bool = True, min_samples: int = DEFAULT_MIN_SAMPLES,
+                 stream_window=DEFAULT_STREAM_WINDOW, composition_section: str = DEFAULT_COMPOSITION_SECTION) -> dict:
+    """Write ``out_dir/report.json``, ``out_dir/summary.md`` and the PNG figures; returns the report document."""
     report, runs = build_report(run_dirs, boxes=boxes, downstream_only=downstream_only, from_time=from_time,
-                                min_samples=min_samples)
+                                min_samples=min_samples, stream_window=stream_window,
+                                composition_section=composition_section)
     os.makedirs(out_dir, exist_ok=True)
     written = []
     if figures:
@@ -304,10 +793,21 @@ def write_report(run_dirs: list, out_dir: str, *, boxes=DEFAULT_BOXES, downstrea
         for b in report["boxes"]:
             written.append(_plot_profiles(report, b, os.path.join(out_dir, f"profiles_{b}.png")))
         written.append(_plot_bars(report, "wall_clock_s", "wall clock, s", os.path.join(out_dir, "wall_clock.png")))
-        written.append(_plot_bars(report, "collision_rate", "collision rate, 1/s",
+        written.append(_plot_bars(report, "collision_rate", "real collisions, 1/s",
                                   os.path.join(out_dir, "collision_rate.png")))
+        written.append(_plot_bars(report, "overlap_pair_rate", "pairs overlapping at step ends, 1/s",
+                                  os.path.join(out_dir, "overlap_pair_rate.png")))
+        written.append(_plot_per_section(report, "stream_crossing", "stream crossing (0 stay, 1 cross, 0.5 mixed)",
+                                         os.path.join(out_dir, "stream_crossing.png")))
+        written.append(_plot_per_section(report, "transverse_velocity_rms", "transverse velocity rms, m/s",
+                                         os.path.join(out_dir, "transverse_velocity_rms.png")))
+        written.append(_plot_composition(report, os.path.join(
+            out_dir, f"stream_composition_{report['composition_section']}.png")))
+        written.append(_plot_summary_table(report, os.path.join(out_dir, "summary_table.png")))
         report["renderer"] = renderer.used
     report["figures"] = [os.path.basename(p) for p in written if p]
+    with open(os.path.join(out_dir, "summary.md"), "w") as fh:
+        fh.write(format_summary_table(report["summary_table"], boxes=report["boxes"][0]))
     tmp = os.path.join(out_dir, "report.json.tmp")
     with open(tmp, "w") as fh:
         json.dump(report, fh, indent=1)
@@ -476,7 +976,7 @@ def _plot_profiles(report: dict, boxes: int, path: str) -> str:
         for k, prof in enumerate(entry["profiles"][str(boxes)][:10]):
             u = np.array([np.nan if v is None else v for v in prof["mean_axial_velocity"]])
             axes.flat[k].plot(np.asarray(prof["centres"]) * 1e3, u, ".-", ms=3,
-                              label=f"{entry['collisions']} d={entry['diameter'] * 1e6:.0f}um dt={entry['dt']:g}")
+                              label=f"{entry['model']} d={entry['diameter'] * 1e6:.0f}um dt={entry['dt']:g}")
             axes.flat[k].set_title(prof["section"])
     for ax in axes[-1]:
         ax.set_xlabel("y, mm")
@@ -495,13 +995,13 @@ def _plot_bars(report: dict, key: str, ylabel: str, path: str) -> str:
     """Bars grouped by (diameter, dt), one bar per collision model (Figs. 12, 22, 23)."""
     plt = _mpl()
     groups = sorted({(e["diameter"], e["dt"]) for e in report["runs"]}, key=lambda g: (g[0], -g[1]))
-    models = sorted({e["collisions"] for e in report["runs"]})
+    models = sorted({e["model"] for e in report["runs"]}, key=_model_rank)
     fig, ax = plt.subplots(figsize=(max(6, 1.6 * len(groups) * max(1, len(models)) / 2), 4.5))
     width = 0.8 / max(1, len(models))
     for m, model in enumerate(models):
         values = []
         for g in groups:
-            vals = [e[key] for e in report["runs"] if (e["diameter"], e["dt"]) == g and e["collisions"] == model
+            vals = [e[key] for e in report["runs"] if (e["diameter"], e["dt"]) == g and e["model"] == model
                     and e[key] is not None]
             values.append(float(np.mean(vals)) if vals else np.nan)
         bars = ax.bar(np.arange(len(groups)) + (m - (len(models) - 1) / 2) * width, values, width, label=model)
@@ -514,5 +1014,83 @@ def _plot_bars(report: dict, key: str, ylabel: str, path: str) -> str:
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def _run_label(entry: dict) -> str:
+    return f"{entry['model']} d={entry['diameter'] * 1e6:.0f}um dt={entry['dt']:g}"
+
+
+def _plot_per_section(report: dict, key: str, ylabel: str, path: str) -> str:
+    """One line per run over the ten sections (stream crossing, transverse rms velocity); empty sections are gaps."""
+    plt = _mpl()
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    for entry in sorted(report["runs"], key=lambda e: _model_rank(e["model"])):
+        sections = entry["stream_metrics"]["sections"]
+        values = [np.nan if s[key] is None else s[key] for s in sections]
+        style = "k-" if entry["model"] == "dem" else ".-"
+        ax.plot(np.arange(1, len(sections) + 1), values, style, ms=5, label=_run_label(entry))
+    if key == "stream_crossing":
+        ax.axhline(0.5, color="grey", lw=0.8, ls="--")
+        ax.set_ylim(-0.02, 1.02)
+    ax.set_xticks(np.arange(1, 11))
+    ax.set_xticklabels([f"S{k}" for k in range(1, 11)])
+    ax.set_xlabel("section")
+    ax.set_ylabel(ylabel)
+    window = report["stream_window"]
+    ax.set_title(f"{ylabel} per section, snapshots from {window[0]:g} to {window[1]:g} of each run's time")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def _plot_composition(report: dict, path: str) -> str:
+    """Stacked bars of the stream fractions per sub-box of the chosen section, one panel per run."""
+    plt = _mpl()
+    name, boxes = report["composition_section"], str(report["boxes"][0])
+    entries = sorted(report["runs"], key=lambda e: (e["diameter"], -e["dt"], _model_rank(e["model"])))
+    fig, axes = plt.subplots(len(entries), 1, figsize=(9, 1.8 + 1.6 * len(entries)), sharex=True, squeeze=False)
+    for ax, entry in zip(axes[:, 0], entries):
+        comp = next(c for c in entry["stream_metrics"]["composition"][boxes] if c["section"] == name)
+        centres = np.asarray(comp["centres"]) * 1e3
+        width = (centres[1] - centres[0]) * 0.9 if len(centres) > 1 else 1.0
+        bottom = np.zeros(len(centres))
+        streams = entry["stream_metrics"]["streams"]
+        for k, (stream, fractions) in enumerate(comp["fractions"].items()):
+            tag = next((int(t) for t, n in streams.items() if n == stream), k)
+            values = np.array([0.0 if f is None else f for f in fractions])
+            ax.bar(centres, values, width, bottom=bottom, color=STREAM_COLOURS.get(tag), label=stream)
+            bottom += values
+        ax.set_ylim(0, 1)
+        ax.set_ylabel("fraction")
+        ax.set_title(_run_label(entry), fontsize=8)
+    axes[0, 0].legend(fontsize=7, loc="upper right")
+    axes[-1, 0].set_xlabel("y, mm (left arm at +y)")
+    fig.suptitle(f"stream composition of section {name}, {boxes} sub-boxes (empty: no parcel)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def _plot_summary_table(report: dict, path: str) -> str:
+    """The summary table (crossing, transverse rms, collision rate, axial RMS per model and step) as a picture."""
+    plt = _mpl()
+    rows = report["summary_table"]
+    cells = [[f"{r['diameter'] * 1e6:.0f}", f"{r['dt']:g}"]
+             + ["-" if r[key] is None else fmt.format(r[key]) for key, _, fmt in SUMMARY_COLUMNS] for r in rows]
+    headings = ["d um", "dt s"] + [h for _, h, _ in SUMMARY_COLUMNS]
+    fig, ax = plt.subplots(figsize=(13, 0.9 + 0.32 * max(1, len(rows))))
+    ax.axis("off")
+    table = ax.table(cellText=cells or [["-"] * len(headings)], colLabels=headings, loc="center")
+    table.auto_set_font_size(False)
+    table.set_fontsize(8)
+    table.scale(1.0, 1.3)
+    ax.set_title(f"collision models against dem (axial RMS over {report['boxes'][0]} sub-boxes)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
