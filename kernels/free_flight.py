@@ -1,0 +1,124 @@
+"""Free flight of parcels in a triply periodic box and the granular temperature of the parcels.
+
+- drift (ballistic, no force): ``x <- x + v dt`` (the move between collision resolutions of
+  ``cases/homogeneous_cooling.py``; the swept surrogate adds its in-step position corrections after it);
+- kick by a held acceleration: ``v <- v + a dt`` (the KTGF collision acceleration of ``kernels/ktgf.py``);
+- wrap into the periodic box ``[0, L_a)`` per axis: ``x_a <- x_a - L_a floor(x_a / L_a)``;
+- velocity moments of the real particles, parcel weight w (real particles per parcel):
+  ``S0 = sum w``, ``S1 = sum w v``, ``S2 = sum w |v|^2`` (float64), from which the granular temperature
+  ``Theta = <|v - <v>|^2> / 3 = (S2 - |S1|^2 / S0) / (3 S0)`` (m^2/s^2; Brilliantov & Poeschel,
+  *Kinetic Theory of Granular Gases*, 2004, ch. 2). One row of ``moments`` per recorded step, so the
+  whole history stays on the device until it is read once.
+
+Removed parcels (``alive == 0``) neither move nor count. The moments are float64 atomic sums: on the
+CPU device they are accumulated in index order (bitwise reproducible); on CUDA their order, and so the
+last bits of Theta, may differ from run to run (a diagnostic, never fed back into the dynamics).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+
+@wp.kernel
+def drift_kernel(
+    particle_v: wp.array(dtype=wp.vec3),
+    particle_alive: wp.array(dtype=wp.int32),
+    dt: float,
+    # outputs
+    particle_x: wp.array(dtype=wp.vec3),
+):
+    i = wp.tid()
+    if particle_alive[i] == 0:
+        return
+    particle_x[i] = particle_x[i] + particle_v[i] * dt
+
+
+@wp.kernel
+def kick_kernel(
+    particle_a: wp.array(dtype=wp.vec3),
+    particle_alive: wp.array(dtype=wp.int32),
+    dt: float,
+    # outputs
+    particle_v: wp.array(dtype=wp.vec3),
+):
+    i = wp.tid()
+    if particle_alive[i] == 0:
+        return
+    particle_v[i] = particle_v[i] + particle_a[i] * dt
+
+
+@wp.func
+def wrap_coordinate(x: float, length: float):
+    """x - L floor(x / L), in [0, L) (a value rounding to L in float32 is set to 0)."""
+    y = x - length * wp.floor(x / length)
+    if y >= length:
+        y = 0.0
+    return y
+
+
+@wp.kernel
+def wrap_kernel(
+    box_length: wp.vec3,
+    particle_alive: wp.array(dtype=wp.int32),
+    # outputs
+    particle_x: wp.array(dtype=wp.vec3),
+):
+    i = wp.tid()
+    if particle_alive[i] == 0:
+        return
+    x = particle_x[i]
+    particle_x[i] = wp.vec3(wrap_coordinate(x[0], box_length[0]), wrap_coordinate(x[1], box_length[1]),
+                            wrap_coordinate(x[2], box_length[2]))
+
+
+@wp.kernel
+def velocity_moments_kernel(
+    particle_v: wp.array(dtype=wp.vec3),
+    particle_weight: wp.array(dtype=wp.float32),
+    particle_alive: wp.array(dtype=wp.int32),
+    row: int,
+    # outputs
+    moments: wp.array2d(dtype=wp.float64),
+):
+    """Row ``row`` of ``moments`` (rows, 5) += (w, w v_x, w v_y, w v_z, w |v|^2); zero the row first."""
+    i = wp.tid()
+    if particle_alive[i] == 0:
+        return
+    w = wp.float64(particle_weight[i])
+    v = particle_v[i]
+    vx = wp.float64(v[0])
+    vy = wp.float64(v[1])
+    vz = wp.float64(v[2])
+    wp.atomic_add(moments, row, 0, w)
+    wp.atomic_add(moments, row, 1, w * vx)
+    wp.atomic_add(moments, row, 2, w * vy)
+    wp.atomic_add(moments, row, 3, w * vz)
+    wp.atomic_add(moments, row, 4, w * (vx * vx + vy * vy + vz * vz))
+
+
+# ------------------------------------------------------------------------------------------ launch wrappers
+
+def drift(particle_x, particle_v, particle_alive, dt: float) -> None:
+    """x += v dt in place (live parcels)."""
+    wp.launch(drift_kernel, dim=particle_x.shape[0], device=particle_x.device,
+              inputs=[particle_v, particle_alive, float(dt)], outputs=[particle_x])
+
+
+def kick(particle_v, particle_a, particle_alive, dt: float) -> None:
+    """v += a dt in place (live parcels)."""
+    wp.launch(kick_kernel, dim=particle_v.shape[0], device=particle_v.device,
+              inputs=[particle_a, particle_alive, float(dt)], outputs=[particle_v])
+
+
+def wrap_periodic(particle_x, particle_alive, box_length) -> None:
+    """Positions wrapped into [0, L_a) per axis in place; ``box_length`` (3,) m."""
+    wp.launch(wrap_kernel, dim=particle_x.shape[0], device=particle_x.device,
+              inputs=[wp.vec3(*[float(b) for b in box_length]), particle_alive], outputs=[particle_x])
+
+
+def velocity_moments(particle_v, particle_weight, particle_alive, moments, row: int) -> None:
+    """Row ``row`` of the float64 (rows, 5) array ``moments`` = (S0, S1x, S1y, S1z, S2) of the live parcels."""
+    moments[row].zero_()
+    wp.launch(velocity_moments_kernel, dim=particle_v.shape[0], device=particle_v.device,
+              inputs=[particle_v, particle_weight, particle_alive, int(row)], outputs=[moments])
