@@ -559,7 +559,8 @@ MODEL_DIFFERENCES = (
 """What still differs between the ``dem`` reference and an HEL run besides the particle-particle collisions
 (injection, drag law and exchange, gas solver, wall restitution and friction values are shared)."""
 _NOT_A_DIFFERENCE = ("collision", "run", "case.collisions", "case.model", "case.force", "case.particle_contacts",
-                     "case.model_metadata")
+                     "case.model_metadata", "case.collision_counts_available")
+"""Config keys that name the collision model or follow from it, or are run/output settings: never listed."""
 
 
 def _flatten(value, prefix: str = "") -> dict:

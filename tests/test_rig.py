@@ -202,3 +202,61 @@ def test_paper_particle_sets(cs):
     assert mass == pytest.approx(0.000196, rel=0.01)
     eight = config("315e-6", "--particles-per-parcel", "8")
     assert eight.particles == 12000 and eight.particles_per_parcel == 8.0  # parcel count kept, mass x 8
+
+
+def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
+    """CI size of issue 11: `none` and `ktgf` long enough (0.02 s) for the parcels to reach the sections (from
+    t ~ 0.014 s on this grid), a short `dem` (its sub-steps cost ~1 s per step here) for the real collision counts,
+    and the report over all of them. Facts checked: what the metrics are by definition (fractions in [0, 1], the
+    sample counts of the window, none's rate 0, ktgf's null with its reason), not numbers of this physics."""
+    import inspect
+
+    from hel_warp.hel import COLLISION_MODELS
+    from hel_warp.report import build_report
+
+    def rig_run(name, model, end_time, *extra):
+        args = _args(tmp_path / name, "--no-gas-snapshots", "--output-interval", "0.002", *extra, end_time=end_time)
+        args[args.index("none")] = model
+        assert cs.main(args) == 0, name
+        return str(tmp_path / name)
+
+    runs = [rig_run("none", "none", "0.02"), rig_run("ktgf", "ktgf", "0.02"), rig_run("dem", "dem", "0.002")]
+    walls_only = "particle_contacts" in inspect.signature(COLLISION_MODELS["dem"].__init__).parameters
+    if walls_only:
+        runs.append(rig_run("dem_walls", "dem", "0.002", "--no-particle-contacts"))
+    report, loaded = build_report(runs, boxes=(20,), min_samples=1)
+    by = {e["label"]: e for e in report["runs"]}
+    for label in ("none", "ktgf"):
+        sm = by[label]["stream_metrics"]
+        assert sm["window_s"] == pytest.approx([0.01, 0.02]) and sm["snapshots"] == 6  # t = 0.010, 0.012, ... 0.020
+        filled = [s for s in sm["sections"] if s["samples"]]
+        assert filled, f"{label}: no parcel reached a section"
+        for s in filled:
+            assert 0.0 <= s["stream_crossing"] <= 1.0 and s["transverse_velocity_rms"] > 0.0
+            assert sum(s["samples_per_stream"].values()) == s["samples"]
+        for comp in sm["composition"]["20"]:
+            for b, n in enumerate(comp["samples"]):
+                total = sum(f[b] for f in comp["fractions"].values() if f[b] is not None)
+                assert (total == pytest.approx(1.0)) if n else total == 0.0
+        assert 0.0 <= sm["stream_crossing"] <= 1.0
+        assert by[label]["dem_reference"] == "dem" and "stream_crossing_vs_dem" in by[label]
+        assert by[label]["kernel_load_s"] >= 0.0 and by[label]["wall_clock_s"] > 0.0
+    assert by["none"]["collision_rate"] == 0.0
+    assert by["ktgf"]["collision_rate"] is None and "ktgf" in by["ktgf"]["collision_rate_note"]
+    dem = by["dem"]
+    if dem["collision_rate"] is not None:  # an engine whose DemCollision counts contact onsets
+        assert dem["collision_rate"] >= 0.0
+        assert set(dem["collision_rate_per_stream_pair"]) >= {"left-left", "left-right", "right-right"}
+        assert sum(dem["collision_rate_per_stream_pair"].values()) == pytest.approx(dem["collision_rate"])
+    else:
+        assert "collisions_collisions" in dem["collision_rate_note"]
+    assert dem["overlap_pair_rate"] is not None
+    assert [r["model"] for r in report["summary_table"]][:2] == ["none", "ktgf"]
+    if walls_only:
+        assert by["dem_walls"]["model"] == "dem-no-contacts" and by["dem_walls"]["collision_rate"] == 0.0
+        (effect,) = report["like_with_like"]["wall_effect"]
+        assert (effect["none"], effect["dem_no_contacts"]) == ("none", "dem_walls")
+    # the like-with-like list: the runs share the case settings; the hel config differs only where the models do
+    for label in ("none", "ktgf"):
+        keys = {d["key"] for d in by[label]["config_differences_vs_dem"]}
+        assert not any(k.startswith(("case.", "gas.", "grid.")) for k in keys), keys
