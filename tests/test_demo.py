@@ -6,7 +6,7 @@ import json
 from hel_warp.cli import main
 
 
-def test_demo_reduced_end_to_end(tmp_path):
+def test_demo_reduced_end_to_end(tmp_path, capsys):
     out = tmp_path / "demo"
     code = main(["demo", "--out", str(out), "--samples", "2000", "--trials", "1", "--cells", "5000",
                  "--max-particles", "60", "--end-time", "0.003"])
@@ -16,8 +16,14 @@ def test_demo_reduced_end_to_end(tmp_path):
     assert summary["three_streams"]["surrogate"] == "rebound"
     assert summary["three_streams"]["ktgf"] == "pass-through"
     report = json.loads((out / "report" / "report.json").read_text())
-    assert sorted(run["collisions"] for run in report["runs"]) == ["dem", "ktgf", "surrogate"]
+    models = sorted(run["model"] for run in report["runs"])
+    assert models in (["dem", "dem-no-contacts", "ktgf", "none", "surrogate"], ["dem", "ktgf", "none", "surrogate"])
     for run in report["runs"]:
         assert run["end_time"] > 0 and run["wall_clock_s"] > 0
+    # the table per step (issue 11): one row per model, printed at the end and kept in the summary
+    assert [row["model"] for row in summary["summary_table"]] == [r["model"] for r in report["summary_table"]]
+    assert sorted(row["model"] for row in summary["summary_table"]) == models
+    printed = capsys.readouterr().out
+    assert "| model | crossing |" in printed.split("Collision models on the rig against dem")[-1]
     # a rerun reuses the cached data set and model (no retraining) and still succeeds
     assert main(["demo", "--out", str(out), "--samples", "2000", "--trials", "1", "--skip-rig"]) == 0

@@ -5,8 +5,11 @@ The whole HELSCM pipeline, each stage cached so a rerun continues where it stopp
 1. collision data set of DEM binary impacts (315 um polyethylene; resumable zarr);
 2. surrogate training, ``contact`` form (a quick Optuna search; skipped when the model exists);
 3. the three-particle streams of the paper's Fig. 13 with ``ktgf``, ``dem`` and ``surrogate``;
-4. the colliding-streams rig at 315 um with ``ktgf``, ``surrogate`` and a short ``dem`` reference;
-5. ``hel-warp report`` over the rig runs (profiles, pictures, wall clock, collision rates).
+4. the colliding-streams rig at 315 um with ``none``, ``ktgf``, ``surrogate`` and a ``dem`` reference at every
+   ``--dt``, and ``dem`` with the particle contacts off (the walls-only gap beside ``none``; ``--no-wall-effect``
+   skips it);
+5. ``hel-warp report`` over the rig runs (profiles, stream metrics, collision rates, pictures), then the table per
+   step of stream crossing, transverse rms velocity, collision rate and axial RMS of each model against dem.
 
 Every stage shows its own progress; the defaults fit in about ten minutes on two cores. The
 full-size versions of each stage are the commands printed in README.md.
@@ -31,7 +34,8 @@ def add_parser(subparsers):
     p.add_argument("--samples", type=int, default=20000, help="collision data-set size (default 20000)")
     p.add_argument("--trials", type=int, default=4, help="Optuna trials per target (default 4)")
     p.add_argument("--diameter", type=finite_float, default=315e-6, help="particle diameter, m (default 315e-6)")
-    p.add_argument("--dt", type=finite_float, default=1e-3, help="HEL time step of the rig, s (default 1e-3)")
+    p.add_argument("--dt", type=finite_float, nargs="+", default=[1e-3], metavar="DT",
+                   help="HEL time step(s) of the rig, s (default 1e-3); every model runs at each")
     p.add_argument("--end-time", type=finite_float, default=0.02,
                    help="rig simulated time after release, s (default 0.02, as the paper's runs: the parcels "
                         "reach the downstream sections, so the profiles can be compared with dem)")
@@ -43,6 +47,8 @@ def add_parser(subparsers):
                         "12,000)")
     p.add_argument("--device", default="cpu", help="Warp device: cpu or cuda (default cpu)")
     p.add_argument("--skip-rig", action="store_true", help="stop after the three-streams case")
+    p.add_argument("--no-wall-effect", action="store_true",
+                   help="skip the dem run without particle contacts (the walls-only gap beside none)")
     return p
 
 
@@ -66,6 +72,37 @@ class _Stages:
         self.times[name] = round(time.perf_counter() - start, 2)
         print(f"    done in {self.times[name]:.1f} s", flush=True)
         return result
+
+
+def _dem_has_contact_switch() -> bool:
+    """Whether this engine's ``dem`` can switch the particle contacts off (``DemCollision(particle_contacts=...)``)."""
+    import inspect
+
+    from hel_warp.hel import COLLISION_MODELS
+
+    return "particle_contacts" in inspect.signature(COLLISION_MODELS["dem"].__init__).parameters
+
+
+def _names(models) -> list:
+    return ["dem without contacts" if "--no-particle-contacts" in extra else model for model, extra in models]
+
+
+def _print_table(report_path: Path) -> None:
+    """Print the report's table per step (crossing, transverse rms, collision rate, axial RMS per model) and the
+    walls-only gap."""
+    from hel_warp.report import format_summary_table
+
+    report = json.loads(report_path.read_text())
+    print("\nCollision models on the rig against dem, per time step (report: "
+          f"{report_path.parent}/summary.md, summary_table.png):\n")
+    print(format_summary_table(report["summary_table"], boxes=report["boxes"][0]))
+    for effect in report["like_with_like"]["wall_effect"]:
+        crossing, rms = effect["stream_crossing_difference"], effect["transverse_velocity_rms_relative_difference"]
+        print(f"walls alone at dt = {effect['dt']:g} s (none minus dem without particle contacts): crossing "
+              f"{'-' if crossing is None else f'{crossing:+.3f}'}, transverse rms "
+              f"{'-' if rms is None else f'{rms:+.1%}'}")
+    if report["like_with_like"]["wall_effect_note"]:
+        print(report["like_with_like"]["wall_effect_note"])
 
 
 def _check(code, what: str) -> None:
@@ -118,27 +155,40 @@ def run(args) -> int:
     stages.run("three-particle streams, Fig. 13 (ktgf / dem / surrogate)", three_streams)
 
     rig_runs = []
+    table = None
     if not args.skip_rig:
         rig = _load_case("colliding_streams")
+        models = [("none", []), ("ktgf", []), ("surrogate", ["--model", str(model_dir)]), ("dem", [])]
+        if not args.no_wall_effect and _dem_has_contact_switch():
+            models.append(("dem", ["--no-particle-contacts"]))
 
         def rig_stage():
-            for model in ("ktgf", "surrogate", "dem"):
-                end = args.end_time if model != "dem" or args.dem_end_time is None else args.dem_end_time
-                run_dir = out / "rig" / f"{model}_dt{args.dt:g}"
-                argv = ["--diameter", repr(args.diameter), "--dt", repr(args.dt), "--collisions", model,
-                        "--end-time", repr(end), "--out", str(run_dir), "--device", args.device, "--overwrite"]
-                if model == "surrogate":
-                    argv += ["--model", str(model_dir)]
-                if args.cells:
-                    argv += ["--cells", str(args.cells)]
-                if args.max_particles and args.max_particles > 0:
-                    argv += ["--max-particles", str(args.max_particles)]
-                print(f"    rig: {model}", flush=True)
-                _check(rig.main(argv), f"rig {model}")
-                rig_runs.append(str(run_dir))
+            for dt in args.dt:
+                for model, extra in models:
+                    end = args.end_time if model != "dem" or args.dem_end_time is None else args.dem_end_time
+                    name = "dem_no_contacts" if "--no-particle-contacts" in extra else model
+                    run_dir = out / "rig" / f"{name}_dt{dt:g}"
+                    argv = ["--diameter", repr(args.diameter), "--dt", repr(dt), "--collisions", model,
+                            "--end-time", repr(end), "--out", str(run_dir), "--device", args.device, "--overwrite",
+                            *extra]
+                    if args.cells:
+                        argv += ["--cells", str(args.cells)]
+                    if args.max_particles and args.max_particles > 0:
+                        argv += ["--max-particles", str(args.max_particles)]
+                    print(f"    rig: {name}, dt = {dt:g} s", flush=True)
+                    _check(rig.main(argv), f"rig {name} dt={dt:g}")
+                    rig_runs.append(str(run_dir))
 
-        stages.run("colliding-streams rig (ktgf / surrogate / dem)", rig_stage)
-        stages.run("report", lambda: _check(cli_main(["report", *rig_runs, "--out", str(out / "report")]), "report"))
+        stages.run(f"colliding-streams rig ({' / '.join(_names(models))}) at dt = "
+                   f"{', '.join(f'{dt:g}' for dt in args.dt)} s", rig_stage)
+        def report_stage():
+            from hel_warp.report import write_report
+
+            written = write_report(rig_runs, str(out / "report"))
+            print(f"    wrote {out / 'report'}/report.json, summary.md and {len(written['figures'])} figures")
+            return written["summary_table"]
+
+        table = stages.run("report", report_stage)
 
     summary = {
         "out": str(out),
@@ -147,9 +197,12 @@ def run(args) -> int:
         "surrogate_mae": metrics.get("mae"),
         "three_streams": outcomes,
         "report": str(out / "report" / "report.json") if rig_runs else None,
+        "summary_table": table,
     }
     (out / "demo_summary.json").write_text(json.dumps(summary, indent=2))
-    print("\n" + json.dumps(summary, indent=2))
+    print("\n" + json.dumps({k: v for k, v in summary.items() if k != "summary_table"}, indent=2))
+    if rig_runs:
+        _print_table(out / "report" / "report.json")
     return 0
 
 
