@@ -5,7 +5,9 @@ Each subcommand lives in its own module ``hel_warp/commands/<name>.py`` exposing
 (warp, xgboost, optuna, pyvista) stay inside ``run`` so ``hel-warp --help`` is instant.
 
 Every error raised on purpose (``HelWarpError``) and every bad option prints one line
-``hel-warp: error: ...`` on stderr and exits with code 2, never a traceback.
+``hel-warp: error: ...`` on stderr and exits with code 2, never a traceback. A ``--device`` is checked before
+the command runs (``hel_warp.run.check_device``), and Warp's own error for a CUDA device that is not there,
+raised from inside a case script or a library call, is turned into the same one line.
 """
 
 from __future__ import annotations
@@ -44,13 +46,26 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+_NO_CUDA = ('"cuda" device requested', "CUDA is not supported", "Invalid device identifier")
+"""Warp's RuntimeError messages for a device that is not on this machine (warp/_src/context.py)."""
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        if getattr(args, "device", None) is not None:
+            from hel_warp.run import check_device
+
+            check_device(args.device)
         code = args._run(args)
     except HelWarpError as exc:
         print(f"hel-warp: error: {exc}", file=sys.stderr)
+        return 2
+    except RuntimeError as exc:
+        if not any(text in str(exc) for text in _NO_CUDA):
+            raise
+        print(f"hel-warp: error: Warp: {str(exc).splitlines()[0]}; use --device cpu", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("hel-warp: interrupted; rerun the same command to resume where supported", file=sys.stderr)

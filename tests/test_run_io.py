@@ -240,10 +240,14 @@ def test_cuda_without_a_gpu_is_a_one_line_error(tmp_path, capsys):
     assert check_device("cpu") == "cpu"
     for argv in (["run", "colliding_streams", "--diameter", "315e-6", "--dt", "1e-3", "--collisions", "none",
                   "--end-time", "0.003", "--out", str(tmp_path / "c"), "--no-progress", "--device", "cuda"],
-                 ["demo", "--out", str(tmp_path / "demo"), "--device", "cuda"]):
+                 ["demo", "--out", str(tmp_path / "demo"), "--device", "cuda"],
+                 # a case script that builds on the device itself: Warp's RuntimeError becomes the one line
+                 ["run", "three_streams", "--collisions", "none", "--out", str(tmp_path / "t"), "--device", "cuda"],
+                 ["predict", "--model", str(tmp_path / "no_model"), "--device", "cuda"]):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and "no CUDA device" in err[0] and "Traceback" not in err[0], argv
+        assert len(err) == 1 and ": error: " in err[0] and "Traceback" not in err[0], (argv, err)
+        assert "cuda" in err[0].lower() and "--device cpu" in err[0], err
     assert not (tmp_path / "demo" / "dataset").exists()  # refused before the first stage
 
 
