@@ -1,9 +1,10 @@
 """Homogeneous cooling of a granular gas (Haff 1983) in a periodic box: each collision model against kinetic theory.
 
 N equal spheres (diameter D, ``Material`` density) fill a cubic, triply periodic box at solids fraction
-EPS: no gas, no gravity, no walls. They start on a jittered lattice (never overlapping, also across the
-periodic faces) with Maxwellian velocities at Theta0 and zero total momentum, rescaled so that the
-initial granular temperature is exactly Theta0. Then, per step of dt, the collision model acts and the
+EPS: no gas, no gravity, no walls. They start at random, non-overlapping positions (a jittered lattice above
+a parcel solids fraction of 0.1; never overlapping, also across the periodic faces) with Maxwellian
+velocities at Theta0 and zero total momentum, rescaled so that the initial granular temperature is exactly
+Theta0. Then, per step of dt, the collision model acts and the
 parcels fly on straight lines:
 
 - ``none``: ballistic (Theta stays Theta0, no collision);
@@ -296,19 +297,51 @@ def check_search(config: CoolingConfig) -> None:
 
 
 # ------------------------------------------------------------------------------------------------ initial state
-def initial_state(config: CoolingConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(x, v) of the parcels: a jittered cubic lattice (random sites of a side^3 lattice of spacing a = L / side,
-    each point moved by at most (a - d (1 + gap)) / 2 per axis, so no two spheres overlap, across the periodic
-    faces too) and Maxwellian velocities, weighted mean removed, scaled to Theta0 exactly."""
-    rng = np.random.default_rng(config.seed)
-    n, L, d = config.parcels, config.box_length, config.diameter
+RANDOM_START_MAX_EPS = 0.1
+"""Up to this solids fraction the parcels start at uniformly random, non-overlapping positions; above, on a jittered
+lattice (a random start would take too many redraws)."""
+REDRAW_ROUNDS = 200
+"""Rounds of redrawing overlapping parcels before the random start gives way to the lattice."""
+
+
+def random_positions(n: int, box: float, diameter: float, rng) -> np.ndarray | None:
+    """``n`` uniformly random centres in the periodic box with no two closer than ``diameter (1 + gap)``: draw all,
+    then redraw the higher-index parcel of every overlapping pair until none is left (None after REDRAW_ROUNDS).
+    Unlike a lattice, this start already has the pair distribution of a dilute gas near contact (a lattice start
+    collides too rarely for the first ~d / sqrt(Theta0))."""
+    from scipy.spatial import cKDTree
+
+    x = rng.uniform(0.0, box, size=(n, 3))
+    for _ in range(REDRAW_ROUNDS):
+        pairs = cKDTree(x, boxsize=box).query_pairs(r=diameter * (1.0 + LATTICE_GAP), output_type="ndarray")
+        if pairs.size == 0:
+            return x
+        redraw = np.unique(pairs.max(axis=1))
+        x[redraw] = rng.uniform(0.0, box, size=(redraw.size, 3))
+    return None
+
+
+def lattice_positions(n: int, box: float, diameter: float, rng) -> np.ndarray:
+    """Random sites of a side^3 lattice of spacing a = L / side, each point moved by at most (a - d (1 + gap)) / 2
+    per axis: no two spheres overlap, across the periodic faces too."""
     side = math.ceil(n ** (1.0 / 3.0) - 1e-9)
-    a = L / side
+    a = box / side
     sites = np.sort(rng.choice(side**3, size=n, replace=False))
     ijk = np.stack([sites % side, (sites // side) % side, sites // (side * side)], axis=1).astype(np.float64)
-    jitter = max(0.0, a - d * (1.0 + LATTICE_GAP))
-    x = (ijk + 0.5) * a + rng.uniform(-0.5, 0.5, size=(n, 3)) * jitter
-    x = np.mod(x, L)
+    jitter = max(0.0, a - diameter * (1.0 + LATTICE_GAP))
+    return np.mod((ijk + 0.5) * a + rng.uniform(-0.5, 0.5, size=(n, 3)) * jitter, box)
+
+
+def initial_state(config: CoolingConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(x, v) of the parcels: non-overlapping positions (random up to eps_s RANDOM_START_MAX_EPS of parcels, else a
+    jittered lattice) and Maxwellian velocities, weighted mean removed, scaled to Theta0 exactly."""
+    rng = np.random.default_rng(config.seed)
+    n, L, d = config.parcels, config.box_length, config.diameter
+    x = None
+    if config.eps / config.weight <= RANDOM_START_MAX_EPS:
+        x = random_positions(n, L, d, np.random.default_rng([config.seed, 1]))
+    if x is None:
+        x = lattice_positions(n, L, d, np.random.default_rng([config.seed, 2]))
     v = rng.normal(0.0, math.sqrt(config.theta0), size=(n, 3))
     v -= v.mean(axis=0)  # equal weights: the weighted mean is the plain mean
     v *= math.sqrt(config.theta0 / granular_temperature(v, np.full(n, config.weight)))
