@@ -15,11 +15,15 @@ would crowd the poles). Three families, Fig. 5 of the paper:
   drawn at random, so the set is symmetric in the particle labels).
 - 2 ``head-on``: opposite directions.
 
-Beyond the paper:
+Beyond the paper (the engine meets every impact: any angle, |g| from ~0.01 to 20+ m/s):
 
-- impact offset ``b / (r1 + r2)`` in ``[0, max_offset]``: a fraction ``central_fraction`` of the
-  rows is central (offset 0, as in the paper), the others are oblique with
-  ``offset = max_offset * sqrt(U)`` (impact points uniform over the collision disc). The contact
+- impact offset ``b / (r1 + r2)`` in ``[0, max_offset]`` (default ``sin 89.8 deg``), three kinds of
+  rows drawn per row: a fraction ``central_fraction`` is central (offset 0, as in the paper); a
+  fraction ``grazing_fraction`` has its incidence angle ``chi`` (between ``g`` and the normal,
+  ``offset = sin chi``) uniform in ``[grazing_angle, asin(max_offset)]`` (grazing oversampled:
+  random collisions put only 3 % of their impacts beyond 80 deg); the others have
+  ``offset = max_offset * sqrt(U)``, uniform in ``b^2``: impact points uniform over the collision
+  disc, as real collisions in a granular gas (PHYSICS-NOTES "Collisions in a granular gas"). The contact
   normal at first touch is ``n = sqrt(1 - b^2) g_hat + b p_hat`` (from 1 to 2), ``g = v1 - v2``,
   ``p_hat`` perpendicular to ``g`` (in the plane of ``v1, v2`` for the converging family, so
   both straight paths still cross at the common point; any direction otherwise);
@@ -32,16 +36,25 @@ at first touch (``x2 - x1 = (r1 + r2) n``) and moved back along straight lines b
 ``touch_time``; then ``|x2 - x1|^2 = (r1+r2)^2 + 2 t (r1+r2) (g.n) + t^2 |g|^2 > (r1+r2)^2``,
 and the first touch of ballistic motion is exactly at ``t = touch_time`` with normal ``n``.
 
-The normal approach speed ``g.n = |g| sqrt(1 - b^2)`` is bounded below by
-``min_normal_speed`` (default 0.05 m/s): a slower contact carries almost no information
-(restitution and spin change by less than the float32 round-off of a 20 m/s velocity allows
-to resolve cleanly), and grazing impacts with ``b -> 1`` would otherwise dominate the contact
-durations. Candidates breaking a rule (normal speed too small, a converging pair whose
+- relative speeds down to ``min_relative_speed`` (default 0.01 m/s): a fraction
+  ``slow_fraction`` of the rows has both velocities scaled by one factor so that ``|g|`` is
+  log-uniform in ``[min_relative_speed, |g|]`` (the family geometry is kept: directions are
+  unchanged); speeds uniform in ``[0, 20]`` alone put almost no pair below 0.5 m/s.
+
+Floors on the approach: ``|g| >= min_relative_speed`` and ``g.n = |g| sqrt(1 - b^2) >=
+min_normal_speed`` (default 1e-3 m/s: below it the float32 DEM moves the pair by less than ~3 ulps of
+its position per step and can miss the contact; the paper's set used 0.05 m/s, which drops most
+grazing slow impacts; the engine clamps a slower pair into the domain at its own incidence). Candidates breaking a rule (approach too slow, a converging pair whose
 common point lies behind one particle or whose directions are parallel within ~0.06 degrees,
 non-positive sizes or densities) are redrawn. The start positions ``x1, x2`` put the common
 point (converging) or the first contact point (other families) at the origin; the DEM gets
 ``contact_frame_positions()`` instead (contact point at the origin, the same physics, no float32
 round-off from a far common point).
+
+``paper_spec_options()`` gives the options of the earlier, paper-like set (half central, offsets up
+to 0.95, no grazing or slow oversampling, normal speed >= 0.05 m/s): with them the rows are the
+same bytes as before the grazing and slow options existed (the extra random draws are only made
+when those options are on).
 
 Reproducibility: rows are drawn in blocks of ``BLOCK_ROWS``; block ``j`` uses the generator
 ``numpy.random.default_rng(SeedSequence(seed, spawn_key=(j,)))``, so row ``k`` depends on
@@ -62,6 +75,20 @@ CONVERGING, PARALLEL, HEAD_ON = 0, 1, 2
 
 BLOCK_ROWS = 1024
 """Rows per random-number block (fixed: changing it changes every data set)."""
+
+GRAZING_MAX_OFFSET = math.sin(math.radians(89.8))
+"""Default largest impact offset: incidence angles up to 89.8 deg (beyond, the float32 DEM cannot resolve the
+contact: its depth R (1 - b) falls below ~1e-9 m)."""
+
+PAPER_LIKE_OPTIONS = {"central_fraction": 0.5, "grazing_fraction": 0.0, "max_offset": 0.95, "slow_fraction": 0.0,
+                      "min_normal_speed": 0.05}
+"""Options that reproduce the earlier set (half central, offsets <= 0.95, normal speed >= 0.05 m/s)."""
+
+
+def paper_spec_options() -> dict:
+    """``ConfigurationSpec`` / ``make_spec`` keyword options of the earlier, paper-like set."""
+    return dict(PAPER_LIKE_OPTIONS)
+
 
 PAPER_DIAMETER_STD = {315e-6: 8.2e-6, 475e-6: 22e-6}
 """Standard deviation of the diameter (m) for the paper's two sizes (m), from its size table."""
@@ -93,12 +120,20 @@ class ConfigurationSpec:
     """Highest particle speed V_mag, m/s (paper: 20)."""
     family_weights: tuple[float, float, float] = (1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0)
     """Probabilities of the converging, parallel and head-on families."""
-    central_fraction: float = 0.5
+    central_fraction: float = 0.1
     """Fraction of central impacts (offset 0, as the paper); the rest are oblique."""
-    max_offset: float = 0.95
-    """Largest impact offset b / (r1 + r2) of an oblique impact, in [0, 1)."""
-    min_normal_speed: float = 0.05
-    """Smallest normal approach speed (v1 - v2).n at first touch, m/s (> 0)."""
+    grazing_fraction: float = 0.3
+    """Fraction of rows whose incidence angle is uniform in [grazing_angle, asin(max_offset)]."""
+    grazing_angle: float = 70.0
+    """Smallest incidence angle of the grazing rows, degrees."""
+    max_offset: float = GRAZING_MAX_OFFSET
+    """Largest impact offset b / (r1 + r2) of an oblique impact, in [0, 1) (default sin 89.8 deg)."""
+    slow_fraction: float = 0.3
+    """Fraction of rows whose relative speed is rescaled log-uniform in [min_relative_speed, |g|]."""
+    min_relative_speed: float = 0.01
+    """Smallest relative speed |v1 - v2| at first touch, m/s (> 0)."""
+    min_normal_speed: float = 1e-3
+    """Smallest normal approach speed (v1 - v2).n at first touch, m/s (>= 0; the paper-like set: 0.05)."""
     touch_time: float = 1e-7
     """Time from the start positions to first touch, s (a couple of DEM steps at most)."""
 
@@ -118,14 +153,26 @@ class ConfigurationSpec:
         weights = np.asarray(self.family_weights, dtype=float)
         if weights.shape != (3,) or np.any(weights < 0) or not weights.sum() > 0:
             raise ConfigError(f"family_weights must be three non-negative numbers, not all 0 (got {self.family_weights})")
-        if not 0.0 <= self.central_fraction <= 1.0:
-            raise ConfigError(f"central_fraction must lie in [0, 1] (got {self.central_fraction})")
+        for name in ("central_fraction", "grazing_fraction", "slow_fraction"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"{name} must lie in [0, 1] (got {getattr(self, name)})")
+        if self.central_fraction + self.grazing_fraction > 1.0 + 1e-12:
+            raise ConfigError(f"central_fraction + grazing_fraction must be <= 1 (got {self.central_fraction} + "
+                              f"{self.grazing_fraction})")
         if not 0.0 <= self.max_offset < 1.0:
             raise ConfigError(f"max_offset must lie in [0, 1) (got {self.max_offset})")
-        if not self.min_normal_speed > 0:
-            raise ConfigError(f"min_normal_speed must be > 0 m/s (got {self.min_normal_speed}); 0.05 is sensible")
-        if self.min_normal_speed >= 2 * self.speed_max:
-            raise ConfigError("min_normal_speed must be below 2 x speed_max, or no pair can collide")
+        if not 0.0 <= self.grazing_angle < 90.0:
+            raise ConfigError(f"grazing_angle must lie in [0, 90) degrees (got {self.grazing_angle})")
+        if self.grazing_fraction > 0 and math.sin(math.radians(self.grazing_angle)) > self.max_offset:
+            raise ConfigError(f"grazing_angle {self.grazing_angle} deg lies beyond max_offset {self.max_offset} "
+                              f"(= {math.degrees(math.asin(self.max_offset)):.2f} deg); lower it or raise max_offset")
+        if not self.min_normal_speed >= 0:
+            raise ConfigError(f"min_normal_speed must be >= 0 m/s (got {self.min_normal_speed})")
+        if not self.min_relative_speed > 0:
+            raise ConfigError(f"min_relative_speed must be > 0 m/s (got {self.min_relative_speed}); 0.01 is sensible")
+        if max(self.min_normal_speed, self.min_relative_speed) >= 2 * self.speed_max:
+            raise ConfigError("min_normal_speed and min_relative_speed must be below 2 x speed_max, "
+                              "or no pair can collide")
         if not self.touch_time > 0:
             raise ConfigError(f"touch_time must be > 0 s (got {self.touch_time})")
 
@@ -199,8 +246,10 @@ def _direction(rng: np.random.Generator, n: int) -> np.ndarray:
 
 
 def _draw_candidates(spec: ConfigurationSpec, rng: np.random.Generator, family: np.ndarray,
-                     central: np.ndarray) -> dict:
-    """One candidate per row of ``family`` / ``central``; ``valid`` marks those that satisfy every rule."""
+                     central: np.ndarray, grazing: np.ndarray, slow: np.ndarray) -> dict:
+    """One candidate per row of ``family`` / ``central`` / ``grazing`` / ``slow``; ``valid`` marks
+    those that satisfy every rule. Draws for the grazing and slow options are made only when the
+    option is on, so the paper-like spec draws exactly the numbers it always drew."""
     n = family.shape[0]
     d1 = rng.normal(spec.diameter_mean, spec.diameter_std, n)
     d2 = rng.normal(spec.diameter_mean, spec.diameter_std, n)
@@ -214,14 +263,27 @@ def _draw_candidates(spec: ConfigurationSpec, rng: np.random.Generator, family: 
     offset = np.where(central, 0.0, spec.max_offset * np.sqrt(rng.random(n)))
     random_perp = _direction(rng, n)
     sign = np.where(rng.random(n) < 0.5, -1.0, 1.0)
+    if spec.grazing_fraction > 0:
+        lo, hi = math.radians(spec.grazing_angle), math.asin(spec.max_offset)
+        offset = np.where(grazing, np.sin(lo + (hi - lo) * rng.random(n)), offset)
+    if spec.slow_fraction > 0:
+        log_fraction = rng.random(n)  # where in [log min_relative_speed, log |g|] the slow row's |g| lands
 
     converging, parallel, head_on = family == CONVERGING, family == PARALLEL, family == HEAD_ON
-    fast, slow = np.maximum(speed1, speed2), np.minimum(speed1, speed2)
-    s1 = np.where(parallel, np.where(rear_is_1, fast, slow), speed1)
-    s2 = np.where(parallel, np.where(rear_is_1, slow, fast), speed2)
+    fast_speed, slow_speed = np.maximum(speed1, speed2), np.minimum(speed1, speed2)
+    s1 = np.where(parallel, np.where(rear_is_1, fast_speed, slow_speed), speed1)
+    s2 = np.where(parallel, np.where(rear_is_1, slow_speed, fast_speed), speed2)
     dir2 = np.where(converging[:, None], dir2, np.where(head_on[:, None], -dir1, dir1))
     v1 = s1[:, None] * dir1
     v2 = s2[:, None] * dir2
+    if spec.slow_fraction > 0:
+        # one factor for both velocities: |g| log-uniform in [min_relative_speed, |g|], directions kept
+        g0 = np.linalg.norm(v1 - v2, axis=1)
+        lo_g = math.log(spec.min_relative_speed)
+        hi_g = np.log(np.maximum(g0, spec.min_relative_speed))
+        scale = np.where(slow & (g0 > 0), np.exp(lo_g + (hi_g - lo_g) * log_fraction) / np.where(g0 > 0, g0, 1.0), 1.0)
+        v1 = v1 * scale[:, None]
+        v2 = v2 * scale[:, None]
 
     g_hat, g_norm = _unit(v1 - v2)
     # perpendicular direction of the offset: in the plane of v1, v2 for converging pairs
@@ -255,7 +317,8 @@ def _draw_candidates(spec: ConfigurationSpec, rng: np.random.Generator, family: 
     x2 = x2c + shift - spec.touch_time * v2
 
     valid = (d1 > 0) & (d2 > 0) & (rho1 > 0) & (rho2 > 0)
-    valid &= g_norm * cos_a >= spec.min_normal_speed
+    valid &= (g_norm * cos_a >= spec.min_normal_speed) & (g_norm * cos_a > 0)
+    valid &= g_norm >= spec.min_relative_speed
     valid &= (offset == 0) | (p_norm > 1e-9 * np.maximum(g_norm, 1e-300) + 1e-12)
     valid &= ~converging | (well_posed & (t1 >= 0) & (t2 >= 0))
     return {"x1": x1, "x2": x2, "v1": v1, "v2": v2, "d1": d1, "d2": d2, "rho1": rho1, "rho2": rho2,
@@ -270,11 +333,14 @@ def _draw_block(spec: ConfigurationSpec, seed: int, block: int) -> dict:
     rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(block,)))
     weights = np.asarray(spec.family_weights, dtype=float)
     family = rng.choice(3, size=BLOCK_ROWS, p=weights / weights.sum()).astype(np.int8)
-    central = rng.random(BLOCK_ROWS) < spec.central_fraction  # drawn once: redraws keep the fraction
+    kind = rng.random(BLOCK_ROWS)  # drawn once: redraws keep the fractions
+    central = kind < spec.central_fraction
+    grazing = ~central & (kind < spec.central_fraction + spec.grazing_fraction)
+    slow = rng.random(BLOCK_ROWS) < spec.slow_fraction if spec.slow_fraction > 0 else np.zeros(BLOCK_ROWS, bool)
     rows: dict = {}
     todo = np.arange(BLOCK_ROWS)
     for _ in range(10_000):
-        cand = _draw_candidates(spec, rng, family[todo], central[todo])
+        cand = _draw_candidates(spec, rng, family[todo], central[todo], grazing[todo], slow[todo])
         ok = cand.pop("valid")
         for name, values in cand.items():
             if name not in rows:
@@ -284,7 +350,8 @@ def _draw_block(spec: ConfigurationSpec, seed: int, block: int) -> dict:
         if todo.size == 0:
             rows["family"] = family
             return rows
-    raise ConfigError("could not draw colliding configurations: min_normal_speed is too high for the speed range")
+    raise ConfigError("could not draw colliding configurations: min_normal_speed / min_relative_speed is too high "
+                      "for the speed range")
 
 
 def generate(spec: ConfigurationSpec, seed: int, start: int, stop: int) -> Configurations:

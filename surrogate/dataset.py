@@ -35,7 +35,8 @@ import numpy as np
 
 from hel_warp.errors import ConfigError, HelWarpError
 from hel_warp.material import Material
-from surrogate.configurations import FAMILIES, Configurations, ConfigurationSpec, generate, paper_diameter_std
+from surrogate.configurations import (FAMILIES, GRAZING_MAX_OFFSET, Configurations, ConfigurationSpec, generate,
+                                      paper_diameter_std)
 
 INPUT_COLUMNS = ("v1x", "v1y", "v1z", "v2x", "v2y", "v2z", "d1", "d2", "rho1", "rho2", "nx", "ny", "nz", "offset")
 OUTPUT_COLUMNS = ("u1x", "u1y", "u1z", "u2x", "u2y", "u2z", "w1x", "w1y", "w1z", "w2x", "w2y", "w2z",
@@ -149,10 +150,15 @@ class DatasetSpec:
 
 def make_spec(*, samples: int, seed: int, diameter: float, diameter_std: float | None = None,
               density_std: float = 0.0, material: Material | None = None, contact_model: str = "hertz",
-              chunk_size: int = DEFAULT_CHUNK_SIZE, central_fraction: float = 0.5, max_offset: float = 0.95,
-              min_normal_speed: float = 0.05, speed_max: float = 20.0, touch_steps: float = 2.0,
-              dt_factor: float = 0.5) -> DatasetSpec:
+              chunk_size: int = DEFAULT_CHUNK_SIZE, central_fraction: float = 0.1,
+              grazing_fraction: float = 0.3, grazing_angle: float = 70.0, max_offset: float = GRAZING_MAX_OFFSET,
+              slow_fraction: float = 0.3, min_relative_speed: float = 0.01, min_normal_speed: float = 1e-3,
+              speed_max: float = 20.0, touch_steps: float = 2.0, dt_factor: float = 0.5) -> DatasetSpec:
     """A ``DatasetSpec`` from user options.
+
+    Defaults cover every impact the engine meets (``surrogate.configurations``: grazing rows up to
+    89.8 deg, relative speeds down to 0.01 m/s, normal approach >= 1e-3 m/s); ``**surrogate.configurations.paper_spec_options()``
+    gives the earlier paper-like set.
 
     ``diameter_std`` defaults to the paper's size table (315 um: 8.2 um, 475 um: 22 um) and must
     be given for another diameter. The pair starts ``touch_time = touch_steps x dt_factor x`` the
@@ -174,7 +180,9 @@ def make_spec(*, samples: int, seed: int, diameter: float, diameter_std: float |
     cfg = ConfigurationSpec(diameter_mean=float(diameter), diameter_std=float(diameter_std),
                             density_mean=material.density, density_std=float(density_std),
                             speed_max=float(speed_max), central_fraction=float(central_fraction),
-                            max_offset=float(max_offset), min_normal_speed=float(min_normal_speed),
+                            grazing_fraction=float(grazing_fraction), grazing_angle=float(grazing_angle),
+                            max_offset=float(max_offset), slow_fraction=float(slow_fraction),
+                            min_relative_speed=float(min_relative_speed), min_normal_speed=float(min_normal_speed),
                             touch_time=float(touch_steps * dt_factor * dt))
     return DatasetSpec(samples=int(samples), seed=int(seed), configurations=cfg, material=material,
                        contact_model=contact_model, chunk_size=int(chunk_size), dt_factor=float(dt_factor))
@@ -182,35 +190,82 @@ def make_spec(*, samples: int, seed: int, diameter: float, diameter_std: float |
 
 # ---------------------------------------------------------------- computing one chunk
 
+GRAZING_CONTACT_STEPS = 10
+"""Fewest DEM steps over the geometric contact time of a grazing impact (``grazing_contact_time``)."""
+
+
+def grazing_contact_time(configs: Configurations) -> np.ndarray:
+    """Time the undeflected relative path spends inside the contact sphere, ``2 (r1 + r2) g_n / |g|^2``, s.
+
+    A chord of the sphere of radius ``r1 + r2`` at impact parameter ``b``: length ``2 (r1 + r2) cos chi``.
+    At grazing incidence and speed the soft contact ends by this geometry (the spheres slide past)
+    long before the Hertz duration at the normal speed: at 89.9 deg and 20 m/s it is 5.5e-8 s, half the
+    eq. (12) step; the data set's DEM step is capped at 1/GRAZING_CONTACT_STEPS of it.
+    """
+    g = configs.v1 - configs.v2
+    g_n = np.maximum(np.einsum("ij,ij->i", g, configs.normal), 0.0)
+    return (configs.d1 + configs.d2) * g_n / np.maximum(np.einsum("ij,ij->i", g, g), 1e-300)
+
+
 def dem_runner(configs: Configurations, spec: DatasetSpec) -> np.ndarray:
     """Outputs (n, 15) of the batched binary DEM ``hel_warp.impact.simulate_pairs`` for ``configs``.
 
-    One call (one Warp thread per pair) for the whole chunk; the time step is ``spec.dt_factor``
+    One call (one Warp thread per pair) for the whole chunk, in each pair's centre-of-mass frame (the
+    lab velocity added back to the outputs); the time step is ``spec.dt_factor``
     times the runner's default (eq. 12 for the smaller sphere of the pair, V_max = max(20 m/s,
-    approach speed), ``hel_warp.impact.stable_time_step``). Pairs that never touched or did not
+    approach speed), ``hel_warp.impact.stable_time_step``), capped at 1/GRAZING_CONTACT_STEPS of the
+    grazing contact time (``grazing_contact_time``); the step limit covers 4x the longer of the Hertz
+    and the geometric contact times. Pairs that never touched or did not
     separate within the runner's step limit are refused (DatasetError), never stored.
     """
     from hel_warp.impact import TIME_STEP_MAX_SPEED, simulate_pairs, stable_time_step  # lazy: imports warp
 
     material = spec.material
-    x1, x2 = configs.contact_frame_positions()
+    # run in the centre-of-mass frame (Galilean invariance: no gravity, no walls) so float32 keeps the
+    # relative motion: a slow pair (|g| ~ 0.01 m/s) riding at 20 m/s in the lab drifts by ~its own size
+    # during the contact, and the float32 positions then resolve its ~1e-9 m overlap to a few % only
+    # (measured: up to 1.7 % of |g| energy gain and spurious tangential impulses in the lab frame)
+    m1 = configs.rho1 * configs.d1**3
+    m2 = configs.rho2 * configs.d2**3
+    v_com = (m1[:, None] * configs.v1 + m2[:, None] * configs.v2) / (m1 + m2)[:, None]
+    v1, v2 = configs.v1 - v_com, configs.v2 - v_com
     vmax = np.maximum(TIME_STEP_MAX_SPEED, np.linalg.norm(configs.v1 - configs.v2, axis=1))
     stable = np.minimum(
         stable_time_step(0.5 * configs.d1, configs.rho1, material.youngs_modulus, material.poisson_ratio, vmax),
         stable_time_step(0.5 * configs.d2, configs.rho2, material.youngs_modulus, material.poisson_ratio, vmax))
+    t_graze = grazing_contact_time(configs)
+    dt = np.minimum(spec.dt_factor * stable, t_graze / GRAZING_CONTACT_STEPS)
+    # start at most half a step before first touch (contact point at the origin): the runner's first step
+    # then jumps to the touch instant. Stepping a slow grazing pair through a longer float32 approach
+    # drifts it systematically (each step rounds v dt ~ 25 ulps the same way) and it can miss a contact
+    # whose depth is R (1 - b) ~ 1e-9 m (measured: 89.8 deg, 0.013 m/s)
+    t_start = np.minimum(configs.touch_time, 0.5 * dt)[:, None]
+    r1, r2 = 0.5 * configs.d1[:, None], 0.5 * configs.d2[:, None]
+    x1 = -r1 * configs.normal - t_start * v1
+    x2 = r2 * configs.normal - t_start * v2
+    # step limit: the runner's own estimate uses the Hertz duration at the normal speed; a slow grazing
+    # contact lasts up to the geometric time instead (the spheres slide past before the normal rebound)
+    from hel_warp.contact_law import hertz_contact_duration
+
+    inv_e = 2.0 * (1.0 - material.poisson_ratio**2) / material.youngs_modulus
+    r_eff = 0.5 * configs.d1 * configs.d2 / (configs.d1 + configs.d2)
+    m_eff = np.pi / 6.0 * m1 * m2 / (m1 + m2)
+    g_n = np.maximum(np.einsum("ij,ij->i", configs.v1 - configs.v2, configs.normal), 1e-12)
+    t_hertz = hertz_contact_duration(1.0 / inv_e, r_eff, m_eff, g_n)
+    max_steps = int(np.max(4.0 * (configs.touch_time + np.maximum(t_hertz, t_graze)) / dt + 100.0))
     result = simulate_pairs(
-        x1=x1, x2=x2, v1=configs.v1, v2=configs.v2,
+        x1=x1, x2=x2, v1=v1, v2=v2,
         radius1=0.5 * configs.d1, radius2=0.5 * configs.d2, density1=configs.rho1, density2=configs.rho2,
         youngs1=material.youngs_modulus, poisson1=material.poisson_ratio,
         restitution=material.restitution, friction=material.friction,
-        rolling_friction=material.rolling_friction, model=spec.contact_model, dt=spec.dt_factor * stable)
+        rolling_friction=material.rolling_friction, model=spec.contact_model, dt=dt, max_steps=max_steps)
     failed = ~(result.touched & result.separated)
     if failed.any():
         ids = configs.config_id[failed]
         raise DatasetError(f"{int(failed.sum())} pairs did not complete a collision in the DEM (config ids "
                            f"{', '.join(map(str, ids[:5]))}{'...' if ids.size > 5 else ''}); nothing of this chunk "
                            "was written")
-    return np.column_stack([result.velocity1, result.velocity2, result.omega1, result.omega2,
+    return np.column_stack([result.velocity1 + v_com, result.velocity2 + v_com, result.omega1, result.omega2,
                             result.contact_duration, result.max_overlap, result.max_normal_force]
                            ).astype(np.float64)
 

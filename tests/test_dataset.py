@@ -74,16 +74,55 @@ def test_every_configuration_starts_apart_and_touches_at_touch_time():
     at_touch = dx - c.touch_time * g                                         # x2 - x1 at t = touch_time
     np.testing.assert_allclose(np.linalg.norm(at_touch, axis=1), r_sum, rtol=1e-9)
     np.testing.assert_allclose(at_touch / r_sum[:, None], c.normal, atol=1e-9)   # stored normal = first touch
-    assert np.all(np.sum(g * c.normal, axis=1) >= SPEC.min_normal_speed)        # approaching: it collides
+    assert np.all(np.sum(g * c.normal, axis=1) >= max(SPEC.min_normal_speed, 1e-12))  # approaching: it collides
+    assert np.all(np.linalg.norm(g, axis=1) >= SPEC.min_relative_speed)
     # first root of |dx - t g| = r_sum is touch_time (the smaller root of the quadratic)
     a, b, cc = np.sum(g * g, 1), -2 * np.sum(dx * g, 1), np.sum(dx * dx, 1) - r_sum**2
     t_first = (-b - np.sqrt(b * b - 4 * a * cc)) / (2 * a)
     np.testing.assert_allclose(t_first, c.touch_time, rtol=1e-5)
     speeds = np.linalg.norm(np.concatenate([c.v1, c.v2]), axis=1)
     assert speeds.max() <= 20.0 and np.all(c.offset < 1) and np.all(c.offset >= 0)
-    assert abs(np.mean(c.offset == 0) - 0.5) < 0.03                         # central fraction
+    assert abs(np.mean(c.offset == 0) - SPEC.central_fraction) < 0.03      # central fraction
     assert set(np.unique(c.family)) == {0, 1, 2}
     assert abs(np.mean(c.d1) - 315e-6) < 1e-6 and abs(np.std(c.d1) - 8.2e-6) < 0.5e-6
+
+
+def test_default_set_covers_every_impact_the_engine_meets():
+    """Incidence 0-89.8 deg with grazing well represented, |g| down to 0.01 m/s, the three families."""
+    c = generate(SPEC, 2, 0, 20000)
+    g = c.v1 - c.v2
+    g_mag = np.linalg.norm(g, axis=1)
+    angle = np.degrees(np.arccos(np.clip(np.sum(g * c.normal, axis=1) / g_mag, -1, 1)))
+    assert angle.max() > 89.5 and angle.max() <= 89.8 + 1e-9
+    assert np.mean(angle >= 80) > 0.10          # random collisions alone put 3 % there (uniform b^2)
+    assert np.mean(angle >= 89) > 0.005
+    assert np.quantile(g_mag, 0.05) < 0.1 and g_mag.min() >= 0.01
+    for fam in (CONVERGING, PARALLEL, HEAD_ON):
+        assert np.mean(angle[c.family == fam] >= 80) > 0.08
+
+
+def test_uniform_b_squared_share_matches_kinetic_theory():
+    """Without the central and grazing shares, b^2 = offset^2 is uniform on [0, max_offset^2]
+    (PHYSICS-NOTES: random collisions are uniform in b^2): Kolmogorov-Smirnov distance small.
+    Parallel and head-on families only: a converging pair must also have its common point ahead of
+    both particles, which rejects large offsets more often (that family leans to central impacts)."""
+    spec = ConfigurationSpec(diameter_mean=315e-6, diameter_std=0.0, touch_time=1e-7, central_fraction=0.0,
+                             grazing_fraction=0.0, slow_fraction=0.0, family_weights=(0.0, 0.5, 0.5))
+    c = generate(spec, 4, 0, 8000)
+    b2 = np.sort(c.offset**2) / spec.max_offset**2
+    ks = np.max(np.abs(b2 - (np.arange(1, b2.size + 1) - 0.5) / b2.size))
+    # rejection of normal speeds < 1e-3 m/s thins b -> 1 a little; KS critical value at 1 % is 1.63/sqrt(n) = 0.018
+    assert ks < 0.02
+
+
+def test_paper_like_options_keep_the_earlier_rules():
+    from surrogate.configurations import paper_spec_options
+
+    spec = ConfigurationSpec(diameter_mean=315e-6, diameter_std=8.2e-6, touch_time=1e-7, **paper_spec_options())
+    c = generate(spec, 3, 0, 4000)
+    g = c.v1 - c.v2
+    assert abs(np.mean(c.offset == 0) - 0.5) < 0.03 and c.offset.max() <= 0.95
+    assert np.all(np.sum(g * c.normal, axis=1) >= 0.05)
 
 
 def test_families_have_their_geometry():
@@ -205,7 +244,7 @@ def test_unknown_diameter_needs_a_std():
 def _dem_rows(tmp_path, central_fraction, samples=192, contact_model="hertz"):
     pytest.importorskip("hel_warp.impact")
     spec = make_spec(samples=samples, seed=11, diameter=315e-6, chunk_size=96, central_fraction=central_fraction,
-                     contact_model=contact_model)
+                     grazing_fraction=min(0.3, 1.0 - central_fraction), contact_model=contact_model)
     build_dataset(tmp_path / "dem", spec, progress=False)
     ds = load_dataset(tmp_path / "dem")
     return spec, ds
@@ -214,6 +253,20 @@ def _dem_rows(tmp_path, central_fraction, samples=192, contact_model="hertz"):
 def _masses(ds):
     d1, d2, rho1, rho2 = ds.inputs[:, 6], ds.inputs[:, 7], ds.inputs[:, 8], ds.inputs[:, 9]
     return rho1 * np.pi / 6 * d1**3, rho2 * np.pi / 6 * d2**3
+
+
+def test_dem_runs_grazing_and_slow_rows_to_separation(tmp_path):
+    """Rows at 85-89.8 deg and |g| down to 0.01 m/s complete their contact (touch, separate) in the
+    data set's DEM, and none gains kinetic energy (float32 round-off aside)."""
+    pytest.importorskip("hel_warp.impact")
+    spec = make_spec(samples=400, seed=12, diameter=315e-6, chunk_size=400, grazing_angle=85.0,
+                     grazing_fraction=1.0, central_fraction=0.0, slow_fraction=0.5)
+    build_dataset(tmp_path / "graze", spec, progress=False)  # refuses rows that did not touch or separate
+    ds = load_dataset(tmp_path / "graze")
+    g, gp = ds.inputs[:, 0:3] - ds.inputs[:, 3:6], ds.outputs[:, 0:3] - ds.outputs[:, 3:6]
+    angle = np.degrees(np.arccos(np.clip(np.sum(g * ds.inputs[:, 10:13], axis=1) / np.linalg.norm(g, axis=1), -1, 1)))
+    assert angle.min() >= 85 - 1e-9 and angle.max() > 89.5 and np.linalg.norm(g, axis=1).min() < 0.05
+    assert np.all(np.sum(gp**2, axis=1) <= np.sum(g**2, axis=1) * (1 + 1e-5))
 
 
 def test_dem_rows_conserve_momentum(tmp_path):
