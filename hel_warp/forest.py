@@ -18,7 +18,8 @@ import numpy as np
 from hel_warp.errors import ConfigError
 
 FORMAT = "hel_warp.forest"
-VERSION = 1
+VERSION = 2
+"""Version 2 adds the ``domain`` section (training feature ranges, friction, Coulomb bound)."""
 CANONICAL_FEATURES = {
     "paper": ("v1x", "v1y", "v1z", "v2x", "v2y", "v2z", "d1", "d2", "rho1", "rho2"),
     "contact": ("g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio"),
@@ -60,6 +61,38 @@ class FlatForest:
     node_value: np.ndarray
     node_left: np.ndarray
     max_depth: int
+    domain: dict | None = None
+    """The ``domain`` section of the file (surrogate/flatten.py): ``lo``/``hi`` per canonical feature,
+    ``friction``, ``friction_bound`` and how it was chosen."""
+
+    @property
+    def feature_lo(self) -> np.ndarray:
+        """(F,) float32 training minimum of each canonical feature."""
+        return np.asarray(self.domain["lo"], dtype=np.float32)
+
+    @property
+    def feature_hi(self) -> np.ndarray:
+        """(F,) float32 training maximum of each canonical feature."""
+        return np.asarray(self.domain["hi"], dtype=np.float32)
+
+    @property
+    def friction_bound(self) -> float:
+        """Coulomb guard of the contact form: normalised tangential impulse b <= friction_bound * a."""
+        return float(self.domain["friction_bound"])
+
+    def domain_to_device(self, device="cpu"):
+        """The Warp ``kernels.forest.ContactDomain`` of a contact-form forest (feature ranges, Coulomb bound)."""
+        import warp as wp
+
+        from kernels.forest import ContactDomain
+
+        if self.form != "contact":
+            raise ConfigError(f"a {self.form!r}-form forest has no contact-frame domain; use a contact-form model")
+        domain = ContactDomain()
+        domain.feature_lo = wp.array(self.feature_lo, dtype=wp.float32, device=device)
+        domain.feature_hi = wp.array(self.feature_hi, dtype=wp.float32, device=device)
+        domain.friction_bound = self.friction_bound
+        return domain
 
     @property
     def n_trees(self) -> int:
@@ -174,8 +207,10 @@ def parse_forest(doc: dict) -> FlatForest:
     """Validate a forest.json document and return its arrays (every index checked in range)."""
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise ConfigError(f"not a {FORMAT} file")
-    if doc.get("version") != VERSION:
-        raise ConfigError(f"forest file version {doc.get('version')!r}; this engine reads version {VERSION}")
+    if doc.get("version") != VERSION or "domain" not in doc:
+        raise ConfigError(f"forest file version {doc.get('version')!r} states no training domain (this engine reads "
+                          f"version {VERSION}, with feature ranges and the Coulomb bound); retrain the model with "
+                          "`hel-warp train` (on a `hel-warp dataset` set)")
     form = doc.get("form")
     if form not in CANONICAL_FEATURES:
         raise ConfigError(f"forest form {form!r} unknown; expected one of {sorted(CANONICAL_FEATURES)}")
@@ -211,8 +246,32 @@ def parse_forest(doc: dict) -> FlatForest:
         raise ConfigError("forest child index out of range (children must follow their parent)")
     if np.any(np.isnan(value)):
         raise ConfigError("forest holds NaN node values")
+    domain = _parse_domain(doc.get("domain"), CANONICAL_FEATURES[form])
     return FlatForest(form, list(doc["features"]), targets, base, start, root, info, value, left,
-                      int(doc.get("max_depth", 0)))
+                      int(doc.get("max_depth", 0)), domain)
+
+
+def _parse_domain(domain, features) -> dict:
+    """Check the ``domain`` section: finite lo <= hi per canonical feature, friction >= 0, bound >= friction."""
+    retrain = "retrain the model with `hel-warp train`"
+    if not isinstance(domain, dict):
+        raise ConfigError(f"forest domain must be an object with lo, hi, friction, friction_bound; {retrain}")
+    try:
+        lo = np.asarray(domain["lo"], dtype=np.float64)
+        hi = np.asarray(domain["hi"], dtype=np.float64)
+        friction = float(domain["friction"])
+        bound = float(domain["friction_bound"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ConfigError(f"forest domain lacks or has a malformed {exc}; {retrain}") from None
+    if list(domain.get("features", features)) != list(features) or lo.shape != (len(features),) \
+            or hi.shape != (len(features),):
+        raise ConfigError(f"forest domain must give lo and hi for the features {list(features)}; {retrain}")
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo <= hi)):
+        raise ConfigError(f"forest domain ranges must be finite with lo <= hi; {retrain}")
+    if not (np.isfinite(friction) and friction >= 0 and np.isfinite(bound) and bound >= friction):
+        raise ConfigError(f"forest domain needs friction >= 0 and friction_bound >= friction (got {friction}, "
+                          f"{bound}); {retrain}")
+    return dict(domain)
 
 
 def load_forest(model_dir: str) -> FlatForest:
@@ -252,6 +311,8 @@ class ForestPredictor:
         # CPU: a block of rows per thread walks each tree for all of them (cache reuse);
         # GPU: one row per thread.
         self.rows_per_thread = rows_per_thread or (64 if self.device.is_cpu else 1)
+        self.domain = flat.domain_to_device(self.device) if flat.form == "contact" else None
+        self.last_counts: dict = {}
 
     def predict_features(self, features) -> np.ndarray:
         """(N, F) raw features (canonical order, NaN = missing) -> (N, T) float32 predictions."""
@@ -267,10 +328,15 @@ class ForestPredictor:
         eval_forest(self.forest, x_wp, out, rows_per_thread=self.rows_per_thread)
         return out.numpy()
 
-    def predict_pairs(self, v1, v2, d1, d2, rho1, rho2, normal=None):
+    def predict_pairs(self, v1, v2, d1, d2, rho1, rho2, normal=None, *, guard: bool = True):
         """Post-collision velocities (v1', v2') of N pairs, each (N, 3) float32.
 
-        ``contact`` form needs ``normal`` (unit, from 1 to 2); the ``paper`` form ignores it.
+        ``contact`` form needs ``normal`` (unit, from 1 to 2, pairs approaching: ``(v1 - v2).n > 0``);
+        the ``paper`` form ignores it. Contact form with ``guard`` (default): features clamped into the
+        training domain, the predicted impulse made admissible (``kernels.forest.admissible_impulse``:
+        separating, Coulomb, no energy gain); ``self.last_counts`` then holds ``pairs``, ``clamped``,
+        ``guard_separation``, ``guard_coulomb``, ``guard_energy``, ``guard_any`` of this call.
+        ``guard=False``: the bare trees (the raw model, for measuring it).
         """
         import warp as wp
 
@@ -293,13 +359,27 @@ class ForestPredictor:
             w_n = as_vec(normal)
             feats = wp.zeros((n_pairs, len(self.flat.features)), dtype=wp.float32, device=self.device)
             targets = wp.zeros((n_pairs, n_targets), dtype=wp.float32, device=self.device)
-            kf.contact_features(w_v1, w_v2, w_n, w_d1, w_d2, w_r1, w_r2, feats)
-            kf.eval_forest(self.forest, feats, targets, rows_per_thread=self.rows_per_thread)
-            kf.apply_contact(w_v1, w_v2, w_n, w_d1, w_d2, w_r1, w_r2, targets, v1_after, v2_after)
+            if guard:
+                clamped = wp.zeros(1, dtype=wp.int32, device=self.device)
+                guard_counts = wp.zeros(4, dtype=wp.int32, device=self.device)
+                kf.contact_features_in_domain(w_v1, w_v2, w_n, w_d1, w_d2, w_r1, w_r2, self.domain, feats, clamped)
+                kf.eval_forest(self.forest, feats, targets, rows_per_thread=self.rows_per_thread)
+                kf.apply_admissible_contact(w_v1, w_v2, w_n, w_d1, w_d2, w_r1, w_r2, targets, self.flat.friction_bound,
+                                            v1_after, v2_after, guard_counts)
+                counts = guard_counts.numpy()
+                self.last_counts = {"pairs": int(n_pairs), "clamped": int(clamped.numpy()[0]),
+                                    "guard_separation": int(counts[0]), "guard_coulomb": int(counts[1]),
+                                    "guard_energy": int(counts[2]), "guard_any": int(counts[3])}
+            else:
+                kf.contact_features(w_v1, w_v2, w_n, w_d1, w_d2, w_r1, w_r2, feats)
+                kf.eval_forest(self.forest, feats, targets, rows_per_thread=self.rows_per_thread)
+                kf.apply_contact(w_v1, w_v2, w_n, w_d1, w_d2, w_r1, w_r2, targets, v1_after, v2_after)
+                self.last_counts = {"pairs": int(n_pairs)}
         else:
             feats = wp.zeros((2 * n_pairs, len(self.flat.features)), dtype=wp.float32, device=self.device)
             targets = wp.zeros((2 * n_pairs, n_targets), dtype=wp.float32, device=self.device)
             kf.paper_features(w_v1, w_v2, w_d1, w_d2, w_r1, w_r2, feats)
             kf.eval_forest(self.forest, feats, targets, rows_per_thread=self.rows_per_thread)
             kf.paper_velocities(targets, v1_after, v2_after)
+            self.last_counts = {"pairs": int(n_pairs)}
         return v1_after.numpy(), v2_after.numpy()

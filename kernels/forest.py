@@ -256,6 +256,201 @@ def contact_impulse(v1: wp.vec3, v2: wp.vec3, n: wp.vec3, m1: wp.float32, m2: wp
     return m_eff * wp.length(g) * (impulse_n * n + impulse_t * tangent_direction(g, n))
 
 
+# ------------------------------------------------------------------ training domain and admissibility
+
+GUARD_SEPARATION, GUARD_COULOMB, GUARD_ENERGY = 1, 2, 4
+"""``admissible_impulse`` flag bits: a raised to c (not separating), b lowered to the Coulomb bound,
+the post-collision relative speed brought back to |g| (energy)."""
+ENERGY_RADIUS = 0.999999
+"""|g'|/|g| the energy correction aims at: just inside 1, so the float32 rounding of the post-collision
+velocities cannot carry the outcome above the pre-collision kinetic energy."""
+
+
+@wp.struct
+class ContactDomain:
+    """Training domain of a contact-form model (``FlatForest.domain_to_device``; file: surrogate/flatten.py)."""
+
+    feature_lo: wp.array(dtype=wp.float32)
+    """(6,) canonical contact features g_n, g_t, cos_angle, d1, size_ratio, density_ratio: training minimum."""
+    feature_hi: wp.array(dtype=wp.float32)
+    """(6,) training maximum."""
+    friction_bound: wp.float32
+    """Coulomb guard: normalised tangential impulse b <= friction_bound * a (chosen from the DEM data)."""
+
+
+@wp.func
+def contact_pair_features(v1: wp.vec3, v2: wp.vec3, n: wp.vec3, d1: float, d2: float, rho1: float, rho2: float):
+    """The 6 canonical contact features, raw (surrogate/features.py ``raw_features``), as a vector."""
+    g = v1 - v2
+    g_n = wp.dot(g, n)
+    gt = g - g_n * n
+    gt = gt - wp.dot(gt, n) * n
+    return wp.types.vector(g_n, wp.length(gt), g_n / wp.length(g), d1, d2 / d1, rho2 / rho1, length=6,
+                           dtype=wp.float32)
+
+
+@wp.func
+def write_contact_features_in_domain(v1: wp.vec3, v2: wp.vec3, n: wp.vec3, d1: float, d2: float, rho1: float,
+                                     rho2: float, domain: ContactDomain, row: int,
+                                     # outputs
+                                     features: wp.array2d(dtype=wp.float32)) -> int:
+    """Write the 6 canonical features of the pair into ``features[row]``, clamped into ``domain``.
+
+    ``n``: unit normal from 1 to 2, the pair approaching, ``(v1 - v2).n > 0``. Inside the domain the
+    features are written exactly as ``contact_features_kernel`` computes them. Outside, consistently:
+    the incidence ``cos_angle`` is clamped first, then ``|g|`` is scaled (the same factor on g_n and
+    g_t, so the clamped ``g_n/|g|`` is kept) into the range where both ``g_n = |g| c`` and
+    ``g_t = |g| sqrt(1 - c^2)`` lie in their training ranges; d1 and the two ratios are clamped on
+    their own. The outcome is a normalised impulse (units m*|g|), applied with the pair's own |g|.
+    Returns 1 when anything was clamped, else 0.
+    """
+    raw = contact_pair_features(v1, v2, n, d1, d2, rho1, rho2)
+    outside = int(0)
+    kinematic = int(0)
+    for k in range(6):
+        if not (raw[k] >= domain.feature_lo[k] and raw[k] <= domain.feature_hi[k]):
+            outside = 1
+            if k < 3:
+                kinematic = 1
+    if kinematic == 1:
+        g_mag = wp.sqrt(raw[0] * raw[0] + raw[1] * raw[1])
+        c = wp.clamp(raw[2], domain.feature_lo[2], domain.feature_hi[2])
+        s = wp.sqrt(wp.max(1.0 - c * c, 0.0))
+        g_lo = float(0.0)
+        g_hi = float(3.0e38)
+        if c > 0.0:
+            g_lo = wp.max(g_lo, domain.feature_lo[0] / c)
+            g_hi = wp.min(g_hi, domain.feature_hi[0] / c)
+        if s > 0.0:
+            g_lo = wp.max(g_lo, domain.feature_lo[1] / s)
+            g_hi = wp.min(g_hi, domain.feature_hi[1] / s)
+        g_new = wp.min(wp.max(g_mag, g_lo), g_hi)
+        raw[0] = wp.clamp(g_new * c, domain.feature_lo[0], domain.feature_hi[0])
+        raw[1] = wp.clamp(g_new * s, domain.feature_lo[1], domain.feature_hi[1])
+        raw[2] = c
+    if outside == 1:
+        for k in range(3, 6):
+            raw[k] = wp.clamp(raw[k], domain.feature_lo[k], domain.feature_hi[k])
+    for k in range(6):
+        features[row, k] = raw[k]
+    return outside
+
+
+@wp.func
+def admissible_impulse(cos_angle: float, impulse_n: float, impulse_t: float, friction_bound: float):
+    """Normalised impulse on particle 2 ``(a, b)`` along ``n`` and ``t_hat`` (units m*|g|, as
+    ``contact_impulse``) corrected into the admissible set; returns ``(a, b, flags)``.
+
+    With ``c = cos_angle`` (the pair's own, not clamped), ``s = sqrt(1 - c^2)``, the post-collision
+    relative velocity is ``g' = |g| ((c - a) n + (s - b) t_hat)`` (PHYSICS-NOTES "Binary collision
+    outcome"), so in ``u = g'/|g|``:
+
+    - flag 1 (GUARD_SEPARATION): separating along n, ``u_n = c - a <= 0``: ``a`` raised to ``c``;
+    - flag 2 (GUARD_COULOMB): ``b <= friction_bound * a``: ``b`` lowered to the bound;
+    - flag 4 (GUARD_ENERGY): ``|u| <= 1`` (an internal impulse leaves the centre-of-mass energy
+      unchanged, so this is "kinetic energy never grows"): ``u`` projected onto the disc of radius
+      ENERGY_RADIUS (the direction of g' kept); if that breaks the Coulomb bound, ``u`` moves
+      instead along the segment towards ``(0, s)`` (a = c, b = 0, which satisfies all three) to the
+      circle. Both keep flags 1 and 2 satisfied (convex set).
+
+    NaN predictions are corrected too (a NaN fails every test). ``flags`` = OR of the corrections made.
+    """
+    c = wp.clamp(cos_angle, 0.0, 1.0)
+    s = wp.sqrt(wp.max(1.0 - c * c, 0.0))
+    a = impulse_n
+    b = impulse_t
+    flags = int(0)
+    if not (a >= c):
+        a = c
+        flags = flags | GUARD_SEPARATION
+    b_max = friction_bound * a
+    if not (b <= b_max):
+        b = b_max
+        flags = flags | GUARD_COULOMB
+    u_n = c - a
+    u_t = s - b
+    u2 = u_n * u_n + u_t * u_t
+    if u2 > 1.0:
+        flags = flags | GUARD_ENERGY
+        scale = ENERGY_RADIUS / wp.sqrt(u2)
+        p_n = u_n * scale
+        p_t = u_t * scale
+        if s - p_t <= friction_bound * (c - p_n):
+            u_n = p_n
+            u_t = p_t
+        else:
+            # u(m) = u0 + m (u - u0), u0 = (0, s): |u(m)| = ENERGY_RADIUS, m in [0, 1]
+            w_n = u_n
+            w_t = u_t - s
+            ww = w_n * w_n + w_t * w_t
+            uw = s * w_t
+            disc = uw * uw - ww * (s * s - ENERGY_RADIUS * ENERGY_RADIUS)
+            m = float(0.0)
+            if ww > 0.0 and disc > 0.0:
+                m = wp.clamp((-uw + wp.sqrt(disc)) / ww, 0.0, 1.0)
+            u_n = m * w_n
+            u_t = s + m * w_t
+        a = wp.max(c - u_n, c)
+        b = s - u_t
+    return a, b, flags
+
+
+@wp.kernel
+def contact_features_in_domain_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.array(dtype=wp.vec3),
+                                      n: wp.array(dtype=wp.vec3), d1: wp.array(dtype=wp.float32),
+                                      d2: wp.array(dtype=wp.float32), rho1: wp.array(dtype=wp.float32),
+                                      rho2: wp.array(dtype=wp.float32), domain: ContactDomain,
+                                      # outputs
+                                      features: wp.array2d(dtype=wp.float32), clamped: wp.array(dtype=wp.int32)):
+    """Features of each pair clamped into the training domain; ``clamped[0]`` += pairs clamped (int atomics)."""
+    i = wp.tid()
+    if write_contact_features_in_domain(v1[i], v2[i], n[i], d1[i], d2[i], rho1[i], rho2[i], domain, i,
+                                        features) == 1:
+        wp.atomic_add(clamped, 0, 1)
+
+
+@wp.kernel
+def apply_admissible_contact_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.array(dtype=wp.vec3),
+                                    n: wp.array(dtype=wp.vec3), d1: wp.array(dtype=wp.float32),
+                                    d2: wp.array(dtype=wp.float32), rho1: wp.array(dtype=wp.float32),
+                                    rho2: wp.array(dtype=wp.float32), targets: wp.array2d(dtype=wp.float32),
+                                    friction_bound: wp.float32,
+                                    # outputs
+                                    v1_after: wp.array(dtype=wp.vec3), v2_after: wp.array(dtype=wp.vec3),
+                                    guard_counts: wp.array(dtype=wp.int32)):
+    """Equal and opposite impulse of the guarded targets (``admissible_impulse`` with the pair's own
+    incidence); ``guard_counts`` += [flag 1, flag 2, flag 4, any] corrections (int atomics)."""
+    i = wp.tid()
+    g = v1[i] - v2[i]
+    a, b, flags = admissible_impulse(wp.dot(g, n[i]) / wp.length(g), targets[i, 0], targets[i, 1], friction_bound)
+    m1 = sphere_mass(d1[i], rho1[i])
+    m2 = sphere_mass(d2[i], rho2[i])
+    J = contact_impulse(v1[i], v2[i], n[i], m1, m2, a, b)
+    v1_after[i] = v1[i] - J / m1
+    v2_after[i] = v2[i] + J / m2
+    if flags & GUARD_SEPARATION:
+        wp.atomic_add(guard_counts, 0, 1)
+    if flags & GUARD_COULOMB:
+        wp.atomic_add(guard_counts, 1, 1)
+    if flags & GUARD_ENERGY:
+        wp.atomic_add(guard_counts, 2, 1)
+    if flags != 0:
+        wp.atomic_add(guard_counts, 3, 1)
+
+
+@wp.kernel
+def admissible_targets_kernel(cos_angle: wp.array(dtype=wp.float32), targets: wp.array2d(dtype=wp.float32),
+                              friction_bound: wp.float32,
+                              # outputs
+                              guarded: wp.array2d(dtype=wp.float32), flags: wp.array(dtype=wp.int32)):
+    """``admissible_impulse`` row by row (metrics and tests: the corrected targets and the flags of each row)."""
+    i = wp.tid()
+    a, b, f = admissible_impulse(cos_angle[i], targets[i, 0], targets[i, 1], friction_bound)
+    guarded[i, 0] = a
+    guarded[i, 1] = b
+    flags[i] = f
+
+
 @wp.kernel
 def contact_features_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.array(dtype=wp.vec3), n: wp.array(dtype=wp.vec3),
                             d1: wp.array(dtype=wp.float32), d2: wp.array(dtype=wp.float32),
@@ -376,3 +571,26 @@ def paper_velocities(targets, v1_after, v2_after, *, device=None) -> None:
     if v1_after.shape[0]:
         wp.launch(paper_velocities_kernel, dim=v1_after.shape[0], inputs=[targets],
                   outputs=[v1_after, v2_after], device=device or targets.device)
+
+
+def contact_features_in_domain(v1, v2, n, d1, d2, rho1, rho2, domain, features, clamped, *, device=None) -> None:
+    """Features clamped into ``domain`` (``ContactDomain``); ``clamped[0]`` counts the clamped pairs."""
+    if v1.shape[0]:
+        wp.launch(contact_features_in_domain_kernel, dim=v1.shape[0], inputs=[v1, v2, n, d1, d2, rho1, rho2, domain],
+                  outputs=[features, clamped], device=device or v1.device)
+
+
+def apply_admissible_contact(v1, v2, n, d1, d2, rho1, rho2, targets, friction_bound, v1_after, v2_after,
+                             guard_counts, *, device=None) -> None:
+    """Guarded impulses; ``guard_counts`` (4,) int32 += [separation, Coulomb, energy, any] corrections."""
+    if v1.shape[0]:
+        wp.launch(apply_admissible_contact_kernel, dim=v1.shape[0],
+                  inputs=[v1, v2, n, d1, d2, rho1, rho2, targets, float(friction_bound)],
+                  outputs=[v1_after, v2_after, guard_counts], device=device or v1.device)
+
+
+def admissible_targets(cos_angle, targets, friction_bound, guarded, flags, *, device=None) -> None:
+    """Row-wise ``admissible_impulse``: ``guarded`` (N, 2) corrected targets, ``flags`` (N,) int32."""
+    if cos_angle.shape[0]:
+        wp.launch(admissible_targets_kernel, dim=cos_angle.shape[0], inputs=[cos_angle, targets, float(friction_bound)],
+                  outputs=[guarded, flags], device=device or cos_angle.device)

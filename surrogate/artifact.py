@@ -8,6 +8,8 @@ Layout of ``MODEL_DIR``::
                        model's inputs, in order), "canonical_features", "targets",
                        "scaler": {"mean", "std"} (train statistics, eq. 17),
                        "metrics", "dataset_hash", "hyperparameters" {target: {...}},
+                       "domain" (training feature ranges, friction, Coulomb bound: as in forest.json),
+                       "material", "contact_model" (of the data set's DEM),
                        "xgboost_version", "files": {file name: sha256}}
     metrics.json      the test-set metrics (also inside metadata.json)
     study.db          the Optuna study (default storage), report/ the figures
@@ -54,9 +56,12 @@ class ModelArtifact:
 
 
 def save_artifact(model_dir: str, *, form: str, features: list, targets: list, scaler_mean, scaler_std,
-                  boosters: dict, metrics: dict, dataset_hash: str, hyperparameters: dict,
+                  boosters: dict, metrics: dict, dataset_hash: str, hyperparameters: dict, domain: dict,
                   extra: dict | None = None) -> dict:
-    """Write the models, the flattened forest and metadata.json; returns the metadata."""
+    """Write the models, the flattened forest and metadata.json; returns the metadata.
+
+    ``domain``: the training domain (``surrogate.admissibility.training_domain``), in both the forest
+    file (what the engine clamps to) and metadata.json."""
     import xgboost
 
     from surrogate.flatten import flatten_models, write_forest
@@ -72,7 +77,7 @@ def save_artifact(model_dir: str, *, form: str, features: list, targets: list, s
         with open(path) as fh:
             models[target] = json.load(fh)
     forest = flatten_models(form, list(CANONICAL_FEATURES[form]), list(features), list(targets), models,
-                            np.asarray(scaler_mean), np.asarray(scaler_std))
+                            np.asarray(scaler_mean), np.asarray(scaler_std), domain=domain)
     write_forest(os.path.join(model_dir, "forest.json"), forest)
     files["forest.json"] = sha256_file(os.path.join(model_dir, "forest.json"))
     with open(os.path.join(model_dir, "metrics.json"), "w") as fh:
@@ -82,7 +87,7 @@ def save_artifact(model_dir: str, *, form: str, features: list, targets: list, s
         "features": list(features), "canonical_features": list(CANONICAL_FEATURES[form]),
         "targets": list(targets),
         "scaler": {"mean": [float(x) for x in scaler_mean], "std": [float(x) for x in scaler_std]},
-        "metrics": metrics, "dataset_hash": dataset_hash, "hyperparameters": hyperparameters,
+        "metrics": metrics, "dataset_hash": dataset_hash, "hyperparameters": hyperparameters, "domain": domain,
         "xgboost_version": xgboost.__version__, "files": files, **(extra or {}),
     }
     tmp = os.path.join(model_dir, METADATA + ".tmp")

@@ -17,16 +17,25 @@ with ``float32((T - mean)/std) >= t``. We find ``T`` by bisection over the order
 bit patterns, so the raw-space compare ``x < T`` takes the SAME branch as XGBoost for every
 float32 input — no round-off disagreement, no in-kernel standardisation.
 
-File format (JSON, version 1)::
+File format (JSON, version 2)::
 
-    {"format": "hel_warp.forest", "version": 1,
+    {"format": "hel_warp.forest", "version": 2,
      "form": "contact" | "paper",
      "features": [canonical feature names; node feature indices point into this list],
      "targets": [target names, one tree group each],
      "base_score": [float32 per target],
      "tree_start": [T+1 ints: trees of target t are tree_root[tree_start[t]:tree_start[t+1]]],
      "max_depth": int,
+     "domain": {"features": [the canonical features], "lo": [F floats], "hi": [F floats],
+                "friction": mu of the training material, "friction_bound": Coulomb guard bound (>= mu),
+                "friction_bound_rule": how it was chosen, ...},
      "arrays": {name: {"dtype": "<i4" | "<f4", "shape": [n], "base64": little-endian bytes}}}
+
+    domain: the training data's range of every canonical feature (float32 values, the engine's
+            precision; surrogate/admissibility.py ``training_domain``); the engine clamps features into
+            it (kernels/forest.py ``write_contact_features_in_domain``) and bounds the tangential
+            impulse by ``friction_bound`` (``admissible_impulse``). Version 1 files had no domain; the
+            engine refuses them (retrain).
 
     arrays: tree_root  int32 (n_trees)  index of each tree's root node
             node_info  int32 (n_nodes)  -1 at a leaf; else 2*feature + default_left
@@ -48,7 +57,7 @@ import numpy as np
 from hel_warp.errors import ConfigError
 
 FORMAT = "hel_warp.forest"
-VERSION = 1
+VERSION = 2
 
 
 def parse_base_score(text) -> float:
@@ -190,8 +199,14 @@ def _encode(arr: np.ndarray, dtype: str) -> dict:
 
 
 def flatten_models(form: str, canonical_features: list[str], used_features: list[str], targets: list[str],
-                   models: dict, mean, std) -> dict:
-    """All targets' XGBoost JSON models (dict target -> parsed JSON) -> the forest.json document."""
+                   models: dict, mean, std, *, domain: dict) -> dict:
+    """All targets' XGBoost JSON models (dict target -> parsed JSON) -> the forest.json document.
+
+    ``domain``: the training domain (``surrogate.admissibility.training_domain``), written as is.
+    """
+    from hel_warp.forest import _parse_domain
+
+    _parse_domain(domain, canonical_features)
     missing = [f for f in used_features if f not in canonical_features]
     if missing:
         raise ConfigError(f"features {missing} are not features of the {form!r} form")
@@ -214,6 +229,7 @@ def flatten_models(form: str, canonical_features: list[str], used_features: list
         "format": FORMAT, "version": VERSION, "form": form,
         "features": list(canonical_features), "targets": list(targets),
         "base_score": [float(b) for b in bases], "tree_start": starts, "max_depth": int(max_depth),
+        "domain": dict(domain),
         "arrays": {
             "tree_root": _encode(np.asarray(roots, dtype=np.int32), "<i4"),
             "node_info": _encode(cat(infos, np.int32), "<i4"),

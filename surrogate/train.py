@@ -82,6 +82,9 @@ class TrainConfig:
     """Fewest data-set rows accepted."""
     search_space: dict | None = None
     """Overrides of SEARCH_SPACE ranges, e.g. ``{"n_estimators": (20, 100)}`` (quick runs, tests)."""
+    sweep: bool = True
+    """Contact form on a DEM data set: run the angle/speed sweep against the DEM into metrics.json
+    (surrogate/sweep.py; a few seconds)."""
 
     def __post_init__(self):
         if self.form not in TARGETS:
@@ -284,15 +287,32 @@ def train(data: CollisionData, model_dir: str, config: TrainConfig, *, log=print
                "n_train_rows": int(train_r.size), "n_validation_rows": int(val_r.size),
                "targets": target_metrics, "dataset_samples": int(len(data)),
                "wall_time_s": None}
-    metrics["forest_vs_xgboost_max_abs_diff"] = _forest_check(config.form, features, targets, boosters, mean, std,
-                                                              rows.features[test_r], predicted)
+    material = data.attrs.get("material")
+    domain = _domain(config.form, rows, train_r, material)
+    doc = _flat_document(config.form, features, targets, boosters, mean, std, domain)
+    metrics["forest_vs_xgboost_max_abs_diff"] = _forest_check(doc, rows.features[test_r], predicted)
+    metrics["fit_wall_time_s"] = round(time.perf_counter() - t_start, 2)
+    if config.form == "contact":
+        metrics["guard"] = guard_metrics(doc, rows, test_r, predicted)
+        if metrics["guard"]["flagged"]:
+            log(f"WARNING: {metrics['guard']['warning']}")
+        if material is not None and config.sweep:
+            from hel_warp.forest import parse_forest
+            from surrogate.sweep import format_table, sweep_against_dem
+
+            defaults = {k: float(np.mean(data.col(k))) for k in ("d1", "rho1")}
+            metrics["sweep"] = sweep_against_dem(parse_forest(doc), material,
+                                                 contact_model=str(data.attrs.get("contact_model", "hertz")),
+                                                 diameter=defaults["d1"], density=defaults["rho1"])
+            log(format_table(metrics["sweep"]))
     metrics["wall_time_s"] = round(time.perf_counter() - t_start, 2)
     from surrogate.artifact import save_artifact
 
     metadata = save_artifact(model_dir, form=config.form, features=features, targets=targets, scaler_mean=mean,
                              scaler_std=std, boosters=boosters, metrics=metrics, dataset_hash=data.dataset_hash,
-                             hyperparameters=hyper,
-                             extra={"split": {"seed": config.seed, "test_fraction": TEST_FRACTION,
+                             hyperparameters=hyper, domain=domain,
+                             extra={"material": material, "contact_model": data.attrs.get("contact_model"),
+                                    "split": {"seed": config.seed, "test_fraction": TEST_FRACTION,
                                               "validation_fraction": VALIDATION_FRACTION},
                                     "optuna_storage": storage if config.storage else "study.db",
                                     "defaults": {k: float(np.mean(data.col(k))) for k in ("d1", "d2", "rho1", "rho2")},
@@ -308,12 +328,79 @@ def train(data: CollisionData, model_dir: str, config: TrainConfig, *, log=print
     return metadata
 
 
-def _forest_check(form, features, targets, boosters, mean, std, raw_test, predicted) -> float:
-    """Largest |Warp flattened forest - XGBoost| over the test rows and targets (should be ~0)."""
-    from hel_warp.forest import ForestPredictor, parse_forest
+def _domain(form: str, rows: FormRows, train_rows: np.ndarray, material: dict | None) -> dict:
+    """The training domain written into the artifact: feature ranges of the train rows, friction, Coulomb bound."""
+    from surrogate.admissibility import choose_friction_bound, dem_admissibility, training_domain
+
+    friction = float((material or {}).get("friction", 0.0))
+    if form != "contact":
+        return training_domain(form, rows.features[train_rows], friction=friction, friction_bound=friction,
+                               rule="paper form: no impulse guard (the bound is mu)")
+    bound, rule, ratio_max = choose_friction_bound(rows.features, rows.targets, friction)
+    return training_domain(form, rows.features[train_rows], friction=friction, friction_bound=bound, rule=rule,
+                           dem_max_b_over_a=ratio_max,
+                           dem_admissibility=dem_admissibility(rows.features, rows.targets, friction, bound))
+
+
+def _flat_document(form, features, targets, boosters, mean, std, domain) -> dict:
     from surrogate.flatten import flatten_models
 
     models = {t: json.loads(boosters[t].save_raw("json")) for t in targets}
-    doc = flatten_models(form, list(CANONICAL_FEATURES[form]), features, targets, models, mean, std)
+    return flatten_models(form, list(CANONICAL_FEATURES[form]), features, targets, models, mean, std, domain=domain)
+
+
+def _forest_check(doc: dict, raw_test, predicted) -> float:
+    """Largest |Warp flattened forest - XGBoost| over the test rows and targets (should be ~0)."""
+    from hel_warp.forest import ForestPredictor, parse_forest
+
     out = ForestPredictor(parse_forest(doc)).predict_features(raw_test)
     return float(np.max(np.abs(out - predicted))) if predicted.size else 0.0
+
+
+def guard_metrics(doc: dict, rows: FormRows, test_rows: np.ndarray, predicted: np.ndarray) -> dict:
+    """How often the engine's domain clamp and admissibility guard act on the test set (contact form).
+
+    ``fraction_*``: calls of the engine path (``ForestPredictor.predict_pairs``, clamp + guard) with
+    that correction, any size. ``material_fraction``: calls whose guard correction moves g' by more
+    than MATERIAL_CORRECTION |g|; ``beyond_dem_fraction``: those among them where the DEM outcome of
+    the row needs no such correction (a model error, not the guard's rule against the DEM);
+    ``flagged`` when the material fraction exceeds FLAG_FRACTION (0.1 %).
+    """
+    from hel_warp.forest import ForestPredictor, parse_forest
+    from surrogate.admissibility import FLAG_FRACTION, MATERIAL_CORRECTION, guarded_targets
+
+    flat = parse_forest(doc)
+    sel = rows.data.take(rows.group[test_rows])
+    c = sel.col
+    predictor = ForestPredictor(flat)
+    predictor.predict_pairs(sel.vec3("v1"), sel.vec3("v2"), c("d1"), c("d2"), c("rho1"), c("rho2"),
+                            normal=sel.vec3("n"), guard=True)
+    counts = predictor.last_counts
+    n_calls = max(1, counts["pairs"])
+    cos = rows.features[test_rows, 2]
+    fixed, flags = guarded_targets(cos, predicted, flat.friction_bound)
+    moved = np.hypot(*(fixed - predicted).T) > MATERIAL_CORRECTION
+    dem_fixed, _ = guarded_targets(cos, rows.targets[test_rows], flat.friction_bound)
+    dem_needs = np.hypot(*(dem_fixed - rows.targets[test_rows]).T) > MATERIAL_CORRECTION
+    out = {"calls": int(counts["pairs"]),
+           "fraction_clamped": counts["clamped"] / n_calls,
+           "fraction_separation": counts["guard_separation"] / n_calls,
+           "fraction_coulomb": counts["guard_coulomb"] / n_calls,
+           "fraction_energy": counts["guard_energy"] / n_calls,
+           "fraction_any": counts["guard_any"] / n_calls,
+           "material_correction": MATERIAL_CORRECTION,
+           "material_fraction": float(np.mean(moved)),
+           "material_fraction_by_flag": {name: float(np.mean(moved & ((flags & bit) != 0)))
+                                         for name, bit in (("separation", 1), ("coulomb", 2), ("energy", 4))},
+           "dem_needs_fraction": float(np.mean(dem_needs)),
+           "beyond_dem_fraction": float(np.mean(moved & ~dem_needs)),
+           "flag_fraction": FLAG_FRACTION}
+    out["flagged"] = bool(out["material_fraction"] > FLAG_FRACTION)
+    out["warning"] = (f"the admissibility guard changes {100 * out['material_fraction']:.2f} % of the test-set "
+                      f"outcomes by more than {100 * MATERIAL_CORRECTION:g} % of |g| (limit "
+                      f"{100 * FLAG_FRACTION:g} %): separation {100 * out['material_fraction_by_flag']['separation']:.2f} %, "
+                      f"Coulomb {100 * out['material_fraction_by_flag']['coulomb']:.2f} %, energy "
+                      f"{100 * out['material_fraction_by_flag']['energy']:.2f} %; the DEM outcomes themselves need it "
+                      f"in {100 * out['dem_needs_fraction']:.2f} % (soft spheres sliding past at grazing incidence), "
+                      f"the model beyond them in {100 * out['beyond_dem_fraction']:.2f} %") if out["flagged"] else ""
+    return out

@@ -19,6 +19,7 @@ from hel_warp.forest import ForestPredictor, load_forest, parse_forest
 from kernels.forest import Forest as kf_Forest
 from surrogate.features import (CANONICAL_FEATURES, apply_contact_model, form_rows, sphere_mass, standardize,
                                 synthetic_collisions, used_features)
+from surrogate.admissibility import training_domain
 from surrogate.flatten import fold_thresholds, flatten_models, parse_base_score
 
 
@@ -43,7 +44,8 @@ def _fit_forest(form, data, depths, *, nan_fraction=0.0, seed=0, n_estimators=30
         model.fit(xs, rows.targets[:, k])
         boosters[target] = model.get_booster()
         models[target] = json.loads(boosters[target].save_raw("json"))
-    doc = flatten_models(form, list(CANONICAL_FEATURES[form]), names, targets, models, mean, std)
+    domain = training_domain(form, rows.features, friction=0.0, friction_bound=0.0, rule="test: frictionless fixture")
+    doc = flatten_models(form, list(CANONICAL_FEATURES[form]), names, targets, models, mean, std, domain=domain)
     return rows, cols, raw, mean, std, boosters, doc
 
 
@@ -149,7 +151,7 @@ def test_contact_pairs_conserve_momentum_and_match_numpy():
     v2 = np.column_stack([c("v2x"), c("v2y"), c("v2z")]).astype(np.float32)
     n = np.column_stack([c("nx"), c("ny"), c("nz")]).astype(np.float32)
     d1, d2, rho1, rho2 = (c(k).astype(np.float32) for k in ("d1", "d2", "rho1", "rho2"))
-    u1, u2 = ForestPredictor(_flat(doc, "contact")).predict_pairs(v1, v2, d1, d2, rho1, rho2, normal=n)
+    u1, u2 = ForestPredictor(_flat(doc, "contact")).predict_pairs(v1, v2, d1, d2, rho1, rho2, normal=n, guard=False)
     m1, m2 = sphere_mass(d1, rho1), sphere_mass(d2, rho2)
     before = m1[:, None] * v1 + m2[:, None] * v2
     after = m1[:, None] * u1.astype(np.float64) + m2[:, None] * u2
@@ -229,3 +231,16 @@ def test_forest_file_errors(tmp_path):
         load_forest(str(tmp_path))
     with pytest.raises(ConfigError, match="shape"):
         ForestPredictor(parse_forest(json.loads(text))).predict_features(np.zeros((3, 2), np.float32))
+    # a forest without a training domain (format version 1, before issue 10) is refused: retrain
+    (tmp_path / "metadata.json").unlink()
+    for old in (dict(json.loads(text), version=1), {k: v for k, v in json.loads(text).items() if k != "domain"}):
+        old.pop("domain", None)
+        path.write_text(json.dumps(old))
+        with pytest.raises(ConfigError, match="retrain") as info:
+            load_forest(str(path))
+        assert "\n" not in str(info.value)
+    bad = json.loads(text)
+    bad["domain"]["lo"] = bad["domain"]["lo"][:3]
+    path.write_text(json.dumps(bad))
+    with pytest.raises(ConfigError, match="domain"):
+        load_forest(str(path))

@@ -49,6 +49,35 @@ def test_quick_training_beats_the_mean_by_far_and_conserves_momentum(contact_mod
         assert os.path.getsize(os.path.join(model_dir, "report", name)) > 1000 or name == "metrics.json"
 
 
+def test_the_artifact_states_its_training_domain(contact_model):
+    """metadata.json and forest.json carry the ranges of the train rows' features (recomputed here from
+    the data and the split), the material friction and the Coulomb bound; the guard's counts are in metrics."""
+    from hel_warp.forest import load_forest
+    from surrogate.features import CANONICAL_FEATURES, form_rows
+    from surrogate.train import split_groups
+
+    model_dir, data, meta = contact_model
+    rows = form_rows("contact", data)
+    _, train_g, _ = split_groups(len(data), 0)
+    x = rows.features[train_g]
+    flat = load_forest(model_dir)
+    assert meta["domain"]["features"] == list(CANONICAL_FEATURES["contact"]) == flat.domain["features"]
+    np.testing.assert_array_equal(flat.feature_lo, x.min(axis=0))
+    np.testing.assert_array_equal(flat.feature_hi, x.max(axis=0))
+    assert meta["domain"]["lo"] == flat.domain["lo"] and meta["domain"]["hi"] == flat.domain["hi"]
+    # the fixture is frictionless (b = 0 up to float64 round-off): the bound is max(mu = 0, largest b/a),
+    # never below any row's b/a (a bound that clipped the data would be wrong)
+    a, b = rows.targets[:, 0], rows.targets[:, 1]
+    ratio = np.max(b[a >= 1e-4] / a[a >= 1e-4])
+    assert flat.domain["friction"] == 0.0 and ratio <= flat.friction_bound <= max(0.0, ratio) * (1 + 1e-6) + 1e-30
+    assert flat.friction_bound < 1e-12
+    guard = meta["metrics"]["guard"]
+    assert guard["calls"] == meta["metrics"]["n_test"]
+    for key in ("fraction_clamped", "fraction_separation", "fraction_coulomb", "fraction_energy", "material_fraction"):
+        assert 0.0 <= guard[key] <= 1.0
+    assert guard["flagged"] == (guard["material_fraction"] > guard["flag_fraction"])
+
+
 def test_paper_form_beats_the_mean(tmp_path):
     data = synthetic_collisions(1000, seed=5, central_fraction=1.0)
     meta = train(data, str(tmp_path / "paper"), TrainConfig(form="paper", trials=2, progress=False, jobs=1,
@@ -154,11 +183,13 @@ def test_train_and_predict_commands(tmp_path, monkeypatch, capsys):
              '{"v1": [0, 3, 0], "v2": [0, 0, 0], "normal": [0, 1, 0], "d1": 3.15e-4, "d2": 3.15e-4}']
     monkeypatch.setattr("sys.stdin", io.StringIO("\n".join(lines) + "\n"))
     assert main(["predict", "--model", model, "--json"]) == 0
-    out = [json.loads(line) for line in capsys.readouterr().out.strip().splitlines()]
+    captured = capsys.readouterr()
+    out = [json.loads(line) for line in captured.out.strip().splitlines()]
     assert len(out) == 2
     v1, v2 = np.array(out[0]["velocity1_after"]), np.array(out[0]["velocity2_after"])
     np.testing.assert_allclose(v1 + v2, 0.0, atol=1e-6)  # momentum of equal masses
     assert abs(v1[0] + 0.9) < 0.1
+    assert "2 pairs" in captured.err and "guard corrections" in captured.err  # the engine's guarded path, with its counts
     monkeypatch.setattr("sys.stdin", io.StringIO('{"v1": [1, 0, 0], "v2": [0, 0, 0]}\n'))
     assert main(["predict", "--model", model, "--json"]) == 2
     assert "normal" in capsys.readouterr().err

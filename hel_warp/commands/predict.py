@@ -6,6 +6,10 @@ Reads one JSON object per line on stdin:
 to particle 2) is required by the contact-form model and ignored by the paper form;
 ``d1``/``d2``/``rho1``/``rho2`` default to the model's training means.
 Prints one JSON object per input line: ``{"velocity1_after": [...], "velocity2_after": [...]}``.
+Contact form: as in the engine, the features are clamped into the model's training domain and the
+predicted impulse made physically admissible (separating along the normal, Coulomb bound, no
+kinetic-energy gain; kernels/forest.py ``admissible_impulse``); the counts of this call go to stderr
+as one line (``--no-guard``: the bare trees). The pairs must approach: ``(v1 - v2).normal > 0``.
 Needs no XGBoost: it reads MODEL_DIR/forest.json.
 """
 
@@ -19,6 +23,8 @@ def add_parser(subparsers):
                               description=__doc__)
     p.add_argument("--model", required=True, help="model directory written by `hel-warp train`")
     p.add_argument("--device", default="cpu", help="Warp device (default cpu)")
+    p.add_argument("--no-guard", action="store_true",
+                   help="contact form: the bare trees, no domain clamp or admissibility guard")
     add_json_flag(p)
     return p
 
@@ -60,6 +66,10 @@ def _parse_lines(lines, form: str, defaults: dict):
             if abs(norm - 1.0) > 1e-3:
                 raise ConfigError(f"stdin line {number}: 'normal' must be a unit vector (|n| = {norm:.4g})")
             row["normal"] = [x / norm for x in row["normal"]]
+            approach = sum((a - b) * n for a, b, n in zip(row["v1"], row["v2"], row["normal"]))
+            if not approach > 0:
+                raise ConfigError(f"stdin line {number}: the pair does not approach ((v1 - v2).normal = "
+                                  f"{approach:.4g} m/s); give the normal from particle 1 to particle 2 of a colliding pair")
         rows.append(row)
     return rows
 
@@ -87,10 +97,16 @@ def run(args) -> int:
     init_warp(args.device)  # stdout carries the predictions: no Warp greeting; a missing device is a ConfigError
     predictor = ForestPredictor(flat, device=args.device)
     v1_after, v2_after = predictor.predict_pairs(col("v1"), col("v2"), col("d1"), col("d2"), col("rho1"),
-                                                 col("rho2"), normal=col("normal") if flat.form == "contact" else None)
+                                                 col("rho2"), normal=col("normal") if flat.form == "contact" else None,
+                                                 guard=not args.no_guard)
     for a, b in zip(v1_after.tolist(), v2_after.tolist()):
         if args.json:
             print(json.dumps({"velocity1_after": a, "velocity2_after": b}))
         else:
             print(f"v1' = {a[0]:.6g} {a[1]:.6g} {a[2]:.6g}   v2' = {b[0]:.6g} {b[1]:.6g} {b[2]:.6g}")
+    counts = predictor.last_counts
+    if "guard_any" in counts:
+        print(f"hel-warp predict: {counts['pairs']} pairs, {counts['clamped']} clamped into the training domain, "
+              f"guard corrections: separation {counts['guard_separation']}, Coulomb {counts['guard_coulomb']}, "
+              f"energy {counts['guard_energy']} ({counts['guard_any']} pairs)", file=sys.stderr)
     return 0
