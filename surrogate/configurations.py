@@ -28,7 +28,8 @@ Beyond the paper (the engine meets every impact: any angle, |g| from ~0.01 to 20
   ``p_hat`` perpendicular to ``g`` (in the plane of ``v1, v2`` for the converging family, so
   both straight paths still cross at the common point; any direction otherwise);
 - diameters per particle from a normal distribution (paper's size table: 315 +- 8.2 um,
-  475 +- 22 um), truncated to ``d > 0``; densities per particle from a normal distribution
+  475 +- 22 um), truncated to ``d > 0``, or from a mixture (``mixture_diameters``: each particle's
+  mean size drawn with equal chance, e.g. 315 and 475 um: equal and unequal pairs); densities per particle from a normal distribution
   around the material density (standard deviation 0 by default: monodisperse in density).
 
 Every configuration collides, starts apart and touches after ``touch_time``. The pair is built
@@ -110,6 +111,12 @@ class ConfigurationSpec:
     """Mean particle diameter, m."""
     diameter_std: float
     """Standard deviation of the diameter, m (0: monodisperse)."""
+    mixture_diameters: tuple[float, ...] = ()
+    """A binary (or wider) mixture: each particle's mean diameter drawn with equal chance from these
+    (m), its standard deviation from ``mixture_diameter_stds``; empty (default): one size
+    ``diameter_mean`` +- ``diameter_std``."""
+    mixture_diameter_stds: tuple[float, ...] = ()
+    """Standard deviations of ``mixture_diameters``, m (same length)."""
     density_mean: float = 1000.0
     """Mean particle density, kg/m^3 (the material density)."""
     density_std: float = 0.0
@@ -144,6 +151,9 @@ class ConfigurationSpec:
                 raise ConfigError(f"configuration {name} must be finite (got {value!r})")
         if not self.diameter_mean > 0:
             raise ConfigError(f"diameter mean must be > 0 m (got {self.diameter_mean}); e.g. --diameter 315e-6")
+        if len(self.mixture_diameters) != len(self.mixture_diameter_stds) or \
+                any(not d > 0 for d in self.mixture_diameters) or any(not sd >= 0 for sd in self.mixture_diameter_stds):
+            raise ConfigError("mixture diameters must be > 0 m, each with a standard deviation >= 0 m")
         if self.diameter_std < 0 or self.density_std < 0:
             raise ConfigError("diameter and density standard deviations must be >= 0")
         if not self.density_mean > 0:
@@ -179,6 +189,11 @@ class ConfigurationSpec:
     def as_dict(self) -> dict:
         out = asdict(self)
         out["family_weights"] = [float(w) for w in self.family_weights]
+        if not self.mixture_diameters:  # the one-size set keeps its earlier attrs
+            del out["mixture_diameters"], out["mixture_diameter_stds"]
+        else:
+            out["mixture_diameters"] = [float(d) for d in self.mixture_diameters]
+            out["mixture_diameter_stds"] = [float(d) for d in self.mixture_diameter_stds]
         return out
 
 
@@ -251,8 +266,14 @@ def _draw_candidates(spec: ConfigurationSpec, rng: np.random.Generator, family: 
     those that satisfy every rule. Draws for the grazing and slow options are made only when the
     option is on, so the paper-like spec draws exactly the numbers it always drew."""
     n = family.shape[0]
-    d1 = rng.normal(spec.diameter_mean, spec.diameter_std, n)
-    d2 = rng.normal(spec.diameter_mean, spec.diameter_std, n)
+    if spec.mixture_diameters:
+        means, stds = np.asarray(spec.mixture_diameters), np.asarray(spec.mixture_diameter_stds)
+        k1, k2 = rng.integers(0, means.size, n), rng.integers(0, means.size, n)
+        d1 = means[k1] + stds[k1] * rng.standard_normal(n)
+        d2 = means[k2] + stds[k2] * rng.standard_normal(n)
+    else:
+        d1 = rng.normal(spec.diameter_mean, spec.diameter_std, n)
+        d2 = rng.normal(spec.diameter_mean, spec.diameter_std, n)
     rho1 = rng.normal(spec.density_mean, spec.density_std, n)
     rho2 = rng.normal(spec.density_mean, spec.density_std, n)
     speed1 = rng.uniform(spec.speed_min, spec.speed_max, n)

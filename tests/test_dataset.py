@@ -115,6 +115,19 @@ def test_uniform_b_squared_share_matches_kinetic_theory():
     assert ks < 0.02
 
 
+def test_size_mixture_gives_equal_and_unequal_pairs():
+    """--mixture 315e-6,475e-6: each particle's size from one of the paper's two distributions."""
+    spec = make_spec(samples=10, seed=0, diameter=315e-6, mixture_diameters=(315e-6, 475e-6)).configurations
+    c = generate(spec, 5, 0, 6000)
+    for d in (c.d1, c.d2):
+        small = d < 395e-6
+        assert abs(small.mean() - 0.5) < 0.03
+        assert abs(d[small].mean() - 315e-6) < 1e-6 and abs(d[small].std() - 8.2e-6) < 0.6e-6
+        assert abs(d[~small].mean() - 475e-6) < 2e-6 and abs(d[~small].std() - 22e-6) < 1.5e-6
+    ratio = c.d2 / c.d1
+    assert abs(np.mean(np.abs(np.log(ratio)) < 0.2) - 0.5) < 0.03  # half the pairs of one size
+
+
 def test_paper_like_options_keep_the_earlier_rules():
     from surrogate.configurations import paper_spec_options
 

@@ -18,6 +18,10 @@ def add_parser(subparsers):
     p.add_argument("--diameter", type=finite_float, default=315e-6, help="mean particle diameter, m (default 315e-6)")
     p.add_argument("--diameter-std", type=finite_float, default=None,
                    help="diameter standard deviation, m (default: the paper's 8.2e-6 for 315e-6, 22e-6 for 475e-6)")
+    p.add_argument("--mixture", default=None, metavar="D1,D2",
+                   help="a size mixture: each particle's mean diameter drawn from these (m; the paper's sizes "
+                        "315e-6,475e-6 with their standard deviations), equal and unequal pairs; --diameter is "
+                        "then only the size the set is named after")
     p.add_argument("--density-std", type=finite_float, default=0.0,
                    help="particle density standard deviation, kg/m^3 (default 0)")
     p.add_argument("--seed", type=int_at_least(0), default=0, help="random seed (default 0)")
@@ -85,9 +89,18 @@ def run(args) -> int:
                  "min_relative_speed", "min_normal_speed"):
         if getattr(args, name) is not None:
             offsets[name] = getattr(args, name)
+    mixture = ()
+    if args.mixture:
+        from hel_warp.errors import ConfigError
+
+        try:
+            mixture = tuple(float(d) for d in args.mixture.split(","))
+        except ValueError:
+            raise ConfigError(f"--mixture must be diameters separated by commas (got {args.mixture!r}), "
+                              "e.g. 315e-6,475e-6") from None
     spec = make_spec(samples=args.samples, seed=args.seed, diameter=args.diameter, diameter_std=args.diameter_std,
                      density_std=args.density_std, material=material, contact_model=args.model,
-                     chunk_size=chunk_size, dt_factor=args.dt_factor, **offsets)
+                     chunk_size=chunk_size, dt_factor=args.dt_factor, mixture_diameters=mixture, **offsets)
     summary = build_dataset(args.out, spec, scheduler=args.scheduler, overwrite=args.overwrite,
                             progress=not args.no_progress and not args.json)
     emit(summary, args.json, [
