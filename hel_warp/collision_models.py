@@ -22,7 +22,16 @@ import numpy as np
 
 from hel_warp.errors import ConfigError
 from hel_warp.cfd_dem import DemCollision
-from hel_warp.pairs import DEFAULT_STREAMS, PairDetector, pair_counts
+from hel_warp.pairs import DEFAULT_STREAMS, pair_counts
+
+
+DETECTIONS = ("swept", "overlap")
+"""Pair detection of the ``pairwise`` surrogate: ``swept`` (default, continuous) or ``overlap`` (the paper's test)."""
+GUARD_NAMES = ("separation", "coulomb", "energy", "domain_clamped")
+"""``counts()`` keys ``guard_<name>``: admissibility corrections and domain clamps (``kernels/collide.py``)."""
+MAX_ROUNDS = 4096
+"""Rounds of events per step before the resolution stops and says so (``round_cap_hit``): an inelastic collapse
+(infinitely many collisions in finite time, McNamara & Young 1994) would otherwise never end."""
 
 
 class SurrogateCollision:
@@ -30,13 +39,24 @@ class SurrogateCollision:
 
     Modes:
 
-    - ``pairwise`` (default; a ``contact``-form model): only approaching pairs,
-      ``(v_j - v_i).(x_j - x_i) < 0``, collide; each gets the equal and opposite impulse of the contact
-      form (features in the contact frame, normal along the centre line). Several partners in one step
-      are resolved in rounds of disjoint pairs (a deterministic greedy matching, sequential impulses in
-      pair-index order), so no impulse is double counted and momentum is conserved to float32 round-off.
-      A pair that overlaps but already separates (e.g. the pair collided at the previous step and still
-      overlapping) is skipped: the repeated-detection fix.
+    - ``pairwise`` (default; a ``contact``-form model), with the pair detection ``detection``:
+
+      - ``swept`` (default): over the step every parcel flies on a straight line with its velocity at the
+        step's start; a pair collides when its centres come within r_i + r_j while approaching, with the
+        contact normal of the moment of touch, and after the impulse each parcel flies with its new velocity
+        for the rest of the step. Several collisions of one parcel within the step are resolved in time
+        order (rounds of mutually earliest events, ``kernels/collide.py``). The collision frequency and the
+        impact geometry are then those of kinetic theory at any dt (PHYSICS-NOTES, "Collisions in a granular
+        gas"). The in-step position changes are added after the push (:meth:`after_push`, or
+        :meth:`correct_positions` when the caller moves the parcels itself), so nothing is left overlapping
+        and nothing passes through.
+      - ``overlap``: the paper's end-of-step test ``|x_i - x_j| < r_i + r_j`` on the positions at the step's
+        start, normal along the centre line, approaching pairs only (the same machinery with paths of zero
+        length: several partners in rounds, a separating pair is never collided again - the fix of the
+        paper's sec. 8). Its collision count depends on dt; kept for comparison.
+
+      Each collision gets the equal and opposite impulse of the contact form, so momentum is conserved to
+      float32 round-off.
     - ``paper`` (a ``paper``-form model): sec. 4.3 as written: per parcel the overlapping partners'
       velocities are averaged, and the model maps (own velocity, averaged partner velocity, sizes,
       densities) to the new velocity; every overlapping pair is used, approaching or not, and momentum is
@@ -47,27 +67,45 @@ class SurrogateCollision:
     one of the other's), each with the impulse J of one representative pair. Parcel i gets
     ``-min(w_i, w_j) J`` and parcel j ``+min(w_i, w_j) J``, i.e. ``dv_i = -(min/w_i) J/m_i``,
     ``dv_j = +(min/w_j) J/m_j``: equal weights give the binary outcome, the parcel momentum
-    ``w_i m_i v_i + w_j m_j v_j`` is conserved, and the parcel with more particles changes its mean
-    velocity only by the share of its particles that collided. Paper mode averages partner velocities
+    ``w_i m_i v_i + w_j m_j v_j`` is conserved. (Per real particle this collides w times too rarely for
+    w > 1: the cell-based scheme of ARCHITECTURE.md is the fix.) Paper mode averages partner velocities
     with the partner weights as weights.
 
-    Velocity jumps are applied in :meth:`accelerate` (before the push) to the positions at the end of
-    the previous step ("end of step" detection, as in the paper). ``counts()`` returns the counts of the
-    last call, ``{name: int}``: ``detected_pairs``, ``surrogate_calls`` (pairwise: approaching pairs
-    resolved; paper: the pairs that fed the model), ``separating_skipped``, ``rounds`` (matching rounds),
-    and per stream pair a <= b ``detected_pairs_<a>_<b>``, ``surrogate_calls_<a>_<b>``.
+    ``periodic_box=(Lx, Ly, Lz)``: a triply periodic box [0, L) (collisions across the faces, minimum image);
+    positions must lie in the box.
+
+    ``counts()`` returns the counts of the last call, ``{name: int}``: ``collisions`` (real binary collisions
+    resolved: sum of min(w_i, w_j); paper: the overlapping pairs that fed the model), ``surrogate_calls`` (pairs
+    resolved), ``detected_pairs`` (pairs overlapping at the step's start, i.e. at the end of the previous step),
+    ``separating_skipped`` (of those, the ones already separating), ``rounds`` (rounds that resolved
+    collisions; paper: 0), ``round_cap_hit`` (1 when ``max_rounds`` stopped the resolution), ``guard_separation``, ``guard_coulomb``,
+    ``guard_energy`` (outcomes the admissibility guard corrected: kernels/forest.py ``admissible_impulse``),
+    ``guard_domain_clamped`` (pairs whose features were clamped into the model's training domain), and per stream
+    pair a <= b ``collisions_<a>_<b>``, ``surrogate_calls_<a>_<b>``, ``detected_pairs_<a>_<b>``.
     """
 
-    def __init__(self, *, model_dir: str, mode: str = "pairwise", n_streams: int = DEFAULT_STREAMS,
-                 batched: bool = True):
+    def __init__(self, *, model_dir: str, mode: str = "pairwise", detection: str = "swept",
+                 periodic_box=None, n_streams: int = DEFAULT_STREAMS, batched: bool = True,
+                 max_rounds: int = MAX_ROUNDS, ordering: str = "parallel"):
         from hel_warp.forest import load_forest
 
         if mode not in ("pairwise", "paper"):
             raise ConfigError(f"surrogate mode must be 'pairwise' or 'paper' (got {mode!r})")
+        if detection not in DETECTIONS:
+            raise ConfigError(f"detection must be one of {', '.join(DETECTIONS)} (got {detection!r})")
         if int(n_streams) != n_streams or n_streams < 1:
             raise ConfigError(f"n_streams must be a positive integer (got {n_streams!r})")
+        if int(max_rounds) != max_rounds or max_rounds < 1:
+            raise ConfigError(f"max_rounds must be a positive integer (got {max_rounds!r})")
+        if ordering not in ("parallel", "sequential"):
+            raise ConfigError(f"ordering must be 'parallel' or 'sequential' (got {ordering!r})")
+        self.ordering = ordering
+        """``parallel``: every causally safe event of a round at once; ``sequential``: one event per round, the
+        globally earliest (strict event-driven order, slow: the tests' reference)."""
         self.mode = mode
+        self.detection = detection if mode == "pairwise" else "overlap"
         self.name = "surrogate" if mode == "pairwise" else "surrogate-paper"
+        self.periodic_box = _periodic_box(periodic_box)
         self.flat = load_forest(model_dir)
         want = "contact" if mode == "pairwise" else "paper"
         if self.flat.form != want:
@@ -75,11 +113,15 @@ class SurrogateCollision:
                               f"{self.flat.form!r}-form one; train with `hel-warp train --form {want}`")
         self.model_dir = model_dir
         self.n_streams = int(n_streams)
+        self.max_rounds = int(max_rounds)
         self.batched = bool(batched)
-        """Predict in batched forest evaluations (pairwise: each round's pairs; paper: the clustered
+        """Predict in batched forest evaluations (pairwise: each round's events; paper: the clustered
         particles): same results, faster; forests deeper than the perfect layout allows walk inline."""
         self._device = None
         self._counts = None
+        self._grid = None
+        self._grid_dims = None
+        self._shift_pending = False
 
     # ------------------------------------------------------------------ state on the device
     def _setup(self, particles) -> None:
@@ -93,124 +135,211 @@ class SurrogateCollision:
         self._capacity = n
         from hel_warp.forest import PERFECT_MAX_DEPTH
 
-        # pairwise: each round's pairs predicted in one batch (perfect layout), else inline walks (explicit)
+        # each round's events predicted in one batch (perfect layout), else inline walks (explicit)
         self.batch_forest = None
         if self.batched and self.flat.max_depth <= PERFECT_MAX_DEPTH:
             self.batch_forest = self.flat.to_device(dev, layout="perfect")
         self.forest = self.flat.to_device(dev)
-        self.detector = PairDetector(dev, n)
         s2 = self.n_streams * self.n_streams
-        self.detected = wp.zeros(s2, dtype=wp.int32, device=dev)
-        self.calls = wp.zeros(s2, dtype=wp.int32, device=dev)
-        self.skipped = wp.zeros(1, dtype=wp.int32, device=dev)
-        self.rounds = wp.zeros(1, dtype=wp.int32, device=dev)
-        self.more_rounds = wp.zeros(1, dtype=wp.int32, device=dev)
-        self.owner = wp.zeros(n, dtype=wp.int32, device=dev)
-        self.v_out = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self.paper_features = wp.zeros((n, 10), dtype=wp.float32, device=dev)
-        self.paper_batch_row = wp.zeros(n, dtype=wp.int32, device=dev)
-        self.paper_batch_out = wp.zeros((n, 3), dtype=wp.float32, device=dev)
-        self.pair_features = wp.zeros((16, 6), dtype=wp.float32, device=dev)
-        self._grow_batch(16)
-        self.batch_count = wp.zeros(1, dtype=wp.int32, device=dev)
+        zeros = lambda shape, dtype: wp.zeros(shape, dtype=dtype, device=dev)  # noqa: E731
+        self.detected = zeros(s2, wp.int32)
+        self.calls = zeros(s2, wp.int32)
+        self.collisions = zeros(s2, wp.int32)
+        self.skipped = zeros(1, wp.int32)
+        self.events_found = zeros(1, wp.int32)
+        self.round_cap_hit = zeros(1, wp.int32)
+        self.event_rounds = zeros(1, wp.int32)
+        self.v_out = zeros(n, wp.vec3)
+        self.paper_features = zeros((n, 10), wp.float32)
+        self.paper_batch_row = zeros(n, wp.int32)
+        self.paper_batch_out = zeros((n, 3), wp.float32)
+        self.batch_count = zeros(1, wp.int32)
+        self.reach_sum = zeros(1, wp.float32)
+        from kernels.collide import SweptArgs
+
+        a = SweptArgs()
+        a.hash_point, a.base, a.shift = zeros(n, wp.vec3), zeros(n, wp.vec3), zeros(n, wp.vec3)
+        a.t_last, a.reach, a.reach_max = zeros(n, wp.float32), zeros(n, wp.float32), zeros(1, wp.float32)
+        a.event_key = wp.full(n, 0, dtype=wp.int64, device=dev)
+        a.dirty, a.stamp, a.round = zeros(n, wp.int32), zeros(n, wp.int32), zeros(1, wp.int32)
+        a.last_partner = zeros(n, wp.int32)
+        a.event_i, a.event_j = zeros(n, wp.int32), zeros(n, wp.int32)
+        a.event_time, a.event_normal = zeros(n, wp.float32), zeros(n, wp.vec3)
+        a.features, a.batch_out = zeros((n, 6), wp.float32), zeros((n, 2), wp.float32)
+        a.batch_count = self.batch_count
+        a.max_rounds = self.max_rounds
+        a.guard = zeros(4, wp.int32)
+        a.sequential = 1 if self.ordering == "sequential" else 0
+        a.global_key = wp.full(1, 0, dtype=wp.int64, device=dev)
+        if self.flat.form == "contact":
+            a.domain = self.flat.domain_to_device(dev)
+        self.swept = a
+
+    def _hash_grid(self, points, cell: float):
+        """A hash grid of ``points`` with cells of at least ``cell``; in a periodic box the grid tiles the box
+        exactly (dims x cell width = box side), so a query that crosses a face finds the images."""
+        import warp as wp
+
+        box = self.periodic_box
+        if box is None:
+            if self._grid is None:
+                self._grid = wp.HashGrid(128, 128, 128, device=self._device)
+                self._grid.reserve(points.shape[0])
+            self._grid.build(points, float(cell))
+            return self._grid
+        cell = min(cell, min(box) / 3.0)  # a query spans several cells rather than the box being one cell wide
+        dims = tuple(int(np.floor(side / cell * (1.0 + 1e-6))) for side in box)
+        width = box[0] / dims[0]
+        if any(abs(side / d - width) > 1e-6 * width for side, d in zip(box, dims)):
+            # a common cell width: the sides in the proportion of the dims
+            width = max(side / d for side, d in zip(box, dims))
+            dims = tuple(int(round(side / width)) for side in box)
+            if any(abs(side / d - width) > 1e-6 * width for side, d in zip(box, dims)):
+                raise ConfigError(f"periodic box sides {box} have no common cell width near {cell:.3g} m; use a "
+                                  "cubic box or sides in small integer ratios")
+        if self._grid_dims != dims:
+            self._grid = wp.HashGrid(*dims, device=self._device)
+            self._grid.reserve(points.shape[0])
+            self._grid_dims = dims
+        self._grid.build(points, float(width))
+        return self._grid
 
     # ------------------------------------------------------------------ the strategy interface
     def accelerate(self, solver) -> None:
-        """Velocity jumps of the detected collisions (``solver.pool.particles.v``); a_coll = 0."""
+        """Velocity jumps of the step's collisions (``solver.pool.particles.v``); a_coll = 0."""
         solver.fields.parcel_a_coll.zero_()
-        self.collide(solver.pool.particles)
+        self.collide(solver.pool.particles, solver.config.dt)
 
-    def collide(self, particles) -> None:
-        """Detect overlapping parcels of ``particles`` and apply the surrogate's velocities in place."""
+    def after_push(self, solver) -> None:
+        """Called by ``HelSolver.push`` after the parcels moved: the in-step position corrections (swept)."""
+        self.correct_positions(solver.pool.particles)
+
+    def collide(self, particles, dt: float | None = None) -> None:
+        """Resolve the collisions of ``particles`` in the coming step of ``dt`` (swept; required) or at the current
+        positions (overlap, paper), updating the velocities in place. With swept detection the caller then moves
+        the parcels with their new velocities and calls :meth:`correct_positions`."""
         self._setup(particles)
-        for arr in (self.detected, self.calls, self.skipped, self.rounds):
+        for arr in (self.detected, self.calls, self.collisions, self.skipped, self.round_cap_hit,
+                    self.event_rounds, self.swept.round, self.swept.guard):
             arr.zero_()
         self._counts = None
-        det = self.detector
-        r_max = det.max_radius(particles)
-        if r_max <= 0.0:
+        self._shift_pending = False
+        alive = particles.alive.numpy().astype(bool)
+        if not alive.any():
             return
+        r_max = float(particles.radius.numpy()[alive].max())
         if self.mode == "paper":
             self._collide_paper(particles, r_max)
-        else:
-            self._collide_pairwise(particles, r_max)
-
-    def _collide_pairwise(self, particles, r_max: float) -> None:
-        import warp as wp
-
-        from kernels.collide import PairwiseArgs, launch_count_detected, resolve_pairwise
-
-        det = self.detector
-        n_pairs = det.detect(particles, r_max)
-        if not n_pairs:
             return
-        if self.pair_features.shape[0] < det.pair_capacity:
-            self.pair_features = wp.zeros((det.pair_capacity, 6), dtype=wp.float32, device=self._device)
-            self._grow_batch(det.pair_capacity)
-        launch_count_detected(n_pairs, det.pair_i, det.pair_j, particles.stream, self.n_streams, self.detected,
-                              det.pair_state)
-        args = PairwiseArgs()
-        args.pair_i, args.pair_j, args.owner = det.pair_i, det.pair_j, self.owner
-        args.particle_x, args.particle_radius = particles.x, particles.radius
-        args.particle_density, args.particle_weight = particles.density, particles.weight
-        args.particle_stream, args.n_streams = particles.stream, self.n_streams
-        args.batch_row, args.batch_count = self.batch_row, self.batch_count
-        # batched rounds write their rows into the same feature array the inline walks use (never both)
-        args.batch_features, args.batch_out = self.pair_features, self.batch_out
-        resolve_pairwise(n_pairs, args, self.forest, det.pair_state, self.pair_features, particles.v, self.calls,
-                         self.skipped, self.more_rounds, self.rounds, batch_forest=self.batch_forest)
+        if self.detection == "swept":
+            if dt is None or not dt > 0 or not np.isfinite(dt):
+                raise ConfigError(f"swept detection needs the step dt > 0 (got {dt!r})")
+            sweep = float(dt)
+        else:
+            sweep = 0.0
+        self._collide_pairwise(particles, r_max, sweep, int(np.count_nonzero(alive)))
 
-    def _grow_batch(self, capacity: int) -> None:
-        import warp as wp
+    def _collide_pairwise(self, particles, r_max: float, sweep: float, n_alive: int) -> None:
+        from kernels.collide import launch_swept_start, resolve_swept
 
-        dev = self._device
-        self.batch_row = wp.zeros(capacity, dtype=wp.int32, device=dev)
-        self.batch_out = wp.zeros((capacity, 2), dtype=wp.float32, device=dev)
+        a = self.swept
+        a.particle_x, a.particle_radius = particles.x, particles.radius
+        a.particle_density, a.particle_weight = particles.density, particles.weight
+        a.particle_alive, a.particle_stream = particles.alive, particles.stream
+        a.n_streams, a.dt, a.max_radius = self.n_streams, sweep, r_max
+        box = self.periodic_box
+        a.periodic = 0 if box is None else 1
+        a.box = (0.0, 0.0, 0.0) if box is None else box
+        a.reach_max.zero_()
+        self.reach_sum.zero_()
+        launch_swept_start(a, particles.v, a.reach_max, self.reach_sum)
+        reach_max = float(a.reach_max.numpy()[0])
+        reach_mean = float(self.reach_sum.numpy()[0]) / max(1, n_alive)
+        if box is not None and 2.0 * (r_max + reach_max) > 0.5 * min(box):
+            raise ConfigError(f"the periodic box {box} is too small for the collision search of this step "
+                              f"({2.0 * (r_max + reach_max):.3g} m must stay below half the box side): enlarge the "
+                              "box (more particles) or shorten dt")
+        # cells of a typical search (the fastest parcels' queries span more cells)
+        grid = self._hash_grid(a.hash_point, 2.0 * (r_max + reach_mean))
+        a.grid = grid.id
+        self._shift_pending = sweep > 0.0
+        resolve_swept(a, self.forest, particles.v, self.events_found, self.event_rounds, self.round_cap_hit,
+                      self.calls, self.collisions, self.detected, self.skipped, batch_forest=self.batch_forest)
+
+    def correct_positions(self, particles) -> None:
+        """Add the in-step position corrections of the last swept :meth:`collide` (once; a no-op otherwise)."""
+        if not self._shift_pending:
+            return
+        from kernels.collide import launch_add_shift
+
+        launch_add_shift(self.swept.shift, particles.alive, particles.x)
+        self._shift_pending = False
 
     def _collide_paper(self, particles, r_max: float) -> None:
         import warp as wp
 
-        from kernels.collide import PaperArgs, launch_count_detected, launch_paper_update
+        from kernels.collide import PaperArgs, launch_paper_update
 
-        det = self.detector
-        n_pairs = det.detect(particles, r_max)  # also leaves the hash grid of the current positions
-        if not n_pairs:
-            return
-        launch_count_detected(n_pairs, det.pair_i, det.pair_j, particles.stream, self.n_streams, self.detected,
-                              det.pair_state)
+        grid = self._hash_grid(particles.x, 2.0 * r_max)
         args = PaperArgs()
-        args.grid = det.grid.id
+        args.grid = grid.id
         args.particle_x, args.particle_v = particles.x, particles.v
         args.particle_radius, args.particle_density = particles.radius, particles.density
         args.particle_weight, args.particle_alive = particles.weight, particles.alive
         args.particle_stream, args.max_radius, args.n_streams = particles.stream, float(r_max), self.n_streams
+        box = self.periodic_box
+        args.periodic = 0 if box is None else 1
+        args.box = (0.0, 0.0, 0.0) if box is None else box
         args.batch_row, args.batch_count = self.paper_batch_row, self.batch_count
         launch_paper_update(args, self.forest, self.paper_features, self.v_out, self.calls,
                             batch_forest=self.batch_forest, batch_out=self.paper_batch_out)
         wp.copy(particles.v, self.v_out)
+        wp.copy(self.detected, self.calls)
+        wp.copy(self.collisions, self.calls)
 
     def counts(self) -> dict:
-        """Counts of the last :meth:`accelerate` (host read): totals and per stream pair (see the class)."""
+        """Counts of the last :meth:`collide` (host read): totals and per stream pair (see the class)."""
         if self._counts is None:
             s = self.n_streams
             if self._device is None:
-                detected = calls = np.zeros((s, s), np.int64)
-                skipped = rounds = 0
+                detected = calls = collisions = np.zeros((s, s), np.int64)
+                skipped = rounds = cap = 0
             else:
                 detected = self.detected.numpy().reshape(s, s)
                 calls = self.calls.numpy().reshape(s, s)
-                skipped, rounds = int(self.skipped.numpy()[0]), int(self.rounds.numpy()[0])
-            self._counts = {"detected_pairs": int(detected.sum()), "surrogate_calls": int(calls.sum()),
-                            "separating_skipped": skipped, "rounds": rounds,
-                            **pair_counts("detected_pairs", detected), **pair_counts("surrogate_calls", calls)}
+                collisions = self.collisions.numpy().reshape(s, s)
+                skipped, rounds = int(self.skipped.numpy()[0]), int(self.event_rounds.numpy()[0])
+                cap = int(self.round_cap_hit.numpy()[0])
+                guard = self.swept.guard.numpy()
+            if self._device is None:
+                guard = np.zeros(4, np.int64)
+            self._counts = {"collisions": int(collisions.sum()), "surrogate_calls": int(calls.sum()),
+                            "detected_pairs": int(detected.sum()), "separating_skipped": skipped,
+                            "rounds": rounds, "round_cap_hit": cap,
+                            **{f"guard_{name}": int(k) for name, k in zip(GUARD_NAMES, guard)},
+                            **pair_counts("collisions", collisions), **pair_counts("surrogate_calls", calls),
+                            **pair_counts("detected_pairs", detected)}
         return dict(self._counts)
+
+
+def _periodic_box(box):
+    """Validated (Lx, Ly, Lz) floats, or None."""
+    if box is None:
+        return None
+    try:
+        sides = tuple(float(v) for v in box)
+    except (TypeError, ValueError):
+        raise ConfigError(f"periodic_box must be three box sides in m (got {box!r})") from None
+    if len(sides) != 3 or not all(np.isfinite(v) and v > 0 for v in sides):
+        raise ConfigError(f"periodic_box must be three positive finite sides in m (got {box!r})")
+    return sides
 
 
 class SurrogatePaperCollision(SurrogateCollision):
     """``surrogate-paper``: :class:`SurrogateCollision` in ``paper`` mode (a ``paper``-form model)."""
 
-    def __init__(self, *, model_dir: str, n_streams: int = DEFAULT_STREAMS):
-        super().__init__(model_dir=model_dir, mode="paper", n_streams=n_streams)
+    def __init__(self, *, model_dir: str, n_streams: int = DEFAULT_STREAMS, periodic_box=None):
+        super().__init__(model_dir=model_dir, mode="paper", n_streams=n_streams, periodic_box=periodic_box)
 
 
 def make_collision(name: str, **kwargs):

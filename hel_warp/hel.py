@@ -15,8 +15,10 @@ The strategy interface: ``name``; ``accelerate(solver)`` fills ``solver.fields.p
 directly (a velocity jump, as the surrogate's post-collision velocities are); optional
 ``advance(solver)`` replaces the push (the strategy integrates the parcels itself, e.g. ``dem``
 with Hertz sub-steps at the DEM dt and the fluid acceleration held over the step; it must still
-record ``solver.fields.parcel_drag_impulse`` for the momentum hand-back); optional ``counts()``
-returns this step's collision counts ``{name: int}`` for the run output.
+record ``solver.fields.parcel_drag_impulse`` for the momentum hand-back); optional ``after_push(solver)``
+runs right after the push (the surrogate's swept detection adds the in-step position changes of its
+collisions there); optional ``counts()`` returns this step's collision counts ``{name: int}`` for the run
+output.
 
 Momentum bookkeeping: the push records each parcel's drag impulse; the next step's deposit hands
 minus that to the gas (one step later), so particles + gas + :meth:`HelSolver.momentum_in_flight`
@@ -360,6 +362,9 @@ class HelSolver:
             advance(self)
         else:
             self.fluid_push()
+        after_push = getattr(self.collision, "after_push", None)
+        if after_push is not None:
+            after_push(self)  # e.g. the in-step position changes of swept collisions
 
     def fluid_push(self, *, particle_x_out=None, particle_v_out=None) -> None:
         """Eq. (4) with the configured drag exchange (``HelConfig.coupling``), in place unless ``*_out`` given;

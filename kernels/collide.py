@@ -1,49 +1,42 @@
-"""HELSCM collision kernels: end-of-step pair detection, surrogate impulses per pair, per-stream counts.
+"""HELSCM collision kernels: swept (continuous) pair detection with time-ordered resolution, surrogate impulses per
+pair, the paper's cluster-averaged mode, per-stream counts.
 
-What it computes (reference paper sec. 4.3; ARCHITECTURE.md "The step", item 4):
+What it computes (reference paper sec. 4.3; ARCHITECTURE.md "Collision detection"):
 
-- Detection: every pair of live parcels with ``|x_i - x_j| < r_i + r_j`` (the paper's
-  ``|P_A P_B| < r_A + r_B``), found on a ``wp.HashGrid`` (cell size ``2 r_max``). The compact
-  pair list holds ``i < j`` only, each row sorted by ``j``, so a pair appears exactly once and
-  the list does not depend on thread order.
-- ``pairwise`` resolution (contact form of surrogate/features.py): the pairs are resolved in
-  rounds of *disjoint* pairs (a greedy matching: a pending pair is taken in a round when it has
-  the lowest pair index among the pending pairs of both its parcels - integer ``atomic_min``,
-  deterministic). The lowest pending pair is always taken, so every round makes progress and the
-  loop ends after at most as many rounds as pairs (typically the largest number of partners of a
-  parcel). Inside a round no parcel is touched twice, so each impulse is applied once to velocities
-  that already carry the earlier rounds (sequential impulses, Gauss-Seidel order by pair index):
-  no double counting, and each parcel pair exchanges an equal and opposite impulse, so the total
-  momentum is conserved to float32 round-off of the velocity updates.
-  A pair is collided only while approaching, ``(v_j - v_i).(x_j - x_i) < 0``: an overlapping
-  pair that already separates (e.g. the one collided last step) is skipped - the repeated-detection
-  fix the paper names as missing (its sec. 8).
-  The impulse on particle 2 is ``J = m*|g| (impulse_n n + impulse_t t_hat)`` from the forest's two
-  targets (``kernels/forest.py`` ``contact_impulse``), ``n`` from 1 to 2 along the centre line.
-  Parcels of weight ``w``: ``min(w_i, w_j)`` real binary collisions happen (each real particle of the
-  parcel with fewer particles meets one of the other), so parcel i receives ``-min(w_i,w_j) J`` and
-  parcel j ``+min(w_i,w_j) J``: ``dv_i = -(min/w_i) J/m_i``, ``dv_j = +(min/w_j) J/m_j`` and the parcel
-  momentum ``w_i m_i v_i + w_j m_j v_j`` is conserved.
+- ``pairwise`` (contact form of surrogate/features.py), swept detection: over the step every parcel flies on a
+  straight line; a pair collides at the first time its centres come within r_i + r_j while approaching, with
+  the contact normal of that moment (PHYSICS-NOTES "Swept (continuous) detection"), and each parcel then
+  follows its new velocity for the rest of the step. Several collisions per parcel are resolved in time order,
+  event-driven within the step (the section "swept detection" below). The paper's end-of-step overlap test
+  ``|x_i - x_j| < r_i + r_j`` is the same machinery with paths of zero length (every event at t = 0, ties by
+  parcel index): ``detection="overlap"`` of hel_warp/collision_models.py.
+  A pair is collided only while approaching: an overlapping pair that already separates (e.g. the one collided
+  at the previous step) is skipped - the repeated-detection fix the paper names as missing (its sec. 8).
+  The impulse on particle 2 is ``J = m*|g| (impulse_n n + impulse_t t_hat)`` from the forest's two targets
+  (``kernels/forest.py`` ``contact_impulse``), ``n`` from 1 to 2. Parcels of weight ``w``: ``min(w_i, w_j)`` real
+  binary collisions happen, so parcel i receives ``-min(w_i,w_j) J`` and parcel j ``+min(w_i,w_j) J`` and the
+  parcel momentum ``w_i m_i v_i + w_j m_j v_j`` is conserved.
 - ``paper`` resolution (sec. 4.3 as written): per parcel the velocities of all overlapping partners
   are summed and averaged (weighted by partner weight), and the paper-form forest maps
   (own velocity, averaged partner velocity, d, mean partner d, rho, mean partner rho) to the new
   velocity. No approach test and no momentum guarantee (the paper's scheme).
-- Counts (integer atomics, deterministic): detected pairs and surrogate calls per stream pair
-  ``(min(s_i, s_j), max(s_i, s_j))``, separating pairs skipped, matching rounds.
+- The overlap pair list (``count_pairs``/``fill_pairs``, a compact list i < j, rows sorted by j, independent of
+  thread order) that ``hel_warp.pairs.PairDetector`` builds for the CFD-DEM's end-of-step overlap count.
+- Counts (integer atomics, deterministic): pairs overlapping at the step's start, resolved pairs and real
+  collisions per stream pair ``(min(s_i, s_j), max(s_i, s_j))``, separating overlaps skipped, rounds.
 
-Launch wrappers at the bottom; they never allocate (hel_warp/collision_models.py owns the arrays).
+Launch wrappers at the bottom of each section; they never allocate (hel_warp/collision_models.py owns the arrays).
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-from kernels.forest import Forest, contact_impulse, sphere_mass, walk_tree
+from kernels.forest import (GUARD_COULOMB, GUARD_ENERGY, GUARD_SEPARATION, ContactDomain, Forest, admissible_impulse,
+                            contact_impulse, sphere_mass, walk_tree, write_contact_features_in_domain)
 
-PAIR_NONE = wp.constant(2147483647)
-"""``owner`` value of a parcel no pending pair has claimed in this round."""
 PAIR_PENDING = wp.constant(0)
-PAIR_DONE = wp.constant(1)
+"""``pair_state`` of a detected pair (the overlap pair list of ``hel_warp.pairs.PairDetector``)."""
 
 
 @wp.func
@@ -52,6 +45,15 @@ def stream_pair_index(s_i: wp.int32, s_j: wp.int32, n_streams: wp.int32):
     a = wp.clamp(wp.min(s_i, s_j), 0, n_streams - 1)
     b = wp.clamp(wp.max(s_i, s_j), 0, n_streams - 1)
     return a * n_streams + b
+
+
+@wp.func
+def minimum_image(d: wp.vec3, periodic: wp.int32, box: wp.vec3):
+    """d itself, or its nearest periodic image in a box (component-wise d - L round(d / L))."""
+    if periodic == 0:
+        return d
+    return wp.vec3(d[0] - box[0] * wp.round(d[0] / box[0]), d[1] - box[1] * wp.round(d[1] / box[1]),
+                   d[2] - box[2] * wp.round(d[2] / box[2]))
 
 
 @wp.func
@@ -162,167 +164,6 @@ def count_detected(
     pair_state[k] = PAIR_PENDING
 
 
-# ------------------------------------------------------------------------------------------ pairwise mode
-
-
-@wp.kernel
-def reset_owner(
-    # outputs
-    owner: wp.array(dtype=wp.int32),
-    more_rounds: wp.array(dtype=wp.int32),
-):
-    i = wp.tid()
-    owner[i] = PAIR_NONE
-    if i == 0:
-        more_rounds[0] = 0
-
-
-@wp.kernel
-def claim_pairs(
-    pair_i: wp.array(dtype=wp.int32),
-    pair_j: wp.array(dtype=wp.int32),
-    pair_state: wp.array(dtype=wp.int32),
-    # outputs
-    owner: wp.array(dtype=wp.int32),
-):
-    """Each parcel remembers the lowest pending pair index touching it (integer atomic_min)."""
-    k = wp.tid()
-    if pair_state[k] == PAIR_PENDING:
-        wp.atomic_min(owner, pair_i[k], k)
-        wp.atomic_min(owner, pair_j[k], k)
-
-
-@wp.struct
-class PairwiseArgs:
-    """Inputs of one resolution round (pairwise mode)."""
-
-    pair_i: wp.array(dtype=wp.int32)
-    pair_j: wp.array(dtype=wp.int32)
-    owner: wp.array(dtype=wp.int32)
-    particle_x: wp.array(dtype=wp.vec3)
-    particle_radius: wp.array(dtype=wp.float32)
-    particle_density: wp.array(dtype=wp.float32)
-    particle_weight: wp.array(dtype=wp.float32)
-    particle_stream: wp.array(dtype=wp.int32)
-    n_streams: wp.int32
-    batched: wp.int32
-    """1: the round's forest predictions come from one batched evaluation (``select_round``), 0: inline walks."""
-    batch_row: wp.array(dtype=wp.int32)
-    """(pairs,) row of the pair in this round's batch, -1 if it is not evaluated in this round."""
-    batch_count: wp.array(dtype=wp.int32)
-    """(1,) rows in this round's batch."""
-    batch_features: wp.array2d(dtype=wp.float32)
-    """(pairs, 6) the batch's contact features, rows 0 .. batch_count - 1 (the ``features`` array that
-    inline walks use; a round is either batched or inline)."""
-    batch_out: wp.array2d(dtype=wp.float32)
-    """(pairs, 2) impulse_n, impulse_t of the batch rows."""
-
-
-@wp.func
-def owns_both(args: PairwiseArgs, k: int):
-    """Pair k holds the lowest pending index at both its parcels: it is resolved in this round."""
-    return args.owner[args.pair_i[k]] == k and args.owner[args.pair_j[k]] == k
-
-
-@wp.func
-def pair_now(args: PairwiseArgs, particle_v: wp.array(dtype=wp.vec3), k: int):
-    """Pair k at the current velocities: i, j, d = x_j - x_i, |d|, v_i, v_j."""
-    i = args.pair_i[k]
-    j = args.pair_j[k]
-    d = args.particle_x[j] - args.particle_x[i]
-    return i, j, d, wp.length(d), particle_v[i], particle_v[j]
-
-
-@wp.func
-def approaching(d: wp.vec3, dist: float, vi: wp.vec3, vj: wp.vec3):
-    """Centres apart (d = x_j - x_i, dist = |d| > 0) and closing: (v_j - v_i).(x_j - x_i) < 0."""
-    return dist > 0.0 and wp.dot(vj - vi, d) < 0.0
-
-
-@wp.kernel
-def select_round(
-    args: PairwiseArgs,
-    particle_v: wp.array(dtype=wp.vec3),
-    pair_state: wp.array(dtype=wp.int32),
-    # outputs
-    more_rounds: wp.array(dtype=wp.int32),
-):
-    """The pending pairs that own both their parcels and approach: contact features into the next batch row
-    (an atomic counter; a row's place changes nothing in its prediction), for one batched forest
-    evaluation of the round. Pairs that wait for a later round ask for one."""
-    k = wp.tid()
-    args.batch_row[k] = -1
-    if pair_state[k] != PAIR_PENDING:
-        return
-    if not owns_both(args, k):
-        more_rounds[0] = 1  # every writer stores the same value
-        return
-    i, j, d, dist, vi, vj = pair_now(args, particle_v, k)
-    if not approaching(d, dist, vi, vj):
-        return
-    row = wp.atomic_add(args.batch_count, 0, 1)
-    args.batch_row[k] = row
-    write_contact_features(vi, vj, d / dist, 2.0 * args.particle_radius[i], 2.0 * args.particle_radius[j],
-                           args.particle_density[i], args.particle_density[j], row, args.batch_features)
-
-
-@wp.kernel
-def resolve_round(
-    args: PairwiseArgs,
-    forest: Forest,
-    # outputs
-    pair_state: wp.array(dtype=wp.int32),
-    features: wp.array2d(dtype=wp.float32),
-    particle_v: wp.array(dtype=wp.vec3),
-    calls: wp.array(dtype=wp.int32),
-    skipped: wp.array(dtype=wp.int32),
-    more_rounds: wp.array(dtype=wp.int32),
-):
-    """Resolve the pending pairs that own both their parcels (disjoint: each parcel is written once)."""
-    k = wp.tid()
-    if pair_state[k] != PAIR_PENDING:
-        return
-    if not owns_both(args, k):
-        more_rounds[0] = 1  # every writer stores the same value
-        return
-    pair_state[k] = PAIR_DONE
-    i, j, d, dist, vi, vj = pair_now(args, particle_v, k)
-    if not approaching(d, dist, vi, vj):
-        wp.atomic_add(skipped, 0, 1)  # separating (or coincident centres: no normal): not collided
-        return
-    n = d / dist
-    ri = args.particle_radius[i]
-    rj = args.particle_radius[j]
-    rho_i = args.particle_density[i]
-    rho_j = args.particle_density[j]
-    impulse_n = float(0.0)
-    impulse_t = float(0.0)
-    if args.batched != 0:
-        row = args.batch_row[k]  # select_round saw the same velocities: same features, same numbers
-        impulse_n = args.batch_out[row, 0]
-        impulse_t = args.batch_out[row, 1]
-    else:
-        write_contact_features(vi, vj, n, 2.0 * ri, 2.0 * rj, rho_i, rho_j, k, features)
-        impulse_n = forest_target(forest, 0, features, k)
-        impulse_t = forest_target(forest, 1, features, k)
-    mi = sphere_mass(2.0 * ri, rho_i)
-    mj = sphere_mass(2.0 * rj, rho_j)
-    J = contact_impulse(vi, vj, n, mi, mj, impulse_n, impulse_t)  # on j; i gets -J
-    wi = args.particle_weight[i]
-    wj = args.particle_weight[j]
-    w_min = wp.min(wi, wj)
-    particle_v[i] = vi - J * (w_min / (wi * mi))
-    particle_v[j] = vj + J * (w_min / (wj * mj))
-    wp.atomic_add(calls, stream_pair_index(args.particle_stream[i], args.particle_stream[j], args.n_streams), 1)
-
-
-@wp.kernel
-def count_round(more_rounds: wp.array(dtype=wp.int32),
-                # outputs
-                rounds: wp.array(dtype=wp.int32)):
-    rounds[0] = rounds[0] + 1
-
-
 # ------------------------------------------------------------------------------------------ paper mode
 
 
@@ -340,6 +181,9 @@ class PaperArgs:
     particle_stream: wp.array(dtype=wp.int32)
     max_radius: float
     n_streams: wp.int32
+    periodic: wp.int32
+    """1: triply periodic box [0, box) (minimum image; the hash grid tiles the box), 0: open space."""
+    box: wp.vec3
     batched: wp.int32
     """1: write each clustered particle's features into the next batch row (``batch_row``, counter
     ``batch_count``) for one batched forest evaluation (``paper_apply_batch``); 0: walk the forest inline."""
@@ -377,7 +221,7 @@ def paper_cluster_update(
         if j != i and args.particle_alive[j] != 0:
             rj = args.particle_radius[j]
             cut = ri + rj
-            if wp.length_sq(args.particle_x[j] - xi) < cut * cut:
+            if wp.length_sq(minimum_image(args.particle_x[j] - xi, args.periodic, args.box)) < cut * cut:
                 w = args.particle_weight[j]
                 sum_w = sum_w + w
                 sum_v = sum_v + w * args.particle_v[j]
@@ -444,41 +288,6 @@ def launch_count_detected(n_pairs: int, pair_i, pair_j, particle_stream, n_strea
                   inputs=[pair_i, pair_j, particle_stream, int(n_streams)], outputs=[detected, pair_state])
 
 
-def resolve_pairwise(n_pairs: int, args: PairwiseArgs, forest: Forest, pair_state, features, particle_v, calls,
-                     skipped, more_rounds, rounds, batch_forest: Forest | None = None) -> None:
-    """Rounds of disjoint pairs until none is pending (``wp.capture_while``: a graph loop on CUDA).
-
-    With ``batch_forest`` (the same model in the perfect layout; ``args.batch_*`` sized to the pairs) the
-    pairs a round resolves are first gathered (``select_round``) and predicted in one batched evaluation
-    (``eval_forest``: blocks of rows per thread walk each tree together on the CPU, ~3x faster per pair
-    than one walk per pair); without it every resolved pair walks the explicit forest inline. Same results."""
-    if not n_pairs:
-        return
-    device = particle_v.device
-    n = particle_v.shape[0]
-    args.batched = 0 if batch_forest is None else 1
-    if batch_forest is not None:
-        from kernels.forest import eval_forest
-
-        batch_features, batch_out = args.batch_features[:n_pairs], args.batch_out[:n_pairs]
-
-    def one_round():
-        wp.launch(reset_owner, dim=n, device=device, outputs=[args.owner, more_rounds])
-        wp.launch(claim_pairs, dim=n_pairs, device=device, inputs=[args.pair_i, args.pair_j, pair_state],
-                  outputs=[args.owner])
-        if batch_forest is not None:
-            args.batch_count.zero_()
-            wp.launch(select_round, dim=n_pairs, device=device, inputs=[args, particle_v, pair_state],
-                      outputs=[more_rounds])
-            eval_forest(batch_forest, batch_features, batch_out, device=device, row_count=args.batch_count)
-        wp.launch(resolve_round, dim=n_pairs, device=device, inputs=[args, forest],
-                  outputs=[pair_state, features, particle_v, calls, skipped, more_rounds])
-        wp.launch(count_round, dim=1, device=device, inputs=[more_rounds], outputs=[rounds])
-
-    more_rounds.fill_(1)
-    wp.capture_while(more_rounds, one_round)
-
-
 def launch_paper_update(args: PaperArgs, forest: Forest, features, particle_v_out, calls,
                         batch_forest: Forest | None = None, batch_out=None) -> None:
     """Paper-mode update of every particle; with ``batch_forest`` (perfect layout; ``args.batch_*`` and
@@ -495,3 +304,504 @@ def launch_paper_update(args: PaperArgs, forest: Forest, features, particle_v_ou
         eval_forest(batch_forest, features, batch_out, device=device, row_count=args.batch_count)
         wp.launch(paper_apply_batch, dim=args.particle_x.shape[0], device=device,
                   inputs=[args.batch_row, batch_out], outputs=[particle_v_out])
+
+
+# ------------------------------------------------------------------------------------------ swept detection
+#
+# Swept (continuous) detection, event-driven within the step (PHYSICS-NOTES "Swept (continuous) detection";
+# Alder & Wainwright 1959; Rapaport, *The Art of Molecular Dynamics Simulation*, ch. 14).
+# Over the step [0, dt] every parcel moves on a straight line. Its position relative to its hash point
+# m = x0 + v0 dt/2 (the midpoint of its initial path, wrapped into the periodic box if any) is
+# ``base + v t`` for t >= t_last (its last collision in this step): a collision at time tau changes v to v'
+# and base by (v - v') tau, so the path stays continuous at tau, and ``shift`` (the same increments) is the
+# correction the host adds to the end-of-step positions after the push moved the parcels with v'.
+# A pair (a < b) touches first at the smallest root tau >= t_lo = max(t_last_a, t_last_b) of
+# |s(tau)| = r_a + r_b with s(t) = D + base_b - base_a + (v_b - v_a) t (D = m_b - m_a, minimum image in a
+# periodic box), provided it approaches (s . ds/dt < 0) and tau <= dt; the contact normal is s(tau)/|s(tau)|.
+# Rounds: each dirty parcel (round 0: all) finds its earliest event over its hash-grid neighbours and offers it
+# to both parcels with an int64 atomic_min on the key (time quantised to dt/2^30, then partner index: ties go
+# to the lower index, deterministic); pairs whose keys point at each other are mutually earliest and are
+# resolved together (disjoint by construction) unless a parcel whose path can reach either of them has an earlier
+# pending event (it may change course and arrive first: the pair waits - the local-minimum rule of parallel
+# event-driven simulation, Lubachevsky 1991). The globally earliest pair always passes, so every round makes
+# progress. Parcels that collided, and those whose earliest partner collided, are dirty in the next round.
+
+EVENT_NONE_VALUE = 9223372036854775807
+EVENT_NONE = wp.constant(wp.int64(EVENT_NONE_VALUE))
+"""``event_key`` of a parcel with no pending event."""
+EVENT_TIME_SCALE = wp.constant(1073741824.0)
+"""2^30: event times are quantised to dt / 2^30 in the key (the pair's own float time is kept for the impulse)."""
+
+
+@wp.struct
+class SweptArgs:
+    """Per-step state of the swept detection (one entry per parcel slot unless said otherwise)."""
+
+    grid: wp.uint64
+    """Hash grid of ``hash_point``."""
+    particle_x: wp.array(dtype=wp.vec3)
+    particle_radius: wp.array(dtype=wp.float32)
+    particle_density: wp.array(dtype=wp.float32)
+    particle_weight: wp.array(dtype=wp.float32)
+    particle_alive: wp.array(dtype=wp.int32)
+    particle_stream: wp.array(dtype=wp.int32)
+    n_streams: wp.int32
+    dt: wp.float32
+    """The step, s."""
+    max_radius: wp.float32
+    periodic: wp.int32
+    """1: triply periodic box [0, box) (minimum image), 0: open space."""
+    box: wp.vec3
+    hash_point: wp.array(dtype=wp.vec3)
+    """m = x0 + v0 dt/2 (wrapped into the box when periodic), m."""
+    base: wp.array(dtype=wp.vec3)
+    """Position relative to m is base + v t on [t_last, dt], m."""
+    shift: wp.array(dtype=wp.vec3)
+    """End-of-step position correction sum((v_old - v_new) tau), m."""
+    t_last: wp.array(dtype=wp.float32)
+    """Time of the parcel's last collision in this step (0 before any), s."""
+    reach: wp.array(dtype=wp.float32)
+    """Bound on |position - m| over [t_last, dt], m."""
+    reach_max: wp.array(dtype=wp.float32)
+    """(1,) max of ``reach`` (atomic_max), m."""
+    event_key: wp.array(dtype=wp.int64)
+    """Earliest pending event: quantised time << 32 | partner, EVENT_NONE if none."""
+    dirty: wp.array(dtype=wp.int32)
+    stamp: wp.array(dtype=wp.int32)
+    """Round in which the parcel last collided (-1: none yet)."""
+    last_partner: wp.array(dtype=wp.int32)
+    """Partner of the parcel's last collision in this step (-1: none); overlap detection never repeats a pair
+    back to back (at t = 0 a pair bounced back towards its last partner by a third would collide again at once)."""
+    round: wp.array(dtype=wp.int32)
+    """(1,) current round."""
+    max_rounds: wp.int32
+    event_i: wp.array(dtype=wp.int32)
+    """(rows,) events of the round: parcel a < b, time, normal from a to b."""
+    event_j: wp.array(dtype=wp.int32)
+    event_time: wp.array(dtype=wp.float32)
+    event_normal: wp.array(dtype=wp.vec3)
+    batch_count: wp.array(dtype=wp.int32)
+    """(1,) events in this round."""
+    features: wp.array2d(dtype=wp.float32)
+    """(rows, 6) contact features of the round's events."""
+    batch_out: wp.array2d(dtype=wp.float32)
+    """(rows, 2) impulse_n, impulse_t of the batch rows (batched evaluation)."""
+    batched: wp.int32
+    domain: ContactDomain
+    """The model's training domain (features clamped into it) and Coulomb bound (the admissibility guard)."""
+    guard: wp.array(dtype=wp.int32)
+    """(4,) corrections counted: separation, Coulomb, energy (``admissible_impulse`` flags), domain clamps."""
+    sequential: wp.int32
+    """1: one event per round, the globally earliest (strict event-driven order; the reference of the tests)."""
+    global_key: wp.array(dtype=wp.int64)
+    """(1,) earliest pending event key (``sequential`` only)."""
+
+
+GUARD_CLAMPED = wp.constant(3)
+"""Index in ``SweptArgs.guard`` of the domain-clamp count (0-2: the admissibility flags 1, 2, 4)."""
+
+
+@wp.func
+def event_key(t: float, dt: float, partner: int):
+    """Key ordering events by time, then partner index."""
+    q = wp.int64(0)
+    if dt > 0.0:
+        q = wp.int64(wp.clamp(t / dt, 0.0, 1.0) * EVENT_TIME_SCALE)
+    return (q << wp.int64(32)) | wp.int64(partner)
+
+
+@wp.func
+def event_partner(key: wp.int64):
+    return wp.int32(key & wp.int64(4294967295))
+
+
+@wp.func
+def relative_position(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: int, b: int, t: float):
+    """s(t) = x_b(t) - x_a(t) on the parcels' current paths (a < b), minimum image."""
+    d = minimum_image(args.hash_point[b] - args.hash_point[a], args.periodic, args.box)
+    return d + (args.base[b] - args.base[a]) + (particle_v[b] - particle_v[a]) * t
+
+
+APPROACH_EPS = wp.constant(1.0e-5)
+"""A pair approaches when s.g < -APPROACH_EPS |s| |g|: a pair left touching with a normal velocity of round-off size
+(a guard-corrected outcome with no normal rebound) is not collided again at once (no Zeno loop of tiny events);
+a real approach that slow has its first touch at b/(r_i + r_j) > 1 - 5e-11."""
+
+
+@wp.func
+def first_touch(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: int, b: int):
+    """Earliest time in [t_lo, dt] at which the pair (a < b) touches while approaching, -1 if none.
+
+    |s0 + g tau| = R with s0 = s(t_lo), g = v_b - v_a, R = r_a + r_b: tau = c / (-s0.g + sqrt((s0.g)^2 - |g|^2 c)),
+    c = |s0|^2 - R^2 (the root of PHYSICS-NOTES in its cancellation-free form); an overlapping approaching pair
+    (c <= 0) collides at once, tau = 0."""
+    if args.dt <= 0.0:
+        # overlap detection (paths of zero length, every event at t = 0): no immediate repeat of a pair
+        if args.last_partner[a] == b or args.last_partner[b] == a:
+            return -1.0
+    t_lo = wp.max(args.t_last[a], args.t_last[b])
+    s0 = relative_position(args, particle_v, a, b, t_lo)
+    g = particle_v[b] - particle_v[a]
+    sg = wp.dot(s0, g)
+    if sg >= -APPROACH_EPS * wp.length(s0) * wp.length(g):
+        return -1.0
+    cut = args.particle_radius[a] + args.particle_radius[b]
+    c = wp.dot(s0, s0) - cut * cut
+    if c <= 0.0:
+        return t_lo
+    disc = sg * sg - wp.dot(g, g) * c
+    if disc < 0.0:
+        return -1.0
+    t = t_lo + c / (-sg + wp.sqrt(disc))
+    if t > args.dt:
+        return -1.0
+    return t
+
+
+@wp.kernel
+def swept_start(
+    args: SweptArgs,
+    particle_v: wp.array(dtype=wp.vec3),
+    # outputs (the per-parcel arrays of args)
+    reach_max: wp.array(dtype=wp.float32),
+    reach_sum: wp.array(dtype=wp.float32),
+):
+    """Initial paths: hash point, base = -v dt/2, reach = |v| dt/2; every live parcel dirty."""
+    i = wp.tid()
+    args.event_key[i] = EVENT_NONE
+    args.shift[i] = wp.vec3(0.0)
+    args.t_last[i] = 0.0
+    args.stamp[i] = -1
+    args.last_partner[i] = -1
+    v = particle_v[i]
+    half = 0.5 * args.dt
+    if args.particle_alive[i] == 0:
+        args.dirty[i] = 0
+        args.reach[i] = 0.0
+        args.base[i] = wp.vec3(0.0)
+        args.hash_point[i] = args.particle_x[i]
+        return
+    m = args.particle_x[i] + v * half
+    if args.periodic != 0:
+        box = args.box
+        m = wp.vec3(m[0] - box[0] * wp.floor(m[0] / box[0]), m[1] - box[1] * wp.floor(m[1] / box[1]),
+                    m[2] - box[2] * wp.floor(m[2] / box[2]))
+    args.hash_point[i] = m
+    args.base[i] = -v * half
+    r = wp.length(v) * half
+    args.reach[i] = r
+    args.dirty[i] = 1
+    wp.atomic_max(reach_max, 0, r)
+    wp.atomic_add(reach_sum, 0, r)
+
+
+@wp.kernel
+def swept_reset(args: SweptArgs):
+    """Dirty parcels forget their pending event (it is found again, or a new one, by swept_find)."""
+    i = wp.tid()
+    if args.dirty[i] != 0:
+        args.event_key[i] = EVENT_NONE
+
+
+@wp.func
+def count_start_overlap(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: int, b: int,
+                        detected: wp.array(dtype=wp.int32), skipped: wp.array(dtype=wp.int32)):
+    """Count the pair (a < b) if it overlaps at the step's start (the paper's end-of-step test on the previous step's
+    end positions), per stream pair, and whether it already separates."""
+    s = relative_position(args, particle_v, a, b, 0.0)
+    cut = args.particle_radius[a] + args.particle_radius[b]
+    if wp.dot(s, s) < cut * cut:
+        wp.atomic_add(detected, stream_pair_index(args.particle_stream[a], args.particle_stream[b], args.n_streams), 1)
+        if wp.dot(particle_v[b] - particle_v[a], s) >= 0.0:
+            wp.atomic_add(skipped, 0, 1)
+
+
+@wp.kernel
+def swept_find(
+    args: SweptArgs,
+    particle_v: wp.array(dtype=wp.vec3),
+    # outputs
+    detected: wp.array(dtype=wp.int32),
+    skipped: wp.array(dtype=wp.int32),
+):
+    """Each dirty parcel offers its pair events to both parcels' keys (int64 atomic_min); in round 0 the pairs
+    overlapping at the start are counted too (once each: by the parcel of the larger reach, then lower index)."""
+    i = wp.tid()
+    if args.dirty[i] == 0:
+        return
+    ri = args.particle_radius[i]
+    reach_i = args.reach[i]
+    mi = args.hash_point[i]
+    # round 0 (every parcel queries): a pair is found by the parcel of the larger reach, so each queries
+    # r_i + r_max + 2 reach_i; later rounds only dirty parcels query, and must reach every partner
+    first = args.round[0] == 0
+    radius = ri + args.max_radius + reach_i + args.reach_max[0]
+    if first:
+        radius = ri + args.max_radius + 2.0 * reach_i
+    for j in wp.hash_grid_query(args.grid, mi, radius):
+        if j != i and args.particle_alive[j] != 0:
+            # the paths stay within reach of their hash points: farther apart than both reaches, they never meet
+            d = minimum_image(args.hash_point[j] - mi, args.periodic, args.box)
+            reach_j = args.reach[j]
+            near = ri + args.particle_radius[j] + reach_i + reach_j
+            if wp.dot(d, d) <= near * near:
+                a = wp.min(i, j)
+                b = wp.max(i, j)
+                if first and (reach_i > reach_j or (reach_i == reach_j and i < j)):
+                    count_start_overlap(args, particle_v, a, b, detected, skipped)
+                t = first_touch(args, particle_v, a, b)
+                if t >= 0.0:
+                    wp.atomic_min(args.event_key, i, event_key(t, args.dt, j))
+                    wp.atomic_min(args.event_key, j, event_key(t, args.dt, i))
+
+
+@wp.func
+def earlier_neighbour_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: int, b: int, t: float,
+                            q: wp.int64):
+    """True when a parcel k (not b) has a pending event at t_k earlier than the pair's (time bits q, time t) and could,
+    on its new path, reach a before t. After its event k moves at most V_k = |v_k| + 2 |v_k - v_p| (p its partner:
+    an admissible impulse changes k's velocity by at most 2 m_p/(m_k + m_p) |g| <= 2 |g|); a moves at |v_a|. From
+    t1 = max(t_k, t_last_a) the gap |x_a(t1) - x_k(t_k)| - r_a - r_k cannot close before
+    (V_k (t - t_k) + |v_a| (t - t1))."""
+    ra = args.particle_radius[a]
+    reach_a = args.reach[a]
+    ma = args.hash_point[a]
+    va = particle_v[a]
+    speed_a = wp.length(va)
+    for k in wp.hash_grid_query(args.grid, ma, ra + args.max_radius + reach_a + args.reach_max[0]):
+        if k != a and k != b and args.particle_alive[k] != 0:
+            key_k = args.event_key[k]
+            if key_k != EVENT_NONE:
+                if (key_k >> wp.int64(32)) < q:
+                    d = minimum_image(args.hash_point[k] - ma, args.periodic, args.box)
+                    near = ra + args.particle_radius[k] + reach_a + args.reach[k]
+                    if wp.dot(d, d) <= near * near:
+                        t_k = float(key_k >> wp.int64(32)) / EVENT_TIME_SCALE * args.dt
+                        t1 = wp.max(t_k, args.t_last[a])
+                        vk = particle_v[k]
+                        xk = d + args.base[k] + vk * t_k
+                        xa = args.base[a] + va * t1
+                        gap = wp.length(xk - xa) - ra - args.particle_radius[k]
+                        speed_k = wp.length(vk) + 2.0 * wp.length(vk - particle_v[event_partner(key_k)])
+                        if gap <= speed_k * (t - t_k) + speed_a * (t - t1) + 1.0e-6 * ra:
+                            return True
+    return False
+
+
+@wp.kernel
+def swept_global_min(args: SweptArgs):
+    """global_key = the earliest pending event of all (``sequential`` resolution: one event per round)."""
+    i = wp.tid()
+    key = args.event_key[i]
+    if key != EVENT_NONE:
+        wp.atomic_min(args.global_key, 0, key)
+
+
+@wp.kernel
+def swept_select(
+    args: SweptArgs,
+    particle_v: wp.array(dtype=wp.vec3),
+    # outputs
+    events_found: wp.array(dtype=wp.int32),
+):
+    """Mutually earliest pairs (a < b) become this round's events: time, contact normal, contact features."""
+    a = wp.tid()
+    key = args.event_key[a]
+    if key == EVENT_NONE:
+        return
+    b = event_partner(key)
+    if b <= a or args.event_key[b] == EVENT_NONE:
+        return
+    if event_partner(args.event_key[b]) != a:
+        return
+    if args.sequential != 0 and args.event_key[b] != args.global_key[0]:
+        return  # the earliest key of all is held by b of the earliest pair: (time, a) < (time, b)
+    t = first_touch(args, particle_v, a, b)  # the pair's exact time (the key holds it quantised)
+    if t < 0.0:
+        return
+    # causality: a neighbour with an earlier event may change its path and reach a or b before t; wait for it
+    q = key >> wp.int64(32)
+    if earlier_neighbour_event(args, particle_v, a, b, t, q) or earlier_neighbour_event(args, particle_v, b, a, t, q):
+        return
+    s = relative_position(args, particle_v, a, b, t)
+    dist = wp.length(s)
+    if dist <= 0.0:
+        return
+    n = s / dist
+    row = wp.atomic_add(args.batch_count, 0, 1)
+    args.event_i[row] = a
+    args.event_j[row] = b
+    args.event_time[row] = t
+    args.event_normal[row] = n
+    clamped = write_contact_features_in_domain(particle_v[a], particle_v[b], n, 2.0 * args.particle_radius[a],
+                                               2.0 * args.particle_radius[b], args.particle_density[a],
+                                               args.particle_density[b], args.domain, row, args.features)
+    if clamped != 0:
+        wp.atomic_add(args.guard, GUARD_CLAMPED, 1)
+    events_found[0] = 1  # every writer stores the same value
+
+
+@wp.func
+def follow_new_path(args: SweptArgs, i: int, partner: int, t: float, v_old: wp.vec3, v_new: wp.vec3,
+                    this_round: int):
+    """After a collision at t: base and shift keep the path continuous, reach bounds the rest of the step."""
+    dv = (v_old - v_new) * t
+    base = args.base[i] + dv
+    args.base[i] = base
+    args.shift[i] = args.shift[i] + dv
+    args.t_last[i] = t
+    args.stamp[i] = this_round
+    args.last_partner[i] = partner
+    r = wp.length(base + v_new * t) + wp.length(v_new) * (args.dt - t)
+    args.reach[i] = r
+    wp.atomic_max(args.reach_max, 0, r)
+
+
+@wp.kernel
+def swept_resolve(
+    args: SweptArgs,
+    forest: Forest,
+    # outputs
+    particle_v: wp.array(dtype=wp.vec3),
+    calls: wp.array(dtype=wp.int32),
+    collisions: wp.array(dtype=wp.int32),
+):
+    """The round's events: surrogate impulse, equal and opposite (weights as the pairwise rule), new paths."""
+    row = wp.tid()
+    if row >= args.batch_count[0]:
+        return
+    i = args.event_i[row]
+    j = args.event_j[row]
+    t = args.event_time[row]
+    n = args.event_normal[row]
+    vi = particle_v[i]
+    vj = particle_v[j]
+    impulse_n = float(0.0)
+    impulse_t = float(0.0)
+    if args.batched != 0:
+        impulse_n = args.batch_out[row, 0]
+        impulse_t = args.batch_out[row, 1]
+    else:
+        impulse_n = forest_target(forest, 0, args.features, row)
+        impulse_t = forest_target(forest, 1, args.features, row)
+    # admissibility: separating along n, Coulomb, no energy gain, whatever the trees say (kernels/forest.py)
+    g = vi - vj
+    cos_angle = wp.dot(g, n) / wp.length(g)
+    impulse_n, impulse_t, flags = admissible_impulse(cos_angle, impulse_n, impulse_t, args.domain.friction_bound)
+    if (flags & GUARD_SEPARATION) != 0:
+        wp.atomic_add(args.guard, 0, 1)
+    if (flags & GUARD_COULOMB) != 0:
+        wp.atomic_add(args.guard, 1, 1)
+    if (flags & GUARD_ENERGY) != 0:
+        wp.atomic_add(args.guard, 2, 1)
+    ri = args.particle_radius[i]
+    rj = args.particle_radius[j]
+    mi = sphere_mass(2.0 * ri, args.particle_density[i])
+    mj = sphere_mass(2.0 * rj, args.particle_density[j])
+    J = contact_impulse(vi, vj, n, mi, mj, impulse_n, impulse_t)  # on j; i gets -J
+    wi = args.particle_weight[i]
+    wj = args.particle_weight[j]
+    w_min = wp.min(wi, wj)
+    vi_new = vi - J * (w_min / (wi * mi))
+    vj_new = vj + J * (w_min / (wj * mj))
+    particle_v[i] = vi_new
+    particle_v[j] = vj_new
+    this_round = args.round[0]
+    follow_new_path(args, i, j, t, vi, vi_new, this_round)
+    follow_new_path(args, j, i, t, vj, vj_new, this_round)
+    s = stream_pair_index(args.particle_stream[i], args.particle_stream[j], args.n_streams)
+    wp.atomic_add(calls, s, 1)
+    wp.atomic_add(collisions, s, wp.int32(w_min + 0.5))
+
+
+@wp.kernel
+def swept_mark_dirty(args: SweptArgs):
+    """Dirty next round: parcels that collided in this round and those whose pending partner did."""
+    i = wp.tid()
+    this_round = args.round[0]
+    dirty = int(0)
+    if args.particle_alive[i] != 0:
+        if args.stamp[i] == this_round:
+            dirty = 1
+        else:
+            key = args.event_key[i]
+            if key != EVENT_NONE:
+                if args.stamp[event_partner(key)] == this_round:
+                    dirty = 1
+    args.dirty[i] = dirty
+
+
+@wp.kernel
+def swept_next_round(
+    args: SweptArgs,
+    # outputs
+    events_found: wp.array(dtype=wp.int32),
+    event_rounds: wp.array(dtype=wp.int32),
+    round_cap_hit: wp.array(dtype=wp.int32),
+):
+    """Next round; counts the rounds that resolved events; stops at ``max_rounds`` (and says so)."""
+    r = args.round[0] + 1
+    args.round[0] = r
+    if events_found[0] != 0:
+        event_rounds[0] = event_rounds[0] + 1
+        if r >= args.max_rounds:
+            events_found[0] = 0
+            round_cap_hit[0] = 1
+
+
+@wp.kernel
+def add_shift(
+    shift: wp.array(dtype=wp.vec3),
+    particle_alive: wp.array(dtype=wp.int32),
+    # outputs
+    particle_x: wp.array(dtype=wp.vec3),
+):
+    """End-of-step positions of the swept paths: x += shift (the push moved the parcels with the new v)."""
+    i = wp.tid()
+    if particle_alive[i] != 0:
+        particle_x[i] = particle_x[i] + shift[i]
+
+
+def launch_swept_start(args: SweptArgs, particle_v, reach_max, reach_sum) -> None:
+    """Initial paths of every parcel; ``reach_max`` / ``reach_sum`` (zeroed by the caller) get the max and the sum
+    of |v| dt / 2 (the sum only sizes the hash cells: its summation order changes no result)."""
+    wp.launch(swept_start, dim=particle_v.shape[0], device=particle_v.device, inputs=[args, particle_v],
+              outputs=[reach_max, reach_sum])
+
+
+def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, event_rounds, round_cap_hit, calls,
+                  collisions, detected, skipped, batch_forest: Forest | None = None) -> None:
+    """Rounds of mutually earliest events until none is left (``wp.capture_while``: a graph loop on CUDA) or
+    ``args.max_rounds`` is reached (then ``round_cap_hit`` is set). ``args.grid`` must hold ``args.hash_point``.
+    Round 0 also counts the pairs overlapping at the start into ``detected`` (per stream pair) and ``skipped``.
+
+    With ``batch_forest`` (perfect layout) each round's events are predicted in one batched evaluation."""
+    device = particle_v.device
+    n = particle_v.shape[0]
+    args.batched = 0 if batch_forest is None else 1
+    if batch_forest is not None:
+        from kernels.forest import eval_forest
+
+    def one_round():
+        wp.launch(swept_reset, dim=n, device=device, inputs=[args])
+        wp.launch(swept_find, dim=n, device=device, inputs=[args, particle_v], outputs=[detected, skipped])
+        events_found.zero_()
+        args.batch_count.zero_()
+        if args.sequential != 0:
+            args.global_key.fill_(EVENT_NONE_VALUE)
+            wp.launch(swept_global_min, dim=n, device=device, inputs=[args])
+        wp.launch(swept_select, dim=n, device=device, inputs=[args, particle_v], outputs=[events_found])
+        if batch_forest is not None:
+            eval_forest(batch_forest, args.features, args.batch_out, device=device, row_count=args.batch_count)
+        wp.launch(swept_resolve, dim=n, device=device, inputs=[args, forest], outputs=[particle_v, calls, collisions])
+        wp.launch(swept_mark_dirty, dim=n, device=device, inputs=[args])
+        wp.launch(swept_next_round, dim=1, device=device, inputs=[args],
+                  outputs=[events_found, event_rounds, round_cap_hit])
+
+    events_found.fill_(1)
+    wp.capture_while(events_found, one_round)
+
+
+def launch_add_shift(shift, particle_alive, particle_x) -> None:
+    wp.launch(add_shift, dim=particle_x.shape[0], device=particle_x.device, inputs=[shift, particle_alive],
+              outputs=[particle_x])
