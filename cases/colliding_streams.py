@@ -295,6 +295,8 @@ class CaseConfig:
     """Simulated time between particle snapshots, s (the report averages over snapshots)."""
     model: str | None = None
     """Surrogate model directory (surrogate and surrogate-paper)."""
+    detection: str = "swept"
+    """``surrogate`` pair detection: ``swept`` (continuous, default) or ``overlap`` (the paper's end-of-step test)."""
     seed: int = 0
     device: str = "cpu"
     gravity: tuple = (9.80665, 0.0, 0.0)
@@ -333,13 +335,17 @@ def make_config(args) -> CaseConfig:
                           "already has no particle-particle collisions")
     if (args.collisions.startswith("surrogate")) and not args.model:
         raise ConfigError(f"--collisions {args.collisions} needs --model MODEL_DIR (a `hel-warp train` output)")
+    detection = getattr(args, "detection", None)
+    if detection is not None and args.collisions != "surrogate":
+        raise ConfigError(f"--detection is a surrogate option (got --collisions {args.collisions}); surrogate-paper "
+                          "keeps the paper's overlap test")
     return CaseConfig(diameter=float(args.diameter), dt=float(args.dt), collisions=args.collisions,
                       end_time=float(args.end_time), particles_per_parcel=float(args.particles_per_parcel),
                       particle_contacts=not args.no_particle_contacts,
                       particles=particles, diameter_std=std,
                       mass_flow=PAPER_MASS_FLOW[known] if paper_size else DEFAULT_MASS_FLOW, cells=args.cells,
                       gas_warmup=float(args.gas_warmup), output_interval=float(args.output_interval),
-                      model=args.model, seed=int(args.seed), device=args.device)
+                      model=args.model, detection=detection or "swept", seed=int(args.seed), device=args.device)
 
 
 def check_model(model_dir: str, diameter: float, density: float, force: bool) -> dict:
@@ -405,7 +411,9 @@ class CollidingStreams:
         kwargs = {}
         if config.collisions == "ktgf":
             kwargs = {"particle_diameter": config.diameter, "particle_density": config.density}
-        elif config.collisions.startswith("surrogate"):
+        elif config.collisions == "surrogate":
+            kwargs = {"model_dir": config.model, "detection": config.detection}
+        elif config.collisions == "surrogate-paper":
             kwargs = {"model_dir": config.model}
         elif config.collisions == "dem":
             kwargs = {"material": material}
@@ -655,6 +663,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--end-time", type=finite_float, required=True, help="simulated time after release, s")
     parser.add_argument("--out", required=True, help="run directory (refused if it exists, see --overwrite/--resume)")
     parser.add_argument("--model", default=None, help="surrogate model directory (hel-warp train output)")
+    parser.add_argument("--detection", choices=("swept", "overlap"), default=None,
+                        help="surrogate pair detection: swept (continuous, default) or overlap (the paper's "
+                             "end-of-step test)")
     parser.add_argument("--force", action="store_true",
                         help="use a model trained for another particle size or material (refused otherwise)")
     parser.add_argument("--no-particle-contacts", action="store_true",

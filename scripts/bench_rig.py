@@ -37,7 +37,8 @@ def build_model(case, name: str, args):
                             particles_per_parcel=1.0, max_particles=args.max_particles, monodisperse=False,
                             model=(args.paper_model if name == "surrogate-paper" else args.model),
                             cells=args.cells, gas_warmup=0.01, output_interval=args.end_time, seed=0,
-                            device=args.device)
+                            device=args.device, detection=(args.detection if name == "surrogate" else None),
+                            no_particle_contacts=False)
     config = case.make_config(ns)
     if name.startswith("surrogate"):
         case.check_model(config.model, config.diameter, config.density, False)
@@ -82,6 +83,8 @@ def main(argv=None) -> int:
                         help="models to time, in this order (default: all that have what they need)")
     parser.add_argument("--model", default=None, help="contact-form surrogate model directory (surrogate)")
     parser.add_argument("--paper-model", default=None, help="paper-form surrogate model directory")
+    parser.add_argument("--detection", choices=("swept", "overlap"), default="swept",
+                        help="surrogate pair detection (default swept)")
     parser.add_argument("--cells", type=int, default=None, help="shrink the grid to about N cells (smoke runs)")
     parser.add_argument("--max-particles", type=int, default=None, help="cap the parcels released")
     parser.add_argument("--device", default="cpu", help="Warp device (default cpu)")
