@@ -17,6 +17,13 @@ The time step defaults to eq. (12) of the paper for the smallest radius
 ``wp.capture_if`` (a conditional graph node on CUDA; on the CPU device kernels run synchronously on
 the calling thread, so reading the one-int flag is a plain memory read). The contact-list overflow
 counter is checked once at the end of ``simulate`` and raises, never silently drops contacts.
+
+Collisions: every force evaluation after a drift counts contact onsets (a pair whose overlap became > 0
+while it was not touching at the previous step: one real collision; a contact lasting across list
+rebuilds is counted once) per stream pair with its impact speed (``kernels/contacts.py``,
+:class:`OnsetCounter`); contacts present at construction are not onsets. Read with
+:meth:`DEMSolver.onset_counts`, :meth:`DEMSolver.onset_events` (``DEMConfig.onset_events > 0``),
+zeroed by :meth:`DEMSolver.reset_onsets`.
 """
 
 from __future__ import annotations
@@ -75,6 +82,12 @@ class DEMConfig:
     cuda_graph_steps: int = 50
     """On CUDA: steps per captured CUDA graph in ``simulate`` (0 = launch eagerly). Graphs need
     ``sort_every = 0`` (the sort decision is a host one); otherwise the solver launches eagerly."""
+    n_streams: int = 4
+    """Stream tags whose contact onsets are counted separately (tags outside [0, n_streams) count as the
+    nearest end)."""
+    onset_events: int = 0
+    """Capacity of the list of contact onsets (ids, impact speed, step) kept since the last
+    ``reset_onsets``; 0 = counts and speed sums only. A full list stops recording; counts stay exact."""
 
     def __post_init__(self) -> None:
         lo, hi = np.asarray(self.box_lo, float), np.asarray(self.box_hi, float)
@@ -96,6 +109,10 @@ class DEMConfig:
             raise ConfigError(f"cuda_graph_steps must be >= 0 (got {self.cuda_graph_steps})")
         if self.sort_every is not None and self.sort_every < 0:
             raise ConfigError(f"sort_every must be >= 0 (got {self.sort_every})")
+        if self.n_streams < 1:
+            raise ConfigError(f"n_streams must be >= 1 (got {self.n_streams})")
+        if self.onset_events < 0:
+            raise ConfigError(f"onset_events must be >= 0 (got {self.onset_events})")
 
     def as_dict(self) -> dict:
         d = asdict(self)
@@ -115,13 +132,15 @@ class ContactList:
     """(N,) int32 entries used per row."""
     shear: object
     """(N, capacity) vec3 Mindlin shear displacement, m."""
+    touching: object
+    """(N, capacity) int32, 1 where the contact was closed at the last force evaluation (onset counting)."""
 
     def rows(self):
         """The ``kernels.contacts.ContactRows`` view of these arrays (no copy)."""
         from kernels.contacts import ContactRows
 
         r = ContactRows()
-        r.partner, r.count, r.shear = self.partner, self.count, self.shear
+        r.partner, r.count, r.shear, r.touching = self.partner, self.count, self.shear, self.touching
         return r
 
     @classmethod
@@ -130,7 +149,8 @@ class ContactList:
 
         return cls(partner=wp.full((n, capacity), -1, dtype=wp.int32, device=device),
                    count=wp.zeros(n, dtype=wp.int32, device=device),
-                   shear=wp.zeros((n, capacity), dtype=wp.vec3, device=device))
+                   shear=wp.zeros((n, capacity), dtype=wp.vec3, device=device),
+                   touching=wp.zeros((n, capacity), dtype=wp.int32, device=device))
 
     def copy_from(self, other: "ContactList") -> None:
         import warp as wp
@@ -138,6 +158,107 @@ class ContactList:
         wp.copy(self.partner, other.partner)
         wp.copy(self.count, other.count)
         wp.copy(self.shear, other.shear)
+        wp.copy(self.touching, other.touching)
+
+
+class OnsetCounter:
+    """Device counters of contact onsets (new sphere-sphere contacts; ``kernels/contacts.py``) and their host read-back.
+
+    An onset is a pair whose overlap becomes > 0 at a force evaluation while it was not touching at the
+    previous one; it is one real binary collision. Counted per stream pair (integer atomics: deterministic)
+    with its impact speed, the normal approach speed ``(v_i - v_j) . n`` just before contact. The speed sum
+    is kept per particle slot (one writer each: deterministic) and reduced on the host in float64.
+    ``event_capacity > 0`` also keeps a list of the onsets (particle ids, speed, sub-step) since the last
+    :meth:`reset`; the counts stay exact when the list fills (``truncated`` then says so).
+    """
+
+    def __init__(self, particles: Particles, n_streams: int, event_capacity: int = 0):
+        import warp as wp
+
+        from kernels.contacts import ContactOnsets
+
+        dev = particles.device
+        n = particles.count
+        self.n_streams = int(n_streams)
+        self.pair_onsets = wp.zeros(self.n_streams**2, dtype=wp.int32, device=dev)
+        self.speed_sum = wp.zeros(n, dtype=wp.float64, device=dev)
+        self.substep = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.event_count = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.struct = ContactOnsets()
+        s = self.struct
+        s.counting = 1
+        s.stream, s.particle_id, s.n_streams = particles.stream, particles.particle_id, self.n_streams
+        s.pair_onsets, s.speed_sum, s.substep, s.event_count = (self.pair_onsets, self.speed_sum, self.substep,
+                                                                self.event_count)
+        self._allocate_events(int(event_capacity))
+
+    def _allocate_events(self, capacity: int) -> None:
+        import warp as wp
+
+        dev = self.pair_onsets.device
+        size = max(capacity, 1)
+        s = self.struct
+        s.event_capacity = capacity
+        s.event_a = wp.zeros(size, dtype=wp.int32, device=dev)
+        s.event_b = wp.zeros(size, dtype=wp.int32, device=dev)
+        s.event_speed = wp.zeros(size, dtype=wp.float32, device=dev)
+        s.event_substep = wp.zeros(size, dtype=wp.int32, device=dev)
+        s.event_pair = wp.zeros(size, dtype=wp.int32, device=dev)
+
+    @property
+    def event_capacity(self) -> int:
+        return int(self.struct.event_capacity)
+
+    def grow_events(self, needed: int) -> None:
+        """Make room for ``needed`` events (clears the list: call between counting periods)."""
+        if needed > self.event_capacity:
+            self._allocate_events(max(needed, 2 * self.event_capacity))
+
+    def reset(self) -> None:
+        """Zero every counter and the event list."""
+        for a in (self.pair_onsets, self.speed_sum, self.substep, self.event_count):
+            a.zero_()
+
+    def advance_substep(self) -> None:
+        """Next sub-step index for the event list (launched only when events are recorded)."""
+        if self.event_capacity > 0:
+            from kernels.contacts import launch_advance_substep
+
+            launch_advance_substep(self.substep)
+
+    def matrix(self) -> np.ndarray:
+        """(S, S) onsets per stream pair (upper triangle, a <= b)."""
+        return self.pair_onsets.numpy().reshape(self.n_streams, self.n_streams).astype(np.int64)
+
+    def totals(self) -> dict:
+        """``collisions`` (onsets), ``collisions_<a>_<b>`` per stream pair a <= b, ``impact_speed_sum`` (m/s,
+        float64 sum over the onsets; divide by ``collisions`` for the mean)."""
+        from hel_warp.pairs import pair_counts
+
+        m = self.matrix()
+        return {"collisions": int(m.sum()), **pair_counts("collisions", m),
+                "impact_speed_sum": float(self.speed_sum.numpy().sum(dtype=np.float64))}
+
+    @property
+    def offered_events(self) -> int:
+        """Onsets offered to the event list since the last reset (stored or not)."""
+        return int(self.event_count.numpy()[0])
+
+    def events(self) -> dict:
+        """The recorded onsets as host arrays sorted by (substep, particle_a, particle_b): ``particle_a`` <
+        ``particle_b`` (particle ids), ``speed`` (impact speed, m/s), ``substep`` (index of the sub-step of the
+        onset, from 1 at the first sub-step after the last reset), ``stream_a`` <= ``stream_b`` (the pair's
+        stream tags, clamped to [0, n_streams)), ``truncated`` (bool: the list was full)."""
+        offered = self.offered_events
+        k = min(offered, self.event_capacity)
+        s = self.struct
+        a, b = s.event_a.numpy()[:k], s.event_b.numpy()[:k]
+        speed, sub = s.event_speed.numpy()[:k], s.event_substep.numpy()[:k]
+        pair = s.event_pair.numpy()[:k]
+        order = np.lexsort((speed, b, a, sub))
+        return {"particle_a": a[order], "particle_b": b[order], "speed": speed[order], "substep": sub[order],
+                "stream_a": pair[order] // self.n_streams, "stream_b": pair[order] % self.n_streams,
+                "truncated": offered > k}
 
 
 def damping_for(restitution: float) -> float:
@@ -245,6 +366,10 @@ class DEMSolver:
         self.rebuild_flag = wp.ones(1, dtype=wp.int32, device=self.device)
         self.overflow = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.rebuild_count = wp.zeros(1, dtype=wp.int32, device=self.device)
+        self.onsets = OnsetCounter(particles, config.n_streams, config.onset_events)
+        from kernels.contacts import open_space
+
+        self.box = open_space()  # built once: a struct per launch costs ~30 us of host time
         dims = np.clip(np.ceil((hi - lo) / self.cell_size).astype(int), 1, 256)
         self.grid = wp.HashGrid(int(dims[0]), int(dims[1]), int(dims[2]), device=self.device)
         self.grid.reserve(n)
@@ -258,7 +383,9 @@ class DEMSolver:
         self._use_graph = bool(is_cuda and config.cuda_graph_steps > 0 and self.sort_every == 0)
 
         self._rebuild()
+        self.onsets.struct.counting = 0  # contacts present at the start are not onsets
         self._compute_forces()
+        self.onsets.struct.counting = 1
         self.check_overflow()
 
     # ------------------------------------------------------------------ the step
@@ -296,6 +423,7 @@ class DEMSolver:
         from kernels.contacts import launch_flag_rebuild
         from kernels.integrate import launch_kick, launch_kick_drift
 
+        self.onsets.advance_substep()
         launch_kick_drift(self.spheres, self.force, self.torque, self.gravity, self.dt)
         launch_flag_rebuild(self.spheres, self.x_at_build, 0.5 * self.skin, self.rebuild_flag)
         wp.capture_if(self.rebuild_flag, on_true=self._rebuild)
@@ -306,7 +434,8 @@ class DEMSolver:
         from kernels.contacts import launch_contact_forces
         from kernels.walls import launch_plane_wall_forces, launch_sdf_wall_forces
 
-        launch_contact_forces(self.spheres, self.rows, self.params, self.dt, self.force, self.torque)
+        launch_contact_forces(self.spheres, self.rows, self.params, self.dt, self.force, self.torque, box=self.box,
+                              onsets=self.onsets.struct)
         if self.config.walls:
             launch_plane_wall_forces(self.spheres, self.wall_point, self.wall_normal, self.wall_params, self.dt,
                                      self.wall_shear, self.force, self.torque)
@@ -329,7 +458,7 @@ class DEMSolver:
         else:
             self._old_contacts.copy_from(self.contacts)
         launch_build_contact_list(self.grid, self.spheres, self.r_max, self.skin, self.old_rows, self.rows,
-                                  self.x_at_build, self.overflow)
+                                  self.x_at_build, self.overflow, box=self.box)
         self.rebuild_flag.zero_()
 
     def _spatial_sort(self) -> None:
@@ -363,11 +492,7 @@ class DEMSolver:
             wp.copy(arr, s["int"])
         wp.launch(kc.gather_rows_vec3, dim=n, inputs=[self.wall_shear, s["new_to_old"], s["wall"]], device=self.device)
         wp.copy(self.wall_shear, s["wall"])
-        wp.launch(kc.gather_contact_rows, dim=n,
-                  inputs=[self.contacts.partner, self.contacts.count, self.contacts.shear,
-                          s["new_to_old"], s["old_to_new"]],
-                  outputs=[self._old_contacts.partner, self._old_contacts.count, self._old_contacts.shear],
-                  device=self.device)
+        kc.launch_gather_contact_rows(self.rows, s["new_to_old"], s["old_to_new"], self.old_rows)
 
     # ------------------------------------------------------------------ checks and read-back
     @property
@@ -383,6 +508,22 @@ class DEMSolver:
                 f"contact list overflow: a particle had {need} neighbours within r_i + r_j + skin but the "
                 f"capacity is {self.config.contact_capacity}; set contact_capacity >= {need} "
                 f"(or reduce the skin {self.skin:.3e} m)")
+
+    def onset_counts(self) -> dict:
+        """Contact onsets since construction or :meth:`reset_onsets` (host sync): ``collisions``,
+        ``collisions_<a>_<b>`` per stream pair a <= b, ``impact_speed_sum`` (m/s)."""
+        return self.onsets.totals()
+
+    def onset_events(self) -> dict:
+        """The onsets since the last reset, one entry each (``OnsetCounter.events``; ``substep`` counts steps
+        from the reset). Needs ``DEMConfig.onset_events > 0``."""
+        if self.onsets.event_capacity == 0:
+            raise ConfigError("onset events are not recorded: set DEMConfig(onset_events=...) to the list size")
+        return self.onsets.events()
+
+    def reset_onsets(self) -> None:
+        """Zero the onset counters and the event list (the contacts' touching flags are kept)."""
+        self.onsets.reset()
 
     def touching_pairs(self, *, as_numpy: bool = True):
         """Compact list of touching pairs (i < j, overlap > 0) in the current device order.

@@ -104,28 +104,31 @@ def tag_shear_with_pair(rows, marker: float):
     return partner, count
 
 
-def test_shear_history_carried_by_partner_id():
+def test_shear_history_and_touching_flag_carried_by_partner_id():
     x, radius = random_polydisperse(800, seed=4)
     skin = 0.3e-3
     p = Particles.from_numpy(x, radius, check_overlap=False)
     old, _, _ = build_list(p, skin, capacity=64)
-    # tag each history entry with its (i, j) pair
-    tag_shear_with_pair(old, 0.5)
+    # tag each history entry with its (i, j) pair, each touching flag with the parity of i + j
+    partner, count = tag_shear_with_pair(old, 0.5)
+    old.touching.assign(((np.arange(len(x))[:, None] + partner) % 2 * (partner >= 0)).astype(np.int32))
     # move so that some partners leave and new ones enter, then rebuild
     rng = np.random.default_rng(5)
     moved = x + rng.normal(scale=0.5e-3, size=x.shape)
     p.x.assign(moved.astype(np.float32))
     new, _, _ = build_list(p, skin, capacity=64, old=old)
     old_sets = [set(r) for r in rows_of(old)]
-    shear = new.shear.numpy()
+    shear, touching = new.shear.numpy(), new.touching.numpy()
     kept = fresh = 0
     for i, row in enumerate(rows_of(new)):
         for k, j in enumerate(row):
             if j in old_sets[i]:
                 np.testing.assert_array_equal(shear[i, k], [i, j, 0.5])
+                assert touching[i, k] == (i + j) % 2
                 kept += 1
             else:
                 np.testing.assert_array_equal(shear[i, k], [0.0, 0.0, 0.0])
+                assert touching[i, k] == 0  # a new entry: not touching before
                 fresh += 1
     assert kept > 100 and fresh > 100  # both cases were exercised
 
@@ -139,10 +142,13 @@ def test_gather_rows_follow_a_permutation():
     new_to_old = np.random.default_rng(9).permutation(len(x)).astype(np.int32)
     old_to_new = np.argsort(new_to_old).astype(np.int32)
     dst = ContactList.empty(len(x), 64, "cpu")
-    wp.launch(kc.gather_contact_rows, dim=len(x),
-              inputs=[old.partner, old.count, old.shear, wp.array(new_to_old), wp.array(old_to_new)],
-              outputs=[dst.partner, dst.count, dst.shear])
+    touching = np.zeros(old.touching.shape, np.int32)
+    for i in range(len(x)):
+        touching[i, : count[i]] = (partner[i, : count[i]] + i) % 2  # a tag the gather must carry with the row
+    old.touching.assign(touching)
+    kc.launch_gather_contact_rows(old.rows(), wp.array(new_to_old), wp.array(old_to_new), dst.rows())
     partner2, count2, shear2 = dst.partner.numpy(), dst.count.numpy(), dst.shear.numpy()
+    touching2 = dst.touching.numpy()
     for k in range(len(x)):
         i = new_to_old[k]
         row = partner2[k, : count2[k]]
@@ -150,6 +156,7 @@ def test_gather_rows_follow_a_permutation():
         np.testing.assert_array_equal(np.sort(new_to_old[row]), partner[i, : count[i]])
         for c, j_new in enumerate(row):
             np.testing.assert_array_equal(shear2[k, c], [i, new_to_old[j_new], 2.0])
+            assert touching2[k, c] == (i + new_to_old[j_new]) % 2
 
 
 def _frictional_heap(sort_every):
