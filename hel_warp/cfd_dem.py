@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from hel_warp.pairs import DEFAULT_STREAMS, PairDetector, pair_counts
+from hel_warp.pairs import DEFAULT_STREAMS, pair_counts
 from hel_warp.errors import ConfigError, require_positive
 from hel_warp.material import Material
 
@@ -41,8 +41,27 @@ class DemCollision:
     as between particles; the parcel meets the wall with its radius at the DEM resolution. The strategy
     declares ``handles_walls = True``, so ``HelSolver`` skips the point reflection of ``kernels/reflect.py``
     for it (that reflection, applied after the sub-steps, moved parcels onto their neighbours).
-    ``counts()``: ``detected_pairs`` (overlapping at the end of the step; per stream pair
-    ``detected_pairs_<a>_<b>``), ``surrogate_calls`` (0) and ``dem_substeps``.
+    Collisions: the force evaluation after every drift counts contact onsets — a pair whose overlap became
+    > 0 while it was not touching at the previous sub-step (``kernels/contacts.py``: a touching flag per
+    contact, carried through list rebuilds and parcel sorts, so a lasting contact is counted once and a pair
+    that bounces apart and touches again twice) — per stream pair, with the impact speed of each, the normal
+    approach speed ``(v_i - v_j) . n`` at the half-step velocities just before contact (no contact force had
+    acted on the pair). Contacts already closed at the start of a step are not onsets.
+
+    ``counts()`` (the last step): ``collisions`` (onsets, i.e. real binary collisions) and per stream pair
+    a <= b ``collisions_<a>_<b>``; ``impact_speed_sum`` (m/s, float64 sum of the onsets' impact speeds:
+    the mean is ``impact_speed_sum / collisions``); ``detected_pairs`` (overlapping at the end of the step;
+    per stream pair ``detected_pairs_<a>_<b>``); ``surrogate_calls`` (0); ``dem_substeps``.
+    :meth:`onset_events` / :meth:`onset_speeds`: every onset of the last step (particle ids, impact speed,
+    time within the step).
+
+    Triply periodic box (``periodic_box=(Lx, Ly, Lz)``, origin 0): contacts found and computed across the
+    faces with the minimum-image separation, positions wrapped into [0, L) at every list rebuild and at the
+    end of the step; each axis must hold 3 contact-search cells (2 r_max + skin). :meth:`advance_free` moves
+    the particles by dt with contacts only (no gas, no gravity, no walls): the homogeneous-cooling case.
+
+    ``particle_contacts=False``: no particle-particle forces (and no onsets); walls act as before — the
+    reference for how much of a result the walls alone make. ``detected_pairs`` still counts the overlaps.
     """
 
     name = "dem"
@@ -51,8 +70,16 @@ class DemCollision:
     handles_walls = True
     """``HelSolver.reflect_at_walls`` skips its point reflection: the wall contacts act inside :meth:`advance`."""
 
+    GRID_CELLS_MAX = 128
+    """Hash-grid cells per axis at most (a periodic box with more search cells gets larger cells)."""
+
     def __init__(self, *, material: Material | None = None, dt_dem: float | None = None, max_speed: float = 20.0,
-                 skin: float | None = None, contact_capacity: int = 32, n_streams: int = DEFAULT_STREAMS):
+                 skin: float | None = None, contact_capacity: int = 32, n_streams: int = DEFAULT_STREAMS,
+                 periodic_box: tuple[float, float, float] | None = None, particle_contacts: bool = True,
+                 onset_events: int | None = None):
+        """``periodic_box``: (Lx, Ly, Lz), m, a triply periodic box with origin 0 (None: open space).
+        ``particle_contacts``: False switches the particle-particle contacts off (walls kept).
+        ``onset_events``: entries of the per-step onset list (None: grows to fit, from max(1024, N); 0: none)."""
         self.material = material if material is not None else Material()
         if dt_dem is not None:
             require_positive("dt_dem", dt_dem, "s")
@@ -66,6 +93,20 @@ class DemCollision:
         self.skin_setting = skin
         self.contact_capacity = int(contact_capacity)
         self.n_streams = int(n_streams)
+        if periodic_box is not None:
+            box = tuple(periodic_box)
+            if len(box) != 3:
+                raise ConfigError(f"periodic_box must be three lengths (Lx, Ly, Lz) in m (got {periodic_box!r})")
+            for axis, length in zip("xyz", box):
+                require_positive(f"periodic_box L{axis}", length, "m")
+            periodic_box = tuple(float(v) for v in box)
+        self.periodic_box = periodic_box
+        self.particle_contacts = bool(particle_contacts)
+        if onset_events is not None and onset_events < 0:
+            raise ConfigError(f"onset_events must be >= 0 or None (got {onset_events})")
+        self.onset_events_setting = onset_events
+        self._grid_cells = None
+        self.box = None
         self._capacity = None
         self._particles = None
         self._counts = None
@@ -95,7 +136,8 @@ class DemCollision:
     def _setup(self, particles) -> None:
         import warp as wp
 
-        from hel_warp.dem import ContactList
+        from hel_warp.dem import ContactList, OnsetCounter
+        from kernels.contacts import open_space
 
         if self._particles is particles:
             return
@@ -116,26 +158,28 @@ class DemCollision:
         self.v_push = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.a_fluid = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.wall_shear = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self.grid = wp.HashGrid(128, 128, 128, device=dev)
-        self.grid.reserve(n)
-        self.detector = PairDetector(dev, n)
+        self.x_grid = wp.zeros(n, dtype=wp.vec3, device=dev) if self.periodic_box is not None else None
+        self.box = open_space()
+        self._grid_cells = None
+        if self.periodic_box is None:
+            self.grid = wp.HashGrid(self.GRID_CELLS_MAX, self.GRID_CELLS_MAX, self.GRID_CELLS_MAX, device=dev)
+            self.grid.reserve(n)
         s2 = self.n_streams * self.n_streams
         self.detected = wp.zeros(s2, dtype=wp.int32, device=dev)
+        events = self.onset_events_setting if self.onset_events_setting is not None else max(1024, n)
+        self.onsets = OnsetCounter(particles, self.n_streams, events)
         self.pair_state = None
 
     def permute_parcels(self, new_to_old, old_to_new) -> None:
         """``HelSolver.sort_parcels`` reordered the parcels: move the contact rows (partners renumbered, shear
-        history kept) and the wall shear history with them."""
+        history and touching flags kept) and the wall shear history with them."""
         import warp as wp
 
         from kernels import contacts as kc
 
         if self._capacity is None:
             return
-        n = self._capacity
-        wp.launch(kc.gather_contact_rows, dim=n, device=self.force.device,
-                  inputs=[self.contacts.partner, self.contacts.count, self.contacts.shear, new_to_old, old_to_new],
-                  outputs=[self._old_contacts.partner, self._old_contacts.count, self._old_contacts.shear])
+        kc.launch_gather_contact_rows(self.contacts.rows(), new_to_old, old_to_new, self._old_contacts.rows())
         self.contacts.copy_from(self._old_contacts)
         kc.launch_gather(self.wall_shear, new_to_old, self.v_start)
         wp.copy(self.wall_shear, self.v_start)
@@ -161,25 +205,11 @@ class DemCollision:
         self._setup(p)
         walls = bool(getattr(solver.config, "walls", False))
         self._shapes = getattr(solver, "shapes", None) if walls else None
-        alive = p.alive.numpy().astype(bool)
-        self._counts = None
-        if not alive.any():
-            self.substeps = 0
-            return
-        weight = p.weight.numpy()[alive]
-        if np.any(weight != 1.0):
-            raise ConfigError("the dem collision model needs parcels of weight 1 (real spheres); "
-                              f"found weights {np.unique(weight)[:4].tolist()}; inject with weight=1")
-        radius = p.radius.numpy()[alive]
-        r_min, r_max = float(radius.min()), float(radius.max())
         dt = float(solver.config.dt)
-        stable = self.material.time_step(r_min, max_speed=self.max_speed).chosen
-        dt_dem = stable if self.dt_dem_max is None else min(stable, self.dt_dem_max)
-        n_sub = max(1, int(math.ceil(dt / dt_dem - 1e-9)))
-        h = dt / n_sub
-        self.dt_dem = h
-        self.substeps = n_sub
-        skin = self.skin_setting if self.skin_setting is not None else 0.3 * r_max
+        plan = self._prepare(p, dt)
+        if plan is None:
+            return
+        n_sub, h, r_max, skin = plan
 
         # 1. the push's fluid step into scratch arrays: drag impulse recorded as the push does it
         import warp as wp
@@ -193,10 +223,91 @@ class DemCollision:
 
         # 2. DEM sub-steps
         self.simulate(p, n_sub, h, r_max, skin)
-        self._count_overlaps(p, r_max)
+        self._finish_step(p, r_max, skin)
+
+    def advance_free(self, particles, dt: float) -> None:
+        """Advance ``particles`` (in place) by ``dt`` with the contacts alone: no gas, no gravity, no walls.
+
+        ``ceil(dt / dt_DEM)`` velocity-Verlet sub-steps (the DEM step of :meth:`advance`), particle contacts
+        only (minimum image in a periodic box), positions wrapped into [0, L) at the end in a periodic box;
+        ``counts()`` updated as for :meth:`advance`. Parcels must have weight 1."""
+        require_positive("dt", dt, "s")
+        self._setup(particles)
+        self._shapes = None
+        plan = self._prepare(particles, float(dt))
+        if plan is None:
+            return
+        n_sub, h, r_max, skin = plan
+        self.a_fluid.zero_()
+        self.simulate(particles, n_sub, h, r_max, skin)
+        self._finish_step(particles, r_max, skin)
+
+    def _prepare(self, particles, dt: float):
+        """Checks and the sub-step plan ``(n_sub, h, r_max, skin)`` of one fluid step; None without live parcels.
+        Zeroes the step's counters."""
+        self._counts = None
+        self.detected.zero_()
+        offered = self.onsets.offered_events
+        if self.onset_events_setting is None:
+            self.onsets.grow_events(offered)  # the last step's list was too short: room for as many next time
+        self.onsets.reset()
+        alive = particles.alive.numpy().astype(bool)
+        if not alive.any():
+            self.substeps = 0
+            return None
+        weight = particles.weight.numpy()[alive]
+        if np.any(weight != 1.0):
+            raise ConfigError("the dem collision model needs parcels of weight 1 (real spheres); "
+                              f"found weights {np.unique(weight)[:4].tolist()}; inject with weight=1")
+        radius = particles.radius.numpy()[alive]
+        r_min, r_max = float(radius.min()), float(radius.max())
+        stable = self.material.time_step(r_min, max_speed=self.max_speed).chosen
+        dt_dem = stable if self.dt_dem_max is None else min(stable, self.dt_dem_max)
+        n_sub = max(1, int(math.ceil(dt / dt_dem - 1e-9)))
+        h = dt / n_sub
+        self.dt_dem = h
+        self.substeps = n_sub
+        skin = self.skin_setting if self.skin_setting is not None else 0.3 * r_max
+        if self.periodic_box is not None:
+            self._periodic_grid(particles, 2.0 * r_max + skin)
+        return n_sub, h, r_max, skin
+
+    def _periodic_grid(self, particles, search: float) -> None:
+        """Hash grid of the periodic box: n_a = floor(L_a / search) cells (<= GRID_CELLS_MAX), at least 3."""
+        import warp as wp
+
+        from kernels.contacts import periodic_box
+
+        lengths = self.periodic_box
+        short = [(axis, length) for axis, length in zip("xyz", lengths) if length < 3.0 * search]
+        if short:
+            axis, length = short[0]
+            raise ConfigError(f"periodic_box L{axis} = {length:.4g} m is shorter than 3 contact-search cells "
+                              f"(3 x (2 r_max + skin) = {3.0 * search:.4g} m); enlarge the box or reduce the skin")
+        cells = tuple(min(self.GRID_CELLS_MAX, int(math.floor(length / search * (1.0 + 1e-12))))
+                      for length in lengths)
+        if cells != self._grid_cells:
+            self.grid = wp.HashGrid(*cells, device=particles.device)
+            self.grid.reserve(particles.count)
+            self._grid_cells = cells
+            self.box = periodic_box(lengths, cells)
+
+    def _finish_step(self, particles, r_max: float, skin: float) -> None:
+        """Overlapping pairs at the end of the step; positions wrapped into the periodic box."""
+        from kernels.contacts import launch_count_touching_stream_pairs, launch_wrap_into_box
+
+        if not self.particle_contacts:
+            self._rebuild(particles, r_max, skin)  # the list the overlap count reads (no forces used it)
+        launch_count_touching_stream_pairs(self._spheres, self._rows, particles.stream, self.n_streams,
+                                           self.detected, box=self.box)
+        if self.periodic_box is not None:
+            launch_wrap_into_box(self.box, particles.x, self.x_grid)
 
     def simulate(self, particles, n_sub: int, h: float, r_max: float, skin: float) -> None:
-        """``n_sub`` velocity-Verlet steps of ``h`` with contacts + the held ``a_fluid`` (no gravity term)."""
+        """``n_sub`` velocity-Verlet steps of ``h`` with contacts + the held ``a_fluid`` (no gravity term).
+
+        Onsets are counted from the first sub-step on (the force evaluation at the start only sets the
+        touching flags)."""
         import warp as wp
 
         from kernels.contacts import launch_flag_rebuild
@@ -204,18 +315,24 @@ class DemCollision:
 
         self._setup(particles)
         zero = wp.vec3(0.0, 0.0, 0.0)
-        self._rebuild(particles, r_max, skin)
+        contacts = self.particle_contacts
+        if contacts:
+            self._rebuild(particles, r_max, skin)
+        self.onsets.struct.counting = 0
         self._forces(particles, h)
+        self.onsets.struct.counting = 1
 
         def rebuild():
             self._rebuild(particles, r_max, skin)
 
         spheres = self._spheres
         for _ in range(n_sub):
+            self.onsets.advance_substep()
             launch_kick_drift(spheres, self.force, self.torque, zero, h)
-            self.rebuild_flag.zero_()
-            launch_flag_rebuild(spheres, self.x_at_build, 0.5 * skin, self.rebuild_flag)
-            wp.capture_if(self.rebuild_flag, on_true=rebuild)
+            if contacts:
+                self.rebuild_flag.zero_()
+                launch_flag_rebuild(spheres, self.x_at_build, 0.5 * skin, self.rebuild_flag)
+                wp.capture_if(self.rebuild_flag, on_true=rebuild)
             self._forces(particles, h)
             launch_kick(spheres, self.force, self.torque, zero, h)
         if int(self.overflow.numpy()[0]) > 0:
@@ -223,18 +340,27 @@ class DemCollision:
                               f"contact_capacity = {self.contact_capacity}; raise contact_capacity")
 
     def _rebuild(self, particles, r_max: float, skin: float) -> None:
-        from kernels.contacts import launch_build_contact_list
+        from kernels.contacts import launch_build_contact_list, launch_wrap_into_box
 
-        self.grid.build(particles.x, 2.0 * r_max + skin)
+        if self.periodic_box is not None:
+            launch_wrap_into_box(self.box, particles.x, self.x_grid)
+            self.grid.build(self.x_grid, 1.0)  # grid coordinates: one cell per unit
+        else:
+            self.grid.build(particles.x, 2.0 * r_max + skin)
         self._old_contacts.copy_from(self.contacts)
         launch_build_contact_list(self.grid, self._spheres, r_max, skin, self._old_rows, self._rows,
-                                  self.x_at_build, self.overflow)
+                                  self.x_at_build, self.overflow, box=self.box)
 
     def _forces(self, particles, h: float) -> None:
         from kernels.integrate import launch_add_fluid_force
         from kernels.contacts import launch_contact_forces
 
-        launch_contact_forces(self._spheres, self._rows, self.params, h, self.force, self.torque)
+        if self.particle_contacts:
+            launch_contact_forces(self._spheres, self._rows, self.params, h, self.force, self.torque, box=self.box,
+                                  onsets=self.onsets.struct)
+        else:
+            self.force.zero_()
+            self.torque.zero_()
         launch_add_fluid_force(self.a_fluid, particles.radius, particles.density, self.force)
         if self._shapes is not None:
             from kernels.walls import launch_geometry_wall_forces
@@ -242,20 +368,36 @@ class DemCollision:
             launch_geometry_wall_forces(self._spheres, self._shapes, self.wall_params, h, self.wall_shear,
                                         self.force, self.torque)
 
-    def _count_overlaps(self, particles, r_max: float) -> None:
-        from kernels.collide import launch_count_detected
+    def onset_events(self) -> dict:
+        """Every contact onset of the last step, sorted by (time, particle_a, particle_b): host arrays
+        ``particle_a`` < ``particle_b`` (particle ids), ``speed`` (impact speed: normal approach speed at
+        onset, m/s), ``time`` (s from the start of the step: the sub-step of the force evaluation that found
+        the contact), ``stream_a`` <= ``stream_b`` (their stream tags, clamped to [0, n_streams)); ``truncated`` is True when the list was
+        full (``onset_events`` set too small; the counts are exact regardless)."""
+        if self._capacity is None:
+            return {"particle_a": np.zeros(0, np.int32), "particle_b": np.zeros(0, np.int32),
+                    "speed": np.zeros(0, np.float32), "time": np.zeros(0), "stream_a": np.zeros(0, np.int32),
+                    "stream_b": np.zeros(0, np.int32), "truncated": False}
+        ev = self.onsets.events()
+        sub = ev.pop("substep")
+        return {**ev, "time": sub.astype(np.float64) * float(self.dt_dem or 0.0)}
 
-        self.detected.zero_()
-        n_pairs = self.detector.detect(particles, r_max)
-        launch_count_detected(n_pairs, self.detector.pair_i, self.detector.pair_j, particles.stream,
-                              self.n_streams, self.detected, self.detector.pair_state)
+    def onset_speeds(self) -> np.ndarray:
+        """The impact speeds of the last step's onsets, m/s (float32, the order of :meth:`onset_events`)."""
+        return self.onset_events()["speed"]
 
     def counts(self) -> dict:
-        """Overlapping pairs at the end of the last step (also per stream pair) and the DEM sub-steps."""
+        """The last step: contact onsets (``collisions``, ``collisions_<a>_<b>``, ``impact_speed_sum``),
+        overlapping pairs at its end (``detected_pairs``, ``detected_pairs_<a>_<b>``), ``surrogate_calls`` (0),
+        ``dem_substeps``."""
         if self._counts is None:
             s = self.n_streams
-            detected = (self.detected.numpy().reshape(s, s) if self._capacity is not None
-                        else np.zeros((s, s), np.int64))
-            self._counts = {"detected_pairs": int(detected.sum()), "surrogate_calls": 0,
+            if self._capacity is not None:
+                detected = self.detected.numpy().reshape(s, s)
+                onsets = self.onsets.totals()
+            else:
+                detected = np.zeros((s, s), np.int64)
+                onsets = {"collisions": 0, **pair_counts("collisions", detected), "impact_speed_sum": 0.0}
+            self._counts = {**onsets, "detected_pairs": int(detected.sum()), "surrogate_calls": 0,
                             "dem_substeps": int(self.substeps), **pair_counts("detected_pairs", detected)}
         return dict(self._counts)
