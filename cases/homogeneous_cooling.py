@@ -676,10 +676,10 @@ def plot(summary: dict, path: str) -> None:
     y = 1.0 / np.sqrt(theta)
     ax2.plot(t * 1e3, y, "-", color="C0", label="measured")
     ax2.plot(tt * 1e3, 1.0 / math.sqrt(theta0) + summary["haff_slope"] * tt, "--", color="k",
-             label=f"Haff slope {summary['haff_slope']:.3g}")
+             label=f"Haff slope {summary['haff_slope']:.4g}")
     fit0 = float(np.mean(y) - summary["fitted_slope"] * np.mean(t))
     ax2.plot(tt * 1e3, fit0 + summary["fitted_slope"] * tt, ":", color="C3",
-             label=f"fit slope {summary['fitted_slope']:.3g}")
+             label=f"fit slope {summary['fitted_slope']:.4g}")
     ax2.set_xlabel("t, ms")
     ax2.set_ylabel(r"$\Theta^{-1/2}$, s/m")
     ax2.legend()
