@@ -29,6 +29,8 @@ DETECTIONS = ("swept", "overlap")
 """Pair detection of the ``pairwise`` surrogate: ``swept`` (default, continuous) or ``overlap`` (the paper's test)."""
 GUARD_NAMES = ("separation", "coulomb", "energy", "domain_clamped")
 """``counts()`` keys ``guard_<name>``: admissibility corrections and domain clamps (``kernels/collide.py``)."""
+CELL_FACTOR = 2.0
+"""Hash cells of the swept search, in units of r_max + the mean reach (smaller cells measured slower on the CPU)."""
 MAX_ROUNDS = 4096
 """Rounds of events per step before the resolution stops and says so (``round_cap_hit``): an inelastic collapse
 (infinitely many collisions in finite time, McNamara & Young 1994) would otherwise never end."""
@@ -237,9 +239,9 @@ class SurrogateCollision:
             sweep = float(dt)
         else:
             sweep = 0.0
-        self._collide_pairwise(particles, r_max, sweep, int(np.count_nonzero(alive)))
+        self._collide_pairwise(particles, r_max, sweep, alive)
 
-    def _collide_pairwise(self, particles, r_max: float, sweep: float, n_alive: int) -> None:
+    def _collide_pairwise(self, particles, r_max: float, sweep: float, alive: np.ndarray) -> None:
         from kernels.collide import launch_swept_start, resolve_swept
 
         a = self.swept
@@ -250,17 +252,19 @@ class SurrogateCollision:
         box = self.periodic_box
         a.periodic = 0 if box is None else 1
         a.box = (0.0, 0.0, 0.0) if box is None else box
+        v = particles.v.numpy()[alive]
+        a.frame_velocity = tuple(float(c) for c in v.astype(np.float64).mean(axis=0)) if sweep > 0 else (0.0,) * 3
         a.reach_max.zero_()
         self.reach_sum.zero_()
         launch_swept_start(a, particles.v, a.reach_max, self.reach_sum)
         reach_max = float(a.reach_max.numpy()[0])
-        reach_mean = float(self.reach_sum.numpy()[0]) / max(1, n_alive)
+        reach_mean = float(self.reach_sum.numpy()[0]) / max(1, int(np.count_nonzero(alive)))
         if box is not None and 2.0 * (r_max + reach_max) > 0.5 * min(box):
             raise ConfigError(f"the periodic box {box} is too small for the collision search of this step "
                               f"({2.0 * (r_max + reach_max):.3g} m must stay below half the box side): enlarge the "
                               "box (more particles) or shorten dt")
         # cells of a typical search (the fastest parcels' queries span more cells)
-        grid = self._hash_grid(a.hash_point, 2.0 * (r_max + reach_mean))
+        grid = self._hash_grid(a.hash_point, CELL_FACTOR * (r_max + reach_mean))
         a.grid = grid.id
         self._shift_pending = sweep > 0.0
         resolve_swept(a, self.forest, particles.v, self.events_found, self.event_rounds, self.round_cap_hit,

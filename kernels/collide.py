@@ -360,8 +360,12 @@ class SweptArgs:
     """End-of-step position correction sum((v_old - v_new) tau), m."""
     t_last: wp.array(dtype=wp.float32)
     """Time of the parcel's last collision in this step (0 before any), s."""
+    frame_velocity: wp.vec3
+    """u_f, the mean parcel velocity of the step: reaches are measured in the frame moving with it (Galilean: a
+    stream of fast parcels that move together has short reaches), m/s."""
     reach: wp.array(dtype=wp.float32)
-    """Bound on |position - m| over [t_last, dt], m."""
+    """Bound on |o(t)| over [t_last, dt], o(t) = position - m - u_f (t - dt/2) (the path relative to the hash point
+    in the moving frame; the u_f terms cancel in a pair's separation), m."""
     reach_max: wp.array(dtype=wp.float32)
     """(1,) max of ``reach`` (atomic_max), m."""
     event_key: wp.array(dtype=wp.int64)
@@ -422,6 +426,8 @@ def relative_position(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: i
     return d + (args.base[b] - args.base[a]) + (particle_v[b] - particle_v[a]) * t
 
 
+NEAR_MARGIN = wp.constant(1.0001)
+"""Reach tests are widened by this factor so that float32 round-off of the reaches never drops a pair that meets."""
 APPROACH_EPS = wp.constant(1.0e-5)
 """A pair approaches when s.g < -APPROACH_EPS |s| |g|: a pair left touching with a normal velocity of round-off size
 (a guard-corrected outcome with no normal rebound) is not collided again at once (no Zeno loop of tiny events);
@@ -488,7 +494,7 @@ def swept_start(
                     m[2] - box[2] * wp.floor(m[2] / box[2]))
     args.hash_point[i] = m
     args.base[i] = -v * half
-    r = wp.length(v) * half
+    r = wp.length(v - args.frame_velocity) * half
     args.reach[i] = r
     args.dirty[i] = 1
     wp.atomic_max(reach_max, 0, r)
@@ -535,15 +541,15 @@ def swept_find(
     # round 0 (every parcel queries): a pair is found by the parcel of the larger reach, so each queries
     # r_i + r_max + 2 reach_i; later rounds only dirty parcels query, and must reach every partner
     first = args.round[0] == 0
-    radius = ri + args.max_radius + reach_i + args.reach_max[0]
+    radius = (ri + args.max_radius + reach_i + args.reach_max[0]) * NEAR_MARGIN
     if first:
-        radius = ri + args.max_radius + 2.0 * reach_i
+        radius = (ri + args.max_radius + 2.0 * reach_i) * NEAR_MARGIN
     for j in wp.hash_grid_query(args.grid, mi, radius):
         if j != i and args.particle_alive[j] != 0:
             # the paths stay within reach of their hash points: farther apart than both reaches, they never meet
             d = minimum_image(args.hash_point[j] - mi, args.periodic, args.box)
             reach_j = args.reach[j]
-            near = ri + args.particle_radius[j] + reach_i + reach_j
+            near = (ri + args.particle_radius[j] + reach_i + reach_j) * NEAR_MARGIN
             if wp.dot(d, d) <= near * near:
                 a = wp.min(i, j)
                 b = wp.max(i, j)
@@ -567,14 +573,15 @@ def earlier_neighbour_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3)
     reach_a = args.reach[a]
     ma = args.hash_point[a]
     va = particle_v[a]
-    speed_a = wp.length(va)
-    for k in wp.hash_grid_query(args.grid, ma, ra + args.max_radius + reach_a + args.reach_max[0]):
+    u_f = args.frame_velocity
+    speed_a = wp.length(va - u_f)
+    for k in wp.hash_grid_query(args.grid, ma, (ra + args.max_radius + reach_a + args.reach_max[0]) * NEAR_MARGIN):
         if k != a and k != b and args.particle_alive[k] != 0:
             key_k = args.event_key[k]
             if key_k != EVENT_NONE:
                 if (key_k >> wp.int64(32)) < q:
                     d = minimum_image(args.hash_point[k] - ma, args.periodic, args.box)
-                    near = ra + args.particle_radius[k] + reach_a + args.reach[k]
+                    near = (ra + args.particle_radius[k] + reach_a + args.reach[k]) * NEAR_MARGIN
                     if wp.dot(d, d) <= near * near:
                         t_k = float(key_k >> wp.int64(32)) / EVENT_TIME_SCALE * args.dt
                         t1 = wp.max(t_k, args.t_last[a])
@@ -582,7 +589,7 @@ def earlier_neighbour_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3)
                         xk = d + args.base[k] + vk * t_k
                         xa = args.base[a] + va * t1
                         gap = wp.length(xk - xa) - ra - args.particle_radius[k]
-                        speed_k = wp.length(vk) + 2.0 * wp.length(vk - particle_v[event_partner(key_k)])
+                        speed_k = wp.length(vk - u_f) + 2.0 * wp.length(vk - particle_v[event_partner(key_k)])
                         if gap <= speed_k * (t - t_k) + speed_a * (t - t1) + 1.0e-6 * ra:
                             return True
     return False
@@ -652,7 +659,8 @@ def follow_new_path(args: SweptArgs, i: int, partner: int, t: float, v_old: wp.v
     args.t_last[i] = t
     args.stamp[i] = this_round
     args.last_partner[i] = partner
-    r = wp.length(base + v_new * t) + wp.length(v_new) * (args.dt - t)
+    u_f = args.frame_velocity
+    r = wp.length(base + v_new * t - u_f * (t - 0.5 * args.dt)) + wp.length(v_new - u_f) * (args.dt - t)
     args.reach[i] = r
     wp.atomic_max(args.reach_max, 0, r)
 
