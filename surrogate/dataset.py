@@ -151,7 +151,7 @@ class DatasetSpec:
 def make_spec(*, samples: int, seed: int, diameter: float, diameter_std: float | None = None,
               density_std: float = 0.0, material: Material | None = None, contact_model: str = "hertz",
               chunk_size: int = DEFAULT_CHUNK_SIZE, central_fraction: float = 0.1,
-              grazing_fraction: float = 0.3, grazing_angle: float = 70.0, max_offset: float = GRAZING_MAX_OFFSET,
+              grazing_fraction: float = 0.3, grazing_angle: float = 60.0, max_offset: float = GRAZING_MAX_OFFSET,
               slow_fraction: float = 0.3, min_relative_speed: float = 0.01, min_normal_speed: float = 1e-3,
               speed_max: float = 20.0, touch_steps: float = 2.0, dt_factor: float = 0.5,
               mixture_diameters: tuple = ()) -> DatasetSpec:

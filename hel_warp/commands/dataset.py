@@ -1,7 +1,7 @@
 """``hel-warp dataset``: the collision data set of paper section 4.1 (eq. 16 configurations run through
 the batched binary DEM) written to a zarr group chunk by chunk; kill it and rerun the same command
 to resume. The defaults cover every impact the engine meets: the paper's three families, 10 % central,
-30 % grazing (incidence 70-89.8 deg), the rest uniform in b^2 (as random collisions), 30 % of the rows
+30 % grazing (incidence 60-89.8 deg), the rest uniform in b^2 (as random collisions), 30 % of the rows
 at relative speeds log-uniform down to 0.01 m/s; --paper-set gives the earlier paper-like set (half
 central, offsets <= 0.95, normal approach speed >= 0.05 m/s)."""
 
@@ -39,7 +39,7 @@ def add_parser(subparsers):
                    help="fraction of rows with incidence angle uniform in [--grazing-angle, asin(--max-offset)] "
                         "(default 0.3)")
     p.add_argument("--grazing-angle", type=finite_float, default=None,
-                   help="smallest incidence angle of the grazing rows, degrees (default 70)")
+                   help="smallest incidence angle of the grazing rows, degrees (default 60)")
     p.add_argument("--max-offset", type=finite_float, default=None,
                    help="largest impact offset b/(r1+r2) of oblique impacts, in [0, 1) (default sin 89.8 deg)")
     p.add_argument("--slow-fraction", type=finite_float, default=None,
