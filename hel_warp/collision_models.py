@@ -27,7 +27,7 @@ from hel_warp.pairs import DEFAULT_STREAMS, pair_counts
 
 DETECTIONS = ("swept", "overlap")
 """Pair detection of the ``pairwise`` surrogate: ``swept`` (default, continuous) or ``overlap`` (the paper's test)."""
-GUARD_NAMES = ("separation", "coulomb", "energy", "domain_clamped")
+GUARD_NAMES = ("separation", "coulomb", "energy", "domain_clamped", "late_overlap")
 """``counts()`` keys ``guard_<name>``: admissibility corrections and domain clamps (``kernels/collide.py``)."""
 CELL_FACTOR = 2.0
 """Hash cells of the swept search, in units of r_max + the mean reach (smaller cells measured slower on the CPU)."""
@@ -82,7 +82,9 @@ class SurrogateCollision:
     ``separating_skipped`` (of those, the ones already separating), ``rounds`` (rounds that resolved
     collisions; paper: 0), ``round_cap_hit`` (1 when ``max_rounds`` stopped the resolution), ``guard_separation``, ``guard_coulomb``,
     ``guard_energy`` (outcomes the admissibility guard corrected: kernels/forest.py ``admissible_impulse``),
-    ``guard_domain_clamped`` (pairs whose features were clamped into the model's training domain), and per stream
+    ``guard_domain_clamped`` (pairs whose features were clamped into the model's training domain),
+    ``guard_late_overlap`` (swept: events whose pair was already overlapping at its time t > 0 - met unseen, e.g.
+    out of order, or overlapping since the previous step's push), and per stream
     pair a <= b ``collisions_<a>_<b>``, ``surrogate_calls_<a>_<b>``, ``detected_pairs_<a>_<b>``.
     """
 
@@ -170,9 +172,12 @@ class SurrogateCollision:
         a.features, a.batch_out = zeros((n, 6), wp.float32), zeros((n, 2), wp.float32)
         a.batch_count = self.batch_count
         a.max_rounds = self.max_rounds
-        a.guard = zeros(4, wp.int32)
+        a.guard = zeros(len(GUARD_NAMES), wp.int32)
         a.sequential = 1 if self.ordering == "sequential" else 0
         a.global_key = wp.full(1, 0, dtype=wp.int64, device=dev)
+        a.blocker, a.blocked_round = zeros(n, wp.int32), zeros(n, wp.int32)
+        a.blocker_key = wp.full(n, 0, dtype=wp.int64, device=dev)
+        a.blocked_key = wp.full(n, 0, dtype=wp.int64, device=dev)
         if self.flat.form == "contact":
             a.domain = self.flat.domain_to_device(dev)
         self.swept = a
@@ -316,7 +321,7 @@ class SurrogateCollision:
                 cap = int(self.round_cap_hit.numpy()[0])
                 guard = self.swept.guard.numpy()
             if self._device is None:
-                guard = np.zeros(4, np.int64)
+                guard = np.zeros(len(GUARD_NAMES), np.int64)
             self._counts = {"collisions": int(collisions.sum()), "surrogate_calls": int(calls.sum()),
                             "detected_pairs": int(detected.sum()), "separating_skipped": skipped,
                             "rounds": rounds, "round_cap_hit": cap,

@@ -394,15 +394,28 @@ class SweptArgs:
     domain: ContactDomain
     """The model's training domain (features clamped into it) and Coulomb bound (the admissibility guard)."""
     guard: wp.array(dtype=wp.int32)
-    """(4,) corrections counted: separation, Coulomb, energy (``admissible_impulse`` flags), domain clamps."""
+    """(5,) counted: corrections separation, Coulomb, energy (``admissible_impulse`` flags), domain clamps, late
+    events (the pair already overlapping at its time t > 0)."""
     sequential: wp.int32
     """1: one event per round, the globally earliest (strict event-driven order; the reference of the tests)."""
     global_key: wp.array(dtype=wp.int64)
     """(1,) earliest pending event key (``sequential`` only)."""
+    blocker: wp.array(dtype=wp.int32)
+    """Per parcel a (the lower index of a pending pair): the parcel k whose earlier event blocked the pair, -1."""
+    blocker_key: wp.array(dtype=wp.int64)
+    """k's event key when it blocked the pair."""
+    blocked_key: wp.array(dtype=wp.int64)
+    """The pair's key when it was blocked."""
+    blocked_round: wp.array(dtype=wp.int32)
+    """The round of that check."""
 
 
 GUARD_CLAMPED = wp.constant(3)
 """Index in ``SweptArgs.guard`` of the domain-clamp count (0-2: the admissibility flags 1, 2, 4)."""
+GUARD_LATE = wp.constant(4)
+"""Index in ``SweptArgs.guard`` of the events whose pair was already overlapping at its time t > 0 (met unseen)."""
+LATE_OVERLAP = wp.constant(0.999)
+"""A pair closer than this fraction of r_i + r_j at its event time t > 0 did not meet at first touch."""
 
 
 @wp.func
@@ -479,6 +492,7 @@ def swept_start(
     args.t_last[i] = 0.0
     args.stamp[i] = -1
     args.last_partner[i] = -1
+    args.blocker[i] = -1
     v = particle_v[i]
     half = 0.5 * args.dt
     if args.particle_alive[i] == 0:
@@ -563,12 +577,12 @@ def swept_find(
 
 @wp.func
 def earlier_neighbour_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: int, b: int, t: float,
-                            q: wp.int64):
+                            q: wp.int64) -> int:
     """True when a parcel k (not b) has a pending event at t_k earlier than the pair's (time bits q, time t) and could,
     on its new path, reach a before t. After its event k moves at most V_k = |v_k| + 2 |v_k - v_p| (p its partner:
     an admissible impulse changes k's velocity by at most 2 m_p/(m_k + m_p) |g| <= 2 |g|); a moves at |v_a|. From
     t1 = max(t_k, t_last_a) the gap |x_a(t1) - x_k(t_k)| - r_a - r_k cannot close before
-    (V_k (t - t_k) + |v_a| (t - t1))."""
+    (V_k (t - t_k) + |v_a| (t - t1)). Returns the first such k found, -1 if none."""
     ra = args.particle_radius[a]
     reach_a = args.reach[a]
     ma = args.hash_point[a]
@@ -591,8 +605,22 @@ def earlier_neighbour_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3)
                         gap = wp.length(xk - xa) - ra - args.particle_radius[k]
                         speed_k = wp.length(vk - u_f) + 2.0 * wp.length(vk - particle_v[event_partner(key_k)])
                         if gap <= speed_k * (t - t_k) + speed_a * (t - t1) + 1.0e-6 * ra:
-                            return True
-    return False
+                            return k
+    return -1
+
+
+@wp.func
+def still_blocked(args: SweptArgs, a: int, key: wp.int64):
+    """The pair of a (key) was blocked by parcel k in an earlier round and nothing that decided it has changed: the
+    pair's key, k's key, and neither k nor k's partner has collided since (their paths are the same)."""
+    k = args.blocker[a]
+    if k < 0 or args.blocked_key[a] != key:
+        return False
+    key_k = args.event_key[k]
+    if key_k != args.blocker_key[a] or key_k == EVENT_NONE:
+        return False
+    since = args.blocked_round[a]
+    return args.stamp[k] < since and args.stamp[event_partner(key_k)] < since
 
 
 @wp.kernel
@@ -627,8 +655,17 @@ def swept_select(
     if t < 0.0:
         return
     # causality: a neighbour with an earlier event may change its path and reach a or b before t; wait for it
+    if still_blocked(args, a, key):
+        return
     q = key >> wp.int64(32)
-    if earlier_neighbour_event(args, particle_v, a, b, t, q) or earlier_neighbour_event(args, particle_v, b, a, t, q):
+    k = earlier_neighbour_event(args, particle_v, a, b, t, q)
+    if k < 0:
+        k = earlier_neighbour_event(args, particle_v, b, a, t, q)
+    if k >= 0:
+        args.blocker[a] = k  # remembered: the check is repeated only once k's event or path changed
+        args.blocker_key[a] = args.event_key[k]
+        args.blocked_key[a] = key
+        args.blocked_round[a] = args.round[0]
         return
     s = relative_position(args, particle_v, a, b, t)
     dist = wp.length(s)
@@ -684,6 +721,13 @@ def swept_resolve(
     n = args.event_normal[row]
     vi = particle_v[i]
     vj = particle_v[j]
+    if t > 0.0:
+        # a pair found already overlapping inside the step met unseen: an event out of order (or a start overlap
+        # that the previous step's push left); counted, and resolved now
+        s_t = relative_position(args, particle_v, i, j, t)
+        cut = args.particle_radius[i] + args.particle_radius[j]
+        if wp.dot(s_t, s_t) < (cut * LATE_OVERLAP) * (cut * LATE_OVERLAP):
+            wp.atomic_add(args.guard, GUARD_LATE, 1)
     impulse_n = float(0.0)
     impulse_t = float(0.0)
     if args.batched != 0:
