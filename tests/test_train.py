@@ -195,4 +195,6 @@ def test_train_and_predict_commands(tmp_path, monkeypatch, capsys):
     assert "normal" in capsys.readouterr().err
     assert main(["predict", "--model", str(tmp_path / "nowhere")]) == 2
     assert main(["train", "--data", str(tmp_path / "nowhere"), "--out", model]) == 2
+    assert main(["train", "--data", str(tmp_path / "ds"), "--out", model, "--search-space", "{bad"]) == 2
+    assert "--search-space" in capsys.readouterr().err
     assert issubclass(ConfigError, HelWarpError)

@@ -27,6 +27,8 @@ def add_parser(subparsers):
     p.add_argument("--seed", type=int, default=0, help="seed of the split, sampler and XGBoost (default 0)")
     p.add_argument("--nthread", type=int, default=1, help="XGBoost threads per trial (default 1)")
     p.add_argument("--jobs", type=int, default=2, help="trials run side by side (default 2)")
+    p.add_argument("--search-space", default=None, metavar="JSON",
+                   help='overrides of the tuned ranges, e.g. \'{"n_estimators": [800, 3000], "max_depth": [8, 12]}\'')
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--no-report", action="store_true", help="skip the report figures")
     add_json_flag(p)
@@ -41,8 +43,19 @@ def run(args) -> int:
     from surrogate.train import TrainConfig, train
 
     require(args.samples_limit is None or args.samples_limit > 0, "--samples-limit must be > 0")
+    space = None
+    if args.search_space is not None:
+        import json
+
+        from hel_warp.errors import ConfigError
+
+        try:
+            space = {k: tuple(v) for k, v in json.loads(args.search_space).items()}
+        except (ValueError, TypeError, AttributeError):
+            raise ConfigError(f"--search-space must be a JSON object of [low, high] ranges (got {args.search_space!r})"
+                              ) from None
     config = TrainConfig(form=args.form, trials=args.trials, storage=args.storage, timeout=args.timeout,
-                         seed=args.seed, nthread=args.nthread, jobs=args.jobs,
+                         seed=args.seed, nthread=args.nthread, jobs=args.jobs, search_space=space,
                          progress=not args.no_progress and sys.stderr.isatty(), report=not args.no_report)
     data = load_collision_data(args.data, samples_limit=args.samples_limit)
     log = (lambda msg: print(msg, file=sys.stderr)) if args.json else print
