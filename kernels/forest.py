@@ -266,6 +266,11 @@ ENERGY_RADIUS = 0.999999
 velocities cannot carry the outcome above the pre-collision kinetic energy."""
 
 
+DOMAIN_ROUNDOFF = 4.8e-7
+"""Relative slack (4 float32 ulps) of the domain test: the kernel's own rounding of a training pair
+(e.g. ``g_n/|g| = 1.0000001`` for a central impact) is not an excursion out of the domain."""
+
+
 @wp.struct
 class ContactDomain:
     """Training domain of a contact-form model (``FlatForest.domain_to_device``; file: surrogate/flatten.py)."""
@@ -302,13 +307,16 @@ def write_contact_features_in_domain(v1: wp.vec3, v2: wp.vec3, n: wp.vec3, d1: f
     g_t, so the clamped ``g_n/|g|`` is kept) into the range where both ``g_n = |g| c`` and
     ``g_t = |g| sqrt(1 - c^2)`` lie in their training ranges; d1 and the two ratios are clamped on
     their own. The outcome is a normalised impulse (units m*|g|), applied with the pair's own |g|.
-    Returns 1 when anything was clamped, else 0.
+    A feature within DOMAIN_ROUNDOFF of a bound counts as inside. Returns 1 when anything was
+    clamped, else 0.
     """
     raw = contact_pair_features(v1, v2, n, d1, d2, rho1, rho2)
     outside = int(0)
     kinematic = int(0)
     for k in range(6):
-        if not (raw[k] >= domain.feature_lo[k] and raw[k] <= domain.feature_hi[k]):
+        lo = domain.feature_lo[k]
+        hi = domain.feature_hi[k]
+        if not (raw[k] >= lo - DOMAIN_ROUNDOFF * wp.abs(lo) and raw[k] <= hi + DOMAIN_ROUNDOFF * wp.abs(hi)):
             outside = 1
             if k < 3:
                 kinematic = 1
