@@ -27,7 +27,7 @@ from hel_warp.pairs import DEFAULT_STREAMS, pair_counts
 
 DETECTIONS = ("swept", "overlap")
 """Pair detection of the ``pairwise`` surrogate: ``swept`` (default, continuous) or ``overlap`` (the paper's test)."""
-GUARD_NAMES = ("separation", "coulomb", "energy", "domain_clamped", "late_overlap")
+GUARD_NAMES = ("separation", "coulomb", "energy", "domain_clamped", "late_overlap", "turned")
 """``counts()`` keys ``guard_<name>``: admissibility corrections and domain clamps (``kernels/collide.py``)."""
 CELL_FACTOR = 2.0
 """Hash cells of the swept search, in units of r_max + the mean reach (smaller cells measured slower on the CPU)."""
@@ -84,7 +84,8 @@ class SurrogateCollision:
     ``guard_energy`` (outcomes the admissibility guard corrected: kernels/forest.py ``admissible_impulse``),
     ``guard_domain_clamped`` (pairs whose features were clamped into the model's training domain),
     ``guard_late_overlap`` (swept: events whose pair was already overlapping at its time t > 0 - met unseen, e.g.
-    out of order, or overlapping since the previous step's push), and per stream
+    out of order, or overlapping since the previous step's push), ``guard_turned`` (grazing outcomes still closing
+    along the first-touch normal, turned to their end-of-contact normal), and per stream
     pair a <= b ``collisions_<a>_<b>``, ``surrogate_calls_<a>_<b>``, ``detected_pairs_<a>_<b>``.
     """
 

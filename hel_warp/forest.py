@@ -92,7 +92,19 @@ class FlatForest:
         domain.feature_lo = wp.array(self.feature_lo, dtype=wp.float32, device=device)
         domain.feature_hi = wp.array(self.feature_hi, dtype=wp.float32, device=device)
         domain.friction_bound = self.friction_bound
+        domain.separation_slack = self.separation_slack
         return domain
+
+    @property
+    def separation_slack(self) -> float:
+        """Separation guard a >= c - slack: the largest shortfall of a below cos_angle in the training DEM rows
+        (``domain.separation_slack``, else ``domain.dem_admissibility.all.max_separation_deficit``; 0 without
+        either: strictly separating along the first-touch normal)."""
+        d = self.domain or {}
+        if "separation_slack" in d:
+            return max(0.0, float(d["separation_slack"]))
+        deficit = ((d.get("dem_admissibility") or {}).get("all") or {}).get("max_separation_deficit")
+        return max(0.0, float(deficit)) if deficit is not None else 0.0
 
     @property
     def n_trees(self) -> int:
@@ -365,7 +377,8 @@ class ForestPredictor:
                 kf.contact_features_in_domain(w_v1, w_v2, w_n, w_d1, w_d2, w_r1, w_r2, self.domain, feats, clamped)
                 kf.eval_forest(self.forest, feats, targets, rows_per_thread=self.rows_per_thread)
                 kf.apply_admissible_contact(w_v1, w_v2, w_n, w_d1, w_d2, w_r1, w_r2, targets, self.flat.friction_bound,
-                                            v1_after, v2_after, guard_counts)
+                                            v1_after, v2_after, guard_counts,
+                                            separation_slack=self.flat.separation_slack)
                 counts = guard_counts.numpy()
                 self.last_counts = {"pairs": int(n_pairs), "clamped": int(clamped.numpy()[0]),
                                     "guard_separation": int(counts[0]), "guard_coulomb": int(counts[1]),

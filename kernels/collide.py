@@ -394,8 +394,8 @@ class SweptArgs:
     domain: ContactDomain
     """The model's training domain (features clamped into it) and Coulomb bound (the admissibility guard)."""
     guard: wp.array(dtype=wp.int32)
-    """(5,) counted: corrections separation, Coulomb, energy (``admissible_impulse`` flags), domain clamps, late
-    events (the pair already overlapping at its time t > 0)."""
+    """(6,) counted: corrections separation, Coulomb, energy (``admissible_impulse`` flags), domain clamps, late
+    events (the pair already overlapping at its time t > 0), outcomes turned to their end-of-contact normal."""
     sequential: wp.int32
     """1: one event per round, the globally earliest (strict event-driven order; the reference of the tests)."""
     global_key: wp.array(dtype=wp.int64)
@@ -412,6 +412,8 @@ class SweptArgs:
 
 GUARD_CLAMPED = wp.constant(3)
 """Index in ``SweptArgs.guard`` of the domain-clamp count (0-2: the admissibility flags 1, 2, 4)."""
+GUARD_TURNED = wp.constant(5)
+"""Index in ``SweptArgs.guard`` of the outcomes whose pair was turned to its end-of-contact normal."""
 GUARD_LATE = wp.constant(4)
 """Index in ``SweptArgs.guard`` of the events whose pair was already overlapping at its time t > 0 (met unseen)."""
 LATE_OVERLAP = wp.constant(0.999)
@@ -702,6 +704,38 @@ def follow_new_path(args: SweptArgs, i: int, partner: int, t: float, v_old: wp.v
     wp.atomic_max(args.reach_max, 0, r)
 
 
+@wp.func
+def end_of_contact_normal(args: SweptArgs, i: int, j: int, t: float, n: wp.vec3, g_after: wp.vec3, mass_i: float,
+                          mass_j: float):
+    """A grazing soft contact ends with the centre line turned (the spheres slide during the contact; PHYSICS-NOTES
+    "Soft spheres at oblique incidence"): an outcome still closing along the first-touch normal n (g'.n > 0, which
+    the DEM shows at grazing incidence and the guard admits up to its slack) leaves the pair touching along the
+    nearest normal n' perpendicular to g' instead, the pair turned about its centre of mass (momentum and energy
+    untouched, the positions move by at most r_i + r_j times the turn), so it separates and never passes through."""
+    g_n = wp.dot(g_after, n)
+    g2 = wp.dot(g_after, g_after)
+    if g_n <= 0.0 or g2 <= 0.0:
+        return
+    n_new = n - (g_n / g2) * g_after  # n minus its component along g'
+    length = wp.length(n_new)
+    if length <= 0.0:
+        return
+    n_new = n_new / length
+    cut = args.particle_radius[i] + args.particle_radius[j]
+    ds = cut * (n_new - n)  # change of the relative position x_j - x_i at t
+    total = mass_i + mass_j
+    move_i = -ds * (mass_j / total)
+    move_j = ds * (mass_i / total)
+    args.base[i] = args.base[i] + move_i
+    args.shift[i] = args.shift[i] + move_i
+    args.base[j] = args.base[j] + move_j
+    args.shift[j] = args.shift[j] + move_j
+    args.reach[i] = args.reach[i] + wp.length(move_i)  # the path moved by move: its bound by as much
+    args.reach[j] = args.reach[j] + wp.length(move_j)
+    wp.atomic_max(args.reach_max, 0, wp.max(args.reach[i], args.reach[j]))
+    wp.atomic_add(args.guard, GUARD_TURNED, 1)
+
+
 @wp.kernel
 def swept_resolve(
     args: SweptArgs,
@@ -739,7 +773,8 @@ def swept_resolve(
     # admissibility: separating along n, Coulomb, no energy gain, whatever the trees say (kernels/forest.py)
     g = vi - vj
     cos_angle = wp.dot(g, n) / wp.length(g)
-    impulse_n, impulse_t, flags = admissible_impulse(cos_angle, impulse_n, impulse_t, args.domain.friction_bound)
+    impulse_n, impulse_t, flags = admissible_impulse(cos_angle, impulse_n, impulse_t, args.domain.friction_bound,
+                                                     args.domain.separation_slack)
     if (flags & GUARD_SEPARATION) != 0:
         wp.atomic_add(args.guard, 0, 1)
     if (flags & GUARD_COULOMB) != 0:
@@ -761,6 +796,7 @@ def swept_resolve(
     this_round = args.round[0]
     follow_new_path(args, i, j, t, vi, vi_new, this_round)
     follow_new_path(args, j, i, t, vj, vj_new, this_round)
+    end_of_contact_normal(args, i, j, t, n, vi_new - vj_new, mi * wi, mj * wj)
     s = stream_pair_index(args.particle_stream[i], args.particle_stream[j], args.n_streams)
     wp.atomic_add(calls, s, 1)
     wp.atomic_add(collisions, s, wp.int32(w_min + 0.5))

@@ -281,6 +281,10 @@ class ContactDomain:
     """(6,) training maximum."""
     friction_bound: wp.float32
     """Coulomb guard: normalised tangential impulse b <= friction_bound * a (chosen from the DEM data)."""
+    separation_slack: wp.float32
+    """Separation guard: the normalised normal impulse a may fall short of cos_angle by this much (a >= c - slack):
+    the largest shortfall the training DEM itself shows at grazing incidence, where the soft contact turns the
+    centre line while the spheres slide; 0 is the strict rule."""
 
 
 @wp.func
@@ -345,7 +349,8 @@ def write_contact_features_in_domain(v1: wp.vec3, v2: wp.vec3, n: wp.vec3, d1: f
 
 
 @wp.func
-def admissible_impulse(cos_angle: float, impulse_n: float, impulse_t: float, friction_bound: float):
+def admissible_impulse(cos_angle: float, impulse_n: float, impulse_t: float, friction_bound: float,
+                       separation_slack: float):
     """Normalised impulse on particle 2 ``(a, b)`` along ``n`` and ``t_hat`` (units m*|g|, as
     ``contact_impulse``) corrected into the admissible set; returns ``(a, b, flags)``.
 
@@ -353,7 +358,9 @@ def admissible_impulse(cos_angle: float, impulse_n: float, impulse_t: float, fri
     relative velocity is ``g' = |g| ((c - a) n + (s - b) t_hat)`` (PHYSICS-NOTES "Binary collision
     outcome"), so in ``u = g'/|g|``:
 
-    - flag 1 (GUARD_SEPARATION): separating along n, ``u_n = c - a <= 0``: ``a`` raised to ``c``;
+    - flag 1 (GUARD_SEPARATION): separating along n, ``u_n = c - a <= separation_slack``: ``a`` raised to
+      ``c - separation_slack`` (0: strictly separating along the first-touch normal; the engine passes the largest
+      shortfall of the training DEM, whose grazing contacts end with the centre line turned);
     - flag 2 (GUARD_COULOMB): ``b <= friction_bound * a``: ``b`` lowered to the bound;
     - flag 4 (GUARD_ENERGY): ``|u| <= 1`` (an internal impulse leaves the centre-of-mass energy
       unchanged, so this is "kinetic energy never grows"): ``u`` projected onto the disc of radius
@@ -368,8 +375,9 @@ def admissible_impulse(cos_angle: float, impulse_n: float, impulse_t: float, fri
     a = impulse_n
     b = impulse_t
     flags = int(0)
-    if not (a >= c):
-        a = c
+    a_min = c - separation_slack
+    if not (a >= a_min):
+        a = a_min
         flags = flags | GUARD_SEPARATION
     b_max = friction_bound * a
     if not (b <= b_max):
@@ -398,7 +406,7 @@ def admissible_impulse(cos_angle: float, impulse_n: float, impulse_t: float, fri
                 m = wp.clamp((-uw + wp.sqrt(disc)) / ww, 0.0, 1.0)
             u_n = m * w_n
             u_t = s + m * w_t
-        a = wp.max(c - u_n, c)
+        a = wp.max(c - u_n, a_min)
         b = s - u_t
     return a, b, flags
 
@@ -422,7 +430,7 @@ def apply_admissible_contact_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.array(dt
                                     n: wp.array(dtype=wp.vec3), d1: wp.array(dtype=wp.float32),
                                     d2: wp.array(dtype=wp.float32), rho1: wp.array(dtype=wp.float32),
                                     rho2: wp.array(dtype=wp.float32), targets: wp.array2d(dtype=wp.float32),
-                                    friction_bound: wp.float32,
+                                    friction_bound: wp.float32, separation_slack: wp.float32,
                                     # outputs
                                     v1_after: wp.array(dtype=wp.vec3), v2_after: wp.array(dtype=wp.vec3),
                                     guard_counts: wp.array(dtype=wp.int32)):
@@ -430,7 +438,8 @@ def apply_admissible_contact_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.array(dt
     incidence); ``guard_counts`` += [flag 1, flag 2, flag 4, any] corrections (int atomics)."""
     i = wp.tid()
     g = v1[i] - v2[i]
-    a, b, flags = admissible_impulse(wp.dot(g, n[i]) / wp.length(g), targets[i, 0], targets[i, 1], friction_bound)
+    a, b, flags = admissible_impulse(wp.dot(g, n[i]) / wp.length(g), targets[i, 0], targets[i, 1], friction_bound,
+                                     separation_slack)
     m1 = sphere_mass(d1[i], rho1[i])
     m2 = sphere_mass(d2[i], rho2[i])
     J = contact_impulse(v1[i], v2[i], n[i], m1, m2, a, b)
@@ -448,12 +457,12 @@ def apply_admissible_contact_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.array(dt
 
 @wp.kernel
 def admissible_targets_kernel(cos_angle: wp.array(dtype=wp.float32), targets: wp.array2d(dtype=wp.float32),
-                              friction_bound: wp.float32,
+                              friction_bound: wp.float32, separation_slack: wp.float32,
                               # outputs
                               guarded: wp.array2d(dtype=wp.float32), flags: wp.array(dtype=wp.int32)):
     """``admissible_impulse`` row by row (metrics and tests: the corrected targets and the flags of each row)."""
     i = wp.tid()
-    a, b, f = admissible_impulse(cos_angle[i], targets[i, 0], targets[i, 1], friction_bound)
+    a, b, f = admissible_impulse(cos_angle[i], targets[i, 0], targets[i, 1], friction_bound, separation_slack)
     guarded[i, 0] = a
     guarded[i, 1] = b
     flags[i] = f
@@ -589,16 +598,18 @@ def contact_features_in_domain(v1, v2, n, d1, d2, rho1, rho2, domain, features, 
 
 
 def apply_admissible_contact(v1, v2, n, d1, d2, rho1, rho2, targets, friction_bound, v1_after, v2_after,
-                             guard_counts, *, device=None) -> None:
+                             guard_counts, *, separation_slack: float = 0.0, device=None) -> None:
     """Guarded impulses; ``guard_counts`` (4,) int32 += [separation, Coulomb, energy, any] corrections."""
     if v1.shape[0]:
         wp.launch(apply_admissible_contact_kernel, dim=v1.shape[0],
-                  inputs=[v1, v2, n, d1, d2, rho1, rho2, targets, float(friction_bound)],
+                  inputs=[v1, v2, n, d1, d2, rho1, rho2, targets, float(friction_bound), float(separation_slack)],
                   outputs=[v1_after, v2_after, guard_counts], device=device or v1.device)
 
 
-def admissible_targets(cos_angle, targets, friction_bound, guarded, flags, *, device=None) -> None:
+def admissible_targets(cos_angle, targets, friction_bound, guarded, flags, *, separation_slack: float = 0.0,
+                       device=None) -> None:
     """Row-wise ``admissible_impulse``: ``guarded`` (N, 2) corrected targets, ``flags`` (N,) int32."""
     if cos_angle.shape[0]:
-        wp.launch(admissible_targets_kernel, dim=cos_angle.shape[0], inputs=[cos_angle, targets, float(friction_bound)],
+        wp.launch(admissible_targets_kernel, dim=cos_angle.shape[0], inputs=[cos_angle, targets, float(friction_bound),
+                                                                     float(separation_slack)],
                   outputs=[guarded, flags], device=device or cos_angle.device)

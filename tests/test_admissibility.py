@@ -29,7 +29,7 @@ EPS32 = float(np.finfo(np.float32).eps)
 def _guard(c: wp.array(dtype=wp.float32), a: wp.array(dtype=wp.float32), b: wp.array(dtype=wp.float32),
            bound: wp.float32, out: wp.array2d(dtype=wp.float32), flags: wp.array(dtype=wp.int32)):
     i = wp.tid()
-    x, y, f = kf.admissible_impulse(c[i], a[i], b[i], bound)
+    x, y, f = kf.admissible_impulse(c[i], a[i], b[i], bound, 0.0)
     out[i, 0] = x
     out[i, 1] = y
     flags[i] = f
