@@ -65,22 +65,6 @@ def forest_target(forest: Forest, target: wp.int32, features: wp.array2d(dtype=w
     return acc
 
 
-@wp.func
-def write_contact_features(v1: wp.vec3, v2: wp.vec3, n: wp.vec3, d1: float, d2: float, rho1: float, rho2: float,
-                           row: wp.int32, features: wp.array2d(dtype=wp.float32)):
-    """Contact-frame features g_n, g_t, g_n/|g|, d1, d2/d1, rho2/rho1 (as kernels/forest.py contact_features)."""
-    g = v1 - v2
-    g_n = wp.dot(g, n)
-    gt = g - g_n * n
-    gt = gt - wp.dot(gt, n) * n
-    features[row, 0] = g_n
-    features[row, 1] = wp.length(gt)
-    features[row, 2] = g_n / wp.length(g)
-    features[row, 3] = d1
-    features[row, 4] = d2 / d1
-    features[row, 5] = rho2 / rho1
-
-
 # ------------------------------------------------------------------------------------------ detection
 
 

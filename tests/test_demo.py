@@ -17,7 +17,9 @@ def test_demo_reduced_end_to_end(tmp_path, capsys):
     assert summary["three_streams"]["ktgf"] == "pass-through"
     report = json.loads((out / "report" / "report.json").read_text())
     models = sorted(run["model"] for run in report["runs"])
-    assert models in (["dem", "dem-no-contacts", "ktgf", "none", "surrogate"], ["dem", "ktgf", "none", "surrogate"])
+    # the surrogate run is labelled with its pair detection (swept, the default)
+    assert models in (["dem", "dem-no-contacts", "ktgf", "none", "surrogate/swept"],
+                      ["dem", "ktgf", "none", "surrogate/swept"])
     for run in report["runs"]:
         assert run["end_time"] > 0 and run["wall_clock_s"] > 0
     # the table per step (issue 11): one row per model, printed at the end and kept in the summary
