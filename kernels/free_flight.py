@@ -21,31 +21,18 @@ import warp as wp
 
 
 @wp.kernel
-def drift_kernel(
-    particle_v: wp.array(dtype=wp.vec3),
+def add_rate_kernel(
+    rate: wp.array(dtype=wp.vec3),
     particle_alive: wp.array(dtype=wp.int32),
     dt: float,
     # outputs
-    particle_x: wp.array(dtype=wp.vec3),
+    value: wp.array(dtype=wp.vec3),
 ):
+    """value += rate dt for live parcels (the drift x += v dt and the kick v += a dt)."""
     i = wp.tid()
     if particle_alive[i] == 0:
         return
-    particle_x[i] = particle_x[i] + particle_v[i] * dt
-
-
-@wp.kernel
-def kick_kernel(
-    particle_a: wp.array(dtype=wp.vec3),
-    particle_alive: wp.array(dtype=wp.int32),
-    dt: float,
-    # outputs
-    particle_v: wp.array(dtype=wp.vec3),
-):
-    i = wp.tid()
-    if particle_alive[i] == 0:
-        return
-    particle_v[i] = particle_v[i] + particle_a[i] * dt
+    value[i] = value[i] + rate[i] * dt
 
 
 @wp.func
@@ -101,13 +88,13 @@ def velocity_moments_kernel(
 
 def drift(particle_x, particle_v, particle_alive, dt: float) -> None:
     """x += v dt in place (live parcels)."""
-    wp.launch(drift_kernel, dim=particle_x.shape[0], device=particle_x.device,
+    wp.launch(add_rate_kernel, dim=particle_x.shape[0], device=particle_x.device,
               inputs=[particle_v, particle_alive, float(dt)], outputs=[particle_x])
 
 
 def kick(particle_v, particle_a, particle_alive, dt: float) -> None:
     """v += a dt in place (live parcels)."""
-    wp.launch(kick_kernel, dim=particle_v.shape[0], device=particle_v.device,
+    wp.launch(add_rate_kernel, dim=particle_v.shape[0], device=particle_v.device,
               inputs=[particle_a, particle_alive, float(dt)], outputs=[particle_v])
 
 
