@@ -568,7 +568,11 @@ def earlier_neighbour_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3)
     on its new path, reach a before t. After its event k moves at most V_k = |v_k| + 2 |v_k - v_p| (p its partner:
     an admissible impulse changes k's velocity by at most 2 m_p/(m_k + m_p) |g| <= 2 |g|); a moves at |v_a|. From
     t1 = max(t_k, t_last_a) the gap |x_a(t1) - x_k(t_k)| - r_a - r_k cannot close before
-    (V_k (t - t_k) + |v_a| (t - t1)). Returns the first such k found, -1 if none."""
+    (V_k (t - t_k) + |v_a| (t - t1)). Returns the first such k found, -1 if none.
+
+    Only parcels whose present paths come within reach of a's are tested: a k whose new path (after its event) leaves
+    its present reach could still arrive unseen. Such a miss shows as an event found already overlapping
+    (``guard_late_overlap``, resolved at once); none was found in the tests against the strict event order."""
     ra = args.particle_radius[a]
     reach_a = args.reach[a]
     ma = args.hash_point[a]
