@@ -25,8 +25,10 @@ from hel_warp.cfd_dem import DemCollision
 from hel_warp.pairs import DEFAULT_STREAMS, pair_counts
 
 
-DETECTIONS = ("swept", "overlap")
-"""Pair detection of the ``pairwise`` surrogate: ``swept`` (default, continuous) or ``overlap`` (the paper's test)."""
+DETECTIONS = ("swept", "overlap", "cell")
+"""Pair detection of the ``pairwise`` surrogate: ``swept`` (continuous; the default for parcels of weight 1),
+``overlap`` (the paper's test) or ``cell`` (stochastic per collision cell, ``hel_warp/cell_collisions.py``; the
+default when a live parcel's weight exceeds 1)."""
 GUARD_NAMES = ("separation", "coulomb", "energy", "domain_clamped", "late_overlap", "turned")
 """``counts()`` keys ``guard_<name>``: admissibility corrections and domain clamps (``kernels/collide.py``)."""
 CELL_FACTOR = 2.0
@@ -56,6 +58,12 @@ class SurrogateCollision:
         start, normal along the centre line, approaching pairs only (the same machinery with paths of zero
         length: several partners in rounds, a separating pair is never collided again - the fix of the
         paper's sec. 8). Its collision count depends on dt; kept for comparison.
+
+      - ``cell``: Bird's no-time-counter collisions per collision cell from the real number density (weights),
+        impact geometry sampled (b^2 uniform, random azimuth), for parcels of many particles
+        (``hel_warp/cell_collisions.py``, ``kernels/cell_collide.py``; options ``cell=CellConfig(...)``, random
+        state ``seed`` and the steps taken, in :meth:`state`). ``detection=None`` (default) takes ``cell`` at a
+        step where a live parcel's weight exceeds 1, else ``swept``.
 
       Each collision gets the equal and opposite impulse of the contact form, so momentum is conserved to
       float32 round-off.
@@ -89,14 +97,14 @@ class SurrogateCollision:
     pair a <= b ``collisions_<a>_<b>``, ``surrogate_calls_<a>_<b>``, ``detected_pairs_<a>_<b>``.
     """
 
-    def __init__(self, *, model_dir: str, mode: str = "pairwise", detection: str = "swept",
+    def __init__(self, *, model_dir: str, mode: str = "pairwise", detection: str | None = None,
                  periodic_box=None, n_streams: int = DEFAULT_STREAMS, batched: bool = True,
-                 max_rounds: int = MAX_ROUNDS, ordering: str = "parallel"):
+                 max_rounds: int = MAX_ROUNDS, ordering: str = "parallel", cell=None, seed: int = 0):
         from hel_warp.forest import load_forest
 
         if mode not in ("pairwise", "paper"):
             raise ConfigError(f"surrogate mode must be 'pairwise' or 'paper' (got {mode!r})")
-        if detection not in DETECTIONS:
+        if detection is not None and detection not in DETECTIONS:
             raise ConfigError(f"detection must be one of {', '.join(DETECTIONS)} (got {detection!r})")
         if int(n_streams) != n_streams or n_streams < 1:
             raise ConfigError(f"n_streams must be a positive integer (got {n_streams!r})")
@@ -108,7 +116,9 @@ class SurrogateCollision:
         """``parallel``: every causally safe event of a round at once; ``sequential``: one event per round, the
         globally earliest (strict event-driven order, slow: the tests' reference)."""
         self.mode = mode
-        self.detection = detection if mode == "pairwise" else "overlap"
+        self.auto_detection = detection is None and mode == "pairwise"
+        """``detection=None``: ``cell`` at a step where a live parcel's weight exceeds 1, else ``swept``."""
+        self.detection = (detection or "swept") if mode == "pairwise" else "overlap"
         self.name = "surrogate" if mode == "pairwise" else "surrogate-paper"
         self.periodic_box = _periodic_box(periodic_box)
         self.flat = load_forest(model_dir)
@@ -127,6 +137,11 @@ class SurrogateCollision:
         self._grid = None
         self._grid_dims = None
         self._shift_pending = False
+        from hel_warp.cell_collisions import CellCollisions
+
+        self.cells = CellCollisions(config=cell, seed=seed, n_streams=self.n_streams)
+        """The ``cell`` detection (its random state is :meth:`state`)."""
+        self._solver_grid = None
 
     # ------------------------------------------------------------------ state on the device
     def _setup(self, particles) -> None:
@@ -216,6 +231,7 @@ class SurrogateCollision:
     def accelerate(self, solver) -> None:
         """Velocity jumps of the step's collisions (``solver.pool.particles.v``); a_coll = 0."""
         solver.fields.parcel_a_coll.zero_()
+        self._solver_grid = solver.grid  # the cell detection's collision cells
         self.collide(solver.pool.particles, solver.config.dt)
 
     def after_push(self, solver) -> None:
@@ -238,6 +254,12 @@ class SurrogateCollision:
         r_max = float(particles.radius.numpy()[alive].max())
         if self.mode == "paper":
             self._collide_paper(particles, r_max)
+            return
+        if self.auto_detection:
+            self.detection = "cell" if bool((particles.weight.numpy()[alive] > 1.0).any()) else "swept"
+        if self.detection == "cell":
+            self.cells.collide(particles, dt, self.forest, self.swept.domain, periodic_box=self.periodic_box,
+                               grid=None if self.periodic_box is not None else self._solver_grid, alive=alive)
             return
         if self.detection == "swept":
             if dt is None or not dt > 0 or not np.isfinite(dt):
@@ -307,8 +329,17 @@ class SurrogateCollision:
         wp.copy(self.detected, self.calls)
         wp.copy(self.collisions, self.calls)
 
+    def state(self) -> dict:
+        """Checkpoint entries: the cell detection's random state (seed, steps taken)."""
+        return self.cells.state()
+
+    def set_state(self, state: dict) -> None:
+        self.cells.set_state(state)
+
     def counts(self) -> dict:
         """Counts of the last :meth:`collide` (host read): totals and per stream pair (see the class)."""
+        if self.detection == "cell" and self.mode == "pairwise":
+            return self.cells.counts()
         if self._counts is None:
             s = self.n_streams
             if self._device is None:

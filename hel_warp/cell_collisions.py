@@ -1,0 +1,285 @@
+"""Host side of the ``cell`` detection of the ``surrogate`` strategy: stochastic parcel collisions per collision cell.
+
+Bird's no-time-counter scheme per collision cell with the real number density (weights), Enskog's g0, a sampled
+impact geometry and the contact-form surrogate outcome; the equations and their sources are in the header of
+``kernels/cell_collide.py``. This module chooses the collision cells, owns the device arrays, mixes the run seed
+with the step counter (deterministic for a seed; the pair ``(seed, step)`` is the whole random state, so a
+checkpoint restarts exactly) and turns the device counters into the strategy's ``counts()``.
+
+Collision cells (:class:`CellConfig`):
+
+- a triply periodic box (``periodic_box``): a lattice that tiles the box, cells as close to cubic as the sides
+  allow, sized to hold ``parcels_per_cell`` parcels on average (or of edge ``cell_size``);
+- with a HEL solver (``grid``, a ``hel_warp.coupling.GridSpec``): the grid cells, each cut into
+  ``subdivision``^3 sub-cells (the full cell volume counts: cells cut by a wall under-count the density there);
+- otherwise the bounding box of the live parcels, cells of ``cell_size`` (or sized for ``parcels_per_cell``).
+
+Which anchor it follows, and where it differs (README "Cell detection"): Bird's NTC (SPARTA ``collide vss``:
+candidates from the cell's (sigma g)_max, acceptance sigma g / (sigma g)_max) with the weighted parcels of
+Schmidt & Rutland (2000, spray parcels: candidates with the largest weight, acceptance with the pair's), the
+Enskog factor of Montanero & Santos (1996), and the momentum-exact min(w_i, w_j) impulse of the swept detection.
+It differs from SPARTA in the majorant (an exact per-step bound from the cell's velocities, not a running
+maximum; no remainder carried between steps), from O'Rourke (1981) in drawing pairs instead of a Poisson number
+of collisions per parcel pair, and from Sommerfeld (2001) in colliding two real parcels of the cell rather than
+a fictitious partner drawn from local statistics.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from hel_warp.errors import ConfigError
+from hel_warp.pairs import DEFAULT_STREAMS, pair_counts
+
+PARCELS_PER_CELL = 16.0
+"""Default mean parcels per collision cell in a periodic box or the bounding box: enough pairs per cell that
+N (N - 1) samples the pair density, few enough that partners stay within a few mean free paths at eps_s >= 0.01
+(a cell of 16 parcels of weight 1 at eps_s = 0.05 is 2.6 mm = 8 d wide, ~4 mean free paths)."""
+EPS_CAP = 0.55
+"""Largest cell solids fraction put into Carnahan-Starling's g0 (it diverges at 1; MP-PIC cells can overfill)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class CellConfig:
+    """Settings of the ``cell`` detection (validated at construction)."""
+
+    parcels_per_cell: float = PARCELS_PER_CELL
+    """Mean parcels per cell the lattice is sized for (periodic box / bounding box; ignored with a grid)."""
+    cell_size: float | None = None
+    """Cell edge, m; overrides ``parcels_per_cell`` (periodic box / bounding box)."""
+    subdivision: int = 1
+    """Sub-cells per grid cell and axis with a HEL solver's grid (1: the grid cell)."""
+    enskog: bool = True
+    """Enskog's factor g0 (Carnahan-Starling) of the cell's real solids fraction; False: Boltzmann (g0 = 1)."""
+    eps_cap: float = EPS_CAP
+    """Largest solids fraction put into g0."""
+    log_capacity: int = 0
+    """Accepted events logged per step (pair, g, sampled normal) for tests and diagnostics; 0: none."""
+
+    def __post_init__(self):
+        if not (math.isfinite(self.parcels_per_cell) and self.parcels_per_cell >= 2.0):
+            raise ConfigError(f"cell parcels_per_cell must be >= 2 (got {self.parcels_per_cell!r}): a cell needs "
+                              "pairs")
+        if self.cell_size is not None and not (math.isfinite(self.cell_size) and self.cell_size > 0.0):
+            raise ConfigError(f"cell cell_size must be > 0 m (got {self.cell_size!r})")
+        if int(self.subdivision) != self.subdivision or self.subdivision < 1:
+            raise ConfigError(f"cell subdivision must be a positive integer (got {self.subdivision!r})")
+        if not 0.0 < self.eps_cap < 1.0:
+            raise ConfigError(f"cell eps_cap must lie in (0, 1) (got {self.eps_cap!r})")
+        if int(self.log_capacity) != self.log_capacity or self.log_capacity < 0:
+            raise ConfigError(f"cell log_capacity must be an integer >= 0 (got {self.log_capacity!r})")
+
+
+def step_seed(seed: int, step: int) -> int:
+    """The kernel seed of step ``step`` of a run seeded ``seed``: splitmix64 of the pair, 31 bits (int32 >= 0)."""
+    z = (int(seed) * 0x9E3779B97F4A7C15 + int(step) + 0x632BE59BD9B4E019) & 0xFFFFFFFFFFFFFFFF
+    z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & 0xFFFFFFFFFFFFFFFF
+    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & 0xFFFFFFFFFFFFFFFF
+    return int((z ^ (z >> 31)) & 0x7FFFFFFF)
+
+
+def periodic_lattice(box, n_parcels: int, parcels_per_cell: float, cell_size: float | None):
+    """(origin, cell edges, shape) of a lattice tiling the periodic ``box``: edge ``cell_size`` or the edge of a
+    cube holding ``parcels_per_cell`` parcels, rounded so whole cells fill each side."""
+    box = np.asarray(box, np.float64)
+    if cell_size is None:
+        cell_size = (float(np.prod(box)) * parcels_per_cell / max(n_parcels, 1)) ** (1.0 / 3.0)
+    shape = np.maximum(1, np.round(box / cell_size)).astype(int)
+    return np.zeros(3), box / shape, shape
+
+
+def grid_lattice(grid, subdivision: int):
+    """(origin, cell edges, shape) of a HEL grid's cells cut into ``subdivision``^3 sub-cells."""
+    s = int(subdivision)
+    h = float(grid.spacing) / s
+    return np.asarray(grid.origin, np.float64), np.full(3, h), np.asarray(grid.shape, int) * s
+
+
+def bounding_lattice(x: np.ndarray, r_max: float, parcels_per_cell: float, cell_size: float | None):
+    """(origin, cell edges, shape) over the bounding box of ``x`` (padded by r_max): edge ``cell_size`` or that of a
+    cube holding ``parcels_per_cell`` parcels of the box."""
+    lo = x.min(axis=0) - r_max
+    hi = x.max(axis=0) + r_max
+    extent = np.maximum(hi - lo, 2.0 * r_max)
+    if cell_size is None:
+        cell_size = (float(np.prod(extent)) * parcels_per_cell / max(len(x), 1)) ** (1.0 / 3.0)
+    shape = np.maximum(1, np.ceil(extent / cell_size)).astype(int)
+    return lo, np.full(3, cell_size), shape
+
+
+class CellCollisions:
+    """NTC collisions per cell for a ``SurrogateCollision`` (``detection="cell"``); see the module docstring.
+
+    ``collide(particles, dt, forest, domain, periodic_box=..., grid=...)`` changes ``particles.v`` in place (the
+    positions are the caller's: the parcels then fly with their new velocities); ``counts()`` the last call's
+    counters; ``state()`` / ``set_state()`` the random state (seed, steps taken).
+    """
+
+    def __init__(self, *, config: CellConfig | None = None, seed: int = 0, n_streams: int = DEFAULT_STREAMS):
+        if int(seed) != seed or seed < 0:
+            raise ConfigError(f"seed must be an integer >= 0 (got {seed!r})")
+        self.config = config if config is not None else CellConfig()
+        self.seed = int(seed)
+        self.steps = 0
+        """Collision steps taken (the second half of the random state)."""
+        self.n_streams = int(n_streams)
+        self._args = None
+        self._key = None
+        self._counts = None
+        self.lattice = None
+        """(origin, cell edges, shape) of the last step."""
+
+    # ------------------------------------------------------------------ device arrays
+    def _allocate(self, particles, n_cells: int) -> None:
+        import warp as wp
+
+        from kernels.cell_collide import N_COUNTS, CellArgs
+
+        key = (str(particles.device), particles.count, n_cells)
+        if self._key == key:
+            return
+        dev = particles.device
+        n = particles.count
+        cap = int(self.config.log_capacity)
+        a = CellArgs()
+        a.cell_key = wp.zeros(2 * n, dtype=wp.int32, device=dev)
+        a.cell_slot = wp.zeros(2 * n, dtype=wp.int32, device=dev)
+        a.cell_start = wp.zeros(n_cells, dtype=wp.int32, device=dev)
+        a.cell_end = wp.zeros(n_cells, dtype=wp.int32, device=dev)
+        a.cell_sigma_g_max = wp.zeros(n_cells, dtype=wp.float32, device=dev)
+        a.cell_candidates = wp.zeros(n_cells, dtype=wp.float32, device=dev)
+        a.features = wp.zeros((n_cells, 6), dtype=wp.float32, device=dev)
+        a.counts = wp.zeros(N_COUNTS, dtype=wp.int32, device=dev)
+        s2 = self.n_streams * self.n_streams
+        a.calls = wp.zeros(s2, dtype=wp.int32, device=dev)
+        a.collisions = wp.zeros(s2, dtype=wp.int32, device=dev)
+        a.log_count = wp.zeros(1, dtype=wp.int32, device=dev)
+        a.log_pair = wp.zeros(cap, dtype=wp.vec2i, device=dev)
+        a.log_g = wp.zeros(cap, dtype=wp.vec3, device=dev)
+        a.log_normal = wp.zeros(cap, dtype=wp.vec3, device=dev)
+        self._args = a
+        self._key = key
+
+    def choose_lattice(self, particles, alive: np.ndarray, *, periodic_box=None, grid=None):
+        """(origin, cell edges, shape) of this step's collision cells (see the module docstring)."""
+        cfg = self.config
+        n_alive = int(np.count_nonzero(alive))
+        if periodic_box is not None:
+            return periodic_lattice(periodic_box, n_alive, cfg.parcels_per_cell, cfg.cell_size)
+        if grid is not None:
+            return grid_lattice(grid, cfg.subdivision)
+        x = particles.x.numpy()[alive].astype(np.float64)
+        r_max = float(particles.radius.numpy()[alive].max())
+        return bounding_lattice(x, r_max, cfg.parcels_per_cell, cfg.cell_size)
+
+    # ------------------------------------------------------------------ one step
+    def collide(self, particles, dt: float, forest, domain, *, periodic_box=None, grid=None, apply: bool = True,
+                alive: np.ndarray | None = None) -> None:
+        """The step's collisions of ``particles`` (velocities in place); ``forest`` an explicit-layout ``Forest``,
+        ``domain`` its ``ContactDomain``. ``apply=False``: selection only (counts and log; velocities unchanged)."""
+        from kernels.cell_collide import collide_cells, sort_by_cell
+
+        if dt is None or not (dt > 0 and math.isfinite(dt)):
+            raise ConfigError(f"cell detection needs the step dt > 0 (got {dt!r})")
+        self._counts = None
+        if alive is None:
+            alive = particles.alive.numpy().astype(bool)
+        seed = step_seed(self.seed, self.steps)
+        self.steps += 1
+        if np.count_nonzero(alive) < 2:
+            self._zero_counts()
+            return
+        origin, edges, shape = self.choose_lattice(particles, alive, periodic_box=periodic_box, grid=grid)
+        n_cells = int(np.prod(shape))
+        if n_cells >= 2**31 - 1:
+            raise ConfigError(f"{n_cells} collision cells do not fit int32 keys: give a larger cell_size")
+        self.lattice = (origin, edges, shape)
+        self._allocate(particles, n_cells)
+        a = self._args
+        a.particle_x, a.particle_radius = particles.x, particles.radius
+        a.particle_density, a.particle_weight = particles.density, particles.weight
+        a.particle_alive, a.particle_stream = particles.alive, particles.stream
+        a.n_streams = self.n_streams
+        a.origin = tuple(float(v) for v in origin)
+        a.cell_size = tuple(float(v) for v in edges)
+        a.shape = tuple(int(v) for v in shape)
+        a.cell_volume = float(np.prod(edges))
+        a.dt = float(dt)
+        a.seed = seed
+        a.enskog = 1 if self.config.enskog else 0
+        a.eps_cap = float(self.config.eps_cap)
+        a.apply = 1 if apply else 0
+        a.domain = domain
+        self._zero_counts()
+        sort_by_cell(a)
+        collide_cells(a, forest, particles.v)
+
+    def _zero_counts(self) -> None:
+        if self._args is None:
+            return
+        a = self._args
+        for arr in (a.counts, a.calls, a.collisions, a.log_count):
+            arr.zero_()
+
+    # ------------------------------------------------------------------ results
+    def counts(self) -> dict:
+        """``collisions`` (real binary collisions: sum of min(w_i, w_j)), ``surrogate_calls`` (accepted events),
+        ``detected_pairs`` (0: no overlap test), ``cell_candidates``, ``cell_accepted``, ``cell_over_max``
+        (candidates above the majorant, accepted with probability 1), ``cell_cells`` (cells with >= 2 parcels),
+        ``cell_log_overflow``, ``guard_separation|coulomb|energy|domain_clamped``, per stream pair
+        ``collisions_<a>_<b>``, ``surrogate_calls_<a>_<b>``."""
+        if self._counts is not None:
+            return dict(self._counts)
+        from kernels.cell_collide import (COUNT_ACCEPTED, COUNT_CANDIDATES, COUNT_CELLS, COUNT_CLAMPED,
+                                          COUNT_COULOMB, COUNT_ENERGY, COUNT_LOG_OVERFLOW, COUNT_OVER_MAX,
+                                          COUNT_SEPARATION, N_COUNTS)
+
+        s = self.n_streams
+        if self._args is None:
+            c = np.zeros(N_COUNTS, np.int64)
+            calls = collisions = np.zeros((s, s), np.int64)
+        else:
+            c = self._args.counts.numpy().astype(np.int64)
+            calls = self._args.calls.numpy().reshape(s, s).astype(np.int64)
+            collisions = self._args.collisions.numpy().reshape(s, s).astype(np.int64)
+        self._counts = {"collisions": int(collisions.sum()), "surrogate_calls": int(calls.sum()),
+                        "detected_pairs": 0, "cell_candidates": int(c[COUNT_CANDIDATES]),
+                        "cell_accepted": int(c[COUNT_ACCEPTED]), "cell_over_max": int(c[COUNT_OVER_MAX]),
+                        "cell_cells": int(c[COUNT_CELLS]), "cell_log_overflow": int(c[COUNT_LOG_OVERFLOW]),
+                        "guard_separation": int(c[COUNT_SEPARATION]), "guard_coulomb": int(c[COUNT_COULOMB]),
+                        "guard_energy": int(c[COUNT_ENERGY]), "guard_domain_clamped": int(c[COUNT_CLAMPED]),
+                        **pair_counts("collisions", collisions), **pair_counts("surrogate_calls", calls)}
+        return dict(self._counts)
+
+    def event_log(self) -> dict:
+        """The last step's logged events (host copies): ``pair`` (k, 2) parcel slots, ``g`` (k, 3) pre-collision
+        v_i - v_j, ``normal`` (k, 3) sampled contact normals; k = min(accepted, log_capacity)."""
+        if self._args is None:
+            return {"pair": np.zeros((0, 2), np.int32), "g": np.zeros((0, 3)), "normal": np.zeros((0, 3))}
+        a = self._args
+        k = min(int(a.log_count.numpy()[0]), a.log_pair.shape[0])
+        return {"pair": a.log_pair.numpy()[:k].copy(), "g": a.log_g.numpy()[:k].copy(),
+                "normal": a.log_normal.numpy()[:k].copy()}
+
+    def cell_arrays(self) -> dict:
+        """The last step's per-cell arrays (host copies): ``start``, ``end`` (ranges in ``slot``), ``slot`` (live
+        parcel slots in cell order), ``sigma_g_max`` (the majorant, m^3/s), ``candidates`` (expected M)."""
+        a = self._args
+        n = a.particle_x.shape[0]
+        return {"start": a.cell_start.numpy().copy(), "end": a.cell_end.numpy().copy(),
+                "slot": a.cell_slot.numpy()[:n].copy(), "sigma_g_max": a.cell_sigma_g_max.numpy().copy(),
+                "candidates": a.cell_candidates.numpy().copy()}
+
+    def state(self) -> dict:
+        """The random state: ``cell_seed`` and ``cell_steps`` (numpy scalars; the checkpoint's)."""
+        return {"cell_seed": np.array(self.seed, np.int64), "cell_steps": np.array(self.steps, np.int64)}
+
+    def set_state(self, state: dict) -> None:
+        """Restore :meth:`state` (entries missing: left as they are)."""
+        if "cell_seed" in state:
+            self.seed = int(np.asarray(state["cell_seed"]))
+        if "cell_steps" in state:
+            self.steps = int(np.asarray(state["cell_steps"]))

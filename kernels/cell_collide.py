@@ -1,0 +1,355 @@
+"""Stochastic parcel collisions per collision cell: Bird's no-time-counter (NTC) scheme with the surrogate outcome.
+
+What it computes (ARCHITECTURE.md "Collision detection", ``cell``; PHYSICS-NOTES "Stochastic collisions of
+parcels"): parcels of weight w (real particles per parcel) collide with the frequency of the REAL number density,
+whatever w. Per collision cell of volume V holding N parcels, in one step dt:
+
+- candidates (Bird 1994, sec. 11.1, NTC; SPARTA ``collide vss``; weighted as Schmidt & Rutland 2000 for spray
+  parcels): ``M = 1/2 N (N - 1) w_max chi_max (sigma g)_max dt / V``, drawn as floor(M) plus one with
+  probability frac(M) (no remainder carried between steps: the cell lists change every step);
+- each candidate is a uniformly drawn pair (i != j) of the cell, accepted with probability
+  ``sigma_ij g_ij max(w_i, w_j) chi_ij / ((sigma g)_max w_max chi_max)``, sigma_ij = pi (r_i + r_j)^2,
+  g_ij = |v_i - v_j| with the velocities as left by the cell's earlier collisions of the step (the majorant
+  thinning of a Poisson process: an unbiased sample of the collision process over the step at any dt);
+- Enskog's factor (dense gas; Montanero & Santos 1996, "Monte Carlo simulation method for the Enskog
+  equation"): ``chi_ij = g0(eps_ij)``, Carnahan-Starling g0, eps_ij the real solids fraction of the cell
+  WITHOUT the two candidates (sum_k w_k V_k - w_i V_i - w_j V_j) / V, so that with Poisson cell counts the
+  expected rate is ``1/2 n^2 sigma <g> g0(eps)`` exactly for g0 linear in eps; chi_max = g0 of the whole cell
+  bounds it (g0 grows with eps). ``enskog = 0``: chi = 1 (Boltzmann);
+- the majorant: sigma_max = pi (2 r_max)^2 of the cell, g_max = 2 max_k |v_k - c| (c the cell's mean velocity:
+  |v_i - v_j| <= |v_i - c| + |v_j - c|), w_max the cell's largest weight. A collision can raise a parcel's
+  distance from c (by up to sqrt 2 for equal masses), so a later candidate may exceed the bound; it is then
+  accepted and counted (``over_max``: the bias, measured ~0);
+- impact geometry of an accepted pair: the impact parameter uniform in b^2 on [0, (r_i + r_j)^2] and a uniform
+  azimuth about g (PHYSICS-NOTES "Impact parameter"): ``n = cos(chi) g_hat + sin(chi) (cos(phi) e1 + sin(phi)
+  e2)``, sin^2(chi) = b^2 / (r_i + r_j)^2, so g.n = |g| cos(chi) > 0 (approaching), n from i to j;
+- outcome: the contact-form forest on the features clamped into its training domain, through the
+  admissibility guard (``kernels/forest.py``), the impulse of one representative real pair J
+  (``contact_impulse``), applied with the weighted rule of the swept detection: min(w_i, w_j) real binary
+  collisions, parcel i gets ``-min(w_i, w_j) J`` and j ``+min(w_i, w_j) J`` (dv_i = -(w_min/w_i) J/m_i). Momentum
+  ``sum w m v`` is conserved to round-off. With the acceptance factor max(w_i, w_j) every real particle of
+  either parcel meets on average the right number of partners (the lighter parcel's particles one full
+  collision per event, the heavier's a fraction w_min/w_max of one). For w_i != w_j the heavier parcel's partial
+  impulse dissipates slightly more than w_min binary collisions (never less: no energy gain).
+
+Threads: one per collision cell; a cell's candidates are resolved in order by its thread (they share parcels),
+cells are disjoint. Random numbers: ``wp.rand_init(seed, cell)`` with a per-step seed from the host, so a run is
+deterministic for a seed and restarts exactly from (seed, step). Parcel lists: a stable radix sort of the live
+parcels by cell (``wp.utils.radix_sort_pairs``), cell ranges from the sorted keys. Counts are integer atomics
+(deterministic totals). The optional event log (fixed capacity, overflow counted) records the sampled geometry
+for tests and diagnostics.
+
+Launch wrappers at the bottom; they never allocate (hel_warp/cell_collisions.py owns the arrays).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from kernels.collide import forest_target, stream_pair_index
+from kernels.forest import (GUARD_COULOMB, GUARD_ENERGY, GUARD_SEPARATION, ContactDomain, Forest, admissible_impulse,
+                            contact_impulse, sphere_mass, write_contact_features_in_domain)
+
+COUNT_CANDIDATES, COUNT_ACCEPTED, COUNT_OVER_MAX, COUNT_CELLS = 0, 1, 2, 3
+COUNT_SEPARATION, COUNT_COULOMB, COUNT_ENERGY, COUNT_CLAMPED, COUNT_LOG_OVERFLOW = 4, 5, 6, 7, 8
+N_COUNTS = 9
+"""``counts`` slots: candidates drawn, accepted events, candidates above the majorant, occupied cells (>= 2
+parcels), guard corrections (separation, Coulomb, energy), domain clamps, events not logged (log full)."""
+
+
+@wp.struct
+class CellArgs:
+    """Everything the cell kernels read (arrays on one device); built by hel_warp/cell_collisions.py."""
+
+    particle_x: wp.array(dtype=wp.vec3)
+    """(N,) parcel centres, m."""
+    particle_radius: wp.array(dtype=wp.float32)
+    """(N,) radii of one real particle, m."""
+    particle_density: wp.array(dtype=wp.float32)
+    """(N,) kg/m^3."""
+    particle_weight: wp.array(dtype=wp.float32)
+    """(N,) real particles per parcel."""
+    particle_alive: wp.array(dtype=wp.int32)
+    particle_stream: wp.array(dtype=wp.int32)
+    n_streams: wp.int32
+    origin: wp.vec3
+    """Lower corner of the cell lattice, m."""
+    cell_size: wp.vec3
+    """Cell edge per axis, m (a periodic box: side / cells, the lattice tiles it)."""
+    shape: wp.vec3i
+    """Cells per axis; a parcel outside the lattice is counted in the nearest cell."""
+    cell_volume: wp.float32
+    """Volume of one cell, m^3."""
+    dt: wp.float32
+    seed: wp.int32
+    """This step's seed (the host mixes the run seed with the step counter)."""
+    enskog: wp.int32
+    """1: Enskog's factor chi = g0 (Carnahan-Starling); 0: chi = 1 (Boltzmann)."""
+    eps_cap: wp.float32
+    """Largest solids fraction put into g0 (Carnahan-Starling diverges at 1; an MP-PIC cell can overfill)."""
+    apply: wp.int32
+    """1: resolve accepted pairs with the forest; 0: selection only (counts and log, velocities unchanged)."""
+    domain: ContactDomain
+    cell_key: wp.array(dtype=wp.int32)
+    """(2N,) radix-sort keys: cell index of each slot (dead: n_cells), sorted in place."""
+    cell_slot: wp.array(dtype=wp.int32)
+    """(2N,) radix-sort values: slots, in cell order after the sort."""
+    cell_start: wp.array(dtype=wp.int32)
+    """(n_cells,) first position of the cell in the sorted slots."""
+    cell_end: wp.array(dtype=wp.int32)
+    """(n_cells,) one past its last (start = end: empty)."""
+    cell_sigma_g_max: wp.array(dtype=wp.float32)
+    """(n_cells,) the majorant (sigma g)_max of the step, m^3/s (diagnostics, tests)."""
+    cell_candidates: wp.array(dtype=wp.float32)
+    """(n_cells,) the expected candidate count M of the step (before the integer draw)."""
+    features: wp.array2d(dtype=wp.float32)
+    """(n_cells, 6) scratch row of each cell's thread for the forest."""
+    counts: wp.array(dtype=wp.int32)
+    """(N_COUNTS,) integer counters of the step (slots above)."""
+    calls: wp.array(dtype=wp.int32)
+    """(n_streams^2,) accepted events per stream pair (min, max)."""
+    collisions: wp.array(dtype=wp.int32)
+    """(n_streams^2,) real binary collisions per stream pair: sum of round(min(w_i, w_j))."""
+    log_count: wp.array(dtype=wp.int32)
+    """(1,) events offered to the log."""
+    log_pair: wp.array(dtype=wp.vec2i)
+    """(capacity,) parcels (i, j) of each logged event (capacity 0: no log)."""
+    log_g: wp.array(dtype=wp.vec3)
+    """(capacity,) pre-collision relative velocity v_i - v_j, m/s."""
+    log_normal: wp.array(dtype=wp.vec3)
+    """(capacity,) sampled contact normal (from i to j)."""
+
+
+@wp.func
+def carnahan_starling(eps: float, eps_cap: float):
+    """g0 = (1 - eps/2) / (1 - eps)^3 (Carnahan & Starling 1969), eps clamped to [0, eps_cap]."""
+    e = wp.clamp(eps, 0.0, eps_cap)
+    one = 1.0 - e
+    return (1.0 - 0.5 * e) / (one * one * one)
+
+
+@wp.func
+def sphere_volume(r: float):
+    return (4.0 / 3.0) * wp.pi * r * r * r
+
+
+@wp.func
+def sample_normal(g: wp.vec3, u_b2: float, u_phi: float):
+    """Contact normal of a random impact of relative velocity g: b^2 / (r_i + r_j)^2 = u_b2 (uniform in b^2),
+    azimuth 2 pi u_phi about g_hat; returns n = cos(chi) g_hat + sin(chi) e(phi), sin^2(chi) = u_b2."""
+    g_hat = wp.normalize(g)
+    axis = wp.vec3(1.0, 0.0, 0.0)
+    if wp.abs(g_hat[0]) > 0.57:
+        axis = wp.vec3(0.0, 1.0, 0.0)
+    e1 = wp.normalize(wp.cross(g_hat, axis))
+    e2 = wp.cross(g_hat, e1)
+    sin_chi = wp.sqrt(wp.clamp(u_b2, 0.0, 1.0))
+    cos_chi = wp.sqrt(wp.max(1.0 - u_b2, 0.0))
+    phi = 2.0 * wp.pi * u_phi
+    return wp.normalize(cos_chi * g_hat + sin_chi * (wp.cos(phi) * e1 + wp.sin(phi) * e2))
+
+
+@wp.kernel
+def cell_keys(
+    args: CellArgs,
+    # outputs
+    cell_key: wp.array(dtype=wp.int32),
+    cell_slot: wp.array(dtype=wp.int32),
+):
+    """Key of each slot: the linear index of its cell (dead: n_cells, sorted last); value: the slot."""
+    k = wp.tid()
+    n_cells = args.shape[0] * args.shape[1] * args.shape[2]
+    key = n_cells
+    if args.particle_alive[k] != 0:
+        x = args.particle_x[k]
+        c = wp.vec3i(0, 0, 0)
+        for a in range(3):
+            s = int(wp.floor((x[a] - args.origin[a]) / args.cell_size[a]))
+            c[a] = wp.clamp(s, 0, args.shape[a] - 1)
+        key = (c[0] * args.shape[1] + c[1]) * args.shape[2] + c[2]
+    cell_key[k] = key
+    cell_slot[k] = k
+
+
+@wp.kernel
+def cell_ranges(
+    args: CellArgs,
+    n: wp.int32,
+    # outputs
+    cell_start: wp.array(dtype=wp.int32),
+    cell_end: wp.array(dtype=wp.int32),
+):
+    """[start, end) of every occupied cell from the sorted keys (cells were zeroed: empty cells stay 0, 0)."""
+    k = wp.tid()
+    key = args.cell_key[k]
+    n_cells = args.shape[0] * args.shape[1] * args.shape[2]
+    if key >= n_cells:
+        return
+    if k == 0:
+        cell_start[key] = k
+    elif args.cell_key[k - 1] != key:
+        cell_start[key] = k
+    if k == n - 1:
+        cell_end[key] = k + 1
+    elif args.cell_key[k + 1] != key:
+        cell_end[key] = k + 1
+
+
+@wp.func
+def resolve_pair(args: CellArgs, forest: Forest, row: int, i: int, j: int, g: wp.vec3, n: wp.vec3,
+                 particle_v: wp.array(dtype=wp.vec3)):
+    """Surrogate outcome of parcels i, j along n (approaching): clamp, forest, guard, weighted equal and opposite
+    impulse written into particle_v. Returns the guard flags | 8 when the features were clamped."""
+    vi = particle_v[i]
+    vj = particle_v[j]
+    ri = args.particle_radius[i]
+    rj = args.particle_radius[j]
+    rho_i = args.particle_density[i]
+    rho_j = args.particle_density[j]
+    clamped = write_contact_features_in_domain(vi, vj, n, 2.0 * ri, 2.0 * rj, rho_i, rho_j, args.domain, row,
+                                               args.features)
+    impulse_n = forest_target(forest, 0, args.features, row)
+    impulse_t = forest_target(forest, 1, args.features, row)
+    cos_angle = wp.dot(g, n) / wp.length(g)
+    impulse_n, impulse_t, flags = admissible_impulse(cos_angle, impulse_n, impulse_t, args.domain.friction_bound,
+                                                     args.domain.separation_slack)
+    mi = sphere_mass(2.0 * ri, rho_i)
+    mj = sphere_mass(2.0 * rj, rho_j)
+    J = contact_impulse(vi, vj, n, mi, mj, impulse_n, impulse_t)  # on j; i gets -J
+    wi = args.particle_weight[i]
+    wj = args.particle_weight[j]
+    w_min = wp.min(wi, wj)
+    particle_v[i] = vi - J * (w_min / (wi * mi))
+    particle_v[j] = vj + J * (w_min / (wj * mj))
+    return flags | (8 * clamped)
+
+
+@wp.kernel
+def cell_collide(
+    args: CellArgs,
+    forest: Forest,
+    # outputs
+    particle_v: wp.array(dtype=wp.vec3),
+):
+    """One collision cell: majorant, candidate count, candidates in order (selection, acceptance, outcome)."""
+    cell = wp.tid()
+    start = args.cell_start[cell]
+    end = args.cell_end[cell]
+    count = end - start
+    if count < 2:
+        return
+    # the cell's majorant: largest radius and weight, real solids volume, mean velocity, largest |v - c|
+    r_max = float(0.0)
+    w_max = float(0.0)
+    solids = float(0.0)
+    c = wp.vec3(0.0)
+    for k in range(start, end):
+        p = args.cell_slot[k]
+        r = args.particle_radius[p]
+        w = args.particle_weight[p]
+        r_max = wp.max(r_max, r)
+        w_max = wp.max(w_max, w)
+        solids += w * sphere_volume(r)
+        c += particle_v[p]
+    c = c / float(count)
+    u_max = float(0.0)
+    for k in range(start, end):
+        u_max = wp.max(u_max, wp.length(particle_v[args.cell_slot[k]] - c))
+    volume = args.cell_volume
+    chi_max = float(1.0)
+    if args.enskog != 0:
+        chi_max = carnahan_starling(solids / volume, args.eps_cap)
+    sigma_g_max = wp.pi * (2.0 * r_max) * (2.0 * r_max) * (2.0 * u_max)
+    args.cell_sigma_g_max[cell] = sigma_g_max
+    expected = 0.5 * float(count) * float(count - 1) * w_max * chi_max * sigma_g_max * args.dt / volume
+    args.cell_candidates[cell] = expected
+    state = wp.rand_init(args.seed, cell)
+    n_candidates = int(wp.floor(expected))
+    if wp.randf(state) < expected - float(n_candidates):
+        n_candidates += 1
+    accepted = int(0)
+    over_max = int(0)
+    separation = int(0)
+    coulomb = int(0)
+    energy = int(0)
+    clamped = int(0)
+    bound = sigma_g_max * w_max * chi_max
+    for q in range(n_candidates):
+        a = wp.min(int(wp.randf(state) * float(count)), count - 1)
+        b = wp.min(int(wp.randf(state) * float(count - 1)), count - 2)
+        if b >= a:
+            b += 1
+        i = args.cell_slot[start + a]
+        j = args.cell_slot[start + b]
+        u_accept = wp.randf(state)
+        u_b2 = wp.randf(state)
+        u_phi = wp.randf(state)
+        g = particle_v[i] - particle_v[j]
+        g_mag = wp.length(g)
+        if g_mag <= 0.0 or bound <= 0.0:
+            continue
+        ri = args.particle_radius[i]
+        rj = args.particle_radius[j]
+        wi = args.particle_weight[i]
+        wj = args.particle_weight[j]
+        chi = float(1.0)
+        if args.enskog != 0:
+            chi = carnahan_starling((solids - wi * sphere_volume(ri) - wj * sphere_volume(rj)) / volume, args.eps_cap)
+        rate = wp.pi * (ri + rj) * (ri + rj) * g_mag * wp.max(wi, wj) * chi
+        if rate > bound:
+            over_max += 1
+        if not (u_accept * bound < rate):
+            continue
+        accepted += 1
+        n = sample_normal(g, u_b2, u_phi)
+        if args.log_pair.shape[0] > 0:
+            slot = wp.atomic_add(args.log_count, 0, 1)
+            if slot < args.log_pair.shape[0]:
+                args.log_pair[slot] = wp.vec2i(i, j)
+                args.log_g[slot] = g
+                args.log_normal[slot] = n
+            else:
+                wp.atomic_add(args.counts, COUNT_LOG_OVERFLOW, 1)
+        if args.apply != 0:
+            flags = resolve_pair(args, forest, cell, i, j, g, n, particle_v)
+            if (flags & GUARD_SEPARATION) != 0:
+                separation += 1
+            if (flags & GUARD_COULOMB) != 0:
+                coulomb += 1
+            if (flags & GUARD_ENERGY) != 0:
+                energy += 1
+            if (flags & 8) != 0:
+                clamped += 1
+        s = stream_pair_index(args.particle_stream[i], args.particle_stream[j], args.n_streams)
+        wp.atomic_add(args.calls, s, 1)
+        wp.atomic_add(args.collisions, s, wp.int32(wp.min(wi, wj) + 0.5))
+    wp.atomic_add(args.counts, COUNT_CANDIDATES, n_candidates)
+    wp.atomic_add(args.counts, COUNT_ACCEPTED, accepted)
+    wp.atomic_add(args.counts, COUNT_OVER_MAX, over_max)
+    wp.atomic_add(args.counts, COUNT_CELLS, 1)
+    wp.atomic_add(args.counts, COUNT_SEPARATION, separation)
+    wp.atomic_add(args.counts, COUNT_COULOMB, coulomb)
+    wp.atomic_add(args.counts, COUNT_ENERGY, energy)
+    wp.atomic_add(args.counts, COUNT_CLAMPED, clamped)
+
+
+# ------------------------------------------------------------------------------------------ launch wrappers
+
+
+def sort_by_cell(args: CellArgs) -> None:
+    """Per-cell parcel lists: keys, a stable radix sort, then the cell ranges (``args.cell_start`` / ``cell_end``
+    are zeroed here)."""
+    n = args.particle_x.shape[0]
+    device = args.particle_x.device
+    wp.launch(cell_keys, dim=n, device=device, inputs=[args], outputs=[args.cell_key, args.cell_slot])
+    wp.utils.radix_sort_pairs(args.cell_key, args.cell_slot, n)
+    args.cell_start.zero_()
+    args.cell_end.zero_()
+    wp.launch(cell_ranges, dim=n, device=device, inputs=[args, n], outputs=[args.cell_start, args.cell_end])
+
+
+def collide_cells(args: CellArgs, forest: Forest, particle_v) -> None:
+    """Every cell's candidates, acceptance and outcomes (after :func:`sort_by_cell`); counters accumulate (the
+    caller zeroes them per step)."""
+    wp.launch(cell_collide, dim=args.cell_start.shape[0], device=particle_v.device, inputs=[args, forest],
+              outputs=[particle_v])

@@ -1,0 +1,313 @@
+"""``cell`` detection of the surrogate (hel_warp/cell_collisions.py, kernels/cell_collide.py): Bird's NTC per cell.
+
+References (CONVENTIONS rule 9; PHYSICS-NOTES "Stochastic collisions of parcels", "Impact parameter", "Enskog
+collision frequency"):
+
+- the NTC candidate count ``1/2 N (N - 1) w_max chi_max (sigma g)_max dt / V`` per cell, and the expected accepted
+  count, independent of the majorant: the sum over the cell's pairs of ``sigma_ij g_ij max(w_i, w_j) chi_ij dt / V``
+  (chi_ij = g0 of the cell's solids fraction without the pair), computed here by brute force over the pairs;
+- the impact geometry of kinetic theory: b^2 uniform on [0, (r_i + r_j)^2], the azimuth about g uniform, and the
+  collisions weighted by |g| (Maxwellian gas: E_coll[|g|] = <g^2> / <g> = (3/2) sqrt(pi Theta));
+- the Enskog frequency per real particle, omega = 24 eps g0 sqrt(Theta) / (sqrt(pi) d), at weights 1, 8 and 64 at
+  the same real solids fraction (weight invariance);
+- momentum sum w m v conserved to float32 round-off; no energy gain; determinism; a restart from ``state()``.
+
+Statistical tolerances: the counts are sums of many rare independent events (Poisson): 4 standard errors.
+The selection tests run with ``apply=False`` (counts and the event log only; velocities unchanged) on fresh
+uniformly random positions every repetition, so they average over the cell occupancies as kinetic theory does.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+
+import numpy as np
+import pytest
+
+D = 315e-6  # m
+RHO = 1000.0  # kg/m^3
+E = 0.9
+
+
+def _array(values, dtype):
+    arr = np.asarray(values, dtype=dtype)
+    return {"dtype": np.dtype(dtype).str, "shape": list(arr.shape), "base64": base64.b64encode(arr.tobytes()).decode()}
+
+
+@pytest.fixture(scope="module")
+def constant_model(tmp_path_factory):
+    """A contact-form forest of one leaf per target (impulse_n = 1 + e, impulse_t = 0) whose domain covers every
+    feature: an outcome for the conservation and determinism tests without training a model."""
+    root = tmp_path_factory.mktemp("constant_model")
+    doc = {"format": "hel_warp.forest", "version": 2, "form": "contact",
+           "features": ["g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio"],
+           "targets": ["impulse_n", "impulse_t"], "base_score": [1.0 + E, 0.0], "tree_start": [0, 1, 2],
+           "max_depth": 0,
+           "arrays": {"tree_root": _array([0, 1], "<i4"), "node_info": _array([-1, -1], "<i4"),
+                      "node_value": _array([0.0, 0.0], "<f4"), "node_left": _array([-1, -1], "<i4")},
+           "domain": {"features": ["g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio"],
+                      "lo": [0.0, 0.0, 0.0, 1e-6, 0.1, 0.1], "hi": [100.0, 100.0, 1.0, 1e-2, 10.0, 10.0],
+                      "friction": 0.0, "friction_bound": 0.0}}
+    (root / "forest.json").write_text(json.dumps(doc))
+    return str(root)
+
+
+def g0_cs(eps):
+    """Carnahan-Starling g0 = (1 - eps/2) / (1 - eps)^3."""
+    return (1.0 - 0.5 * eps) / (1.0 - eps) ** 3
+
+
+def box_side(real_particles, eps):
+    return (real_particles * math.pi * D**3 / (6.0 * eps)) ** (1.0 / 3.0)
+
+
+def make_gas(n, side, weight, rng, device, theta=1.0):
+    """n parcels uniformly in the periodic box, Maxwellian velocities at Theta (zero mean), weights ``weight``."""
+    from hel_warp.particles import Particles
+
+    x = rng.uniform(0.0, side, size=(n, 3))
+    v = rng.normal(0.0, math.sqrt(theta), size=(n, 3))
+    v -= v.mean(axis=0)
+    return Particles.from_numpy(x, 0.5 * D, v=v, density=RHO, weight=weight, check_overlap=False, device=device)
+
+
+def strategy(model, side, *, seed=0, log=0, **cell):
+    from hel_warp.cell_collisions import CellConfig
+    from hel_warp.collision_models import SurrogateCollision
+
+    return SurrogateCollision(model_dir=model, detection="cell", periodic_box=(side,) * 3, seed=seed,
+                              cell=CellConfig(log_capacity=log, **cell))
+
+
+def select(s, particles, dt):
+    """One selection-only step (apply=False): counts and log, velocities unchanged."""
+    s._setup(particles)
+    s.cells.collide(particles, dt, s.forest, s.swept.domain, periodic_box=s.periodic_box, apply=False)
+    return s.cells.counts()
+
+
+def brute_force_expectation(particles, lattice, dt):
+    """Per the NTC formula and by brute force over every same-cell pair: (expected candidates, expected accepted,
+    largest pair sigma g w_max chi over the largest majorant bound ratio) for one step."""
+    origin, edges, shape = lattice
+    x = particles.x.numpy().astype(np.float64)
+    v = particles.v.numpy().astype(np.float64)
+    r = particles.radius.numpy().astype(np.float64)
+    w = particles.weight.numpy().astype(np.float64)
+    vol_cell = float(np.prod(edges))
+    ijk = np.clip(np.floor((x - origin) / edges).astype(int), 0, np.asarray(shape) - 1)
+    cell = (ijk[:, 0] * shape[1] + ijk[:, 1]) * shape[2] + ijk[:, 2]
+    order = np.argsort(cell, kind="stable")
+    bounds = np.flatnonzero(np.diff(cell[order])) + 1
+    candidates = accepted = 0.0
+    worst = 0.0
+    for members in np.split(order, bounds):
+        n = len(members)
+        if n < 2:
+            continue
+        solids = float((w[members] * 4.0 / 3.0 * math.pi * r[members] ** 3).sum())
+        i, j = np.triu_indices(n, 1)
+        a, b = members[i], members[j]
+        g = np.linalg.norm(v[a] - v[b], axis=1)
+        sigma = math.pi * (r[a] + r[b]) ** 2
+        chi = g0_cs((solids - w[a] * 4 / 3 * math.pi * r[a] ** 3 - w[b] * 4 / 3 * math.pi * r[b] ** 3) / vol_cell)
+        rate = sigma * g * np.maximum(w[a], w[b]) * chi
+        accepted += rate.sum() * dt / vol_cell
+        # the majorant of the NTC formula: sigma_max = pi (2 r_max)^2, g_max = 2 max |v - <v>|, w_max, g0 of the cell
+        c = v[members].mean(axis=0)
+        bound = (math.pi * (2 * r[members].max()) ** 2 * 2 * np.linalg.norm(v[members] - c, axis=1).max()
+                 * w[members].max() * g0_cs(solids / vol_cell))
+        candidates += 0.5 * n * (n - 1) * bound * dt / vol_cell
+        worst = max(worst, float(rate.max() / bound))
+    return candidates, accepted, worst
+
+
+@pytest.mark.parametrize("eps, weights, dt", [(0.01, (1.0,), 1e-3), (0.05, (1.0, 8.0, 64.0), 2e-4)])
+def test_candidates_and_acceptance_follow_the_ntc_formula(constant_model, device, eps, weights, dt):
+    rng = np.random.default_rng(1)
+    n, reps = 2000, 12
+    w = rng.choice(weights, size=n)
+    side = box_side(w.sum(), eps)
+    s = strategy(constant_model, side)
+    drawn = accepted = exp_candidates = exp_accepted = 0.0
+    worst = 0.0
+    for _ in range(reps):
+        p = make_gas(n, side, w, rng, device)
+        c = select(s, p, dt)
+        ec, ea, wr = brute_force_expectation(p, s.cells.lattice, dt)
+        drawn += c["cell_candidates"]
+        accepted += c["cell_accepted"]
+        exp_candidates += ec
+        exp_accepted += ea
+        worst = max(worst, wr)
+        assert c["cell_over_max"] == 0  # nothing rises above the majorant without collisions
+    assert worst <= 1.0  # the majorant bounds every pair (acceptance probability <= 1)
+    # Poisson-like counts: 4 standard errors (the integer draw of the candidates has less variance than Poisson)
+    assert abs(drawn - exp_candidates) <= 4.0 * math.sqrt(exp_candidates), (drawn, exp_candidates)
+    assert abs(accepted - exp_accepted) <= 4.0 * math.sqrt(exp_accepted), (accepted, exp_accepted)
+    assert exp_accepted > 2000  # the check has statistics
+
+
+def test_impact_geometry_is_that_of_kinetic_theory(constant_model, device):
+    """b^2 / (r_i + r_j)^2 uniform, azimuth uniform in a frame the kernel does not use, |g|-weighted collisions."""
+    from scipy import stats
+
+    rng = np.random.default_rng(2)
+    n, eps, dt = 3000, 0.02, 1e-3
+    side = box_side(n, eps)
+    s = strategy(constant_model, side, log=4000)
+    g_all, n_all = [], []
+    for _ in range(6):
+        p = make_gas(n, side, 1.0, rng, device)
+        c = select(s, p, dt)
+        assert c["cell_log_overflow"] == 0
+        log = s.cells.event_log()
+        g_all.append(log["g"].astype(np.float64))
+        n_all.append(log["normal"].astype(np.float64))
+    g = np.concatenate(g_all)
+    normal = np.concatenate(n_all)
+    assert len(g) > 3000
+    g_mag = np.linalg.norm(g, axis=1)
+    g_hat = g / g_mag[:, None]
+    cos_chi = np.einsum("ij,ij->i", g_hat, normal)
+    assert np.all(cos_chi > 0.0)  # every sampled normal closes the pair
+    assert np.allclose(np.linalg.norm(normal, axis=1), 1.0, atol=1e-5)
+    b2 = 1.0 - cos_chi**2
+    assert stats.kstest(b2, "uniform").pvalue > 1e-3
+    # azimuth of the normal's perpendicular part about g_hat, in a frame from (g_hat x z)
+    e1 = np.cross(g_hat, [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1, axis=1)[:, None]
+    e2 = np.cross(g_hat, e1)
+    phi = np.arctan2(np.einsum("ij,ij->i", normal, e2), np.einsum("ij,ij->i", normal, e1))
+    assert stats.kstest((phi + np.pi) / (2 * np.pi), "uniform").pvalue > 1e-3
+    # collisions of a Maxwellian gas are |g|-weighted: E[|g|] = <g^2> / <g> = (3/2) sqrt(pi Theta) = 2.659 at Theta 1
+    # (the unweighted mean would be 4 sqrt(Theta / pi) = 2.257); the stderr of the mean from the sample
+    expected = 1.5 * math.sqrt(math.pi)
+    assert abs(g_mag.mean() - expected) <= 4.0 * g_mag.std() / math.sqrt(len(g_mag)) + 0.01 * expected
+
+
+@pytest.mark.parametrize("eps", [0.01, 0.05])
+def test_frequency_per_real_particle_is_enskogs_at_any_weight(constant_model, device, eps):
+    """Same real solids fraction, 1, 8 and 64 particles per parcel: 2 C_real / (N_real dt) against Enskog's omega
+    with the gas's own Theta (velocities unchanged: selection only)."""
+    rng = np.random.default_rng(3)
+    n, dt, reps = 2000, 2e-4, 10
+    for weight in (1.0, 8.0, 64.0):
+        side = box_side(n * weight, eps)
+        s = strategy(constant_model, side)
+        real = expected = 0.0
+        for _ in range(reps):
+            p = make_gas(n, side, weight, rng, device)
+            v = p.v.numpy().astype(np.float64)
+            theta = float(((v - v.mean(axis=0)) ** 2).sum() / (3 * n))
+            omega = 24.0 * eps * g0_cs(eps) * math.sqrt(theta) / (math.sqrt(math.pi) * D)
+            real += select(s, p, dt)["collisions"]
+            expected += 0.5 * n * weight * omega * dt
+        events = expected / weight  # the statistics are those of the parcel events
+        assert abs(real / expected - 1.0) <= 4.0 / math.sqrt(events), (weight, real / expected)
+
+
+def test_momentum_exact_no_energy_gain_at_mixed_weights(constant_model, device):
+    rng = np.random.default_rng(4)
+    n, eps, dt = 1500, 0.05, 1e-3
+    w = rng.choice([1.0, 8.0, 64.0], size=n)
+    side = box_side(w.sum(), eps)
+    p = make_gas(n, side, w, rng, device)
+    s = strategy(constant_model, side, seed=5)
+    m = RHO * math.pi * D**3 / 6.0 * w
+    v0 = p.v.numpy().astype(np.float64)
+    scale = float((m[:, None] * np.abs(v0)).sum())
+    for _ in range(3):
+        before = p.v.numpy().astype(np.float64)
+        s.collide(p, dt)
+        after = p.v.numpy().astype(np.float64)
+        c = s.counts()
+        assert c["surrogate_calls"] > 500
+        # sum w m v: float32 velocities, one rounding per update of each parcel
+        drift = np.abs((m[:, None] * (after - before)).sum(axis=0)).max()
+        assert drift <= 1e-6 * scale
+        # kinetic energy never grows (guarded outcome; the heavier parcel's partial impulse only dissipates more)
+        assert (m * (after**2).sum(axis=1)).sum() <= (m * (before**2).sum(axis=1)).sum() * (1.0 + 1e-6)
+
+
+def test_same_seed_same_run_and_restart_is_exact(constant_model, device):
+    rng = np.random.default_rng(6)
+    n, eps, dt = 1000, 0.05, 1e-3
+    side = box_side(8 * n, eps)
+    x = rng.uniform(0.0, side, size=(n, 3))
+    v = rng.normal(size=(n, 3))
+
+    def fresh():
+        from hel_warp.particles import Particles
+
+        return Particles.from_numpy(x, 0.5 * D, v=v, density=RHO, weight=8.0, check_overlap=False, device=device)
+
+    def advance(s, p, steps):
+        for _ in range(steps):
+            s.collide(p, dt)
+
+    a, b = fresh(), fresh()
+    sa, sb = strategy(constant_model, side, seed=7), strategy(constant_model, side, seed=7)
+    advance(sa, a, 4)
+    advance(sb, b, 4)
+    assert np.array_equal(a.v.numpy(), b.v.numpy())
+    assert sa.counts()["surrogate_calls"] > 0
+    other = fresh()
+    advance(strategy(constant_model, side, seed=8), other, 4)
+    assert not np.array_equal(a.v.numpy(), other.v.numpy())  # the seed matters
+    # restart: 2 steps, checkpoint (velocities + strategy state), a new strategy continues for 2
+    c = fresh()
+    sc = strategy(constant_model, side, seed=7)
+    advance(sc, c, 2)
+    state = {k: np.asarray(val).copy() for k, val in sc.state().items()}
+    v_mid = c.v.numpy().copy()
+    d = fresh()
+    d.v.assign(v_mid)
+    sd = strategy(constant_model, side, seed=0)
+    sd.set_state(state)
+    advance(sd, d, 2)
+    assert np.array_equal(d.v.numpy(), a.v.numpy())
+
+
+def test_detection_defaults_to_cell_when_a_parcel_is_heavier_than_one(constant_model, device):
+    from hel_warp.collision_models import SurrogateCollision
+
+    rng = np.random.default_rng(9)
+    side = box_side(400, 0.02)
+    for weight, want in ((1.0, "swept"), (8.0, "cell")):
+        s = SurrogateCollision(model_dir=constant_model, periodic_box=(side,) * 3)
+        s.collide(make_gas(400, side, weight, rng, device), 1e-4)
+        assert s.detection == want
+
+
+def test_cells_follow_the_solver_grid(constant_model, device):
+    """With a HEL solver the collision cells are its grid cells (or sub-cells): a parcel collides only with parcels
+    of its own cell."""
+    import warp as wp
+    from types import SimpleNamespace
+
+    from hel_warp.cell_collisions import CellConfig
+    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.coupling import GridSpec
+
+    rng = np.random.default_rng(10)
+    n = 800
+    grid = GridSpec(origin=(0.0, 0.0, 0.0), spacing=2e-3, shape=(4, 3, 2))
+    p = make_gas(n, 1.0, 4.0, rng, device)
+    x = rng.uniform(0.0, 1.0, size=(n, 3)) * np.array([8e-3, 6e-3, 4e-3])
+    p.x.assign(x)
+    for subdivision in (1, 2):
+        s = SurrogateCollision(model_dir=constant_model, seed=1,
+                               cell=CellConfig(subdivision=subdivision, log_capacity=5000))
+        solver = SimpleNamespace(grid=grid, pool=SimpleNamespace(particles=p), config=SimpleNamespace(dt=2e-3),
+                                 fields=SimpleNamespace(parcel_a_coll=wp.zeros(n, dtype=wp.vec3, device=device)))
+        s.accelerate(solver)
+        assert s.detection == "cell"
+        origin, edges, shape = s.cells.lattice
+        assert np.allclose(edges, 2e-3 / subdivision) and tuple(shape) == tuple(np.array(grid.shape) * subdivision)
+        pairs = s.cells.event_log()["pair"]
+        assert len(pairs) > 50
+        cell = np.floor(x / (2e-3 / subdivision)).astype(int)
+        assert np.array_equal(cell[pairs[:, 0]], cell[pairs[:, 1]])
