@@ -69,7 +69,7 @@ from types import SimpleNamespace
 import numpy as np
 
 COLLISIONS = ("none", "ktgf", "surrogate", "surrogate-paper", "dem")
-DETECTIONS = ("swept", "overlap")
+DETECTIONS = ("swept", "overlap", "cell")
 KTGF_CELL = 1.0e-3
 """Target cell size of the KTGF grid, m (the colliding-streams rig's; rounded so that whole cells fill L)."""
 MAX_JSON_POINTS = 2000
@@ -133,8 +133,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="model directory (hel-warp train --out); needed by surrogate (contact form) and "
                              "surrogate-paper (paper form); with the others it only supplies the material")
     parser.add_argument("--detection", choices=DETECTIONS, default=None,
-                        help="surrogate only: swept (continuous) or overlap (the paper's end-of-step test); "
-                             "default: the strategy's own")
+                        help="surrogate only: swept (continuous), overlap (the paper's end-of-step test) or cell "
+                             "(stochastic per collision cell, for parcels of many particles); default: swept, cell "
+                             "when --particles-per-parcel > 1")
     parser.add_argument("--dt", type=finite_float, required=True, help="time step, s")
     parser.add_argument("--solids-fraction", type=finite_float, required=True, help="solids volume fraction eps_s")
     parser.add_argument("--particles", type=int, required=True, help="real particles N")
@@ -257,7 +258,10 @@ def make_config(args) -> CoolingConfig:
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / SUMMARY).exists())):
         raise ConfigError(f"{args.out} is not an output directory of this case (no {SUMMARY}); --overwrite only "
                           "replaces those")
-    config = CoolingConfig(collisions=name, model=args.model, detection=args.detection, dt=float(args.dt), eps=eps,
+    detection = args.detection
+    if name == "surrogate" and detection is None and w > 1:
+        detection = "cell"  # the strategy's own default for parcels heavier than one particle
+    config = CoolingConfig(collisions=name, model=args.model, detection=detection, dt=float(args.dt), eps=eps,
                            particles=int(args.particles), parcels=parcels, weight=int(w), diameter=d,
                            theta0=float(args.granular_temperature), end_time=float(args.end_time), steps=steps,
                            seed=int(args.seed), out=str(args.out), overwrite=bool(args.overwrite), device=args.device,
@@ -271,6 +275,8 @@ def search_cell(config: CoolingConfig, speed_max: float) -> float:
     over the step), 2 r for the end-of-step overlap tests, 2 r + 0.3 r (the contact-list skin) for dem; 0 for the
     models without a pair search."""
     r = 0.5 * config.diameter
+    if config.collisions == "surrogate" and config.detection == "cell":
+        return 0.0  # collision cells tile the box; no search radius
     if config.collisions == "surrogate" and (config.detection or "swept") == "swept":
         return 2.0 * (r + speed_max * config.dt)
     if config.collisions in ("surrogate", "surrogate-paper"):
@@ -460,6 +466,8 @@ class SurrogateFlight(BallisticFlight):
                 raise ConfigError(f"--detection {config.detection}: SurrogateCollision in this checkout takes no "
                                   "detection argument (only its own end-of-step overlap test); drop --detection")
             kwargs["detection"] = config.detection
+        if config.detection == "cell":
+            kwargs["seed"] = config.seed  # the collision cells' random numbers
         self.strategy = cls(**kwargs)
         self.detection = getattr(self.strategy, "detection", config.detection or "overlap")
         self._collide_takes_dt = _accepts(self.strategy.collide, "dt")
@@ -620,6 +628,8 @@ def analyse(case: HomogeneousCooling, wall_s: float, kernel_load_s: float) -> di
     counts = {k: (int(v) if float(v).is_integer() else float(v)) for k, v in sorted(case.count_totals.items())}
     flags = {k: v for k, v in counts.items() if any(f in k for f in COUNT_FLAGS)}
     enskog_collisions = 0.5 * cfg.particles * expected_per_particle
+    # the statistics are those of the parcel events: a parcel collision of weight W stands for W real ones
+    events = enskog_collisions / cfg.weight
     notes = list(case.flight.notes)
     if cfg.weight > 1:
         notes.append(f"parcels of weight {cfg.weight}: the references are those of the N real particles")
@@ -635,11 +645,11 @@ def analyse(case: HomogeneousCooling, wall_s: float, kernel_load_s: float) -> di
         "density": cfg.material.density, "material_source": cfg.material_source, "g0_carnahan_starling": g0,
         "enskog_collision_frequency": enskog_mean, "enskog_collisions": enskog_collisions,
         "collision_frequency_ratio": freq / enskog_mean if enskog_mean > 0 else None,
-        "collision_frequency_ratio_stderr": (1.0 / math.sqrt(enskog_collisions)) if enskog_collisions > 0 else None,
+        "collision_frequency_ratio_stderr": (1.0 / math.sqrt(events)) if events > 0 else None,
         "collisions_per_particle": 2.0 * collisions / cfg.particles,
         "haff_slope": slope_haff, "fitted_slope": fitted,
         "cooling_rate_ratio": fitted / slope_haff if slope_haff > 0 else None,
-        "cooling_rate_ratio_stderr": (math.sqrt(2.0 / enskog_collisions)) if enskog_collisions > 0 else None,
+        "cooling_rate_ratio_stderr": (math.sqrt(2.0 / events)) if events > 0 else None,
         "collisions_per_step_max": float(case.collisions_per_step[: case.steps_done].max(initial=0.0)),
         "wall_clock_s": wall_s, "wall_clock_per_step_s": wall_s / max(case.steps_done, 1),
         "kernel_load_s": kernel_load_s,
