@@ -296,7 +296,8 @@ class CaseConfig:
     model: str | None = None
     """Surrogate model directory (surrogate and surrogate-paper)."""
     detection: str = "swept"
-    """``surrogate`` pair detection: ``swept`` (continuous, default) or ``overlap`` (the paper's end-of-step test)."""
+    """``surrogate`` pair detection: ``swept`` (continuous, default), ``overlap`` (the paper's end-of-step test) or
+    ``cell`` (stochastic per grid cell, the default with ``particles_per_parcel`` > 1; hel_warp/cell_collisions.py)."""
     seed: int = 0
     device: str = "cpu"
     gravity: tuple = (9.80665, 0.0, 0.0)
@@ -345,7 +346,8 @@ def make_config(args) -> CaseConfig:
                       particles=particles, diameter_std=std,
                       mass_flow=PAPER_MASS_FLOW[known] if paper_size else DEFAULT_MASS_FLOW, cells=args.cells,
                       gas_warmup=float(args.gas_warmup), output_interval=float(args.output_interval),
-                      model=args.model, detection=detection or "swept", seed=int(args.seed), device=args.device)
+                      model=args.model, detection=detection or ("cell" if args.particles_per_parcel > 1 else "swept"),
+                      seed=int(args.seed), device=args.device)
 
 
 def check_model(model_dir: str, diameter: float, density: float, force: bool) -> dict:
@@ -412,7 +414,7 @@ class CollidingStreams:
         if config.collisions == "ktgf":
             kwargs = {"particle_diameter": config.diameter, "particle_density": config.density}
         elif config.collisions == "surrogate":
-            kwargs = {"model_dir": config.model, "detection": config.detection}
+            kwargs = {"model_dir": config.model, "detection": config.detection, "seed": config.seed}
         elif config.collisions == "surrogate-paper":
             kwargs = {"model_dir": config.model}
         elif config.collisions == "dem":
@@ -663,9 +665,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--end-time", type=finite_float, required=True, help="simulated time after release, s")
     parser.add_argument("--out", required=True, help="run directory (refused if it exists, see --overwrite/--resume)")
     parser.add_argument("--model", default=None, help="surrogate model directory (hel-warp train output)")
-    parser.add_argument("--detection", choices=("swept", "overlap"), default=None,
-                        help="surrogate pair detection: swept (continuous, default) or overlap (the paper's "
-                             "end-of-step test)")
+    parser.add_argument("--detection", choices=("swept", "overlap", "cell"), default=None,
+                        help="surrogate pair detection: swept (continuous, default), overlap (the paper's "
+                             "end-of-step test) or cell (stochastic per grid cell; default with "
+                             "--particles-per-parcel > 1)")
     parser.add_argument("--force", action="store_true",
                         help="use a model trained for another particle size or material (refused otherwise)")
     parser.add_argument("--no-particle-contacts", action="store_true",
