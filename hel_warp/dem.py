@@ -24,6 +24,10 @@ rebuilds is counted once) per stream pair with its impact speed (``kernels/conta
 :class:`OnsetCounter`); contacts present at construction are not onsets. Read with
 :meth:`DEMSolver.onset_counts`, :meth:`DEMSolver.onset_events` (``DEMConfig.onset_events > 0``),
 zeroed by :meth:`DEMSolver.reset_onsets`.
+
+On the CPU the same step runs as a half contact list (each pair once) in two fused passes
+(``kernels/dem_step.py``, ``DEMConfig.half_list``), bit-identical to the full list and separate kernels
+that CUDA keeps.
 """
 
 from __future__ import annotations
@@ -75,6 +79,10 @@ class DEMConfig:
     --shuffle), 0 on CUDA so that ``simulate`` can run as a captured graph."""
     tangential_damping: float = 0.0
     """Dimensionless tangential dashpot c_t of kernels/hertz.py (0 = none)."""
+    half_list: bool | None = None
+    """Each pair in one row only (j > i), computed once, in two fused passes per step
+    (``kernels/dem_step.py``; bit-identical forces). None: on the CPU (its threads run in order), off on
+    CUDA (concurrent threads keep the full list). True on CUDA is a ConfigError."""
     sdf_walls: tuple = ()
     """Extra walls: ``@wp.func`` phi(x: vec3) -> float, m, > 0 inside the domain."""
     sdf_gradient_step: float = 1e-6
@@ -368,8 +376,15 @@ class DEMSolver:
         self.rebuild_count = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.onsets = OnsetCounter(particles, config.n_streams, config.onset_events)
         from kernels.contacts import open_space
+        from kernels.dem_step import plane_walls
 
         self.box = open_space()  # built once: a struct per launch costs ~30 us of host time
+        on_cuda = wp.get_device(self.device).is_cuda
+        if config.half_list and on_cuda:
+            raise ConfigError("half_list needs a device that runs threads in order (the CPU); use None on CUDA")
+        self.half_list = (not on_cuda) if config.half_list is None else bool(config.half_list)
+        self.plane_walls = plane_walls(self.wall_point, self.wall_normal, len(config.walls), self.wall_params,
+                                       self.wall_shear, wp.zeros(n, dtype=wp.int32, device=self.device))
         dims = np.clip(np.ceil((hi - lo) / self.cell_size).astype(int), 1, 256)
         self.grid = wp.HashGrid(int(dims[0]), int(dims[1]), int(dims[2]), device=self.device)
         self.grid.reserve(n)
@@ -424,19 +439,37 @@ class DEMSolver:
         from kernels.integrate import launch_kick, launch_kick_drift
 
         self.onsets.advance_substep()
+        if self.half_list:  # two passes (kernels/dem_step.py); the kick is fused unless SDF walls add forces
+            from kernels.dem_step import launch_kick_drift_flag
+
+            launch_kick_drift_flag(self.spheres, self.force, self.torque, self.gravity, self.dt, self.x_at_build,
+                                   0.5 * self.skin, self.rebuild_flag)
+            wp.capture_if(self.rebuild_flag, on_true=self._rebuild)
+            self._compute_forces(kick=not self.sdf_kernels)
+            if self.sdf_kernels:
+                launch_kick(self.spheres, self.force, self.torque, self.gravity, self.dt)
+            return
         launch_kick_drift(self.spheres, self.force, self.torque, self.gravity, self.dt)
         launch_flag_rebuild(self.spheres, self.x_at_build, 0.5 * self.skin, self.rebuild_flag)
         wp.capture_if(self.rebuild_flag, on_true=self._rebuild)
         self._compute_forces()
         launch_kick(self.spheres, self.force, self.torque, self.gravity, self.dt)
 
-    def _compute_forces(self) -> None:
+    def _compute_forces(self, kick: bool = False) -> None:
+        """Forces and torques at the current positions; ``kick`` (half list only): the second half kick too.
+        The half list accumulates: ``kick_drift_flag`` zeroes the arrays, the first evaluation starts at zero."""
         from kernels.contacts import launch_contact_forces
         from kernels.walls import launch_plane_wall_forces, launch_sdf_wall_forces
 
-        launch_contact_forces(self.spheres, self.rows, self.params, self.dt, self.force, self.torque, box=self.box,
-                              onsets=self.onsets.struct)
-        if self.config.walls:
+        if self.half_list:
+            from kernels.dem_step import launch_forces_kick
+
+            launch_forces_kick(self.spheres, self.rows, self.params, self.box, self.plane_walls, self.gravity,
+                               self.dt, self.onsets.struct, self.force, self.torque, kick=kick)
+        else:
+            launch_contact_forces(self.spheres, self.rows, self.params, self.dt, self.force, self.torque,
+                                  box=self.box, onsets=self.onsets.struct)
+        if self.config.walls and not self.half_list:
             launch_plane_wall_forces(self.spheres, self.wall_point, self.wall_normal, self.wall_params, self.dt,
                                      self.wall_shear, self.force, self.torque)
         for kernel, shear in zip(self.sdf_kernels, self.sdf_shear):
@@ -458,7 +491,11 @@ class DEMSolver:
         else:
             self._old_contacts.copy_from(self.contacts)
         launch_build_contact_list(self.grid, self.spheres, self.r_max, self.skin, self.old_rows, self.rows,
-                                  self.x_at_build, self.overflow, box=self.box)
+                                  self.x_at_build, self.overflow, box=self.box, half=self.half_list)
+        if self.half_list and self.config.walls:
+            from kernels.dem_step import launch_mark_near_walls
+
+            launch_mark_near_walls(self.spheres, self.plane_walls, self.skin)
         self.rebuild_flag.zero_()
 
     def _spatial_sort(self) -> None:

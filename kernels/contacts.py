@@ -201,6 +201,7 @@ def build_contact_list(
     skin: float,
     box: PeriodicBox,
     old: ContactRows,
+    half: int,
     # outputs
     rows: ContactRows,
     particle_x_at_build: wp.array[wp.vec3],
@@ -209,7 +210,11 @@ def build_contact_list(
     """Row i: partners j with ``|x_i - x_j| < r_i + r_j + skin`` (minimum image in a periodic box), sorted by j;
     shear and touching flag carried by partner id. The grid holds ``x * box.grid_scale`` (x itself in open space).
 
-    ``overflow[0]`` receives the largest candidate count of a row that did not fit (integer atomic max).
+    ``half = 1``: a half list, row i keeps only the partners j > i (``kernels/dem_step.py``); a pair's history
+    not found in the old row i is looked up in the old row j (an owner changed by a spatial sort) with the
+    shear's sign reversed (the owner's frame). ``overflow[0]`` receives the largest candidate count of a row
+    that did not fit (integer atomic max); in a half list too it counts every candidate, j < i included, so a
+    capacity that works on one device works on the other.
     """
     i = wp.tid()
     particle_x = spheres.x
@@ -221,6 +226,7 @@ def build_contact_list(
     xi = particle_x[i]
     particle_x_at_build[i] = xi
     n = int(0)
+    candidates = int(0)
     if particle_alive[i] != 0:
         ri = particle_radius[i]
         query = wp.hash_grid_query(grid, wp.cw_mul(xi, box.grid_scale), (ri + max_radius + skin) * box.radius_scale)
@@ -228,20 +234,22 @@ def build_contact_list(
             if j != i and particle_alive[j] != 0:
                 cut = ri + particle_radius[j] + skin
                 if wp.length_sq(minimum_image(box, particle_x[j] - xi)) < cut * cut:
-                    # sorted insert by partner id; when full keep the smallest ids (deterministic)
-                    k = int(-1)
-                    if n < capacity:
-                        k = n
-                    elif contact_partner[i, capacity - 1] > j:
-                        k = capacity - 1
-                    if k >= 0:
-                        while k > 0 and contact_partner[i, k - 1] > j:
-                            contact_partner[i, k] = contact_partner[i, k - 1]
-                            k = k - 1
-                        contact_partner[i, k] = j
-                    n = n + 1
-    if n > capacity:
-        wp.atomic_max(overflow, 0, n)
+                    candidates = candidates + 1
+                    if half == 0 or j > i:
+                        # sorted insert by partner id; when full keep the smallest ids (deterministic)
+                        k = int(-1)
+                        if n < capacity:
+                            k = n
+                        elif contact_partner[i, capacity - 1] > j:
+                            k = capacity - 1
+                        if k >= 0:
+                            while k > 0 and contact_partner[i, k - 1] > j:
+                                contact_partner[i, k] = contact_partner[i, k - 1]
+                                k = k - 1
+                            contact_partner[i, k] = j
+                        n = n + 1
+    if candidates > capacity:
+        wp.atomic_max(overflow, 0, candidates)
     m = wp.min(n, capacity)
     rows.count[i] = m
     for k in range(m, capacity):
@@ -255,10 +263,17 @@ def build_contact_list(
         touching = int(0)
         while o < old_n and old_partner[i, o] < j:
             o = o + 1
+        found = int(0)
         if o < old_n:
             if old_partner[i, o] == j:
                 s = old.shear[i, o]
                 touching = old.touching[i, o]
+                found = 1
+        if half != 0 and found == 0:
+            for q in range(old.count[j]):
+                if old_partner[j, q] == i:
+                    s = -old.shear[j, q]
+                    touching = old.touching[j, q]
         rows.shear[i, k] = s
         rows.touching[i, k] = touching
 
@@ -532,13 +547,14 @@ def launch_wrap_into_box(box: PeriodicBox, x, x_grid) -> None:
 
 
 def launch_build_contact_list(grid, spheres: SphereArrays, max_radius: float, skin: float, old: ContactRows,
-                              rows: ContactRows, x_at_build, overflow, box: PeriodicBox | None = None) -> None:
+                              rows: ContactRows, x_at_build, overflow, box: PeriodicBox | None = None,
+                              half: bool = False) -> None:
     """Rebuild ``rows`` from ``old`` (their previous contents; shear and touching flag carried by partner id).
 
     ``grid`` holds ``x * box.grid_scale`` (``launch_wrap_into_box`` first in a periodic box); ``box`` None
-    is open space."""
+    is open space; ``half``: keep only partners j > i (``kernels/dem_step.py``)."""
     wp.launch(build_contact_list, dim=spheres.x.shape[0], device=spheres.x.device,
-              inputs=[grid.id, spheres, max_radius, skin, box if box is not None else open_space(), old],
+              inputs=[grid.id, spheres, max_radius, skin, box if box is not None else open_space(), old, int(half)],
               outputs=[rows, x_at_build, overflow])
 
 
