@@ -28,9 +28,25 @@ Beyond the paper (the engine meets every impact: any angle, |g| from ~0.01 to 20
   ``p_hat`` perpendicular to ``g`` (in the plane of ``v1, v2`` for the converging family, so
   both straight paths still cross at the common point; any direction otherwise);
 - diameters per particle from a normal distribution (paper's size table: 315 +- 8.2 um,
-  475 +- 22 um), truncated to ``d > 0``, or from a mixture (``mixture_diameters``: each particle's
-  mean size drawn with equal chance, e.g. 315 and 475 um: equal and unequal pairs); densities per particle from a normal distribution
-  around the material density (standard deviation 0 by default: monodisperse in density).
+  475 +- 22 um), truncated to ``d > 0``, or from a mixture of species (``mixture_diameters``,
+  ``mixture_diameter_stds``): with ``mixture_mass_fractions`` the pair's two species (i, j) are drawn
+  in the proportion a mixture meets them (below); without (the deprecated ``--mixture``) each
+  particle's species is drawn with equal chance; densities per particle from a normal distribution
+  around the material density (standard deviation 0 by default: monodisperse in density; the same
+  for every species).
+
+Pair types of a mixture ("the proportion a mixture meets them"). Species i has mass fraction w_i and
+mean particle mass proportional to E[d_i^3] = mu_i^3 + 3 mu_i sigma_i^2 (normal sizes), so its number
+fraction is x_i = (w_i / E[d_i^3]) / sum_k (w_k / E[d_k^3]). In a homogeneous mixture the collision rate
+per unit volume of an (i, j) pair is n_i n_j g0_ij pi sigma_ij^2 <|g|>_ij (Chapman & Cowling; for
+i = j half of it, each pair once), sigma_ij = (d_i + d_j)/2. The data set draws every particle's
+velocity from one distribution whatever its size (eq. 16), so <|g|> is the same for every pair type and
+the rows' pair types follow P(k1 = i, k2 = j) = x_i x_j E[(d_i + d_j)^2] / Z (ordered labels: a cross
+pair is (i, j) or (j, i) with equal chance; E[(d_i + d_j)^2] = (mu_i + mu_j)^2 + sigma_i^2 + sigma_j^2).
+That is the mixture of the rig, where both sizes ride the same gas streams; it leaves out g0_ij (1 +
+O(eps_s): 1.0-1.03 at eps_s <= 0.01) and the equipartition factor sqrt(1/m_i + 1/m_j) of a gas at rest
+(the cooling box), which would raise the share of small-small pairs. 315/475 um at mass fractions
+0.5/0.5: x = 0.774/0.226, pair types small-small 47 %, small-large 44 %, large-large 9 %.
 
 Every configuration collides, starts apart and touches after ``touch_time``. The pair is built
 at first touch (``x2 - x1 = (r1 + r2) n``) and moved back along straight lines by
@@ -117,6 +133,10 @@ class ConfigurationSpec:
     ``diameter_mean`` +- ``diameter_std``."""
     mixture_diameter_stds: tuple[float, ...] = ()
     """Standard deviations of ``mixture_diameters``, m (same length)."""
+    mixture_mass_fractions: tuple[float, ...] = ()
+    """Mass fraction of each species of ``mixture_diameters`` (same length, each > 0, summing to 1): the
+    pair types are then drawn in the proportion the mixture meets them (module docstring); empty: each
+    particle's species with equal chance (the deprecated ``--mixture`` set, bytes unchanged)."""
     density_mean: float = 1000.0
     """Mean particle density, kg/m^3 (the material density)."""
     density_std: float = 0.0
@@ -155,6 +175,11 @@ class ConfigurationSpec:
         if len(self.mixture_diameters) != len(self.mixture_diameter_stds) or \
                 any(not d > 0 for d in self.mixture_diameters) or any(not sd >= 0 for sd in self.mixture_diameter_stds):
             raise ConfigError("mixture diameters must be > 0 m, each with a standard deviation >= 0 m")
+        if self.mixture_mass_fractions:
+            w = np.asarray(self.mixture_mass_fractions, dtype=float)
+            if len(w) != len(self.mixture_diameters) or np.any(w <= 0) or abs(w.sum() - 1.0) > 1e-6:
+                raise ConfigError(f"mixture mass fractions must be one per diameter, each > 0, summing to 1 "
+                                  f"(got {list(self.mixture_mass_fractions)})")
         if self.diameter_std < 0 or self.density_std < 0:
             raise ConfigError("diameter and density standard deviations must be >= 0")
         if not self.density_mean > 0:
@@ -195,7 +220,32 @@ class ConfigurationSpec:
         else:
             out["mixture_diameters"] = [float(d) for d in self.mixture_diameters]
             out["mixture_diameter_stds"] = [float(d) for d in self.mixture_diameter_stds]
+        if not self.mixture_mass_fractions:  # the --mixture set keeps its earlier attrs
+            del out["mixture_mass_fractions"]
+        else:
+            out["mixture_mass_fractions"] = [float(w) for w in self.mixture_mass_fractions]
+            out["mixture_number_fractions"] = [float(x) for x in self.mixture_number_fractions()]
+            out["mixture_pair_probabilities"] = self.mixture_pair_probabilities().tolist()
         return out
+
+    def mixture_number_fractions(self) -> np.ndarray:
+        """Number fraction of each species, x_i = (w_i / E[d_i^3]) / sum (module docstring); (K,) float64."""
+        mu, sd = np.asarray(self.mixture_diameters, float), np.asarray(self.mixture_diameter_stds, float)
+        w = np.asarray(self.mixture_mass_fractions or np.full(mu.size, 1.0 / mu.size), float)
+        per_mass = w / (mu**3 + 3.0 * mu * sd**2)
+        return per_mass / per_mass.sum()
+
+    def mixture_pair_probabilities(self) -> np.ndarray:
+        """(K, K) probabilities of the ordered species pair (k1, k2) of a row: x_i x_j E[(d_i + d_j)^2] / Z
+        with mass fractions (the collision proportion, module docstring), else 1/K^2 (equal chance)."""
+        k = len(self.mixture_diameters)
+        if not self.mixture_mass_fractions:
+            return np.full((k, k), 1.0 / k**2)
+        mu, sd = np.asarray(self.mixture_diameters, float), np.asarray(self.mixture_diameter_stds, float)
+        x = self.mixture_number_fractions()
+        cross = (mu[:, None] + mu[None, :]) ** 2 + sd[:, None] ** 2 + sd[None, :] ** 2
+        p = x[:, None] * x[None, :] * cross
+        return p / p.sum()
 
 
 @dataclass(frozen=True)
@@ -269,7 +319,11 @@ def _draw_candidates(spec: ConfigurationSpec, rng: np.random.Generator, family: 
     n = family.shape[0]
     if spec.mixture_diameters:
         means, stds = np.asarray(spec.mixture_diameters), np.asarray(spec.mixture_diameter_stds)
-        k1, k2 = rng.integers(0, means.size, n), rng.integers(0, means.size, n)
+        if spec.mixture_mass_fractions:  # pair types in the proportion the mixture meets them
+            pair = rng.choice(means.size**2, size=n, p=spec.mixture_pair_probabilities().ravel())
+            k1, k2 = pair // means.size, pair % means.size
+        else:  # each particle's species with equal chance (the earlier --mixture sets, same bytes)
+            k1, k2 = rng.integers(0, means.size, n), rng.integers(0, means.size, n)
         d1 = means[k1] + stds[k1] * rng.standard_normal(n)
         d2 = means[k2] + stds[k2] * rng.standard_normal(n)
     else:

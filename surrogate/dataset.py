@@ -154,7 +154,8 @@ def make_spec(*, samples: int, seed: int, diameter: float, diameter_std: float |
               grazing_fraction: float = 0.3, grazing_angle: float = 60.0, max_offset: float = GRAZING_MAX_OFFSET,
               slow_fraction: float = 0.3, min_relative_speed: float = 0.01, min_normal_speed: float = 1e-3,
               speed_max: float = 20.0, touch_steps: float = 2.0, dt_factor: float = 0.5,
-              mixture_diameters: tuple = ()) -> DatasetSpec:
+              mixture_diameters: tuple = (), mixture_diameter_stds: tuple | None = None,
+              mixture_mass_fractions: tuple = ()) -> DatasetSpec:
     """A ``DatasetSpec`` from user options.
 
     Defaults cover every impact the engine meets (``surrogate.configurations``: grazing rows up to
@@ -176,19 +177,26 @@ def make_spec(*, samples: int, seed: int, diameter: float, diameter_std: float |
                               "475e-6); give --diameter-std (0 for monodisperse)")
     if not touch_steps > 0:
         raise ConfigError(f"touch steps must be > 0 (got {touch_steps})")
-    mixture_stds = []
-    for d in mixture_diameters:
-        sd = paper_diameter_std(float(d))
-        if sd is None:
-            raise ConfigError(f"no size distribution known for mixture diameter {d:g} m (the paper gives 315e-6 and "
-                              "475e-6)")
-        mixture_stds.append(sd)
+    if mixture_diameter_stds is not None:
+        if len(mixture_diameter_stds) != len(mixture_diameters):
+            raise ConfigError(f"--diameter-stds has {len(mixture_diameter_stds)} values for {len(mixture_diameters)} "
+                              "diameters; give one standard deviation per diameter")
+        mixture_stds = [float(sd) for sd in mixture_diameter_stds]
+    else:
+        mixture_stds = []
+        for d in mixture_diameters:
+            sd = paper_diameter_std(float(d))
+            if sd is None:
+                raise ConfigError(f"no size distribution known for mixture diameter {d:g} m (the paper gives 315e-6 "
+                                  "and 475e-6); give --diameter-stds")
+            mixture_stds.append(sd)
     smallest = min([diameter - 4.0 * diameter_std] + [d - 4.0 * sd for d, sd in zip(mixture_diameters, mixture_stds)])
     small_radius = 0.5 * max(smallest, 0.25 * min([diameter, *mixture_diameters]))
     dt = material.time_step(small_radius, max_speed=2.0 * speed_max).chosen  # the runner's step at 40 m/s
     cfg = ConfigurationSpec(diameter_mean=float(diameter), diameter_std=float(diameter_std),
                             mixture_diameters=tuple(float(d) for d in mixture_diameters),
                             mixture_diameter_stds=tuple(float(sd) for sd in mixture_stds),
+                            mixture_mass_fractions=tuple(float(w) for w in mixture_mass_fractions),
                             density_mean=material.density, density_std=float(density_std),
                             speed_max=float(speed_max), central_fraction=float(central_fraction),
                             grazing_fraction=float(grazing_fraction), grazing_angle=float(grazing_angle),

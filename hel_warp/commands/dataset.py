@@ -3,7 +3,10 @@ the batched binary DEM) written to a zarr group chunk by chunk; kill it and reru
 to resume. The defaults cover every impact the engine meets: the paper's three families, 10 % central,
 30 % grazing (incidence 60-89.8 deg), the rest uniform in b^2 (as random collisions), 30 % of the rows
 at relative speeds log-uniform down to 0.01 m/s; --paper-set gives the earlier paper-like set (half
-central, offsets <= 0.95, normal approach speed >= 0.05 m/s)."""
+central, offsets <= 0.95, normal approach speed >= 0.05 m/s). A size mixture: --diameters D1,D2
+--diameter-stds S1,S2 --mass-fractions W1,W2 puts same-size and cross-size pairs in the proportion the mixture
+meets them (number fractions from the mass fractions by d^3, times the cross-section (d_i + d_j)^2;
+surrogate/configurations.py); --density-std applies to every species."""
 
 from __future__ import annotations
 
@@ -15,13 +18,22 @@ def add_parser(subparsers):
                               description=__doc__)
     p.add_argument("--out", required=True, help="output directory (zarr group); an existing one is resumed")
     p.add_argument("--samples", type=int_at_least(1), default=60000, help="number of configurations (default 60000)")
-    p.add_argument("--diameter", type=finite_float, default=315e-6, help="mean particle diameter, m (default 315e-6)")
+    p.add_argument("--diameter", type=finite_float, default=None, help="mean particle diameter, m (default 315e-6)")
     p.add_argument("--diameter-std", type=finite_float, default=None,
                    help="diameter standard deviation, m (default: the paper's 8.2e-6 for 315e-6, 22e-6 for 475e-6)")
+    p.add_argument("--diameters", default=None, metavar="D1,D2[,...]",
+                   help="a size mixture: mean diameter of each species, m (e.g. 315e-6,475e-6); same-size and "
+                        "cross-size pairs in the proportion the mixture meets them (number fractions from "
+                        "--mass-fractions by d^3, times the cross-section (d_i + d_j)^2; see "
+                        "surrogate/configurations.py); replaces --diameter/--diameter-std")
+    p.add_argument("--diameter-stds", default=None, metavar="S1,S2[,...]",
+                   help="with --diameters: diameter standard deviation of each species, m (default: the paper's "
+                        "8.2e-6 for 315e-6, 22e-6 for 475e-6)")
+    p.add_argument("--mass-fractions", default=None, metavar="W1,W2[,...]",
+                   help="with --diameters: mass fraction of each species, each > 0, summing to 1 (default: equal)")
     p.add_argument("--mixture", default=None, metavar="D1,D2",
-                   help="a size mixture: each particle's mean diameter drawn from these (m; the paper's sizes "
-                        "315e-6,475e-6 with their standard deviations), equal and unequal pairs; --diameter is "
-                        "then only the size the set is named after")
+                   help="DEPRECATED (use --diameters): each particle's species drawn with equal chance (pair "
+                        "types 1/4, 1/2, 1/4 whatever the mixture); kept so earlier sets resume byte for byte")
     p.add_argument("--density-std", type=finite_float, default=0.0,
                    help="particle density standard deviation, kg/m^3 (default 0)")
     p.add_argument("--seed", type=int_at_least(0), default=0, help="random seed (default 0)")
@@ -72,6 +84,79 @@ def _stored_chunk_size(out: str) -> int | None:
         return None
 
 
+def _number_list(flag: str, text: str, *, positive: bool) -> tuple[float, ...]:
+    """``A,B,...`` -> floats, each finite and > 0 (``positive``) or >= 0; a ConfigError names ``flag``."""
+    import math
+
+    from hel_warp.errors import ConfigError
+
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise ConfigError(f"{flag} must be numbers separated by commas (got {text!r})") from None
+    bad = [v for v in values if not math.isfinite(v) or (v <= 0 if positive else v < 0)]
+    if bad:
+        raise ConfigError(f"{flag} values must be finite and {'> 0' if positive else '>= 0'} (got {text!r})")
+    return values
+
+
+def _size_options(args) -> tuple[float, float | None, dict]:
+    """(diameter, diameter_std, make_spec mixture keywords) from --diameter/--diameter-std, --diameters/
+    --diameter-stds/--mass-fractions, or the deprecated --mixture (a warning on stderr)."""
+    import sys
+
+    import numpy as np
+
+    from hel_warp.errors import ConfigError
+    from surrogate.configurations import paper_diameter_std
+
+    if args.mixture is not None and args.diameters is not None:
+        raise ConfigError("give --diameters (or the deprecated --mixture), not both")
+    if args.diameters is None:
+        if args.diameter_stds is not None or args.mass_fractions is not None:
+            raise ConfigError("--diameter-stds and --mass-fractions go with --diameters D1,D2")
+        diameter = 315e-6 if args.diameter is None else args.diameter
+        if args.mixture is None:
+            return diameter, args.diameter_std, {}
+        print("hel-warp dataset: warning: --mixture is deprecated: it draws each particle's size with equal chance "
+              "(pair types 1/4, 1/2, 1/4); use --diameters D1,D2 --mass-fractions W1,W2 for the pair types of a "
+              "mixture", file=sys.stderr)
+        return diameter, args.diameter_std, {"mixture_diameters": _number_list("--mixture", args.mixture,
+                                                                                positive=True)}
+    if args.diameter is not None or args.diameter_std is not None:
+        raise ConfigError("--diameters replaces --diameter and --diameter-std (give the stds with --diameter-stds)")
+    diameters = _number_list("--diameters", args.diameters, positive=True)
+    if len(diameters) < 2:
+        raise ConfigError(f"--diameters needs at least two sizes (got {args.diameters!r}); one size is --diameter")
+    if len(set(diameters)) != len(diameters):
+        raise ConfigError(f"--diameters lists a size twice ({args.diameters!r})")
+    if args.diameter_stds is not None:
+        stds = _number_list("--diameter-stds", args.diameter_stds, positive=False)
+    else:
+        stds = tuple(paper_diameter_std(d) for d in diameters)
+        if None in stds:
+            raise ConfigError(f"no size distribution known for {args.diameters!r} (the paper gives 315e-6 and "
+                              "475e-6); give --diameter-stds")
+    if len(stds) != len(diameters):
+        raise ConfigError(f"--diameter-stds has {len(stds)} values for {len(diameters)} --diameters")
+    if args.mass_fractions is not None:
+        fractions = _number_list("--mass-fractions", args.mass_fractions, positive=True)
+        if len(fractions) != len(diameters):
+            raise ConfigError(f"--mass-fractions has {len(fractions)} values for {len(diameters)} --diameters")
+        if abs(sum(fractions) - 1.0) > 1e-6:
+            raise ConfigError(f"--mass-fractions must sum to 1 (got {args.mass_fractions!r}, sum {sum(fractions):g})")
+    else:
+        fractions = tuple(1.0 / len(diameters) for _ in diameters)
+    # the set's one-size summary: the number-weighted mean and standard deviation of the mixture's sizes
+    mu, sd, w = (np.asarray(v, float) for v in (diameters, stds, fractions))
+    x = w / (mu**3 + 3.0 * mu * sd**2)
+    x /= x.sum()
+    mean = float((x * mu).sum())
+    std = float(np.sqrt((x * (sd**2 + mu**2)).sum() - mean**2))
+    return mean, std, {"mixture_diameters": diameters, "mixture_diameter_stds": stds,
+                       "mixture_mass_fractions": fractions}
+
+
 def run(args) -> int:
     from hel_warp._warp import init_warp
     from hel_warp.material import Material
@@ -89,18 +174,10 @@ def run(args) -> int:
                  "min_relative_speed", "min_normal_speed"):
         if getattr(args, name) is not None:
             offsets[name] = getattr(args, name)
-    mixture = ()
-    if args.mixture:
-        from hel_warp.errors import ConfigError
-
-        try:
-            mixture = tuple(float(d) for d in args.mixture.split(","))
-        except ValueError:
-            raise ConfigError(f"--mixture must be diameters separated by commas (got {args.mixture!r}), "
-                              "e.g. 315e-6,475e-6") from None
-    spec = make_spec(samples=args.samples, seed=args.seed, diameter=args.diameter, diameter_std=args.diameter_std,
+    diameter, diameter_std, mixture = _size_options(args)
+    spec = make_spec(samples=args.samples, seed=args.seed, diameter=diameter, diameter_std=diameter_std,
                      density_std=args.density_std, material=material, contact_model=args.model,
-                     chunk_size=chunk_size, dt_factor=args.dt_factor, mixture_diameters=mixture, **offsets)
+                     chunk_size=chunk_size, dt_factor=args.dt_factor, **mixture, **offsets)
     summary = build_dataset(args.out, spec, scheduler=args.scheduler, overwrite=args.overwrite,
                             progress=not args.no_progress and not args.json)
     emit(summary, args.json, [
