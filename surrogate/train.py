@@ -225,7 +225,44 @@ def lab_metrics(form: str, rows: FormRows, test_rows: np.ndarray, predicted: np.
         "momentum_rel_error_max": float(momentum_rel.max()),
         "momentum_rel_error_mean": float(momentum_rel.mean()),
     }
-    return metrics, {"u1_true": u1, "u1_pred": u1_pred, "rel_err": rel_err}
+    return metrics, {"u1_true": u1, "u1_pred": u1_pred, "rel_err": rel_err, "u2_true": u2, "u2_pred": u2_pred,
+                     "v1": v1, "v2": v2, "d1": c("d1"), "d2": c("d2")}
+
+
+def mixture_species(attrs: dict) -> tuple[list, list] | None:
+    """(means, stds) of the data set's size mixture (``configuration.mixture_diameters``), or None."""
+    cfg = attrs.get("configuration") or {}
+    means = cfg.get("mixture_diameters")
+    if not means:
+        return None
+    return [float(d) for d in means], [float(s) for s in cfg.get("mixture_diameter_stds") or [0.0] * len(means)]
+
+
+def pair_type_metrics(arrays: dict, means, stds) -> dict:
+    """Test-set metrics per pair type of a size mixture (``hel_warp.mixture.pair_type_names``: small-small,
+    small-large, large-large), each row's particles put in the species of the nearest mean
+    (``hel_warp.mixture.species_of``): rows, share of the test rows, MAE of u1 per component, median relative
+    error of u1, and the error of the post-collision relative velocity g' in % of |g| (median, p99, max)."""
+    from hel_warp.mixture import pair_type_names, pair_type_of, species_of
+
+    kind = pair_type_of(species_of(arrays["d1"], means, stds), species_of(arrays["d2"], means, stds))
+    g = arrays["v1"] - arrays["v2"]
+    g_err = 100.0 * np.linalg.norm((arrays["u1_pred"] - arrays["u2_pred"]) - (arrays["u1_true"] - arrays["u2_true"]),
+                                   axis=1) / np.maximum(np.linalg.norm(g, axis=1), 1e-300)
+    out = {}
+    for i, j, name in pair_type_names(len(means)):
+        m = (kind[:, 0] == i) & (kind[:, 1] == j)
+        if not m.any():
+            out[name] = {"rows": 0, "share": 0.0}
+            continue
+        out[name] = {"rows": int(m.sum()), "share": float(m.mean()),
+                     "diameters_um": [round(means[i] * 1e6, 3), round(means[j] * 1e6, 3)],
+                     "mae": _mae_dict(arrays["u1_pred"][m], arrays["u1_true"][m]),
+                     "rel_error_median": float(np.median(arrays["rel_err"][m])),
+                     "g_error_pct_median": float(np.median(g_err[m])),
+                     "g_error_pct_p99": float(np.percentile(g_err[m], 99)),
+                     "g_error_pct_max": float(np.max(g_err[m]))}
+    return out
 
 
 def train(data: CollisionData, model_dir: str, config: TrainConfig, *, log=print) -> dict:
@@ -287,6 +324,14 @@ def train(data: CollisionData, model_dir: str, config: TrainConfig, *, log=print
                "n_train_rows": int(train_r.size), "n_validation_rows": int(val_r.size),
                "targets": target_metrics, "dataset_samples": int(len(data)),
                "wall_time_s": None}
+    species = mixture_species(data.attrs)
+    if species is not None:
+        metrics["pair_types"] = pair_type_metrics(arrays, *species)
+        for name, row in metrics["pair_types"].items():
+            if row["rows"]:
+                log(f"  {name}: {row['rows']} test rows ({100 * row['share']:.1f} %), g' error median "
+                    f"{row['g_error_pct_median']:.3f} / p99 {row['g_error_pct_p99']:.3f} / max "
+                    f"{row['g_error_pct_max']:.3f} % of |g|")
     material = data.attrs.get("material")
     domain = _domain(config.form, rows, train_r, material)
     doc = _flat_document(config.form, features, targets, boosters, mean, std, domain)
@@ -305,6 +350,18 @@ def train(data: CollisionData, model_dir: str, config: TrainConfig, *, log=print
                                                  contact_model=str(data.attrs.get("contact_model", "hertz")),
                                                  diameter=defaults["d1"], density=defaults["rho1"])
             log(format_table(metrics["sweep"]))
+            if species is not None:  # one sweep per pair type, at the species' mean sizes
+                from hel_warp.mixture import pair_type_names
+
+                means = species[0]
+                metrics["sweep_pair_types"] = {}
+                for i, j, name in pair_type_names(len(means)):
+                    sweep = sweep_against_dem(parse_forest(doc), material,
+                                              contact_model=str(data.attrs.get("contact_model", "hertz")),
+                                              diameter=means[i], density=defaults["rho1"],
+                                              size_ratios=(means[j] / means[i],))
+                    metrics["sweep_pair_types"][name] = sweep
+                    log(f"{name}:\n{format_table(sweep)}")
     metrics["wall_time_s"] = round(time.perf_counter() - t_start, 2)
     from surrogate.artifact import save_artifact
 
