@@ -596,9 +596,72 @@ def model_name(config: dict) -> str:
     return name
 
 
+def _sizes(config: dict) -> tuple:
+    """(diameter, diameter2, mass fraction 2) of a run, m; (d, None, None) for one size."""
+    d2 = config.get("diameter2")
+    return (round(float(config["diameter"]), 12), None if d2 is None else round(float(d2), 12),
+            None if d2 is None else round(float(config.get("mass_fraction2") or 0.0), 9))
+
+
+def sizes_label(config: dict) -> str:
+    """``315 um``, or ``315/475 um (mass fraction 0.5 of 475 um)`` for a mixture."""
+    d, d2, f2 = _sizes(config)
+    if d2 is None:
+        return f"{d * 1e6:.0f} um"
+    return f"{d * 1e6:.0f}/{d2 * 1e6:.0f} um (mass fraction {f2:g} of {d2 * 1e6:.0f} um)"
+
+
 def _same_size_and_step(a: RunData, b: RunData) -> bool:
-    return (abs(float(a.config["diameter"]) - float(b.config["diameter"])) <= 1e-9
-            and abs(float(a.config["dt"]) - float(b.config["dt"])) <= 1e-12)
+    return _sizes(a.config) == _sizes(b.config) and abs(float(a.config["dt"]) - float(b.config["dt"])) <= 1e-12
+
+
+# ------------------------------------------------------------------------------------------ size classes
+def size_classes(run: RunData) -> list | None:
+    """The species of a mixture run (``rig.size_classes``: diameter, diameter_std, parcels), or None."""
+    classes = run.rig.get("size_classes") if isinstance(run.rig, dict) else None
+    return classes or None
+
+
+def size_class_view(run: RunData, k: int) -> RunData:
+    """``run`` with only the parcels of size class ``k`` in its snapshots (each parcel put in the class of the
+    nearest mean diameter in units of its standard deviation, ``hel_warp.mixture.species_of``)."""
+    from hel_warp.mixture import species_of
+
+    classes = size_classes(run)
+    means = [float(c["diameter"]) for c in classes]
+    stds = [float(c.get("diameter_std") or 0.0) for c in classes]
+    snaps = []
+    for snap in run.snapshots:
+        if "radius" not in snap:
+            raise ConfigError(f"{run.path}: snapshots lack 'radius'; the size classes of a mixture need it")
+        keep = species_of(2.0 * np.asarray(snap["radius"], np.float64), means, stds) == k
+        snaps.append({name: np.asarray(arr)[keep] for name, arr in snap.items()})
+    return RunData(path=run.path, label=f"{run.label}[{means[k] * 1e6:.0f}um]", config=run.config, times=run.times,
+                   snapshots=snaps, series=run.series, raw_config=run.raw_config, kernel_load_s=run.kernel_load_s)
+
+
+def size_class_entries(run: RunData, ref: RunData | None, boxes, *, downstream_only: bool, from_time: float,
+                       window, min_samples: int) -> list:
+    """Per size class of a mixture run: its profiles and stream metrics, and against the same class of the dem
+    reference (a mixture run of the same sizes) the axial RMS, crossing and v_y rms differences."""
+    out = []
+    for k, c in enumerate(size_classes(run)):
+        view = size_class_view(run, k)
+        prof = {str(b): profiles(view, b, downstream_only=downstream_only, from_time=from_time) for b in boxes}
+        metrics = stream_metrics(view, boxes, window=window, min_samples=min_samples)
+        entry = {"diameter": float(c["diameter"]), "label": f"{float(c['diameter']) * 1e6:.0f} um",
+                 "paper_experimental_uncertainty": paper_uncertainty(float(c["diameter"])),
+                 "profiles": prof, "stream_metrics": metrics}
+        if ref is not None and ref is not run and size_classes(ref) is not None:
+            ref_view = size_class_view(ref, k)
+            ref_prof = {str(b): profiles(ref_view, b, downstream_only=downstream_only, from_time=from_time)
+                        for b in boxes}
+            ref_metrics = stream_metrics(ref_view, boxes, window=window, min_samples=min_samples)
+            entry["profile_rms_vs_dem"] = {str(b): profile_rms(prof[str(b)], ref_prof[str(b)],
+                                                               min_samples=min_samples) for b in boxes}
+            entry.update(stream_metrics_vs(metrics, ref_metrics, boxes, min_samples=min_samples))
+        out.append(entry)
+    return out
 
 
 def wall_effect(runs: list, metrics: dict, all_profiles: dict, boxes, *, min_samples: int) -> list:
@@ -622,9 +685,9 @@ def wall_effect(runs: list, metrics: dict, all_profiles: dict, boxes, *, min_sam
 
 
 def _dem_reference(run: RunData, runs: list) -> RunData | None:
-    """The ``dem`` run (contacts on) to compare ``run`` with: same particle diameter (required), same dt preferred."""
-    dems = [r for r in runs if model_name(r.config) == "dem"
-            and abs(float(r.config["diameter"]) - float(run.config["diameter"])) <= 1e-9]
+    """The ``dem`` run (contacts on) to compare ``run`` with: same particle diameter (required; a mixture: the same
+    sizes and mass fraction), same dt preferred."""
+    dems = [r for r in runs if model_name(r.config) == "dem" and _sizes(r.config) == _sizes(run.config)]
     if not dems:
         return None
     return sorted(dems, key=lambda r: abs(float(r.config["dt"]) - float(run.config["dt"])) > 1e-12)[0]
@@ -642,7 +705,7 @@ SUMMARY_COLUMNS = (("model", "model", "{}"), ("stream_crossing", "crossing", "{:
 
 
 def _model_rank(name: str) -> tuple:
-    base = name.split("/")[0]
+    base = name.split("/")[0].split(" [")[0]
     return (MODEL_ORDER.index(base) if base in MODEL_ORDER else len(MODEL_ORDER), name)
 
 
@@ -653,7 +716,9 @@ def summary_rows(report: dict) -> list:
     for e in report["runs"]:
         sm = e["stream_metrics"]
         rms = e.get("profile_rms_vs_dem")
+        sizes = e.get("sizes") or f"{e['diameter'] * 1e6:.0f} um"
         rows.append({"label": e["label"], "model": e["model"], "diameter": e["diameter"], "dt": e["dt"],
+                     "sizes": sizes,
                      "stream_crossing": sm["stream_crossing"],
                      "stream_crossing_vs_dem": (e.get("stream_crossing_vs_dem") or {}).get("difference"),
                      "transverse_velocity_rms": sm["transverse_velocity_rms"],
@@ -661,7 +726,18 @@ def summary_rows(report: dict) -> list:
                          (e.get("transverse_velocity_rms_vs_dem") or {}).get("relative_difference"),
                      "collision_rate": e["collision_rate"], "collision_rate_vs_dem": e.get("collision_rate_vs_dem"),
                      "profile_rms_vs_dem": rms.get(boxes) if rms else None, "wall_clock_s": e["wall_clock_s"]})
-    return sorted(rows, key=lambda r: (r["diameter"], -r["dt"], _model_rank(r["model"])))
+        for c in e.get("size_classes") or []:  # a mixture: one row per size class beside the run's own
+            csm, crms = c["stream_metrics"], c.get("profile_rms_vs_dem")
+            rows.append({"label": f"{e['label']}[{c['label']}]", "model": f"{e['model']} [{c['label']}]",
+                         "diameter": e["diameter"], "dt": e["dt"], "sizes": sizes,
+                         "stream_crossing": csm["stream_crossing"],
+                         "stream_crossing_vs_dem": (c.get("stream_crossing_vs_dem") or {}).get("difference"),
+                         "transverse_velocity_rms": csm["transverse_velocity_rms"],
+                         "transverse_velocity_rms_vs_dem":
+                             (c.get("transverse_velocity_rms_vs_dem") or {}).get("relative_difference"),
+                         "collision_rate": None, "collision_rate_vs_dem": None,
+                         "profile_rms_vs_dem": crms.get(boxes) if crms else None, "wall_clock_s": None})
+    return sorted(rows, key=lambda r: (r["diameter"], r["sizes"], -r["dt"], _model_rank(r["model"])))
 
 
 def format_summary_table(rows: list, *, boxes=None) -> str:
@@ -669,15 +745,16 @@ def format_summary_table(rows: list, *, boxes=None) -> str:
     lines = []
     groups = []
     for r in rows:
-        if (r["diameter"], r["dt"]) not in groups:
-            groups.append((r["diameter"], r["dt"]))
-    for diameter, dt in groups:
-        lines.append(f"d = {diameter * 1e6:.0f} um, dt = {dt:g} s"
+        key = (r.get("sizes") or f"{r['diameter'] * 1e6:.0f} um", r["dt"])
+        if key not in groups:
+            groups.append(key)
+    for sizes, dt in groups:
+        lines.append(f"d = {sizes}, dt = {dt:g} s"
                      + (f" (axial RMS over {boxes} sub-boxes)" if boxes else ""))
         lines.append("| " + " | ".join(h for _, h, _ in SUMMARY_COLUMNS) + " |")
         lines.append("|" + "|".join("---" for _ in SUMMARY_COLUMNS) + "|")
         for r in rows:
-            if (r["diameter"], r["dt"]) != (diameter, dt):
+            if (r.get("sizes") or f"{r['diameter'] * 1e6:.0f} um", r["dt"]) != (sizes, dt):
                 continue
             cells = ["-" if r[key] is None else fmt.format(r[key]) for key, _, fmt in SUMMARY_COLUMNS]
             lines.append("| " + " | ".join(cells) + " |")
@@ -747,6 +824,11 @@ def build_report(run_dirs: list, *, boxes=DEFAULT_BOXES, downstream_only: bool =
                                                min_samples=int(min_samples)))
                 entry["collision_rate_vs_dem"] = _relative(entry["collision_rate"], collision_rate(ref))
                 entry["config_differences_vs_dem"] = config_differences(r, ref)
+        if size_classes(r) is not None:
+            entry["sizes"] = sizes_label(c)
+            entry["size_classes"] = size_class_entries(r, ref, boxes, downstream_only=downstream_only,
+                                                       from_time=from_time, window=window,
+                                                       min_samples=int(min_samples))
         entries.append(entry)
     effect = wall_effect(runs, metrics, all_profiles, boxes, min_samples=int(min_samples))
     report = {
