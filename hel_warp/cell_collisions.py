@@ -38,6 +38,9 @@ PARCELS_PER_CELL = 16.0
 """Default mean parcels per collision cell in a periodic box or the bounding box: enough pairs per cell that
 N (N - 1) samples the pair density, few enough that partners stay within a few mean free paths at eps_s >= 0.01
 (a cell of 16 parcels of weight 1 at eps_s = 0.05 is 2.6 mm = 8 d wide, ~4 mean free paths)."""
+BATCHED_ROUNDS = 64
+"""Batched forest rounds per step at most (one accepted pair per cell and round; the rest inline): most cells of a
+gas finish within them, a dense MP-PIC cell with thousands of collisions per step does not hold the others up."""
 EPS_CAP = 0.55
 """Largest cell solids fraction put into Carnahan-Starling's g0 (it diverges at 1; MP-PIC cells can overfill)."""
 
@@ -58,6 +61,9 @@ class CellConfig:
     """Largest solids fraction put into g0."""
     log_capacity: int = 0
     """Accepted events logged per step (pair, g, sampled normal) for tests and diagnostics; 0: none."""
+    batched_rounds: int = BATCHED_ROUNDS
+    """With a batched forest: rounds of one accepted pair per cell at most; the cells left over (dense ones) finish
+    with inline tree walks."""
 
     def __post_init__(self):
         if not (math.isfinite(self.parcels_per_cell) and self.parcels_per_cell >= 2.0):
@@ -69,6 +75,8 @@ class CellConfig:
             raise ConfigError(f"cell subdivision must be a positive integer (got {self.subdivision!r})")
         if not 0.0 < self.eps_cap < 1.0:
             raise ConfigError(f"cell eps_cap must lie in (0, 1) (got {self.eps_cap!r})")
+        if int(self.batched_rounds) != self.batched_rounds or self.batched_rounds < 1:
+            raise ConfigError(f"cell batched_rounds must be a positive integer (got {self.batched_rounds!r})")
         if int(self.log_capacity) != self.log_capacity or self.log_capacity < 0:
             raise ConfigError(f"cell log_capacity must be an integer >= 0 (got {self.log_capacity!r})")
 
@@ -152,6 +160,18 @@ class CellCollisions:
         a.cell_sigma_g_max = wp.zeros(n_cells, dtype=wp.float32, device=dev)
         a.cell_candidates = wp.zeros(n_cells, dtype=wp.float32, device=dev)
         a.features = wp.zeros((n_cells, 6), dtype=wp.float32, device=dev)
+        a.batch_features = wp.zeros((n_cells, 6), dtype=wp.float32, device=dev)
+        a.batch_out = wp.zeros((n_cells, 2), dtype=wp.float32, device=dev)
+        a.batch_count = wp.zeros(1, dtype=wp.int32, device=dev)
+        a.cell_rng = wp.zeros(n_cells, dtype=wp.uint32, device=dev)
+        a.cell_remaining = wp.zeros(n_cells, dtype=wp.int32, device=dev)
+        a.cell_bound = wp.zeros(n_cells, dtype=wp.float32, device=dev)
+        a.cell_solids = wp.zeros(n_cells, dtype=wp.float32, device=dev)
+        a.pending_row = wp.full(n_cells, -1, dtype=wp.int32, device=dev)
+        a.pending_pair = wp.zeros(n_cells, dtype=wp.vec2i, device=dev)
+        a.pending_normal = wp.zeros(n_cells, dtype=wp.vec3, device=dev)
+        self._more = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._rounds = wp.zeros(1, dtype=wp.int32, device=dev)
         a.counts = wp.zeros(N_COUNTS, dtype=wp.int32, device=dev)
         s2 = self.n_streams * self.n_streams
         a.calls = wp.zeros(s2, dtype=wp.int32, device=dev)
@@ -176,10 +196,12 @@ class CellCollisions:
         return bounding_lattice(x, r_max, cfg.parcels_per_cell, cfg.cell_size)
 
     # ------------------------------------------------------------------ one step
-    def collide(self, particles, dt: float, forest, domain, *, periodic_box=None, grid=None, apply: bool = True,
-                alive: np.ndarray | None = None) -> None:
+    def collide(self, particles, dt: float, forest, domain, *, batch_forest=None, periodic_box=None, grid=None,
+                apply: bool = True, alive: np.ndarray | None = None) -> None:
         """The step's collisions of ``particles`` (velocities in place); ``forest`` an explicit-layout ``Forest``,
-        ``domain`` its ``ContactDomain``. ``apply=False``: selection only (counts and log; velocities unchanged)."""
+        ``domain`` its ``ContactDomain``; ``batch_forest`` (perfect layout, optional): the accepted pairs predicted
+        in batched rounds (faster, same pairs). ``apply=False``: selection only (counts and log; velocities
+        unchanged)."""
         from kernels.cell_collide import collide_cells, sort_by_cell
 
         if dt is None or not (dt > 0 and math.isfinite(dt)):
@@ -215,7 +237,9 @@ class CellCollisions:
         a.domain = domain
         self._zero_counts()
         sort_by_cell(a)
-        collide_cells(a, forest, particles.v)
+        self._rounds.zero_()
+        collide_cells(a, forest, particles.v, self._more, self._rounds, batch_forest=batch_forest,
+                      max_rounds=self.config.batched_rounds)
 
     def _zero_counts(self) -> None:
         if self._args is None:
@@ -227,7 +251,7 @@ class CellCollisions:
     # ------------------------------------------------------------------ results
     def counts(self) -> dict:
         """``collisions`` (real binary collisions: sum of min(w_i, w_j)), ``surrogate_calls`` (accepted events),
-        ``detected_pairs`` (0: no overlap test), ``cell_candidates``, ``cell_accepted``, ``cell_over_max``
+        ``detected_pairs`` (0: no overlap test), ``rounds`` (batched forest rounds), ``cell_candidates``, ``cell_accepted``, ``cell_over_max``
         (candidates above the majorant, accepted with probability 1), ``cell_cells`` (cells with >= 2 parcels),
         ``cell_log_overflow``, ``guard_separation|coulomb|energy|domain_clamped``, per stream pair
         ``collisions_<a>_<b>``, ``surrogate_calls_<a>_<b>``."""
@@ -249,6 +273,7 @@ class CellCollisions:
                         "detected_pairs": 0, "cell_candidates": int(c[COUNT_CANDIDATES]),
                         "cell_accepted": int(c[COUNT_ACCEPTED]), "cell_over_max": int(c[COUNT_OVER_MAX]),
                         "cell_cells": int(c[COUNT_CELLS]), "cell_log_overflow": int(c[COUNT_LOG_OVERFLOW]),
+                        "rounds": 0 if self._args is None else int(self._rounds.numpy()[0]),
                         "guard_separation": int(c[COUNT_SEPARATION]), "guard_coulomb": int(c[COUNT_COULOMB]),
                         "guard_energy": int(c[COUNT_ENERGY]), "guard_domain_clamped": int(c[COUNT_CLAMPED]),
                         **pair_counts("collisions", collisions), **pair_counts("surrogate_calls", calls)}

@@ -258,7 +258,8 @@ class SurrogateCollision:
         if self.auto_detection:
             self.detection = "cell" if bool((particles.weight.numpy()[alive] > 1.0).any()) else "swept"
         if self.detection == "cell":
-            self.cells.collide(particles, dt, self.forest, self.swept.domain, periodic_box=self.periodic_box,
+            self.cells.collide(particles, dt, self.forest, self.swept.domain, batch_forest=self.batch_forest,
+                               periodic_box=self.periodic_box,
                                grid=None if self.periodic_box is not None else self._solver_grid, alive=alive)
             return
         if self.detection == "swept":

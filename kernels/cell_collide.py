@@ -33,7 +33,10 @@ whatever w. Per collision cell of volume V holding N parcels, in one step dt:
   impulse dissipates slightly more than w_min binary collisions (never less: no energy gain).
 
 Threads: one per collision cell; a cell's candidates are resolved in order by its thread (they share parcels),
-cells are disjoint. Random numbers: ``wp.rand_init(seed, cell)`` with a per-step seed from the host, so a run is
+cells are disjoint. The forest is evaluated either inline (explicit tree walks in the cell's thread) or, faster,
+in rounds: each cell stops at its next accepted pair, all cells' pairs are predicted in one batched evaluation
+(``kernels/forest.py`` ``eval_forest``, perfect layout), applied, and the cells go on; the same pairs in the same
+order either way. Random numbers: ``wp.rand_init(seed, cell)`` with a per-step seed from the host, so a run is
 deterministic for a seed and restarts exactly from (seed, step). Parcel lists: a stable radix sort of the live
 parcels by cell (``wp.utils.radix_sort_pairs``), cell ranges from the sorted keys. Counts are integer atomics
 (deterministic totals). The optional event log (fixed capacity, overflow counted) records the sampled geometry
@@ -103,7 +106,28 @@ class CellArgs:
     cell_candidates: wp.array(dtype=wp.float32)
     """(n_cells,) the expected candidate count M of the step (before the integer draw)."""
     features: wp.array2d(dtype=wp.float32)
-    """(n_cells, 6) scratch row of each cell's thread for the forest."""
+    """(n_cells, 6) inline mode: scratch feature row of each cell's thread."""
+    batched: wp.int32
+    """1: accepted pairs are resolved in rounds, one per cell and round, with one batched forest evaluation per
+    round (``eval_forest``, perfect layout); 0: inline tree walks (explicit layout), one round."""
+    batch_features: wp.array2d(dtype=wp.float32)
+    """(n_cells, 6) the round's feature rows (compact: the first ``batch_count[0]``)."""
+    batch_out: wp.array2d(dtype=wp.float32)
+    """(n_cells, 2) the forest's two targets of each row."""
+    batch_count: wp.array(dtype=wp.int32)
+    """(1,) rows of the round."""
+    cell_rng: wp.array(dtype=wp.uint32)
+    """(n_cells,) random state of each cell's sequence (carried across the step's rounds)."""
+    cell_remaining: wp.array(dtype=wp.int32)
+    """(n_cells,) candidates still to draw in the step."""
+    cell_bound: wp.array(dtype=wp.float32)
+    """(n_cells,) the acceptance bound (sigma g)_max w_max chi_max, m^3/s."""
+    cell_solids: wp.array(dtype=wp.float32)
+    """(n_cells,) real solids volume sum w V of the cell, m^3."""
+    pending_row: wp.array(dtype=wp.int32)
+    """(n_cells,) batch row of the cell's accepted pair this round, -1: none."""
+    pending_pair: wp.array(dtype=wp.vec2i)
+    pending_normal: wp.array(dtype=wp.vec3)
     counts: wp.array(dtype=wp.int32)
     """(N_COUNTS,) integer counters of the step (slots above)."""
     calls: wp.array(dtype=wp.int32)
@@ -196,43 +220,48 @@ def cell_ranges(
 
 
 @wp.func
-def resolve_pair(args: CellArgs, forest: Forest, row: int, i: int, j: int, g: wp.vec3, n: wp.vec3,
+def resolve_pair(args: CellArgs, i: int, j: int, n: wp.vec3, impulse_n: float, impulse_t: float,
                  particle_v: wp.array(dtype=wp.vec3)):
-    """Surrogate outcome of parcels i, j along n (approaching): clamp, forest, guard, weighted equal and opposite
-    impulse written into particle_v. Returns the guard flags | 8 when the features were clamped."""
+    """The forest's normalised impulse for parcels i, j along n (approaching) through the guard, applied as the
+    weighted equal and opposite impulse into particle_v; returns the guard flags."""
     vi = particle_v[i]
     vj = particle_v[j]
-    ri = args.particle_radius[i]
-    rj = args.particle_radius[j]
-    rho_i = args.particle_density[i]
-    rho_j = args.particle_density[j]
-    clamped = write_contact_features_in_domain(vi, vj, n, 2.0 * ri, 2.0 * rj, rho_i, rho_j, args.domain, row,
-                                               args.features)
-    impulse_n = forest_target(forest, 0, args.features, row)
-    impulse_t = forest_target(forest, 1, args.features, row)
+    g = vi - vj
     cos_angle = wp.dot(g, n) / wp.length(g)
     impulse_n, impulse_t, flags = admissible_impulse(cos_angle, impulse_n, impulse_t, args.domain.friction_bound,
                                                      args.domain.separation_slack)
-    mi = sphere_mass(2.0 * ri, rho_i)
-    mj = sphere_mass(2.0 * rj, rho_j)
+    ri = args.particle_radius[i]
+    rj = args.particle_radius[j]
+    mi = sphere_mass(2.0 * ri, args.particle_density[i])
+    mj = sphere_mass(2.0 * rj, args.particle_density[j])
     J = contact_impulse(vi, vj, n, mi, mj, impulse_n, impulse_t)  # on j; i gets -J
     wi = args.particle_weight[i]
     wj = args.particle_weight[j]
     w_min = wp.min(wi, wj)
     particle_v[i] = vi - J * (w_min / (wi * mi))
     particle_v[j] = vj + J * (w_min / (wj * mj))
-    return flags | (8 * clamped)
+    return flags
+
+
+@wp.func
+def count_guard(args: CellArgs, flags: int):
+    if (flags & GUARD_SEPARATION) != 0:
+        wp.atomic_add(args.counts, COUNT_SEPARATION, 1)
+    if (flags & GUARD_COULOMB) != 0:
+        wp.atomic_add(args.counts, COUNT_COULOMB, 1)
+    if (flags & GUARD_ENERGY) != 0:
+        wp.atomic_add(args.counts, COUNT_ENERGY, 1)
 
 
 @wp.kernel
-def cell_collide(
+def cell_prepare(
     args: CellArgs,
-    forest: Forest,
-    # outputs
     particle_v: wp.array(dtype=wp.vec3),
 ):
-    """One collision cell: majorant, candidate count, candidates in order (selection, acceptance, outcome)."""
+    """One collision cell: its majorant, real solids volume, candidate count and random state for the step."""
     cell = wp.tid()
+    args.cell_remaining[cell] = 0
+    args.pending_row[cell] = -1
     start = args.cell_start[cell]
     end = args.cell_end[cell]
     count = end - start
@@ -255,26 +284,48 @@ def cell_collide(
     u_max = float(0.0)
     for k in range(start, end):
         u_max = wp.max(u_max, wp.length(particle_v[args.cell_slot[k]] - c))
-    volume = args.cell_volume
     chi_max = float(1.0)
     if args.enskog != 0:
-        chi_max = carnahan_starling(solids / volume, args.eps_cap)
+        chi_max = carnahan_starling(solids / args.cell_volume, args.eps_cap)
     sigma_g_max = wp.pi * (2.0 * r_max) * (2.0 * r_max) * (2.0 * u_max)
     args.cell_sigma_g_max[cell] = sigma_g_max
-    expected = 0.5 * float(count) * float(count - 1) * w_max * chi_max * sigma_g_max * args.dt / volume
+    expected = 0.5 * float(count) * float(count - 1) * w_max * chi_max * sigma_g_max * args.dt / args.cell_volume
     args.cell_candidates[cell] = expected
     state = wp.rand_init(args.seed, cell)
     n_candidates = int(wp.floor(expected))
     if wp.randf(state) < expected - float(n_candidates):
         n_candidates += 1
-    accepted = int(0)
-    over_max = int(0)
-    separation = int(0)
-    coulomb = int(0)
-    energy = int(0)
-    clamped = int(0)
-    bound = sigma_g_max * w_max * chi_max
-    for q in range(n_candidates):
+    args.cell_rng[cell] = state
+    args.cell_remaining[cell] = n_candidates
+    args.cell_bound[cell] = sigma_g_max * w_max * chi_max
+    args.cell_solids[cell] = solids
+    wp.atomic_add(args.counts, COUNT_CANDIDATES, n_candidates)
+    wp.atomic_add(args.counts, COUNT_CELLS, 1)
+
+
+@wp.kernel
+def cell_select(
+    args: CellArgs,
+    forest: Forest,
+    # outputs
+    particle_v: wp.array(dtype=wp.vec3),
+    more: wp.array(dtype=wp.int32),
+):
+    """The cell's candidates in order: selection, acceptance, sampled normal. ``args.batched`` = 1: stop at the
+    next accepted pair, write its features into a batch row (resolved by ``cell_apply`` after the batched forest
+    evaluation; ``more[0]`` = 1); 0: resolve every accepted pair at once with inline tree walks."""
+    cell = wp.tid()
+    remaining = args.cell_remaining[cell]
+    if remaining <= 0:
+        return
+    start = args.cell_start[cell]
+    count = args.cell_end[cell] - start
+    state = args.cell_rng[cell]
+    bound = args.cell_bound[cell]
+    solids = args.cell_solids[cell]
+    volume = args.cell_volume
+    while remaining > 0:
+        remaining -= 1
         a = wp.min(int(wp.randf(state) * float(count)), count - 1)
         b = wp.min(int(wp.randf(state) * float(count - 1)), count - 2)
         if b >= a:
@@ -297,10 +348,10 @@ def cell_collide(
             chi = carnahan_starling((solids - wi * sphere_volume(ri) - wj * sphere_volume(rj)) / volume, args.eps_cap)
         rate = wp.pi * (ri + rj) * (ri + rj) * g_mag * wp.max(wi, wj) * chi
         if rate > bound:
-            over_max += 1
+            wp.atomic_add(args.counts, COUNT_OVER_MAX, 1)
         if not (u_accept * bound < rate):
             continue
-        accepted += 1
+        wp.atomic_add(args.counts, COUNT_ACCEPTED, 1)
         n = sample_normal(g, u_b2, u_phi)
         if args.log_pair.shape[0] > 0:
             slot = wp.atomic_add(args.log_count, 0, 1)
@@ -310,27 +361,63 @@ def cell_collide(
                 args.log_normal[slot] = n
             else:
                 wp.atomic_add(args.counts, COUNT_LOG_OVERFLOW, 1)
-        if args.apply != 0:
-            flags = resolve_pair(args, forest, cell, i, j, g, n, particle_v)
-            if (flags & GUARD_SEPARATION) != 0:
-                separation += 1
-            if (flags & GUARD_COULOMB) != 0:
-                coulomb += 1
-            if (flags & GUARD_ENERGY) != 0:
-                energy += 1
-            if (flags & 8) != 0:
-                clamped += 1
         s = stream_pair_index(args.particle_stream[i], args.particle_stream[j], args.n_streams)
         wp.atomic_add(args.calls, s, 1)
         wp.atomic_add(args.collisions, s, wp.int32(wp.min(wi, wj) + 0.5))
-    wp.atomic_add(args.counts, COUNT_CANDIDATES, n_candidates)
-    wp.atomic_add(args.counts, COUNT_ACCEPTED, accepted)
-    wp.atomic_add(args.counts, COUNT_OVER_MAX, over_max)
-    wp.atomic_add(args.counts, COUNT_CELLS, 1)
-    wp.atomic_add(args.counts, COUNT_SEPARATION, separation)
-    wp.atomic_add(args.counts, COUNT_COULOMB, coulomb)
-    wp.atomic_add(args.counts, COUNT_ENERGY, energy)
-    wp.atomic_add(args.counts, COUNT_CLAMPED, clamped)
+        if args.apply == 0:
+            continue
+        if args.batched != 0:
+            row = wp.atomic_add(args.batch_count, 0, 1)
+            if write_contact_features_in_domain(particle_v[i], particle_v[j], n, 2.0 * ri, 2.0 * rj,
+                                                args.particle_density[i], args.particle_density[j], args.domain,
+                                                row, args.batch_features) == 1:
+                wp.atomic_add(args.counts, COUNT_CLAMPED, 1)
+            args.pending_row[cell] = row
+            args.pending_pair[cell] = wp.vec2i(i, j)
+            args.pending_normal[cell] = n
+            more[0] = 1
+            break
+        if write_contact_features_in_domain(particle_v[i], particle_v[j], n, 2.0 * ri, 2.0 * rj,
+                                            args.particle_density[i], args.particle_density[j], args.domain, cell,
+                                            args.features) == 1:
+            wp.atomic_add(args.counts, COUNT_CLAMPED, 1)
+        flags = resolve_pair(args, i, j, n, forest_target(forest, 0, args.features, cell),
+                             forest_target(forest, 1, args.features, cell), particle_v)
+        count_guard(args, flags)
+    args.cell_remaining[cell] = remaining
+    args.cell_rng[cell] = state
+
+
+@wp.kernel
+def cell_apply(
+    args: CellArgs,
+    # outputs
+    particle_v: wp.array(dtype=wp.vec3),
+):
+    """The batched round's outcome of each cell's pending pair (``batch_out`` row), guarded and applied."""
+    cell = wp.tid()
+    row = args.pending_row[cell]
+    if row < 0:
+        return
+    pair = args.pending_pair[cell]
+    flags = resolve_pair(args, pair[0], pair[1], args.pending_normal[cell], args.batch_out[row, 0],
+                         args.batch_out[row, 1], particle_v)
+    count_guard(args, flags)
+    args.pending_row[cell] = -1
+
+
+@wp.kernel
+def cell_next_round(
+    max_rounds: int,
+    # outputs
+    more: wp.array(dtype=wp.int32),
+    round_count: wp.array(dtype=wp.int32),
+):
+    """Counts the batched round; stops the rounds at ``max_rounds`` (the rest is resolved inline)."""
+    r = round_count[0] + 1
+    round_count[0] = r
+    if r >= max_rounds:
+        more[0] = 0
 
 
 # ------------------------------------------------------------------------------------------ launch wrappers
@@ -348,8 +435,35 @@ def sort_by_cell(args: CellArgs) -> None:
     wp.launch(cell_ranges, dim=n, device=device, inputs=[args, n], outputs=[args.cell_start, args.cell_end])
 
 
-def collide_cells(args: CellArgs, forest: Forest, particle_v) -> None:
+def collide_cells(args: CellArgs, forest: Forest, particle_v, more, round_count, batch_forest: Forest | None = None,
+                  max_rounds: int = 64) -> None:
     """Every cell's candidates, acceptance and outcomes (after :func:`sort_by_cell`); counters accumulate (the
-    caller zeroes them per step)."""
-    wp.launch(cell_collide, dim=args.cell_start.shape[0], device=particle_v.device, inputs=[args, forest],
-              outputs=[particle_v])
+    caller zeroes them per step). With ``batch_forest`` (perfect layout): rounds of one accepted pair per cell,
+    each round's pairs predicted in one batched evaluation, until no cell has candidates left
+    (``wp.capture_while``: a graph loop on CUDA) or ``max_rounds`` rounds, the rest inline; else one round of
+    inline walks of ``forest`` (explicit layout). ``more``, ``round_count``: (1,) int32 scratch (``round_count``:
+    the batched rounds taken). Both give the same pairs in the same order per cell."""
+    device = particle_v.device
+    n_cells = args.cell_start.shape[0]
+    args.batched = 0 if batch_forest is None else 1
+    wp.launch(cell_prepare, dim=n_cells, device=device, inputs=[args, particle_v])
+    if batch_forest is None:
+        wp.launch(cell_select, dim=n_cells, device=device, inputs=[args, forest], outputs=[particle_v, more])
+        return
+    from kernels.forest import eval_forest
+
+    def one_round():
+        more.zero_()
+        args.batch_count.zero_()
+        wp.launch(cell_select, dim=n_cells, device=device, inputs=[args, forest], outputs=[particle_v, more])
+        eval_forest(batch_forest, args.batch_features, args.batch_out, device=device, row_count=args.batch_count)
+        wp.launch(cell_apply, dim=n_cells, device=device, inputs=[args], outputs=[particle_v])
+        wp.launch(cell_next_round, dim=1, device=device, inputs=[int(max_rounds)], outputs=[more, round_count])
+
+    more.fill_(1)
+    round_count.zero_()
+    wp.capture_while(more, one_round)
+    # the cells still holding candidates after ``max_rounds`` (dense cells: one round per accepted pair would take
+    # thousands) finish them inline, in the same order
+    args.batched = 0
+    wp.launch(cell_select, dim=n_cells, device=device, inputs=[args, forest], outputs=[particle_v, more])

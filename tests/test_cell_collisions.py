@@ -311,3 +311,54 @@ def test_cells_follow_the_solver_grid(constant_model, device):
         assert len(pairs) > 50
         cell = np.floor(x / (2e-3 / subdivision)).astype(int)
         assert np.array_equal(cell[pairs[:, 0]], cell[pairs[:, 1]])
+
+
+def test_batched_rounds_equal_inline_walks(constant_model, device):
+    """The batched forest rounds resolve the same pairs in the same order as the inline walks (one cell thread
+    going through its candidates): identical velocities."""
+    from hel_warp.cell_collisions import CellConfig
+    from hel_warp.collision_models import SurrogateCollision
+
+    rng = np.random.default_rng(11)
+    n, eps = 1500, 0.05
+    side = box_side(8 * n, eps)
+    x = rng.uniform(0.0, side, size=(n, 3))
+    v = rng.normal(size=(n, 3))
+    out = []
+    for batched in (True, False):
+        from hel_warp.particles import Particles
+
+        p = Particles.from_numpy(x, 0.5 * D, v=v, density=RHO, weight=8.0, check_overlap=False, device=device)
+        s = SurrogateCollision(model_dir=constant_model, detection="cell", periodic_box=(side,) * 3, seed=3,
+                               batched=batched, cell=CellConfig())
+        for _ in range(2):
+            s.collide(p, 1e-3)
+        assert (s.batch_forest is not None) == batched
+        out.append((p.v.numpy().copy(), s.counts()))
+    assert out[0][1]["surrogate_calls"] > 1000
+    assert out[1][1]["rounds"] == 0 < out[0][1]["rounds"]
+    assert {k: c for k, c in out[0][1].items() if k != "rounds"} == {k: c for k, c in out[1][1].items() if k != "rounds"}
+    assert np.array_equal(out[0][0], out[1][0])
+
+
+def test_rounds_cap_finishes_inline_with_the_same_result(constant_model, device):
+    """Capping the batched rounds (dense cells finish inline) changes nothing but the rounds taken."""
+    from hel_warp.cell_collisions import CellConfig
+    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.particles import Particles
+
+    rng = np.random.default_rng(12)
+    n, eps = 1500, 0.05
+    side = box_side(8 * n, eps)
+    x = rng.uniform(0.0, side, size=(n, 3))
+    v = rng.normal(size=(n, 3))
+    out = []
+    for cap in (1000, 3):
+        p = Particles.from_numpy(x, 0.5 * D, v=v, density=RHO, weight=8.0, check_overlap=False, device=device)
+        s = SurrogateCollision(model_dir=constant_model, detection="cell", periodic_box=(side,) * 3, seed=3,
+                               cell=CellConfig(batched_rounds=cap))
+        s.collide(p, 1e-3)
+        out.append((p.v.numpy().copy(), s.counts()))
+    assert out[1][1]["rounds"] == 3 < out[0][1]["rounds"]
+    assert out[0][1]["surrogate_calls"] == out[1][1]["surrogate_calls"] > 1000
+    assert np.array_equal(out[0][0], out[1][0])
