@@ -14,7 +14,8 @@ parcels fly on straight lines:
   g0, the algebraic Theta and p_s, and each parcel the acceleration a = -grad(p_s) / (eps_s rho_p)
   (limited to h / dt^2), then ``v += a dt``. Its collision count is 0 by construction (no binary
   collisions); in a homogeneous gas the only gradients are those of the parcels' sampling noise;
-- ``surrogate`` (HELSCM ``pairwise``, contact-form ``--model``; ``--detection swept|overlap``) and
+- ``surrogate`` (HELSCM ``pairwise``, contact-form ``--model``; ``--detection swept|overlap|cell``, ``cell`` the
+  default with ``--particles-per-parcel`` > 1: collision cells tiling the box, ``hel_warp/cell_collisions.py``) and
   ``surrogate-paper`` (paper-form ``--model``): ``strategy.collide(particles, dt)``, the ballistic move
   ``x += v dt``, ``strategy.correct_positions(particles)`` (the swept in-step corrections), the wrap
   into [0, L);
