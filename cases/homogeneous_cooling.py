@@ -35,6 +35,25 @@ References (``../shared/PHYSICS-NOTES.md``, "Collisions in a granular gas"):
 - Haff's law: Theta^(-1/2) grows linearly in t with slope 4 (1 - e^2) g0 eps / (D sqrt(pi)); the measured
   slope is the least-squares line through Theta^(-1/2)(t) of every step.
 
+A binary mixture (``--diameter2 D2 --number-fraction2 F``; ``--particles`` counts both species, round(F N) of
+D2): the box holds both species' volume at EPS, the start is random and non-overlapping (sum of radii) with the
+species at equipartition (m_1 Theta_1 = m_2 Theta_2, T_i = m_i Theta_i) and the mass-weighted mixture Theta
+exactly Theta0, each species' mean velocity removed. A parcel's ``stream`` tag is its species, so the strategies'
+per-stream-pair counts are the collisions per pair type. The JSON adds ``granular_temperature_1`` / ``_2``
+(Theta_i = <|c_i|^2>/3 of each species, about its own mean), their start and end values, ``temperature_ratio``
+T_2/T_1 (1 = equipartition), ``collision_pair_types`` (small-small, small-large, large-large against kinetic
+theory) and ``kinetic_theory`` (``hel_warp/mixture.py``: the Maxwellian rate equations of a smooth inelastic binary
+mixture integrated from the measured start, with BMCSL g0_ij, and the homogeneous-cooling-state ratio T_2/T_1 of
+Garzo & Dufty 1999, which differs from 1: non-equipartition). ``granular_temperature`` is then the mixture's
+mass-weighted Theta, and the ``enskog_*`` / ``haff_slope`` / ``cooling_rate_ratio`` keys refer to that mixture
+theory (``haff_slope``: the slope of its Theta^-1/2(t)). ``ktgf`` gets one diameter, the mixture's Sauter mean
+(the mixture KTGF closures are out of scope). A surrogate model must hold both sizes and their ratios in its
+training domain (``hel-warp dataset --diameters D1,D2``)::
+
+    python cases/homogeneous_cooling.py --collisions surrogate --model MIXTURE_MODEL --dt 1e-3 \\
+        --solids-fraction 0.01 --particles 8000 --diameter 315e-6 --diameter2 475e-6 --number-fraction2 0.3 \\
+        --granular-temperature 1 --end-time 0.04 --out runs/hc_mix_1e-3 --json
+
 Statistical size of the check: with C real collisions over the run the collision count has a relative
 standard error of about 1/sqrt(C) (Poisson), and the energy lost (hence the fitted slope) about
 sqrt(2/C): the loss per collision is (1 - e^2) m g_n^2 / 4 and, for collisions of a Maxwellian gas
@@ -141,6 +160,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--solids-fraction", type=finite_float, required=True, help="solids volume fraction eps_s")
     parser.add_argument("--particles", type=int, required=True, help="real particles N")
     parser.add_argument("--diameter", type=finite_float, required=True, help="particle diameter, m")
+    parser.add_argument("--diameter2", type=finite_float, default=None,
+                        help="a binary mixture: diameter of the second species, m (with --number-fraction2; "
+                             "--particles counts both species)")
+    parser.add_argument("--number-fraction2", type=finite_float, default=None,
+                        help="number fraction of the --diameter2 species, in (0, 1)")
     parser.add_argument("--granular-temperature", type=finite_float, required=True,
                         help="initial granular temperature Theta0, m^2/s^2")
     parser.add_argument("--end-time", type=finite_float, required=True, help="simulated time, s")
@@ -156,7 +180,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 class CoolingConfig(SimpleNamespace):
     """The validated settings (see :func:`make_config`): collisions, model, detection, dt, eps, particles,
     parcels, weight, diameter, theta0, end_time, steps, seed, out, overwrite, device, box_length, material,
-    material_source, model_meta."""
+    material_source, model_meta, species (None, or the binary mixture of :func:`mixture_species`)."""
 
 
 def _read_model_meta(model_dir: str) -> dict:
@@ -234,16 +258,20 @@ def make_config(args) -> CoolingConfig:
     if args.seed < 0:
         raise ConfigError(f"--seed must be >= 0 (got {args.seed})")
     eps, d = float(args.solids_fraction), float(args.diameter)
-    L = box_length(args.particles, d, eps)
+    species = mixture_species(args, parcels, w)  # None: one size
+    L = box_length(args.particles, d, eps) if species is None else mixture_box_length(species, eps)
+    d_big = d if species is None else max(species.diameters)
     side = math.ceil(parcels ** (1.0 / 3.0) - 1e-9)
-    if L / side < d * (1.0 + 2.0 * LATTICE_GAP):
+    if L / side < d_big * (1.0 + 2.0 * LATTICE_GAP):
         raise ConfigError(f"{parcels} parcels of {d:g} m do not fit on a non-overlapping lattice in the box of side "
                           f"{L:.4g} m (eps_s {eps:g} with W = {w}: lattice spacing {L / side / d:.3f} d < 1); "
                           "lower --solids-fraction or raise --particles-per-parcel")
     meta = _read_model_meta(args.model) if args.model else None
     if meta is not None:
         defaults = meta.get("defaults") or {}
-        if "d1" in defaults and abs(float(defaults["d1"]) - d) > 0.10 * d:
+        if species is not None:
+            check_model_covers(args.model, meta, species.diameters)
+        elif "d1" in defaults and abs(float(defaults["d1"]) - d) > 0.10 * d:
             raise ConfigError(f"--model {args.model} was trained for d = {float(defaults['d1']) * 1e6:.0f} um, the "
                               f"run has {d * 1e6:.0f} um; train a model for this size (hel-warp dataset --diameter)")
     material, source = _model_material(meta)
@@ -266,7 +294,7 @@ def make_config(args) -> CoolingConfig:
                            particles=int(args.particles), parcels=parcels, weight=int(w), diameter=d,
                            theta0=float(args.granular_temperature), end_time=float(args.end_time), steps=steps,
                            seed=int(args.seed), out=str(args.out), overwrite=bool(args.overwrite), device=args.device,
-                           box_length=L, material=material, material_source=source, model_meta=meta)
+                           box_length=L, material=material, material_source=source, model_meta=meta, species=species)
     check_search(config)
     return config
 
@@ -275,7 +303,7 @@ def search_cell(config: CoolingConfig, speed_max: float) -> float:
     """Hash-grid cell of the model's pair search, m: 2 (r + v_max dt) for the swept surrogate (a pair within reach
     over the step), 2 r for the end-of-step overlap tests, 2 r + 0.3 r (the contact-list skin) for dem; 0 for the
     models without a pair search."""
-    r = 0.5 * config.diameter
+    r = 0.5 * (config.diameter if config.species is None else max(config.species.diameters))
     if config.collisions == "surrogate" and config.detection == "cell":
         return 0.0  # collision cells tile the box; no search radius
     if config.collisions == "surrogate" and (config.detection or "swept") == "swept":
@@ -342,6 +370,8 @@ def lattice_positions(n: int, box: float, diameter: float, rng) -> np.ndarray:
 def initial_state(config: CoolingConfig) -> tuple[np.ndarray, np.ndarray]:
     """(x, v) of the parcels: non-overlapping positions (random up to eps_s RANDOM_START_MAX_EPS of parcels, else a
     jittered lattice) and Maxwellian velocities, weighted mean removed, scaled to Theta0 exactly."""
+    if config.species is not None:
+        return mixture_initial_state(config)
     rng = np.random.default_rng(config.seed)
     n, L, d = config.parcels, config.box_length, config.diameter
     x = None
@@ -353,6 +383,202 @@ def initial_state(config: CoolingConfig) -> tuple[np.ndarray, np.ndarray]:
     v -= v.mean(axis=0)  # equal weights: the weighted mean is the plain mean
     v *= math.sqrt(config.theta0 / granular_temperature(v, np.full(n, config.weight)))
     return x, v
+
+
+# ------------------------------------------------------------------------------------------------ binary mixture
+def mixture_species(args, parcels: int, weight: int):
+    """The species of a binary mixture (--diameter2 with --number-fraction2), or None for one size.
+
+    ``diameters`` (d1, d2), ``counts`` (N1, N2) of real particles (N2 = round(F N)), ``parcels`` per species,
+    ``masses`` (kg, the material density is applied later), ``number_fractions``. Species 1 is --diameter."""
+    from hel_warp.errors import ConfigError
+
+    d2, f2 = getattr(args, "diameter2", None), getattr(args, "number_fraction2", None)
+    if d2 is None and f2 is None:
+        return None
+    if d2 is None or f2 is None:
+        raise ConfigError("a mixture needs both --diameter2 and --number-fraction2 (e.g. --diameter2 475e-6 "
+                          "--number-fraction2 0.3)")
+    if not d2 > 0.0:
+        raise ConfigError(f"--diameter2 must be > 0 m (got {d2:g})")
+    if not 0.0 < f2 < 1.0:
+        raise ConfigError(f"--number-fraction2 must lie in (0, 1) (got {f2:g}); 0 or 1 is one size: drop --diameter2")
+    n2 = int(round(f2 * args.particles))
+    n1 = int(args.particles) - n2
+    if n1 < 1 or n2 < 1:
+        raise ConfigError(f"--number-fraction2 {f2:g} of --particles {args.particles} leaves a species empty "
+                          f"({n1} + {n2}); raise --particles")
+    if n1 % weight or n2 % weight:
+        raise ConfigError(f"--particles-per-parcel {weight} must divide both species ({n1} + {n2} particles)")
+    from hel_warp.mixture import sauter_mean
+
+    fractions = (n1 / args.particles, n2 / args.particles)
+    diameters = (float(args.diameter), float(d2))
+    return SimpleNamespace(diameters=diameters, counts=(n1, n2), parcels=(n1 // weight, n2 // weight),
+                           number_fraction2=float(f2), number_fractions=fractions,
+                           sauter_mean=sauter_mean(fractions, diameters, (0.0, 0.0)))
+
+
+def mixture_box_length(species, eps: float) -> float:
+    """Side of the cube holding both species at solids fraction ``eps``: L^3 = pi sum N_i d_i^3 / (6 eps), m."""
+    volume = sum(n * math.pi * d**3 / 6.0 for n, d in zip(species.counts, species.diameters))
+    return (volume / eps) ** (1.0 / 3.0)
+
+
+def check_model_covers(model_dir: str, meta: dict, diameters) -> None:
+    """A mixture run needs a model whose training domain holds every size and size ratio
+    (``hel_warp.mixture.model_domain_problem``); a ConfigError says which one it lacks."""
+    from hel_warp.errors import ConfigError
+    from hel_warp.mixture import model_domain_problem
+
+    problem = model_domain_problem(meta, diameters)
+    if problem:
+        raise ConfigError(f"--model {model_dir}: {problem}; train on a mixture set (hel-warp dataset --diameters "
+                          "D1,D2)")
+
+
+def mixture_labels(config) -> np.ndarray:
+    """Species (0 = --diameter, 1 = --diameter2) of each parcel, shuffled (a lattice start fills sites in order)."""
+    labels = np.repeat([0, 1], config.species.parcels)
+    return np.random.default_rng([config.seed, 3]).permutation(labels)
+
+
+def species_masses(config) -> np.ndarray:
+    """Mass of one particle of each species, kg."""
+    return config.material.density * math.pi / 6.0 * np.asarray(config.species.diameters) ** 3
+
+
+def random_positions_sized(radius: np.ndarray, box: float, rng) -> np.ndarray | None:
+    """As :func:`random_positions` for spheres of their own ``radius`` (no two closer than (r_i + r_j)(1 + gap))."""
+    from scipy.spatial import cKDTree
+
+    n = radius.size
+    reach = 2.0 * float(radius.max()) * (1.0 + LATTICE_GAP)
+    x = rng.uniform(0.0, box, size=(n, 3))
+    for _ in range(REDRAW_ROUNDS):
+        pairs = cKDTree(x, boxsize=box).query_pairs(r=reach, output_type="ndarray")
+        if pairs.size:
+            s = x[pairs[:, 0]] - x[pairs[:, 1]]
+            s -= box * np.round(s / box)
+            close = np.linalg.norm(s, axis=1) < (radius[pairs[:, 0]] + radius[pairs[:, 1]]) * (1.0 + LATTICE_GAP)
+            pairs = pairs[close]
+        if pairs.size == 0:
+            return x
+        redraw = np.unique(pairs.max(axis=1))
+        x[redraw] = rng.uniform(0.0, box, size=(redraw.size, 3))
+    return None
+
+
+def mixture_initial_state(config) -> tuple[np.ndarray, np.ndarray]:
+    """(x, v) of a binary mixture: non-overlapping positions (random, else the lattice of the larger size) and
+    Maxwellian velocities at equipartition, m_1 Theta_1 = m_2 Theta_2 (equal temperatures T_i = m_i Theta_i), with
+    the mixture's mass-weighted Theta = Theta0; each species' mean removed (total momentum 0) and its Theta exact.
+    Inelastic collisions then drive the species away from equipartition (Garzo & Dufty 1999)."""
+    labels = mixture_labels(config)
+    d = np.asarray(config.species.diameters)[labels]
+    n, L = config.parcels, config.box_length
+    x = None
+    if config.eps / config.weight <= RANDOM_START_MAX_EPS:
+        x = random_positions_sized(0.5 * d, L, np.random.default_rng([config.seed, 1]))
+    if x is None:
+        x = lattice_positions(n, L, float(d.max()), np.random.default_rng([config.seed, 2]))
+    masses = species_masses(config)
+    counts = np.asarray(config.species.counts, float)
+    theta_species = config.theta0 * (counts * masses).sum() / (counts.sum() * masses)
+    rng = np.random.default_rng(config.seed)
+    v = rng.normal(0.0, 1.0, size=(n, 3))
+    for k in (0, 1):
+        own = labels == k
+        v[own] -= v[own].mean(axis=0)
+        v[own] *= math.sqrt(theta_species[k] / granular_temperature(v[own], np.ones(int(own.sum()))))
+    return x, v
+
+
+def mixture_references(config, t: np.ndarray, theta_species: np.ndarray) -> dict:
+    """Kinetic theory of the binary mixture (``hel_warp.mixture``): the Maxwellian rate equations from the measured
+    start, the homogeneous-cooling temperature ratio, and the collisions per pair type over the measured
+    Theta_i(t) (BMCSL g0_ij)."""
+    from scipy.optimize import brentq
+
+    from hel_warp import mixture as mx
+
+    volume = config.box_length**3
+    n = np.asarray(config.species.counts, float) / volume
+    d = np.asarray(config.species.diameters, float)
+    m = species_masses(config)
+    e = config.material.restitution
+    g0 = mx.contact_g0(n, d)
+    kt = mx.cool_mixture(n, d, m, theta_species[0], e, t)
+    rates = np.array([mx.collision_rates(n, d, m, th, g0) for th in theta_species])  # (steps+1, 2, 2)
+    trapz = np.trapezoid if hasattr(np, "trapezoid") else np.trapz
+    expected = trapz(rates, t, axis=0) * volume
+
+    def log_rate_gap(r):  # d ln Theta_2/dt - d ln Theta_1/dt at Theta_2/Theta_1 = r
+        rate = mx.temperature_rates(n, d, m, np.array([1.0, r]), e, g0)
+        return rate[1] / r - rate[0]
+
+    r_hcs = brentq(log_rate_gap, 1e-3 * m[0] / m[1], 1e3 * m[0] / m[1]) if e < 1.0 else m[0] / m[1]
+    return {"g0": g0, "theta": kt, "expected": expected, "temperature_ratio_hcs": float(r_hcs * m[1] / m[0]),
+            "number_densities": n, "masses": m}
+
+
+def mixture_summary(case, t: np.ndarray, theta: np.ndarray, idx: np.ndarray, counts: dict) -> dict:
+    """Keys of a binary-mixture run: the species temperatures (``granular_temperature_1``, ``_2``: Theta_i =
+    <|c_i|^2>/3 of each species about its own mean, m^2/s^2) and their ratio T_2/T_1 = m_2 Theta_2 / (m_1 Theta_1)
+    (1 = equipartition), the kinetic-theory references (module ``hel_warp.mixture``) and the collisions per pair
+    type (the strategies count per stream pair; a parcel's stream is its species). Replaces the one-size
+    Enskog / Haff keys by the mixture's: ``haff_slope`` is the slope of the kinetic-theory mixture Theta^-1/2(t)."""
+    from hel_warp import mixture as mx
+
+    cfg = case.config
+    sp = case.theta_species()
+    ref = mixture_references(cfg, t, sp)
+    m = ref["masses"]
+    ratio = sp[:, 1] * m[1] / (sp[:, 0] * m[0])
+    kt_mix = mx.mixture_theta(ref["theta"], ref["number_densities"], m)
+    kt_slope = float(np.polyfit(t, 1.0 / np.sqrt(kt_mix), 1)[0]) if len(t) >= 2 else float("nan")
+    fitted = float(np.polyfit(t, 1.0 / np.sqrt(np.maximum(theta, 1e-300)), 1)[0]) if len(t) >= 2 else float("nan")
+    expected = ref["expected"]
+    total_expected = float(np.triu(expected).sum())
+    measured_total = float(counts.get("collisions", 0.0))
+    events = total_expected / cfg.weight
+    pair_types = {}
+    for i, j, name in mx.pair_type_names(2):
+        measured = counts.get(f"collisions_{i}_{j}", counts.get(f"collisions_{j}_{i}"))
+        exp_ij = float(expected[i, j])
+        pair_types[name] = {"collisions": measured, "kinetic_theory_collisions": exp_ij,
+                            "ratio": (float(measured) / exp_ij) if measured is not None and exp_ij > 0 else None,
+                            "ratio_stderr": 1.0 / math.sqrt(exp_ij / cfg.weight) if exp_ij > 0 else None}
+    T = float(t[-1])
+    return {
+        "mixture": True,
+        "species": {"diameters": list(cfg.species.diameters), "particles": list(cfg.species.counts),
+                    "number_fraction2": cfg.species.number_fraction2, "masses": m.tolist(),
+                    "sauter_mean_diameter": cfg.species.sauter_mean,
+                    "start": "equipartition (m_1 Theta_1 = m_2 Theta_2), mass-weighted Theta = Theta0"},
+        "granular_temperature_definition": "mixture: mass-weighted sum n_i m_i Theta_i / sum n_i m_i; species: "
+                                           "Theta_i = <|c_i|^2>/3 about the species mean",
+        "granular_temperature_1": sp[idx, 0].tolist(), "granular_temperature_2": sp[idx, 1].tolist(),
+        "granular_temperature_1_initial": float(sp[0, 0]), "granular_temperature_2_initial": float(sp[0, 1]),
+        "granular_temperature_1_final": float(sp[-1, 0]), "granular_temperature_2_final": float(sp[-1, 1]),
+        "temperature_ratio": ratio[idx].tolist(), "temperature_ratio_final": float(ratio[-1]),
+        "kinetic_theory": {
+            "reference": "Maxwellian rate equations of a smooth inelastic binary mixture (hel_warp/mixture.py; "
+                         "Garzo & Dufty 1999 zeroth order), BMCSL g0_ij, from the measured start",
+            "granular_temperature_1_final": float(ref["theta"][-1, 0]),
+            "granular_temperature_2_final": float(ref["theta"][-1, 1]),
+            "temperature_ratio_final": float(ref["theta"][-1, 1] * m[1] / (ref["theta"][-1, 0] * m[0])),
+            "temperature_ratio_hcs": ref["temperature_ratio_hcs"], "g0": ref["g0"].tolist(),
+            "granular_temperature_final": float(kt_mix[-1])},
+        "collision_pair_types": pair_types,
+        "g0_carnahan_starling": None,
+        "enskog_collisions": total_expected, "enskog_collision_frequency": 2.0 * total_expected / (cfg.particles * T),
+        "collision_frequency_ratio": measured_total / total_expected if total_expected > 0 else None,
+        "collision_frequency_ratio_stderr": 1.0 / math.sqrt(events) if events > 0 else None,
+        "haff_slope": kt_slope, "fitted_slope": fitted,
+        "cooling_rate_ratio": fitted / kt_slope if kt_slope > 0 else None,
+        "cooling_rate_ratio_stderr": math.sqrt(2.0 / events) if events > 0 else None,
+    }
 
 
 def first_periodic_overlap(x: np.ndarray, diameter: float, box: float, tolerance: float = 1e-6):
@@ -408,10 +634,14 @@ class KtgfFlight(BallisticFlight):
         self.grid = GridSpec(origin=(0.0, 0.0, 0.0), spacing=L / cells, shape=(cells,) * 3,
                              periodic=(True, True, True))
         self.fields = CouplingFields.allocate(self.grid, config.parcels, device=config.device)
-        self.strategy = KtgfCollision(particle_diameter=config.diameter, particle_density=config.material.density,
+        self.ktgf_diameter = config.diameter if config.species is None else config.species.sauter_mean
+        self.strategy = KtgfCollision(particle_diameter=self.ktgf_diameter, particle_density=config.material.density,
                                       restitution=config.material.restitution)
         self.dt = config.dt
-        self.notes = [f"ktgf: the engine's KtgfCollision on a periodic {cells}^3 grid of h = {L / cells:.4g} m "
+        if config.species is not None:
+            self.notes.append(f"ktgf: one diameter, the mixture's Sauter mean d_32 = {self.ktgf_diameter * 1e6:.1f} um "
+                              "(the mixture KTGF closures are out of scope)")
+        self.notes = self.notes + [f"ktgf: the engine's KtgfCollision on a periodic {cells}^3 grid of h = {L / cells:.4g} m "
                       f"({config.parcels / cells**3:.3g} parcels per cell), deposited with the engine's cloud-in-cell "
                       "coupling, no gas (no drag, K_sg = 0); it has no binary collisions (count 0); what it does "
                       "to Theta comes from the sampling-noise gradients of p_s only"]
@@ -540,8 +770,23 @@ class HomogeneousCooling:
         self.config = config
         x, v = initial_state(config)
         self.x0, self.v0 = x, v
-        self.particles = Particles.from_numpy(x, 0.5 * config.diameter, v=v, density=config.material.density,
-                                              weight=float(config.weight), check_overlap=False, device=config.device)
+        radius, stream = 0.5 * config.diameter, 0
+        if config.species is not None:  # the stream tag is the species: the strategies count per stream pair
+            stream = mixture_labels(config)
+            radius = 0.5 * np.asarray(config.species.diameters)[stream]
+        self.particles = Particles.from_numpy(x, radius, v=v, density=config.material.density,
+                                              weight=float(config.weight), stream=stream, check_overlap=False,
+                                              device=config.device)
+        self._moment_weight = self.particles.weight  # one size: the parcel weights
+        self._species_weight = []
+        if config.species is not None:  # mass-weighted moments (mass / m_1) and one set per species
+            rel_mass = (species_masses(config) / species_masses(config)[0])[stream]
+            self._moment_weight = wp.array((config.weight * rel_mass).astype(np.float32), dtype=wp.float32,
+                                           device=config.device)
+            self._species_weight = [wp.array((config.weight * (stream == k)).astype(np.float32), dtype=wp.float32,
+                                             device=config.device) for k in (0, 1)]
+        self.species_moments = [wp.zeros((config.steps + 1, 5), dtype=wp.float64, device=config.device)
+                                for _ in self._species_weight]
         self.flight = FLIGHTS[config.collisions](config)
         self.moments = wp.zeros((config.steps + 1, 5), dtype=wp.float64, device=config.device)
         self.steps_done = 0
@@ -553,7 +798,9 @@ class HomogeneousCooling:
         from kernels.free_flight import velocity_moments
 
         p = self.particles
-        velocity_moments(p.v, p.weight, p.alive, self.moments, self.steps_done)
+        velocity_moments(p.v, self._moment_weight, p.alive, self.moments, self.steps_done)
+        for weight, moments in zip(self._species_weight, self.species_moments):
+            velocity_moments(p.v, weight, p.alive, moments, self.steps_done)
 
     def step(self) -> None:
         self.flight.step(self.particles, self.config.dt)
@@ -570,6 +817,10 @@ class HomogeneousCooling:
 
     def theta(self) -> np.ndarray:
         return theta_from_moments(self.moments.numpy()[: self.steps_done + 1])
+
+    def theta_species(self) -> np.ndarray:
+        """(steps+1, 2) Theta of each species of a mixture about its own mean velocity, m^2/s^2."""
+        return np.stack([theta_from_moments(m.numpy()[: self.steps_done + 1]) for m in self.species_moments], axis=1)
 
     def momentum(self) -> np.ndarray:
         """Total momentum per row, kg m/s (S1 times the particle mass)."""
@@ -658,6 +909,8 @@ def analyse(case: HomogeneousCooling, wall_s: float, kernel_load_s: float) -> di
         "diagnostics": case.flight.diagnostics(case.particles),
         "seed": cfg.seed, "device": str(cfg.device), "notes": notes,
     }
+    if cfg.species is not None:  # the mixture's references replace the one-size Enskog / Haff ones
+        summary.update(mixture_summary(case, t, theta, idx, counts))
     return summary
 
 
@@ -675,7 +928,12 @@ def plot(summary: dict, path: str) -> None:
     tt = np.linspace(0.0, t[-1], 200)
     ax1.plot(t * 1e3, theta, "-", color="C0", label=f"{summary['collision_model']}"
              + (f" ({summary['detection']})" if summary.get("detection") else ""))
-    ax1.plot(tt * 1e3, haff_theta(theta0, summary["haff_slope"], tt), "--", color="k", label="Haff's law")
+    if summary.get("mixture"):
+        d1, d2 = (1e6 * d for d in summary["species"]["diameters"])
+        ax1.plot(t * 1e3, summary["granular_temperature_1"], "-", color="C1", lw=1, label=f"{d1:.0f} um")
+        ax1.plot(t * 1e3, summary["granular_temperature_2"], "-", color="C2", lw=1, label=f"{d2:.0f} um")
+    ax1.plot(tt * 1e3, haff_theta(theta0, summary["haff_slope"], tt), "--", color="k",
+             label="kinetic theory (mixture)" if summary.get("mixture") else "Haff's law")
     ax1.set_xlabel("t, ms")
     ax1.set_ylabel(r"$\Theta$, m$^2$/s$^2$")
     ax1.set_ylim(bottom=0.0)
@@ -750,6 +1008,14 @@ def run(args, *, progress: bool = True) -> int:
               f"(+- {summary['collision_frequency_ratio_stderr'] or 0:.3f}), cooling rate / Haff = "
               f"{summary['cooling_rate_ratio']:.4f} (+- {summary['cooling_rate_ratio_stderr'] or 0:.3f}); "
               f"wall clock {wall_s:.2f} s -> {config.out}")
+        if summary.get("mixture"):
+            kt = summary["kinetic_theory"]
+            print(f"  mixture: Theta_1 {summary['granular_temperature_1_initial']:.4g} -> "
+                  f"{summary['granular_temperature_1_final']:.4g}, Theta_2 {summary['granular_temperature_2_initial']:.4g}"
+                  f" -> {summary['granular_temperature_2_final']:.4g} m^2/s^2, T_2/T_1 = "
+                  f"{summary['temperature_ratio_final']:.4f} (kinetic theory {kt['temperature_ratio_final']:.4f}, "
+                  f"homogeneous cooling state {kt['temperature_ratio_hcs']:.4f}); the ratios above are to the "
+                  "mixture's kinetic theory")
     for e in errors:
         print(f"homogeneous_cooling: check failed: {e}", file=sys.stderr)
     return 1 if errors else 0
