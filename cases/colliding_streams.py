@@ -36,6 +36,15 @@ Usage::
     python cases/colliding_streams.py --diameter 315e-6 --dt 1e-3 --collisions none \
         --end-time 0.003 --cells 5000 --max-particles 200 --out runs/ci    # reduced rig
 
+A binary mixture: ``--diameter 315e-6 --diameter2 475e-6 --mass-fraction2 0.5`` (``mixture_release``): both
+holders release both sizes over one window each, the total mass that of the paper's one-size runs (0.196 g,
+12,000 particles of 315 um; the experiment's 21 g would be ~1.3 million particles) split by mass between the
+species (50/50: 6,000 + 1,742 parcels) and evenly between the holders, each holder's mass flow the mass-fraction mix
+of the paper's measured flows of the two sizes; ``ktgf`` gets the mixture's Sauter mean diameter (the mixture KTGF
+closures are out of scope); a surrogate model must hold both sizes and their ratios in its training domain. The rig
+layout names the ``size_classes``, and ``hel-warp report`` gives the profiles and stream metrics per size class
+beside the whole run.
+
 The step is engineer G's ``HelSolver.step`` (deposit, gas, interpolate, collide, push, outlets,
 walls with e_n = e_t = 0.8, scheduled injection) driven by ``hel_warp.run.Run``, which writes
 ``OUT/run.zarr`` (particle snapshots with x, v, radius, weight, stream, particle_id; gas fields;
@@ -302,6 +311,26 @@ class CaseConfig:
     device: str = "cpu"
     gravity: tuple = (9.80665, 0.0, 0.0)
     """m/s^2: the rig stands upright with the flow downwards (+x), holders above the arms (assumed)."""
+    diameter2: float | None = None
+    """A binary mixture: mean diameter of the second species, m (None: one size). Both holders release both
+    species (:func:`mixture_release`)."""
+    diameter2_std: float = 0.0
+    """Standard deviation of the second species' diameter, m."""
+    mass_fraction2: float = 0.0
+    """Mass fraction of the second species in every holder (0: one size)."""
+    particles2: int = 0
+    """Parcels of the second species released, both holders together (``particles`` counts the first)."""
+
+    @property
+    def mixture(self) -> bool:
+        return self.diameter2 is not None
+
+    def species(self) -> list:
+        """(diameter, std, parcels) of each species released."""
+        out = [(self.diameter, self.diameter_std, self.particles)]
+        if self.mixture:
+            out.append((self.diameter2, self.diameter2_std, self.particles2))
+        return out
 
 
 def make_config(args) -> CaseConfig:
@@ -340,21 +369,84 @@ def make_config(args) -> CaseConfig:
     if detection is not None and args.collisions != "surrogate":
         raise ConfigError(f"--detection is a surrogate option (got --collisions {args.collisions}); surrogate-paper "
                           "keeps the paper's overlap test")
+    mixture = mixture_release(args, args.diameter, std, known if paper_size else None)
+    if mixture is not None:
+        particles = mixture.pop("particles")
+        mass_flow = mixture.pop("mass_flow")
+    else:
+        mass_flow = PAPER_MASS_FLOW[known] if paper_size else DEFAULT_MASS_FLOW
+        mixture = {}
     return CaseConfig(diameter=float(args.diameter), dt=float(args.dt), collisions=args.collisions,
                       end_time=float(args.end_time), particles_per_parcel=float(args.particles_per_parcel),
                       particle_contacts=not args.no_particle_contacts,
-                      particles=particles, diameter_std=std,
-                      mass_flow=PAPER_MASS_FLOW[known] if paper_size else DEFAULT_MASS_FLOW, cells=args.cells,
+                      particles=particles, diameter_std=std, **mixture,
+                      mass_flow=mass_flow, cells=args.cells,
                       gas_warmup=float(args.gas_warmup), output_interval=float(args.output_interval),
                       model=args.model, detection=detection or ("cell" if args.particles_per_parcel > 1 else "swept"),
                       seed=int(args.seed), device=args.device)
 
 
-def check_model(model_dir: str, diameter: float, density: float, force: bool) -> dict:
+def sauter_mean_of(config: CaseConfig) -> float:
+    """The one diameter KTGF gets: the mean diameter, or a mixture's Sauter mean d_32 = sum N E[d^3] / sum N E[d^2]
+    (the mixture KTGF closures are out of scope)."""
+    from hel_warp.mixture import sauter_mean
+
+    if not config.mixture:
+        return config.diameter
+    species = config.species()
+    return sauter_mean([n for _, _, n in species], [d for d, _, _ in species], [sd for _, sd, _ in species])
+
+
+def mixture_release(args, diameter: float, std: float, known: float | None) -> dict | None:
+    """The release of a binary mixture (--diameter2 with --mass-fraction2), or None for one size.
+
+    Total mass: that of the paper's one-size runs, 12,000 particles of 315 um (0.196 g, section 8; the 21 g
+    of the experiment's holders would be ~1.3 million particles), split by mass (1 - F, F) between the species
+    and evenly between the holders, each holder releasing both species at once. Parcels per species: mass /
+    mean particle mass (rounded); --max-particles caps the total, both species scaled alike. Each holder's mass
+    flow is the mass-fraction mix of the paper's measured flows of the two sizes (0.014/0.018 kg/s at 315 um,
+    0.013/0.019 at 475 um). Returns the ``CaseConfig`` fields ``particles``, ``particles2``, ``diameter2``,
+    ``diameter2_std``, ``mass_fraction2``, ``mass_flow``."""
+    from hel_warp.errors import ConfigError
+
+    d2, f2 = getattr(args, "diameter2", None), getattr(args, "mass_fraction2", None)
+    if d2 is None and f2 is None:
+        return None
+    if d2 is None or f2 is None:
+        raise ConfigError("a mixture needs both --diameter2 and --mass-fraction2 (e.g. --diameter2 475e-6 "
+                          "--mass-fraction2 0.5)")
+    if not d2 > 0:
+        raise ConfigError(f"--diameter2 must be > 0 m (got {d2}); e.g. 475e-6")
+    if not 0.0 < f2 < 1.0:
+        raise ConfigError(f"--mass-fraction2 must lie in (0, 1) (got {f2}); 0 or 1 is one size: drop --diameter2")
+    if abs(d2 - diameter) < 1e-3 * diameter:
+        raise ConfigError(f"--diameter2 {d2:g} m equals --diameter; a mixture needs two sizes")
+    known2 = min(PAPER_PARTICLES, key=lambda d: abs(d - d2))
+    paper2 = abs(known2 - d2) < 1e-3 * known2
+    std2 = 0.0 if args.monodisperse else (PAPER_DIAMETER_STD[known2] if paper2 else 0.0)
+    mean_cube = lambda d, sd: d**3 + 3.0 * d * sd**2  # noqa: E731  E[d^3] of a normal size distribution
+    total = PAPER_PARTICLES[315e-6] * mean_cube(315e-6, PAPER_DIAMETER_STD[315e-6])  # in units of pi rho / 6
+    n1 = int(round((1.0 - f2) * total / mean_cube(diameter, std)))
+    n2 = int(round(f2 * total / mean_cube(d2, std2)))
+    if args.max_particles is not None:
+        if args.max_particles < 4:
+            raise ConfigError(f"--max-particles must be >= 4 for a mixture (got {args.max_particles})")
+        scale = min(1.0, args.max_particles / (n1 + n2))
+        n1, n2 = max(2, int(round(n1 * scale))), max(2, int(round(n2 * scale)))
+    flow1 = PAPER_MASS_FLOW[known] if known is not None else DEFAULT_MASS_FLOW
+    flow2 = PAPER_MASS_FLOW[known2] if paper2 else DEFAULT_MASS_FLOW
+    flow = tuple((1.0 - f2) * a + f2 * b for a, b in zip(flow1, flow2))
+    return {"particles": n1, "particles2": n2, "diameter2": float(d2), "diameter2_std": float(std2),
+            "mass_fraction2": float(f2), "mass_flow": flow}
+
+
+def check_model(model_dir: str, diameter: float, density: float, force: bool, diameters=None) -> dict:
     """Refuse a surrogate trained for another particle size or material (metadata ``defaults``: mean d1, rho1).
 
     Sizes within 10 % (the paper's size distributions are +-3 sigma = +-8 % at 315 um) and densities within
-    1 % pass; anything else, or a model whose metadata does not say, needs ``--force``. Returns the metadata.
+    1 % pass; anything else, or a model whose metadata does not say, needs ``--force``. A mixture
+    (``diameters``) needs a model whose training domain holds every size and size ratio
+    (``hel_warp.mixture.model_domain_problem``) instead of the 10 % rule. Returns the metadata.
     """
     from hel_warp.errors import ConfigError
 
@@ -372,7 +464,13 @@ def check_model(model_dir: str, diameter: float, density: float, force: bool) ->
         problems.append("its metadata does not record the particle size and density it was trained for")
     else:
         d_model, rho_model = float(defaults["d1"]), float(defaults["rho1"])
-        if abs(d_model - diameter) > 0.10 * diameter:
+        if diameters is not None:
+            from hel_warp.mixture import model_domain_problem
+
+            problem = model_domain_problem(meta, diameters)
+            if problem:
+                problems.append(problem)
+        elif abs(d_model - diameter) > 0.10 * diameter:
             problems.append(f"it was trained for d = {d_model * 1e6:.0f} um, the run has {diameter * 1e6:.0f} um")
         if abs(rho_model - density) > 0.01 * density:
             problems.append(f"it was trained for density {rho_model:g} kg/m^3, the run has {density:g} kg/m^3")
@@ -406,13 +504,14 @@ class CollidingStreams:
         gas_config = GasConfig()
         self.gas_solver = GasSolver(self.domain, gas_config, device=device)
         self.gas = GasField(self.domain, device=device)
-        self.pool = ParcelPool.empty(config.particles, device=device)
+        self.pool = ParcelPool.empty(sum(n for _, _, n in config.species()), device=device)
         material = Material(density=config.density)
         push = PushConfig(fluid_density=gas_config.density, fluid_viscosity=gas_config.viscosity,
                           gravity=config.gravity)
         kwargs = {}
-        if config.collisions == "ktgf":
-            kwargs = {"particle_diameter": config.diameter, "particle_density": config.density}
+        self.ktgf_diameter = sauter_mean_of(config)
+        if config.collisions == "ktgf":  # one diameter: a mixture's Sauter mean (no mixture KTGF closures)
+            kwargs = {"particle_diameter": self.ktgf_diameter, "particle_density": config.density}
         elif config.collisions == "surrogate":
             kwargs = {"model_dir": config.model, "detection": config.detection, "seed": config.seed}
         elif config.collisions == "surrogate-paper":
@@ -423,22 +522,32 @@ class CollidingStreams:
                 kwargs["particle_contacts"] = _dem_particle_contacts_option(False)
         self.collision = collision_model(config.collisions, **kwargs)
         # each holder releases half of the parcels at its measured mass flow (section 2): a window of
-        # (parcels x particle mass) / mass flow, the same for any particles-per-parcel (the parcel count stays)
-        d, sd = config.diameter, config.diameter_std
-        self.particle_mass = config.density * math.pi / 6.0 * (d**3 + 3.0 * d * sd**2)
-        self.holder_parcels = (config.particles // 2, config.particles - config.particles // 2)
-        margin = 0.5 * d + 1.5 * sd
+        # (parcels x particle mass) / mass flow, the same for any particles-per-parcel (the parcel count stays);
+        # a mixture: every holder releases half of each species, all species over the holder's one window
+        species = config.species()
+        self.particle_mass = config.density * math.pi / 6.0 * (config.diameter**3
+                                                                + 3.0 * config.diameter * config.diameter_std**2)
+        split = [(n // 2, n - n // 2) for _, _, n in species]  # per species: (left, right) parcels
+        self.holder_parcels = tuple(sum(s[side] for s in split) for side in (0, 1))
+        margin = max(0.5 * d + 1.5 * sd for d, sd, _ in species)
         injectors = []
+        self.release_window = []
+        self.injector_side = []  # the holder of each injector
         for side in (0, 1):
             lo, hi = self.dims.injection_box(side, margin)
-            window = self.holder_parcels[side] * self.particle_mass / config.mass_flow[side]
-            injectors.append(ScheduledInjection(
-                injection=VolumeInjection(box_lo=lo, box_hi=hi, diameter_mean=d, diameter_std=sd,
-                                          density=config.density, count=self.holder_parcels[side],
-                                          speed=self.dims.injection_speed, direction=(1.0, 0.0, 0.0),
-                                          weight=config.particles_per_parcel, stream=side, seed=config.seed),
-                t_start=0.0, t_end=window))
-        self.release_window = [inj.t_end for inj in injectors]
+            holder_mass = sum(split[k][side] * config.density * math.pi / 6.0 * (d**3 + 3.0 * d * sd**2)
+                              for k, (d, sd, _) in enumerate(species))
+            window = holder_mass / config.mass_flow[side]
+            self.release_window.append(window)
+            for k, (d, sd, _) in enumerate(species):
+                self.injector_side.append(side)
+                injectors.append(ScheduledInjection(
+                    injection=VolumeInjection(box_lo=lo, box_hi=hi, diameter_mean=d, diameter_std=sd,
+                                              density=config.density, count=split[k][side],
+                                              speed=self.dims.injection_speed, direction=(1.0, 0.0, 0.0),
+                                              weight=config.particles_per_parcel, stream=side,
+                                              seed=config.seed + 1000 * k),
+                    t_start=0.0, t_end=window))
         outlets = (Outlet(point=(self.dims.main_length, 0.0, 0.0), normal=(1.0, 0.0, 0.0)),
                    Outlet(point=(0.0, 0.0, 0.0), normal=(-1.0, 0.0, 0.0)))  # back out through an inlet plane
         self.solver = HelSolver(pool=self.pool, gas_solver=self.gas_solver, gas=self.gas,
@@ -483,7 +592,9 @@ class CollidingStreams:
                 "main_width": self.dims.main_width, "main_depth": self.dims.main_depth,
                 "streams": {"0": "left", "1": "right"}, "axis_transverse": 0.0,
                 "stream_sides": {"0": 1.0, "1": -1.0},  # sign of y - axis on each stream's own arm (left = +y)
-                "dimensions": asdict(self.dims)}
+                "dimensions": asdict(self.dims),
+                "size_classes": [{"diameter": d, "diameter_std": sd, "parcels": n}
+                                 for d, sd, n in self.config.species()] if self.config.mixture else None}
 
 
 def _dem_particle_contacts_option(value: bool) -> bool:
@@ -530,9 +641,12 @@ def check(rig: CollidingStreams) -> list[str]:
     removed = rig.pool.removed_count()
     if int(alive.sum()) != rig.injected - removed:
         errors.append(f"parcel count: {int(alive.sum())} alive != {rig.injected} injected - {removed} removed")
-    for side, entry in enumerate(rig.solver.injected()):
-        if entry["count"] > rig.holder_parcels[side]:
-            errors.append(f"holder {side} released {entry['count']} > {rig.holder_parcels[side]} parcels")
+    released = [0, 0]
+    for side, entry in zip(rig.injector_side, rig.solver.injected()):
+        released[side] += entry["count"]
+    for side in (0, 1):
+        if released[side] > rig.holder_parcels[side]:
+            errors.append(f"holder {side} released {released[side]} > {rig.holder_parcels[side]} parcels")
     return errors
 
 
@@ -587,7 +701,8 @@ def run(args, *, progress: bool = True) -> int:
     mode = prepare_out(args.out, args.overwrite, args.resume)
     model_meta = None
     if config.collisions.startswith("surrogate"):
-        model_meta = check_model(config.model, config.diameter, config.density, args.force)
+        model_meta = check_model(config.model, config.diameter, config.density, args.force,
+                                 diameters=[d for d, _, _ in config.species()] if config.mixture else None)
     kernel_load_s = load_kernels(config.device)  # compile before anything is timed (the rig build launches kernels)
     t_setup = time.perf_counter()
     rig = CollidingStreams(config)
@@ -627,6 +742,8 @@ def run(args, *, progress: bool = True) -> int:
     collisions = float(np.sum(series["collisions_collisions"][...])) if "collisions_collisions" in series else None
     overlaps = int(np.sum(series["collisions_detected_pairs"][...])) if "collisions_detected_pairs" in series else 0
     summary = {"collisions": config.collisions, "dt": config.dt, "diameter": config.diameter,
+               "diameter2": config.diameter2, "mass_fraction2": config.mass_fraction2 if config.mixture else None,
+               "particles_released": [n for _, _, n in config.species()], "ktgf_diameter": rig.ktgf_diameter,
                "end_time": config.end_time, "simulated_time": rig.solver.time, "steps": rig.solver.step_count,
                "status": "complete" if rig.solver.step_count >= runner.total_steps else "running",
                "wall_clock_s": float(step_wall.sum()),
@@ -643,7 +760,10 @@ def run(args, *, progress: bool = True) -> int:
                                   if model_meta else None),
                "check_errors": errors}
     root.attrs["summary"] = _jsonable(summary)
-    print(f"colliding_streams: {config.collisions}, d = {config.diameter * 1e6:.0f} um, dt = {config.dt:g} s, "
+    sizes = (f"{config.diameter * 1e6:.0f}" if not config.mixture else
+             f"{config.diameter * 1e6:.0f}/{config.diameter2 * 1e6:.0f} (mass fraction {config.mass_fraction2:g} of "
+             f"the second; {config.particles} + {config.particles2} parcels)")
+    print(f"colliding_streams: {config.collisions}, d = {sizes} um, dt = {config.dt:g} s, "
           f"{taken} steps this call, t = {rig.solver.time:.4g} s on {int(np.prod(rig.grid.shape))} cells "
           f"({rig.fluid_cells} fluid), {rig.injected} parcels injected, {rig.pool.removed_count()} removed, "
           f"{'-' if collisions is None else f'{collisions:g}'} collisions ({overlaps} overlapping pairs at step "
@@ -660,6 +780,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--diameter", type=finite_float, required=True,
                         help="mean particle diameter, m (315e-6, 475e-6)")
+    parser.add_argument("--diameter2", type=finite_float, default=None,
+                        help="a binary mixture: mean diameter of the second species, m (e.g. 475e-6; with "
+                             "--mass-fraction2): both holders release both sizes")
+    parser.add_argument("--mass-fraction2", type=finite_float, default=None,
+                        help="mass fraction of the --diameter2 species, in (0, 1) (e.g. 0.5)")
     parser.add_argument("--dt", type=finite_float, required=True, help="HEL time step, s (1e-3, 1e-4, 7.14e-5)")
     parser.add_argument("--collisions", choices=COLLISIONS, required=True, help="collision model")
     parser.add_argument("--end-time", type=finite_float, required=True, help="simulated time after release, s")
