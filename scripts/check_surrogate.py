@@ -28,6 +28,9 @@ def main(argv=None) -> int:
     parser.add_argument("--diameter", type=float, default=None, help="d1, m (default: the training mean)")
     parser.add_argument("--size-ratio", type=float, nargs="+", default=None,
                         help="d2/d1 values (default: 1 and an unequal ratio inside the training domain)")
+    parser.add_argument("--diameter2", type=float, default=None,
+                        help="d2, m: the cross-size pairs of a mixture (= --size-ratio d2/d1 with --diameter d1), "
+                             "e.g. --diameter 315e-6 --diameter2 475e-6")
     parser.add_argument("--device", default="cpu", help="Warp device of the surrogate (default cpu)")
     parser.add_argument("--json", action="store_true", help="print the sweep as one JSON object")
     args = parser.parse_args(argv)
@@ -50,6 +53,10 @@ def main(argv=None) -> int:
             raise ConfigError(f"{args.model} records no DEM material (trained on a data set without one); "
                               "train on a `hel-warp dataset` set")
         defaults = meta.get("defaults", {})
+        if args.diameter2 is not None:
+            if args.size_ratio is not None or args.diameter is None or not args.diameter2 > 0:
+                raise ConfigError("--diameter2 needs --diameter (d1 > 0) and replaces --size-ratio")
+            args.size_ratio = [args.diameter2 / args.diameter]
         sweep = sweep_against_dem(flat, material, contact_model=meta.get("contact_model") or "hertz",
                                   diameter=args.diameter or float(defaults.get("d1", 315e-6)),
                                   density=float(defaults.get("rho1", material.get("density", 1000.0))),

@@ -14,6 +14,7 @@ References used below:
 
 import json
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -101,25 +102,34 @@ def test_mixture_option_is_deprecated_but_keeps_its_rows(tmp_path, capsys):
 
 
 # ------------------------------------------------------------------------------------------ metrics per pair type
-def test_metrics_per_pair_type(tmp_path):
-    """A tiny mixture model's metrics.json reports small-small / small-large / large-large with their shares."""
+@pytest.fixture(scope="module")
+def mixture_model(tmp_path_factory):
+    """(model dir, spec): a tiny frictionless contact-form model of the 315/475 um mixture (2,000 DEM rows, 1 trial,
+    30-40 trees, no sweep: CI time)."""
     from hel_warp.material import Material
     from surrogate import train as T
     from surrogate.dataset import build_dataset, make_spec
     from surrogate.features import load_collision_data
 
+    root = tmp_path_factory.mktemp("tiny_mixture_model")
     spec = make_spec(samples=2000, seed=1, diameter=3.6e-4, diameter_std=0.0, material=Material(friction=0.0),
                      chunk_size=2000, mixture_diameters=(D1, D2), mixture_mass_fractions=(0.5, 0.5))
-    build_dataset(tmp_path / "data", spec, progress=False, overwrite=True)
-    data = load_collision_data(str(tmp_path / "data"))
+    build_dataset(root / "data", spec, progress=False, overwrite=True)
+    data = load_collision_data(str(root / "data"))
     saved = T.SEARCH_SPACE["n_estimators"]
     T.SEARCH_SPACE["n_estimators"] = (30, 40)
     try:
-        T.train(data, str(tmp_path / "model"), T.TrainConfig(form="contact", trials=1, jobs=1, progress=False,
-                                                              report=False, sweep=False))
+        T.train(data, str(root / "model"), T.TrainConfig(form="contact", trials=1, jobs=1, progress=False,
+                                                          report=False, sweep=False))
     finally:
         T.SEARCH_SPACE["n_estimators"] = saved
-    metrics = json.loads((tmp_path / "model" / "metrics.json").read_text())
+    return root / "model", spec
+
+
+def test_metrics_per_pair_type(mixture_model):
+    """A tiny mixture model's metrics.json reports small-small / small-large / large-large with their shares."""
+    model, spec = mixture_model
+    metrics = json.loads((model / "metrics.json").read_text())
     types = metrics["pair_types"]
     assert list(types) == ["small-small", "small-large", "large-large"]
     assert sum(t["rows"] for t in types.values()) == metrics["n_test_rows"]
@@ -285,3 +295,166 @@ def test_report_splits_a_mixture_by_size_class(tmp_path):
     assert small["paper_experimental_uncertainty"] == 0.63 and large["paper_experimental_uncertainty"] == 0.71
     rows = [r for r in report["summary_table"] if r["label"].startswith("sur")]
     assert [r["model"] for r in rows] == ["surrogate", "surrogate [315 um]", "surrogate [475 um]"]
+
+
+# ------------------------------------------------------------------------------------------ the cooling box
+@pytest.fixture(scope="module")
+def hc():
+    from hel_warp.commands._common import load_case_module
+
+    return load_case_module(str(ROOT / "cases" / "homogeneous_cooling.py"))
+
+
+def _cooling(hc, capsys, tmp_path, *extra, particles=400, eps="0.01", dt="1e-4", end="1e-3"):
+    argv = ["--dt", dt, "--solids-fraction", eps, "--particles", str(particles), "--diameter", str(D1),
+            "--diameter2", str(D2), "--number-fraction2", "0.3", "--granular-temperature", "1", "--end-time", end,
+            "--out", str(tmp_path / "run"), "--json", "--no-progress", *extra]
+    try:
+        code = hc.main([str(a) for a in argv])
+    except SystemExit as exc:
+        code = exc.code
+    out = capsys.readouterr()
+    return code, (json.loads(out.out) if code == 0 else None), out.err
+
+
+def test_cooling_mixture_start_and_species_outputs(hc, capsys, tmp_path):
+    """``none``: the start is at equipartition (m_1 Theta_1 = m_2 Theta_2) with the mixture's mass-weighted Theta
+    exactly Theta0, the species counts are round(F N), the box holds their volume at eps_s, no two spheres overlap
+    (brute force over all pairs, sum of the radii), and ballistic flight keeps every temperature."""
+    code, s, err = _cooling(hc, capsys, tmp_path, "--collisions", "none")
+    assert code == 0, err
+    m1, m2 = D1**3, D2**3
+    n2 = round(0.3 * 400)
+    assert s["species"]["particles"] == [400 - n2, n2]
+    assert s["box_length"] == pytest.approx((math.pi * ((400 - n2) * D1**3 + n2 * D2**3) / (6 * 0.01)) ** (1 / 3))
+    t1, t2 = s["granular_temperature_1_initial"], s["granular_temperature_2_initial"]
+    assert m1 * t1 == pytest.approx(m2 * t2, rel=1e-6) and s["temperature_ratio_final"] == pytest.approx(1.0, rel=1e-6)
+    mix = ((400 - n2) * m1 * t1 + n2 * m2 * t2) / ((400 - n2) * m1 + n2 * m2)
+    assert mix == pytest.approx(1.0, rel=1e-6) and s["granular_temperature_initial"] == pytest.approx(1.0, rel=1e-6)
+    assert len(s["granular_temperature_1"]) == len(s["time"]) == len(s["granular_temperature_2"])
+    assert s["granular_temperature_2_final"] == pytest.approx(t2, rel=1e-6) and s["collisions"] == 0
+    # no overlap at the start (the case's own start, rebuilt from its config)
+    args = argparse_args(hc, tmp_path)
+    config = hc.make_config(args)
+    x, _ = hc.initial_state(config)
+    radius = 0.5 * np.asarray(config.species.diameters)[hc.mixture_labels(config)]
+    sep = x[:, None, :] - x[None, :, :]
+    sep -= config.box_length * np.round(sep / config.box_length)
+    gap = np.sqrt((sep**2).sum(axis=2)) - (radius[:, None] + radius[None, :])
+    gap[np.diag_indices(len(x))] = np.inf
+    assert gap.min() > 0
+
+
+def argparse_args(hc, tmp_path):
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    hc.add_arguments(parser)
+    return parser.parse_args(["--collisions", "none", "--dt", "1e-4", "--solids-fraction", "0.01", "--particles",
+                              "400", "--diameter", str(D1), "--diameter2", str(D2), "--number-fraction2", "0.3",
+                              "--granular-temperature", "1", "--end-time", "1e-3", "--out", str(tmp_path / "x")])
+
+
+@pytest.mark.parametrize("extra,needle", [
+    (["--collisions", "none", "--number-fraction2", "1.2"], "must lie in (0, 1)"),
+    (["--collisions", "none", "--diameter2=-1e-6"], "must be > 0"),
+])
+def test_cooling_mixture_bad_input_is_one_line_exit_2(hc, capsys, tmp_path, extra, needle):
+    code, _, err = _cooling(hc, capsys, tmp_path, *extra)
+    lines = [line for line in err.strip().splitlines() if line and "CUDA" not in line]
+    assert code == 2 and len(lines) == 1 and needle in lines[0], err
+
+
+def test_cooling_mixture_needs_both_options(hc, capsys, tmp_path):
+    argv = ["--collisions", "none", "--dt", "1e-4", "--solids-fraction", "0.01", "--particles", "400", "--diameter",
+            str(D1), "--diameter2", str(D2), "--granular-temperature", "1", "--end-time", "1e-3", "--out",
+            str(tmp_path / "run")]
+    assert hc.main(argv) == 2
+    assert "needs both --diameter2 and --number-fraction2" in capsys.readouterr().err
+
+
+def test_cooling_mixture_refuses_a_one_size_model(hc, capsys, tmp_path, mixture_model):
+    """A model whose training domain lacks the second size is refused (here: the mixture model asked for 600 um)."""
+    model, _ = mixture_model
+    argv = ["--collisions", "surrogate", "--model", str(model), "--dt", "1e-4", "--solids-fraction", "0.01",
+            "--particles", "400", "--diameter", str(D1), "--diameter2", "600e-6", "--number-fraction2", "0.3",
+            "--granular-temperature", "1", "--end-time", "1e-3", "--out", str(tmp_path / "run")]
+    assert hc.main(argv) == 2
+    assert "600 um" in capsys.readouterr().err
+
+
+def test_swept_surrogate_meets_each_pair_type_at_the_kinetic_theory_rate(hc, capsys, tmp_path, mixture_model):
+    """HELSCM (swept) on a 315/475 um mixture: the collisions of each pair type against the Enskog rate of a binary
+    mixture, n_i n_j g0_ij pi sigma_ij^2 sqrt(8/pi) sqrt(Theta_i + Theta_j) over the measured Theta_i(t) (BMCSL g0),
+    within 4 standard errors (1/sqrt(C)); momentum conserved; T_2/T_1 leaves 1 (the start is at equipartition)."""
+    model, _ = mixture_model
+    code, s, err = _cooling(hc, capsys, tmp_path, "--collisions", "surrogate", "--model", str(model),
+                            particles=1000, eps="0.05", dt="1e-4", end="2e-3")
+    assert code == 0, err
+    assert s["check_errors"] == [] and s["momentum_drift"] < 1e-5
+    for name, row in s["collision_pair_types"].items():
+        assert row["collisions"] > 50, (name, row)
+        assert abs(row["ratio"] - 1.0) < 4 * row["ratio_stderr"], (name, row)
+    total = sum(row["collisions"] for row in s["collision_pair_types"].values())
+    assert total == s["collisions"]
+    assert abs(s["collision_frequency_ratio"] - 1.0) < 4 * s["collision_frequency_ratio_stderr"]
+    assert s["granular_temperature_final"] < s["granular_temperature_initial"]
+
+
+# ------------------------------------------------------------------------------------------ the rig
+@pytest.fixture(scope="module")
+def cs():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("colliding_streams_mixture", ROOT / "cases" / "colliding_streams.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["colliding_streams_mixture"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def _rig_args(cs, *extra):
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    cs.add_arguments(parser)
+    return parser.parse_args(["--diameter", str(D1), "--dt", "1e-3", "--collisions", "none", "--end-time", "0.003",
+                              "--out", "unused", *extra])
+
+
+def test_rig_mixture_release_splits_the_mass(cs):
+    """50/50 by mass of the paper's one-size mass (12,000 x E[d^3] at 315 um): parcels per species = mass / mean
+    particle mass; the Sauter mean that KTGF gets; the holders' flows the mass-fraction mix of the paper's."""
+    config = cs.make_config(_rig_args(cs, "--diameter2", str(D2), "--mass-fraction2", "0.5"))
+    cube1, cube2 = D1**3 + 3 * D1 * S1**2, D2**3 + 3 * D2 * S2**2
+    assert config.particles == round(0.5 * 12000)
+    assert config.particles2 == round(0.5 * 12000 * cube1 / cube2)
+    mass1, mass2 = config.particles * cube1, config.particles2 * cube2
+    assert mass2 / (mass1 + mass2) == pytest.approx(0.5, abs=2e-4)
+    assert config.mass_flow == pytest.approx((0.0135, 0.0185))
+    sauter = (config.particles * cube1 + config.particles2 * cube2) / (config.particles * (D1**2 + S1**2)
+                                                                       + config.particles2 * (D2**2 + S2**2))
+    assert cs.sauter_mean_of(config) == pytest.approx(sauter)
+    with pytest.raises(Exception, match="needs both --diameter2 and --mass-fraction2"):
+        cs.make_config(_rig_args(cs, "--diameter2", str(D2)))
+    with pytest.raises(Exception, match="must lie in"):
+        cs.make_config(_rig_args(cs, "--diameter2", str(D2), "--mass-fraction2", "1"))
+
+
+def test_rig_mixture_both_holders_release_both_sizes(cs):
+    """A reduced rig: after the release window every holder has put out its half of each species (sizes told apart
+    by the nearest mean in stds), and the rig layout names the size classes for the report."""
+    from hel_warp.mixture import species_of
+
+    config = cs.make_config(_rig_args(cs, "--diameter2", str(D2), "--mass-fraction2", "0.5", "--cells", "5000",
+                                      "--max-particles", "120"))
+    rig = cs.CollidingStreams(config)
+    while rig.solver.time < max(rig.release_window) + 1e-9:
+        rig.step()
+    snap = rig.snapshot()
+    kind = species_of(2.0 * snap["radius"], [D1, D2], [S1, S2])
+    for k, n in enumerate((config.particles, config.particles2)):
+        for side in (0, 1):
+            assert int(np.sum((kind == k) & (snap["stream"] == side))) == (n // 2 if side == 0 else n - n // 2)
+    assert [c["diameter"] for c in rig.rig_layout()["size_classes"]] == [D1, D2]
+    assert cs.check(rig) == []

@@ -56,7 +56,8 @@ def run(args) -> int:
         if rms and bar is not None:
             rms_text += f" (paper's uncertainty {bar} m/s)"
         note = f" ({entry['collision_rate_note']})" if entry.get("collision_rate_note") else ""
-        print(f"{entry['label']}: {entry['model']} dt={entry['dt']:g} s d={entry['diameter'] * 1e6:.0f} um "
+        sizes = entry.get("sizes") or f"{entry['diameter'] * 1e6:.0f} um"
+        print(f"{entry['label']}: {entry['model']} dt={entry['dt']:g} s d={sizes} "
               f"t={entry['end_time']:g} s  wall {_number(entry['wall_clock_s'], '.2f')} s "
               f"(+ kernel loading {_number(entry['kernel_load_s'], '.2f')} s)  collisions "
               f"{_number(entry['collision_rate'], '.4g')} 1/s{note}, overlapping pairs "
