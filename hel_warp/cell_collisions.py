@@ -41,6 +41,9 @@ N (N - 1) samples the pair density, few enough that partners stay within a few m
 BATCHED_ROUNDS = 64
 """Batched forest rounds per step at most (one accepted pair per cell and round; the rest inline): most cells of a
 gas finish within them, a dense MP-PIC cell with thousands of collisions per step does not hold the others up."""
+BATCHED_MIN_ROWS = 32
+"""A batched forest evaluation costs a block of 64 rows (``kernels/forest.py`` BLOCK_ROWS) however few are used; the
+inline walk of one pair costs ~3 rows of a block on the CPU: below ~32 pairs a round, inline is as cheap."""
 EPS_CAP = 0.55
 """Largest cell solids fraction put into Carnahan-Starling's g0 (it diverges at 1; MP-PIC cells can overfill)."""
 
@@ -64,6 +67,8 @@ class CellConfig:
     batched_rounds: int = BATCHED_ROUNDS
     """With a batched forest: rounds of one accepted pair per cell at most; the cells left over (dense ones) finish
     with inline tree walks."""
+    batched_min_rows: int = BATCHED_MIN_ROWS
+    """The batched rounds stop after a round of fewer pairs than this (the rest inline)."""
 
     def __post_init__(self):
         if not (math.isfinite(self.parcels_per_cell) and self.parcels_per_cell >= 2.0):
@@ -77,6 +82,8 @@ class CellConfig:
             raise ConfigError(f"cell eps_cap must lie in (0, 1) (got {self.eps_cap!r})")
         if int(self.batched_rounds) != self.batched_rounds or self.batched_rounds < 1:
             raise ConfigError(f"cell batched_rounds must be a positive integer (got {self.batched_rounds!r})")
+        if int(self.batched_min_rows) != self.batched_min_rows or self.batched_min_rows < 0:
+            raise ConfigError(f"cell batched_min_rows must be an integer >= 0 (got {self.batched_min_rows!r})")
         if int(self.log_capacity) != self.log_capacity or self.log_capacity < 0:
             raise ConfigError(f"cell log_capacity must be an integer >= 0 (got {self.log_capacity!r})")
 
@@ -239,7 +246,7 @@ class CellCollisions:
         sort_by_cell(a)
         self._rounds.zero_()
         collide_cells(a, forest, particles.v, self._more, self._rounds, batch_forest=batch_forest,
-                      max_rounds=self.config.batched_rounds)
+                      max_rounds=self.config.batched_rounds, min_rows=self.config.batched_min_rows)
 
     def _zero_counts(self) -> None:
         if self._args is None:

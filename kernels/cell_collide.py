@@ -409,14 +409,17 @@ def cell_apply(
 @wp.kernel
 def cell_next_round(
     max_rounds: int,
+    min_rows: int,
+    batch_count: wp.array(dtype=wp.int32),
     # outputs
     more: wp.array(dtype=wp.int32),
     round_count: wp.array(dtype=wp.int32),
 ):
-    """Counts the batched round; stops the rounds at ``max_rounds`` (the rest is resolved inline)."""
+    """Counts the batched round; stops the rounds at ``max_rounds`` or after a round of fewer than ``min_rows`` pairs
+    (a batched evaluation costs a block of rows however few are used; the rest is resolved inline)."""
     r = round_count[0] + 1
     round_count[0] = r
-    if r >= max_rounds:
+    if r >= max_rounds or batch_count[0] < min_rows:
         more[0] = 0
 
 
@@ -436,11 +439,12 @@ def sort_by_cell(args: CellArgs) -> None:
 
 
 def collide_cells(args: CellArgs, forest: Forest, particle_v, more, round_count, batch_forest: Forest | None = None,
-                  max_rounds: int = 64) -> None:
+                  max_rounds: int = 64, min_rows: int = 32) -> None:
     """Every cell's candidates, acceptance and outcomes (after :func:`sort_by_cell`); counters accumulate (the
     caller zeroes them per step). With ``batch_forest`` (perfect layout): rounds of one accepted pair per cell,
     each round's pairs predicted in one batched evaluation, until no cell has candidates left
-    (``wp.capture_while``: a graph loop on CUDA) or ``max_rounds`` rounds, the rest inline; else one round of
+    (``wp.capture_while``: a graph loop on CUDA), ``max_rounds`` rounds or a round of fewer than ``min_rows`` pairs,
+    the rest inline; else one round of
     inline walks of ``forest`` (explicit layout). ``more``, ``round_count``: (1,) int32 scratch (``round_count``:
     the batched rounds taken). Both give the same pairs in the same order per cell."""
     device = particle_v.device
@@ -458,12 +462,14 @@ def collide_cells(args: CellArgs, forest: Forest, particle_v, more, round_count,
         wp.launch(cell_select, dim=n_cells, device=device, inputs=[args, forest], outputs=[particle_v, more])
         eval_forest(batch_forest, args.batch_features, args.batch_out, device=device, row_count=args.batch_count)
         wp.launch(cell_apply, dim=n_cells, device=device, inputs=[args], outputs=[particle_v])
-        wp.launch(cell_next_round, dim=1, device=device, inputs=[int(max_rounds)], outputs=[more, round_count])
+        wp.launch(cell_next_round, dim=1, device=device, inputs=[int(max_rounds), int(min_rows), args.batch_count],
+                  outputs=[more, round_count])
 
     more.fill_(1)
     round_count.zero_()
     wp.capture_while(more, one_round)
-    # the cells still holding candidates after ``max_rounds`` (dense cells: one round per accepted pair would take
-    # thousands) finish them inline, in the same order
+    # the cells still holding candidates after the rounds (dense cells: one round per accepted pair would take
+    # thousands; the last few pairs of a sparse step: a batch of a few rows costs a whole block) finish inline, in
+    # the same order
     args.batched = 0
     wp.launch(cell_select, dim=n_cells, device=device, inputs=[args, forest], outputs=[particle_v, more])

@@ -356,7 +356,7 @@ def test_rounds_cap_finishes_inline_with_the_same_result(constant_model, device)
     for cap in (1000, 3):
         p = Particles.from_numpy(x, 0.5 * D, v=v, density=RHO, weight=8.0, check_overlap=False, device=device)
         s = SurrogateCollision(model_dir=constant_model, detection="cell", periodic_box=(side,) * 3, seed=3,
-                               cell=CellConfig(batched_rounds=cap))
+                               cell=CellConfig(batched_rounds=cap, batched_min_rows=0))
         s.collide(p, 1e-3)
         out.append((p.v.numpy().copy(), s.counts()))
     assert out[1][1]["rounds"] == 3 < out[0][1]["rounds"]
