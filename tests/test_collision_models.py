@@ -46,9 +46,14 @@ def train_tiny_models(root) -> dict:
 
 @pytest.fixture(scope="session")
 def trained_models(tmp_path_factory):
-    """Tiny contact- and paper-form models, cached in the session's base temp dir (shared across modules)."""
-    root = tmp_path_factory.getbasetemp() / "tiny_collision_models"
-    root.mkdir(exist_ok=True)
+    """Tiny contact- and paper-form models, cached in the session's base temp dir (shared across modules), or in
+    HEL_WARP_TINY_MODELS when set (scripts/gpu_check.sh trains them once for its tests and its rig runs)."""
+    import os
+    from pathlib import Path
+
+    cache = os.environ.get("HEL_WARP_TINY_MODELS")
+    root = Path(cache) if cache else tmp_path_factory.getbasetemp() / "tiny_collision_models"
+    root.mkdir(parents=True, exist_ok=True)
     return train_tiny_models(root)
 
 
@@ -89,7 +94,7 @@ def make_particles(x, v, *, radius=0.5 * D, density=RHO, weight=1.0, stream=0):
     from hel_warp.particles import Particles
 
     return Particles.from_numpy(np.asarray(x, float), radius, v=np.asarray(v, float), density=density,
-                                weight=weight, stream=stream, check_overlap=False, device="cpu")
+                                weight=weight, stream=stream, check_overlap=False, device=None)  # the session device
 
 
 def momentum(p) -> np.ndarray:

@@ -29,11 +29,11 @@ def brute_force_rows(x, radius, cutoff_extra):
 def build_list(particles, skin, capacity, old=None):
     n = particles.count
     r_max = float(particles.radius.numpy().max())
-    grid = wp.HashGrid(16, 16, 16, device="cpu")
+    grid = wp.HashGrid(16, 16, 16)  # the session device (conftest)
     grid.build(particles.x, 2.0 * r_max + skin)
-    new = ContactList.empty(n, capacity, "cpu")
+    new = ContactList.empty(n, capacity, None)
     if old is None:
-        old = ContactList.empty(n, capacity, "cpu")
+        old = ContactList.empty(n, capacity, None)
     x_at_build = wp.zeros(n, dtype=wp.vec3)
     overflow = wp.zeros(1, dtype=wp.int32)
     kc.launch_build_contact_list(grid, sphere_arrays(particles), r_max, skin, old.rows(), new.rows(), x_at_build,
@@ -141,7 +141,7 @@ def test_gather_rows_follow_a_permutation():
     partner, count = tag_shear_with_pair(old, 2.0)
     new_to_old = np.random.default_rng(9).permutation(len(x)).astype(np.int32)
     old_to_new = np.argsort(new_to_old).astype(np.int32)
-    dst = ContactList.empty(len(x), 64, "cpu")
+    dst = ContactList.empty(len(x), 64, None)
     touching = np.zeros(old.touching.shape, np.int32)
     for i in range(len(x)):
         touching[i, : count[i]] = (partner[i, : count[i]] + i) % 2  # a tag the gather must carry with the row

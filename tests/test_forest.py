@@ -130,7 +130,7 @@ def test_tree_value_walks_both_layouts():
     reference = next(iter(boosters.values())).predict(xgb.DMatrix(standardize(raw, mean, std)))
     for layout in ("explicit", "perfect"):
         out = wp.zeros(x.shape[0], dtype=wp.float32)
-        wp.launch(sum_trees, dim=x.shape[0], inputs=[_flat(doc, "contact").to_device("cpu", layout=layout), x],
+        wp.launch(sum_trees, dim=x.shape[0], inputs=[_flat(doc, "contact").to_device(None, layout=layout), x],
                   outputs=[out])
         np.testing.assert_allclose(out.numpy(), reference, rtol=1e-5, atol=1e-5)
 
@@ -173,7 +173,7 @@ def test_contact_pairs_conserve_momentum_and_match_numpy():
     assert_close_rows(feats.numpy(), reference, 2e-6 * (scale_g + np.abs(reference)) + 1e-7)
     feats_np = feats.numpy()
     targets = wp.zeros((len(v1), 2), dtype=wp.float32)
-    forest = _flat(doc, "contact").to_device("cpu")
+    forest = _flat(doc, "contact").to_device(None)  # the session device (conftest)
     kf.eval_forest(forest, feats, targets, rows_per_thread=16)
     xgb_targets = np.column_stack([b.predict(xgb.DMatrix(standardize(feats_np[:, cols], mean, std)))
                                    for b in boosters.values()])
