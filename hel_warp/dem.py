@@ -14,9 +14,10 @@ One :meth:`DEMSolver.step` (velocity Verlet, ``kernels/integrate.py``)::
 The time step defaults to eq. (12) of the paper for the smallest radius
 (``Material.time_step(r_min).chosen``); a larger requested dt is a ConfigError.
 :meth:`DEMSolver.simulate` runs n steps with no host synchronisation: the conditional rebuild is a
-``wp.capture_if`` (a conditional graph node on CUDA; on the CPU device kernels run synchronously on
-the calling thread, so reading the one-int flag is a plain memory read). The contact-list overflow
-counter is checked once at the end of ``simulate`` and raises, never silently drops contacts.
+``wp.capture_if`` (a conditional graph node under capture, on CUDA or with ``capture_on_cpu``; outside a
+capture a host branch on the one-int flag: a memory read on the CPU, a pinned copy and a sync on CUDA).
+The contact-list overflow counter is checked once at the end of ``simulate`` and raises, never silently
+drops contacts.
 
 Collisions: every force evaluation after a drift counts contact onsets (a pair whose overlap became > 0
 while it was not touching at the previous step: one real collision; a contact lasting across list
@@ -90,6 +91,10 @@ class DEMConfig:
     cuda_graph_steps: int = 50
     """On CUDA: steps per captured CUDA graph in ``simulate`` (0 = launch eagerly). Graphs need
     ``sort_every = 0`` (the sort decision is a host one); otherwise the solver launches eagerly."""
+    capture_on_cpu: bool = False
+    """Also run ``simulate`` as captured graphs on the CPU device (Warp >= 1.19 records a CPU graph and replays
+    it in C++, ``capture_if`` included): the CUDA path through the same calls, tested on the CPU
+    (tests/test_device_paths.py); bit-identical to the eager steps with ``sort_every = 0``."""
     n_streams: int = 4
     """Stream tags whose contact onsets are counted separately (tags outside [0, n_streams) count as the
     nearest end)."""
@@ -394,8 +399,12 @@ class DEMSolver:
         self._sort_scratch = None
         self._graph = None
         is_cuda = wp.get_device(self.device).is_cuda
-        self.sort_every = config.sort_every if config.sort_every is not None else (0 if is_cuda else 10)
-        self._use_graph = bool(is_cuda and config.cuda_graph_steps > 0 and self.sort_every == 0)
+        # CUDA graphs with a conditional node (capture_if) need CUDA >= 12.4 and a driver for it; else eager steps
+        graph_device = (is_cuda and wp.is_conditional_graph_supported()) or (not is_cuda and config.capture_on_cpu)
+        if config.capture_on_cpu and tuple(int(v) for v in wp.__version__.split(".")[:2]) < (1, 19):
+            raise ConfigError(f"capture_on_cpu needs Warp >= 1.19 (CPU graph capture); this is {wp.__version__}")
+        self.sort_every = config.sort_every if config.sort_every is not None else (0 if graph_device else 10)
+        self._use_graph = bool(graph_device and config.cuda_graph_steps > 0 and self.sort_every == 0)
 
         self._rebuild()
         self.onsets.struct.counting = 0  # contacts present at the start are not onsets
@@ -414,7 +423,8 @@ class DEMSolver:
         """Advance ``n_steps`` steps without host synchronisation, then check the contact list.
 
         On CUDA (``cuda_graph_steps > 0``) the steps replay a captured graph whose rebuild branch is a
-        conditional node; the remainder runs eagerly.
+        conditional node; the remainder runs eagerly. The captured body is ``_advance``, the eager step itself;
+        ``capture_on_cpu`` takes this branch on the CPU too (its test), so only the graph backend differs there.
         """
         import warp as wp
 
