@@ -1,6 +1,7 @@
 """Throughput of the flattened Warp forest vs XGBoost's own predictor on the same model and rows.
 
     python scripts/bench_forest.py --model MODEL_DIR [--samples 200000] [--repeats 7] [--device cpu|cuda]
+                                   [--xgboost-device cpu|cuda] [--json]
 
 Without ``--model`` a model is trained first on the analytic TEST FIXTURE data
 (surrogate.features.synthetic_collisions; a few trials) — pass a real MODEL_DIR to measure
@@ -8,7 +9,8 @@ the model you use. Rows: ``--samples`` impacts of the fixture (features of the m
 CPU: Warp kernel (one CPU thread; Warp runs CPU kernels serially) vs
 ``Booster.inplace_predict`` with ``nthread=1``. CUDA: the Warp kernel on the GPU vs XGBoost
 with ``device="cuda"`` (input already on the device as a CuPy array when CuPy is installed,
-else a NumPy array). Each figure is the median of ``--repeats`` timed runs after one warm-up, the contenders
+else a NumPy array); ``--xgboost-device`` sets XGBoost's side apart (its CUDA branch runs on any machine: without
+a GPU XGBoost falls back to its CPU predictor, and ``xgboost_device_used`` in the result says where it ran). Each figure is the median of ``--repeats`` timed runs after one warm-up, the contenders
 called in turn (round-robin) so that a shared machine's load falls on all of them alike;
 all targets of the model are evaluated. Warp is timed with the features already on the device
 (``kernel``) and including the host->device copy and the result copy back (``end-to-end``).
@@ -47,6 +49,28 @@ def _interleaved_times(fns, repeats: int) -> list[dict]:
             for w, c in zip(wall, cpu)]
 
 
+def xgboost_inputs(boosters, xs: np.ndarray, device: str):
+    """Point every booster's predictor at ``device`` ("cpu": one thread, "cuda": XGBoost's CUDA predictor) and
+    return ``(rows, sync)``: the standardised rows as XGBoost should receive them (a CuPy array on CUDA when CuPy is
+    installed, else the NumPy array) and the call that waits for the device."""
+    params = {"device": "cuda"} if device == "cuda" else {"nthread": 1, "device": "cpu"}
+    for b in boosters:
+        b.set_param(params)
+    if device == "cuda":
+        try:
+            import cupy
+
+            return cupy.asarray(xs), cupy.cuda.runtime.deviceSynchronize
+        except ImportError:
+            pass
+    return xs, (lambda: None)
+
+
+def xgboost_device_used(booster) -> str:
+    """The device XGBoost's predictor actually used (it falls back to "cpu", with a warning, where no GPU is seen)."""
+    return str(json.loads(booster.save_config())["learner"]["generic_param"]["device"])
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", help="model directory (default: train a small one on the test fixture)")
@@ -58,6 +82,8 @@ def main(argv=None) -> int:
                              "layout always uses kernels.forest.BLOCK_ROWS")
     parser.add_argument("--layout", default="auto", choices=("auto", "perfect", "explicit"),
                         help="device layout of the forest (default auto: perfect when depth <= 12)")
+    parser.add_argument("--xgboost-device", default=None, choices=("cpu", "cuda"),
+                        help="device of XGBoost's predictor (default: --device)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
 
@@ -100,20 +126,8 @@ def main(argv=None) -> int:
         predictor.predict_features(raw)
 
     boosters = [art.boosters[t] for t in art.targets]
-    if args.device == "cuda":
-        for b in boosters:
-            b.set_param({"device": "cuda"})
-        try:
-            import cupy
-
-            x_in = cupy.asarray(xs)
-            sync = cupy.cuda.runtime.deviceSynchronize
-        except ImportError:
-            x_in, sync = xs, (lambda: None)
-    else:
-        for b in boosters:
-            b.set_param({"nthread": 1, "device": "cpu"})
-        x_in, sync = xs, (lambda: None)
+    xgb_device = args.xgboost_device or args.device
+    x_in, sync = xgboost_inputs(boosters, xs, xgb_device)
 
     def xgb_predict():
         for b in boosters:
@@ -125,6 +139,7 @@ def main(argv=None) -> int:
     preds = [b.inplace_predict(x_in) for b in boosters]
     ref = np.column_stack([p.get() if hasattr(p, "get") else np.asarray(p) for p in preds])
     max_diff = float(np.max(np.abs(out_dev.numpy() - ref)))
+    xgb_used = xgboost_device_used(boosters[0])
 
     kernel, e2e, xg = _interleaved_times((warp_kernel, warp_end_to_end, xgb_predict), args.repeats)
     t_kernel, c_kernel, t_e2e, c_e2e, t_xgb, c_xgb = (kernel["wall"], kernel["cpu"], e2e["wall"], e2e["cpu"],
@@ -135,8 +150,10 @@ def main(argv=None) -> int:
         "rows_per_thread": predictor.rows_per_thread, "repeats": args.repeats,
         "warp_kernel_samples_per_s": n / t_kernel, "warp_end_to_end_samples_per_s": n / t_e2e,
         "xgboost_samples_per_s": n / t_xgb,
-        "xgboost": f"inplace_predict, {'device=cuda' if args.device == 'cuda' else 'nthread=1'}, xgboost "
+        "xgboost": f"inplace_predict, {'device=cuda' if xgb_device == 'cuda' else 'nthread=1'}, xgboost "
                    f"{xgb.__version__}",
+        "xgboost_device_requested": xgb_device, "xgboost_device_used": xgb_used,
+        "xgboost_input": type(x_in).__module__.split(".")[0],
         "ratio_kernel": t_xgb / t_kernel, "ratio_end_to_end": t_xgb / t_e2e,
         "layout": predictor.layout,
         # CPU seconds of this process: the fair figure on a shared machine (both run on one thread)
