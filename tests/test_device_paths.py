@@ -1,0 +1,295 @@
+"""Every CUDA-only branch of the engine, run on the test device through the same functions (issue 15).
+
+No GPU has run this code yet, so each branch that the engine takes only on CUDA is exercised here on whatever
+device ``HEL_WARP_DEVICE`` names (the ``device`` fixture, default ``cpu``) and compared with the branch the CPU
+takes today. Warp >= 1.19 records and replays graphs on the CPU too (``wp.ScopedCapture`` / ``capture_launch``,
+``capture_if`` and ``capture_while`` as conditional nodes), so even the captured paths run here, captured; what
+still differs on a GPU is the graph backend (CUDA graphs vs Warp's CPU replay) and the CUDA compiler.
+
+References (CONVENTIONS rule 9): the eager steps for the captured ones (bit for bit: the same kernels in the
+same order on the same data), the CPU's native CG for warp.optim.linear.cg (both stop at ||r|| <= tol ||b||),
+the CPU's rows-per-thread default and XGBoost's own ``inplace_predict`` for the forest (bit for bit).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import warp as wp
+
+from tests.test_collision_models import D, RHO, trained_models  # noqa: F401  (fixture)
+
+
+def require_graph_conditionals(device):
+    """CUDA graphs with conditional nodes (capture_if / capture_while) need CUDA >= 12.4 and its driver; Warp's CPU
+    graphs always have them."""
+    if wp.get_device(device).is_cuda and not wp.is_conditional_graph_supported():
+        pytest.skip("this CUDA driver/toolkit has no conditional graph nodes (CUDA >= 12.4); the DEM launches eagerly")
+
+
+# ------------------------------------------------------------------------------ Warp's conditional nodes
+@wp.kernel
+def count_down(counter: wp.array(dtype=wp.int32), total: wp.array(dtype=wp.float32)):
+    total[0] = total[0] + 1.0
+    counter[0] = counter[0] - 1
+
+
+@wp.kernel
+def add_value(total: wp.array(dtype=wp.float32), value: wp.float32):
+    total[0] = total[0] + value
+
+
+def test_capture_while_and_if_are_a_host_loop_and_branch_outside_a_capture_and_nodes_inside(device):
+    """What the engine relies on: outside a capture, ``wp.capture_while`` is a host loop that calls its body while
+    the device flag is non-zero and ``wp.capture_if`` a host branch (DEMSolver._advance, DemCollision.simulate,
+    kernels/collide.py resolve_swept run so on every device today); under a capture each body is called once to
+    record it, and the replayed graph takes the loop and the branch from the flag's value at replay time."""
+    require_graph_conditionals(device)
+    counter = wp.array([4], dtype=wp.int32, device=device)
+    flag = wp.zeros(1, dtype=wp.int32, device=device)
+    total = wp.zeros(1, dtype=wp.float32, device=device)
+    calls = {"while": 0, "if": 0}
+
+    def body():
+        calls["while"] += 1
+        wp.launch(count_down, dim=1, inputs=[counter, total], device=device)
+
+    def branch():
+        calls["if"] += 1
+        wp.launch(add_value, dim=1, inputs=[total, 100.0], device=device)
+
+    wp.capture_while(counter, body)
+    wp.capture_if(flag, on_true=branch)  # flag 0: not taken
+    assert calls == {"while": 4, "if": 0} and total.numpy()[0] == 4.0 and counter.numpy()[0] == 0
+
+    with wp.ScopedCapture(device=device) as capture:
+        counter.fill_(3)
+        wp.capture_while(counter, body)
+        wp.capture_if(flag, on_true=branch)
+    assert calls == {"while": 5, "if": 1}  # recorded once each, nothing run yet
+    assert total.numpy()[0] == 4.0
+    wp.capture_launch(capture.graph)
+    assert total.numpy()[0] == 7.0  # three rounds, branch not taken (flag 0 at replay)
+    flag.fill_(1)
+    wp.capture_launch(capture.graph)
+    assert total.numpy()[0] == 110.0 and calls == {"while": 5, "if": 1}  # taken from the replay-time flag
+
+
+# ------------------------------------------------------------------------------ DEM: graph-captured sub-steps
+def _dem_column(device, **config):
+    from hel_warp.dem import DEMConfig, DEMSolver
+    from hel_warp.material import Material
+    from hel_warp.particles import Particles, lattice_positions
+
+    n = 800
+    material = Material(density=2500.0, youngs_modulus=1e8, poisson_ratio=0.3, restitution=0.5, friction=0.3)
+    lo, hi = (0.0, 0.0, 0.0), (0.02, 0.02, 0.06)
+    x = lattice_positions(n, 2.3e-3, lo, hi, jitter=0.2e-3, seed=5)
+    radius = np.random.default_rng(5).uniform(0.9e-3, 1.0e-3, n)
+    v = np.random.default_rng(6).normal(0.0, 0.5, (n, 3))  # a stirred column: lists rebuilt every ~100 steps
+    p = Particles.from_numpy(x, radius, v=v, density=material.density, box_lo=lo, box_hi=hi, device=device)
+    return DEMSolver(DEMConfig(material=material, box_lo=lo, box_hi=hi, **config), p)
+
+
+def test_dem_graph_captured_steps_equal_the_eager_steps(device):
+    """``DEMSolver.simulate`` on CUDA: ``cuda_graph_steps`` steps captured once (``_advance`` with its ``capture_if``
+    rebuild) and replayed, the remainder eager. Here the same branch (``capture_on_cpu`` on the CPU) against the
+    same solver launching eagerly (``cuda_graph_steps = 0``): the same kernels in the same order on the same data,
+    so bit for bit, list rebuilds inside the graph included; contact onsets equal."""
+    require_graph_conditionals(device)
+    graph_steps, n_steps = 25, 2 * 25 + 7  # two replays and an eager remainder
+    eager = _dem_column(device, sort_every=0, cuda_graph_steps=0)
+    graph = _dem_column(device, sort_every=0, cuda_graph_steps=graph_steps, capture_on_cpu=True)
+    assert graph._use_graph and not eager._use_graph
+    for _ in range(20):  # 1140 steps, rebuilds inside the replayed graphs (7 of 57 steps run eagerly)
+        eager.simulate(n_steps)
+        graph.simulate(n_steps)
+    assert graph._graph is not None
+    assert graph.rebuilds == eager.rebuilds > 8  # the conditional rebuild was taken inside the graph
+    a, b = eager.particles.to_numpy(), graph.particles.to_numpy()
+    for name in ("x", "v", "omega"):
+        assert a[name].tobytes() == b[name].tobytes(), name
+    assert graph.onset_counts() == eager.onset_counts() and eager.onset_counts()["collisions"] > 0
+    assert graph.steps_done == eager.steps_done == 20 * n_steps
+
+
+def test_dem_graph_path_defaults_to_no_sort_and_agrees_with_the_cpu_default(device):
+    """The CUDA defaults (``sort_every`` 0 so that the graph can run) against today's CPU defaults (a spatial sort
+    every 10 rebuilds, eager): the sort reorders the sums, so they agree to float32 round-off grown over the run,
+    not bit for bit (1e-9 m asked of |x| ~ 0.02 m). 1200 steps of the stirred column, ~12 list builds: measured equal
+    to the last bit on the CPU."""
+    graph = _dem_column(device, capture_on_cpu=True)
+    cpu_default = _dem_column(device)
+    expect_sort = 0 if wp.get_device(device).is_cuda and wp.is_conditional_graph_supported() else 10
+    assert graph.sort_every == 0 and graph._use_graph and cpu_default.sort_every == expect_sort
+    for solver in (graph, cpu_default):
+        solver.simulate(1200)
+    assert cpu_default.rebuilds > 10  # a second sort came (every 10 list builds, the first at construction)
+    a, b = graph.particles.to_numpy(), cpu_default.particles.to_numpy()  # original order
+    dx = float(np.abs(a["x"] - b["x"]).max())
+    dv = float(np.abs(a["v"] - b["v"]).max())
+    print(f"graph (no sort) vs CPU default (sort every 10): max |dx| = {dx:.2e} m, max |dv| = {dv:.2e} m/s")
+    assert dx <= 1e-9 and dv <= 1e-6
+
+
+# ------------------------------------------------------------------------------ gas: warp.optim.linear.cg
+def _projection_problem(device, linear_solver, preconditioner):
+    """The closed L-shaped cavity of tests/test_gas.py with random face velocities and eps_f: one projection."""
+    from hel_warp.gas import GasConfig, GasField, GasSolver
+    from hel_warp.grid import Box, Channel, Geometry, Grid
+
+    rng = np.random.default_rng(1)
+    grid = Grid(spacing=1e-3, shape=(12, 10, 8))
+    geometry = Geometry(shapes=(Box(lo=(1e-3, 1e-3, 1e-3), hi=(7e-3, 9e-3, 7e-3)),
+                                Channel(start=(4e-3, 5e-3, 4e-3), end=(11e-3, 8e-3, 4e-3), width=3.5e-3, height=5e-3)))
+    domain = geometry.build(grid, device=device)
+    solver = GasSolver(domain, GasConfig(pressure_tolerance=1e-6, linear_solver=linear_solver,
+                                         pressure_preconditioner=preconditioner,
+                                         pressure_preconditioner_relaxation=0.0), device=device)
+    gas = GasField(domain, device=device)
+    gas.set_face_velocity([rng.normal(size=a.shape) for a in gas.face_arrays()])
+    gas.cell_eps_s.assign(rng.uniform(0.0, 0.7, size=grid.shape).astype(np.float32))
+    solver.update_cell_state(gas)
+    fluid = domain.cell_fluid.numpy().astype(bool)
+    eps_f = gas.cell_eps_f.numpy().astype(np.float64)
+    change = rng.uniform(-0.05, 0.05, size=grid.shape)
+    change = np.where(fluid, change - change[fluid].mean(), 0.0)  # zero-mean: the closed cavity's problem is solvable
+    gas.cell_eps_f_prev.assign((eps_f - change).astype(np.float32))
+    return grid, fluid, solver, gas
+
+
+@pytest.mark.parametrize("preconditioner", ["multigrid", "ic"])
+def test_warp_cg_with_our_preconditioner_equals_the_native_cg(device, preconditioner):
+    """``GasConfig.linear_solver = 'auto'`` takes warp.optim.linear.cg on CUDA (M = our aggregation-multigrid V-cycle,
+    or Jacobi where the CPU uses IC) and the native Warp-kernel PCG on the CPU. Both here on the same projection.
+
+    Each stops at ||r|| <= tol ||b|| (r = (rho h^2/dt) x the continuity residual), so the difference of the two
+    projected fields has a continuity residual of at most 2 tol ||b|| (plus float32 rounding of the stored faces,
+    ~1e-7 |u|/h per cell), and both leave <= tol of the residual before."""
+    from tests.test_gas import continuity_residual
+
+    dt, tol = 1e-3, 1e-6
+    fields = {}
+    for linear_solver in ("warp", "native"):
+        grid, fluid, solver, gas = _projection_problem(device, linear_solver, preconditioner)
+        assert solver.linear_solver == linear_solver
+        eps_f, eps_prev = (a.numpy().astype(np.float64) for a in (gas.cell_eps_f, gas.cell_eps_f_prev))
+        before = continuity_residual(grid, fluid, gas.face_arrays(), eps_f, eps_prev, dt)
+        before = np.where(fluid, before - before[fluid].mean(), 0.0)
+        solver.project(gas, dt)
+        faces = [a.astype(np.float64) for a in gas.face_arrays()]
+        after = continuity_residual(grid, fluid, faces, eps_f, eps_prev, dt)
+        fields[linear_solver] = (faces, gas.cell_pressure.numpy().astype(np.float64), before, after,
+                                 solver.last_iterations["pressure"])
+    (u_w, p_w, before, after_w, it_w), (u_n, p_n, _, after_n, it_n) = fields["warp"], fields["native"]
+    u_max = max(np.abs(a).max() for a in u_n)
+    rounding = 4 * 6e-8 * u_max / grid.spacing * math.sqrt(fluid.sum())
+    b = np.linalg.norm(before)
+    assert np.linalg.norm(after_w) <= tol * b + rounding and np.linalg.norm(after_n) <= tol * b + rounding
+    # the difference field: div(eps_f (u_w - u_n)) alone (the eps_f change cancels)
+    diff = continuity_residual(grid, fluid, [a - c for a, c in zip(u_w, u_n)], eps_f, eps_f, dt)
+    assert np.linalg.norm(diff) <= 2 * tol * b + 2 * rounding, (np.linalg.norm(diff), b)
+    du = max(np.abs(a - c).max() for a, c in zip(u_w, u_n)) / u_max
+    dp = np.abs(p_w - p_n)[fluid].max() / np.abs(p_n[fluid] - p_n[fluid].mean()).max()
+    print(f"{preconditioner}: warp cg {it_w} / native {it_n} iterations; max |u_warp - u_native| / max |u| = "
+          f"{du:.2e}; |div diff| / |div before| = {np.linalg.norm(diff) / b:.2e}; pressure (mean removed) {dp:.2e}")
+    assert du <= 1e-4
+
+
+# ------------------------------------------------------------------------------ forest: the CUDA launch shape
+def test_forest_at_the_cuda_rows_per_thread_equals_the_cpu_default_and_xgboost(device, trained_models):
+    """``ForestPredictor`` walks one row per thread on CUDA and 64 on the CPU (explicit layout); the perfect layout
+    (the engine's batched rounds) has one shape on both. Every launch shape gives XGBoost's own prediction, bit for
+    bit (the thresholds are folded so float32 branches as XGBoost does; the leaf sums in the same order)."""
+    from hel_warp.forest import ForestPredictor, load_forest
+    from surrogate.artifact import load_artifact
+    from surrogate.features import CANONICAL_FEATURES, form_rows, standardize, synthetic_collisions
+
+    model_dir = trained_models["contact"]
+    art = load_artifact(model_dir, boosters=True)
+    flat = load_forest(model_dir)
+    rows = form_rows("contact", synthetic_collisions(3000, seed=4, central_fraction=0.5))
+    raw = np.ascontiguousarray(rows.features, dtype=np.float32)
+    cols = [CANONICAL_FEATURES["contact"].index(f) for f in art.features]
+    ref = np.column_stack([art.boosters[t].inplace_predict(standardize(raw[:, cols], art.scaler_mean, art.scaler_std))
+                           for t in art.targets])
+    outs = {}
+    for layout, rows_per_thread in (("explicit", 1), ("explicit", 64), ("perfect", None)):
+        predictor = ForestPredictor(flat, device=device, layout=layout, rows_per_thread=rows_per_thread)
+        outs[(layout, rows_per_thread)] = predictor.predict_features(raw)
+    for key, out in outs.items():
+        assert np.array_equal(out, outs[("explicit", 1)]), key
+    assert np.abs(outs[("explicit", 1)] - ref).max() <= 2 ** -20 * max(1.0, np.abs(ref).max()), \
+        np.abs(outs[("explicit", 1)] - ref).max()
+
+
+def test_bench_forest_runs_its_xgboost_cuda_branch_and_says_where_xgboost_ran(tmp_path, trained_models):
+    """scripts/bench_forest.py ``--xgboost-device cuda`` sets XGBoost's CUDA predictor and passes it the rows the
+    same way on any machine; without a GPU XGBoost falls back to its CPU predictor, which the result names
+    (``xgboost_device_used``), so a GPU run cannot silently time the CPU. The figures agree with our forest."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, str(root / "scripts" / "bench_forest.py"), "--model", trained_models["contact"],
+                          "--samples", "2000", "--repeats", "1", "--xgboost-device", "cuda", "--json"],
+                         capture_output=True, text=True, cwd=root)
+    assert out.returncode == 0, out.stderr[-2000:]
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["xgboost_device_requested"] == "cuda"
+    expected = "cuda" if wp.is_cuda_available() else "cpu"
+    assert result["xgboost_device_used"].startswith(expected), result["xgboost_device_used"]
+    assert result["max_abs_diff_vs_xgboost"] <= 1e-5 and result["samples"] == 2000
+
+
+# ------------------------------------------------------------------------------ swept rounds: capture_while
+def _periodic_gas(n, eps, seed=2, theta=1.0):
+    rng = np.random.default_rng(seed)
+    side = (n * math.pi * D**3 / 6.0 / eps) ** (1.0 / 3.0)
+    k = int(math.ceil(n ** (1.0 / 3.0)))
+    g = (np.arange(k) + 0.5) * side / k
+    x = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)[:n]
+    x = np.mod(x + rng.uniform(-0.5, 0.5, x.shape) * (side / k - 1.01 * D), side)
+    v = rng.normal(0.0, math.sqrt(theta), (n, 3))
+    return x, v - v.mean(axis=0), side
+
+
+@pytest.mark.parametrize("batched", [True, False])
+def test_swept_rounds_captured_as_a_graph_loop_equal_the_eager_rounds(device, trained_models, monkeypatch, batched):
+    """kernels/collide.py ``resolve_swept`` writes its event rounds as ``wp.capture_while`` so that on CUDA the whole
+    loop, the batched forest of each round included, can be one graph (a while node) instead of a host sync per
+    round. Here the call captured into a graph and replayed, against the same call run eagerly (the host loop every
+    device takes today): bit for bit, and the same counts, on a dense periodic gas with chains of collisions."""
+    import kernels.collide as kc
+    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.particles import Particles
+
+    require_graph_conditionals(device)
+    eager_resolve = kc.resolve_swept
+    replays = []
+
+    def captured_resolve(*args, **kwargs):
+        dev = args[2].device
+        with wp.ScopedCapture(device=dev) as capture:
+            eager_resolve(*args, **kwargs)
+        wp.capture_launch(capture.graph)
+        replays.append(1)
+
+    x, v, side = _periodic_gas(1000, 0.05)
+    results = []
+    for resolve in (eager_resolve, captured_resolve):
+        monkeypatch.setattr(kc, "resolve_swept", resolve)
+        p = Particles.from_numpy(x, 0.5 * D, v=v, density=RHO, check_overlap=False, device=device)
+        strategy = SurrogateCollision(model_dir=trained_models["contact"], periodic_box=(side,) * 3, batched=batched)
+        strategy.collide(p, 2e-4)
+        assert (strategy.batch_forest is not None) == batched
+        results.append((p.v.numpy().copy(), strategy.swept.t_last.numpy().copy(), strategy.counts()))
+    assert len(replays) == 1
+    (v_eager, t_eager, c_eager), (v_graph, t_graph, c_graph) = results
+    assert c_eager["collisions"] > 100 and c_eager["rounds"] > 3  # several rounds: the loop really loops
+    assert c_graph == c_eager
+    assert np.array_equal(v_graph, v_eager) and np.array_equal(t_graph, t_eager)
