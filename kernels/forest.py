@@ -105,9 +105,9 @@ def perfect_step(forest: Forest, first_node: wp.int32, i: wp.int32, features: wp
     return 2 * i + 1 + go_right
 
 
-LOCKSTEP_ROWS = 32
+LOCKSTEP_ROWS = 16
 """Rows one thread walks through a perfect-layout tree level by level, side by side (unrolled)."""
-BLOCK_GROUPS = 2
+BLOCK_GROUPS = 4
 """Lockstep groups per thread: a thread owns BLOCK_GROUPS * LOCKSTEP_ROWS rows and walks each tree
 for all of them before the next tree (the tree stays in L1 across the groups)."""
 BLOCK_ROWS = BLOCK_GROUPS * LOCKSTEP_ROWS
@@ -180,6 +180,8 @@ def eval_forest_perfect_kernel(forest: Forest, features: wp.array(dtype=wp.float
             depth = forest.tree_depth[k]
             leaf0 = forest.tree_leaf[k] - ((1 << depth) - 1)
             for g in range(BLOCK_GROUPS):
+                if first + g * LOCKSTEP_ROWS >= last:
+                    continue  # a block's rows past the batch (a small batch fills one group only)
                 row_offset = RowIndex()
                 for r in range(LOCKSTEP_ROWS):
                     row_offset[r] = wp.min(first + g * LOCKSTEP_ROWS + r, last - 1) * n_features
