@@ -33,6 +33,9 @@ GUARD_NAMES = ("separation", "coulomb", "energy", "domain_clamped", "late_overla
 """``counts()`` keys ``guard_<name>``: admissibility corrections and domain clamps (``kernels/collide.py``)."""
 CELL_FACTOR = 2.0
 """Hash cells of the swept search, in units of r_max + the mean reach (smaller cells measured slower on the CPU)."""
+SWEPT_GRID_DIMS = 64
+"""Hash cells per axis of the swept search's grid in open space: a build clears dims^3 cells (on the CPU 128^3 cost
+15 ms a build, 64^3 2.6 ms: a large share of a step at dt <= 1e-4 s); the rig spans < 64 cells of the search."""
 MAX_ROUNDS = 4096
 """Rounds of events per step before the resolution stops and says so (``round_cap_hit``): an inelastic collapse
 (infinitely many collisions in finite time, McNamara & Young 1994) would otherwise never end."""
@@ -198,32 +201,31 @@ class SurrogateCollision:
             a.domain = self.flat.domain_to_device(dev)
         self.swept = a
 
-    def _hash_grid(self, points, cell: float):
-        """A hash grid of ``points`` with cells of at least ``cell``; in a periodic box the grid tiles the box
-        exactly (dims x cell width = box side), so a query that crosses a face finds the images."""
+    def _hash_grid(self, points, cell: float, dims: int = 128):
+        """A hash grid of ``points`` with cells of at least ``cell`` (kept between steps); in a periodic box the grid tiles the box exactly (dims x cell width = box side), so a query that
+        crosses a face finds the images. ``dims``: hash cells per axis in open space (a build clears dims^3 cells:
+        smaller is cheaper to build, larger aliases less)."""
         import warp as wp
 
         box = self.periodic_box
         if box is None:
-            if self._grid is None:
-                self._grid = wp.HashGrid(128, 128, 128, device=self._device)
-                self._grid.reserve(points.shape[0])
-            self._grid.build(points, float(cell))
-            return self._grid
-        cell = min(cell, min(box) / 3.0)  # a query spans several cells rather than the box being one cell wide
-        dims = tuple(int(np.floor(side / cell * (1.0 + 1e-6))) for side in box)
-        width = box[0] / dims[0]
-        if any(abs(side / d - width) > 1e-6 * width for side, d in zip(box, dims)):
-            # a common cell width: the sides in the proportion of the dims
-            width = max(side / d for side, d in zip(box, dims))
-            dims = tuple(int(round(side / width)) for side in box)
+            dims = (int(dims),) * 3
+            width = float(cell)
+        else:
+            cell = min(cell, min(box) / 3.0)  # a query spans several cells rather than the box being one cell wide
+            dims = tuple(int(np.floor(side / cell * (1.0 + 1e-6))) for side in box)
+            width = box[0] / dims[0]
             if any(abs(side / d - width) > 1e-6 * width for side, d in zip(box, dims)):
-                raise ConfigError(f"periodic box sides {box} have no common cell width near {cell:.3g} m; use a "
-                                  "cubic box or sides in small integer ratios")
+                # a common cell width: the sides in the proportion of the dims
+                width = max(side / d for side, d in zip(box, dims))
+                dims = tuple(int(round(side / width)) for side in box)
+                if any(abs(side / d - width) > 1e-6 * width for side, d in zip(box, dims)):
+                    raise ConfigError(f"periodic box sides {box} have no common cell width near {cell:.3g} m; use "
+                                      "a cubic box or sides in small integer ratios")
         if self._grid_dims != dims:
             self._grid = wp.HashGrid(*dims, device=self._device)
-            self._grid.reserve(points.shape[0])
             self._grid_dims = dims
+        self._grid.reserve(points.shape[0])
         self._grid.build(points, float(width))
         return self._grid
 
@@ -293,7 +295,7 @@ class SurrogateCollision:
                               f"({2.0 * (r_max + reach_max):.3g} m must stay below half the box side): enlarge the "
                               "box (more particles) or shorten dt")
         # cells of a typical search (the fastest parcels' queries span more cells)
-        grid = self._hash_grid(a.hash_point, CELL_FACTOR * (r_max + reach_mean))
+        grid = self._hash_grid(a.hash_point, CELL_FACTOR * (r_max + reach_mean), dims=SWEPT_GRID_DIMS)
         a.grid = grid.id
         self._shift_pending = sweep > 0.0
         resolve_swept(a, self.forest, particles.v, self.events_found, self.event_rounds, self.round_cap_hit,
