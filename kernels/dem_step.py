@@ -268,20 +268,24 @@ def blocks(n: int, block: int) -> int:
 
 
 def launch_kick_drift_flag(spheres: SphereArrays, force, torque, gravity, dt: float, x_at_build, half_skin: float,
-                           rebuild_flag, block: int = CPU_BLOCK) -> None:
+                           rebuild_flag, block: int = CPU_BLOCK, record: bool = False):
+    """``record``: return the launch as a ``wp.Launch`` (arguments packed once, run with ``.launch()``; valid
+    while none of the arrays is reallocated) instead of launching."""
     n = spheres.x.shape[0]
-    wp.launch(kick_drift_flag, dim=blocks(n, block), device=spheres.x.device,
-              inputs=[gravity, dt, x_at_build, half_skin, int(block)], outputs=[spheres, force, torque, rebuild_flag])
+    return wp.launch(kick_drift_flag, dim=blocks(n, block), device=spheres.x.device,
+                     inputs=[gravity, dt, x_at_build, half_skin, int(block)],
+                     outputs=[spheres, force, torque, rebuild_flag], record_cmd=record)
 
 
 def launch_forces_kick(spheres: SphereArrays, rows: ContactRows, params: ContactParams, box: PeriodicBox,
                        walls: PlaneWalls, gravity, dt: float, onsets: ContactOnsets, force, torque, *,
-                       kick: bool, block: int = CPU_BLOCK) -> None:
+                       kick: bool, block: int = CPU_BLOCK, record: bool = False):
     """Half-list contacts + plane walls (+ the second half kick with ``kick``) on a serial device; the
-    accumulators ``force``/``torque`` must be zero (``kick_drift_flag`` leaves them so)."""
+    accumulators ``force``/``torque`` must be zero (``kick_drift_flag`` leaves them so). ``record``: as in
+    ``launch_kick_drift_flag``."""
     if spheres.x.device.is_cuda:
         raise ValueError("forces_kick relies on threads running in tid order: CPU device only")
     n = spheres.x.shape[0]
-    wp.launch(forces_kick, dim=blocks(n, block), device=spheres.x.device,
-              inputs=[spheres, params, box, walls, gravity, dt, int(kick), int(block)],
-              outputs=[onsets, rows, force, torque])
+    return wp.launch(forces_kick, dim=blocks(n, block), device=spheres.x.device,
+                     inputs=[spheres, params, box, walls, gravity, dt, int(kick), int(block)],
+                     outputs=[onsets, rows, force, torque], record_cmd=record)
