@@ -1,0 +1,116 @@
+#!/usr/bin/env bash
+# The first GPU run as a confirmation (issue 15): device report, kernel compilation, the device-agnostic tests on the
+# device, the DEM / forest / HEL benches and a short rig run for ktgf, surrogate and dem, every figure as JSON.
+#
+#   scripts/gpu_check.sh [--dry-run] [--out DIR]
+#
+# Without --dry-run everything runs on Warp's "cuda" device at bench sizes (DEM at 1e5 and 1e6 spheres, the forest
+# beside XGBoost's CUDA predictor, the gas and parcel benches, the full rig); --dry-run runs the same sequence on the
+# CPU at the smallest sizes (what the tests and CI run). DIR (default gpu_out/) gets one JSON file per step,
+# steps.tsv, a .log per step and summary.json. Stops at the first failing step and names its command; exit 0 only if
+# every step passed. Environment: MODEL=DIR runs the rig's surrogate with that contact-form model instead of the
+# tests' tiny one; HEL_WARP_TINY_MODELS=DIR keeps the tests' tiny models there (trained once); STEP_TIMEOUT=S caps
+# each step (default 300 s); PYTHON (default python).
+set -uo pipefail
+cd "$(dirname "$0")/.."
+root=$(pwd)
+export PYTHONPATH="$root${PYTHONPATH:+:$PYTHONPATH}"
+py=${PYTHON:-python}
+
+dry=0
+out=gpu_out
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --dry-run) dry=1 ;;
+    --out) [ $# -ge 2 ] || { echo "gpu_check: --out needs a directory" >&2; exit 2; }; out=$2; shift ;;
+    --out=*) out=${1#--out=} ;;
+    -h|--help) sed -n '2,13p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    *) echo "gpu_check: unknown argument '$1' (usage: scripts/gpu_check.sh [--dry-run] [--out DIR])" >&2; exit 2 ;;
+  esac
+  shift
+done
+mkdir -p "$out" || exit 2
+out=$(cd "$out" && pwd)
+: > "$out/steps.tsv"
+step_timeout=${STEP_TIMEOUT:-300}
+
+# The device-agnostic tests the device run repeats (tests/conftest.py: HEL_WARP_DEVICE sets Warp's default device).
+tests=(tests/test_device_paths.py tests/test_gas.py tests/test_multigrid.py tests/test_forest.py tests/test_contacts.py
+       tests/test_swept.py)
+if [ "$dry" = 1 ]; then
+  device=cpu
+  dem_args=(--cases --sizes 2000 --repeats 1 --budget 0.2)
+  forest_args=(--samples 5000 --repeats 1)
+  hel_args=(--cells 8 12 --parcels 1000 4000 --fixed-side 0 --repeats 1)
+  rig_args=(--cells 5000 --max-particles 200 --end-time 0.002 --gas-warmup 0.001)
+  tests=(tests/test_device_paths.py tests/test_multigrid.py)  # the rest of the subset runs on the CPU in the suite
+  test_args=()
+else
+  device=cuda
+  dem_args=(--cases --sizes 100000 1000000 --repeats 3 --budget 3 --warp-example)
+  forest_args=(--samples 1000000 --repeats 5)
+  hel_args=(--repeats 5)
+  rig_args=(--end-time 0.005)
+  test_args=()
+fi
+
+started=$(date +%s.%N)
+finish() {
+  "$py" scripts/gpu_check.py summary "$out" > /dev/null 2>&1
+  local rc=$?
+  local wall
+  wall=$(awk -v a="$started" -v b="$(date +%s.%N)" 'BEGIN { printf "%.1f", b - a }')
+  if [ "$rc" = 0 ]; then
+    echo "gpu_check: every step passed on $device in $wall s; figures in $out (summary.json)"
+  fi
+  exit "$1"
+}
+
+# run NAME COMMAND...: one step, its output to NAME.log (and the terminal); stop at the first failure.
+# run_json NAME COMMAND...: the same, the command's stdout (one JSON object) to NAME.json, its stderr to NAME.log.
+run() { _step "$1" "" "${@:2}"; }
+run_json() { _step "$1" "$out/$1.json" "${@:2}"; }
+_step() {
+  local name=$1 json=$2
+  shift 2
+  local t0 t1 rc
+  echo "== $name: $*"
+  t0=$(date +%s.%N)
+  if [ -n "$json" ]; then
+    timeout "$step_timeout" "$@" > "$json" 2> >(tee "$out/$name.log" >&2)
+  else
+    timeout "$step_timeout" "$@" > >(tee "$out/$name.log") 2>&1
+  fi
+  rc=$?
+  t1=$(date +%s.%N)
+  printf '%s\t%s\t%s\t%s\n' "$name" "$rc" "$(awk -v a="$t0" -v b="$t1" 'BEGIN { printf "%.2f", b - a }')" "$*" \
+    >> "$out/steps.tsv"
+  if [ "$rc" != 0 ]; then
+    [ "$rc" = 124 ] && echo "gpu_check: step '$name' ran past STEP_TIMEOUT=$step_timeout s" >&2
+    echo "gpu_check: FAILED at step '$name' (exit $rc): $*" >&2
+    echo "gpu_check: its output is in $out/$name.log" >&2
+    finish 1
+  fi
+}
+
+run device "$py" scripts/gpu_check.py device --device "$device" --out "$out/device.json"
+run kernels "$py" scripts/gpu_check.py kernels --device "$device" --out "$out/kernels.json"
+models=${HEL_WARP_TINY_MODELS:-$out/models}  # kept when already trained there (the test suite passes its own)
+run models "$py" scripts/gpu_check.py models "$models" --out "$out/models.json"
+model=${MODEL:-$models/model_contact}
+run tests env HEL_WARP_DEVICE="$device" HEL_WARP_TINY_MODELS="$models" "$py" -m pytest -q -x -p no:cacheprovider \
+  "${tests[@]}" "${test_args[@]}" --basetemp "$out/pytest" --junitxml "$out/tests.xml"
+run tests_json "$py" scripts/gpu_check.py junit "$out/tests.xml" --out "$out/tests.json"
+
+run bench_dem "$py" scripts/bench_dem.py --device "$device" "${dem_args[@]}" --json "$out/bench_dem.json"
+run_json bench_forest "$py" scripts/bench_forest.py --model "$model" --device "$device" --xgboost-device "$device" \
+  "${forest_args[@]}" --json
+run_json bench_hel "$py" scripts/bench_hel.py --device "$device" "${hel_args[@]}" --json
+
+for collisions in ktgf surrogate dem; do
+  run "rig_$collisions" "$py" cases/colliding_streams.py --diameter 315e-6 --dt 1e-3 --collisions "$collisions" \
+    --model "$model" --device "$device" "${rig_args[@]}" --no-vtk --no-gas-snapshots --no-progress --overwrite \
+    --out "$out/rig_$collisions"
+  run "rig_${collisions}_json" "$py" scripts/gpu_check.py rig "$out/rig_$collisions" --out "$out/rig_$collisions.json"
+done
+finish 0

@@ -1,0 +1,73 @@
+"""scripts/gpu_check.sh: the prepared first GPU run, here as its ``--dry-run`` on the CPU (issue 15).
+
+The dry run is the same sequence as the GPU run (device report, kernel compilation, the device-agnostic tests on
+the device, the DEM / forest / HEL benches, the rig for ktgf, surrogate and dem) at the smallest sizes; this test is
+what keeps it runnable between GPU loans. About 2 minutes on 2 idle cores (4 at a load of 10).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+from tests.test_collision_models import trained_models  # noqa: F401  (fixture)
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "scripts" / "gpu_check.sh"
+
+
+def _run(*args, env=None, timeout=900):
+    return subprocess.run([str(SCRIPT), *args], capture_output=True, text=True, cwd=ROOT, timeout=timeout,
+                          env={**os.environ, **(env or {})})
+
+
+def test_dry_run_passes_and_writes_every_figure_as_json(tmp_path, trained_models):
+    out = tmp_path / "gpu_out"
+    models = str(Path(trained_models["contact"]).parent)  # the session's tiny models: not trained twice
+    done = _run("--dry-run", "--out", str(out), env={"HEL_WARP_TINY_MODELS": models})
+    assert done.returncode == 0, done.stderr[-3000:] + done.stdout[-3000:]
+    assert "every step passed on cpu" in done.stdout
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["passed"] and summary["failed_step"] is None
+    names = [s["step"] for s in summary["steps"]]
+    assert names == ["device", "kernels", "models", "tests", "tests_json", "bench_dem", "bench_forest", "bench_hel",
+                     "rig_ktgf", "rig_ktgf_json", "rig_surrogate", "rig_surrogate_json", "rig_dem", "rig_dem_json"]
+    fig = summary["figures"]
+    assert fig["device"]["device"] == "cpu" and fig["kernels"]["kernel_load_s"] >= 0
+    assert fig["tests"]["tests"] >= 10 and fig["tests"]["failures"] == fig["tests"]["errors"] == 0
+    assert any("test_device_paths" in s["test"] for s in fig["tests"]["slowest"])
+    assert fig["bench_dem"]["sweep"] and fig["bench_dem"]["sweep"][0]["ours"]["rate"] > 0
+    forest = fig["bench_forest"]
+    assert forest["max_abs_diff_vs_xgboost"] <= 1e-5 and forest["xgboost_device_requested"] == "cpu"
+    assert forest["xgboost_device_used"] == "cpu" and forest["warp_kernel_samples_per_s"] > 0
+    assert fig["bench_hel"]["gas"] and fig["bench_hel"]["gas"][0]["per_cell_us"] > 0
+    for model in ("ktgf", "surrogate", "dem"):
+        rig = fig[f"rig_{model}"]
+        assert rig["collisions"] == model and rig["device"] == "cpu" and rig["summary"]["status"] == "complete"
+        assert rig["steps"] == 2 and rig["median_step_s"] > 0 and not rig["summary"]["check_errors"]
+
+
+def test_the_first_failing_step_stops_the_check_and_is_named(tmp_path):
+    # a python that fails the kernel step (exit 3) and runs everything else: the check stops there, names the
+    # command, writes the summary up to it and exits 1
+    fake = tmp_path / "python"
+    fake.write_text(f'#!/usr/bin/env bash\nif [ "$2" = kernels ]; then exit 3; fi\nexec {sys.executable} "$@"\n')
+    fake.chmod(fake.stat().st_mode | stat.S_IEXEC)
+    out = tmp_path / "gpu_out"
+    done = _run("--dry-run", "--out", str(out), env={"PYTHON": str(fake)}, timeout=300)
+    assert done.returncode == 1
+    assert f"FAILED at step 'kernels' (exit 3): {fake} scripts/gpu_check.py kernels --device cpu" in done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert not summary["passed"] and summary["failed_step"]["step"] == "kernels"
+    assert [s["step"] for s in summary["steps"]] == ["device", "kernels"] and not (out / "tests.json").exists()
+
+
+def test_usage_errors_exit_2(tmp_path):
+    bad = _run("--out", str(tmp_path / "x"), "--bogus", timeout=60)
+    assert bad.returncode == 2 and "usage: scripts/gpu_check.sh [--dry-run] [--out DIR]" in bad.stderr
+    missing = _run("--out", timeout=60)
+    assert missing.returncode == 2 and "--out needs a directory" in missing.stderr
