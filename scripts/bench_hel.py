@@ -5,6 +5,10 @@
   pressure / viscous solve does real CG work; median wall clock of ``--repeats`` steps, per cell,
   and the CG iterations of the pressure solve (CG iterations grow with the grid, so the cost per cell
   is not expected to stay flat).
+- Gas on the rig's own grid (``cases/colliding_streams.py``, default size: 160 x 64 x 10 cells, 34,768 of
+  them fluid): ``GasSolver.step`` on the rig's flow after its gas warm-up (``--rig-repeats`` steps, the
+  eps_s left by the warm-up); median per box cell and per fluid cell (the issue-14 target: <= 1 us per
+  fluid cell), wall-clock and process CPU time (Warp's CPU kernels run on one thread). ``--no-rig`` skips it.
 - Parcels: the parcel phase as ``HelSolver.step`` runs it, ``HelSolver.deposit`` + ``interpolate`` +
   ``push`` (with ``HelConfig.coupling = "implicit"``, the default, the push is the implicit drag
   exchange ``coupling.exchange_push``: 3 Picard passes of parcel and cell kernels), for 1e4, 1e5, 1e6
@@ -37,6 +41,7 @@ Usage::
     python scripts/bench_hel.py --quick             # smoke run (seconds)
     python scripts/bench_hel.py --device cuda       # GPU (timings synchronise the device)
     python scripts/bench_hel.py --json              # one JSON object
+    python scripts/bench_hel.py --profile-gas       # CPU time per kernel of the rig's gas step
 """
 
 from __future__ import annotations
@@ -90,6 +95,82 @@ def bench_gas(n_side: int, repeats: int, device, seed: int = 0) -> dict:
     median = statistics.median(times)
     return {"cells": cells, "median_s": median, "per_cell_us": 1e6 * median / cells,
             "pressure_cg_iterations": int(statistics.median(iterations))}
+
+
+def bench_rig_gas(repeats: int, device) -> dict:
+    """The gas step on the colliding-streams rig's grid and flow (module docstring)."""
+    from hel_warp.commands._common import load_case_module
+
+    case = load_case_module("colliding_streams")
+    ns = argparse.Namespace(diameter=315e-6, dt=1e-3, collisions="none", end_time=1e-3, particles_per_parcel=1.0,
+                            max_particles=None, monodisperse=False, model=None, cells=None, gas_warmup=0.01,
+                            output_interval=1e-3, seed=0, device=str(device), detection=None,
+                            no_particle_contacts=False)
+    rig = case.CollidingStreams(case.make_config(ns))
+    rig.warm_up()
+    solver, gas = rig.solver.gas_solver, rig.solver.gas
+    dt = rig.solver.config.dt
+    fluid = int(solver.domain.cell_fluid.numpy().sum())
+    cells = int(np.prod(solver.domain.grid.shape))
+    walls, cpus, iterations = [], [], []
+    for r in range(repeats + 1):  # the first call warms up
+        _sync(solver.device)
+        start, cpu = time.perf_counter(), time.process_time()
+        solver.step(gas, dt)
+        _sync(solver.device)
+        if r:
+            walls.append(time.perf_counter() - start)
+            cpus.append(time.process_time() - cpu)
+            iterations.append([solver.last_iterations["pressure"], *solver.last_iterations["viscous"]])
+    wall, cpu = statistics.median(walls), statistics.median(cpus)
+    return {"grid": list(solver.domain.grid.shape), "cells": cells, "fluid_cells": fluid, "median_s": wall,
+            "median_cpu_s": cpu, "per_fluid_cell_us": 1e6 * wall / fluid, "per_fluid_cell_cpu_us": 1e6 * cpu / fluid,
+            "per_cell_us": 1e6 * wall / cells, "cg_iterations": [int(statistics.median(c)) for c in zip(*iterations)]}
+
+
+def profile_rig_gas(rig_steps: int, device, top: int = 20) -> list[dict]:
+    """CPU time per kernel of the rig's gas step: ``wp.launch`` wrapped by a timer for ``rig_steps`` steps
+    (CPU launches are synchronous, so a launch's CPU time is its kernel plus the host call). Sorted, largest
+    first; the diagnostic behind the issue-14 notes on where the gas step's time goes."""
+    import collections
+
+    import warp as wp
+
+    from hel_warp.commands._common import load_case_module
+
+    case = load_case_module("colliding_streams")
+    ns = argparse.Namespace(diameter=315e-6, dt=1e-3, collisions="none", end_time=1e-3, particles_per_parcel=1.0,
+                            max_particles=None, monodisperse=False, model=None, cells=None, gas_warmup=0.01,
+                            output_interval=1e-3, seed=0, device=str(device), detection=None,
+                            no_particle_contacts=False)
+    rig = case.CollidingStreams(case.make_config(ns))
+    rig.warm_up()
+    solver, gas, dt = rig.solver.gas_solver, rig.solver.gas, rig.solver.config.dt
+    stats = collections.defaultdict(lambda: [0, 0.0])
+    launch = wp.launch
+
+    def timed_launch(kernel, *a, **k):
+        start = time.process_time()
+        result = launch(kernel, *a, **k)
+        entry = stats[getattr(kernel, "key", str(kernel))]
+        entry[0] += 1
+        entry[1] += time.process_time() - start
+        return result
+
+    wp.launch = timed_launch
+    try:
+        start = time.process_time()
+        for _ in range(rig_steps):
+            solver.step(gas, dt)
+        total = (time.process_time() - start) / rig_steps
+    finally:
+        wp.launch = launch
+    rows = [{"kernel": key, "launches_per_step": c / rig_steps, "cpu_ms_per_step": 1e3 * t / rig_steps}
+            for key, (c, t) in stats.items()]
+    rows.sort(key=lambda r: -r["cpu_ms_per_step"])
+    rows.insert(0, {"kernel": "(whole gas step)", "launches_per_step": sum(c for c, _ in stats.values()) / rig_steps,
+                    "cpu_ms_per_step": 1e3 * total})
+    return rows[: top + 1]
 
 
 def grid_shape_for(cells: float, max_aspect: float = 2.0) -> tuple[int, int, int]:
@@ -229,6 +310,10 @@ def main(argv=None) -> int:
     parser.add_argument("--random-order", action="store_true",
                         help="also time the parcels-per-cell grids with the parcel slots in random order, as "
                              "with HelConfig(sort_every=0) (diagnostic: the cost of unsorted memory)")
+    parser.add_argument("--no-rig", action="store_true", help="skip the gas step on the rig's grid")
+    parser.add_argument("--profile-gas", action="store_true",
+                        help="only print the CPU time per kernel of the rig's gas step (3 steps) and exit")
+    parser.add_argument("--rig-repeats", type=int, default=5, help="timed gas steps on the rig's grid (default 5)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     args = parser.parse_args(argv)
     defaults = QUICK if args.quick else {"cells": [22, 47], "parcels": [10_000, 100_000, 1_000_000],
@@ -243,10 +328,20 @@ def main(argv=None) -> int:
 
     wall_start = time.perf_counter()
     device = init_warp(args.device)
+    if args.profile_gas:
+        rows = profile_rig_gas(3, device)
+        if args.json:
+            print(json.dumps(rows))
+            return 0
+        print(f"{'kernel':>34} {'launches/step':>14} {'CPU ms/step':>12}")
+        for r in rows:
+            print(f"{r['kernel']:>34} {r['launches_per_step']:>14.0f} {r['cpu_ms_per_step']:>12.2f}")
+        return 0
     gas = [bench_gas(n, args.repeats, device) for n in args.cells]
     base_cell = gas[0]["per_cell_us"]
     for g in gas:
         g["ratio_per_cell"] = g["per_cell_us"] / base_cell
+    rig_gas = None if args.no_rig else bench_rig_gas(args.rig_repeats, device)
     ppc_label = f"ppc {args.parcels_per_cell:g}"
     specs = {"parcels": (ppc_label, lambda n: grid_shape_for(n / args.parcels_per_cell), True)}
     if args.fixed_side > 0:
@@ -261,7 +356,7 @@ def main(argv=None) -> int:
     for _ in range(args.repeats):  # interleaved: load changes on a shared machine hit every size alike
         for case in every:
             time_round(case, record=True)
-    result = {"device": str(device), "repeats": args.repeats, "coupling": args.coupling, "gas": gas,
+    result = {"device": str(device), "repeats": args.repeats, "coupling": args.coupling, "gas": gas, "rig_gas": rig_gas,
               "parcels_per_cell_target": args.parcels_per_cell}
     variants = {}
     for key, (label, _, _) in specs.items():
@@ -284,6 +379,11 @@ def main(argv=None) -> int:
     for g in gas:
         print(f"{g['cells']:>10} {g['median_s']:>10.4f} {g['per_cell_us']:>9.3f} {g['ratio_per_cell']:>6.2f} "
               f"{g['pressure_cg_iterations']:>7}")
+    if rig_gas is not None:
+        r = rig_gas
+        print(f"gas step on the rig's grid {'x'.join(map(str, r['grid']))} ({r['cells']} cells, {r['fluid_cells']} fluid): "
+              f"{r['median_s']:.4f} s wall, {r['median_cpu_s']:.4f} s CPU; {r['per_fluid_cell_us']:.2f} us wall / "
+              f"{r['per_fluid_cell_cpu_us']:.2f} us CPU per fluid cell (target <= 1); CG its p/u/v/w {r['cg_iterations']}")
     print(f"parcel phase (HelSolver.deposit + interpolate + push, coupling {args.coupling}), ns per parcel")
     print(f"{'grid':>12} {'parcels':>9} {'shape':>10} {'ppc':>6} {'sum (s)':>9} {'deposit':>8} {'interp':>8} "
           f"{'push':>8} {'ns/parcel':>10} {'ratio':>6} {'marginal':>9} {'(walls)':>8}")

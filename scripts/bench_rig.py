@@ -8,7 +8,10 @@ step n + 1: a load on the machine falls on all models alike), after an untimed t
 small grid that loads every kernel module; the steps alone are timed (``HelSolver.step``, synchronised per step
 on CUDA), the gas warm-up and set-up are not.
 Reported per model: the total step wall clock, the median step, the detected pairs per simulated second, and
-the ratios. Rerun to judge the noise.
+the ratios; then the median of each phase of the step (``HelSolver.timings``, on CUDA a sync per sub-step):
+the gas step (and per fluid cell), the parcel phase = deposit + interpolate + push (per parcel-step, parcels
+alive at the step; for a strategy with its own ``advance`` the push is its collision step), the collision
+step = ``collide`` (+ that ``advance``), the rest (sort, outlets, walls, injection). Rerun to judge the noise.
 
 Usage::
 
@@ -44,8 +47,22 @@ def build_model(case, name: str, args):
         case.check_model(config.model, config.diameter, config.density, False)
     rig = case.CollidingStreams(config)
     rig.warm_up()
-    rig.solver.time_sub_steps = False
+    rig.solver.time_sub_steps = True  # per-phase wall clock (HelSolver.timings)
     return rig
+
+
+PARCEL_PHASES = ("deposit", "interpolate", "push")
+OTHER_PHASES = ("sort_parcels", "remove_at_outlets", "reflect_at_walls", "inject")
+
+
+def phases(solver) -> dict:
+    """The last step's wall clock split into gas, parcel phase, collision step and the rest, s."""
+    t = solver.timings
+    own_advance = getattr(solver.collision, "advance", None) is not None
+    parcel = sum(t.get(k, 0.0) for k in PARCEL_PHASES if not (k == "push" and own_advance))
+    collision = t.get("collide", 0.0) + (t.get("push", 0.0) if own_advance else 0.0)
+    return {"gas": t.get("gas_step", 0.0), "parcel": parcel, "collision": collision,
+            "other": sum(t.get(k, 0.0) for k in OTHER_PHASES)}
 
 
 def time_models(case, names, args) -> dict:
@@ -56,21 +73,36 @@ def time_models(case, names, args) -> dict:
     rigs = {name: build_model(case, name, args) for name in names}
     steps = int(round(args.end_time / args.dt))
     walls = {name: [] for name in names}
+    split = {name: [] for name in names}
+    alive = {name: [] for name in names}
     detected = dict.fromkeys(names, 0)
     for _ in range(steps):
         for name, rig in rigs.items():
             device = rig.pool.particles.device
+            rig.solver.timings.clear()
+            parcels = rig.pool.alive_count()  # parcels the step moves (read before the timed step)
             start = time.perf_counter()
             rig.solver.step()
             if device.is_cuda:
                 wp.synchronize_device(device)
             walls[name].append(time.perf_counter() - start)
+            split[name].append(phases(rig.solver))
+            alive[name].append(parcels)
             detected[name] += int(rig.solver.collision_counts().get("detected_pairs", 0))
-    return {name: {"model": name, "steps": steps, "total_s": sum(walls[name]),
-                   "median_step_s": statistics.median(walls[name]),
-                   "detected_pairs_per_s": (detected[name] / (steps * args.dt)
-                                            if name not in ("none", "ktgf") else None),
-                   "parcels": rigs[name].injected} for name in names}
+    rows = {}
+    for name in names:
+        fluid = int(rigs[name].solver.gas_solver.domain.cell_fluid.numpy().sum())
+        med = {key: statistics.median(s[key] for s in split[name]) for key in split[name][0]}
+        loaded = [s["parcel"] / n for s, n in zip(split[name], alive[name]) if n > 0]
+        rows[name] = {"model": name, "steps": steps, "total_s": sum(walls[name]),
+                      "median_step_s": statistics.median(walls[name]),
+                      "detected_pairs_per_s": (detected[name] / (steps * args.dt)
+                                               if name not in ("none", "ktgf") else None),
+                      "parcels": rigs[name].injected, "fluid_cells": fluid,
+                      "phase_median_s": med, "gas_us_per_fluid_cell": 1e6 * med["gas"] / fluid,
+                      "parcel_us_per_parcel_step": 1e6 * statistics.median(loaded) if loaded else None,
+                      "parcels_alive_last": alive[name][-1]}
+    return rows
 
 
 def main(argv=None) -> int:
@@ -128,6 +160,16 @@ def main(argv=None) -> int:
         rate = r["detected_pairs_per_s"]
         print(f"{r['model']:>16} {r['steps']:>6} {r['total_s']:>10.2f} {r['median_step_s']:>16.4f} "
               f"{'-' if rate is None else format(rate, '.3g'):>10} {r['parcels']:>8}")
+    print(f"phases, median per step (ms); gas per fluid cell ({next(iter(rows.values()))['fluid_cells']} fluid cells), "
+          f"parcel phase per parcel-step (median over the steps with parcels)")
+    print(f"{'model':>16} {'gas':>8} {'parcel':>8} {'collision':>10} {'other':>8} {'gas us/cell':>12} "
+          f"{'parcel us/parcel':>17}")
+    for r in rows.values():
+        m = r["phase_median_s"]
+        per_parcel = r["parcel_us_per_parcel_step"]
+        print(f"{r['model']:>16} {1e3 * m['gas']:>8.2f} {1e3 * m['parcel']:>8.2f} {1e3 * m['collision']:>10.2f} "
+              f"{1e3 * m['other']:>8.2f} {r['gas_us_per_fluid_cell']:>12.2f} "
+              f"{'-' if per_parcel is None else format(per_parcel, '.3f'):>17}")
     for key, value in ratios.items():
         print(f"{key}: {value:.2f}")
     return 0
