@@ -64,6 +64,11 @@ class CellConfig:
     """Largest solids fraction put into g0."""
     log_capacity: int = 0
     """Accepted events logged per step (pair, g, sampled normal) for tests and diagnostics; 0: none."""
+    cfl: float = 1.0
+    """Largest path length of a parcel per sub-step, in cell edges: the step is cut into
+    K = ceil(v_max dt / (cfl h_min)) sub-steps (at most ``max_substeps``)."""
+    max_substeps: int = 64
+    """Sub-steps per step at most (1: one sampling at the step's start positions, the plain NTC step)."""
     batched_rounds: int = BATCHED_ROUNDS
     """With a batched forest: rounds of one accepted pair per cell at most; the cells left over (dense ones) finish
     with inline tree walks."""
@@ -80,6 +85,10 @@ class CellConfig:
             raise ConfigError(f"cell subdivision must be a positive integer (got {self.subdivision!r})")
         if not 0.0 < self.eps_cap < 1.0:
             raise ConfigError(f"cell eps_cap must lie in (0, 1) (got {self.eps_cap!r})")
+        if not (math.isfinite(self.cfl) and self.cfl > 0.0):
+            raise ConfigError(f"cell cfl must be > 0 (got {self.cfl!r})")
+        if int(self.max_substeps) != self.max_substeps or self.max_substeps < 1:
+            raise ConfigError(f"cell max_substeps must be a positive integer (got {self.max_substeps!r})")
         if int(self.batched_rounds) != self.batched_rounds or self.batched_rounds < 1:
             raise ConfigError(f"cell batched_rounds must be a positive integer (got {self.batched_rounds!r})")
         if int(self.batched_min_rows) != self.batched_min_rows or self.batched_min_rows < 0:
@@ -146,6 +155,9 @@ class CellCollisions:
         self._counts = None
         self.lattice = None
         """(origin, cell edges, shape) of the last step."""
+        self.substeps = 0
+        """Sub-steps of the last step."""
+        self._shift_pending = False
 
     # ------------------------------------------------------------------ device arrays
     def _allocate(self, particles, n_cells: int) -> None:
@@ -178,7 +190,10 @@ class CellCollisions:
         a.pending_pair = wp.zeros(n_cells, dtype=wp.vec2i, device=dev)
         a.pending_normal = wp.zeros(n_cells, dtype=wp.vec3, device=dev)
         self._more = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._round = wp.zeros(1, dtype=wp.int32, device=dev)
         self._rounds = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._path = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self._shift = wp.zeros(n, dtype=wp.vec3, device=dev)
         a.counts = wp.zeros(N_COUNTS, dtype=wp.int32, device=dev)
         s2 = self.n_streams * self.n_streams
         a.calls = wp.zeros(s2, dtype=wp.int32, device=dev)
@@ -190,8 +205,9 @@ class CellCollisions:
         self._args = a
         self._key = key
 
-    def choose_lattice(self, particles, alive: np.ndarray, *, periodic_box=None, grid=None):
-        """(origin, cell edges, shape) of this step's collision cells (see the module docstring)."""
+    def choose_lattice(self, particles, alive: np.ndarray, *, periodic_box=None, grid=None, reach: float = 0.0):
+        """(origin, cell edges, shape) of this step's collision cells (see the module docstring); ``reach``: the
+        largest path length of the step (pads the bounding box)."""
         cfg = self.config
         n_alive = int(np.count_nonzero(alive))
         if periodic_box is not None:
@@ -200,7 +216,7 @@ class CellCollisions:
             return grid_lattice(grid, cfg.subdivision)
         x = particles.x.numpy()[alive].astype(np.float64)
         r_max = float(particles.radius.numpy()[alive].max())
-        return bounding_lattice(x, r_max, cfg.parcels_per_cell, cfg.cell_size)
+        return bounding_lattice(x, r_max + reach, cfg.parcels_per_cell, cfg.cell_size)
 
     # ------------------------------------------------------------------ one step
     def collide(self, particles, dt: float, forest, domain, *, batch_forest=None, periodic_box=None, grid=None,
@@ -209,11 +225,14 @@ class CellCollisions:
         ``domain`` its ``ContactDomain``; ``batch_forest`` (perfect layout, optional): the accepted pairs predicted
         in batched rounds (faster, same pairs). ``apply=False``: selection only (counts and log; velocities
         unchanged)."""
-        from kernels.cell_collide import collide_cells, sort_by_cell
+        import warp as wp
+
+        from kernels.cell_collide import advance_paths, collide_cells, path_shifts, sort_by_cell
 
         if dt is None or not (dt > 0 and math.isfinite(dt)):
             raise ConfigError(f"cell detection needs the step dt > 0 (got {dt!r})")
         self._counts = None
+        self._shift_pending = False
         if alive is None:
             alive = particles.alive.numpy().astype(bool)
         seed = step_seed(self.seed, self.steps)
@@ -221,14 +240,20 @@ class CellCollisions:
         if np.count_nonzero(alive) < 2:
             self._zero_counts()
             return
-        origin, edges, shape = self.choose_lattice(particles, alive, periodic_box=periodic_box, grid=grid)
+        v_max = float(np.linalg.norm(particles.v.numpy()[alive].astype(np.float64), axis=1).max())
+        origin, edges, shape = self.choose_lattice(particles, alive, periodic_box=periodic_box, grid=grid,
+                                                   reach=v_max * dt)
         n_cells = int(np.prod(shape))
         if n_cells >= 2**31 - 1:
             raise ConfigError(f"{n_cells} collision cells do not fit int32 keys: give a larger cell_size")
         self.lattice = (origin, edges, shape)
         self._allocate(particles, n_cells)
         a = self._args
-        a.particle_x, a.particle_radius = particles.x, particles.radius
+        cfg = self.config
+        substeps = int(min(cfg.max_substeps, max(1, math.ceil(v_max * dt / (cfg.cfl * float(np.min(edges)))))))
+        self.substeps = substeps
+        wp.copy(self._path, particles.x)
+        a.particle_x, a.particle_radius = self._path, particles.radius
         a.particle_density, a.particle_weight = particles.density, particles.weight
         a.particle_alive, a.particle_stream = particles.alive, particles.stream
         a.n_streams = self.n_streams
@@ -236,17 +261,35 @@ class CellCollisions:
         a.cell_size = tuple(float(v) for v in edges)
         a.shape = tuple(int(v) for v in shape)
         a.cell_volume = float(np.prod(edges))
-        a.dt = float(dt)
-        a.seed = seed
+        a.periodic = 1 if periodic_box is not None else 0
+        sub_dt = float(dt) / substeps
+        a.dt = sub_dt
         a.enskog = 1 if self.config.enskog else 0
         a.eps_cap = float(self.config.eps_cap)
         a.apply = 1 if apply else 0
         a.domain = domain
         self._zero_counts()
-        sort_by_cell(a)
         self._rounds.zero_()
-        collide_cells(a, forest, particles.v, self._more, self._rounds, batch_forest=batch_forest,
-                      max_rounds=self.config.batched_rounds, min_rows=self.config.batched_min_rows)
+        for k in range(substeps):
+            a.seed = step_seed(seed, k)
+            sort_by_cell(a)
+            collide_cells(a, forest, particles.v, self._more, self._round, self._rounds, batch_forest=batch_forest,
+                          max_rounds=cfg.batched_rounds, min_rows=cfg.batched_min_rows)
+            if substeps > 1:
+                advance_paths(self._path, particles.v, particles.alive, sub_dt)
+        if substeps > 1:
+            path_shifts(self._path, particles.x, particles.v, particles.alive, float(dt), self._shift)
+            self._shift_pending = True
+
+    def correct_positions(self, particles) -> None:
+        """After the caller moved the parcels by v dt (the push): add the sub-stepped paths' position changes
+        (once; a no-op after a step of one sub-step)."""
+        if not self._shift_pending:
+            return
+        from kernels.cell_collide import launch_add_shift
+
+        launch_add_shift(self._shift, particles.alive, particles.x)
+        self._shift_pending = False
 
     def _zero_counts(self) -> None:
         if self._args is None:

@@ -302,7 +302,10 @@ class SurrogateCollision:
                       self.calls, self.collisions, self.detected, self.skipped, batch_forest=self.batch_forest)
 
     def correct_positions(self, particles) -> None:
-        """Add the in-step position corrections of the last swept :meth:`collide` (once; a no-op otherwise)."""
+        """Add the in-step position corrections of the last swept or cell :meth:`collide` (once; a no-op otherwise)."""
+        if self.detection == "cell":
+            self.cells.correct_positions(particles)
+            return
         if not self._shift_pending:
             return
         from kernels.collide import launch_add_shift

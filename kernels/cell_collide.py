@@ -32,6 +32,13 @@ whatever w. Per collision cell of volume V holding N parcels, in one step dt:
   collision per event, the heavier's a fraction w_min/w_max of one). For w_i != w_j the heavier parcel's partial
   impulse dissipates slightly more than w_min binary collisions (never less: no energy gain).
 
+Sub-steps: a parcel must not fly past a cell within one collision sampling (DSMC's rule that dt be small against
+the cell transit time; at dt = 1e-3 s a parcel of 5 m/s crosses five 1 mm cells). The step is cut into K
+sub-steps, K = ceil(v_max dt / (cfl h_min)); each samples the cells from the positions along the parcels' straight
+paths at its start (collisions change the later path: ``path_advance`` with the new velocity), with dt / K. The
+end of the sub-stepped path differs from the push's x + v_final dt by ``shift`` (``path_shift``), added after the
+push as the swept detection's in-step corrections are.
+
 Threads: one per collision cell; a cell's candidates are resolved in order by its thread (they share parcels),
 cells are disjoint. The forest is evaluated either inline (explicit tree walks in the cell's thread) or, faster,
 in rounds: each cell stops at its next accepted pair, all cells' pairs are predicted in one batched evaluation
@@ -65,7 +72,7 @@ class CellArgs:
     """Everything the cell kernels read (arrays on one device); built by hel_warp/cell_collisions.py."""
 
     particle_x: wp.array(dtype=wp.vec3)
-    """(N,) parcel centres, m."""
+    """(N,) parcel centres along their paths at the sub-step's start, m (the cells are found from these)."""
     particle_radius: wp.array(dtype=wp.float32)
     """(N,) radii of one real particle, m."""
     particle_density: wp.array(dtype=wp.float32)
@@ -81,6 +88,8 @@ class CellArgs:
     """Cell edge per axis, m (a periodic box: side / cells, the lattice tiles it)."""
     shape: wp.vec3i
     """Cells per axis; a parcel outside the lattice is counted in the nearest cell."""
+    periodic: wp.int32
+    """1: the lattice tiles a periodic box [origin, origin + shape * cell_size): positions are wrapped into it."""
     cell_volume: wp.float32
     """Volume of one cell, m^3."""
     dt: wp.float32
@@ -189,6 +198,10 @@ def cell_keys(
         c = wp.vec3i(0, 0, 0)
         for a in range(3):
             s = int(wp.floor((x[a] - args.origin[a]) / args.cell_size[a]))
+            if args.periodic != 0:
+                s = s % args.shape[a]
+                if s < 0:
+                    s += args.shape[a]
             c[a] = wp.clamp(s, 0, args.shape[a] - 1)
         key = (c[0] * args.shape[1] + c[1]) * args.shape[2] + c[2]
     cell_key[k] = key
@@ -407,6 +420,50 @@ def cell_apply(
 
 
 @wp.kernel
+def path_advance(
+    particle_v: wp.array(dtype=wp.vec3),
+    particle_alive: wp.array(dtype=wp.int32),
+    dt: float,
+    # outputs
+    path_x: wp.array(dtype=wp.vec3),
+):
+    """A sub-step along the straight path with the velocity after the sub-step's collisions: x += v dt."""
+    i = wp.tid()
+    if particle_alive[i] != 0:
+        path_x[i] = path_x[i] + particle_v[i] * dt
+
+
+@wp.kernel
+def path_shift(
+    path_x: wp.array(dtype=wp.vec3),
+    particle_x: wp.array(dtype=wp.vec3),
+    particle_v: wp.array(dtype=wp.vec3),
+    particle_alive: wp.array(dtype=wp.int32),
+    dt: float,
+    # outputs
+    shift: wp.array(dtype=wp.vec3),
+):
+    """The in-step position change the push will not make: end of the sub-stepped path minus x + v_final dt."""
+    i = wp.tid()
+    shift[i] = wp.vec3(0.0)
+    if particle_alive[i] != 0:
+        shift[i] = path_x[i] - (particle_x[i] + particle_v[i] * dt)
+
+
+@wp.kernel
+def add_shift(
+    shift: wp.array(dtype=wp.vec3),
+    particle_alive: wp.array(dtype=wp.int32),
+    # outputs
+    particle_x: wp.array(dtype=wp.vec3),
+):
+    """After the push: x += shift (the sub-stepped paths' position changes)."""
+    i = wp.tid()
+    if particle_alive[i] != 0:
+        particle_x[i] = particle_x[i] + shift[i]
+
+
+@wp.kernel
 def cell_next_round(
     max_rounds: int,
     min_rows: int,
@@ -414,16 +471,33 @@ def cell_next_round(
     # outputs
     more: wp.array(dtype=wp.int32),
     round_count: wp.array(dtype=wp.int32),
+    rounds_total: wp.array(dtype=wp.int32),
 ):
     """Counts the batched round; stops the rounds at ``max_rounds`` or after a round of fewer than ``min_rows`` pairs
     (a batched evaluation costs a block of rows however few are used; the rest is resolved inline)."""
     r = round_count[0] + 1
     round_count[0] = r
+    rounds_total[0] = rounds_total[0] + 1
     if r >= max_rounds or batch_count[0] < min_rows:
         more[0] = 0
 
 
 # ------------------------------------------------------------------------------------------ launch wrappers
+
+
+def advance_paths(path_x, particle_v, particle_alive, dt: float) -> None:
+    wp.launch(path_advance, dim=path_x.shape[0], device=path_x.device, inputs=[particle_v, particle_alive, float(dt)],
+              outputs=[path_x])
+
+
+def path_shifts(path_x, particle_x, particle_v, particle_alive, dt: float, shift) -> None:
+    wp.launch(path_shift, dim=path_x.shape[0], device=path_x.device,
+              inputs=[path_x, particle_x, particle_v, particle_alive, float(dt)], outputs=[shift])
+
+
+def launch_add_shift(shift, particle_alive, particle_x) -> None:
+    wp.launch(add_shift, dim=particle_x.shape[0], device=particle_x.device, inputs=[shift, particle_alive],
+              outputs=[particle_x])
 
 
 def sort_by_cell(args: CellArgs) -> None:
@@ -438,15 +512,15 @@ def sort_by_cell(args: CellArgs) -> None:
     wp.launch(cell_ranges, dim=n, device=device, inputs=[args, n], outputs=[args.cell_start, args.cell_end])
 
 
-def collide_cells(args: CellArgs, forest: Forest, particle_v, more, round_count, batch_forest: Forest | None = None,
-                  max_rounds: int = 64, min_rows: int = 32) -> None:
+def collide_cells(args: CellArgs, forest: Forest, particle_v, more, round_count, rounds_total,
+                  batch_forest: Forest | None = None, max_rounds: int = 64, min_rows: int = 32) -> None:
     """Every cell's candidates, acceptance and outcomes (after :func:`sort_by_cell`); counters accumulate (the
     caller zeroes them per step). With ``batch_forest`` (perfect layout): rounds of one accepted pair per cell,
     each round's pairs predicted in one batched evaluation, until no cell has candidates left
     (``wp.capture_while``: a graph loop on CUDA), ``max_rounds`` rounds or a round of fewer than ``min_rows`` pairs,
     the rest inline; else one round of
-    inline walks of ``forest`` (explicit layout). ``more``, ``round_count``: (1,) int32 scratch (``round_count``:
-    the batched rounds taken). Both give the same pairs in the same order per cell."""
+    inline walks of ``forest`` (explicit layout). ``more``, ``round_count``: (1,) int32 scratch; ``rounds_total``
+    (1,) += the batched rounds taken. Both give the same pairs in the same order per cell."""
     device = particle_v.device
     n_cells = args.cell_start.shape[0]
     args.batched = 0 if batch_forest is None else 1
@@ -463,7 +537,7 @@ def collide_cells(args: CellArgs, forest: Forest, particle_v, more, round_count,
         eval_forest(batch_forest, args.batch_features, args.batch_out, device=device, row_count=args.batch_count)
         wp.launch(cell_apply, dim=n_cells, device=device, inputs=[args], outputs=[particle_v])
         wp.launch(cell_next_round, dim=1, device=device, inputs=[int(max_rounds), int(min_rows), args.batch_count],
-                  outputs=[more, round_count])
+                  outputs=[more, round_count, rounds_total])
 
     more.fill_(1)
     round_count.zero_()

@@ -130,7 +130,7 @@ def test_candidates_and_acceptance_follow_the_ntc_formula(constant_model, device
     n, reps = 2000, 12
     w = rng.choice(weights, size=n)
     side = box_side(w.sum(), eps)
-    s = strategy(constant_model, side)
+    s = strategy(constant_model, side, max_substeps=1)  # one sampling at the start positions
     drawn = accepted = exp_candidates = exp_accepted = 0.0
     worst = 0.0
     for _ in range(reps):
@@ -300,7 +300,7 @@ def test_cells_follow_the_solver_grid(constant_model, device):
     p.x.assign(x)
     for subdivision in (1, 2):
         s = SurrogateCollision(model_dir=constant_model, seed=1,
-                               cell=CellConfig(subdivision=subdivision, log_capacity=5000))
+                               cell=CellConfig(subdivision=subdivision, log_capacity=5000, max_substeps=1))
         solver = SimpleNamespace(grid=grid, pool=SimpleNamespace(particles=p), config=SimpleNamespace(dt=2e-3),
                                  fields=SimpleNamespace(parcel_a_coll=wp.zeros(n, dtype=wp.vec3, device=device)))
         s.accelerate(solver)
@@ -356,7 +356,7 @@ def test_rounds_cap_finishes_inline_with_the_same_result(constant_model, device)
     for cap in (1000, 3):
         p = Particles.from_numpy(x, 0.5 * D, v=v, density=RHO, weight=8.0, check_overlap=False, device=device)
         s = SurrogateCollision(model_dir=constant_model, detection="cell", periodic_box=(side,) * 3, seed=3,
-                               cell=CellConfig(batched_rounds=cap, batched_min_rows=0))
+                               cell=CellConfig(batched_rounds=cap, batched_min_rows=0, max_substeps=1))
         s.collide(p, 1e-3)
         out.append((p.v.numpy().copy(), s.counts()))
     assert out[1][1]["rounds"] == 3 < out[0][1]["rounds"]
@@ -418,3 +418,40 @@ def test_hel_run_with_cell_collisions_restarts_bitwise(constant_model, tmp_path)
 
     series = zarr.open_group(str(tmp_path / "a" / "run.zarr"), mode="r")["series"]
     assert float(np.sum(series["collisions_collisions"][...])) > 0  # the run collided
+
+
+def test_substeps_follow_the_paths_and_the_shift_closes_them(constant_model, device):
+    """A step cut into sub-steps (parcels faster than a cell edge per step): the end positions after the caller's
+    x += v_final dt and ``correct_positions`` are those of the straight paths with the velocities of each sub-step
+    (a parcel that never collided moved by v0 dt, one that did not by v_final dt), the centre of mass moved by
+    P dt / M (momentum is conserved in every sub-step), and momentum is exact."""
+    from hel_warp.cell_collisions import CellConfig
+    from hel_warp.collision_models import SurrogateCollision
+    from kernels.free_flight import drift
+
+    rng = np.random.default_rng(13)
+    n, eps, dt = 1500, 0.05, 2e-3
+    side = box_side(8 * n, eps)
+    p = make_gas(n, side, 8.0, rng, device)
+    x0 = p.x.numpy().astype(np.float64)
+    v0 = p.v.numpy().astype(np.float64)
+    s = SurrogateCollision(model_dir=constant_model, detection="cell", periodic_box=(side,) * 3, seed=2,
+                           cell=CellConfig(cfl=0.25))
+    s.collide(p, dt)
+    k = s.cells.substeps
+    assert k >= 4
+    v1 = p.v.numpy().astype(np.float64)
+    assert np.abs((v1 - v0).sum(axis=0)).max() <= 1e-6 * np.abs(v0).sum()  # equal weights: sum v conserved
+    drift(p.x, p.v, p.alive, dt)
+    s.correct_positions(p)
+    x1 = p.x.numpy().astype(np.float64)
+    moved = x1 - x0
+    # every parcel moved by a mean velocity between its start and end velocity per axis (a convex combination of
+    # its sub-step velocities): the path, not v_final dt; and a parcel that never collided moved by v0 dt exactly
+    untouched = np.all(v1 == v0, axis=1)
+    assert untouched.any() and not untouched.all()
+    assert np.allclose(moved[untouched], v0[untouched] * dt, rtol=0, atol=1e-7)  # float32 positions ~1e-2 m
+    hit = ~untouched
+    assert not np.allclose(moved[hit], v1[hit] * dt, rtol=0, atol=1e-7)  # the shift did something
+    # the centre of mass moves by P dt / M exactly (momentum is conserved in every sub-step), whatever the paths
+    assert np.allclose(moved.mean(axis=0), v0.mean(axis=0) * dt, rtol=0, atol=1e-8)
