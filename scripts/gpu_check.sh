@@ -10,7 +10,7 @@
 # steps.tsv, a .log per step and summary.json. Stops at the first failing step and names its command; exit 0 only if
 # every step passed. Environment: MODEL=DIR runs the rig's surrogate with that contact-form model instead of the
 # tests' tiny one; HEL_WARP_TINY_MODELS=DIR keeps the tests' tiny models there (trained once); STEP_TIMEOUT=S caps
-# each step (default 300 s); PYTHON (default python).
+# each step (default 300 s), TOTAL_TIMEOUT=S the whole check (default 480 s on the GPU, 900 s dry); PYTHON.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
@@ -44,14 +44,14 @@ if [ "$dry" = 1 ]; then
   hel_args=(--cells 8 12 --parcels 1000 4000 --fixed-side 0 --repeats 1)
   rig_args=(--cells 5000 --max-particles 200 --end-time 0.002 --gas-warmup 0.001)
   tests=(tests/test_device_paths.py tests/test_multigrid.py)  # the rest of the subset runs on the CPU in the suite
-  test_args=()
+  total_timeout=${TOTAL_TIMEOUT:-900}
 else
   device=cuda
-  dem_args=(--cases --sizes 100000 1000000 --repeats 3 --budget 3 --warp-example)
+  dem_args=(--cases --sizes 100000 1000000 --repeats 3 --budget 2 --warp-example)
   forest_args=(--samples 1000000 --repeats 5)
-  hel_args=(--repeats 5)
-  rig_args=(--end-time 0.005)
-  test_args=()
+  hel_args=(--repeats 3)
+  rig_args=(--end-time 0.003 --gas-warmup 0.005)
+  total_timeout=${TOTAL_TIMEOUT:-480}  # a lent GPU has ~15 min in all, the machine's start included
 fi
 
 started=$(date +%s.%N)
@@ -73,20 +73,26 @@ run_json() { _step "$1" "$out/$1.json" "${@:2}"; }
 _step() {
   local name=$1 json=$2
   shift 2
-  local t0 t1 rc
+  local t0 t1 rc limit
   echo "== $name: $*"
   t0=$(date +%s.%N)
-  if [ -n "$json" ]; then
-    timeout "$step_timeout" "$@" > "$json" 2> >(tee "$out/$name.log" >&2)
+  limit=$(awk -v a="$started" -v b="$t0" -v total="$total_timeout" -v step="$step_timeout" \
+    'BEGIN { left = total - (b - a); printf "%d", (left < step ? left : step) }')
+  if [ "$limit" -le 0 ]; then
+    rc=124
+  elif [ -n "$json" ]; then
+    timeout "$limit" "$@" > "$json" 2> >(tee "$out/$name.log" >&2)
+    rc=$?
   else
-    timeout "$step_timeout" "$@" > >(tee "$out/$name.log") 2>&1
+    timeout "$limit" "$@" > >(tee "$out/$name.log") 2>&1
+    rc=$?
   fi
-  rc=$?
   t1=$(date +%s.%N)
   printf '%s\t%s\t%s\t%s\n' "$name" "$rc" "$(awk -v a="$t0" -v b="$t1" 'BEGIN { printf "%.2f", b - a }')" "$*" \
     >> "$out/steps.tsv"
   if [ "$rc" != 0 ]; then
-    [ "$rc" = 124 ] && echo "gpu_check: step '$name' ran past STEP_TIMEOUT=$step_timeout s" >&2
+    [ "$rc" = 124 ] && echo "gpu_check: step '$name' ran out of time (STEP_TIMEOUT=$step_timeout s per step," \
+      "TOTAL_TIMEOUT=$total_timeout s in all)" >&2
     echo "gpu_check: FAILED at step '$name' (exit $rc): $*" >&2
     echo "gpu_check: its output is in $out/$name.log" >&2
     finish 1
@@ -98,8 +104,9 @@ run kernels "$py" scripts/gpu_check.py kernels --device "$device" --out "$out/ke
 models=${HEL_WARP_TINY_MODELS:-$out/models}  # kept when already trained there (the test suite passes its own)
 run models "$py" scripts/gpu_check.py models "$models" --out "$out/models.json"
 model=${MODEL:-$models/model_contact}
-run tests env HEL_WARP_DEVICE="$device" HEL_WARP_TINY_MODELS="$models" "$py" -m pytest -q -x -p no:cacheprovider \
-  "${tests[@]}" "${test_args[@]}" --basetemp "$out/pytest" --junitxml "$out/tests.xml"
+# every test of the subset runs (no -x: one GPU run should name all failures), then a failure stops the check
+run tests env HEL_WARP_DEVICE="$device" HEL_WARP_TINY_MODELS="$models" "$py" -m pytest -q -p no:cacheprovider \
+  "${tests[@]}" --basetemp "$out/pytest" --junitxml "$out/tests.xml"
 run tests_json "$py" scripts/gpu_check.py junit "$out/tests.xml" --out "$out/tests.json"
 
 run bench_dem "$py" scripts/bench_dem.py --device "$device" "${dem_args[@]}" --json "$out/bench_dem.json"

@@ -71,3 +71,12 @@ def test_usage_errors_exit_2(tmp_path):
     assert bad.returncode == 2 and "usage: scripts/gpu_check.sh [--dry-run] [--out DIR]" in bad.stderr
     missing = _run("--out", timeout=60)
     assert missing.returncode == 2 and "--out needs a directory" in missing.stderr
+
+
+def test_a_spent_time_budget_stops_the_check_at_the_next_step(tmp_path):
+    # TOTAL_TIMEOUT caps the whole check (a lent GPU has ~15 minutes in all): with none left the next step is not
+    # started, and the check fails there naming it
+    out = tmp_path / "gpu_out"
+    done = _run("--dry-run", "--out", str(out), env={"TOTAL_TIMEOUT": "0"}, timeout=120)
+    assert done.returncode == 1
+    assert "step 'device' ran out of time" in done.stderr and "FAILED at step 'device' (exit 124)" in done.stderr
