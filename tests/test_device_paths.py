@@ -95,14 +95,15 @@ def _dem_column(device, **config):
 
 def test_dem_graph_captured_steps_equal_the_eager_steps(device):
     """``DEMSolver.simulate`` on CUDA: ``cuda_graph_steps`` steps captured once (``_advance`` with its ``capture_if``
-    rebuild) and replayed, the remainder eager. Here the same branch (``capture_on_cpu`` on the CPU) against the
-    same solver launching eagerly (``cuda_graph_steps = 0``): the same kernels in the same order on the same data,
-    so bit for bit, list rebuilds inside the graph included; contact onsets equal."""
+    rebuild) and replayed, the remainder eager, with the full contact list and separate kernels CUDA keeps
+    (``half_list`` is CPU-only). Here the same branch (``capture_on_cpu``, ``half_list=False``) against the same
+    solver launching eagerly (``cuda_graph_steps = 0``): the same kernels in the same order on the same data, so bit
+    for bit, list rebuilds inside the graph included; contact onsets equal."""
     require_graph_conditionals(device)
     graph_steps, n_steps = 25, 2 * 25 + 7  # two replays and an eager remainder
-    eager = _dem_column(device, sort_every=0, cuda_graph_steps=0)
-    graph = _dem_column(device, sort_every=0, cuda_graph_steps=graph_steps, capture_on_cpu=True)
-    assert graph._use_graph and not eager._use_graph
+    eager = _dem_column(device, sort_every=0, cuda_graph_steps=0, half_list=False)
+    graph = _dem_column(device, sort_every=0, cuda_graph_steps=graph_steps, capture_on_cpu=True, half_list=False)
+    assert graph._use_graph and not eager._use_graph and not graph.half_list
     for _ in range(20):  # 1140 steps, rebuilds inside the replayed graphs (7 of 57 steps run eagerly)
         eager.simulate(n_steps)
         graph.simulate(n_steps)
@@ -118,14 +119,16 @@ def test_dem_graph_captured_steps_equal_the_eager_steps(device):
 
 
 def test_dem_graph_path_defaults_to_no_sort_and_agrees_with_the_cpu_default(device):
-    """The CUDA defaults (``sort_every`` 0 so that the graph can run) against today's CPU defaults (a spatial sort
-    every 10 rebuilds, eager): the sort reorders the sums, so they agree to float32 round-off grown over the run,
-    not bit for bit (1e-9 m asked of |x| ~ 0.02 m). 1200 steps of the stirred column, ~12 list builds: measured equal
-    to the last bit on the CPU."""
-    graph = _dem_column(device, capture_on_cpu=True)
+    """The CUDA defaults (full contact list, ``sort_every`` 0 so that the graph can run, captured) against today's
+    CPU defaults (half list in two fused passes, a spatial sort every 10 rebuilds, eager): the sort reorders the
+    particles, so they may agree only to float32 round-off grown over the run (1e-9 m asked of |x| ~ 0.02 m). 1200
+    steps of the stirred column, ~12 list builds: measured equal to the last bit on the CPU."""
+    graph = _dem_column(device, capture_on_cpu=True, half_list=False)
     cpu_default = _dem_column(device)
-    expect_sort = 0 if wp.get_device(device).is_cuda and wp.is_conditional_graph_supported() else 10
-    assert graph.sort_every == 0 and graph._use_graph and cpu_default.sort_every == expect_sort
+    on_cuda = wp.get_device(device).is_cuda
+    expect_sort = 0 if on_cuda and wp.is_conditional_graph_supported() else 10
+    assert graph.sort_every == 0 and graph._use_graph and not graph.half_list
+    assert cpu_default.sort_every == expect_sort and cpu_default.half_list == (not on_cuda)
     for solver in (graph, cpu_default):
         solver.simulate(1200)
     assert cpu_default.rebuilds > 10  # a second sort came (every 10 list builds, the first at construction)
@@ -302,3 +305,44 @@ def test_swept_rounds_captured_as_a_graph_loop_equal_the_eager_rounds(device, tr
     assert np.array_equal(v_graph, v_eager) and np.array_equal(t_graph, t_eager)
     print(f"swept rounds (batched={batched}): captured = eager, {c_eager['collisions']} collisions in "
           f"{c_eager['rounds']} rounds, {c_eager['surrogate_calls']} surrogate calls")
+
+
+# ------------------------------------------------------------------------------ cell rounds: capture_while
+def test_cell_rounds_captured_as_a_graph_loop_equal_the_eager_rounds(device, trained_models, monkeypatch):
+    """kernels/cell_collide.py ``collide_cells`` (issue 12: parcels of weight > 1 collide per cell) runs its batched
+    forest rounds as ``wp.capture_while`` too, then finishes the dense cells inline. The call captured into a graph
+    and replayed, against the same call eager: bit for bit, and the same counts, two steps of a dense gas of
+    weight-8 parcels."""
+    import kernels.cell_collide as kcc
+    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.particles import Particles
+
+    require_graph_conditionals(device)
+    eager_collide = kcc.collide_cells
+    replays = []
+
+    def captured_collide(*args, **kwargs):
+        with wp.ScopedCapture(device=args[2].device) as capture:
+            eager_collide(*args, **kwargs)
+        wp.capture_launch(capture.graph)
+        replays.append(1)
+
+    rng = np.random.default_rng(11)
+    n, eps = 1500, 0.05
+    side = (8 * n * math.pi * D**3 / (6.0 * eps)) ** (1.0 / 3.0)
+    x, v = rng.uniform(0.0, side, size=(n, 3)), rng.normal(size=(n, 3))
+    results = []
+    for collide in (eager_collide, captured_collide):
+        monkeypatch.setattr(kcc, "collide_cells", collide)
+        p = Particles.from_numpy(x, 0.5 * D, v=v, density=RHO, weight=8.0, check_overlap=False, device=device)
+        strategy = SurrogateCollision(model_dir=trained_models["contact"], detection="cell", periodic_box=(side,) * 3,
+                                      seed=3)
+        for _ in range(2):
+            strategy.collide(p, 1e-3)
+        assert strategy.batch_forest is not None
+        results.append((p.v.numpy().copy(), strategy.counts()))
+    assert len(replays) >= 2
+    (v_eager, c_eager), (v_graph, c_graph) = results
+    assert c_eager["rounds"] > 1 and c_eager["collisions"] > 100  # the loop really loops
+    assert c_graph == c_eager and np.array_equal(v_graph, v_eager)
+    print(f"cell rounds: captured = eager, {c_eager['collisions']} collisions, {c_eager['rounds']} batched rounds")
