@@ -140,13 +140,16 @@ def summary_report(out: str) -> dict:
                 name, rc, seconds, command = line.rstrip("\n").split("\t", 3)
                 steps.append({"step": name, "rc": int(rc), "seconds": float(seconds), "command": command})
     figures = {}
-    for name in sorted(os.listdir(out)):
-        if name.endswith(".json") and name != "summary.json":
-            try:
-                with open(os.path.join(out, name)) as fh:
-                    figures[name[:-5]] = json.load(fh)
-            except (OSError, ValueError) as exc:
-                figures[name[:-5]] = {"unreadable": str(exc)}
+    ran = {s["step"] for s in steps} | {s["step"][:-len("_json")] for s in steps if s["step"].endswith("_json")}
+    for name in sorted(ran):  # only this run's figures, not a previous run's left in the folder
+        path = os.path.join(out, f"{name}.json")
+        if not os.path.exists(path):
+            continue
+        try:
+            with open(path) as fh:
+                figures[name] = json.load(fh)
+        except (OSError, ValueError) as exc:
+            figures[name] = {"unreadable": str(exc)}
     failed = [s for s in steps if s["rc"] != 0]
     return {"passed": bool(steps) and not failed, "failed_step": failed[0] if failed else None,
             "wall_s": sum(s["seconds"] for s in steps), "steps": steps, "figures": figures}
