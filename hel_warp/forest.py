@@ -322,6 +322,7 @@ class ForestPredictor:
         self.layout = flat.layout
         # CPU: a block of rows per thread walks each tree for all of them (cache reuse);
         # GPU: one row per thread.
+        # CUDA's one row per thread gives the CPU's 64 bit for bit (tests/test_device_paths.py)
         self.rows_per_thread = rows_per_thread or (64 if self.device.is_cpu else 1)
         self.domain = flat.domain_to_device(self.device) if flat.form == "contact" else None
         self.last_counts: dict = {}

@@ -227,6 +227,7 @@ class GasSolver:
         self._scalars = wp.zeros(4, dtype=wp.float64, device=dev)
         self._pivot = wp.zeros(n_rows, dtype=wp.float64, device=dev)
         solver = self.config.linear_solver
+        # the CUDA branch (warp.optim.linear.cg, our V-cycle as M) runs on the CPU too: tests/test_device_paths.py
         self.linear_solver = ("warp" if self.device.is_cuda else "native") if solver == "auto" else solver
         """The linear solver actually used ('warp' or 'native')."""
         self._bad = wp.zeros(1, dtype=wp.int32, device=dev)
