@@ -26,7 +26,7 @@ rebuilds is counted once) per stream pair with its impact speed (``kernels/conta
 :meth:`DEMSolver.onset_counts`, :meth:`DEMSolver.onset_events` (``DEMConfig.onset_events > 0``),
 zeroed by :meth:`DEMSolver.reset_onsets`.
 
-On the CPU the same step runs as a half contact list (each pair once) in two fused passes
+On the CPU the same step runs as a half contact list (each pair once) in one fused pass per step
 (``kernels/dem_step.py``, ``DEMConfig.half_list``), bit-identical to the full list and separate kernels
 that CUDA keeps.
 """
@@ -81,8 +81,8 @@ class DEMConfig:
     tangential_damping: float = 0.0
     """Dimensionless tangential dashpot c_t of kernels/hertz.py (0 = none)."""
     half_list: bool | None = None
-    """Each pair in one row only (j > i), computed once, in two fused passes per step
-    (``kernels/dem_step.py``; bit-identical forces). None: on the CPU (its threads run in order), off on
+    """Each pair in one row only (j > i), computed once, in fused passes (one per step in ``simulate``,
+    two in ``step``; ``kernels/dem_step.py``; bit-identical results). None: on the CPU (its threads run in order), off on
     CUDA (concurrent threads keep the full list). True on CUDA is a ConfigError."""
     sdf_walls: tuple = ()
     """Extra walls: ``@wp.func`` phi(x: vec3) -> float, m, > 0 inside the domain."""
@@ -390,7 +390,6 @@ class DEMSolver:
         self.half_list = (not on_cuda) if config.half_list is None else bool(config.half_list)
         self.plane_walls = plane_walls(self.wall_point, self.wall_normal, len(config.walls), self.wall_params,
                                        self.wall_shear, wp.zeros(n, dtype=wp.int32, device=self.device))
-        self._recorded = None
         dims = np.clip(np.ceil((hi - lo) / self.cell_size).astype(int), 1, 256)
         self.grid = wp.HashGrid(int(dims[0]), int(dims[1]), int(dims[2]), device=self.device)
         self.grid.reserve(n)
@@ -438,12 +437,10 @@ class DEMSolver:
         for _ in range(full):
             wp.capture_launch(self._graph)
         if self.half_list and not self.sdf_kernels and rest > 1:
-            self._recorded = self._record_passes()  # packing a launch's arguments costs ~0.3 ms of host time
-        try:
+            self._simulate_fused(rest)
+        else:
             for _ in range(rest):
                 self._advance()
-        finally:
-            self._recorded = None
         self.steps_done += n_steps
         self.time += n_steps * self.dt
         self.check_overflow()
@@ -455,14 +452,10 @@ class DEMSolver:
         from kernels.integrate import launch_kick, launch_kick_drift
 
         self.onsets.advance_substep()
-        if self.half_list:  # two passes (kernels/dem_step.py); the kick is fused unless SDF walls add forces
+        if self.half_list:  # two passes (kernels/dem_step.py; simulate fuses them further, _simulate_fused);
+            # the kick is fused unless SDF walls add forces
             from kernels.dem_step import launch_kick_drift_flag
 
-            if self._recorded is not None:  # simulate(): the two passes packed once per call
-                self._recorded[0].launch()
-                wp.capture_if(self.rebuild_flag, on_true=self._rebuild)
-                self._recorded[1].launch()
-                return
             launch_kick_drift_flag(self.spheres, self.force, self.torque, self.gravity, self.dt, self.x_at_build,
                                    0.5 * self.skin, self.rebuild_flag)
             wp.capture_if(self.rebuild_flag, on_true=self._rebuild)
@@ -476,15 +469,28 @@ class DEMSolver:
         self._compute_forces()
         launch_kick(self.spheres, self.force, self.torque, self.gravity, self.dt)
 
-    def _record_passes(self) -> tuple:
-        """The two fused passes as recorded launches (``kernels/dem_step.py``, ``record=True``): valid for one
-        ``simulate`` call, in which no array of the solver is reallocated."""
+    def _simulate_fused(self, n_steps: int) -> None:
+        """``n_steps`` steps of the half list in n + 1 launches (``kernels/dem_step.py``): the first pass, then
+        per step the list check and one pass whose tail is the next step's first pass; the last step ends
+        without it. The same operations in the same order as ``_advance``, so the same bits. The launches
+        are recorded once (``record_cmd``: packing a launch's arguments costs ~0.3 ms of host time), valid
+        for this call, in which no array of the solver is reallocated."""
+        import warp as wp
+
         from kernels.dem_step import launch_forces_kick, launch_kick_drift_flag
 
-        return (launch_kick_drift_flag(self.spheres, self.force, self.torque, self.gravity, self.dt, self.x_at_build,
-                                       0.5 * self.skin, self.rebuild_flag, record=True),
-                launch_forces_kick(self.spheres, self.rows, self.params, self.box, self.plane_walls, self.gravity,
-                                   self.dt, self.onsets.struct, self.force, self.torque, kick=True, record=True))
+        half_skin = 0.5 * self.skin
+        first = launch_kick_drift_flag(self.spheres, self.force, self.torque, self.gravity, self.dt, self.x_at_build,
+                                       half_skin, self.rebuild_flag, record=True)
+        passes = [launch_forces_kick(self.spheres, self.rows, self.params, self.box, self.plane_walls, self.gravity,
+                                     self.dt, self.onsets.struct, self.force, self.torque, kick=True,
+                                     x_at_build=self.x_at_build, half_skin=half_skin, rebuild_flag=self.rebuild_flag,
+                                     drift=drift, record=True) for drift in (True, False)]
+        first.launch()
+        for k in range(n_steps):
+            self.onsets.advance_substep()
+            wp.capture_if(self.rebuild_flag, on_true=self._rebuild)
+            passes[0 if k < n_steps - 1 else 1].launch()
 
     def _compute_forces(self, kick: bool = False) -> None:
         """Forces and torques at the current positions; ``kick`` (half list only): the second half kick too.
@@ -496,7 +502,8 @@ class DEMSolver:
             from kernels.dem_step import launch_forces_kick
 
             launch_forces_kick(self.spheres, self.rows, self.params, self.box, self.plane_walls, self.gravity,
-                               self.dt, self.onsets.struct, self.force, self.torque, kick=kick)
+                               self.dt, self.onsets.struct, self.force, self.torque, kick=kick,
+                               x_at_build=self.x_at_build, half_skin=0.5 * self.skin, rebuild_flag=self.rebuild_flag)
         else:
             launch_contact_forces(self.spheres, self.rows, self.params, self.dt, self.force, self.torque,
                                   box=self.box, onsets=self.onsets.struct)

@@ -1,4 +1,4 @@
-"""The N-body DEM step on one CPU thread: a half contact list, two fused passes per step.
+"""The N-body DEM step on one CPU thread: a half contact list, one fused pass per step.
 
 Same equations as the general path (``kernels/contacts.py`` contact rows and forces, ``kernels/walls.py``
 plane walls, ``kernels/integrate.py`` velocity Verlet; Hertz-Mindlin law of ``kernels/hertz.py``); what
@@ -13,10 +13,12 @@ differs is how the work is arranged, for a device that runs a kernel's threads o
   from the contributions of the partners j' < j in increasing j', then adds its own row in increasing
   j: the sums of the full list, in the full list's order. Forces and torques are bit-identical to the
   full-list kernels (tested in tests/test_dem.py).
-- **Two passes per step** instead of five launches: ``kick_drift_flag`` (half kick, drift, the
-  rebuild check against skin/2, zeroed force accumulators) and ``forces_kick`` (contacts, plane walls,
-  second half kick). Particle i's force is complete when thread i starts (every j < i has run) and
-  its own row is done, so its kick follows at once.
+- **One pass per step** instead of five launches: ``forces_kick`` (contacts, plane walls, second half
+  kick, then the next step's half kick, drift, rebuild check against skin/2 and zeroed force
+  accumulators: ``kick_drift_flag``, also a kernel of its own for the first step). Particle i's force
+  is complete when thread i starts (every j < i has run) and its own row is done, so its kick follows
+  at once; and no later thread reads x_i (their rows hold partners j' > j > i only), so i may move on
+  to the next step before the others. The list check then runs between the passes.
 - **Wall list**: at each list build ``mark_near_walls`` flags the walls within r + skin of a particle
   (LIGGGHTS keeps a neighbour list for its walls too); the others cannot be reached before the next
   build and are not tested.
@@ -113,10 +115,14 @@ def forces_kick_one(
     gravity: wp.vec3,
     dt: float,
     kick: int,
+    drift: int,
+    particle_x_at_build: wp.array[wp.vec3],
+    half_skin: float,
     onsets: ContactOnsets,
     rows: ContactRows,
     particle_f: wp.array[wp.vec3],
     particle_torque: wp.array[wp.vec3],
+    rebuild_flag: wp.array[wp.int32],
 ):
     """Particle i of ``forces_kick``."""
     particle_x = spheres.x
@@ -184,10 +190,16 @@ def forces_kick_one(
         if touching != 0:
             f = f + fw
             t = t + tw
-    particle_f[i] = f
-    particle_torque[i] = t
     if kick != 0 and spheres.alive[i] != 0:
         half_kick(spheres, i, f, t, gravity, dt)
+    if drift != 0:  # the next step's first pass for i (no later thread reads x_i: rows hold j > i only)
+        particle_f[i] = f
+        particle_torque[i] = t
+        kick_drift_flag_one(i, gravity, dt, particle_x_at_build, half_skin, spheres, particle_f, particle_torque,
+                            rebuild_flag)
+    else:
+        particle_f[i] = f
+        particle_torque[i] = t
 
 
 @wp.kernel
@@ -199,12 +211,16 @@ def forces_kick(
     gravity: wp.vec3,
     dt: float,
     kick: int,
+    drift: int,
+    particle_x_at_build: wp.array[wp.vec3],
+    half_skin: float,
     block: int,
     # outputs (rows.shear/touching, walls.shear updated in place; force and torque accumulated)
     onsets: ContactOnsets,
     rows: ContactRows,
     particle_f: wp.array[wp.vec3],
     particle_torque: wp.array[wp.vec3],
+    rebuild_flag: wp.array[wp.int32],
 ):
     """Contact forces over the half row of i (added to i, subtracted from j > i), plane walls, then with
     ``kick = 1`` the second half kick of i. Needs zeroed accumulators and threads run in ``tid`` order; thread b runs particles
@@ -217,7 +233,8 @@ def forces_kick(
     """
     b = wp.tid()
     for i in range(b * block, wp.min(spheres.x.shape[0], (b + 1) * block)):
-        forces_kick_one(i, spheres, params, box, walls, gravity, dt, kick, onsets, rows, particle_f, particle_torque)
+        forces_kick_one(i, spheres, params, box, walls, gravity, dt, kick, drift, particle_x_at_build, half_skin,
+                        onsets, rows, particle_f, particle_torque, rebuild_flag)
 
 
 @wp.kernel
@@ -279,13 +296,18 @@ def launch_kick_drift_flag(spheres: SphereArrays, force, torque, gravity, dt: fl
 
 def launch_forces_kick(spheres: SphereArrays, rows: ContactRows, params: ContactParams, box: PeriodicBox,
                        walls: PlaneWalls, gravity, dt: float, onsets: ContactOnsets, force, torque, *,
-                       kick: bool, block: int = CPU_BLOCK, record: bool = False):
-    """Half-list contacts + plane walls (+ the second half kick with ``kick``) on a serial device; the
-    accumulators ``force``/``torque`` must be zero (``kick_drift_flag`` leaves them so). ``record``: as in
+                       kick: bool, x_at_build, half_skin: float, rebuild_flag, drift: bool = False,
+                       block: int = CPU_BLOCK, record: bool = False):
+    """Half-list contacts + plane walls (+ the second half kick with ``kick``; + the next step's
+    ``kick_drift_flag`` with ``drift``, which needs ``kick``) on a serial device; the accumulators
+    ``force``/``torque`` must be zero (``kick_drift_flag`` leaves them so). ``record``: as in
     ``launch_kick_drift_flag``."""
     if spheres.x.device.is_cuda:
         raise ValueError("forces_kick relies on threads running in tid order: CPU device only")
+    if drift and not kick:
+        raise ValueError("drift needs kick: the next step's first half kick follows this step's second")
     n = spheres.x.shape[0]
     return wp.launch(forces_kick, dim=blocks(n, block), device=spheres.x.device,
-                     inputs=[spheres, params, box, walls, gravity, dt, int(kick), int(block)],
-                     outputs=[onsets, rows, force, torque], record_cmd=record)
+                     inputs=[spheres, params, box, walls, gravity, dt, int(kick), int(drift), x_at_build,
+                             float(half_skin), int(block)],
+                     outputs=[onsets, rows, force, torque, rebuild_flag], record_cmd=record)
