@@ -8,7 +8,7 @@ step n + 1: a load on the machine falls on all models alike), after an untimed t
 small grid that loads every kernel module; the steps alone are timed (``HelSolver.step``, synchronised per step
 on CUDA), the gas warm-up and set-up are not.
 Reported per model: the total step wall clock, the median step, the detected pairs per simulated second, and
-the ratios; then the median of each phase of the step (``HelSolver.timings``, on CUDA a sync per sub-step):
+the ratios (wall clock, and ``_cpu``: process CPU time, a core's cost whatever the load); then the median of each phase of the step (``HelSolver.timings``, on CUDA a sync per sub-step):
 the gas step (and per fluid cell), the parcel phase = deposit + interpolate + push (per parcel-step, parcels
 alive at the step; for a strategy with its own ``advance`` the push is its collision step), the collision
 step = ``collide`` (+ that ``advance``), the rest (sort, outlets, walls, injection). Rerun to judge the noise.
@@ -44,7 +44,7 @@ def build_model(case, name: str, args):
                             no_particle_contacts=False)
     config = case.make_config(ns)
     if name.startswith("surrogate"):
-        case.check_model(config.model, config.diameter, config.density, False)
+        case.check_model(config.model, config.diameter, config.density, args.force_model)
     rig = case.CollidingStreams(config)
     rig.warm_up()
     rig.solver.time_sub_steps = True  # per-phase wall clock (HelSolver.timings)
@@ -73,6 +73,7 @@ def time_models(case, names, args) -> dict:
     rigs = {name: build_model(case, name, args) for name in names}
     steps = int(round(args.end_time / args.dt))
     walls = {name: [] for name in names}
+    cpus = {name: [] for name in names}
     split = {name: [] for name in names}
     alive = {name: [] for name in names}
     detected = dict.fromkeys(names, 0)
@@ -81,11 +82,12 @@ def time_models(case, names, args) -> dict:
             device = rig.pool.particles.device
             rig.solver.timings.clear()
             parcels = rig.pool.alive_count()  # parcels the step moves (read before the timed step)
-            start = time.perf_counter()
+            start, cpu = time.perf_counter(), time.process_time()
             rig.solver.step()
             if device.is_cuda:
                 wp.synchronize_device(device)
             walls[name].append(time.perf_counter() - start)
+            cpus[name].append(time.process_time() - cpu)
             split[name].append(phases(rig.solver))
             alive[name].append(parcels)
             detected[name] += int(rig.solver.collision_counts().get("detected_pairs", 0))
@@ -94,7 +96,8 @@ def time_models(case, names, args) -> dict:
         fluid = int(rigs[name].solver.gas_solver.domain.cell_fluid.numpy().sum())
         med = {key: statistics.median(s[key] for s in split[name]) for key in split[name][0]}
         loaded = [s["parcel"] / n for s, n in zip(split[name], alive[name]) if n > 0]
-        rows[name] = {"model": name, "steps": steps, "total_s": sum(walls[name]),
+        rows[name] = {"model": name, "steps": steps, "total_s": sum(walls[name]), "total_cpu_s": sum(cpus[name]),
+                      "median_step_cpu_s": statistics.median(cpus[name]),
                       "median_step_s": statistics.median(walls[name]),
                       "detected_pairs_per_s": (detected[name] / (steps * args.dt)
                                                if name not in ("none", "ktgf") else None),
@@ -117,6 +120,9 @@ def main(argv=None) -> int:
     parser.add_argument("--paper-model", default=None, help="paper-form surrogate model directory")
     parser.add_argument("--detection", choices=("swept", "overlap"), default="swept",
                         help="surrogate pair detection (default swept)")
+    parser.add_argument("--force-model", action="store_true",
+                        help="use a surrogate trained for another mean diameter (e.g. a 315/475 um mixture model "
+                             "at 475 um; the rig's own check otherwise refuses it)")
     parser.add_argument("--cells", type=int, default=None, help="shrink the grid to about N cells (smoke runs)")
     parser.add_argument("--max-particles", type=int, default=None, help="cap the parcels released")
     parser.add_argument("--device", default="cpu", help="Warp device (default cpu)")
@@ -142,12 +148,12 @@ def main(argv=None) -> int:
     time_models(case, models, small)  # load every kernel module once, untimed: no model pays the first launch
     rows = time_models(case, models, args)
     ratios = {}
-    if "surrogate" in rows and "ktgf" in rows:
-        ratios["helscm_over_hel"] = rows["surrogate"]["total_s"] / rows["ktgf"]["total_s"]
-    if "dem" in rows and "surrogate" in rows:
-        ratios["dem_over_helscm"] = rows["dem"]["total_s"] / rows["surrogate"]["total_s"]
-    if "surrogate-paper" in rows and "ktgf" in rows:
-        ratios["helscm_paper_over_hel"] = rows["surrogate-paper"]["total_s"] / rows["ktgf"]["total_s"]
+    pairs = {"helscm_over_hel": ("surrogate", "ktgf"), "dem_over_helscm": ("dem", "surrogate"),
+             "helscm_paper_over_hel": ("surrogate-paper", "ktgf")}
+    for key, (a, b) in pairs.items():
+        if a in rows and b in rows:
+            ratios[key] = rows[a]["total_s"] / rows[b]["total_s"]
+            ratios[key + "_cpu"] = rows[a]["total_cpu_s"] / rows[b]["total_cpu_s"]  # one core's cost: robust to load
     result = {"diameter": args.diameter, "dt": args.dt, "end_time": args.end_time, "device": args.device,
               "models": list(rows.values()), "ratios": ratios}
     if args.json:
@@ -155,10 +161,11 @@ def main(argv=None) -> int:
         return 0
     print(f"colliding-streams rig, d = {args.diameter * 1e6:.0f} um, dt = {args.dt:g} s, "
           f"{args.end_time:g} s simulated, device {args.device}")
-    print(f"{'model':>16} {'steps':>6} {'total (s)':>10} {'median step (s)':>16} {'pairs/s':>10} {'parcels':>8}")
+    print(f"{'model':>16} {'steps':>6} {'total (s)':>10} {'CPU (s)':>9} {'median step (s)':>16} {'pairs/s':>10} "
+          f"{'parcels':>8}")
     for r in rows.values():
         rate = r["detected_pairs_per_s"]
-        print(f"{r['model']:>16} {r['steps']:>6} {r['total_s']:>10.2f} {r['median_step_s']:>16.4f} "
+        print(f"{r['model']:>16} {r['steps']:>6} {r['total_s']:>10.2f} {r['total_cpu_s']:>9.2f} {r['median_step_s']:>16.4f} "
               f"{'-' if rate is None else format(rate, '.3g'):>10} {r['parcels']:>8}")
     print(f"phases, median per step (ms); gas per fluid cell ({next(iter(rows.values()))['fluid_cells']} fluid cells), "
           f"parcel phase per parcel-step (median over the steps with parcels)")
