@@ -591,7 +591,7 @@ def model_name(config: dict) -> str:
     name = str(config["collisions"])
     if name == "dem" and config.get("particle_contacts") is False:
         return "dem-no-contacts"
-    if name.startswith("surrogate") and config.get("detection"):
+    if name == "surrogate" and config.get("detection"):  # surrogate-paper keeps the paper's overlap test
         return f"{name}/{config['detection']}"
     return name
 
