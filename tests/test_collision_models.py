@@ -280,8 +280,9 @@ def test_batched_prediction_changes_nothing(trained_models, mode):
     results = []
     for batched in (False, True):
         p = random_cloud(n=3000, seed=4)
+        # swept named: the cloud's parcels weigh 1-3, for which the default is now the cell detection (issue 12)
         strategy = SurrogateCollision(model_dir=trained_models["contact" if mode == "pairwise" else "paper"],
-                                      mode=mode, batched=batched)
+                                      mode=mode, batched=batched, detection="swept")
         v0 = p.v.numpy().copy()
         strategy.collide(p, 1e-4)
         results.append((p.v.numpy().copy(), strategy.counts()))
