@@ -2,7 +2,8 @@
 
 The dry run is the same sequence as the GPU run (device report, kernel compilation, the device-agnostic tests on
 the device, the DEM / forest / HEL benches, the rig for ktgf, surrogate and dem) at the smallest sizes; this test is
-what keeps it runnable between GPU loans. About 2 minutes on 2 idle cores (4 at a load of 10).
+what keeps it runnable between GPU loans. Measured 165–300 s on the 2 shared cores at a load of 7–11 (warm kernel
+cache; not measured on idle cores).
 """
 
 from __future__ import annotations
