@@ -72,8 +72,10 @@ FALL_SPREAD = 0.5
 """Half-width of the uniform random velocity added per component in the falling beds, m/s."""
 
 
-def bed(case: str, n: int, seed: int = 0) -> dict:
-    """Positions (float32-exact), velocities, box and material of a case (module docstring)."""
+def bed(case: str, n: int, seed: int = 0, offset: float = 0.0) -> dict:
+    """Positions (float32-exact), velocities, box and material of a case (module docstring); ``offset`` (m)
+    moves the box and the spheres along every axis (a float32 resolution check: the spacing of float32
+    numbers grows with the distance from the origin)."""
     from hel_warp.material import Material
     from hel_warp.particles import lattice_positions
 
@@ -92,6 +94,8 @@ def bed(case: str, n: int, seed: int = 0) -> dict:
         v = rng.uniform(-FALL_SPREAD, FALL_SPREAD, size=x.shape)
         v[:, 2] -= FALL_SPEED
     material = Material(restitution=0.5, friction=0.3)
+    x = x + offset
+    lo, hi = tuple(v + offset for v in lo), tuple(v + offset for v in hi)
     return {"x": x.astype(np.float32).astype(np.float64), "v": v.astype(np.float32).astype(np.float64),
             "radius": float(np.float32(0.5 * d)), "lo": lo, "hi": hi, "material": material, "case": case}
 
@@ -287,7 +291,7 @@ def time_warp_example(n: int, device: str, repeats: int, budget_s: float) -> dic
 
 def compare_case(name: str, n: int, steps: int, args, executable: str | None) -> dict:
     """Ours and LIGGGHTS alternately on one case; medians, ratio and the physical agreement."""
-    case = bed(name, n)
+    case = bed(name, n, offset=args.offset)
     mass = sphere_mass(case)
     start = observables(case["x"], case["v"], mass)
     ours_runs, peer_runs, setup = [], [], None
@@ -375,6 +379,8 @@ def main(argv=None) -> int:
                         help="our spatial sort every k rebuilds (default: the solver default, 10 on the CPU)")
     parser.add_argument("--capacity", type=int, default=16, help="our contact-list capacity (default 16)")
     parser.add_argument("--shuffle", action="store_true", help="sweep: our spheres in random memory order")
+    parser.add_argument("--offset", type=float, default=0.0,
+                        help="move the compared beds this far from the origin, m (float32 resolution check)")
     parser.add_argument("--liggghts", default=shutil.which("liggghts"), help="LIGGGHTS executable (default: PATH)")
     parser.add_argument("--warp-example", action="store_true", help="also time Warp's example_dem in the sweep")
     parser.add_argument("--json", help="also write the results to this JSON file")
