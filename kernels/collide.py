@@ -847,7 +847,9 @@ def launch_swept_start(args: SweptArgs, particle_v, reach_max, reach_sum) -> Non
 
 def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, event_rounds, round_cap_hit, calls,
                   collisions, detected, skipped, batch_forest: Forest | None = None) -> None:
-    """Rounds of mutually earliest events until none is left (``wp.capture_while``: a graph loop on CUDA) or
+    """Rounds of mutually earliest events until none is left (``wp.capture_while``: a while node where the call is
+    captured into a graph - tests/test_device_paths.py does, on the CPU; the engine calls it uncaptured, a host loop
+    with one device read per round) or
     ``args.max_rounds`` is reached (then ``round_cap_hit`` is set). ``args.grid`` must hold ``args.hash_point``.
     Round 0 also counts the pairs overlapping at the start into ``detected`` (per stream pair) and ``skipped``.
 
