@@ -190,14 +190,24 @@ def forces_kick_one(
         if touching != 0:
             f = f + fw
             t = t + tw
-    if kick != 0 and spheres.alive[i] != 0:
-        half_kick(spheres, i, f, t, gravity, dt)
     if drift != 0:  # the next step's first pass for i (no later thread reads x_i: rows hold j > i only)
-        particle_f[i] = f
-        particle_torque[i] = t
-        kick_drift_flag_one(i, gravity, dt, particle_x_at_build, half_skin, spheres, particle_f, particle_torque,
-                            rebuild_flag)
+        particle_f[i] = wp.vec3(0.0)
+        particle_torque[i] = wp.vec3(0.0)
+        if spheres.alive[i] != 0:
+            # half_kick twice from the same F and T (its arithmetic, from what thread i holds), then the drift
+            half_dt = 0.5 * dt
+            dv = (f / mi + gravity) * half_dt
+            dw = t * (half_dt / (0.4 * mi * ri * ri))
+            v = (vi + dv) + dv
+            spheres.v[i] = v
+            spheres.omega[i] = (wi + dw) + dw
+            x = xi + v * dt
+            spheres.x[i] = x
+            if wp.length(x - particle_x_at_build[i]) > half_skin:
+                rebuild_flag[0] = 1
     else:
+        if kick != 0 and spheres.alive[i] != 0:
+            half_kick(spheres, i, f, t, gravity, dt)
         particle_f[i] = f
         particle_torque[i] = t
 
