@@ -409,18 +409,13 @@ def mixture_release(args, diameter: float, std: float, known: float | None) -> d
     ``diameter2_std``, ``mass_fraction2``, ``mass_flow``."""
     from hel_warp.errors import ConfigError
 
-    d2, f2 = getattr(args, "diameter2", None), getattr(args, "mass_fraction2", None)
-    if d2 is None and f2 is None:
+    from hel_warp.mixture import second_size
+
+    sizes = second_size(getattr(args, "diameter2", None), getattr(args, "mass_fraction2", None), diameter,
+                        "--mass-fraction2", "0.5")
+    if sizes is None:
         return None
-    if d2 is None or f2 is None:
-        raise ConfigError("a mixture needs both --diameter2 and --mass-fraction2 (e.g. --diameter2 475e-6 "
-                          "--mass-fraction2 0.5)")
-    if not d2 > 0:
-        raise ConfigError(f"--diameter2 must be > 0 m (got {d2}); e.g. 475e-6")
-    if not 0.0 < f2 < 1.0:
-        raise ConfigError(f"--mass-fraction2 must lie in (0, 1) (got {f2}); 0 or 1 is one size: drop --diameter2")
-    if abs(d2 - diameter) < 1e-3 * diameter:
-        raise ConfigError(f"--diameter2 {d2:g} m equals --diameter; a mixture needs two sizes")
+    d2, f2 = sizes
     known2 = min(PAPER_PARTICLES, key=lambda d: abs(d - d2))
     paper2 = abs(known2 - d2) < 1e-3 * known2
     std2 = 0.0 if args.monodisperse else (PAPER_DIAMETER_STD[known2] if paper2 else 0.0)

@@ -393,16 +393,13 @@ def mixture_species(args, parcels: int, weight: int):
     ``masses`` (kg, the material density is applied later), ``number_fractions``. Species 1 is --diameter."""
     from hel_warp.errors import ConfigError
 
-    d2, f2 = getattr(args, "diameter2", None), getattr(args, "number_fraction2", None)
-    if d2 is None and f2 is None:
+    from hel_warp.mixture import second_size
+
+    sizes = second_size(getattr(args, "diameter2", None), getattr(args, "number_fraction2", None),
+                        float(args.diameter), "--number-fraction2", "0.3")
+    if sizes is None:
         return None
-    if d2 is None or f2 is None:
-        raise ConfigError("a mixture needs both --diameter2 and --number-fraction2 (e.g. --diameter2 475e-6 "
-                          "--number-fraction2 0.3)")
-    if not d2 > 0.0:
-        raise ConfigError(f"--diameter2 must be > 0 m (got {d2:g})")
-    if not 0.0 < f2 < 1.0:
-        raise ConfigError(f"--number-fraction2 must lie in (0, 1) (got {f2:g}); 0 or 1 is one size: drop --diameter2")
+    d2, f2 = sizes
     n2 = int(round(f2 * args.particles))
     n1 = int(args.particles) - n2
     if n1 < 1 or n2 < 1:

@@ -34,6 +34,27 @@ import math
 import numpy as np
 
 
+def second_size(d2, f2, diameter: float, fraction_option: str, example: str):
+    """The second species of a two-size case from its options (``--diameter2`` and the fraction option
+    ``fraction_option``, e.g. ``--mass-fraction2``): None when neither is given, else (d2, f2) checked with one-line
+    errors (both given, d2 > 0, 0 < f2 < 1, d2 differs from ``diameter``). ``example``: the fraction shown in
+    the error that asks for both."""
+    from hel_warp.errors import ConfigError
+
+    if d2 is None and f2 is None:
+        return None
+    if d2 is None or f2 is None:
+        raise ConfigError(f"a mixture needs both --diameter2 and {fraction_option} (e.g. --diameter2 475e-6 "
+                          f"{fraction_option} {example})")
+    if not d2 > 0.0:
+        raise ConfigError(f"--diameter2 must be > 0 m (got {d2:g}); e.g. 475e-6")
+    if not 0.0 < f2 < 1.0:
+        raise ConfigError(f"{fraction_option} must lie in (0, 1) (got {f2:g}); 0 or 1 is one size: drop --diameter2")
+    if abs(d2 - diameter) < 1e-3 * diameter:
+        raise ConfigError(f"--diameter2 {d2:g} m equals --diameter; a mixture needs two sizes")
+    return float(d2), float(f2)
+
+
 def mean_cube(means, stds) -> np.ndarray:
     """E[d^3] = mu^3 + 3 mu sigma^2 of normal sizes, m^3 (per species)."""
     mu, sd = np.asarray(means, float), np.asarray(stds, float)
