@@ -19,39 +19,23 @@ uniformly random positions every repetition, so they average over the cell occup
 
 from __future__ import annotations
 
-import base64
-import json
 import math
 
 import numpy as np
 import pytest
+
+from tests.test_swept import write_constant_contact_forest
 
 D = 315e-6  # m
 RHO = 1000.0  # kg/m^3
 E = 0.9
 
 
-def _array(values, dtype):
-    arr = np.asarray(values, dtype=dtype)
-    return {"dtype": np.dtype(dtype).str, "shape": list(arr.shape), "base64": base64.b64encode(arr.tobytes()).decode()}
-
-
 @pytest.fixture(scope="module")
 def constant_model(tmp_path_factory):
-    """A contact-form forest of one leaf per target (impulse_n = 1 + e, impulse_t = 0) whose domain covers every
-    feature: an outcome for the conservation and determinism tests without training a model."""
-    root = tmp_path_factory.mktemp("constant_model")
-    doc = {"format": "hel_warp.forest", "version": 2, "form": "contact",
-           "features": ["g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio"],
-           "targets": ["impulse_n", "impulse_t"], "base_score": [1.0 + E, 0.0], "tree_start": [0, 1, 2],
-           "max_depth": 0,
-           "arrays": {"tree_root": _array([0, 1], "<i4"), "node_info": _array([-1, -1], "<i4"),
-                      "node_value": _array([0.0, 0.0], "<f4"), "node_left": _array([-1, -1], "<i4")},
-           "domain": {"features": ["g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio"],
-                      "lo": [0.0, 0.0, 0.0, 1e-6, 0.1, 0.1], "hi": [100.0, 100.0, 1.0, 1e-2, 10.0, 10.0],
-                      "friction": 0.0, "friction_bound": 0.0}}
-    (root / "forest.json").write_text(json.dumps(doc))
-    return str(root)
+    """The constant contact-form forest of tests/test_swept.py (impulse_n = 1 + e, impulse_t = 0, every feature in its
+    domain): an outcome for the conservation and determinism tests without training a model."""
+    return write_constant_contact_forest(tmp_path_factory.mktemp("constant_model"))
 
 
 def g0_cs(eps):

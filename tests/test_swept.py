@@ -31,11 +31,10 @@ def _array(values, dtype):
     return {"dtype": np.dtype(dtype).str, "shape": list(arr.shape), "base64": base64.b64encode(arr.tobytes()).decode()}
 
 
-@pytest.fixture(scope="module")
-def hard_sphere_model(tmp_path_factory):
-    """A contact-form forest of one leaf per target: impulse_n = 1 + e, impulse_t = 0 (exact for central impacts,
-    cos_angle = 1); its domain covers every contact feature."""
-    root = tmp_path_factory.mktemp("hard_sphere_model")
+def write_constant_contact_forest(root) -> str:
+    """A contact-form forest of one leaf per target in directory ``root``: impulse_n = 1 + e, impulse_t = 0 (exact
+    for central impacts, cos_angle = 1; an outcome without training a model); its domain covers every contact
+    feature. Returns the directory."""
     doc = {"format": "hel_warp.forest", "version": 2, "form": "contact",
            "features": ["g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio"],
            "targets": ["impulse_n", "impulse_t"], "base_score": [1.0 + E, 0.0], "tree_start": [0, 1, 2],
@@ -47,6 +46,12 @@ def hard_sphere_model(tmp_path_factory):
                       "friction": 0.0, "friction_bound": 0.0}}
     (root / "forest.json").write_text(json.dumps(doc))
     return str(root)
+
+
+@pytest.fixture(scope="module")
+def hard_sphere_model(tmp_path_factory):
+    """The constant hard-sphere forest (``write_constant_contact_forest``)."""
+    return write_constant_contact_forest(tmp_path_factory.mktemp("hard_sphere_model"))
 
 
 def brute_force_touch(x1, x2, v1, v2, radius_sum, dt, steps=200000):
