@@ -97,8 +97,9 @@ def bench_gas(n_side: int, repeats: int, device, seed: int = 0) -> dict:
             "pressure_cg_iterations": int(statistics.median(iterations))}
 
 
-def bench_rig_gas(repeats: int, device) -> dict:
-    """The gas step on the colliding-streams rig's grid and flow (module docstring)."""
+def warm_rig(device):
+    """The colliding-streams rig (315 um, 1e-3 s, no collisions) after its gas warm-up: the grid and flow whose gas
+    step the rig timings and the gas profile measure."""
     from hel_warp.commands._common import load_case_module
 
     case = load_case_module("colliding_streams")
@@ -108,6 +109,12 @@ def bench_rig_gas(repeats: int, device) -> dict:
                             no_particle_contacts=False)
     rig = case.CollidingStreams(case.make_config(ns))
     rig.warm_up()
+    return rig
+
+
+def bench_rig_gas(repeats: int, device) -> dict:
+    """The gas step on the colliding-streams rig's grid and flow (module docstring)."""
+    rig = warm_rig(device)
     solver, gas = rig.solver.gas_solver, rig.solver.gas
     dt = rig.solver.config.dt
     fluid = int(solver.domain.cell_fluid.numpy().sum())
@@ -136,15 +143,7 @@ def profile_rig_gas(rig_steps: int, device, top: int = 20) -> list[dict]:
 
     import warp as wp
 
-    from hel_warp.commands._common import load_case_module
-
-    case = load_case_module("colliding_streams")
-    ns = argparse.Namespace(diameter=315e-6, dt=1e-3, collisions="none", end_time=1e-3, particles_per_parcel=1.0,
-                            max_particles=None, monodisperse=False, model=None, cells=None, gas_warmup=0.01,
-                            output_interval=1e-3, seed=0, device=str(device), detection=None,
-                            no_particle_contacts=False)
-    rig = case.CollidingStreams(case.make_config(ns))
-    rig.warm_up()
+    rig = warm_rig(device)
     solver, gas, dt = rig.solver.gas_solver, rig.solver.gas, rig.solver.config.dt
     stats = collections.defaultdict(lambda: [0, 0.0])
     launch = wp.launch
