@@ -24,6 +24,7 @@ import math
 import numpy as np
 import pytest
 
+from tests.test_run_io import Interrupt, stop_at
 from tests.test_swept import write_constant_contact_forest
 
 D = 315e-6  # m
@@ -375,15 +376,6 @@ def test_hel_run_with_cell_collisions_restarts_bitwise(constant_model, tmp_path)
     def run_config(out, checkpoint_every=None):
         return RunConfig(out_dir=str(out), end_time=2 * n * dt, output_interval=2 * dt,
                          checkpoint_interval=None if checkpoint_every is None else checkpoint_every * dt, vtk=False)
-
-    class Interrupt(Exception):
-        pass
-
-    def stop_at(step):
-        def progress(solver):
-            if solver.step_count == step:
-                raise Interrupt
-        return progress
 
     straight = build()
     Run(straight, run_config(tmp_path / "a")).run()

@@ -41,6 +41,19 @@ def run_config(out, steps, *, output_every=3, checkpoint_every=None, vtk=False):
                      checkpoint_interval=None if checkpoint_every is None else checkpoint_every * DT, vtk=vtk)
 
 
+
+class Interrupt(Exception):
+    """Raised by :func:`stop_at`: a run killed mid-way (the restart tests)."""
+
+
+def stop_at(step):
+    """A ``Run.run(progress=...)`` callback that interrupts the run when the solver reaches ``step``."""
+    def progress(solver):
+        if solver.step_count == step:
+            raise Interrupt
+
+    return progress
+
 def test_run_zarr_holds_snapshots_gas_fields_timings_and_config(tmp_path):
     import zarr
 
@@ -108,16 +121,6 @@ def test_restart_continues_bitwise_identically(tmp_path):
     n = 6
     straight = build()
     Run(straight, run_config(tmp_path / "a", 2 * n)).run()
-
-    class Interrupt(Exception):
-        pass
-
-    def stop_at(step):
-        def progress(solver):
-            if solver.step_count == step:
-                raise Interrupt
-
-        return progress
 
     first = build()
     with pytest.raises(Interrupt):  # checkpoints at 0 and 6 (every 6 steps), a snapshot at 9 that must be dropped
