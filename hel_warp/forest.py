@@ -25,6 +25,9 @@ CANONICAL_FEATURES = {
     "contact": ("g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio"),
 }
 N_TARGETS = {"paper": 3, "contact": 2}
+TARGET_SCALES = ("none", "cos_angle", "sin_angle")
+"""What a target's tree sum is multiplied by (the file's ``target_scale``; the index is the kernel's code,
+kernels/forest.py SCALE_*): nothing, the row's cos_angle, or sqrt(1 - cos_angle^2). Contact form only."""
 PERFECT_MAX_DEPTH = 12
 """Deepest tree padded to the perfect layout (2^D - 1 nodes per tree); deeper forests use explicit children."""
 
@@ -64,6 +67,14 @@ class FlatForest:
     domain: dict | None = None
     """The ``domain`` section of the file (surrogate/flatten.py): ``lo``/``hi`` per canonical feature,
     ``friction``, ``friction_bound`` and how it was chosen."""
+    target_scale: list | None = None
+    """Per target, a name of TARGET_SCALES (None: every target unscaled, as files before the key)."""
+
+    @property
+    def scale_codes(self) -> np.ndarray:
+        """(T,) int32 kernel codes of ``target_scale`` (0: unscaled)."""
+        names = self.target_scale or ["none"] * len(self.targets)
+        return np.asarray([TARGET_SCALES.index(n) for n in names], dtype=np.int32)
 
     @property
     def feature_lo(self) -> np.ndarray:
@@ -181,6 +192,7 @@ class FlatForest:
         forest = Forest()
         forest.tree_start = wp.array(self.tree_start, dtype=wp.int32, device=device)
         forest.base_score = wp.array(self.base_score, dtype=wp.float32, device=device)
+        forest.target_scale = wp.array(self.scale_codes, dtype=wp.int32, device=device)
         if layout == "perfect":
             nodes, first, depth, first_leaf, leaves = self.perfect_layout()
             forest.perfect = 1
@@ -259,8 +271,15 @@ def parse_forest(doc: dict) -> FlatForest:
     if np.any(np.isnan(value)):
         raise ConfigError("forest holds NaN node values")
     domain = _parse_domain(doc.get("domain"), CANONICAL_FEATURES[form])
+    scale = doc.get("target_scale")
+    if scale is not None:
+        if not isinstance(scale, list) or len(scale) != len(targets) or any(n not in TARGET_SCALES for n in scale):
+            raise ConfigError(f"forest target_scale must name one of {list(TARGET_SCALES)} per target, got {scale!r}")
+        if form != "contact" and any(n != "none" for n in scale):
+            raise ConfigError(f"a {form!r}-form forest cannot scale its targets (target_scale {scale!r})")
+        scale = list(scale)
     return FlatForest(form, list(doc["features"]), targets, base, start, root, info, value, left,
-                      int(doc.get("max_depth", 0)), domain)
+                      int(doc.get("max_depth", 0)), domain, scale)
 
 
 def _parse_domain(domain, features) -> dict:

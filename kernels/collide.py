@@ -32,8 +32,9 @@ from __future__ import annotations
 
 import warp as wp
 
-from kernels.forest import (GUARD_COULOMB, GUARD_ENERGY, GUARD_SEPARATION, ContactDomain, Forest, admissible_impulse,
-                            contact_impulse, sphere_mass, walk_tree, write_contact_features_in_domain)
+from kernels.forest import (COS_FEATURE, GUARD_COULOMB, GUARD_ENERGY, GUARD_SEPARATION, SCALE_NONE, ContactDomain, Forest,
+                            admissible_impulse, contact_impulse, scale_factor, sphere_mass, walk_tree,
+                            write_contact_features_in_domain)
 
 PAIR_PENDING = wp.constant(0)
 """``pair_state`` of a detected pair (the overlap pair list of ``hel_warp.pairs.PairDetector``)."""
@@ -58,10 +59,14 @@ def minimum_image(d: wp.vec3, periodic: wp.int32, box: wp.vec3):
 
 @wp.func
 def forest_target(forest: Forest, target: wp.int32, features: wp.array2d(dtype=wp.float32), row: wp.int32):
-    """Prediction of one target for one feature row: base_score + sum of the target's tree leaves."""
+    """Prediction of one target for one feature row: base_score + sum of the target's tree leaves, times the
+    target's scale (kernels/forest.py ``scale_factor``)."""
     acc = forest.base_score[target]
     for k in range(forest.tree_start[target], forest.tree_start[target + 1]):
         acc = acc + walk_tree(forest, forest.tree_root[k], features, row)
+    code = forest.target_scale[target]
+    if code != SCALE_NONE:
+        acc = acc * scale_factor(code, features[row, COS_FEATURE])
     return acc
 
 

@@ -79,6 +79,9 @@ class Forest:
     """(n_targets+1,) trees of target t: tree_start[t] .. tree_start[t+1]-1."""
     base_score: wp.array(dtype=wp.float32)
     """(n_targets,) XGBoost base_score of each target."""
+    target_scale: wp.array(dtype=wp.int32)
+    """(n_targets,) what the target's tree sum is multiplied by (surrogate/flatten.py ``target_scale``):
+    SCALE_NONE, SCALE_COS (the row's cos_angle) or SCALE_SIN (sqrt(1 - cos_angle^2)); contact form only."""
 
 
 @wp.func
@@ -92,6 +95,26 @@ def walk_tree(forest: Forest, root: wp.int32, features: wp.array2d(dtype=wp.floa
         go_right = wp.where(x != x, 1 - (node.meta & 1), go_right)  # x != x: NaN, inlined (wp.isnan is a libm call on CPU)
         node = forest.nodes[(node.meta >> 5) + go_right]
     return node.value
+
+
+SCALE_NONE = wp.constant(0)
+"""Target scale codes (file names in surrogate/flatten.py TARGET_SCALES): the prediction is the tree sum."""
+SCALE_COS = wp.constant(1)
+"""The prediction is the tree sum times the row's cos_angle (contact feature COS_FEATURE)."""
+SCALE_SIN = wp.constant(2)
+"""The prediction is the tree sum times sqrt(1 - cos_angle^2)."""
+COS_FEATURE = wp.constant(2)
+"""Index of cos_angle among the contact features (CONTACT_FEATURES order)."""
+
+
+@wp.func
+def scale_factor(code: wp.int32, cos_angle: wp.float32):
+    """The multiplier of a target's tree sum: 1, cos_angle or sqrt(1 - cos_angle^2) (clamped at 0)."""
+    if code == SCALE_COS:
+        return cos_angle
+    if code == SCALE_SIN:
+        return wp.sqrt(wp.max(1.0 - cos_angle * cos_angle, 0.0))
+    return 1.0
 
 
 @wp.func
@@ -132,7 +155,8 @@ def eval_forest_explicit_kernel(forest: Forest, features: wp.array2d(dtype=wp.fl
                                 # outputs
                                 out: wp.array2d(dtype=wp.float32)):
     """Every target for rows [tid*rows_per_thread, ...), EXPLICIT layout: trees outer, rows inner,
-    one row at a time with early exit at the leaf; sum base_score + tree 0 + tree 1 + ... (XGBoost's order)."""
+    one row at a time with early exit at the leaf; sum base_score + tree 0 + tree 1 + ... (XGBoost's order),
+    times the target's scale (``scale_factor``)."""
     tid = wp.tid()
     first = tid * rows_per_thread
     last = wp.min(first + rows_per_thread, n_rows)
@@ -145,6 +169,10 @@ def eval_forest_explicit_kernel(forest: Forest, features: wp.array2d(dtype=wp.fl
             root = forest.tree_root[k]
             for row in range(first, last):
                 out[row, t] = out[row, t] + walk_tree(forest, root, features, row)
+        code = forest.target_scale[t]
+        if code != SCALE_NONE:
+            for row in range(first, last):
+                out[row, t] = out[row, t] * scale_factor(code, features[row, COS_FEATURE])
 
 
 @wp.kernel
@@ -157,7 +185,7 @@ def eval_forest_perfect_kernel(forest: Forest, features: wp.array(dtype=wp.float
     ``features``: the (n_rows, n_features) row-major features, flattened. Tree-major: each tree
     is walked for the whole block (BLOCK_GROUPS groups of LOCKSTEP_ROWS rows side by side, fixed
     trip count, independent loads in flight) before the next tree, so its nodes stay in cache;
-    sums kept locally in XGBoost's order base + tree 0 + tree 1 + ... Rows past ``n_rows``
+    sums kept locally in XGBoost's order base + tree 0 + tree 1 + ..., then times the target's scale. Rows past ``n_rows``
     repeat the last row and are not written. ``row_count`` (optional, on the device): evaluate only the
     first ``min(n_rows, row_count[0])`` rows (a count known only on the device; other blocks return).
     """
@@ -228,6 +256,10 @@ def eval_forest_perfect_kernel(forest: Forest, features: wp.array(dtype=wp.float
                         idx[r] = 2 * idx[r] + 1 + go_right
                 for r in range(LOCKSTEP_ROWS):
                     acc[g * LOCKSTEP_ROWS + r] = acc[g * LOCKSTEP_ROWS + r] + forest.leaves[leaf0 + idx[r]]
+        code = forest.target_scale[t]
+        if code != SCALE_NONE:
+            for r in range(last - first):
+                acc[r] = acc[r] * scale_factor(code, features[(first + r) * n_features + COS_FEATURE])
         for r in range(last - first):
             out[first + r, t] = acc[r]
 

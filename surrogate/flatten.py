@@ -26,6 +26,7 @@ File format (JSON, version 2)::
      "base_score": [float32 per target],
      "tree_start": [T+1 ints: trees of target t are tree_root[tree_start[t]:tree_start[t+1]]],
      "max_depth": int,
+     "target_scale": [per target "none" | "cos_angle" | "sin_angle"]  (optional; absent = all "none"),
      "domain": {"features": [the canonical features], "lo": [F floats], "hi": [F floats],
                 "friction": mu of the training material, "friction_bound": Coulomb guard bound (>= mu),
                 "friction_bound_rule": how it was chosen, ...},
@@ -36,6 +37,11 @@ File format (JSON, version 2)::
             it (kernels/forest.py ``write_contact_features_in_domain``) and bounds the tangential
             impulse by ``friction_bound`` (``admissible_impulse``). Version 1 files had no domain; the
             engine refuses them (retrain).
+
+    target_scale: the prediction of a target is its tree sum (base_score + leaves) times the row's cos_angle
+            or sqrt(1 - cos_angle^2) (contact form; hel_warp/forest.py TARGET_SCALES): the trees then learn
+            impulse_n / cos_angle (about 1 + e) and impulse_t / sin_angle, nearly constant in the incidence,
+            which a few shallow trees fit better than the staircase of the linear dependence (surrogate/train.py).
 
     arrays: tree_root  int32 (n_trees)  index of each tree's root node
             node_info  int32 (n_nodes)  -1 at a leaf; else 2*feature + default_left
@@ -199,10 +205,11 @@ def _encode(arr: np.ndarray, dtype: str) -> dict:
 
 
 def flatten_models(form: str, canonical_features: list[str], used_features: list[str], targets: list[str],
-                   models: dict, mean, std, *, domain: dict) -> dict:
+                   models: dict, mean, std, *, domain: dict, target_scale: list | None = None) -> dict:
     """All targets' XGBoost JSON models (dict target -> parsed JSON) -> the forest.json document.
 
     ``domain``: the training domain (``surrogate.admissibility.training_domain``), written as is.
+    ``target_scale``: per target a name of hel_warp.forest.TARGET_SCALES (None: not written, all unscaled).
     """
     from hel_warp.forest import _parse_domain
 
@@ -230,6 +237,7 @@ def flatten_models(form: str, canonical_features: list[str], used_features: list
         "features": list(canonical_features), "targets": list(targets),
         "base_score": [float(b) for b in bases], "tree_start": starts, "max_depth": int(max_depth),
         "domain": dict(domain),
+        **({} if target_scale is None else {"target_scale": list(target_scale)}),
         "arrays": {
             "tree_root": _encode(np.asarray(roots, dtype=np.int32), "<i4"),
             "node_info": _encode(cat(infos, np.int32), "<i4"),
