@@ -93,7 +93,8 @@ def main(argv=None) -> int:
     from hel_warp.forest import ForestPredictor, load_forest, quiet_warp
     from kernels.forest import eval_forest
     from surrogate.artifact import load_artifact
-    from surrogate.features import CANONICAL_FEATURES, form_rows, standardize, synthetic_collisions
+    from surrogate.features import (CANONICAL_FEATURES, form_rows, scale_predictions, standardize,
+                                    synthetic_collisions)
 
     quiet_warp()
     model_dir = args.model
@@ -138,6 +139,9 @@ def main(argv=None) -> int:
     warp_kernel()
     preds = [b.inplace_predict(x_in) for b in boosters]
     ref = np.column_stack([p.get() if hasattr(p, "get") else np.asarray(p) for p in preds])
+    # a model fitted per a target scale (surrogate/features.py TARGET_SCALE): its targets are XGBoost's tree sums
+    # times the scale, a float32 product per row (not timed: the same O(N) for both contenders)
+    ref = scale_predictions(ref, art.target_scale, raw)
     max_diff = float(np.max(np.abs(out_dev.numpy() - ref)))
     xgb_used = xgboost_device_used(boosters[0])
 

@@ -50,6 +50,25 @@ class ModelArtifact:
     boosters: dict = field(default_factory=dict)
     """target -> xgboost.Booster (loaded lazily by :func:`load_artifact` with ``boosters=True``)."""
 
+    @property
+    def target_scale(self) -> list | None:
+        """Per target the scale its trees were fitted per (None: unscaled; surrogate/features.py TARGET_SCALE)."""
+        return self.metadata.get("target_scale")
+
+    def predict(self, raw_features: np.ndarray) -> np.ndarray:
+        """XGBoost's own prediction of the model's targets (N, T) from raw canonical features (N, F): the boosters
+        (``boosters=True``) on the standardised used features, times each target's scale (float32, as the
+        engine). The reference the engine's forest is tested against."""
+        from surrogate.features import CANONICAL_FEATURES, scale_predictions, standardize
+
+        if not self.boosters:
+            raise ConfigError("load the artifact with boosters=True to predict with XGBoost")
+        raw = np.ascontiguousarray(raw_features, dtype=np.float32)
+        cols = [CANONICAL_FEATURES[self.form].index(f) for f in self.features]
+        x = standardize(raw[:, cols], self.scaler_mean, self.scaler_std)
+        sums = np.column_stack([self.boosters[t].inplace_predict(x) for t in self.targets])
+        return scale_predictions(sums, self.target_scale, raw)
+
     def model_json(self, target: str) -> dict:
         with open(os.path.join(self.model_dir, f"{target}.json")) as fh:
             return json.load(fh)
@@ -57,11 +76,13 @@ class ModelArtifact:
 
 def save_artifact(model_dir: str, *, form: str, features: list, targets: list, scaler_mean, scaler_std,
                   boosters: dict, metrics: dict, dataset_hash: str, hyperparameters: dict, domain: dict,
-                  extra: dict | None = None) -> dict:
+                  extra: dict | None = None, target_scale: list | None = None) -> dict:
     """Write the models, the flattened forest and metadata.json; returns the metadata.
 
     ``domain``: the training domain (``surrogate.admissibility.training_domain``), in both the forest
-    file (what the engine clamps to) and metadata.json."""
+    file (what the engine clamps to) and metadata.json. ``target_scale``: per target the scale its trees were
+    fitted per (surrogate/features.py TARGET_SCALE; None: unscaled), in both files too: the model's target is
+    the booster's prediction times the scale (``ModelArtifact.predict``)."""
     import xgboost
 
     from surrogate.flatten import flatten_models, write_forest
@@ -77,7 +98,7 @@ def save_artifact(model_dir: str, *, form: str, features: list, targets: list, s
         with open(path) as fh:
             models[target] = json.load(fh)
     forest = flatten_models(form, list(CANONICAL_FEATURES[form]), list(features), list(targets), models,
-                            np.asarray(scaler_mean), np.asarray(scaler_std), domain=domain)
+                            np.asarray(scaler_mean), np.asarray(scaler_std), domain=domain, target_scale=target_scale)
     write_forest(os.path.join(model_dir, "forest.json"), forest)
     files["forest.json"] = sha256_file(os.path.join(model_dir, "forest.json"))
     with open(os.path.join(model_dir, "metrics.json"), "w") as fh:
@@ -88,6 +109,7 @@ def save_artifact(model_dir: str, *, form: str, features: list, targets: list, s
         "targets": list(targets),
         "scaler": {"mean": [float(x) for x in scaler_mean], "std": [float(x) for x in scaler_std]},
         "metrics": metrics, "dataset_hash": dataset_hash, "hyperparameters": hyperparameters, "domain": domain,
+        "target_scale": None if target_scale is None else list(target_scale),
         "xgboost_version": xgboost.__version__, "files": files, **(extra or {}),
     }
     tmp = os.path.join(model_dir, METADATA + ".tmp")
@@ -158,8 +180,11 @@ def load_artifact(model_dir: str, *, boosters: bool = False, expect_features: li
             booster = xgboost.Booster()
             try:
                 booster.load_model(os.path.join(model_dir, f"{target}.json"))
-            except xgboost.core.XGBoostError as exc:
-                raise ConfigError(f"XGBoost cannot load {target}.json: {str(exc).splitlines()[0]}") from None
+            except (xgboost.core.XGBoostError, UnicodeDecodeError) as exc:
+                # XGBoost quotes the bytes where its parser stopped; a cut inside a multi-byte character makes
+                # its own message undecodable (UnicodeDecodeError from xgboost.compat.py_str)
+                first = str(exc).splitlines()[0] if isinstance(exc, xgboost.core.XGBoostError) else "malformed JSON"
+                raise ConfigError(f"XGBoost cannot load {target}.json: {first}") from None
             if booster.num_features() != len(features):
                 raise ConfigError(f"{target}.json expects {booster.num_features()} features, metadata lists "
                                   f"{len(features)}")

@@ -53,6 +53,10 @@ CANONICAL_FEATURES = {
 }
 ALWAYS_USED = {"paper": ("v1x", "v1y", "v1z", "v2x", "v2y", "v2z"), "contact": ("g_n", "g_t", "cos_angle")}
 TARGETS = {"paper": ("u", "v", "w"), "contact": ("impulse_n", "impulse_t")}
+TARGET_SCALE = {"contact": ("cos_angle", "sin_angle")}
+"""Scale of each target when trained scaled (surrogate/train.py, ``TrainConfig.target_scale``): the trees learn
+impulse_n / cos_angle (about 1 + e: nearly constant over the incidence) and impulse_t / sin_angle; the forest
+multiplies its tree sum back (hel_warp/forest.py TARGET_SCALES, kernels/forest.py ``scale_factor``)."""
 TANGENT_EPS = 1e-6
 """Relative slip ``g_t/|g|`` below which the tangential direction is taken as zero (float32-safe)."""
 CENTRAL_OFFSET_TOL = 1e-6
@@ -378,3 +382,28 @@ def write_synthetic_zarr(path: str, samples: int, **kwargs) -> CollisionData:
     group.create_array("chunk_done", data=np.ones(1, dtype=bool))
     group.attrs.update(data.attrs | {"chunk_size": samples})
     return data
+
+
+def target_scale_values(name: str, raw_features: np.ndarray) -> np.ndarray:
+    """(N,) float32 multiplier of a scaled target for contact-form raw features (N, 6), as the kernel computes it
+    (kernels/forest.py ``scale_factor``, float32): 1, cos_angle or sqrt(max(1 - cos_angle^2, 0))."""
+    c = np.asarray(raw_features, dtype=np.float32)[:, CANONICAL_FEATURES["contact"].index("cos_angle")]
+    if name == "none":
+        return np.ones_like(c)
+    if name == "cos_angle":
+        return c.copy()
+    if name == "sin_angle":
+        return np.sqrt(np.maximum(np.float32(1.0) - c * c, np.float32(0.0)))
+    raise ConfigError(f"unknown target scale {name!r}; expected none, cos_angle or sin_angle")
+
+
+def scale_predictions(tree_sums: np.ndarray, target_scale: list | None, raw_features: np.ndarray) -> np.ndarray:
+    """XGBoost's predictions (N, T) of the trees -> the model's targets: each column times its scale (float32, the
+    engine's arithmetic). ``target_scale``: per target a name of TARGET_SCALE (None: unscaled)."""
+    out = np.asarray(tree_sums, dtype=np.float32).copy()
+    if out.ndim == 1:
+        out = out[:, None]
+    for k, name in enumerate(target_scale or ()):
+        if name != "none":
+            out[:, k] = out[:, k] * target_scale_values(name, raw_features)
+    return out

@@ -60,13 +60,10 @@ def trained_models(tmp_path_factory):
 def xgboost_targets(model_dir, form, v1, v2, n, d1, d2, rho1, rho2):
     """Reference: XGBoost's own predict of the ``form``'s targets from its raw features (n None: paper form)."""
     from surrogate.artifact import load_artifact
-    from surrogate.features import CANONICAL_FEATURES, raw_features, standardize
+    from surrogate.features import raw_features
 
     art = load_artifact(model_dir, boosters=True)
-    raw = raw_features(form, v1, v2, n, d1, d2, rho1, rho2).astype(np.float32)
-    cols = [CANONICAL_FEATURES[form].index(f) for f in art.features]
-    x = standardize(raw[:, cols], art.scaler_mean, art.scaler_std)
-    return np.column_stack([art.boosters[t].inplace_predict(x) for t in art.targets])
+    return art.predict(raw_features(form, v1, v2, n, d1, d2, rho1, rho2).astype(np.float32))
 
 
 def xgboost_pairwise(model_dir, v1, v2, n, d1, d2, rho1, rho2):
@@ -82,12 +79,32 @@ def xgboost_paper(model_dir, v1, v2, d1, d2, rho1, rho2):
     return xgboost_targets(model_dir, "paper", v1, v2, None, d1, d2, rho1, rho2)
 
 
-def impulse_n_mae(model_dir) -> float:
+def impulse_mae(model_dir, target: str) -> float:
+    """The model's test MAE of one contact target (metrics.json)."""
     import json
     import os
 
     with open(os.path.join(model_dir, "metadata.json")) as fh:
-        return float(json.load(fh)["metrics"]["targets"]["impulse_n"]["mae"])
+        return float(json.load(fh)["metrics"]["targets"][target]["mae"])
+
+
+def impulse_n_mae(model_dir) -> float:
+    return impulse_mae(model_dir, "impulse_n")
+
+
+def dem_outcome(v1, v2, n):
+    """The project's DEM (hel_warp.impact, the data set's material: Material(friction=0), D, RHO) on the impact of
+    v1, v2 whose first-touch normal from 1 to 2 is n: the post-collision velocities (v1', v2')."""
+    from hel_warp.impact import place_just_apart, simulate_pairs, stable_time_step
+    from hel_warp.material import Material
+
+    m = Material(friction=0.0)
+    dt = float(stable_time_step(0.5 * D, RHO, m.youngs_modulus, m.poisson_ratio, float(np.linalg.norm(v1 - v2))))
+    x1, x2 = place_just_apart(normal=n, velocity1=v1, velocity2=v2, radius1=0.5 * D, radius2=0.5 * D, dt=dt)
+    res = simulate_pairs(x1=x1, x2=x2, v1=v1, v2=v2, radius1=0.5 * D, density1=RHO, youngs1=m.youngs_modulus,
+                         poisson1=m.poisson_ratio, restitution=m.restitution, friction=0.0)
+    assert bool(res.separated[0])
+    return np.asarray(res.velocity1[0], np.float64), np.asarray(res.velocity2[0], np.float64)
 
 
 def make_particles(x, v, *, radius=0.5 * D, density=RHO, weight=1.0, stream=0):
@@ -132,11 +149,17 @@ def test_pairwise_binary_collision_matches_xgboost_and_the_closed_form(trained_m
     r1, r2 = xgboost_pairwise(trained_models["contact"], v[:1], v[1:], n[None], D, D, RHO, RHO)
     g = np.linalg.norm(v[0] - v[1])
     assert np.abs(after - np.vstack([r1, r2])).max() <= 1e-5 * g
-    # physics: frictionless restitution impulse; the model's error on impulse_n (test MAE, 5x for one
-    # point) scales by m*|g|/m = |g|/2 in the velocities; plus the DEM's restitution calibration (0.3 %)
-    c1, c2 = closed_form(v[0], v[1], n, E_REST)
-    tol = g * (0.5 * 5.0 * impulse_n_mae(trained_models["contact"]) + 0.003)
-    assert np.abs(after[0] - c1).max() <= tol and np.abs(after[1] - c2).max() <= tol
+    # physics: the model's error on the impulse (test MAE of both targets, 5x for one point) scales by m*|g|/m =
+    # |g|/2 in the velocities; against the data set's DEM on this impact (the soft frictionless spheres turn their
+    # centre line during the contact: at 35 deg the DEM's impulse is 1.4 % below the hard-sphere closed form, and
+    # has a tangential part), and against the closed form at head-on incidence (plus the DEM's restitution
+    # calibration, 0.3 %)
+    tol = g * 0.5 * 5.0 * (impulse_n_mae(trained_models["contact"]) + impulse_mae(trained_models["contact"], "impulse_t"))
+    d1, d2 = dem_outcome(v[0], v[1], n)
+    assert np.abs(after[0] - d1).max() <= tol and np.abs(after[1] - d2).max() <= tol
+    if angle == 0.0:
+        c1, c2 = closed_form(v[0], v[1], n, E_REST)
+        assert np.abs(after[0] - c1).max() <= tol + 0.003 * g and np.abs(after[1] - c2).max() <= tol + 0.003 * g
     # momentum: equal and opposite impulses (float32 velocity round-off)
     assert np.abs(momentum(p) - p0).max() <= 1e-6 * np.abs(p.mass_numpy()[0] * v).sum()
     c = strategy.counts()

@@ -213,16 +213,14 @@ def test_forest_at_the_cuda_rows_per_thread_equals_the_cpu_default_and_xgboost(d
     bit (the thresholds are folded so float32 branches as XGBoost does; the leaf sums in the same order)."""
     from hel_warp.forest import ForestPredictor, load_forest
     from surrogate.artifact import load_artifact
-    from surrogate.features import CANONICAL_FEATURES, form_rows, standardize, synthetic_collisions
+    from surrogate.features import form_rows, synthetic_collisions
 
     model_dir = trained_models["contact"]
     art = load_artifact(model_dir, boosters=True)
     flat = load_forest(model_dir)
     rows = form_rows("contact", synthetic_collisions(3000, seed=4, central_fraction=0.5))
     raw = np.ascontiguousarray(rows.features, dtype=np.float32)
-    cols = [CANONICAL_FEATURES["contact"].index(f) for f in art.features]
-    ref = np.column_stack([art.boosters[t].inplace_predict(standardize(raw[:, cols], art.scaler_mean, art.scaler_std))
-                           for t in art.targets])
+    ref = art.predict(raw)
     outs = {}
     for layout, rows_per_thread in (("explicit", 1), ("explicit", 64), ("perfect", None)):
         predictor = ForestPredictor(flat, device=device, layout=layout, rows_per_thread=rows_per_thread)

@@ -29,6 +29,9 @@ def add_parser(subparsers):
     p.add_argument("--jobs", type=int, default=2, help="trials run side by side (default 2)")
     p.add_argument("--search-space", default=None, metavar="JSON",
                    help='overrides of the tuned ranges, e.g. \'{"n_estimators": [800, 3000], "max_depth": [8, 12]}\'')
+    p.add_argument("--no-target-scale", action="store_true",
+                   help="contact form: fit impulse_n and impulse_t as they are, not per cos_angle / sin_angle "
+                        "(the default: fewer, shallower trees for the same error)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--no-report", action="store_true", help="skip the report figures")
     add_json_flag(p)
@@ -56,7 +59,8 @@ def run(args) -> int:
                               ) from None
     config = TrainConfig(form=args.form, trials=args.trials, storage=args.storage, timeout=args.timeout,
                          seed=args.seed, nthread=args.nthread, jobs=args.jobs, search_space=space,
-                         progress=not args.no_progress and sys.stderr.isatty(), report=not args.no_report)
+                         progress=not args.no_progress and sys.stderr.isatty(), report=not args.no_report,
+                         target_scale=not args.no_target_scale)
     data = load_collision_data(args.data, samples_limit=args.samples_limit)
     log = (lambda msg: print(msg, file=sys.stderr)) if args.json else print
     metadata = train(data, args.out, config, log=log)
