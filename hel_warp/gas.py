@@ -29,6 +29,7 @@ overshoot in dense cells at large dt.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -184,13 +185,50 @@ class GasField:
             target.assign(values)
 
 
-class GasSolver:
-    """One gas step per call; fixed data (domain, config) here, changing data in ``GasField``."""
+LAUNCH_OVER = ("fluid", "box")
+"""What ``GasSolver`` launches its cell and face kernels over (``launch_over``)."""
 
-    def __init__(self, domain: FlowDomain, config: GasConfig | None = None, device=None):
+
+def _index_list(mask: np.ndarray, device) -> wp.array:
+    """The (i, j, k) of the true entries of ``mask``, in ascending flat order, as a ``wp.vec3i`` array."""
+    return wp.array(np.argwhere(mask).astype(np.int32).reshape(-1, 3), dtype=wp.vec3i, device=device)
+
+
+def _touches_fluid(fluid: np.ndarray, axis: int, periodic: bool) -> np.ndarray:
+    """Faces of ``axis`` with a fluid cell on either side (the periodic wrap as ``wrap_cell``): the faces whose
+    eps_f and kappa are means over cells (kernels/gas.py ``face_coefficients_kernel``)."""
+    n = fluid.shape[axis]
+    index = np.arange(n + 1)
+    out = np.zeros(tuple(s + (a == axis) for a, s in enumerate(fluid.shape)), dtype=bool)
+    for cell in (index - 1, index):
+        valid = (cell >= 0) & (cell < n)
+        if periodic:
+            cell, valid = cell % n, np.ones_like(valid)
+        side = np.take(fluid, np.clip(cell, 0, n - 1), axis=axis)
+        shape = [1, 1, 1]
+        shape[axis] = n + 1
+        out |= side & valid.reshape(shape)
+    return out
+
+
+class GasSolver:
+    """One gas step per call; fixed data (domain, config, index lists) here, changing data in ``GasField``.
+
+    ``launch_over``: ``'fluid'`` (default) launches the cell kernels over the fluid cells and the face kernels
+    over the faces they update (solved faces; faces next to a fluid cell for eps_f and kappa; alias faces for the
+    periodic copy); the solid cells and the faces away from the fluid hold constants (eps_f 1, velocity 0, nu_t 0,
+    pressure 0, grad p' the imposed mean gradient; face eps_f 1, kappa 0), written once per ``GasField``. ``'box'``
+    launches the same kernels over every cell and face of the box, every step (the reference the fluid launches
+    are tested against: the same fields)."""
+
+    def __init__(self, domain: FlowDomain, config: GasConfig | None = None, device=None, *,
+                 launch_over: str = "fluid"):
+        if launch_over not in LAUNCH_OVER:
+            raise ConfigError(f"launch_over must be one of {LAUNCH_OVER} (got {launch_over!r})")
         self.domain = domain
         self.config = config or GasConfig()
         self.device = wp.get_device(device)
+        self.launch_over = launch_over
         grid = domain.grid
         self.grid_info = grid.info()
         self._cells = grid.shape
@@ -200,21 +238,31 @@ class GasSolver:
             shape = list(grid.shape)
             shape[axis] += 1
             self._face_shapes.append(tuple(shape))
-        n_max = max(int(np.prod(s)) for s in self._face_shapes)
         dev = self.device
-        self._rhs = wp.zeros(n_max, dtype=wp.float64, device=dev)
-        self._x = wp.zeros(n_max, dtype=wp.float64, device=dev)
-        self._diag = wp.zeros(n_max, dtype=wp.float64, device=dev)
-        self._active = wp.zeros(self._n_cells, dtype=wp.int32, device=dev)
-        self._coef = wp.zeros((n_max, 6), dtype=wp.float64, device=dev)
-        self._neighbour = wp.zeros((n_max, 6), dtype=wp.int32, device=dev)
-        self._box = K.make_stencil(self._diag, self._coef, self._neighbour)  # what the assembly kernels write
+        fluid = domain.cell_fluid.numpy() != 0
+        box = launch_over == "box"
+        # index lists (kernels/gas.py "Launches"), built once from the mask and the face types
+        self._fluid_cells = _index_list(np.ones_like(fluid) if box else fluid, dev)
+        """Cells the cell kernels run over every step."""
+        self._solid_cells = _index_list(~fluid, dev)
+        """Cells that hold the solid constants (written once per GasField)."""
+        self._solved_faces, self._coefficient_faces, self._alias_faces, self._far_faces = [], [], [], []
+        solved_masks = []
+        for axis, types in enumerate((domain.face_type.x, domain.face_type.y, domain.face_type.z)):
+            t = types.numpy()
+            solved = (t == int(K.FACE_FLUID)) | (t == int(K.FACE_OUTLET))
+            near = _touches_fluid(fluid, axis, bool(grid.periodic[axis]))
+            every = np.ones_like(solved)
+            solved_masks.append(solved.ravel())
+            self._solved_faces.append(_index_list(every if box else solved, dev))
+            self._coefficient_faces.append(_index_list(every if box else near, dev))
+            self._alias_faces.append(_index_list(every if box else t == int(K.FACE_ALIAS), dev))
+            self._far_faces.append(_index_list(~near, dev))
         self._fluid_sum = wp.zeros(3, dtype=wp.float64, device=dev)
         # solved rows only (kernels/gas.py "compacted systems"): fluid cells, solved faces per axis
-        self._systems = {"pressure": self._row_map(domain.cell_fluid.numpy().ravel() != 0)}
-        for axis, types in enumerate((domain.face_type.x, domain.face_type.y, domain.face_type.z)):
-            t = types.numpy().ravel()
-            self._systems[axis] = self._row_map((t == int(K.FACE_FLUID)) | (t == int(K.FACE_OUTLET)))
+        self._systems = {"pressure": self._row_map(fluid.ravel())}
+        for axis in range(3):
+            self._systems[axis] = self._row_map(solved_masks[axis])
         self._pressure_mg = None
         if self.config.pressure_preconditioner == "multigrid":
             self._pressure_mg = AggregationMultigrid(self._systems["pressure"][0].numpy(), grid.shape,
@@ -223,9 +271,13 @@ class GasSolver:
         self._c_rhs, self._c_x, self._c_diag = (wp.zeros(n_rows, dtype=wp.float64, device=dev) for _ in range(3))
         self._c_coef = wp.zeros((n_rows, 6), dtype=wp.float64, device=dev)
         self._c_neighbour = wp.zeros((n_rows, 6), dtype=wp.int32, device=dev)
+        self._c_active = wp.zeros(n_rows, dtype=wp.int32, device=dev)
+        self._c_full = K.make_stencil(self._c_diag, self._c_coef, self._c_neighbour)  # what the assembly kernels write
         self._pcg = [wp.zeros(n_rows, dtype=wp.float64, device=dev) for _ in range(4)]  # r, z, p, Ap
         self._scalars = wp.zeros(4, dtype=wp.float64, device=dev)
         self._pivot = wp.zeros(n_rows, dtype=wp.float64, device=dev)
+        self._pressure_increment = wp.zeros(self._n_cells, dtype=wp.float64, device=dev)
+        """dp of the last projection (flat, box-sized; 0 in solid cells)."""
         solver = self.config.linear_solver
         # the CUDA branch (warp.optim.linear.cg, our V-cycle as M) runs on the CPU too: tests/test_device_paths.py
         self.linear_solver = ("warp" if self.device.is_cuda else "native") if solver == "auto" else solver
@@ -233,6 +285,7 @@ class GasSolver:
         self._bad = wp.zeros(1, dtype=wp.int32, device=dev)
         self._velocity_tmp = GasField._faces(grid, dev)
         self._cell_kappa = wp.zeros(grid.shape, dtype=float, device=dev)
+        self._primed = weakref.WeakSet()  # GasFields whose solid cells and far faces hold the constants
         self.last_iterations = {"pressure": 0, "viscous": [0, 0, 0]}
         """CG iterations of the last step (diagnostic)."""
 
@@ -248,8 +301,10 @@ class GasSolver:
         params.dt = float(dt)
         return params
 
-    def _launch(self, kernel, dim, inputs):
-        wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+    def _launch(self, kernel, items, inputs):
+        """One thread per entry of the index list ``items`` (the list is the kernel's input named in ``inputs``)."""
+        if items.shape[0]:
+            wp.launch(kernel, dim=items.shape[0], inputs=inputs, device=self.device)
 
     def _row_map(self, solved: np.ndarray) -> tuple:
         """(rows, box_to_row) of a system whose solved box rows are ``solved`` (see ``_solve``)."""
@@ -263,20 +318,37 @@ class GasSolver:
         """The first ``n`` rows of the compact system arrays."""
         return K.make_stencil(self._c_diag[:n], self._c_coef[:n], self._c_neighbour[:n])
 
+    def _prime(self, gas: GasField) -> None:
+        """Once per GasField: the constants of the solid cells and of the faces away from the fluid, which the
+        fluid launches never write (the cell kernels' and ``face_coefficients_kernel``'s solid branches)."""
+        if gas in self._primed:
+            return
+        g, dom, params, solid = self.grid_info, self.domain, self._params(1.0), self._solid_cells
+        for target in (gas.cell_eps_f, gas.cell_eps_f_prev):
+            self._launch(K.eps_f_kernel, solid, [solid, gas.cell_eps_s, dom.cell_fluid, params.eps_min, target])
+        self._launch(K.cell_velocity_kernel, solid, [g, solid, dom.cell_fluid, gas.face_velocity, gas.cell_velocity])
+        self._launch(K.smagorinsky_kernel, solid, [g, params, solid, dom.cell_fluid, gas.cell_velocity,
+                                                   gas.cell_eps_f, gas.cell_nu_t, self._cell_kappa])
+        self._launch(K.cell_pressure_kernel, solid, [g, params, solid, dom.cell_fluid, dom.face_type, dom.face_bc,
+                                                     gas.pressure_solution, gas.cell_pressure, gas.cell_grad_p])
+        for axis in range(3):
+            far = self._far_faces[axis]
+            self._launch(K.face_coefficients_kernel, far, [g, axis, far, dom.cell_fluid, gas.cell_eps_f,
+                                                           self._cell_kappa, gas.face_eps, gas.face_kappa])
+        self._primed.add(gas)
+
     def _solve(self, system, what: str, tol: float, maxiter: int, atol_floor: float = 0.0,
                relaxation: float = 0.0, multigrid: AggregationMultigrid | None = None) -> int:
-        """CG (see ``GasConfig.linear_solver``) of the box-sized system in the scratch arrays (``_rhs``,
-        ``_x`` as the first guess, ``_diag``, ``_coef``, ``_neighbour``) over its solved rows only
-        (``system``: a key of ``_systems``); the solution is written back into ``_x``. Preconditioner:
-        ``multigrid`` if given, else (modified) IC(0) on the native solver and Jacobi on warp's."""
-        rows, box_to_row = self._systems[system]
+        """CG (see ``GasConfig.linear_solver``) of the compact system the assembly kernels wrote (``_c_rhs``,
+        ``_c_x`` as the first guess, ``_c_diag``, ``_c_coef``, ``_c_neighbour``; ``system``: a key of
+        ``_systems``); the solution is left in ``_c_x``. Preconditioner: ``multigrid`` if given, else (modified)
+        IC(0) on the native solver and Jacobi on warp's."""
+        rows, _ = self._systems[system]
         n = rows.shape[0]
         if n == 0:
             return 0
         rhs, x, diag = self._c_rhs[:n], self._c_x[:n], self._c_diag[:n]
         A = self._compact(n)
-        wp.launch(K.gather_system_kernel, dim=n, inputs=[rows, box_to_row, self._rhs, self._x, self._box],
-                  outputs=[rhs, x, A], device=self.device)
 
         def matvec(xv, yv, zv, alpha, beta):
             wp.launch(K.stencil_matvec_kernel, dim=n, inputs=[A, xv, yv, wp.float64(alpha), wp.float64(beta)],
@@ -302,7 +374,6 @@ class GasSolver:
                                    matvec=jacobi if multigrid is None else vcycle)
             iterations, residual, atol = wpl.cg(operator, rhs, x, tol=tol, atol=atol_floor, maxiter=maxiter, M=M, check_every=10,
                                                 use_cuda_graph=False)
-        wp.launch(K.scatter_solution_kernel, dim=n, inputs=[rows, x], outputs=[self._x], device=self.device)
         if not np.isfinite(residual):
             raise HelWarpError(f"{what} solve produced NaN/inf (residual {residual}); the gas state blew up: "
                                "reduce dt or check the inputs (eps_s, momentum source) for NaN")
@@ -366,89 +437,103 @@ class GasSolver:
     # ------------------------------------------------------------------ sub-steps
     def update_cell_state(self, gas: GasField) -> None:
         """eps_f from eps_s, cell velocity, Smagorinsky viscosity and face coefficients."""
-        g, dom, params = self.grid_info, self.domain, self._params(1.0)
-        self._launch(K.eps_f_kernel, self._cells, [gas.cell_eps_s, dom.cell_fluid, params.eps_min, gas.cell_eps_f])
-        self._launch(K.cell_velocity_kernel, self._cells, [g, dom.cell_fluid, gas.face_velocity, gas.cell_velocity])
-        self._launch(K.smagorinsky_kernel, self._cells,
-                     [g, params, dom.cell_fluid, gas.cell_velocity, gas.cell_eps_f, gas.cell_nu_t, self._cell_kappa])
+        self._prime(gas)
+        g, dom, params, cells = self.grid_info, self.domain, self._params(1.0), self._fluid_cells
+        self._launch(K.eps_f_kernel, cells, [cells, gas.cell_eps_s, dom.cell_fluid, params.eps_min, gas.cell_eps_f])
+        self._launch(K.cell_velocity_kernel, cells, [g, cells, dom.cell_fluid, gas.face_velocity, gas.cell_velocity])
+        self._launch(K.smagorinsky_kernel, cells, [g, params, cells, dom.cell_fluid, gas.cell_velocity,
+                                                   gas.cell_eps_f, gas.cell_nu_t, self._cell_kappa])
         for axis in range(3):
-            self._launch(K.face_coefficients_kernel, self._face_shapes[axis],
-                         [g, axis, dom.cell_fluid, gas.cell_eps_f, self._cell_kappa, gas.face_eps, gas.face_kappa])
+            faces = self._coefficient_faces[axis]
+            self._launch(K.face_coefficients_kernel, faces, [g, axis, faces, dom.cell_fluid, gas.cell_eps_f,
+                                                             self._cell_kappa, gas.face_eps, gas.face_kappa])
 
     def advect(self, gas: GasField, dt: float) -> None:
-        """Semi-Lagrangian advection of the face velocities (result in place)."""
-        g, dom = self.grid_info, self.domain
+        """Semi-Lagrangian advection of the face velocities (result in place): into scratch faces from the old
+        field, then copied back over the solved faces."""
+        g, dom, tmp = self.grid_info, self.domain, self._velocity_tmp
         for axis in range(3):
-            self._launch(K.advect_kernel, self._face_shapes[axis],
-                         [g, axis, dom.face_type, gas.face_velocity, float(dt), self._velocity_tmp])
-        gas.face_velocity, self._velocity_tmp = self._velocity_tmp, gas.face_velocity
+            faces = self._solved_faces[axis]
+            self._launch(K.advect_kernel, faces, [g, axis, faces, dom.face_type, gas.face_velocity, float(dt), tmp])
+        for axis in range(3):
+            faces = self._solved_faces[axis]
+            self._launch(K.copy_faces_kernel, faces, [axis, faces, tmp, gas.face_velocity])
 
     def add_sources(self, gas: GasField, dt: float) -> None:
         """Particle momentum source and imposed mean pressure gradient."""
         g, dom, params = self.grid_info, self.domain, self._params(dt)
         for axis in range(3):
-            self._launch(K.momentum_source_kernel, self._face_shapes[axis],
-                         [g, axis, params, dom.face_type, dom.cell_fluid, gas.face_eps,
-                          gas.cell_momentum_source, gas.face_velocity])
+            faces = self._solved_faces[axis]
+            self._launch(K.momentum_source_kernel, faces, [g, axis, params, faces, dom.face_type, dom.cell_fluid,
+                                                           gas.face_eps, gas.cell_momentum_source, gas.face_velocity])
 
     def diffuse(self, gas: GasField, dt: float) -> None:
         """Backward-Euler viscous step, one CG solve per component."""
         g, dom, params, c = self.grid_info, self.domain, self._params(dt), self.config
         for axis in range(3):
-            shape = self._face_shapes[axis]
-            self._launch(K.viscous_rhs_kernel, shape,
-                         [g, axis, params, dom.face_type, dom.face_bc, gas.face_eps, gas.face_kappa,
-                          gas.face_velocity, self._rhs, self._x, self._box])
+            faces, face_row = self._solved_faces[axis], self._systems[axis][1]
+            self._launch(K.viscous_rhs_kernel, faces,
+                         [g, axis, params, faces, face_row, dom.face_type, dom.face_bc, gas.face_eps, gas.face_kappa,
+                          gas.face_velocity, self._c_rhs, self._c_x, self._c_full])
             self.last_iterations["viscous"][axis] = self._solve(
                 axis, f"viscous ({'xyz'[axis]})", c.viscous_tolerance, c.viscous_max_iterations)
-            self._launch(K.store_component_kernel, shape, [g, axis, self._x, gas.face_velocity])
+            self._launch(K.store_component_kernel, faces, [g, axis, faces, face_row, self._c_x, gas.face_velocity])
 
     def subtract_pressure_gradient(self, gas: GasField, dt: float) -> None:
         """Predictor: u -= (dt/rho) grad p^n (incremental projection, Goda 1979), so that a steady
         balance of force and pressure (e.g. a fluidised bed) is a fixed point of the step."""
         g, dom, params = self.grid_info, self.domain, self._params(dt)
         for axis in range(3):
-            self._launch(K.pressure_correct_kernel, self._face_shapes[axis],
-                         [g, axis, params, dom.face_type, dom.face_bc, gas.pressure_solution, 1.0, gas.face_velocity])
+            faces = self._solved_faces[axis]
+            self._launch(K.pressure_correct_kernel, faces, [g, axis, params, faces, dom.face_type, dom.face_bc,
+                                                            gas.pressure_solution, 1.0, gas.face_velocity])
 
     def project(self, gas: GasField, dt: float) -> None:
         """Projection onto d(eps_f)/dt + div(eps_f u) = 0 with a pressure increment dp (outlet dp = 0);
         p^{n+1} = p^n + dp; sets the cell pressure and its gradient."""
-        g, dom, params, c = self.grid_info, self.domain, self._params(dt), self.config
-        n = self._n_cells
+        self._prime(gas)
+        g, dom, params, c, cells = self.grid_info, self.domain, self._params(dt), self.config, self._fluid_cells
+        cell_row = self._systems["pressure"][1]
+        n = self._systems["pressure"][0].shape[0]
         self._fluid_sum.zero_()
-        self._launch(K.pressure_rhs_kernel, self._cells,
-                     [g, params, dom.cell_fluid, dom.face_type, dom.face_bc, gas.face_eps, gas.face_velocity,
-                      gas.cell_eps_f, gas.cell_eps_f_prev, 0.0, self._rhs, self._box, self._active, self._fluid_sum])
-        if not dom.has_outlet:
-            self._launch(K.remove_mean_kernel, n, [self._active, self._fluid_sum, self._rhs])
-        self._x.zero_()
+        self._launch(K.pressure_rhs_kernel, cells,
+                     [g, params, cells, cell_row, dom.cell_fluid, dom.face_type, dom.face_bc, gas.face_eps,
+                      gas.face_velocity, gas.cell_eps_f, gas.cell_eps_f_prev, 0.0, self._c_rhs, self._c_full,
+                      self._c_active, self._fluid_sum])
+        if not dom.has_outlet and n:
+            wp.launch(K.remove_mean_kernel, dim=n, inputs=[self._c_active[:n], self._fluid_sum, self._c_rhs[:n]],
+                      device=self.device)
+        self._c_x.zero_()
         # floor: float32 round-off of the stored face velocities, relative to the gross flux
         gross = float(np.sqrt(self._fluid_sum.numpy()[2]))
         self.last_iterations["pressure"] = self._solve("pressure", "pressure", c.pressure_tolerance,
                                                        c.pressure_max_iterations, atol_floor=FLOAT32_FLOOR * gross,
                                                        relaxation=c.pressure_preconditioner_relaxation,
                                                        multigrid=self._pressure_mg)
-        dp = self._x[:n]
-        self._launch(K.accumulate_kernel, n, [dp, gas.pressure_solution])
+        dp = self._pressure_increment
+        self._launch(K.pressure_increment_kernel, cells, [g, cells, cell_row, self._c_x, dp, gas.pressure_solution])
         for axis in range(3):
-            self._launch(K.pressure_correct_kernel, self._face_shapes[axis],
-                         [g, axis, params, dom.face_type, dom.face_bc, dp, 0.0, gas.face_velocity])
-            self._launch(K.periodic_sync_kernel, self._face_shapes[axis], [g, axis, gas.face_velocity])
-        self._launch(K.cell_pressure_kernel, self._cells,
-                     [g, params, dom.cell_fluid, dom.face_type, dom.face_bc, gas.pressure_solution,
+            faces = self._solved_faces[axis]
+            self._launch(K.pressure_correct_kernel, faces, [g, axis, params, faces, dom.face_type, dom.face_bc, dp,
+                                                            0.0, gas.face_velocity])
+            alias = self._alias_faces[axis]
+            self._launch(K.periodic_sync_kernel, alias, [g, axis, alias, gas.face_velocity])
+        self._launch(K.cell_pressure_kernel, cells,
+                     [g, params, cells, dom.cell_fluid, dom.face_type, dom.face_bc, gas.pressure_solution,
                       gas.cell_pressure, gas.cell_grad_p])
-        self._launch(K.cell_velocity_kernel, self._cells, [g, dom.cell_fluid, gas.face_velocity, gas.cell_velocity])
+        self._launch(K.cell_velocity_kernel, cells, [g, cells, dom.cell_fluid, gas.face_velocity, gas.cell_velocity])
 
     # ------------------------------------------------------------------ the step
     def step(self, gas: GasField, dt: float) -> None:
         """Advance ``gas`` by ``dt`` in place (ARCHITECTURE.md, step 2)."""
         if not dt > 0.0:
             raise ConfigError(f"gas time step dt must be > 0 (got {dt!r})")
+        self._prime(gas)
+        cells = self._fluid_cells
         if not gas._started:
             # first step: no history of eps_f, take d(eps_f)/dt = 0
-            self._launch(K.eps_f_kernel, self._cells,
-                         [gas.cell_eps_s, self.domain.cell_fluid, float(self.config.eps_f_min), gas.cell_eps_f_prev])
+            self._launch(K.eps_f_kernel, cells, [cells, gas.cell_eps_s, self.domain.cell_fluid,
+                                                 float(self.config.eps_f_min), gas.cell_eps_f_prev])
             gas._started = True
         else:
             wp.copy(gas.cell_eps_f_prev, gas.cell_eps_f)
@@ -459,8 +544,9 @@ class GasSolver:
         self.diffuse(gas, dt)
         self.project(gas, dt)
         if self.config.check_finite:
+            # the solid cells hold constants: the fluid cells are where a NaN can appear
             self._bad.zero_()
-            self._launch(K.finite_check_kernel, self._cells, [gas.cell_velocity, gas.cell_pressure, self._bad])
+            self._launch(K.finite_check_kernel, cells, [cells, gas.cell_velocity, gas.cell_pressure, self._bad])
             if int(self._bad.numpy()[0]) > 0:
                 raise HelWarpError(f"gas field holds NaN/inf in {int(self._bad.numpy()[0])} cells after the step; "
                                    "reduce dt or check eps_s and the momentum source for NaN")

@@ -21,6 +21,12 @@ Layout: face arrays of axis ``a`` have shape ``shape + e_a``; face ``(i,j,k)`` o
 at ``origin + (i, j+1/2, k+1/2) h`` between cells ``i-1`` and ``i``. On a periodic axis the
 last face (index ``n_a``) is an alias of face 0 (type ``FACE_ALIAS``), synced after writes.
 Linear-solver vectors are flat float64 arrays in ``(i*ny + j)*nz + k`` order.
+
+Launches: every cell and face kernel runs one thread per entry of an index list (``cells`` / ``faces``,
+``wp.array(dtype=wp.vec3i)``, built once by ``GasSolver``): the fluid cells and the faces a kernel updates,
+not the whole box (on the colliding-streams rig 34,768 of 102,400 cells are fluid). The kernels keep their
+branches for solid cells and fixed faces, so a list of the whole box gives the same fields
+(``GasSolver(launch_over="box")``, the reference of tests/test_gas.py).
 """
 
 import warp as wp
@@ -248,6 +254,7 @@ def face_position(g: GridInfo, axis: int, f: wp.vec3i):
 def advect_kernel(
     g: GridInfo,
     axis: int,
+    faces: wp.array(dtype=wp.vec3i),
     types: FaceInt,
     vel_old: FaceFloat,
     dt: float,
@@ -255,8 +262,7 @@ def advect_kernel(
     vel_new: FaceFloat,
 ):
     """Semi-Lagrangian advection with an RK2 (midpoint) back-trace; fixed faces keep their value."""
-    i, j, k = wp.tid()
-    f = wp.vec3i(i, j, k)
+    f = faces[wp.tid()]
     t = get_t(types, axis, f)
     if is_solved(t):
         x = face_position(g, axis, f)
@@ -272,6 +278,7 @@ def advect_kernel(
 
 @wp.kernel
 def eps_f_kernel(
+    cells: wp.array(dtype=wp.vec3i),
     cell_eps_s: wp.array3d(dtype=float),
     cell_fluid: wp.array3d(dtype=wp.int32),
     eps_min: float,
@@ -279,7 +286,8 @@ def eps_f_kernel(
     cell_eps_f: wp.array3d(dtype=float),
 ):
     """eps_f = max(1 - eps_s, eps_min) in fluid cells, 1 in solid cells."""
-    i, j, k = wp.tid()
+    c = cells[wp.tid()]
+    i, j, k = c[0], c[1], c[2]
     if cell_fluid[i, j, k] != 0:
         cell_eps_f[i, j, k] = wp.clamp(1.0 - cell_eps_s[i, j, k], eps_min, 1.0)
     else:
@@ -289,14 +297,15 @@ def eps_f_kernel(
 @wp.kernel
 def cell_velocity_kernel(
     g: GridInfo,
+    cells: wp.array(dtype=wp.vec3i),
     cell_fluid: wp.array3d(dtype=wp.int32),
     vel: FaceFloat,
     # outputs
     cell_velocity: wp.array3d(dtype=wp.vec3),
 ):
     """Cell-centred velocity = mean of the two faces per axis (0 in solid cells)."""
-    i, j, k = wp.tid()
-    c = wp.vec3i(i, j, k)
+    c = cells[wp.tid()]
+    i, j, k = c[0], c[1], c[2]
     u = wp.vec3(0.0, 0.0, 0.0)
     if cell_fluid[i, j, k] != 0:
         for a in range(3):
@@ -317,6 +326,7 @@ def cell_value(g: GridInfo, field: wp.array3d(dtype=wp.vec3), c: wp.vec3i, fallb
 def smagorinsky_kernel(
     g: GridInfo,
     params: FlowParams,
+    cells: wp.array(dtype=wp.vec3i),
     cell_fluid: wp.array3d(dtype=wp.int32),
     cell_velocity: wp.array3d(dtype=wp.vec3),
     cell_eps_f: wp.array3d(dtype=float),
@@ -325,8 +335,8 @@ def smagorinsky_kernel(
     cell_kappa: wp.array3d(dtype=float),
 ):
     """nu_t = (C_s h)^2 sqrt(2 S:S) (Smagorinsky 1963), kappa = eps_f (mu + rho nu_t)."""
-    i, j, k = wp.tid()
-    c = wp.vec3i(i, j, k)
+    c = cells[wp.tid()]
+    i, j, k = c[0], c[1], c[2]
     grad = wp.mat33(0.0)
     for d in range(3):
         up = cell_value(g, cell_velocity, c + unit(d), c)
@@ -351,6 +361,7 @@ def smagorinsky_kernel(
 def face_coefficients_kernel(
     g: GridInfo,
     axis: int,
+    faces: wp.array(dtype=wp.vec3i),
     cell_fluid: wp.array3d(dtype=wp.int32),
     cell_eps_f: wp.array3d(dtype=float),
     cell_kappa: wp.array3d(dtype=float),
@@ -359,8 +370,7 @@ def face_coefficients_kernel(
     face_kappa: FaceFloat,
 ):
     """Face eps_f and eps_f mu_eff: mean over the adjacent fluid cells (1 and 0 if none)."""
-    i, j, k = wp.tid()
-    f = wp.vec3i(i, j, k)
+    f = faces[wp.tid()]
     eps_sum = float(0.0)
     kappa_sum = float(0.0)
     count = float(0.0)
@@ -384,6 +394,7 @@ def momentum_source_kernel(
     g: GridInfo,
     axis: int,
     params: FlowParams,
+    faces: wp.array(dtype=wp.vec3i),
     types: FaceInt,
     cell_fluid: wp.array3d(dtype=wp.int32),
     face_eps: FaceFloat,
@@ -395,8 +406,7 @@ def momentum_source_kernel(
     evenly over its two faces of this axis, so sum_f rho eps_f V du_f = sum_c J_c where both faces
     are free (periodic or interior); the half on a wall face goes to the wall, as the gas pressure
     would carry it there (a uniform source then gives the uniform grad p = S/eps_f of eq. 2)."""
-    i, j, k = wp.tid()
-    f = wp.vec3i(i, j, k)
+    f = faces[wp.tid()]
     t = get_t(types, axis, f)
     if not is_solved(t):
         return
@@ -415,16 +425,29 @@ def momentum_source_kernel(
 def periodic_sync_kernel(
     g: GridInfo,
     axis: int,
+    faces: wp.array(dtype=wp.vec3i),
     # outputs
     vel: FaceFloat,
 ):
     """Copy face 0 of a periodic axis onto its alias face n_a."""
-    i, j, k = wp.tid()
-    f = wp.vec3i(i, j, k)
+    f = faces[wp.tid()]
     if f[axis] == g.shape[axis] and g.periodic[axis] != 0:
         f0 = f
         f0[axis] = 0
         set_f(vel, axis, f, get_f(vel, axis, f0))
+
+
+@wp.kernel
+def copy_faces_kernel(
+    axis: int,
+    faces: wp.array(dtype=wp.vec3i),
+    source: FaceFloat,
+    # outputs
+    target: FaceFloat,
+):
+    """target = source on the listed faces of ``axis``."""
+    f = faces[wp.tid()]
+    set_f(target, axis, f, get_f(source, axis, f))
 
 
 # ----------------------------------------------------------------- implicit viscous step
@@ -483,6 +506,8 @@ def viscous_rhs_kernel(
     g: GridInfo,
     axis: int,
     params: FlowParams,
+    faces: wp.array(dtype=wp.vec3i),
+    face_row: wp.array(dtype=wp.int32),
     types: FaceInt,
     bc: FaceBc,
     face_eps: FaceFloat,
@@ -494,20 +519,18 @@ def viscous_rhs_kernel(
     A: Stencil,
 ):
     """Backward-Euler viscous system of one component: (rho eps/dt) u - div(kappa grad u) = (rho eps/dt) u*,
-    as a 7-point stencil (diag, coef, neighbour) for ``stencil_matvec_kernel``; fixed faces: identity rows."""
-    i, j, k = wp.tid()
-    f = wp.vec3i(i, j, k)
+    as a 7-point stencil (diag, coef, neighbour) for ``stencil_matvec_kernel``, written straight into the
+    compact system: row ``face_row[flat face index]`` (-1: a fixed face, no row; see "compacted systems")."""
+    f = faces[wp.tid()]
     shape = face_shape(g, axis)
-    row = flat_index(shape, f)
+    row = face_row[flat_index(shape, f)]
+    if row < 0:
+        return
     u_star = get_f(vel, axis, f)
     guess[row] = wp.float64(u_star)
     for m in range(6):
         A.coef[row, m] = wp.float64(0.0)
         A.neighbour[row, m] = row
-    if not is_solved(get_t(types, axis, f)):
-        rhs[row] = wp.float64(u_star)
-        A.diag[row] = wp.float64(1.0)
-        return
     h2 = g.spacing * g.spacing
     mass = params.rho * get_f(face_eps, axis, f) / params.dt
     kappa_f = get_f(face_kappa, axis, f)
@@ -521,7 +544,8 @@ def viscous_rhs_kernel(
                 c = 0.5 * (kappa_f + get_f(face_kappa, axis, nb)) / h2
                 a_diag = a_diag + c
                 A.coef[row, 2 * d + side] = wp.float64(c)
-                A.neighbour[row, 2 * d + side] = flat_index(shape, nb)
+                if c != 0.0:  # an unused slot points at the row itself
+                    A.neighbour[row, 2 * d + side] = face_row[flat_index(shape, nb)]
             elif kind == 2:
                 a_diag = a_diag + factor * kappa_f / h2
                 b = b + factor * kappa_f * value / h2
@@ -533,13 +557,17 @@ def viscous_rhs_kernel(
 def store_component_kernel(
     g: GridInfo,
     axis: int,
+    faces: wp.array(dtype=wp.vec3i),
+    face_row: wp.array(dtype=wp.int32),
     x: wp.array(dtype=wp.float64),
     # outputs
     vel: FaceFloat,
 ):
-    i, j, k = wp.tid()
-    f = wp.vec3i(i, j, k)
-    set_f(vel, axis, f, float(x[flat_index(face_shape(g, axis), f)]))
+    """u_f = x[row of f] on the solved faces (the viscous solution; fixed faces keep their value)."""
+    f = faces[wp.tid()]
+    row = face_row[flat_index(face_shape(g, axis), f)]
+    if row >= 0:
+        set_f(vel, axis, f, float(x[row]))
 
 
 # ----------------------------------------------------------------- pressure projection
@@ -549,6 +577,8 @@ def store_component_kernel(
 def pressure_rhs_kernel(
     g: GridInfo,
     params: FlowParams,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_row: wp.array(dtype=wp.int32),
     cell_fluid: wp.array3d(dtype=wp.int32),
     types: FaceInt,
     bc: FaceBc,
@@ -565,18 +595,17 @@ def pressure_rhs_kernel(
 ):
     """b_c = -(rho h^2/dt)(div(eps u*) + d eps/dt) + sum_outlet 2 eps_f p_out; and the matrix
     (A p)_c = diag_c p_c - sum_m coef_cm p_nb(c,m): diag = sum_fluid eps_f + sum_outlet 2 eps_f,
-    coef = eps_f on the 6 faces (0 on walls, inlets, outlets)."""
-    i, j, k = wp.tid()
-    c = wp.vec3i(i, j, k)
-    row = flat_index(g.shape, c)
+    coef = eps_f on the 6 faces (0 on walls, inlets, outlets); written straight into the compact system,
+    row ``cell_row[flat cell index]`` (-1: a solid cell, no row)."""
+    c = cells[wp.tid()]
+    i, j, k = c[0], c[1], c[2]
+    row = cell_row[flat_index(g.shape, c)]
+    if row < 0:
+        return
     active[row] = 0
     for m in range(6):
         A.coef[row, m] = wp.float64(0.0)
         A.neighbour[row, m] = row
-    if cell_fluid[i, j, k] == 0:
-        rhs[row] = wp.float64(0.0)
-        A.diag[row] = wp.float64(1.0)
-        return
     h = wp.float64(g.spacing)
     div = wp.float64(0.0)
     gross = wp.float64(0.0)
@@ -593,7 +622,8 @@ def pressure_rhs_kernel(
             if t == FACE_FLUID and cell_fluid[i, j, k] != 0:
                 a_diag = a_diag + eps
                 A.coef[row, 2 * a + side] = eps
-                A.neighbour[row, 2 * a + side] = flat_index(g.shape, wrap_cell(g, c + (2 * side - 1) * unit(a)))
+                if eps != wp.float64(0.0):  # an unused slot points at the row itself
+                    A.neighbour[row, 2 * a + side] = cell_row[flat_index(g.shape, wrap_cell(g, c + (2 * side - 1) * unit(a)))]
             elif t == FACE_OUTLET:
                 a_diag = a_diag + wp.float64(2.0) * eps
                 b = b + wp.float64(2.0) * eps * wp.float64(outlet_weight * get_f(bc.pressure, a, f))
@@ -645,14 +675,22 @@ def stencil_matvec_kernel(
 
 
 @wp.kernel
-def accumulate_kernel(
-    increment: wp.array(dtype=wp.float64),
+def pressure_increment_kernel(
+    g: GridInfo,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_row: wp.array(dtype=wp.int32),
+    x: wp.array(dtype=wp.float64),
     # outputs
+    increment: wp.array(dtype=wp.float64),
     total: wp.array(dtype=wp.float64),
 ):
-    """total += increment (pressure p^{n+1} = p^n + dp)."""
-    i = wp.tid()
-    total[i] = total[i] + increment[i]
+    """dp = x[row of c] (flat, box-sized) and p^{n+1} = p^n + dp on the fluid cells (solid cells keep 0)."""
+    c = cells[wp.tid()]
+    flat = flat_index(g.shape, c)
+    row = cell_row[flat]
+    if row >= 0:
+        increment[flat] = x[row]
+        total[flat] = total[flat] + x[row]
 
 
 @wp.kernel
@@ -693,6 +731,7 @@ def pressure_correct_kernel(
     g: GridInfo,
     axis: int,
     params: FlowParams,
+    faces: wp.array(dtype=wp.vec3i),
     types: FaceInt,
     bc: FaceBc,
     p: wp.array(dtype=wp.float64),
@@ -701,8 +740,7 @@ def pressure_correct_kernel(
     vel: FaceFloat,
 ):
     """u_f = u*_f - (dt/rho) dp/dx_axis on solved faces."""
-    i, j, k = wp.tid()
-    f = wp.vec3i(i, j, k)
+    f = faces[wp.tid()]
     if is_solved(get_t(types, axis, f)):
         gp = face_pressure_gradient(g, types, bc, p, outlet_weight, axis, f)
         set_f(vel, axis, f, get_f(vel, axis, f) - params.dt / params.rho * gp)
@@ -712,6 +750,7 @@ def pressure_correct_kernel(
 def cell_pressure_kernel(
     g: GridInfo,
     params: FlowParams,
+    cells: wp.array(dtype=wp.vec3i),
     cell_fluid: wp.array3d(dtype=wp.int32),
     types: FaceInt,
     bc: FaceBc,
@@ -721,8 +760,8 @@ def cell_pressure_kernel(
     cell_grad_p: wp.array3d(dtype=wp.vec3),
 ):
     """Cell pressure and grad p' = mean of the solved-face gradients + imposed mean gradient."""
-    i, j, k = wp.tid()
-    c = wp.vec3i(i, j, k)
+    c = cells[wp.tid()]
+    i, j, k = c[0], c[1], c[2]
     grad = -params.rho * params.body_accel
     if cell_fluid[i, j, k] != 0:
         for a in range(3):
@@ -743,61 +782,25 @@ def cell_pressure_kernel(
 
 @wp.kernel
 def finite_check_kernel(
+    cells: wp.array(dtype=wp.vec3i),
     cell_velocity: wp.array3d(dtype=wp.vec3),
     cell_pressure: wp.array3d(dtype=float),
     # outputs
     bad_count: wp.array(dtype=wp.int32),
 ):
-    i, j, k = wp.tid()
+    c = cells[wp.tid()]
+    i, j, k = c[0], c[1], c[2]
     u = cell_velocity[i, j, k]
     if not (wp.isfinite(u) and wp.isfinite(cell_pressure[i, j, k])):
         wp.atomic_add(bad_count, 0, 1)
 
 
 # ----------------------------------------------------------------- compacted systems
-# The assembly kernels write one row per cell (or face) of the box; rows of solid cells and fixed faces are
-# identity rows that never couple to the rest. The solvers work on the solved rows only (``rows``: their
-# box indices in ascending order, so IC(0) sees the same ordering and the arithmetic is unchanged): on the
-# colliding-streams rig 34,768 of 102,400 cells are fluid.
-
-
-@wp.kernel
-def gather_system_kernel(
-    rows: wp.array(dtype=wp.int32),
-    box_to_row: wp.array(dtype=wp.int32),
-    rhs: wp.array(dtype=wp.float64),
-    x: wp.array(dtype=wp.float64),
-    A: Stencil,
-    # outputs
-    c_rhs: wp.array(dtype=wp.float64),
-    c_x: wp.array(dtype=wp.float64),
-    Ac: Stencil,
-):
-    """Copy the solved rows of a box-sized system into compact arrays, neighbours renumbered. A nonzero
-    coupling always points at another solved row (fluid cell to fluid cell, solved face to solved face)."""
-    r = wp.tid()
-    row = rows[r]
-    c_rhs[r] = rhs[row]
-    c_x[r] = x[row]
-    Ac.diag[r] = A.diag[row]
-    for m in range(6):
-        c = A.coef[row, m]
-        nb = r
-        if c != wp.float64(0.0):
-            nb = box_to_row[A.neighbour[row, m]]
-        Ac.coef[r, m] = c
-        Ac.neighbour[r, m] = nb
-
-
-@wp.kernel
-def scatter_solution_kernel(
-    rows: wp.array(dtype=wp.int32),
-    c_x: wp.array(dtype=wp.float64),
-    # outputs
-    x: wp.array(dtype=wp.float64),
-):
-    r = wp.tid()
-    x[rows[r]] = c_x[r]
+# The linear solvers work on the solved rows only: the fluid cells (pressure) and the solved faces of one axis
+# (viscous), numbered in ascending box order (``GasSolver``'s ``cell_row`` / ``face_row`` maps: row of a box
+# index, -1 for a solid cell or fixed face), so IC(0) sees the same ordering as on the box. The assembly
+# kernels write these rows directly; a nonzero coupling always points at another solved row (fluid cell to
+# fluid cell, solved face to solved face).
 
 
 # ----------------------------------------------------------------- aggregation multigrid (pressure)
