@@ -206,41 +206,60 @@ def is_solved(t: int):
 
 
 @wp.func
-def sample_component(g: GridInfo, vel: FaceFloat, axis: int, x: wp.vec3):
-    """Trilinear value of face component ``axis`` at ``x`` (clamped / wrapped at the box)."""
+def sample_axis(g: GridInfo, axis: int, component: int, s: float):
+    """Lower and upper sample index along ``axis`` (wrapped on a periodic axis, else clamped to the cells, or to
+    the faces for the component normal to ``axis``) and the weight of the upper one, at grid coordinate ``s``."""
+    fl = wp.floor(s)
+    lo = int(fl)
+    hi = lo + 1
+    n = g.shape[axis]
+    if g.periodic[axis] != 0:
+        lo = (lo % n + n) % n
+        hi = (hi % n + n) % n
+    else:
+        upper = n - 1
+        if axis == component:
+            upper = n
+        lo = wp.clamp(lo, 0, upper)
+        hi = wp.clamp(hi, 0, upper)
+    return lo, hi, s - fl
+
+
+@wp.func
+def sample_array(g: GridInfo, values: wp.array3d(dtype=float), component: int, x: wp.vec3):
+    """Trilinear value at ``x`` of the face array ``values`` of ``component`` (clamped / wrapped at the box): the
+    corners summed in the order (x, y, z bits) 000, 100, 010, ..., 111, each weight a product in x, y, z order."""
     s = (x - g.origin) / g.spacing - wp.vec3(0.5, 0.5, 0.5)
-    s[axis] = s[axis] + 0.5
-    lo = wp.vec3i(0, 0, 0)
-    w = wp.vec3(0.0, 0.0, 0.0)
-    for d in range(3):
-        fl = wp.floor(s[d])
-        lo[d] = int(fl)
-        w[d] = s[d] - fl
+    s[component] = s[component] + 0.5
+    i0, i1, wx = sample_axis(g, 0, component, s[0])
+    j0, j1, wy = sample_axis(g, 1, component, s[1])
+    k0, k1, wz = sample_axis(g, 2, component, s[2])
+    ux, uy, uz = 1.0 - wx, 1.0 - wy, 1.0 - wz
     result = float(0.0)
-    for corner in range(8):
-        c = wp.vec3i(lo[0] + (corner & 1), lo[1] + ((corner >> 1) & 1), lo[2] + ((corner >> 2) & 1))
-        weight = float(1.0)
-        for d in range(3):
-            bit = (corner >> d) & 1
-            if bit == 1:
-                weight = weight * w[d]
-            else:
-                weight = weight * (1.0 - w[d])
-            n = g.shape[d]
-            upper = n - 1
-            if d == axis and g.periodic[d] == 0:
-                upper = n
-            if g.periodic[d] != 0:
-                c[d] = (c[d] % n + n) % n
-            else:
-                c[d] = wp.clamp(c[d], 0, upper)
-        result = result + weight * get_f(vel, axis, c)
+    result = result + ux * uy * uz * values[i0, j0, k0]
+    result = result + wx * uy * uz * values[i1, j0, k0]
+    result = result + ux * wy * uz * values[i0, j1, k0]
+    result = result + wx * wy * uz * values[i1, j1, k0]
+    result = result + ux * uy * wz * values[i0, j0, k1]
+    result = result + wx * uy * wz * values[i1, j0, k1]
+    result = result + ux * wy * wz * values[i0, j1, k1]
+    result = result + wx * wy * wz * values[i1, j1, k1]
     return result
 
 
 @wp.func
+def sample_component(g: GridInfo, vel: FaceFloat, axis: int, x: wp.vec3):
+    """Trilinear value of face component ``axis`` at ``x`` (``sample_array``)."""
+    if axis == 0:
+        return sample_array(g, vel.x, 0, x)
+    if axis == 1:
+        return sample_array(g, vel.y, 1, x)
+    return sample_array(g, vel.z, 2, x)
+
+
+@wp.func
 def sample_velocity(g: GridInfo, vel: FaceFloat, x: wp.vec3):
-    return wp.vec3(sample_component(g, vel, 0, x), sample_component(g, vel, 1, x), sample_component(g, vel, 2, x))
+    return wp.vec3(sample_array(g, vel.x, 0, x), sample_array(g, vel.y, 1, x), sample_array(g, vel.z, 2, x))
 
 
 @wp.func
