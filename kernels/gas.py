@@ -886,18 +886,46 @@ def mg_smooth_kernel(
 
 
 @wp.kernel
-def mg_restrict_kernel(
+def mg_smooth_from_zero_kernel(
+    A: Stencil,
+    colour: wp.array(dtype=wp.int32),
+    b: wp.array(dtype=wp.float64),
+    # outputs
+    z: wp.array(dtype=wp.float64),
+):
+    """z = 0, then the Gauss-Seidel update of the rows of colour 0, in one pass over every row: from z = 0 a row
+    of colour 0 (whose neighbours are all of other colours) gets b_r / diag_r (0 where diag is 0)."""
+    r = wp.tid()
+    z[r] = wp.float64(0.0)
+    if colour[r] == 0 and A.diag[r] > wp.float64(0.0):
+        z[r] = b[r] / A.diag[r]
+
+
+@wp.func
+def stencil_residual(A: Stencil, b: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64), row: int):
+    """(b - A x)_row, the arithmetic of ``stencil_matvec_kernel`` with alpha = -1, beta = 1."""
+    ax = A.diag[row] * x[row]
+    for m in range(6):
+        ax = ax - A.coef[row, m] * x[A.neighbour[row, m]]
+    return wp.float64(-1.0) * ax + wp.float64(1.0) * b[row]
+
+
+@wp.kernel
+def mg_residual_restrict_kernel(
     child_start: wp.array(dtype=wp.int32),
     children: wp.array(dtype=wp.int32),
-    residual: wp.array(dtype=wp.float64),
+    A: Stencil,
+    b: wp.array(dtype=wp.float64),
+    z: wp.array(dtype=wp.float64),
     # outputs
     c_b: wp.array(dtype=wp.float64),
 ):
-    """c_b = P^T residual: the sum over the block's fine rows, in a fixed order."""
+    """c_b = P^T (b - A z): the fine residual of the block's rows summed in a fixed order (one coarse row per
+    thread; the fine residual is not stored)."""
     C = wp.tid()
     acc = wp.float64(0.0)
     for idx in range(child_start[C], child_start[C + 1]):
-        acc = acc + residual[children[idx]]
+        acc = acc + stencil_residual(A, b, z, children[idx])
     c_b[C] = acc
 
 

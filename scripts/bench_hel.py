@@ -137,7 +137,8 @@ def bench_rig_gas(repeats: int, device) -> dict:
 
 def profile_rig_gas(rig_steps: int, device, top: int = 20) -> list[dict]:
     """CPU time per kernel of the rig's gas step: ``wp.launch`` wrapped by a timer for ``rig_steps`` steps
-    (CPU launches are synchronous, so a launch's CPU time is its kernel plus the host call). Sorted, largest
+    (CPU launches are synchronous, so a launch's CPU time is its kernel plus the host call; recorded launches
+    are timed at their replay, ``Launch.launch``). Sorted, largest
     first; the diagnostic behind the issue-14 notes on where the gas step's time goes."""
     import collections
 
@@ -156,14 +157,26 @@ def profile_rig_gas(rig_steps: int, device, top: int = 20) -> list[dict]:
         entry[1] += time.process_time() - start
         return result
 
-    wp.launch = timed_launch
+    from warp._src.context import Launch  # recorded launches (wp.launch(record_cmd=True)) replay through this
+
+    replay = Launch.launch
+
+    def timed_replay(self, *a, **k):
+        start = time.process_time()
+        result = replay(self, *a, **k)
+        entry = stats[self.kernel.key]
+        entry[0] += 1
+        entry[1] += time.process_time() - start
+        return result
+
+    wp.launch, Launch.launch = timed_launch, timed_replay
     try:
         start = time.process_time()
         for _ in range(rig_steps):
             solver.step(gas, dt)
         total = (time.process_time() - start) / rig_steps
     finally:
-        wp.launch = launch
+        wp.launch, Launch.launch = launch, replay
     rows = [{"kernel": key, "launches_per_step": c / rig_steps, "cpu_ms_per_step": 1e3 * t / rig_steps}
             for key, (c, t) in stats.items()]
     rows.sort(key=lambda r: -r["cpu_ms_per_step"])
