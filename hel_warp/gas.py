@@ -285,6 +285,7 @@ class GasSolver:
         self._bad = wp.zeros(1, dtype=wp.int32, device=dev)
         self._velocity_tmp = GasField._faces(grid, dev)
         self._cell_kappa = wp.zeros(grid.shape, dtype=float, device=dev)
+        self._pcg_recorded = {}  # system -> the native PCG's recorded launches (_pcg_launches)
         self._primed = weakref.WeakSet()  # GasFields whose solid cells and far faces hold the constants
         self.last_iterations = {"pressure": 0, "viscous": [0, 0, 0]}
         """CG iterations of the last step (diagnostic)."""
@@ -349,17 +350,16 @@ class GasSolver:
             return 0
         rhs, x, diag = self._c_rhs[:n], self._c_x[:n], self._c_diag[:n]
         A = self._compact(n)
-
-        def matvec(xv, yv, zv, alpha, beta):
-            wp.launch(K.stencil_matvec_kernel, dim=n, inputs=[A, xv, yv, wp.float64(alpha), wp.float64(beta)],
-                      outputs=[zv], device=self.device)
-
         if multigrid is not None:
             multigrid.setup(A)
         if self.linear_solver == "native":
-            iterations, residual, atol = self._native_pcg(n, A, matvec, tol, maxiter, atol_floor, relaxation,
+            iterations, residual, atol = self._native_pcg(system, n, A, tol, maxiter, atol_floor, relaxation,
                                                           multigrid)
         else:
+            def matvec(xv, yv, zv, alpha, beta):
+                wp.launch(K.stencil_matvec_kernel, dim=n, inputs=[A, xv, yv, wp.float64(alpha), wp.float64(beta)],
+                          outputs=[zv], device=self.device)
+
             operator = wpl.LinearOperator(shape=(n, n), dtype=wp.float64, device=self.device, matvec=matvec)
 
             def jacobi(xv, yv, zv, alpha, beta):
@@ -384,30 +384,60 @@ class GasSolver:
                 f"loosen {'pressure' if what == 'pressure' else 'viscous'}_tolerance, or reduce dt")
         return int(iterations)
 
-    def _native_pcg(self, n: int, A: K.Stencil, matvec, tol: float, maxiter: int, atol_floor: float = 0.0,
+    def _pcg_launches(self, system, n: int, A: K.Stencil, relaxation: float) -> dict:
+        """The launches of the native PCG of ``system`` on its compact arrays (fixed memory, fixed n), recorded
+        once (``wp.launch(record_cmd=True)``) and replayed every solve: ~200 launches per step whose argument
+        packing cost ~25 us each on the CPU."""
+        launches = self._pcg_recorded.get(system)
+        if launches is not None:
+            return launches
+        rhs, x, pivot = self._c_rhs[:n], self._c_x[:n], self._pivot[:n]
+        r, z, p, ap = (v[:n] for v in self._pcg)
+        s, dev = self._scalars, self.device
+        dot_dim = (n + K.DOT_CHUNK - 1) // K.DOT_CHUNK
+
+        def record(kernel, dim, inputs, outputs):
+            return wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=dev, record_cmd=True)
+
+        def dot(a, b, slot):
+            return record(K.pcg_dot_kernel, dot_dim, [a, b, slot], [s])
+
+        one, zero = wp.float64(1.0), wp.float64(0.0)
+        launches = {
+            "ax": record(K.stencil_matvec_kernel, n, [A, x, rhs, one, zero], [ap]),
+            "start": record(K.pcg_start_kernel, n, [rhs, ap], [r]),
+            "b.b": dot(rhs, rhs, 1), "r.r": dot(r, r, 3), "r.z": dot(r, z, 0), "r.z new": dot(r, z, 2),
+            "ap": record(K.stencil_matvec_kernel, n, [A, p, p, one, zero], [ap]), "p.ap": dot(p, ap, 1),
+            "step": record(K.pcg_step_kernel, n, [p, ap, s], [x, r]),
+            "direction": record(K.pcg_direction_kernel, n, [z, s], [p]),
+            "shift": record(K.pcg_shift_kernel, 1, [], [s]),
+            "ic0 factor": record(K.ic0_factor_kernel, 1, [A, n, wp.float64(relaxation)], [pivot]),
+            "ic0 apply": record(K.ic0_apply_kernel, 1, [pivot, A, r, n], [z]),
+        }
+        self._pcg_recorded[system] = launches
+        return launches
+
+    def _native_pcg(self, system, n: int, A: K.Stencil, tol: float, maxiter: int, atol_floor: float = 0.0,
                     relaxation: float = 0.0, multigrid: AggregationMultigrid | None = None) -> tuple:
         """CG on the compact system, preconditioned with ``multigrid`` (set up) or (modified, ``relaxation`` > 0)
         IC(0) of the stencil (kernels/gas.py ``pcg_*``, ``ic0_*``); stops at ||r|| <= max(tol ||b||, atol_floor)
         like warp's cg. Returns (iterations, ||r||, that bound)."""
-        rhs, x, pivot = self._c_rhs[:n], self._c_x[:n], self._pivot[:n]
-        r, z, p, ap = (v[:n] for v in self._pcg)
-        s, dev = self._scalars, self.device
+        run = {name: launch.launch for name, launch in self._pcg_launches(system, n, A, relaxation).items()}
+        r, z, p = (v[:n] for v in self._pcg[:3])
+        s = self._scalars
         check_every = 1  # the residual check (one dot product) costs a fraction of an iteration
-        dot_dim = (n + K.DOT_CHUNK - 1) // K.DOT_CHUNK
         if multigrid is None:
-            wp.launch(K.ic0_factor_kernel, dim=1, inputs=[A, n, wp.float64(relaxation)], outputs=[pivot], device=dev)
-
-            def precondition():
-                wp.launch(K.ic0_apply_kernel, dim=1, inputs=[pivot, A, r, n], outputs=[z], device=dev)
+            run["ic0 factor"]()
+            precondition = run["ic0 apply"]
         else:
             def precondition():
                 multigrid.apply(r, z)
 
-        matvec(x, rhs, ap, 1.0, 0.0)
-        wp.launch(K.pcg_start_kernel, dim=n, inputs=[rhs, ap], outputs=[r], device=dev)
+        run["ax"]()
+        run["start"]()
         s.zero_()
-        wp.launch(K.pcg_dot_kernel, dim=dot_dim, inputs=[rhs, rhs, 1], outputs=[s], device=dev)
-        wp.launch(K.pcg_dot_kernel, dim=dot_dim, inputs=[r, r, 3], outputs=[s], device=dev)
+        run["b.b"]()
+        run["r.r"]()
         host = s.numpy()
         atol = max(tol * float(np.sqrt(host[1])), atol_floor)
         residual = float(np.sqrt(host[3]))
@@ -417,21 +447,21 @@ class GasSolver:
         precondition()
         wp.copy(p, z)
         s.zero_()
-        wp.launch(K.pcg_dot_kernel, dim=dot_dim, inputs=[r, z, 0], outputs=[s], device=dev)
+        run["r.z"]()
         while iterations < maxiter:
-            matvec(p, p, ap, 1.0, 0.0)
-            wp.launch(K.pcg_dot_kernel, dim=dot_dim, inputs=[p, ap, 1], outputs=[s], device=dev)
-            wp.launch(K.pcg_step_kernel, dim=n, inputs=[p, ap, s], outputs=[x, r], device=dev)
+            run["ap"]()
+            run["p.ap"]()
+            run["step"]()
             precondition()
-            wp.launch(K.pcg_dot_kernel, dim=dot_dim, inputs=[r, z, 2], outputs=[s], device=dev)
-            wp.launch(K.pcg_direction_kernel, dim=n, inputs=[z, s], outputs=[p], device=dev)
+            run["r.z new"]()
+            run["direction"]()
             iterations += 1
             if iterations % check_every == 0 or iterations == maxiter:
-                wp.launch(K.pcg_dot_kernel, dim=dot_dim, inputs=[r, r, 3], outputs=[s], device=dev)
+                run["r.r"]()
                 residual = float(np.sqrt(s.numpy()[3]))
                 if not residual > atol:  # converged, or NaN (reported by the caller)
                     break
-            wp.launch(K.pcg_shift_kernel, dim=1, inputs=[], outputs=[s], device=dev)
+            run["shift"]()
         return iterations, residual, atol
 
     # ------------------------------------------------------------------ sub-steps
