@@ -479,23 +479,25 @@ class GasSolver:
                                                              self._cell_kappa, gas.face_eps, gas.face_kappa])
 
     def advect(self, gas: GasField, dt: float) -> None:
-        """Semi-Lagrangian advection of the face velocities (result in place): into scratch faces from the old
-        field, then copied back over the solved faces."""
-        g, dom, tmp = self.grid_info, self.domain, self._velocity_tmp
+        """Semi-Lagrangian advection of the face velocities into the scratch faces (``add_forces`` writes them
+        back)."""
+        g, dom = self.grid_info, self.domain
         for axis in range(3):
             faces = self._solved_faces[axis]
-            self._launch(K.advect_kernel, faces, [g, axis, faces, dom.face_type, gas.face_velocity, float(dt), tmp])
-        for axis in range(3):
-            faces = self._solved_faces[axis]
-            self._launch(K.copy_faces_kernel, faces, [axis, faces, tmp, gas.face_velocity])
+            self._launch(K.advect_kernel, faces, [g, axis, faces, dom.face_type, gas.face_velocity, float(dt),
+                                                  self._velocity_tmp])
 
-    def add_sources(self, gas: GasField, dt: float) -> None:
-        """Particle momentum source and imposed mean pressure gradient."""
+    def add_forces(self, gas: GasField, dt: float) -> None:
+        """Advected velocity + particle momentum source + imposed mean pressure gradient, less the old pressure
+        gradient (predictor u -= (dt/rho) grad p^n of the incremental projection, Goda 1979, so that a steady
+        balance of force and pressure, e.g. a fluidised bed, is a fixed point of the step), into the face
+        velocity."""
         g, dom, params = self.grid_info, self.domain, self._params(dt)
         for axis in range(3):
             faces = self._solved_faces[axis]
-            self._launch(K.momentum_source_kernel, faces, [g, axis, params, faces, dom.face_type, dom.cell_fluid,
-                                                           gas.face_eps, gas.cell_momentum_source, gas.face_velocity])
+            self._launch(K.face_forces_kernel, faces,
+                         [g, axis, params, faces, dom.face_type, dom.face_bc, dom.cell_fluid, gas.face_eps,
+                          gas.cell_momentum_source, gas.pressure_solution, self._velocity_tmp, gas.face_velocity])
 
     def diffuse(self, gas: GasField, dt: float) -> None:
         """Backward-Euler viscous step, one CG solve per component."""
@@ -508,15 +510,6 @@ class GasSolver:
             self.last_iterations["viscous"][axis] = self._solve(
                 axis, f"viscous ({'xyz'[axis]})", c.viscous_tolerance, c.viscous_max_iterations)
             self._launch(K.store_component_kernel, faces, [g, axis, faces, face_row, self._c_x, gas.face_velocity])
-
-    def subtract_pressure_gradient(self, gas: GasField, dt: float) -> None:
-        """Predictor: u -= (dt/rho) grad p^n (incremental projection, Goda 1979), so that a steady
-        balance of force and pressure (e.g. a fluidised bed) is a fixed point of the step."""
-        g, dom, params = self.grid_info, self.domain, self._params(dt)
-        for axis in range(3):
-            faces = self._solved_faces[axis]
-            self._launch(K.pressure_correct_kernel, faces, [g, axis, params, faces, dom.face_type, dom.face_bc,
-                                                            gas.pressure_solution, 1.0, gas.face_velocity])
 
     def project(self, gas: GasField, dt: float) -> None:
         """Projection onto d(eps_f)/dt + div(eps_f u) = 0 with a pressure increment dp (outlet dp = 0);
@@ -569,8 +562,7 @@ class GasSolver:
             wp.copy(gas.cell_eps_f_prev, gas.cell_eps_f)
         self.update_cell_state(gas)
         self.advect(gas, dt)
-        self.add_sources(gas, dt)
-        self.subtract_pressure_gradient(gas, dt)
+        self.add_forces(gas, dt)
         self.diffuse(gas, dt)
         self.project(gas, dt)
         if self.config.check_finite:

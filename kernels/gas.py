@@ -408,27 +408,13 @@ def face_coefficients_kernel(
         set_f(face_kappa, axis, f, 0.0)
 
 
-@wp.kernel
-def momentum_source_kernel(
-    g: GridInfo,
-    axis: int,
-    params: FlowParams,
-    faces: wp.array(dtype=wp.vec3i),
-    types: FaceInt,
-    cell_fluid: wp.array3d(dtype=wp.int32),
-    face_eps: FaceFloat,
-    cell_momentum_source: wp.array3d(dtype=wp.vec3),
-    # outputs
-    vel: FaceFloat,
-):
-    """u_f += dt body_accel + sum_c J_c / (2 rho eps_f V): each cell's impulse J (N s) is split
+@wp.func
+def momentum_source_increment(g: GridInfo, axis: int, params: FlowParams, cell_fluid: wp.array3d(dtype=wp.int32),
+                              face_eps: FaceFloat, cell_momentum_source: wp.array3d(dtype=wp.vec3), f: wp.vec3i):
+    """du_f = dt body_accel + sum_c J_c / (2 rho eps_f V) at a solved face: each cell's impulse J (N s) is split
     evenly over its two faces of this axis, so sum_f rho eps_f V du_f = sum_c J_c where both faces
     are free (periodic or interior); the half on a wall face goes to the wall, as the gas pressure
     would carry it there (a uniform source then gives the uniform grad p = S/eps_f of eq. 2)."""
-    f = faces[wp.tid()]
-    t = get_t(types, axis, f)
-    if not is_solved(t):
-        return
     volume = g.spacing * g.spacing * g.spacing
     impulse = float(0.0)
     for side in range(2):
@@ -436,8 +422,7 @@ def momentum_source_kernel(
         if c[0] >= 0:
             if cell_fluid[c[0], c[1], c[2]] != 0:
                 impulse = impulse + 0.5 * cell_momentum_source[c[0], c[1], c[2]][axis]
-    du = params.dt * params.body_accel[axis] + impulse / (params.rho * get_f(face_eps, axis, f) * volume)
-    set_f(vel, axis, f, get_f(vel, axis, f) + du)
+    return params.dt * params.body_accel[axis] + impulse / (params.rho * get_f(face_eps, axis, f) * volume)
 
 
 @wp.kernel
@@ -454,19 +439,6 @@ def periodic_sync_kernel(
         f0 = f
         f0[axis] = 0
         set_f(vel, axis, f, get_f(vel, axis, f0))
-
-
-@wp.kernel
-def copy_faces_kernel(
-    axis: int,
-    faces: wp.array(dtype=wp.vec3i),
-    source: FaceFloat,
-    # outputs
-    target: FaceFloat,
-):
-    """target = source on the listed faces of ``axis``."""
-    f = faces[wp.tid()]
-    set_f(target, axis, f, get_f(source, axis, f))
 
 
 # ----------------------------------------------------------------- implicit viscous step
@@ -763,6 +735,33 @@ def pressure_correct_kernel(
     if is_solved(get_t(types, axis, f)):
         gp = face_pressure_gradient(g, types, bc, p, outlet_weight, axis, f)
         set_f(vel, axis, f, get_f(vel, axis, f) - params.dt / params.rho * gp)
+
+
+@wp.kernel
+def face_forces_kernel(
+    g: GridInfo,
+    axis: int,
+    params: FlowParams,
+    faces: wp.array(dtype=wp.vec3i),
+    types: FaceInt,
+    bc: FaceBc,
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    face_eps: FaceFloat,
+    cell_momentum_source: wp.array3d(dtype=wp.vec3),
+    p_old: wp.array(dtype=wp.float64),
+    advected: FaceFloat,
+    # outputs
+    vel: FaceFloat,
+):
+    """u_f = u_adv + du_source - (dt/rho) dp^n/dx_axis on solved faces (the particle momentum source and imposed
+    mean gradient, ``momentum_source_increment``, then the predictor of the incremental projection, Goda 1979);
+    fixed faces take ``advected`` as it is."""
+    f = faces[wp.tid()]
+    u = get_f(advected, axis, f)
+    if is_solved(get_t(types, axis, f)):
+        u = u + momentum_source_increment(g, axis, params, cell_fluid, face_eps, cell_momentum_source, f)
+        u = u - params.dt / params.rho * face_pressure_gradient(g, types, bc, p_old, 1.0, axis, f)
+    set_f(vel, axis, f, u)
 
 
 @wp.kernel
