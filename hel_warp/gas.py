@@ -263,6 +263,7 @@ class GasSolver:
         self._systems = {"pressure": self._row_map(fluid.ravel())}
         for axis in range(3):
             self._systems[axis] = self._row_map(solved_masks[axis])
+        self._viscous_topology = [self._viscous_stencil_topology(axis) for axis in range(3)]
         self._pressure_mg = None
         if self.config.pressure_preconditioner == "multigrid":
             self._pressure_mg = AggregationMultigrid(self._systems["pressure"][0].numpy(), grid.shape,
@@ -314,6 +315,21 @@ class GasSolver:
         box_to_row[rows] = np.arange(rows.shape[0], dtype=np.int32)
         return (wp.array(rows, dtype=wp.int32, device=self.device),
                 wp.array(box_to_row, dtype=wp.int32, device=self.device))
+
+    def _viscous_stencil_topology(self, axis: int) -> K.ViscousTopology:
+        """The fixed neighbour classification of the viscous system of ``axis`` (kernels/gas.py
+        ``ViscousTopology``), one row per solved face."""
+        dev, dom = self.device, self.domain
+        n = max(1, self._systems[axis][0].shape[0])
+        topology = K.ViscousTopology()
+        topology.neighbour_row = wp.full((n, 6), -1, dtype=wp.int32, device=dev)
+        topology.neighbour_face = wp.zeros((n, 6), dtype=wp.vec3i, device=dev)
+        topology.factor = wp.zeros((n, 6), dtype=float, device=dev)
+        topology.value = wp.zeros((n, 6), dtype=float, device=dev)
+        faces = self._solved_faces[axis]
+        self._launch(K.viscous_topology_kernel, faces, [self.grid_info, axis, faces, self._systems[axis][1],
+                                                        dom.face_type, dom.face_bc, topology])
+        return topology
 
     def _compact(self, n: int) -> K.Stencil:
         """The first ``n`` rows of the compact system arrays."""
@@ -505,8 +521,8 @@ class GasSolver:
         for axis in range(3):
             faces, face_row = self._solved_faces[axis], self._systems[axis][1]
             self._launch(K.viscous_rhs_kernel, faces,
-                         [g, axis, params, faces, face_row, dom.face_type, dom.face_bc, gas.face_eps, gas.face_kappa,
-                          gas.face_velocity, self._c_rhs, self._c_x, self._c_full])
+                         [g, axis, params, faces, face_row, self._viscous_topology[axis], gas.face_eps,
+                          gas.face_kappa, gas.face_velocity, self._c_rhs, self._c_x, self._c_full])
             self.last_iterations["viscous"][axis] = self._solve(
                 axis, f"viscous ({'xyz'[axis]})", c.viscous_tolerance, c.viscous_max_iterations)
             self._launch(K.store_component_kernel, faces, [g, axis, faces, face_row, self._c_x, gas.face_velocity])

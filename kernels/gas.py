@@ -492,6 +492,55 @@ def viscous_neighbour(g: GridInfo, axis: int, types: FaceInt, bc: FaceBc, f: wp.
     return 2, w, 0.0, 2.0
 
 
+@wp.struct
+class ViscousTopology:
+    """The fixed part of one viscous system, per row and slot m = -x, +x, -y, +y, -z, +z, from
+    ``viscous_neighbour`` once at set-up (``viscous_topology_kernel``)."""
+
+    neighbour_row: wp.array2d(dtype=wp.int32)
+    """Row of the coupled neighbour face (kind 1), -1 for none."""
+    neighbour_face: wp.array2d(dtype=wp.vec3i)
+    """That face (its kappa is read every step)."""
+    factor: wp.array2d(dtype=float)
+    """Distance factor of a Dirichlet neighbour (kind 2: value at h / factor), 0 for none."""
+    value: wp.array2d(dtype=float)
+    """Its Dirichlet value, m/s."""
+
+
+@wp.kernel
+def viscous_topology_kernel(
+    g: GridInfo,
+    axis: int,
+    faces: wp.array(dtype=wp.vec3i),
+    face_row: wp.array(dtype=wp.int32),
+    types: FaceInt,
+    bc: FaceBc,
+    # outputs
+    topology: ViscousTopology,
+):
+    """Classify the six neighbours of every solved face of ``axis`` (``viscous_neighbour``; the face types and
+    boundary values are fixed)."""
+    f = faces[wp.tid()]
+    shape = face_shape(g, axis)
+    row = face_row[flat_index(shape, f)]
+    if row < 0:
+        return
+    for d in range(3):
+        for side in range(2):
+            m = 2 * d + side
+            kind, nb, value, factor = viscous_neighbour(g, axis, types, bc, f, d, 2 * side - 1)
+            topology.neighbour_row[row, m] = -1
+            topology.neighbour_face[row, m] = f
+            topology.factor[row, m] = 0.0
+            topology.value[row, m] = 0.0
+            if kind == 1:
+                topology.neighbour_row[row, m] = face_row[flat_index(shape, nb)]
+                topology.neighbour_face[row, m] = nb
+            elif kind == 2:
+                topology.factor[row, m] = factor
+                topology.value[row, m] = value
+
+
 @wp.kernel
 def viscous_rhs_kernel(
     g: GridInfo,
@@ -499,8 +548,7 @@ def viscous_rhs_kernel(
     params: FlowParams,
     faces: wp.array(dtype=wp.vec3i),
     face_row: wp.array(dtype=wp.int32),
-    types: FaceInt,
-    bc: FaceBc,
+    topology: ViscousTopology,
     face_eps: FaceFloat,
     face_kappa: FaceFloat,
     vel: FaceFloat,
@@ -511,7 +559,9 @@ def viscous_rhs_kernel(
 ):
     """Backward-Euler viscous system of one component: (rho eps/dt) u - div(kappa grad u) = (rho eps/dt) u*,
     as a 7-point stencil (diag, coef, neighbour) for ``stencil_matvec_kernel``, written straight into the
-    compact system: row ``face_row[flat face index]`` (-1: a fixed face, no row; see "compacted systems")."""
+    compact system: row ``face_row[flat face index]`` (-1: a fixed face, no row; see "compacted systems").
+    Neighbours as ``topology`` classified them: coupled (coef = mean kappa / h^2), Dirichlet (kappa_f factor /
+    h^2 on the diagonal, times the value on the right), or zero gradient (nothing)."""
     f = faces[wp.tid()]
     shape = face_shape(g, axis)
     row = face_row[flat_index(shape, f)]
@@ -519,27 +569,26 @@ def viscous_rhs_kernel(
         return
     u_star = get_f(vel, axis, f)
     guess[row] = wp.float64(u_star)
-    for m in range(6):
-        A.coef[row, m] = wp.float64(0.0)
-        A.neighbour[row, m] = row
     h2 = g.spacing * g.spacing
     mass = params.rho * get_f(face_eps, axis, f) / params.dt
     kappa_f = get_f(face_kappa, axis, f)
     b = mass * u_star
     a_diag = mass
-    for d in range(3):
-        for side in range(2):
-            s = 2 * side - 1
-            kind, nb, value, factor = viscous_neighbour(g, axis, types, bc, f, d, s)
-            if kind == 1:
-                c = 0.5 * (kappa_f + get_f(face_kappa, axis, nb)) / h2
-                a_diag = a_diag + c
-                A.coef[row, 2 * d + side] = wp.float64(c)
-                if c != 0.0:  # an unused slot points at the row itself
-                    A.neighbour[row, 2 * d + side] = face_row[flat_index(shape, nb)]
-            elif kind == 2:
-                a_diag = a_diag + factor * kappa_f / h2
-                b = b + factor * kappa_f * value / h2
+    for m in range(6):
+        coef = float(0.0)
+        neighbour = row
+        nb_row = topology.neighbour_row[row, m]
+        factor = topology.factor[row, m]
+        if nb_row >= 0:
+            coef = 0.5 * (kappa_f + get_f(face_kappa, axis, topology.neighbour_face[row, m])) / h2
+            a_diag = a_diag + coef
+            if coef != 0.0:  # an unused slot points at the row itself
+                neighbour = nb_row
+        elif factor > 0.0:
+            a_diag = a_diag + factor * kappa_f / h2
+            b = b + factor * kappa_f * topology.value[row, m] / h2
+        A.coef[row, m] = wp.float64(coef)
+        A.neighbour[row, m] = neighbour
     rhs[row] = wp.float64(b)
     A.diag[row] = wp.float64(a_diag)
 
