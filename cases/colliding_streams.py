@@ -43,7 +43,10 @@ species (50/50: 6,000 + 1,742 parcels) and evenly between the holders, each hold
 of the paper's measured flows of the two sizes; ``ktgf`` gets the mixture's Sauter mean diameter (the mixture KTGF
 closures are out of scope); a surrogate model must hold both sizes and their ratios in its training domain. The rig
 layout names the ``size_classes``, and ``hel-warp report`` gives the profiles and stream metrics per size class
-beside the whole run.
+beside the whole run. ``--particles-per-parcel W1,W2`` gives each species its own weight (one value: both): the real
+mass and its split stay, each species releases real / W_k parcels (50/50 at 1,8: 6,000 + 218 parcels), the release
+window is the holder's real mass over its mass flow, and the cell detection (the default when a weight exceeds 1)
+collides them at the real number density. (One size keeps the parcel count and scales the mass with W.)
 
 The step is engineer G's ``HelSolver.step`` (deposit, gas, interpolate, collide, push, outlets,
 walls with e_n = e_t = 0.8, scheduled injection) driven by ``hel_warp.run.Run``, which writes
@@ -286,7 +289,10 @@ class CaseConfig:
     """``dem`` only: False switches the particle-particle contacts off (walls, drag, injection unchanged): the
     like-with-like run that, beside ``none``, shows how much of a gap the walls alone make (issue 11)."""
     particles_per_parcel: float = 1.0
-    """Real particles per parcel (paper's second HEL run: 8); the parcel count stays, the mass scales."""
+    """Real particles per parcel of the (first) species (paper's second HEL run: 8). One size: the parcel count
+    stays, the mass scales; a mixture: the real mass stays (:func:`mixture_release`), parcels = real / weight."""
+    particles_per_parcel2: float | None = None
+    """A mixture: real particles per parcel of the second species (``--particles-per-parcel W1,W2``)."""
     particles: int = 12000
     """Parcels released, both holders together (paper: 12,000 at 315 um, 3,600 at 475 um)."""
     diameter_std: float = 0.0
@@ -332,6 +338,17 @@ class CaseConfig:
             out.append((self.diameter2, self.diameter2_std, self.particles2))
         return out
 
+    def weights(self) -> list:
+        """Real particles per parcel of each species released."""
+        if not self.mixture:
+            return [self.particles_per_parcel]
+        return [self.particles_per_parcel, self.particles_per_parcel2]
+
+    def release_weights(self) -> list:
+        """Per species, the weight the holders' mass (and so the release window) counts: a mixture's real mass
+        (its weights), one size's parcels of one particle (the mass flow scales with the weight, as before)."""
+        return self.weights() if self.mixture else [1.0]
+
 
 def make_config(args) -> CaseConfig:
     from hel_warp.errors import ConfigError
@@ -348,8 +365,10 @@ def make_config(args) -> CaseConfig:
     from hel_warp.run import check_device
 
     check_device(args.device)
-    if not args.particles_per_parcel > 0:
-        raise ConfigError(f"--particles-per-parcel must be > 0 (got {args.particles_per_parcel})")
+    from hel_warp.mixture import species_weights
+
+    two_sizes = getattr(args, "diameter2", None) is not None or getattr(args, "mass_fraction2", None) is not None
+    weights = species_weights(args.particles_per_parcel, 2 if two_sizes else 1)
     known = min(PAPER_PARTICLES, key=lambda d: abs(d - args.diameter))
     paper_size = abs(known - args.diameter) < 1e-3 * known
     particles = PAPER_PARTICLES[known] if paper_size else int(round(12000 * (315e-6 / args.diameter) ** 3))
@@ -369,7 +388,7 @@ def make_config(args) -> CaseConfig:
     if detection is not None and args.collisions != "surrogate":
         raise ConfigError(f"--detection is a surrogate option (got --collisions {args.collisions}); surrogate-paper "
                           "keeps the paper's overlap test")
-    mixture = mixture_release(args, args.diameter, std, known if paper_size else None)
+    mixture = mixture_release(args, args.diameter, std, known if paper_size else None, weights)
     if mixture is not None:
         particles = mixture.pop("particles")
         mass_flow = mixture.pop("mass_flow")
@@ -377,12 +396,12 @@ def make_config(args) -> CaseConfig:
         mass_flow = PAPER_MASS_FLOW[known] if paper_size else DEFAULT_MASS_FLOW
         mixture = {}
     return CaseConfig(diameter=float(args.diameter), dt=float(args.dt), collisions=args.collisions,
-                      end_time=float(args.end_time), particles_per_parcel=float(args.particles_per_parcel),
+                      end_time=float(args.end_time), particles_per_parcel=float(weights[0]),
                       particle_contacts=not args.no_particle_contacts,
                       particles=particles, diameter_std=std, **mixture,
                       mass_flow=mass_flow, cells=args.cells,
                       gas_warmup=float(args.gas_warmup), output_interval=float(args.output_interval),
-                      model=args.model, detection=detection or ("cell" if args.particles_per_parcel > 1 else "swept"),
+                      model=args.model, detection=detection or ("cell" if max(weights) > 1 else "swept"),
                       seed=int(args.seed), device=args.device)
 
 
@@ -393,20 +412,23 @@ def sauter_mean_of(config: CaseConfig) -> float:
 
     if not config.mixture:
         return config.diameter
-    species = config.species()
-    return sauter_mean([n for _, _, n in species], [d for d, _, _ in species], [sd for _, sd, _ in species])
+    species = config.species()  # number fractions of the real particles: parcels x weight
+    return sauter_mean([n * w for (_, _, n), w in zip(species, config.weights())], [d for d, _, _ in species],
+                       [sd for _, sd, _ in species])
 
 
-def mixture_release(args, diameter: float, std: float, known: float | None) -> dict | None:
+def mixture_release(args, diameter: float, std: float, known: float | None, weights=(1, 1)) -> dict | None:
     """The release of a binary mixture (--diameter2 with --mass-fraction2), or None for one size.
 
     Total mass: that of the paper's one-size runs, 12,000 particles of 315 um (0.196 g, section 8; the 21 g
     of the experiment's holders would be ~1.3 million particles), split by mass (1 - F, F) between the species
-    and evenly between the holders, each holder releasing both species at once. Parcels per species: mass /
-    mean particle mass (rounded); --max-particles caps the total, both species scaled alike. Each holder's mass
-    flow is the mass-fraction mix of the paper's measured flows of the two sizes (0.014/0.018 kg/s at 315 um,
-    0.013/0.019 at 475 um). Returns the ``CaseConfig`` fields ``particles``, ``particles2``, ``diameter2``,
-    ``diameter2_std``, ``mass_fraction2``, ``mass_flow``."""
+    and evenly between the holders, each holder releasing both species at once. Real particles per species:
+    mass / mean particle mass; parcels per species: real / weight (``weights`` (W1, W2), rounded, at least 2), so
+    the real mass stays whatever the weights; --max-particles caps the parcels in total, both species scaled
+    alike. Each holder's mass flow is the mass-fraction mix of the paper's measured flows of the two sizes
+    (0.014/0.018 kg/s at 315 um, 0.013/0.019 at 475 um). Returns the ``CaseConfig`` fields ``particles``,
+    ``particles2`` (parcels), ``particles_per_parcel2``, ``diameter2``, ``diameter2_std``, ``mass_fraction2``,
+    ``mass_flow``."""
     from hel_warp.errors import ConfigError
 
     from hel_warp.mixture import second_size
@@ -421,8 +443,9 @@ def mixture_release(args, diameter: float, std: float, known: float | None) -> d
     std2 = 0.0 if args.monodisperse else (PAPER_DIAMETER_STD[known2] if paper2 else 0.0)
     mean_cube = lambda d, sd: d**3 + 3.0 * d * sd**2  # noqa: E731  E[d^3] of a normal size distribution
     total = PAPER_PARTICLES[315e-6] * mean_cube(315e-6, PAPER_DIAMETER_STD[315e-6])  # in units of pi rho / 6
-    n1 = int(round((1.0 - f2) * total / mean_cube(diameter, std)))
-    n2 = int(round(f2 * total / mean_cube(d2, std2)))
+    w1, w2 = (float(w) for w in weights)
+    n1 = max(2, int(round((1.0 - f2) * total / mean_cube(diameter, std) / w1)))
+    n2 = max(2, int(round(f2 * total / mean_cube(d2, std2) / w2)))
     if args.max_particles is not None:
         if args.max_particles < 4:
             raise ConfigError(f"--max-particles must be >= 4 for a mixture (got {args.max_particles})")
@@ -431,8 +454,8 @@ def mixture_release(args, diameter: float, std: float, known: float | None) -> d
     flow1 = PAPER_MASS_FLOW[known] if known is not None else DEFAULT_MASS_FLOW
     flow2 = PAPER_MASS_FLOW[known2] if paper2 else DEFAULT_MASS_FLOW
     flow = tuple((1.0 - f2) * a + f2 * b for a, b in zip(flow1, flow2))
-    return {"particles": n1, "particles2": n2, "diameter2": float(d2), "diameter2_std": float(std2),
-            "mass_fraction2": float(f2), "mass_flow": flow}
+    return {"particles": n1, "particles2": n2, "particles_per_parcel2": w2, "diameter2": float(d2),
+            "diameter2_std": float(std2), "mass_fraction2": float(f2), "mass_flow": flow}
 
 
 def check_model(model_dir: str, diameter: float, density: float, force: bool, diameters=None) -> dict:
@@ -517,9 +540,12 @@ class CollidingStreams:
                 kwargs["particle_contacts"] = _dem_particle_contacts_option(False)
         self.collision = collision_model(config.collisions, **kwargs)
         # each holder releases half of the parcels at its measured mass flow (section 2): a window of
-        # (parcels x particle mass) / mass flow, the same for any particles-per-parcel (the parcel count stays);
-        # a mixture: every holder releases half of each species, all species over the holder's one window
+        # (parcels x particle mass) / mass flow, for one size the same for any particles-per-parcel (the parcel
+        # count stays); a mixture: every holder releases half of each species, all species over the holder's one
+        # window of its real mass (parcels x weight x particle mass) / mass flow
         species = config.species()
+        weights = config.weights()
+        mass_weights = config.release_weights()
         self.particle_mass = config.density * math.pi / 6.0 * (config.diameter**3
                                                                 + 3.0 * config.diameter * config.diameter_std**2)
         split = [(n // 2, n - n // 2) for _, _, n in species]  # per species: (left, right) parcels
@@ -530,8 +556,8 @@ class CollidingStreams:
         self.injector_side = []  # the holder of each injector
         for side in (0, 1):
             lo, hi = self.dims.injection_box(side, margin)
-            holder_mass = sum(split[k][side] * config.density * math.pi / 6.0 * (d**3 + 3.0 * d * sd**2)
-                              for k, (d, sd, _) in enumerate(species))
+            holder_mass = sum(split[k][side] * mass_weights[k] * config.density * math.pi / 6.0
+                              * (d**3 + 3.0 * d * sd**2) for k, (d, sd, _) in enumerate(species))
             window = holder_mass / config.mass_flow[side]
             self.release_window.append(window)
             for k, (d, sd, _) in enumerate(species):
@@ -540,7 +566,7 @@ class CollidingStreams:
                     injection=VolumeInjection(box_lo=lo, box_hi=hi, diameter_mean=d, diameter_std=sd,
                                               density=config.density, count=split[k][side],
                                               speed=self.dims.injection_speed, direction=(1.0, 0.0, 0.0),
-                                              weight=config.particles_per_parcel, stream=side,
+                                              weight=weights[k], stream=side,
                                               seed=config.seed + 1000 * k),
                     t_start=0.0, t_end=window))
         outlets = (Outlet(point=(self.dims.main_length, 0.0, 0.0), normal=(1.0, 0.0, 0.0)),
@@ -588,8 +614,9 @@ class CollidingStreams:
                 "streams": {"0": "left", "1": "right"}, "axis_transverse": 0.0,
                 "stream_sides": {"0": 1.0, "1": -1.0},  # sign of y - axis on each stream's own arm (left = +y)
                 "dimensions": asdict(self.dims),
-                "size_classes": [{"diameter": d, "diameter_std": sd, "parcels": n}
-                                 for d, sd, n in self.config.species()] if self.config.mixture else None}
+                "size_classes": [{"diameter": d, "diameter_std": sd, "parcels": n, "particles_per_parcel": w}
+                                 for (d, sd, n), w in zip(self.config.species(), self.config.weights())]
+                if self.config.mixture else None}
 
 
 def _dem_particle_contacts_option(value: bool) -> bool:
@@ -738,7 +765,10 @@ def run(args, *, progress: bool = True) -> int:
     overlaps = int(np.sum(series["collisions_detected_pairs"][...])) if "collisions_detected_pairs" in series else 0
     summary = {"collisions": config.collisions, "dt": config.dt, "diameter": config.diameter,
                "diameter2": config.diameter2, "mass_fraction2": config.mass_fraction2 if config.mixture else None,
-               "particles_released": [n for _, _, n in config.species()], "ktgf_diameter": rig.ktgf_diameter,
+               "particles_released": [n for _, _, n in config.species()],
+               "particles_per_parcel_species": config.weights(),
+               "real_particles_released": [n * w for (_, _, n), w in zip(config.species(), config.weights())],
+               "ktgf_diameter": rig.ktgf_diameter,
                "end_time": config.end_time, "simulated_time": rig.solver.time, "steps": rig.solver.step_count,
                "status": "complete" if rig.solver.step_count >= runner.total_steps else "running",
                "wall_clock_s": float(step_wall.sum()),
@@ -757,7 +787,8 @@ def run(args, *, progress: bool = True) -> int:
     root.attrs["summary"] = _jsonable(summary)
     sizes = (f"{config.diameter * 1e6:.0f}" if not config.mixture else
              f"{config.diameter * 1e6:.0f}/{config.diameter2 * 1e6:.0f} (mass fraction {config.mass_fraction2:g} of "
-             f"the second; {config.particles} + {config.particles2} parcels)")
+             f"the second; {config.particles} + {config.particles2} parcels of "
+             f"{' + '.join(f'{w:g}' for w in config.weights())} particles)")
     print(f"colliding_streams: {config.collisions}, d = {sizes} um, dt = {config.dt:g} s, "
           f"{taken} steps this call, t = {rig.solver.time:.4g} s on {int(np.prod(rig.grid.shape))} cells "
           f"({rig.fluid_cells} fluid), {rig.injected} parcels injected, {rig.pool.removed_count()} removed, "
@@ -793,8 +824,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="use a model trained for another particle size or material (refused otherwise)")
     parser.add_argument("--no-particle-contacts", action="store_true",
                         help="dem only: no particle-particle contacts (walls, drag, injection as with contacts)")
-    parser.add_argument("--particles-per-parcel", type=finite_float, default=1.0,
-                        help="real particles per parcel (paper's second HEL run: 8); default 1")
+    parser.add_argument("--particles-per-parcel", default="1",
+                        help="real particles per parcel (paper's second HEL run: 8); default 1. A mixture: W for "
+                             "both species or W1,W2 per species (the real mass stays, parcels = real / W_k)")
     parser.add_argument("--device", default="cpu", help="Warp device: cpu or cuda (default cpu)")
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--overwrite", action="store_true", help="replace an existing run directory")

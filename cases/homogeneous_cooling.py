@@ -168,8 +168,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--granular-temperature", type=finite_float, required=True,
                         help="initial granular temperature Theta0, m^2/s^2")
     parser.add_argument("--end-time", type=finite_float, required=True, help="simulated time, s")
-    parser.add_argument("--particles-per-parcel", type=int, default=1,
-                        help="real particles per parcel W (divides N; default 1)")
+    parser.add_argument("--particles-per-parcel", default="1",
+                        help="real particles per parcel: W for every species (divides N; default 1), or W1,W2 "
+                             "per species of a mixture (W_k divides species k's particles)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the start (lattice jitter, velocities)")
     parser.add_argument("--out", required=True, help="output directory")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
@@ -178,9 +179,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 class CoolingConfig(SimpleNamespace):
-    """The validated settings (see :func:`make_config`): collisions, model, detection, dt, eps, particles,
-    parcels, weight, diameter, theta0, end_time, steps, seed, out, overwrite, device, box_length, material,
-    material_source, model_meta, species (None, or the binary mixture of :func:`mixture_species`)."""
+    """The validated settings (see :func:`make_config`): collisions, model, detection, dt, eps, particles (real,
+    every species), parcels, weights (real particles per parcel of each species: (W,) for one size, (W1, W2) for a
+    mixture), parcel_eps (the parcels' own solids fraction, sum of parcels x one particle's volume / L^3),
+    diameter, theta0, end_time, steps, seed, out, overwrite, device, box_length, material, material_source,
+    model_meta, species (None, or the binary mixture of :func:`mixture_species`)."""
 
 
 def _read_model_meta(model_dir: str) -> dict:
@@ -244,28 +247,36 @@ def make_config(args) -> CoolingConfig:
                           "end time of at least one step")
     if args.particles < 2:
         raise ConfigError(f"--particles must be >= 2 (got {args.particles})")
-    w = args.particles_per_parcel
-    if w < 1:
-        raise ConfigError(f"--particles-per-parcel must be >= 1 (got {w})")
-    if args.particles % w:
-        raise ConfigError(f"--particles-per-parcel {w} does not divide --particles {args.particles}; choose N a "
-                          "multiple of W")
-    parcels = args.particles // w
-    if parcels < 2:
-        raise ConfigError(f"--particles / --particles-per-parcel = {parcels} parcel; need at least 2")
-    if w > 1 and name == "dem":
-        raise ConfigError("--collisions dem resolves real spheres: use --particles-per-parcel 1")
+    from hel_warp.mixture import species_weights
+
+    two_sizes = getattr(args, "diameter2", None) is not None or getattr(args, "number_fraction2", None) is not None
+    weights = species_weights(args.particles_per_parcel, 2 if two_sizes else 1)
     if args.seed < 0:
         raise ConfigError(f"--seed must be >= 0 (got {args.seed})")
     eps, d = float(args.solids_fraction), float(args.diameter)
-    species = mixture_species(args, parcels, w)  # None: one size
-    L = box_length(args.particles, d, eps) if species is None else mixture_box_length(species, eps)
+    species = mixture_species(args, weights)  # None: one size
+    if species is None:
+        w = weights[0]
+        if args.particles % w:
+            raise ConfigError(f"--particles-per-parcel {w} does not divide --particles {args.particles}; choose N a "
+                              "multiple of W")
+        parcels = args.particles // w
+        L = box_length(args.particles, d, eps)
+        parcel_eps = eps / w
+    else:
+        parcels = sum(species.parcels)
+        L = mixture_box_length(species, eps)
+        parcel_eps = sum(p * math.pi * dk**3 / 6.0 for p, dk in zip(species.parcels, species.diameters)) / L**3
+    if parcels < 2:
+        raise ConfigError(f"--particles / --particles-per-parcel = {parcels} parcel; need at least 2")
+    if max(weights) > 1 and name == "dem":
+        raise ConfigError("--collisions dem resolves real spheres: use --particles-per-parcel 1")
     d_big = d if species is None else max(species.diameters)
     side = math.ceil(parcels ** (1.0 / 3.0) - 1e-9)
     if L / side < d_big * (1.0 + 2.0 * LATTICE_GAP):
-        raise ConfigError(f"{parcels} parcels of {d:g} m do not fit on a non-overlapping lattice in the box of side "
-                          f"{L:.4g} m (eps_s {eps:g} with W = {w}: lattice spacing {L / side / d:.3f} d < 1); "
-                          "lower --solids-fraction or raise --particles-per-parcel")
+        raise ConfigError(f"{parcels} parcels of {d_big:g} m do not fit on a non-overlapping lattice in the box of "
+                          f"side {L:.4g} m (eps_s {eps:g} with W = {','.join(map(str, weights))}: lattice spacing "
+                          f"{L / side / d_big:.3f} d < 1); lower --solids-fraction or raise --particles-per-parcel")
     meta = _read_model_meta(args.model) if args.model else None
     if meta is not None:
         defaults = meta.get("defaults") or {}
@@ -288,10 +299,11 @@ def make_config(args) -> CoolingConfig:
         raise ConfigError(f"{args.out} is not an output directory of this case (no {SUMMARY}); --overwrite only "
                           "replaces those")
     detection = args.detection
-    if name == "surrogate" and detection is None and w > 1:
+    if name == "surrogate" and detection is None and max(weights) > 1:
         detection = "cell"  # the strategy's own default for parcels heavier than one particle
     config = CoolingConfig(collisions=name, model=args.model, detection=detection, dt=float(args.dt), eps=eps,
-                           particles=int(args.particles), parcels=parcels, weight=int(w), diameter=d,
+                           particles=int(args.particles), parcels=parcels, weights=weights, parcel_eps=parcel_eps,
+                           diameter=d,
                            theta0=float(args.granular_temperature), end_time=float(args.end_time), steps=steps,
                            seed=int(args.seed), out=str(args.out), overwrite=bool(args.overwrite), device=args.device,
                            box_length=L, material=material, material_source=source, model_meta=meta, species=species)
@@ -375,22 +387,23 @@ def initial_state(config: CoolingConfig) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(config.seed)
     n, L, d = config.parcels, config.box_length, config.diameter
     x = None
-    if config.eps / config.weight <= RANDOM_START_MAX_EPS:
+    if config.parcel_eps <= RANDOM_START_MAX_EPS:
         x = random_positions(n, L, d, np.random.default_rng([config.seed, 1]))
     if x is None:
         x = lattice_positions(n, L, d, np.random.default_rng([config.seed, 2]))
     v = rng.normal(0.0, math.sqrt(config.theta0), size=(n, 3))
     v -= v.mean(axis=0)  # equal weights: the weighted mean is the plain mean
-    v *= math.sqrt(config.theta0 / granular_temperature(v, np.full(n, config.weight)))
+    v *= math.sqrt(config.theta0 / granular_temperature(v, np.full(n, config.weights[0])))
     return x, v
 
 
 # ------------------------------------------------------------------------------------------------ binary mixture
-def mixture_species(args, parcels: int, weight: int):
+def mixture_species(args, weights: tuple):
     """The species of a binary mixture (--diameter2 with --number-fraction2), or None for one size.
 
-    ``diameters`` (d1, d2), ``counts`` (N1, N2) of real particles (N2 = round(F N)), ``parcels`` per species,
-    ``masses`` (kg, the material density is applied later), ``number_fractions``. Species 1 is --diameter."""
+    ``diameters`` (d1, d2), ``counts`` (N1, N2) of real particles (N2 = round(F N)), ``weights`` (W1, W2) real
+    particles per parcel, ``parcels`` per species N_k / W_k (W_k must divide N_k), ``number_fractions``.
+    Species 1 is --diameter."""
     from hel_warp.errors import ConfigError
 
     from hel_warp.mixture import second_size
@@ -405,15 +418,24 @@ def mixture_species(args, parcels: int, weight: int):
     if n1 < 1 or n2 < 1:
         raise ConfigError(f"--number-fraction2 {f2:g} of --particles {args.particles} leaves a species empty "
                           f"({n1} + {n2}); raise --particles")
-    if n1 % weight or n2 % weight:
-        raise ConfigError(f"--particles-per-parcel {weight} must divide both species ({n1} + {n2} particles)")
+    for k, (n, w) in enumerate(zip((n1, n2), weights)):
+        if n % w:
+            raise ConfigError(f"--particles-per-parcel {','.join(map(str, weights))}: W{k + 1} = {w} does not divide "
+                              f"the {n} particles of species {k + 1} ({n1} + {n2}); choose --particles (and "
+                              "--number-fraction2) so that every weight divides its species")
     from hel_warp.mixture import sauter_mean
 
     fractions = (n1 / args.particles, n2 / args.particles)
     diameters = (float(args.diameter), float(d2))
-    return SimpleNamespace(diameters=diameters, counts=(n1, n2), parcels=(n1 // weight, n2 // weight),
+    return SimpleNamespace(diameters=diameters, counts=(n1, n2), weights=tuple(weights),
+                           parcels=(n1 // weights[0], n2 // weights[1]),
                            number_fraction2=float(f2), number_fractions=fractions,
                            sauter_mean=sauter_mean(fractions, diameters, (0.0, 0.0)))
+
+
+def weights_output(weights: tuple):
+    """``particles_per_parcel`` of the summary: the one weight W when every species has it, else [W1, W2]."""
+    return int(weights[0]) if len(set(weights)) == 1 else [int(w) for w in weights]
 
 
 def mixture_box_length(species, eps: float) -> float:
@@ -475,7 +497,7 @@ def mixture_initial_state(config) -> tuple[np.ndarray, np.ndarray]:
     d = np.asarray(config.species.diameters)[labels]
     n, L = config.parcels, config.box_length
     x = None
-    if config.eps / config.weight <= RANDOM_START_MAX_EPS:
+    if config.parcel_eps <= RANDOM_START_MAX_EPS:
         x = random_positions_sized(0.5 * d, L, np.random.default_rng([config.seed, 1]))
     if x is None:
         x = lattice_positions(n, L, float(d.max()), np.random.default_rng([config.seed, 2]))
@@ -538,18 +560,21 @@ def mixture_summary(case, t: np.ndarray, theta: np.ndarray, idx: np.ndarray, cou
     expected = ref["expected"]
     total_expected = float(np.triu(expected).sum())
     measured_total = float(counts.get("collisions", 0.0))
-    events = total_expected / cfg.weight
     pair_types = {}
+    events = 0.0  # parcel events: one of an (i, j) pair stands for min(W_i, W_j) real collisions
     for i, j, name in mx.pair_type_names(2):
         measured = counts.get(f"collisions_{i}_{j}", counts.get(f"collisions_{j}_{i}"))
         exp_ij = float(expected[i, j])
+        events_ij = exp_ij / min(cfg.weights[i], cfg.weights[j])
+        events += events_ij
         pair_types[name] = {"collisions": measured, "kinetic_theory_collisions": exp_ij,
                             "ratio": (float(measured) / exp_ij) if measured is not None and exp_ij > 0 else None,
-                            "ratio_stderr": 1.0 / math.sqrt(exp_ij / cfg.weight) if exp_ij > 0 else None}
+                            "ratio_stderr": 1.0 / math.sqrt(events_ij) if exp_ij > 0 else None}
     T = float(t[-1])
     return {
         "mixture": True,
         "species": {"diameters": list(cfg.species.diameters), "particles": list(cfg.species.counts),
+                    "particles_per_parcel": list(cfg.weights), "parcels": list(cfg.species.parcels),
                     "number_fraction2": cfg.species.number_fraction2, "masses": m.tolist(),
                     "sauter_mean_diameter": cfg.species.sauter_mean,
                     "start": "equipartition (m_1 Theta_1 = m_2 Theta_2), mass-weighted Theta = Theta0"},
@@ -703,7 +728,7 @@ class SurrogateFlight(BallisticFlight):
             self.notes.append("the strategy's collide() takes no dt: it resolves the pairs overlapping at the current "
                               "positions (end-of-step test)")
         self._correct = getattr(self.strategy, "correct_positions", None)
-        self.weight = config.weight
+        self.weight = min(config.weights)
         self._warned_count = False
 
     def step(self, particles, dt: float) -> None:
@@ -720,7 +745,7 @@ class SurrogateFlight(BallisticFlight):
 
     def counts(self) -> dict:
         c = dict(self.strategy.counts())
-        if "collisions" not in c:  # before the weight-aware count: every resolved pair is min(w_i, w_j) = W
+        if "collisions" not in c:  # before the weight-aware count: every resolved pair counts min(W_k)
             c["collisions"] = c.get("surrogate_calls", 0) * self.weight
             if not self._warned_count:
                 self.notes.append("the strategy reports no 'collisions' count: used surrogate_calls x W")
@@ -768,19 +793,20 @@ class HomogeneousCooling:
         x, v = initial_state(config)
         self.x0, self.v0 = x, v
         radius, stream = 0.5 * config.diameter, 0
+        weight = np.full(config.parcels, float(config.weights[0]))
         if config.species is not None:  # the stream tag is the species: the strategies count per stream pair
             stream = mixture_labels(config)
             radius = 0.5 * np.asarray(config.species.diameters)[stream]
-        self.particles = Particles.from_numpy(x, radius, v=v, density=config.material.density,
-                                              weight=float(config.weight), stream=stream, check_overlap=False,
-                                              device=config.device)
+            weight = np.asarray(config.weights, np.float64)[stream]  # each species its own weight
+        self.particles = Particles.from_numpy(x, radius, v=v, density=config.material.density, weight=weight,
+                                              stream=stream, check_overlap=False, device=config.device)
         self._moment_weight = self.particles.weight  # one size: the parcel weights
         self._species_weight = []
-        if config.species is not None:  # mass-weighted moments (mass / m_1) and one set per species
+        if config.species is not None:  # mass-weighted moments (w mass / m_1) and one set per species
             rel_mass = (species_masses(config) / species_masses(config)[0])[stream]
-            self._moment_weight = wp.array((config.weight * rel_mass).astype(np.float32), dtype=wp.float32,
+            self._moment_weight = wp.array((weight * rel_mass).astype(np.float32), dtype=wp.float32,
                                            device=config.device)
-            self._species_weight = [wp.array((config.weight * (stream == k)).astype(np.float32), dtype=wp.float32,
+            self._species_weight = [wp.array((weight * (stream == k)).astype(np.float32), dtype=wp.float32,
                                              device=config.device) for k in (0, 1)]
         self.species_moments = [wp.zeros((config.steps + 1, 5), dtype=wp.float64, device=config.device)
                                 for _ in self._species_weight]
@@ -878,17 +904,18 @@ def analyse(case: HomogeneousCooling, wall_s: float, kernel_load_s: float) -> di
     flags = {k: v for k, v in counts.items() if any(f in k for f in COUNT_FLAGS)}
     enskog_collisions = 0.5 * cfg.particles * expected_per_particle
     # the statistics are those of the parcel events: a parcel collision of weight W stands for W real ones
-    events = enskog_collisions / cfg.weight
+    events = enskog_collisions / cfg.weights[0]
     notes = list(case.flight.notes)
-    if cfg.weight > 1:
-        notes.append(f"parcels of weight {cfg.weight}: the references are those of the N real particles")
+    if max(cfg.weights) > 1:
+        notes.append(f"parcels of weight {','.join(map(str, cfg.weights))}: the references are those of the N real "
+                     "particles")
     summary = {
         "case": "homogeneous_cooling", "collision_model": cfg.collisions,
         "detection": getattr(case.flight, "detection", None), "model": cfg.model,
         "time": t[idx].tolist(), "granular_temperature": theta[idx].tolist(), "output_every_steps": int(stride),
         "collisions": collisions, "collision_frequency": freq,
         "solids_fraction": cfg.eps, "particles": cfg.particles, "parcels": cfg.parcels,
-        "particles_per_parcel": cfg.weight, "diameter": cfg.diameter, "dt": cfg.dt, "steps": case.steps_done,
+        "particles_per_parcel": weights_output(cfg.weights), "diameter": cfg.diameter, "dt": cfg.dt, "steps": case.steps_done,
         "end_time": T, "granular_temperature_initial": float(theta[0]), "granular_temperature_final": float(theta[-1]),
         "box_length": cfg.box_length, "restitution": e, "friction": cfg.material.friction,
         "density": cfg.material.density, "material_source": cfg.material_source, "g0_carnahan_starling": g0,
@@ -998,7 +1025,7 @@ def run(args, *, progress: bool = True) -> int:
     else:
         print(f"homogeneous_cooling [{config.collisions}"
               f"{'/' + summary['detection'] if summary['detection'] else ''}]: N = {config.particles} "
-              f"({config.parcels} parcels), eps_s = {config.eps:g}, dt = {config.dt:g} s, {case.steps_done} steps: "
+              f"({config.parcels} parcels, W = {','.join(map(str, config.weights))}), eps_s = {config.eps:g}, dt = {config.dt:g} s, {case.steps_done} steps: "
               f"Theta {summary['granular_temperature_initial']:.4g} -> {summary['granular_temperature_final']:.4g} "
               f"m^2/s^2, {summary['collisions']:g} collisions ({summary['collisions_per_particle']:.3g} per particle); "
               f"collision frequency / Enskog = {summary['collision_frequency_ratio']:.4f} "

@@ -55,6 +55,39 @@ def second_size(d2, f2, diameter: float, fraction_option: str, example: str):
     return float(d2), float(f2)
 
 
+def species_weights(value, species: int, option: str = "--particles-per-parcel") -> tuple[int, ...]:
+    """Real particles per parcel of each species from ``option``: one value W (every species) or, with a second
+    size, two comma-separated values ``W1,W2`` (species 1 = --diameter, species 2 = --diameter2). ``value``: the
+    option's text, a number, or a sequence of numbers. Integers >= 1 only (a parcel holds whole particles); a
+    ConfigError (one line, what to change) otherwise. Returns one int per species (``species`` of them)."""
+    from hel_warp.errors import ConfigError
+
+    if isinstance(value, str):
+        items = [s.strip() for s in value.split(",")]
+    elif isinstance(value, (list, tuple)):
+        items = list(value)
+    else:
+        items = [value]
+    if len(items) > 2:
+        raise ConfigError(f"{option} {value}: give one value W (every species) or two values W1,W2")
+    if len(items) == 2 and species < 2:
+        raise ConfigError(f"{option} {value}: two values W1,W2 (one per species) need a second size "
+                          "(--diameter2); give one value W")
+    weights = []
+    for item in items:
+        try:
+            number = float(item)
+        except (TypeError, ValueError):
+            number = float("nan")
+        if not (math.isfinite(number) and number >= 1.0 and number == int(number)):
+            raise ConfigError(f"{option} {value}: every weight must be an integer >= 1 (real particles per parcel; "
+                              "e.g. 8 or 1,8)")
+        weights.append(int(number))
+    if len(weights) == 1:
+        weights = weights * species
+    return tuple(weights)
+
+
 def mean_cube(means, stds) -> np.ndarray:
     """E[d^3] = mu^3 + 3 mu sigma^2 of normal sizes, m^3 (per species)."""
     mu, sd = np.asarray(means, float), np.asarray(stds, float)
