@@ -277,6 +277,7 @@ class GasSolver:
         self._pcg = [wp.zeros(n_rows, dtype=wp.float64, device=dev) for _ in range(4)]  # r, z, p, Ap
         self._scalars = wp.zeros(4, dtype=wp.float64, device=dev)
         self._pivot = wp.zeros(n_rows, dtype=wp.float64, device=dev)
+        self._pivot_inverse = wp.zeros(n_rows, dtype=wp.float64, device=dev)
         self._pressure_increment = wp.zeros(self._n_cells, dtype=wp.float64, device=dev)
         """dp of the last projection (flat, box-sized; 0 in solid cells)."""
         solver = self.config.linear_solver
@@ -407,7 +408,7 @@ class GasSolver:
         launches = self._pcg_recorded.get(system)
         if launches is not None:
             return launches
-        rhs, x, pivot = self._c_rhs[:n], self._c_x[:n], self._pivot[:n]
+        rhs, x, pivot, pivot_inverse = self._c_rhs[:n], self._c_x[:n], self._pivot[:n], self._pivot_inverse[:n]
         r, z, p, ap = (v[:n] for v in self._pcg)
         s, dev = self._scalars, self.device
         dot_dim = (n + K.DOT_CHUNK - 1) // K.DOT_CHUNK
@@ -427,8 +428,8 @@ class GasSolver:
             "step": record(K.pcg_step_kernel, n, [p, ap, s], [x, r]),
             "direction": record(K.pcg_direction_kernel, n, [z, s], [p]),
             "shift": record(K.pcg_shift_kernel, 1, [], [s]),
-            "ic0 factor": record(K.ic0_factor_kernel, 1, [A, n, wp.float64(relaxation)], [pivot]),
-            "ic0 apply": record(K.ic0_apply_kernel, 1, [pivot, A, r, n], [z]),
+            "ic0 factor": record(K.ic0_factor_kernel, 1, [A, n, wp.float64(relaxation)], [pivot, pivot_inverse]),
+            "ic0 apply": record(K.ic0_apply_kernel, 1, [pivot_inverse, A, r, n], [z]),
         }
         self._pcg_recorded[system] = launches
         return launches
