@@ -965,15 +965,21 @@ def mg_residual_restrict_kernel(
     A: Stencil,
     b: wp.array(dtype=wp.float64),
     z: wp.array(dtype=wp.float64),
+    colour: wp.array(dtype=wp.int32),
+    last_colour: int,
     # outputs
     c_b: wp.array(dtype=wp.float64),
 ):
-    """c_b = P^T (b - A z): the fine residual of the block's rows summed in a fixed order (one coarse row per
-    thread; the fine residual is not stored)."""
+    """c_b = P^T (b - A z) after a pre-smoothing that ended with the rows of ``last_colour``: the fine residual of
+    the block's rows summed in a fixed order (one coarse row per thread; the fine residual is not stored). A row
+    of the last colour was just solved for its neighbours' values, so its residual is 0 (up to float64
+    round-off) and is not computed, unless Gauss-Seidel left it alone (diag 0)."""
     C = wp.tid()
     acc = wp.float64(0.0)
     for idx in range(child_start[C], child_start[C + 1]):
-        acc = acc + stencil_residual(A, b, z, children[idx])
+        r = children[idx]
+        if colour[r] != last_colour or not A.diag[r] > wp.float64(0.0):
+            acc = acc + stencil_residual(A, b, z, r)
     c_b[C] = acc
 
 
