@@ -1056,6 +1056,45 @@ def pcg_dot_kernel(
 
 
 @wp.kernel
+def pcg_dot_pair_kernel(
+    a: wp.array(dtype=wp.float64),
+    b: wp.array(dtype=wp.float64),
+    slot_ab: int,
+    slot_aa: int,
+    # outputs
+    scalars: wp.array(dtype=wp.float64),
+):
+    """scalars[slot_ab] += a . b and scalars[slot_aa] += a . a in one pass over ``a`` (``pcg_dot_kernel``'s chunks
+    and partial sums: the same two numbers)."""
+    t = wp.tid()
+    first = t * DOT_CHUNK
+    last = wp.min(first + DOT_CHUNK, a.shape[0])
+    ab0 = wp.float64(0.0)
+    ab1 = wp.float64(0.0)
+    ab2 = wp.float64(0.0)
+    ab3 = wp.float64(0.0)
+    aa0 = wp.float64(0.0)
+    aa1 = wp.float64(0.0)
+    aa2 = wp.float64(0.0)
+    aa3 = wp.float64(0.0)
+    quads = first + (last - first) // 4 * 4
+    for i in range(first, quads, 4):
+        ab0 = ab0 + a[i] * b[i]
+        ab1 = ab1 + a[i + 1] * b[i + 1]
+        ab2 = ab2 + a[i + 2] * b[i + 2]
+        ab3 = ab3 + a[i + 3] * b[i + 3]
+        aa0 = aa0 + a[i] * a[i]
+        aa1 = aa1 + a[i + 1] * a[i + 1]
+        aa2 = aa2 + a[i + 2] * a[i + 2]
+        aa3 = aa3 + a[i + 3] * a[i + 3]
+    for i in range(quads, last):
+        ab0 = ab0 + a[i] * b[i]
+        aa0 = aa0 + a[i] * a[i]
+    wp.atomic_add(scalars, slot_ab, (ab0 + ab1) + (ab2 + ab3))
+    wp.atomic_add(scalars, slot_aa, (aa0 + aa1) + (aa2 + aa3))
+
+
+@wp.kernel
 def pcg_start_kernel(
     rhs: wp.array(dtype=wp.float64),
     ax: wp.array(dtype=wp.float64),
