@@ -208,7 +208,8 @@ def is_solved(t: int):
 @wp.func
 def sample_axis(g: GridInfo, axis: int, component: int, s: float):
     """Lower and upper sample index along ``axis`` (wrapped on a periodic axis, else clamped to the cells, or to
-    the faces for the component normal to ``axis``) and the weight of the upper one, at grid coordinate ``s``."""
+    the faces for the component normal to ``axis``; ``component`` -1: cells) and the weight of the upper one, at
+    grid coordinate ``s``."""
     fl = wp.floor(s)
     lo = int(fl)
     hi = lo + 1
@@ -226,14 +227,10 @@ def sample_axis(g: GridInfo, axis: int, component: int, s: float):
 
 
 @wp.func
-def sample_array(g: GridInfo, values: wp.array3d(dtype=float), component: int, x: wp.vec3):
-    """Trilinear value at ``x`` of the face array ``values`` of ``component`` (clamped / wrapped at the box): the
+def trilinear(values: wp.array3d(dtype=float), i0: int, i1: int, wx: float, j0: int, j1: int, wy: float, k0: int,
+              k1: int, wz: float):
+    """Trilinear interpolation between the 8 samples at (i0|i1, j0|j1, k0|k1) with upper weights wx, wy, wz: the
     corners summed in the order (x, y, z bits) 000, 100, 010, ..., 111, each weight a product in x, y, z order."""
-    s = (x - g.origin) / g.spacing - wp.vec3(0.5, 0.5, 0.5)
-    s[component] = s[component] + 0.5
-    i0, i1, wx = sample_axis(g, 0, component, s[0])
-    j0, j1, wy = sample_axis(g, 1, component, s[1])
-    k0, k1, wz = sample_axis(g, 2, component, s[2])
     ux, uy, uz = 1.0 - wx, 1.0 - wy, 1.0 - wz
     result = float(0.0)
     result = result + ux * uy * uz * values[i0, j0, k0]
@@ -248,6 +245,17 @@ def sample_array(g: GridInfo, values: wp.array3d(dtype=float), component: int, x
 
 
 @wp.func
+def sample_array(g: GridInfo, values: wp.array3d(dtype=float), component: int, x: wp.vec3):
+    """Trilinear value at ``x`` of the face array ``values`` of ``component`` (clamped / wrapped at the box)."""
+    s = (x - g.origin) / g.spacing - wp.vec3(0.5, 0.5, 0.5)
+    s[component] = s[component] + 0.5
+    i0, i1, wx = sample_axis(g, 0, component, s[0])
+    j0, j1, wy = sample_axis(g, 1, component, s[1])
+    k0, k1, wz = sample_axis(g, 2, component, s[2])
+    return trilinear(values, i0, i1, wx, j0, j1, wy, k0, k1, wz)
+
+
+@wp.func
 def sample_component(g: GridInfo, vel: FaceFloat, axis: int, x: wp.vec3):
     """Trilinear value of face component ``axis`` at ``x`` (``sample_array``)."""
     if axis == 0:
@@ -259,7 +267,18 @@ def sample_component(g: GridInfo, vel: FaceFloat, axis: int, x: wp.vec3):
 
 @wp.func
 def sample_velocity(g: GridInfo, vel: FaceFloat, x: wp.vec3):
-    return wp.vec3(sample_array(g, vel.x, 0, x), sample_array(g, vel.y, 1, x), sample_array(g, vel.z, 2, x))
+    """The three components at ``x`` (``sample_array`` of each): the grid coordinates, and the cell-centred index
+    pair of an axis that two components share, computed once."""
+    s = (x - g.origin) / g.spacing - wp.vec3(0.5, 0.5, 0.5)
+    ci0, ci1, cwx = sample_axis(g, 0, -1, s[0])
+    cj0, cj1, cwy = sample_axis(g, 1, -1, s[1])
+    ck0, ck1, cwz = sample_axis(g, 2, -1, s[2])
+    fi0, fi1, fwx = sample_axis(g, 0, 0, s[0] + 0.5)
+    fj0, fj1, fwy = sample_axis(g, 1, 1, s[1] + 0.5)
+    fk0, fk1, fwz = sample_axis(g, 2, 2, s[2] + 0.5)
+    return wp.vec3(trilinear(vel.x, fi0, fi1, fwx, cj0, cj1, cwy, ck0, ck1, cwz),
+                   trilinear(vel.y, ci0, ci1, cwx, fj0, fj1, fwy, ck0, ck1, cwz),
+                   trilinear(vel.z, ci0, ci1, cwx, cj0, cj1, cwy, fk0, fk1, fwz))
 
 
 @wp.func
