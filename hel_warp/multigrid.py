@@ -51,6 +51,8 @@ class _Level:
                                                   wp.zeros((n, 6), dtype=wp.int32, device=device))
         self.b = None if fine else wp.zeros(n, dtype=wp.float64, device=device)
         self.z = None if fine else wp.zeros(n, dtype=wp.float64, device=device)
+        self.inverse_diag = wp.zeros(n, dtype=wp.float64, device=device)
+        """1 / diag of A (0 where diag is 0), rebuilt by ``setup``."""
         self.colour = wp.array(colour, dtype=wp.int32, device=device)
         self.n_colours = n_colours
         self.colour_rows = [wp.array(np.flatnonzero(colour == c).astype(np.int32), dtype=wp.int32, device=device)
@@ -110,6 +112,9 @@ class AggregationMultigrid:
             wp.launch(K.mg_coarsen_kernel, dim=coarse.n,
                       inputs=[coarse.child_start, coarse.children, level.parent, level.A], outputs=[coarse.A],
                       device=dev)
+        for level in self.levels:
+            wp.launch(K.mg_inverse_diagonal_kernel, dim=level.n, inputs=[level.A], outputs=[level.inverse_diag],
+                      device=dev)
 
     def apply(self, r, z) -> None:
         """z = M^-1 r (one V-cycle from z = 0)."""
@@ -132,17 +137,18 @@ class AggregationMultigrid:
     def _smooth(self, level: _Level, b, z, colours, launches: list) -> None:
         for c in colours:
             rows = level.colour_rows[c]
-            self._record(launches, K.mg_smooth_kernel, rows.shape[0], [level.A, rows, b], [z])
+            self._record(launches, K.mg_smooth_kernel, rows.shape[0], [level.A, level.inverse_diag, rows, b], [z])
 
     def _cycle(self, index: int, b, z, launches: list) -> None:
         """Record the launches of the V-cycle from level ``index`` down (``apply`` replays them)."""
         level = self.levels[index]
         if index == len(self.levels) - 1:
-            self._record(launches, K.mg_coarsest_kernel, 1, [level.A, b, level.n, self.coarsest_sweeps], [z])
+            self._record(launches, K.mg_coarsest_kernel, 1,
+                         [level.A, level.inverse_diag, b, level.n, self.coarsest_sweeps], [z])
             return
         ascending = list(range(level.n_colours))
         # pre-smoothing from z = 0: the first colour's first update fused with the zeroing
-        self._record(launches, K.mg_smooth_from_zero_kernel, level.n, [level.A, level.colour, b], [z])
+        self._record(launches, K.mg_smooth_from_zero_kernel, level.n, [level.inverse_diag, level.colour, b], [z])
         self._smooth(level, b, z, ascending[1:], launches)
         for _ in range(self.sweeps - 1):
             self._smooth(level, b, z, ascending, launches)

@@ -930,31 +930,47 @@ def mg_coarsen_kernel(
 
 
 @wp.func
-def gauss_seidel_row(A: Stencil, b: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.float64), r: int):
-    """z_r = (b_r + sum_m coef z_neighbour) / diag_r in place; a row with diag 0 is left alone (a block of an
-    all-Neumann system can close on itself: A_c = 0)."""
+def gauss_seidel_row(A: Stencil, inverse_diag: wp.array(dtype=wp.float64), b: wp.array(dtype=wp.float64),
+                     z: wp.array(dtype=wp.float64), r: int):
+    """z_r = (b_r + sum_m coef z_neighbour) / diag_r in place, by the inverse diagonal (``mg_inverse_diagonal_kernel``:
+    a division costs ~3 multiplications); a row with diag 0 (inverse 0) is left alone (a block of an all-Neumann
+    system can close on itself: A_c = 0)."""
     acc = b[r]
     for m in range(6):
         acc = acc + A.coef[r, m] * z[A.neighbour[r, m]]
+    if inverse_diag[r] > wp.float64(0.0):
+        z[r] = acc * inverse_diag[r]
+
+
+@wp.kernel
+def mg_inverse_diagonal_kernel(
+    A: Stencil,
+    # outputs
+    inverse_diag: wp.array(dtype=wp.float64),
+):
+    """1 / diag of a positive diagonal, 0 where the diagonal is 0 (``gauss_seidel_row``)."""
+    r = wp.tid()
+    inverse_diag[r] = wp.float64(0.0)
     if A.diag[r] > wp.float64(0.0):
-        z[r] = acc / A.diag[r]
+        inverse_diag[r] = wp.float64(1.0) / A.diag[r]
 
 
 @wp.kernel
 def mg_smooth_kernel(
     A: Stencil,
+    inverse_diag: wp.array(dtype=wp.float64),
     rows: wp.array(dtype=wp.int32),
     b: wp.array(dtype=wp.float64),
     # outputs
     z: wp.array(dtype=wp.float64),
 ):
     """Gauss-Seidel update of ``rows``, the rows of one colour (no two neighbours share a colour)."""
-    gauss_seidel_row(A, b, z, rows[wp.tid()])
+    gauss_seidel_row(A, inverse_diag, b, z, rows[wp.tid()])
 
 
 @wp.kernel
 def mg_smooth_from_zero_kernel(
-    A: Stencil,
+    inverse_diag: wp.array(dtype=wp.float64),
     colour: wp.array(dtype=wp.int32),
     b: wp.array(dtype=wp.float64),
     # outputs
@@ -964,8 +980,8 @@ def mg_smooth_from_zero_kernel(
     of colour 0 (whose neighbours are all of other colours) gets b_r / diag_r (0 where diag is 0)."""
     r = wp.tid()
     z[r] = wp.float64(0.0)
-    if colour[r] == 0 and A.diag[r] > wp.float64(0.0):
-        z[r] = b[r] / A.diag[r]
+    if colour[r] == 0 and inverse_diag[r] > wp.float64(0.0):
+        z[r] = b[r] * inverse_diag[r]
 
 
 @wp.func
@@ -1017,6 +1033,7 @@ def mg_prolong_kernel(
 @wp.kernel
 def mg_coarsest_kernel(
     A: Stencil,
+    inverse_diag: wp.array(dtype=wp.float64),
     b: wp.array(dtype=wp.float64),
     n: int,
     sweeps: int,
@@ -1032,7 +1049,7 @@ def mg_coarsest_kernel(
             i = step
             if step >= n:
                 i = 2 * n - 1 - step
-            gauss_seidel_row(A, b, z, i)
+            gauss_seidel_row(A, inverse_diag, b, z, i)
 
 
 # ----------------------------------------------------------------- native Jacobi-PCG (CPU path)
