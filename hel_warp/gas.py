@@ -275,7 +275,7 @@ class GasSolver:
         self._c_active = wp.zeros(n_rows, dtype=wp.int32, device=dev)
         self._c_full = K.make_stencil(self._c_diag, self._c_coef, self._c_neighbour)  # what the assembly kernels write
         self._pcg = [wp.zeros(n_rows, dtype=wp.float64, device=dev) for _ in range(4)]  # r, z, p, Ap
-        self._scalars = wp.zeros(4, dtype=wp.float64, device=dev)
+        self._scalars = wp.zeros(6, dtype=wp.float64, device=dev)  # kernels/gas.py "native Jacobi-PCG"
         self._pivot = wp.zeros(n_rows, dtype=wp.float64, device=dev)
         self._pivot_inverse = wp.zeros(n_rows, dtype=wp.float64, device=dev)
         self._pressure_increment = wp.zeros(self._n_cells, dtype=wp.float64, device=dev)
@@ -426,7 +426,9 @@ class GasSolver:
             "b.b": dot(rhs, rhs, 1), "r.r": dot(r, r, 3), "r.z": dot(r, z, 0),
             "r.z new, r.r": record(K.pcg_dot_pair_kernel, dot_dim, [r, z, 2, 3], [s]),
             "ap": record(K.stencil_matvec_kernel, n, [A, p, p, one, zero], [ap]), "p.ap": dot(p, ap, 1),
+            "alpha": record(K.pcg_ratio_kernel, 1, [0, 1, 4], [s]),
             "step": record(K.pcg_step_kernel, n, [p, ap, s], [x, r]),
+            "beta": record(K.pcg_ratio_kernel, 1, [2, 0, 5], [s]),
             "direction": record(K.pcg_direction_kernel, n, [z, s], [p]),
             "shift": record(K.pcg_shift_kernel, 1, [], [s]),
             "ic0 factor": record(K.ic0_factor_kernel, 1, [A, n, wp.float64(relaxation)], [pivot, pivot_inverse]),
@@ -468,9 +470,11 @@ class GasSolver:
         while iterations < maxiter:
             run["ap"]()
             run["p.ap"]()
+            run["alpha"]()
             run["step"]()
             precondition()
             run["r.z new, r.r"]()  # the residual check's r.r in the same pass, every iteration
+            run["beta"]()
             run["direction"]()
             iterations += 1
             residual = float(np.sqrt(s.numpy()[3]))

@@ -1055,7 +1055,8 @@ def mg_coarsest_kernel(
 # ----------------------------------------------------------------- native Jacobi-PCG (CPU path)
 # warp.optim.linear.cg reduces with tile kernels that cost ~0.1 s per dot product on the CPU at
 # 1e5 unknowns; this plain PCG (Hestenes & Stiefel 1952; Saad, *Iterative Methods*, alg. 9.1)
-# reduces with atomics instead, preconditioned with IC(0) (sequential, fine on the CPU). Scalars live in ``scalars``: 0 = r.z, 1 = p.Ap, 2 = new r.z, 3 = r.r.
+# reduces with atomics instead, preconditioned with IC(0) (sequential, fine on the CPU). Scalars live in ``scalars``: 0 = r.z, 1 = p.Ap, 2 = new r.z, 3 = r.r, 4 = alpha, 5 = beta
+# (the two ratios computed once per iteration by one thread, not per row).
 
 
 DOT_CHUNK = 512
@@ -1151,11 +1152,9 @@ def pcg_step_kernel(
     x: wp.array(dtype=wp.float64),
     r: wp.array(dtype=wp.float64),
 ):
-    """x += alpha p, r -= alpha Ap with alpha = (r.z)/(p.Ap)."""
+    """x += alpha p, r -= alpha Ap with alpha = scalars[4] (``pcg_ratio_kernel``)."""
     i = wp.tid()
-    alpha = wp.float64(0.0)
-    if scalars[1] != wp.float64(0.0):
-        alpha = scalars[0] / scalars[1]
+    alpha = scalars[4]
     x[i] = x[i] + alpha * p[i]
     r[i] = r[i] - alpha * ap[i]
 
@@ -1233,12 +1232,25 @@ def pcg_direction_kernel(
     # outputs
     p: wp.array(dtype=wp.float64),
 ):
-    """p = z + beta p with beta = (r.z)_new / (r.z)_old."""
+    """p = z + beta p with beta = scalars[5] (``pcg_ratio_kernel``)."""
     i = wp.tid()
-    beta = wp.float64(0.0)
-    if scalars[0] != wp.float64(0.0):
-        beta = scalars[2] / scalars[0]
-    p[i] = z[i] + beta * p[i]
+    p[i] = z[i] + scalars[5] * p[i]
+
+
+@wp.kernel
+def pcg_ratio_kernel(
+    numerator: int,
+    denominator: int,
+    slot: int,
+    # outputs
+    scalars: wp.array(dtype=wp.float64),
+):
+    """scalars[slot] = scalars[numerator] / scalars[denominator] (0 if the denominator is 0), one thread: alpha =
+    (r.z)/(p.Ap) into slot 4, beta = (r.z)_new/(r.z)_old into slot 5."""
+    ratio = wp.float64(0.0)
+    if scalars[denominator] != wp.float64(0.0):
+        ratio = scalars[numerator] / scalars[denominator]
+    scalars[slot] = ratio
 
 
 @wp.kernel
