@@ -675,8 +675,9 @@ def pressure_rhs_kernel(
             f = wrap_face(g, a, c + side * unit(a))
             sign = wp.float64(2 * side - 1)
             eps = wp.float64(get_f(face_eps, a, f))
-            div = div + sign * eps * wp.float64(get_f(vel, a, f)) / h
-            gross = gross + wp.abs(eps * wp.float64(get_f(vel, a, f))) / h
+            flux = eps * wp.float64(get_f(vel, a, f))
+            div = div + sign * flux
+            gross = gross + wp.abs(flux)
             t = get_t(types, a, f)
             if t == FACE_FLUID and cell_fluid[i, j, k] != 0:
                 a_diag = a_diag + eps
@@ -686,6 +687,8 @@ def pressure_rhs_kernel(
             elif t == FACE_OUTLET:
                 a_diag = a_diag + wp.float64(2.0) * eps
                 b = b + wp.float64(2.0) * eps * wp.float64(outlet_weight * get_f(bc.pressure, a, f))
+    div = div / h  # the face fluxes summed first, divided by h once
+    gross = gross / h
     d_eps_dt = wp.float64(cell_eps_f[i, j, k] - cell_eps_f_prev[i, j, k]) / wp.float64(params.dt)
     b = b - wp.float64(params.rho) * h * h / wp.float64(params.dt) * (div + d_eps_dt)
     if a_diag == wp.float64(0.0):
