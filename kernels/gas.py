@@ -829,7 +829,20 @@ def face_forces_kernel(
     fixed faces take ``advected`` as it is."""
     f = faces[wp.tid()]
     u = get_f(advected, axis, f)
-    if is_solved(get_t(types, axis, f)):
+    t = get_t(types, axis, f)
+    if t == FACE_FLUID:
+        # an interior face: both cells valid and fluid, found once for the source and the gradient (the same
+        # operations as momentum_source_increment and face_pressure_gradient)
+        c_lo = wrap_cell(g, f - unit(axis))
+        c_hi = wrap_cell(g, f)
+        volume = g.spacing * g.spacing * g.spacing
+        impulse = float(0.0)
+        impulse = impulse + 0.5 * cell_momentum_source[c_lo[0], c_lo[1], c_lo[2]][axis]
+        impulse = impulse + 0.5 * cell_momentum_source[c_hi[0], c_hi[1], c_hi[2]][axis]
+        u = u + (params.dt * params.body_accel[axis] + impulse / (params.rho * get_f(face_eps, axis, f) * volume))
+        gradient = float(p_old[flat_index(g.shape, c_hi)] - p_old[flat_index(g.shape, c_lo)]) / g.spacing
+        u = u - params.dt / params.rho * gradient
+    elif t == FACE_OUTLET:
         u = u + momentum_source_increment(g, axis, params, cell_fluid, face_eps, cell_momentum_source, f)
         u = u - params.dt / params.rho * face_pressure_gradient(g, types, bc, p_old, 1.0, axis, f)
     set_f(vel, axis, f, u)
