@@ -314,6 +314,15 @@ def launch_paper_update(args: PaperArgs, forest: Forest, features, particle_v_ou
 # pending event (it may change course and arrive first: the pair waits - the local-minimum rule of parallel
 # event-driven simulation, Lubachevsky 1991). The globally earliest pair always passes, so every round makes
 # progress. Parcels that collided, and those whose earliest partner collided, are dirty in the next round.
+# Searches after round 0 (and the causality check of every round) must reach every partner k whose path can come
+# near: |m_k - m_i| <= r_i + r_k + reach_i + reach_k. One collision can raise a single reach far above the rest,
+# and the global max bounded every search; instead a step has a cut R_cut: the hash grid is searched out to
+# r_i + r_max + reach_i + min(R_cut, max reach) and yields the partners of reach <= R_cut, and the "large" parcels
+# (reach > R_cut, listed anew at each round's start, so a reach grown past the cut by a collision is listed before
+# the next search) are tested one by one. The event search tests a pair with the tighter ``path_bound`` (the
+# farthest end of the present path, not reach's |o(t_last)| + path length) and once: in round 0 by the parcel of
+# the larger reach, later by the lower index when both are dirty. Every pair that can touch is still tested, and
+# the causality check keeps its reach test, so the events and rounds are those of the search out to the max.
 
 EVENT_NONE_VALUE = 9223372036854775807
 EVENT_NONE = wp.constant(wp.int64(EVENT_NONE_VALUE))
@@ -355,8 +364,18 @@ class SweptArgs:
     reach: wp.array(dtype=wp.float32)
     """Bound on |o(t)| over [t_last, dt], o(t) = position - m - u_f (t - dt/2) (the path relative to the hash point
     in the moving frame; the u_f terms cancel in a pair's separation), m."""
+    path_bound: wp.array(dtype=wp.float32)
+    """max |o(t)| over [t_last, dt] of the present path, max(|o(t_last)|, |o(dt)|) as the path is straight (<= reach,
+    which adds the path's length to |o(t_last)|; much less after a turn): the event searches' pair test, m."""
     reach_max: wp.array(dtype=wp.float32)
-    """(1,) max of ``reach`` (atomic_max), m."""
+    """(1,) max of ``reach`` (atomic_max; it caps the searches' R_cut), m."""
+    reach_cut: wp.float32
+    """R_cut: the hash-grid searches reach the partners of ``reach`` <= R_cut; the larger are listed, m."""
+    large_index: wp.array(dtype=wp.int32)
+    """(n,) the first ``large_count[0]`` entries: the live parcels of ``reach`` > R_cut at the round's start, in any
+    order."""
+    large_count: wp.array(dtype=wp.int32)
+    """(1,) parcels listed in ``large_index`` (zeroed before each round's ``swept_reset``)."""
     event_key: wp.array(dtype=wp.int64)
     """Earliest pending event: quantised time << 32 | partner, EVENT_NONE if none."""
     dirty: wp.array(dtype=wp.int32)
@@ -453,6 +472,8 @@ def first_touch(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: int, b:
     s0 = relative_position(args, particle_v, a, b, t_lo)
     g = particle_v[b] - particle_v[a]
     sg = wp.dot(s0, g)
+    if sg >= 0.0:
+        return -1.0  # receding (the test below without its square roots)
     if sg >= -APPROACH_EPS * wp.length(s0) * wp.length(g):
         return -1.0
     cut = args.particle_radius[a] + args.particle_radius[b]
@@ -489,6 +510,7 @@ def swept_start(
     if args.particle_alive[i] == 0:
         args.dirty[i] = 0
         args.reach[i] = 0.0
+        args.path_bound[i] = 0.0
         args.base[i] = wp.vec3(0.0)
         args.hash_point[i] = args.particle_x[i]
         return
@@ -501,6 +523,7 @@ def swept_start(
     args.base[i] = -v * half
     r = wp.length(v - args.frame_velocity) * half
     args.reach[i] = r
+    args.path_bound[i] = r
     args.dirty[i] = 1
     wp.atomic_max(reach_max, 0, r)
     wp.atomic_add(reach_sum, 0, r)
@@ -508,10 +531,13 @@ def swept_start(
 
 @wp.kernel
 def swept_reset(args: SweptArgs):
-    """Dirty parcels forget their pending event (it is found again, or a new one, by swept_find)."""
+    """Dirty parcels forget their pending event (it is found again, or a new one, by swept_find); the parcels of reach
+    above the cut are listed (``large_index``, ``large_count`` zeroed by the caller)."""
     i = wp.tid()
     if args.dirty[i] != 0:
         args.event_key[i] = EVENT_NONE
+    if args.particle_alive[i] != 0 and args.reach[i] > args.reach_cut:
+        args.large_index[wp.atomic_add(args.large_count, 0, 1)] = i
 
 
 @wp.func
@@ -525,6 +551,25 @@ def count_start_overlap(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a:
         wp.atomic_add(detected, stream_pair_index(args.particle_stream[a], args.particle_stream[b], args.n_streams), 1)
         if wp.dot(particle_v[b] - particle_v[a], s) >= 0.0:
             wp.atomic_add(skipped, 0, 1)
+
+
+@wp.func
+def offer_pair(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), i: int, j: int, first: bool,
+               detected: wp.array(dtype=wp.int32), skipped: wp.array(dtype=wp.int32)):
+    """The pair (i, j) found by i's search: its first touch, if any, offered to both keys (int64 atomic_min); in
+    round 0 (``first``) its start overlap is counted."""
+    # the paths stay within their bounds of their hash points: farther apart than both, they never meet
+    d = minimum_image(args.hash_point[j] - args.hash_point[i], args.periodic, args.box)
+    near = (args.particle_radius[i] + args.particle_radius[j] + args.path_bound[i] + args.path_bound[j]) * NEAR_MARGIN
+    if wp.dot(d, d) <= near * near:
+        a = wp.min(i, j)
+        b = wp.max(i, j)
+        if first:
+            count_start_overlap(args, particle_v, a, b, detected, skipped)
+        t = first_touch(args, particle_v, a, b)
+        if t >= 0.0:
+            wp.atomic_min(args.event_key, i, event_key(t, args.dt, j))
+            wp.atomic_min(args.event_key, j, event_key(t, args.dt, i))
 
 
 @wp.kernel
@@ -543,65 +588,81 @@ def swept_find(
     ri = args.particle_radius[i]
     reach_i = args.reach[i]
     mi = args.hash_point[i]
-    # round 0 (every parcel queries): a pair is found by the parcel of the larger reach, so each queries
-    # r_i + r_max + 2 reach_i; later rounds only dirty parcels query, and must reach every partner
-    first = args.round[0] == 0
-    radius = (ri + args.max_radius + reach_i + args.reach_max[0]) * NEAR_MARGIN
-    if first:
-        radius = (ri + args.max_radius + 2.0 * reach_i) * NEAR_MARGIN
+    if args.round[0] == 0:
+        # every parcel queries: a pair is tested by the parcel of the larger reach (then the lower index), whose
+        # search out to r_i + r_max + 2 reach_i finds it
+        for j in wp.hash_grid_query(args.grid, mi, (ri + args.max_radius + 2.0 * reach_i) * NEAR_MARGIN):
+            if j != i and args.particle_alive[j] != 0:
+                reach_j = args.reach[j]
+                if reach_i > reach_j or (reach_i == reach_j and i < j):
+                    offer_pair(args, particle_v, i, j, True, detected, skipped)
+        return
+    # later rounds only dirty parcels query, and must reach every partner: those of reach <= R_cut (path_bound <=
+    # reach) in the grid, the large ones in their list; a pair of two dirty parcels is tested by the lower index
+    # (the other's search finds it as surely: the rule is symmetric)
+    cut = args.reach_cut
+    radius = (ri + args.max_radius + args.path_bound[i] + wp.min(cut, args.reach_max[0])) * NEAR_MARGIN
     for j in wp.hash_grid_query(args.grid, mi, radius):
-        if j != i and args.particle_alive[j] != 0:
-            # the paths stay within reach of their hash points: farther apart than both reaches, they never meet
-            d = minimum_image(args.hash_point[j] - mi, args.periodic, args.box)
-            reach_j = args.reach[j]
-            near = (ri + args.particle_radius[j] + reach_i + reach_j) * NEAR_MARGIN
-            if wp.dot(d, d) <= near * near:
-                a = wp.min(i, j)
-                b = wp.max(i, j)
-                if first and (reach_i > reach_j or (reach_i == reach_j and i < j)):
-                    count_start_overlap(args, particle_v, a, b, detected, skipped)
-                t = first_touch(args, particle_v, a, b)
-                if t >= 0.0:
-                    wp.atomic_min(args.event_key, i, event_key(t, args.dt, j))
-                    wp.atomic_min(args.event_key, j, event_key(t, args.dt, i))
+        if j != i and args.particle_alive[j] != 0 and args.reach[j] <= cut:
+            if j > i or args.dirty[j] == 0:
+                offer_pair(args, particle_v, i, j, False, detected, skipped)
+    for slot in range(args.large_count[0]):
+        j = args.large_index[slot]
+        if j > i or (j < i and args.dirty[j] == 0):
+            offer_pair(args, particle_v, i, j, False, detected, skipped)
+
+
+@wp.func
+def may_arrive_first(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: int, k: int, t: float, q: wp.int64):
+    """True when parcel k has a pending event earlier than a's pair (time bits q, time t) and could, on its new path,
+    reach a before t (the bound of ``earlier_neighbour_event``)."""
+    key_k = args.event_key[k]
+    if key_k == EVENT_NONE or (key_k >> wp.int64(32)) >= q:
+        return False
+    ra = args.particle_radius[a]
+    ma = args.hash_point[a]
+    d = minimum_image(args.hash_point[k] - ma, args.periodic, args.box)
+    near = (ra + args.particle_radius[k] + args.reach[a] + args.reach[k]) * NEAR_MARGIN
+    if wp.dot(d, d) > near * near:
+        return False
+    u_f = args.frame_velocity
+    va = particle_v[a]
+    t_k = float(key_k >> wp.int64(32)) / EVENT_TIME_SCALE * args.dt
+    t1 = wp.max(t_k, args.t_last[a])
+    vk = particle_v[k]
+    xk = d + args.base[k] + vk * t_k
+    xa = args.base[a] + va * t1
+    gap = wp.length(xk - xa) - ra - args.particle_radius[k]
+    speed_k = wp.length(vk - u_f) + 2.0 * wp.length(vk - particle_v[event_partner(key_k)])
+    return gap <= speed_k * (t - t_k) + wp.length(va - u_f) * (t - t1) + 1.0e-6 * ra
 
 
 @wp.func
 def earlier_neighbour_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: int, b: int, t: float,
                             q: wp.int64) -> int:
-    """True when a parcel k (not b) has a pending event at t_k earlier than the pair's (time bits q, time t) and could,
-    on its new path, reach a before t. After its event k moves at most V_k = |v_k| + 2 |v_k - v_p| (p its partner:
-    an admissible impulse changes k's velocity by at most 2 m_p/(m_k + m_p) |g| <= 2 |g|); a moves at |v_a|. From
-    t1 = max(t_k, t_last_a) the gap |x_a(t1) - x_k(t_k)| - r_a - r_k cannot close before
-    (V_k (t - t_k) + |v_a| (t - t1)). Returns the first such k found, -1 if none.
+    """A parcel k (not b) that has a pending event at t_k earlier than the pair's (time bits q, time t) and could,
+    on its new path, reach a before t, -1 if none. After its event k moves at most V_k = |v_k| + 2 |v_k - v_p| (p its
+    partner: an admissible impulse changes k's velocity by at most 2 m_p/(m_k + m_p) |g| <= 2 |g|); a moves at |v_a|.
+    From t1 = max(t_k, t_last_a) the gap |x_a(t1) - x_k(t_k)| - r_a - r_k cannot close before
+    (V_k (t - t_k) + |v_a| (t - t1)). Returns the first such k of the hash grid (reach <= R_cut), else the lowest
+    index among the large parcels (their list's order depends on the threads).
 
     Only parcels whose present paths come within reach of a's are tested: a k whose new path (after its event) leaves
     its present reach could still arrive unseen. Such a miss shows as an event found already overlapping
     (``guard_late_overlap``, resolved at once); none was found in the tests against the strict event order."""
-    ra = args.particle_radius[a]
-    reach_a = args.reach[a]
-    ma = args.hash_point[a]
-    va = particle_v[a]
-    u_f = args.frame_velocity
-    speed_a = wp.length(va - u_f)
-    for k in wp.hash_grid_query(args.grid, ma, (ra + args.max_radius + reach_a + args.reach_max[0]) * NEAR_MARGIN):
-        if k != a and k != b and args.particle_alive[k] != 0:
-            key_k = args.event_key[k]
-            if key_k != EVENT_NONE:
-                if (key_k >> wp.int64(32)) < q:
-                    d = minimum_image(args.hash_point[k] - ma, args.periodic, args.box)
-                    near = (ra + args.particle_radius[k] + reach_a + args.reach[k]) * NEAR_MARGIN
-                    if wp.dot(d, d) <= near * near:
-                        t_k = float(key_k >> wp.int64(32)) / EVENT_TIME_SCALE * args.dt
-                        t1 = wp.max(t_k, args.t_last[a])
-                        vk = particle_v[k]
-                        xk = d + args.base[k] + vk * t_k
-                        xa = args.base[a] + va * t1
-                        gap = wp.length(xk - xa) - ra - args.particle_radius[k]
-                        speed_k = wp.length(vk - u_f) + 2.0 * wp.length(vk - particle_v[event_partner(key_k)])
-                        if gap <= speed_k * (t - t_k) + speed_a * (t - t1) + 1.0e-6 * ra:
-                            return k
-    return -1
+    cut = args.reach_cut
+    radius = (args.particle_radius[a] + args.max_radius + args.reach[a] + wp.min(cut, args.reach_max[0])) * NEAR_MARGIN
+    for k in wp.hash_grid_query(args.grid, args.hash_point[a], radius):
+        if k != a and k != b and args.particle_alive[k] != 0 and args.reach[k] <= cut:
+            if may_arrive_first(args, particle_v, a, k, t, q):
+                return k
+    found = int(-1)
+    for slot in range(args.large_count[0]):
+        k = args.large_index[slot]
+        if k != a and k != b and (found < 0 or k < found):
+            if may_arrive_first(args, particle_v, a, k, t, q):
+                found = k
+    return found
 
 
 @wp.func
@@ -692,9 +753,11 @@ def follow_new_path(args: SweptArgs, i: int, partner: int, t: float, v_old: wp.v
     args.stamp[i] = this_round
     args.last_partner[i] = partner
     u_f = args.frame_velocity
-    r = wp.length(base + v_new * t - u_f * (t - 0.5 * args.dt)) + wp.length(v_new - u_f) * (args.dt - t)
+    o_t = wp.length(base + v_new * t - u_f * (t - 0.5 * args.dt))
+    r = o_t + wp.length(v_new - u_f) * (args.dt - t)
     args.reach[i] = r
     wp.atomic_max(args.reach_max, 0, r)
+    args.path_bound[i] = wp.max(o_t, wp.length(base + v_new * args.dt - u_f * (0.5 * args.dt)))  # o(t), o(dt)
 
 
 @wp.func
@@ -725,6 +788,8 @@ def end_of_contact_normal(args: SweptArgs, i: int, j: int, t: float, n: wp.vec3,
     args.shift[j] = args.shift[j] + move_j
     args.reach[i] = args.reach[i] + wp.length(move_i)  # the path moved by move: its bound by as much
     args.reach[j] = args.reach[j] + wp.length(move_j)
+    args.path_bound[i] = args.path_bound[i] + wp.length(move_i)
+    args.path_bound[j] = args.path_bound[j] + wp.length(move_j)
     wp.atomic_max(args.reach_max, 0, wp.max(args.reach[i], args.reach[j]))
     wp.atomic_add(args.guard, GUARD_TURNED, 1)
 
@@ -855,7 +920,9 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
     """Rounds of mutually earliest events until none is left (``wp.capture_while``: a while node where the call is
     captured into a graph - tests/test_device_paths.py does, on the CPU; the engine calls it uncaptured, a host loop
     with one device read per round) or
-    ``args.max_rounds`` is reached (then ``round_cap_hit`` is set). ``args.grid`` must hold ``args.hash_point``.
+    ``args.max_rounds`` is reached (then ``round_cap_hit`` is set). ``args.grid`` must hold ``args.hash_point``;
+    ``args.reach_cut`` >= 0 splits the searches between the grid and the list of large parcels (the events do not
+    depend on it).
     Round 0 also counts the pairs overlapping at the start into ``detected`` (per stream pair) and ``skipped``.
 
     With ``batch_forest`` (perfect layout) each round's events are predicted in one batched evaluation."""
@@ -866,6 +933,7 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
         from kernels.forest import eval_forest
 
     def one_round():
+        args.large_count.zero_()
         wp.launch(swept_reset, dim=n, device=device, inputs=[args])
         wp.launch(swept_find, dim=n, device=device, inputs=[args, particle_v], outputs=[detected, skipped])
         events_found.zero_()

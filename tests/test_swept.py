@@ -9,6 +9,8 @@ References (CONVENTIONS rule 9):
 - the strict event-driven order (``ordering="sequential"``: one event per round, the globally earliest) for the
   parallel rounds on a dense periodic gas;
 - periodic images against the same pair placed inside the box;
+- the rounds' searches with a cut on the reach (the grid out to R_cut, the parcels above it listed) against the
+  search out to the global maximum reach: bit for bit;
 - momentum conservation and the step's end positions of the swept paths.
 """
 
@@ -216,3 +218,65 @@ def test_swept_frequency_does_not_depend_on_dt_and_overlap_misses_most(trained_m
     assert abs(swept - expected) <= 4 * math.sqrt(expected) + 0.03 * expected
     assert abs(counts[("swept", dt / 10)] - swept) <= 4 * math.sqrt(expected)
     assert counts[("overlap", dt)] < 0.3 * expected
+
+
+def test_a_reach_grown_past_the_cut_is_still_searched(hard_sphere_model, monkeypatch):
+    # B rests beside the path of A (fast): its reach is below the cut in round 0. A hits B at t ~ 0: B's reach grows
+    # to ~|v_B| dt, far past the cut. Y pushes i (at rest 3r beside B's path, gap r) across B's path after that; B's
+    # next event is with i, both of reach above the cut: the grid search skips them, only the list of large parcels
+    # finds the pair. The same step searched out to the global maximum reach (the cut at infinity, nothing listed)
+    # and in the strict event order: the same three collisions (A-B, Y-i, i-B), bit for bit. 40 parcels at rest far
+    # away keep the mean reach, and so the cut, small.
+    import hel_warp.collision_models as cm
+
+    r, dt, u, w = 0.5 * D, 1e-3, 4.0, 1.0
+    cross = np.array([3.0e-3, 0.0, 0.0])
+    x = np.array([[-2 * r - 0.1e-3, 0.0, 0.0], [0.0, 0.0, 0.0], [3.7e-3, 0.0, 0.0], cross + [0.0, 3 * r, 0.0],
+                  cross + [0.0, 5 * r + 0.45e-3, 0.0]])  # A, B, X (at rest on B's path), i, Y
+    v = np.array([[u, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, -w, 0.0]])
+    far = 0.1 + np.stack(np.meshgrid(*(np.arange(4) * 3 * D,) * 3, indexing="ij"), -1).reshape(-1, 3)[:40]
+    x, v = np.vstack([x, far]), np.vstack([v, np.zeros_like(far)])
+    outcomes = []
+    for factor, ordering in ((cm.REACH_CUT_FACTOR, "parallel"), (np.inf, "parallel"),
+                             (cm.REACH_CUT_FACTOR, "sequential")):
+        monkeypatch.setattr(cm, "REACH_CUT_FACTOR", factor)
+        p = make_particles(x, v)
+        strategy = cm.SurrogateCollision(model_dir=hard_sphere_model, ordering=ordering)
+        strategy.collide(p, dt)
+        a = strategy.swept
+        outcomes.append((p.v.numpy().copy(), a.t_last.numpy().copy(), strategy.counts()))
+        if np.isfinite(factor):
+            u_f = np.linalg.norm(v.mean(axis=0))
+            assert u_f * dt / 2 < a.reach_cut  # B's reach in round 0 (at rest in the moving frame: |u_f| dt/2)
+            assert a.reach.numpy()[[1, 3]].min() > a.reach_cut  # B and i: large when they met
+            assert a.last_partner.numpy()[[1, 3]].tolist() == [3, 1]
+    (v_cut, t_cut, c_cut), (v_max, t_max, c_max), (v_seq, t_seq, c_seq) = outcomes
+    assert c_cut["collisions"] == 3 and c_cut == c_max
+    assert np.array_equal(v_cut, v_max) and np.array_equal(t_cut, t_max)
+    assert np.array_equal(v_cut, v_seq) and np.array_equal(t_cut, t_seq) and c_seq["collisions"] == 3
+
+
+def test_searches_with_a_reach_cut_equal_the_search_to_the_maximum_reach(trained_models, monkeypatch):
+    # A dense periodic gas (eps = 0.05, chains of collisions in the step) with the cut at the mean reach (a large
+    # share of the parcels listed, more after each round's collisions) against the cut at infinity (every search
+    # out to the global maximum reach, the list empty): the same events in the same rounds, bit for bit.
+    import hel_warp.collision_models as cm
+
+    x, v, side = periodic_gas(1000, 0.05)
+    outcomes = []
+    for factor in (1.0, np.inf):
+        monkeypatch.setattr(cm, "REACH_CUT_FACTOR", factor)
+        p = make_particles(x, v)
+        strategy = cm.SurrogateCollision(model_dir=trained_models["contact"], periodic_box=(side,) * 3)
+        strategy.collide(p, 2e-4)
+        a = strategy.swept
+        listed = int(a.large_count.numpy()[0])
+        outcomes.append((p.v.numpy().copy(), a.t_last.numpy().copy(), a.shift.numpy().copy(), strategy.counts()))
+        if np.isfinite(factor):
+            started_large = int(np.count_nonzero(np.linalg.norm(v - v.mean(axis=0), axis=1) * 1e-4 > a.reach_cut))
+            assert listed > started_large > 100  # listed from the start, and more after collisions
+        else:
+            assert listed == 0
+    (v_cut, t_cut, s_cut, c_cut), (v_max, t_max, s_max, c_max) = outcomes
+    assert c_cut == c_max and c_cut["collisions"] > 100 and c_cut["rounds"] > 3
+    assert np.array_equal(v_cut, v_max) and np.array_equal(t_cut, t_max) and np.array_equal(s_cut, s_max)
