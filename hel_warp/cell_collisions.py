@@ -17,7 +17,9 @@ Collision cells (:class:`CellConfig`):
 Which anchor it follows, and where it differs (README "Cell detection"): Bird's NTC (SPARTA ``collide vss``:
 candidates from the cell's (sigma g)_max, acceptance sigma g / (sigma g)_max) with the weighted parcels of
 Schmidt & Rutland (2000, spray parcels: candidates with the largest weight, acceptance with the pair's), the
-Enskog factor of Montanero & Santos (1996), and the momentum-exact min(w_i, w_j) impulse of the swept detection.
+Enskog factor of Montanero & Santos (1996), and the momentum-exact min(w_i, w_j) impulse of the swept detection,
+which for unequal weights is Boyd's (1996) conservative partial update, its energy deficit put back per block of
+cells and weight class (``CellConfig.restore_energy``).
 It differs from SPARTA in the majorant (an exact per-step bound from the cell's velocities, not a running
 maximum; no remainder carried between steps), from O'Rourke (1981) in drawing pairs instead of a Poisson number
 of collisions per parcel pair, and from Sommerfeld (2001) in colliding two real parcels of the cell rather than
@@ -44,6 +46,10 @@ gas finish within them, a dense MP-PIC cell with thousands of collisions per ste
 BATCHED_MIN_ROWS = 32
 """A batched forest evaluation costs a block of 64 rows (``kernels/forest.py`` BLOCK_ROWS) however few are used; the
 inline walk of one pair costs ~3 rows of a block on the CPU: below ~32 pairs a round, inline is as cheap."""
+RESTORE_BLOCK = 2
+"""Cells per axis of a block that restores the energy of unequal-weight events: 2^3 cells of ~16 parcels hold ~6
+parcels of a species of 1 parcel in 20 (a 1/8-weight 315/475 um mixture at 30 % large by number), so a class
+nearly never stands alone, while the block stays a few mean free paths wide."""
 EPS_CAP = 0.55
 """Largest cell solids fraction put into Carnahan-Starling's g0 (it diverges at 1; MP-PIC cells can overfill)."""
 
@@ -74,6 +80,12 @@ class CellConfig:
     with inline tree walks."""
     batched_min_rows: int = BATCHED_MIN_ROWS
     """The batched rounds stop after a round of fewer pairs than this (the rest inline)."""
+    restore_energy: bool = True
+    """Parcels of unequal weight: put the energy the heavier parcel's partial impulse loses (against w_min real
+    collisions) back into its weight class after each sub-step (``kernels/cell_collide.py``, Boyd 1996); False:
+    the partial impulse alone (too much dissipation: several times the collisions' own at e = 0.9)."""
+    restore_block: int = RESTORE_BLOCK
+    """Collision cells per axis of a restoration block (the region whose parcels of one weight share a deficit)."""
 
     def __post_init__(self):
         if not (math.isfinite(self.parcels_per_cell) and self.parcels_per_cell >= 2.0):
@@ -93,6 +105,8 @@ class CellConfig:
             raise ConfigError(f"cell batched_rounds must be a positive integer (got {self.batched_rounds!r})")
         if int(self.batched_min_rows) != self.batched_min_rows or self.batched_min_rows < 0:
             raise ConfigError(f"cell batched_min_rows must be an integer >= 0 (got {self.batched_min_rows!r})")
+        if int(self.restore_block) != self.restore_block or self.restore_block < 1:
+            raise ConfigError(f"cell restore_block must be a positive integer (got {self.restore_block!r})")
         if int(self.log_capacity) != self.log_capacity or self.log_capacity < 0:
             raise ConfigError(f"cell log_capacity must be an integer >= 0 (got {self.log_capacity!r})")
 
@@ -189,6 +203,7 @@ class CellCollisions:
         a.pending_row = wp.full(n_cells, -1, dtype=wp.int32, device=dev)
         a.pending_pair = wp.zeros(n_cells, dtype=wp.vec2i, device=dev)
         a.pending_normal = wp.zeros(n_cells, dtype=wp.vec3, device=dev)
+        a.particle_deficit = wp.zeros(n, dtype=wp.float32, device=dev)
         self._more = wp.zeros(1, dtype=wp.int32, device=dev)
         self._round = wp.zeros(1, dtype=wp.int32, device=dev)
         self._rounds = wp.zeros(1, dtype=wp.int32, device=dev)
@@ -227,7 +242,7 @@ class CellCollisions:
         unchanged)."""
         import warp as wp
 
-        from kernels.cell_collide import advance_paths, collide_cells, path_shifts, sort_by_cell
+        from kernels.cell_collide import advance_paths, collide_cells, path_shifts, restore_energy, sort_by_cell
 
         if dt is None or not (dt > 0 and math.isfinite(dt)):
             raise ConfigError(f"cell detection needs the step dt > 0 (got {dt!r})")
@@ -275,6 +290,8 @@ class CellCollisions:
             sort_by_cell(a)
             collide_cells(a, forest, particles.v, self._more, self._round, self._rounds, batch_forest=batch_forest,
                           max_rounds=cfg.batched_rounds, min_rows=cfg.batched_min_rows)
+            if apply and cfg.restore_energy:
+                restore_energy(a, particles.v, int(cfg.restore_block))
             if substeps > 1:
                 advance_paths(self._path, particles.v, particles.alive, sub_dt)
         if substeps > 1:
@@ -303,13 +320,14 @@ class CellCollisions:
         """``collisions`` (real binary collisions: sum of min(w_i, w_j)), ``surrogate_calls`` (accepted events),
         ``detected_pairs`` (0: no overlap test), ``rounds`` (batched forest rounds), ``cell_candidates``, ``cell_accepted``, ``cell_over_max``
         (candidates above the majorant, accepted with probability 1), ``cell_cells`` (cells with >= 2 parcels),
-        ``cell_log_overflow``, ``guard_separation|coulomb|energy|domain_clamped``, per stream pair
+        ``cell_log_overflow``, ``cell_restored`` / ``cell_unrestored`` (weight classes of a block whose unequal-weight
+        energy deficit was put back / could not be), ``guard_separation|coulomb|energy|domain_clamped``, per stream pair
         ``collisions_<a>_<b>``, ``surrogate_calls_<a>_<b>``."""
         if self._counts is not None:
             return dict(self._counts)
         from kernels.cell_collide import (COUNT_ACCEPTED, COUNT_CANDIDATES, COUNT_CELLS, COUNT_CLAMPED,
                                           COUNT_COULOMB, COUNT_ENERGY, COUNT_LOG_OVERFLOW, COUNT_OVER_MAX,
-                                          COUNT_SEPARATION, N_COUNTS)
+                                          COUNT_RESTORED, COUNT_SEPARATION, COUNT_UNRESTORED, N_COUNTS)
 
         s = self.n_streams
         if self._args is None:
@@ -323,6 +341,7 @@ class CellCollisions:
                         "detected_pairs": 0, "cell_candidates": int(c[COUNT_CANDIDATES]),
                         "cell_accepted": int(c[COUNT_ACCEPTED]), "cell_over_max": int(c[COUNT_OVER_MAX]),
                         "cell_cells": int(c[COUNT_CELLS]), "cell_log_overflow": int(c[COUNT_LOG_OVERFLOW]),
+                        "cell_restored": int(c[COUNT_RESTORED]), "cell_unrestored": int(c[COUNT_UNRESTORED]),
                         "rounds": 0 if self._args is None else int(self._rounds.numpy()[0]),
                         "guard_separation": int(c[COUNT_SEPARATION]), "guard_coulomb": int(c[COUNT_COULOMB]),
                         "guard_energy": int(c[COUNT_ENERGY]), "guard_domain_clamped": int(c[COUNT_CLAMPED]),

@@ -30,7 +30,24 @@ whatever w. Per collision cell of volume V holding N parcels, in one step dt:
   ``sum w m v`` is conserved to round-off. With the acceptance factor max(w_i, w_j) every real particle of
   either parcel meets on average the right number of partners (the lighter parcel's particles one full
   collision per event, the heavier's a fraction w_min/w_max of one). For w_i != w_j the heavier parcel's partial
-  impulse dissipates slightly more than w_min binary collisions (never less: no energy gain).
+  impulse alone would lose more energy than w_min binary collisions, which the next item puts back;
+- parcels of unequal weight (Boyd 1996, "Conservative species weighting scheme for the direct simulation Monte
+  Carlo method", J. Thermophys. Heat Transfer 10: 579): the heavier parcel's partial update v + (w_min/w) J/m is
+  Boyd's momentum-conserving one, and it loses energy that w_min real collisions keep: the spread the impulse J
+  would give w_min of the parcel's w particles, ``deficit = w_min (1 - w_min/w) |J|^2 / (2 m)`` per event. At
+  e = 0.9 that is several times the collision's own dissipation (1 - e^2) mu g_n^2 / 2 (315/475 um, weights 1/8:
+  3.8x with the large parcel the heavier, 13x with the small one), so without a remedy a mixture of weights cools
+  several times too fast. The deficit is put back after each sub-step (``cell_restore``) as the random spread it
+  is: per block of ``restore_block``^3 cells and per weight class of parcels carrying a deficit, every parcel of
+  the class gets a normal, isotropic kick of expected energy its own deficit, less the class's mass-weighted mean
+  kick, scaled so that the class gains exactly its deficits D: momentum exact, the energy that of the w_min real
+  collisions, and it stays with the weight class (in a mixture of per-species weights: the species) that would
+  have had it. Additive noise, as the real spread is (a deterministic rescaling of the class's velocities about
+  its mean, tried first, kept the energy too, with the mixture cooling 2.7-3.4 % slower than at weight 1 instead
+  of 0-2.5 %). Measured (docs/FIGURES.md, issue 13 item 4): mixture cooling and each species' Theta within a few
+  per cent of the weight-1 run, not within their statistical error (the 475 um species ends 3-4 % too hot
+  whichever species is heavier: not explained yet). A class with a single parcel in its block cannot take it
+  (``unrestored``: that event keeps the loss; counted).
 
 Sub-steps: a parcel must not fly past a cell within one collision sampling (DSMC's rule that dt be small against
 the cell transit time; at dt = 1e-3 s a parcel of 5 m/s crosses five 1 mm cells). The step is cut into K
@@ -62,9 +79,11 @@ from kernels.forest import (GUARD_COULOMB, GUARD_ENERGY, GUARD_SEPARATION, Conta
 
 COUNT_CANDIDATES, COUNT_ACCEPTED, COUNT_OVER_MAX, COUNT_CELLS = 0, 1, 2, 3
 COUNT_SEPARATION, COUNT_COULOMB, COUNT_ENERGY, COUNT_CLAMPED, COUNT_LOG_OVERFLOW = 4, 5, 6, 7, 8
-N_COUNTS = 9
+COUNT_RESTORED, COUNT_UNRESTORED = 9, 10
+N_COUNTS = 11
 """``counts`` slots: candidates drawn, accepted events, candidates above the majorant, occupied cells (>= 2
-parcels), guard corrections (separation, Coulomb, energy), domain clamps, events not logged (log full)."""
+parcels), guard corrections (separation, Coulomb, energy), domain clamps, events not logged (log full), weight
+classes of a block whose energy deficit was restored / could not be (a single parcel of the class there)."""
 
 
 @wp.struct
@@ -137,6 +156,9 @@ class CellArgs:
     """(n_cells,) batch row of the cell's accepted pair this round, -1: none."""
     pending_pair: wp.array(dtype=wp.vec2i)
     pending_normal: wp.array(dtype=wp.vec3)
+    particle_deficit: wp.array(dtype=wp.float32)
+    """(N,) energy the parcel's partial impulses lost this sub-step against w_min real collisions, J (0 for a
+    parcel never the heavier of its pairs); restored and zeroed by ``cell_restore``."""
     counts: wp.array(dtype=wp.int32)
     """(N_COUNTS,) integer counters of the step (slots above)."""
     calls: wp.array(dtype=wp.int32)
@@ -233,6 +255,14 @@ def cell_ranges(
 
 
 @wp.func
+def partial_impulse_deficit(impulse_sq: float, mass: float, weight: float, w_min: float):
+    """Energy a parcel of ``weight`` particles of ``mass`` loses by taking the impulse w_min J of w_min real
+    collisions as one body (dv = w_min J / (weight mass)) instead of w_min of its particles taking J each:
+    w_min |J|^2 / (2 mass) - (w_min |J|)^2 / (2 weight mass) = w_min (1 - w_min / weight) |J|^2 / (2 mass), J."""
+    return w_min * (1.0 - w_min / weight) * impulse_sq / (2.0 * mass)
+
+
+@wp.func
 def resolve_pair(args: CellArgs, i: int, j: int, n: wp.vec3, impulse_n: float, impulse_t: float,
                  particle_v: wp.array(dtype=wp.vec3)):
     """The forest's normalised impulse for parcels i, j along n (approaching) through the guard, applied as the
@@ -253,6 +283,12 @@ def resolve_pair(args: CellArgs, i: int, j: int, n: wp.vec3, impulse_n: float, i
     w_min = wp.min(wi, wj)
     particle_v[i] = vi - J * (w_min / (wi * mi))
     particle_v[j] = vj + J * (w_min / (wj * mj))
+    # the heavier parcel's energy deficit against w_min real collisions (module docstring; none for equal weights)
+    j2 = wp.dot(J, J)
+    if wi > w_min:
+        args.particle_deficit[i] = args.particle_deficit[i] + partial_impulse_deficit(j2, mi, wi, w_min)
+    if wj > w_min:
+        args.particle_deficit[j] = args.particle_deficit[j] + partial_impulse_deficit(j2, mj, wj, w_min)
     return flags
 
 
@@ -482,6 +518,120 @@ def cell_next_round(
         more[0] = 0
 
 
+@wp.func
+def block_cell(args: CellArgs, lo: wp.vec3i, hi: wp.vec3i, k: int):
+    """Linear index of the k-th cell of the block [lo, hi) (x slowest, as ``cell_keys``)."""
+    ny = hi[1] - lo[1]
+    nz = hi[2] - lo[2]
+    cx = lo[0] + k // (ny * nz)
+    cy = lo[1] + (k // nz) % ny
+    cz = lo[2] + k % nz
+    return (cx * args.shape[1] + cy) * args.shape[2] + cz
+
+
+@wp.func
+def as_vec3d(v: wp.vec3):
+    return wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
+
+
+@wp.func
+def deficit_kick(args: CellArgs, p: int, mass: wp.float64, xi: wp.vec3d):
+    """The parcel's random kick of expected energy ``deficit`` (its lost spread): sqrt(2 deficit / (3 mass)) per
+    component times ``xi`` (three standard normals, drawn by the caller whether the deficit is 0 or not, so that
+    every pass replays the same numbers), m/s."""
+    return wp.sqrt(wp.float64(2.0) * wp.float64(args.particle_deficit[p]) / (wp.float64(3.0) * mass)) * xi
+
+
+@wp.func
+def restore_class(args: CellArgs, lo: wp.vec3i, hi: wp.vec3i, weight: float, key: int,
+                  particle_v: wp.array(dtype=wp.vec3)):
+    """The block's parcels of ``weight``: their deficits D put back as the random spread they are. Each parcel gets
+    a kick delta_k of expected energy its own deficit (normal, isotropic), less the class's mass-weighted mean kick
+    (momentum exact), times the s >= 0 that makes the energy gained exactly D:
+    sum M_k (s v_k.delta_k + s^2 |delta_k|^2 / 2) = D. Deficits zeroed. The random numbers come from
+    ``wp.rand_init(key)``, replayed in each pass. Returns 1 when restored, 0 when the class cannot take it (one
+    parcel in the block: no momentum partner)."""
+    n_block = (hi[0] - lo[0]) * (hi[1] - lo[1]) * (hi[2] - lo[2])
+    mass = wp.float64(0.0)
+    kick_momentum = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    deficit = wp.float64(0.0)
+    members = int(0)
+    state = wp.rand_init(key)
+    for k in range(n_block):
+        cell = block_cell(args, lo, hi, k)
+        for s in range(args.cell_start[cell], args.cell_end[cell]):
+            p = args.cell_slot[s]
+            if args.particle_weight[p] == weight:
+                m = wp.float64(weight * sphere_mass(2.0 * args.particle_radius[p], args.particle_density[p]))
+                mass += m
+                xi = wp.vec3d(wp.float64(wp.randn(state)), wp.float64(wp.randn(state)), wp.float64(wp.randn(state)))
+                kick_momentum += m * deficit_kick(args, p, m, xi)
+                deficit += wp.float64(args.particle_deficit[p])
+                members += 1
+    mean_kick = kick_momentum / mass
+    quadratic = wp.float64(0.0)  # sum M |delta|^2
+    linear = wp.float64(0.0)  # sum M v.delta
+    state = wp.rand_init(key)
+    for k in range(n_block):
+        cell = block_cell(args, lo, hi, k)
+        for s in range(args.cell_start[cell], args.cell_end[cell]):
+            p = args.cell_slot[s]
+            if args.particle_weight[p] == weight:
+                m = wp.float64(weight * sphere_mass(2.0 * args.particle_radius[p], args.particle_density[p]))
+                xi = wp.vec3d(wp.float64(wp.randn(state)), wp.float64(wp.randn(state)), wp.float64(wp.randn(state)))
+                delta = deficit_kick(args, p, m, xi) - mean_kick
+                quadratic += m * wp.dot(delta, delta)
+                linear += m * wp.dot(as_vec3d(particle_v[p]), delta)
+    restored = int(0)
+    scale = wp.float64(0.0)
+    if members >= 2 and quadratic > wp.float64(0.0):
+        scale = (wp.sqrt(linear * linear + wp.float64(2.0) * quadratic * deficit) - linear) / quadratic
+        restored = 1
+    state = wp.rand_init(key)
+    for k in range(n_block):
+        cell = block_cell(args, lo, hi, k)
+        for s in range(args.cell_start[cell], args.cell_end[cell]):
+            p = args.cell_slot[s]
+            if args.particle_weight[p] == weight:
+                m = wp.float64(weight * sphere_mass(2.0 * args.particle_radius[p], args.particle_density[p]))
+                xi = wp.vec3d(wp.float64(wp.randn(state)), wp.float64(wp.randn(state)), wp.float64(wp.randn(state)))
+                delta = deficit_kick(args, p, m, xi) - mean_kick
+                args.particle_deficit[p] = 0.0
+                if restored == 1:
+                    nv = as_vec3d(particle_v[p]) + scale * delta
+                    particle_v[p] = wp.vec3(wp.float32(nv[0]), wp.float32(nv[1]), wp.float32(nv[2]))
+    return restored
+
+
+@wp.kernel
+def cell_restore(
+    args: CellArgs,
+    block: int,
+    # outputs
+    particle_v: wp.array(dtype=wp.vec3),
+):
+    """One block of block^3 collision cells: every weight class with a deficit restored (``restore_class``); the
+    block's random stream ``wp.rand_init(seed, n_cells + block index)`` (the cells' streams are 0 .. n_cells-1)."""
+    b = wp.tid()
+    nb1 = (args.shape[1] + block - 1) // block
+    nb2 = (args.shape[2] + block - 1) // block
+    lo = wp.vec3i((b // (nb1 * nb2)) * block, ((b // nb2) % nb1) * block, (b % nb2) * block)
+    hi = wp.vec3i(wp.min(lo[0] + block, args.shape[0]), wp.min(lo[1] + block, args.shape[1]),
+                  wp.min(lo[2] + block, args.shape[2]))
+    n_block = (hi[0] - lo[0]) * (hi[1] - lo[1]) * (hi[2] - lo[2])
+    block_state = wp.rand_init(args.seed, args.shape[0] * args.shape[1] * args.shape[2] + b)
+    for k in range(n_block):
+        cell = block_cell(args, lo, hi, k)
+        for s in range(args.cell_start[cell], args.cell_end[cell]):
+            p = args.cell_slot[s]
+            if args.particle_deficit[p] > 0.0:
+                key = wp.randi(block_state)
+                if restore_class(args, lo, hi, args.particle_weight[p], key, particle_v) == 1:
+                    wp.atomic_add(args.counts, COUNT_RESTORED, 1)
+                else:
+                    wp.atomic_add(args.counts, COUNT_UNRESTORED, 1)
+
+
 # ------------------------------------------------------------------------------------------ launch wrappers
 
 
@@ -498,6 +648,16 @@ def path_shifts(path_x, particle_x, particle_v, particle_alive, dt: float, shift
 def launch_add_shift(shift, particle_alive, particle_x) -> None:
     wp.launch(add_shift, dim=particle_x.shape[0], device=particle_x.device, inputs=[shift, particle_alive],
               outputs=[particle_x])
+
+
+def restore_energy(args: CellArgs, particle_v, block: int) -> None:
+    """After a sub-step's collisions (:func:`collide_cells`): the unequal-weight deficits put back per block of
+    ``block``^3 cells and weight class (``cell_restore``)."""
+    shape = args.shape
+    blocks = 1
+    for a in range(3):
+        blocks *= (int(shape[a]) + block - 1) // block
+    wp.launch(cell_restore, dim=blocks, device=particle_v.device, inputs=[args, int(block)], outputs=[particle_v])
 
 
 def sort_by_cell(args: CellArgs) -> None:
