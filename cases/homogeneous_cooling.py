@@ -48,7 +48,10 @@ Garzo & Dufty 1999, which differs from 1: non-equipartition). ``granular_tempera
 mass-weighted Theta, and the ``enskog_*`` / ``haff_slope`` / ``cooling_rate_ratio`` keys refer to that mixture
 theory (``haff_slope``: the slope of its Theta^-1/2(t)). ``ktgf`` gets one diameter, the mixture's Sauter mean
 (the mixture KTGF closures are out of scope). A surrogate model must hold both sizes and their ratios in its
-training domain (``hel-warp dataset --diameters D1,D2``)::
+training domain (``hel-warp dataset --diameters D1,D2``). ``--particles-per-parcel W1,W2`` gives each species its
+own weight (W_k divides N_k; one value: both): N_k / W_k parcels of weight W_k, the same real particles, box and
+references; the ``cell`` detection (the default once a weight exceeds 1) puts back the energy the heavier parcel's
+partial impulse loses (``kernels/cell_collide.py``)::
 
     python cases/homogeneous_cooling.py --collisions surrogate --model MIXTURE_MODEL --dt 1e-3 \\
         --solids-fraction 0.01 --particles 8000 --diameter 315e-6 --diameter2 475e-6 --number-fraction2 0.3 \\
