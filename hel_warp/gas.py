@@ -231,13 +231,7 @@ class GasSolver:
         self.launch_over = launch_over
         grid = domain.grid
         self.grid_info = grid.info()
-        self._cells = grid.shape
         self._n_cells = int(np.prod(grid.shape))
-        self._face_shapes = []
-        for axis in range(3):
-            shape = list(grid.shape)
-            shape[axis] += 1
-            self._face_shapes.append(tuple(shape))
         dev = self.device
         fluid = domain.cell_fluid.numpy() != 0
         box = launch_over == "box"
