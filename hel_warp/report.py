@@ -617,7 +617,8 @@ def _same_size_and_step(a: RunData, b: RunData) -> bool:
 
 # ------------------------------------------------------------------------------------------ size classes
 def size_classes(run: RunData) -> list | None:
-    """The species of a mixture run (``rig.size_classes``: diameter, diameter_std, parcels), or None."""
+    """The species of a mixture run (``rig.size_classes``: diameter, diameter_std, parcels, particles_per_parcel),
+    or None."""
     classes = run.rig.get("size_classes") if isinstance(run.rig, dict) else None
     return classes or None
 
@@ -650,6 +651,7 @@ def size_class_entries(run: RunData, ref: RunData | None, boxes, *, downstream_o
         prof = {str(b): profiles(view, b, downstream_only=downstream_only, from_time=from_time) for b in boxes}
         metrics = stream_metrics(view, boxes, window=window, min_samples=min_samples)
         entry = {"diameter": float(c["diameter"]), "label": f"{float(c['diameter']) * 1e6:.0f} um",
+                 "particles_per_parcel": c.get("particles_per_parcel"),  # None: a run from before issue 13 item 4
                  "paper_experimental_uncertainty": paper_uncertainty(float(c["diameter"])),
                  "profiles": prof, "stream_metrics": metrics}
         if ref is not None and ref is not run and size_classes(ref) is not None:
