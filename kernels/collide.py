@@ -554,22 +554,27 @@ def count_start_overlap(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a:
 
 
 @wp.func
+def paths_near(args: SweptArgs, m_i: wp.vec3, extent_i: float, j: int):
+    """The paths of i (hash point m_i, extent_i = r_i + path_bound_i) and j stay within their bounds of their hash
+    points: farther apart than both bounds and radii, they never meet."""
+    d = minimum_image(args.hash_point[j] - m_i, args.periodic, args.box)
+    near = (extent_i + args.particle_radius[j] + args.path_bound[j]) * NEAR_MARGIN
+    return wp.dot(d, d) <= near * near
+
+
+@wp.func
 def offer_pair(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), i: int, j: int, first: bool,
                detected: wp.array(dtype=wp.int32), skipped: wp.array(dtype=wp.int32)):
     """The pair (i, j) found by i's search: its first touch, if any, offered to both keys (int64 atomic_min); in
     round 0 (``first``) its start overlap is counted."""
-    # the paths stay within their bounds of their hash points: farther apart than both, they never meet
-    d = minimum_image(args.hash_point[j] - args.hash_point[i], args.periodic, args.box)
-    near = (args.particle_radius[i] + args.particle_radius[j] + args.path_bound[i] + args.path_bound[j]) * NEAR_MARGIN
-    if wp.dot(d, d) <= near * near:
-        a = wp.min(i, j)
-        b = wp.max(i, j)
-        if first:
-            count_start_overlap(args, particle_v, a, b, detected, skipped)
-        t = first_touch(args, particle_v, a, b)
-        if t >= 0.0:
-            wp.atomic_min(args.event_key, i, event_key(t, args.dt, j))
-            wp.atomic_min(args.event_key, j, event_key(t, args.dt, i))
+    a = wp.min(i, j)
+    b = wp.max(i, j)
+    if first:
+        count_start_overlap(args, particle_v, a, b, detected, skipped)
+    t = first_touch(args, particle_v, a, b)
+    if t >= 0.0:
+        wp.atomic_min(args.event_key, i, event_key(t, args.dt, j))
+        wp.atomic_min(args.event_key, j, event_key(t, args.dt, i))
 
 
 @wp.kernel
@@ -581,21 +586,26 @@ def swept_find(
     skipped: wp.array(dtype=wp.int32),
 ):
     """Each dirty parcel offers its pair events to both parcels' keys (int64 atomic_min); in round 0 the pairs
-    overlapping at the start are counted too (once each: by the parcel of the larger reach, then lower index)."""
+    overlapping at the start are counted too (once each: by the parcel of the larger reach, then lower index).
+    The candidates are tested nearest first (``paths_near``, the one test that rejects most) and then by the rest,
+    so that a far candidate costs few loads."""
     i = wp.tid()
     if args.dirty[i] == 0:
         return
     ri = args.particle_radius[i]
     reach_i = args.reach[i]
     mi = args.hash_point[i]
+    extent_i = ri + args.path_bound[i]
     if args.round[0] == 0:
         # every parcel queries: a pair is tested by the parcel of the larger reach (then the lower index), whose
         # search out to r_i + r_max + 2 reach_i finds it
         for j in wp.hash_grid_query(args.grid, mi, (ri + args.max_radius + 2.0 * reach_i) * NEAR_MARGIN):
-            if j != i and args.particle_alive[j] != 0:
-                reach_j = args.reach[j]
-                if reach_i > reach_j or (reach_i == reach_j and i < j):
-                    offer_pair(args, particle_v, i, j, True, detected, skipped)
+            if j != i:
+                if paths_near(args, mi, extent_i, j):
+                    if args.particle_alive[j] != 0:
+                        reach_j = args.reach[j]
+                        if reach_i > reach_j or (reach_i == reach_j and i < j):
+                            offer_pair(args, particle_v, i, j, True, detected, skipped)
         return
     # later rounds only dirty parcels query, and must reach every partner: those of reach <= R_cut (path_bound <=
     # reach) in the grid, the large ones in their list; a pair of two dirty parcels is tested by the lower index
@@ -603,13 +613,16 @@ def swept_find(
     cut = args.reach_cut
     radius = (ri + args.max_radius + args.path_bound[i] + wp.min(cut, args.reach_max[0])) * NEAR_MARGIN
     for j in wp.hash_grid_query(args.grid, mi, radius):
-        if j != i and args.particle_alive[j] != 0 and args.reach[j] <= cut:
-            if j > i or args.dirty[j] == 0:
-                offer_pair(args, particle_v, i, j, False, detected, skipped)
+        if j != i:
+            if paths_near(args, mi, extent_i, j):
+                if args.particle_alive[j] != 0 and args.reach[j] <= cut and (j > i or args.dirty[j] == 0):
+                    offer_pair(args, particle_v, i, j, False, detected, skipped)
     for slot in range(args.large_count[0]):
         j = args.large_index[slot]
-        if j > i or (j < i and args.dirty[j] == 0):
-            offer_pair(args, particle_v, i, j, False, detected, skipped)
+        if j != i:
+            if paths_near(args, mi, extent_i, j):
+                if j > i or args.dirty[j] == 0:
+                    offer_pair(args, particle_v, i, j, False, detected, skipped)
 
 
 @wp.func
@@ -653,8 +666,9 @@ def earlier_neighbour_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3)
     cut = args.reach_cut
     radius = (args.particle_radius[a] + args.max_radius + args.reach[a] + wp.min(cut, args.reach_max[0])) * NEAR_MARGIN
     for k in wp.hash_grid_query(args.grid, args.hash_point[a], radius):
-        if k != a and k != b and args.particle_alive[k] != 0 and args.reach[k] <= cut:
-            if may_arrive_first(args, particle_v, a, k, t, q):
+        # the key first (most candidates have none earlier; a dead parcel has none): fewer loads per candidate
+        if k != a and k != b and may_arrive_first(args, particle_v, a, k, t, q):
+            if args.reach[k] <= cut:
                 return k
     found = int(-1)
     for slot in range(args.large_count[0]):
