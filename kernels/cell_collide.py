@@ -46,8 +46,9 @@ whatever w. Per collision cell of volume V holding N parcels, in one step dt:
   its mean, tried first, kept the energy too, with the mixture cooling 2.7-3.4 % slower than at weight 1 instead
   of 0-2.5 %). Measured (docs/FIGURES.md, issue 13 item 4): mixture cooling and each species' Theta within a few
   per cent of the weight-1 run, not within their statistical error (the 475 um species ends 3-4 % too hot
-  whichever species is heavier: not explained yet). A class with a single parcel in its block cannot take it
-  (``unrestored``: that event keeps the loss; counted).
+  whichever species is heavier: mostly a light parcel meeting the same few heavy parcels of its cell again and
+  again, where its real particle would meet W times as many distinct ones). A class with a single parcel in its
+  block cannot take it (``unrestored``: that event keeps the loss; counted).
 
 Sub-steps: a parcel must not fly past a cell within one collision sampling (DSMC's rule that dt be small against
 the cell transit time; at dt = 1e-3 s a parcel of 5 m/s crosses five 1 mm cells). The step is cut into K
