@@ -35,6 +35,8 @@ import warp as wp
 from kernels.forest import (COS_FEATURE, GUARD_COULOMB, GUARD_ENERGY, GUARD_SEPARATION, SCALE_NONE, ContactDomain, Forest,
                             admissible_impulse, contact_impulse, scale_factor, sphere_mass, walk_tree,
                             write_contact_features_in_domain)
+from kernels.reflect import WallParams, reflect_velocity
+from kernels.sdf import SdfShapes, sdf_union, sdf_union_normal
 
 PAIR_PENDING = wp.constant(0)
 """``pair_state`` of a detected pair (the overlap pair list of ``hel_warp.pairs.PairDetector``)."""
@@ -416,6 +418,21 @@ class SweptArgs:
     """The pair's key when it was blocked."""
     blocked_round: wp.array(dtype=wp.int32)
     """The round of that check."""
+    walls: wp.int32
+    """1: wall events in the rounds (a parcel whose path crosses the wall is reflected at the crossing, in time
+    order with its collisions); 0: no walls (periodic box, open space) or the push's end-of-step reflection."""
+    shapes: SdfShapes
+    """The wall geometry (``walls`` = 1; kernels/sdf.py: negative inside the fluid)."""
+    wall: WallParams
+    """Restitution and Coulomb cap of a parcel-wall impact (kernels/reflect.py ``reflect_velocity``)."""
+    wall_count: wp.array(dtype=wp.int32)
+    """(1,) wall events in this round."""
+    wall_i: wp.array(dtype=wp.int32)
+    """(rows,) parcel of each wall event of the round."""
+    wall_time: wp.array(dtype=wp.float32)
+    """(rows,) its time in the step, s."""
+    wall_hits: wp.array(dtype=wp.int32)
+    """(1,) wall events resolved in the step."""
 
 
 GUARD_CLAMPED = wp.constant(3)
@@ -487,6 +504,59 @@ def first_touch(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: int, b:
     if t > args.dt:
         return -1.0
     return t
+
+
+WALL_BISECTIONS = wp.constant(30)
+"""Bisection steps of a wall crossing time (dt / 2^30, below float32's resolution of the step)."""
+
+
+@wp.func
+def path_position(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), i: int, t: float):
+    """Centre of parcel i at time t on its current path (open space: walls are never periodic)."""
+    return args.hash_point[i] + args.base[i] + particle_v[i] * t
+
+
+@wp.func
+def wall_touch(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), i: int):
+    """Earliest time in [t_last, dt] at which parcel i's centre crosses the wall moving out of the fluid, -1 if its
+    path ends inside (MP-PIC parcels meet walls as points, kernels/reflect.py). A path that starts on or outside
+    the wall and moves out crosses at once (t_last); one that starts there moving in (after a wall event) is
+    followed to its first inside point. The crossing of a path that ends outside is bracketed by bisection on the
+    signed distance (the point just outside is returned: its normal is the wall's; two walls met within a step,
+    at a corner, are two events)."""
+    if args.walls == 0 or args.dt <= 0.0:
+        return -1.0
+    t_lo = args.t_last[i]
+    d_hi = sdf_union(args.shapes, path_position(args, particle_v, i, args.dt))
+    if d_hi <= 0.0:
+        return -1.0
+    v = particle_v[i]
+    x_lo = path_position(args, particle_v, i, t_lo)
+    lo = t_lo
+    hi = args.dt
+    if sdf_union(args.shapes, x_lo) >= 0.0:
+        if wp.dot(v, sdf_union_normal(args.shapes, x_lo)) > 0.0:
+            return t_lo
+        # on the wall moving in (the point of its last wall event, just outside, or float32 round-off of the new
+        # path): the path re-enters at once; an inside point, then the next crossing
+        found = int(0)
+        for k in range(WALL_BISECTIONS):
+            if found == 0:
+                t_in = t_lo + (args.dt - t_lo) * wp.pow(0.5, float(WALL_BISECTIONS - k))
+                if sdf_union(args.shapes, path_position(args, particle_v, i, t_in)) < 0.0:
+                    lo = t_in
+                    found = 1
+        if found == 0:
+            return -1.0
+    for _ in range(WALL_BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        if sdf_union(args.shapes, path_position(args, particle_v, i, mid)) > 0.0:
+            hi = mid
+        else:
+            lo = mid
+    if wp.dot(v, sdf_union_normal(args.shapes, path_position(args, particle_v, i, hi))) <= 0.0:
+        return -1.0
+    return hi
 
 
 @wp.kernel
@@ -596,6 +666,10 @@ def swept_find(
     reach_i = args.reach[i]
     mi = args.hash_point[i]
     extent_i = ri + args.path_bound[i]
+    # the parcel's own wall crossing (wall events): an event whose partner is the parcel itself
+    t_wall = wall_touch(args, particle_v, i)
+    if t_wall >= 0.0:
+        wp.atomic_min(args.event_key, i, event_key(t_wall, args.dt, i))
     if args.round[0] == 0:
         # every parcel queries: a pair is tested by the parcel of the larger reach (then the lower index), whose
         # search out to r_i + r_max + 2 reach_i finds it
@@ -646,7 +720,10 @@ def may_arrive_first(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: in
     xk = d + args.base[k] + vk * t_k
     xa = args.base[a] + va * t1
     gap = wp.length(xk - xa) - ra - args.particle_radius[k]
-    speed_k = wp.length(vk - u_f) + 2.0 * wp.length(vk - particle_v[event_partner(key_k)])
+    partner_k = event_partner(key_k)
+    speed_k = wp.length(vk - u_f) + 2.0 * wp.length(vk - particle_v[partner_k])
+    if partner_k == k:  # a wall event: |v'| <= |v_k| (e_n, e_t <= 1), in any direction
+        speed_k = wp.length(vk) + wp.length(u_f)
     return gap <= speed_k * (t - t_k) + wp.length(va - u_f) * (t - t1) + 1.0e-6 * ra
 
 
@@ -702,6 +779,31 @@ def swept_global_min(args: SweptArgs):
         wp.atomic_min(args.global_key, 0, key)
 
 
+@wp.func
+def select_wall_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: int, key: wp.int64,
+                      events_found: wp.array(dtype=wp.int32)):
+    """Parcel a's earliest event is its wall crossing: a row of the round's wall events unless a neighbour with an
+    earlier event may reach a first (the causality rule of the pairs)."""
+    if args.sequential != 0 and key != args.global_key[0]:
+        return
+    t = wall_touch(args, particle_v, a)
+    if t < 0.0:
+        return
+    if still_blocked(args, a, key):
+        return
+    k = earlier_neighbour_event(args, particle_v, a, a, t, key >> wp.int64(32))
+    if k >= 0:
+        args.blocker[a] = k
+        args.blocker_key[a] = args.event_key[k]
+        args.blocked_key[a] = key
+        args.blocked_round[a] = args.round[0]
+        return
+    row = wp.atomic_add(args.wall_count, 0, 1)
+    args.wall_i[row] = a
+    args.wall_time[row] = t
+    events_found[0] = 1
+
+
 @wp.kernel
 def swept_select(
     args: SweptArgs,
@@ -715,7 +817,10 @@ def swept_select(
     if key == EVENT_NONE:
         return
     b = event_partner(key)
-    if b <= a or args.event_key[b] == EVENT_NONE:
+    if b == a:
+        select_wall_event(args, particle_v, a, key, events_found)
+        return
+    if b < a or args.event_key[b] == EVENT_NONE:
         return
     if event_partner(args.event_key[b]) != a:
         return
@@ -875,6 +980,30 @@ def swept_resolve(
 
 
 @wp.kernel
+def swept_resolve_walls(
+    args: SweptArgs,
+    # outputs
+    particle_v: wp.array(dtype=wp.vec3),
+):
+    """The round's wall events: the parcel reflected at its crossing (e_n, e_t, Coulomb cap as the push's
+    reflection, kernels/reflect.py), its new path from there."""
+    row = wp.tid()
+    if row >= args.wall_count[0]:
+        return
+    i = args.wall_i[row]
+    t = args.wall_time[row]
+    v = particle_v[i]
+    n = sdf_union_normal(args.shapes, path_position(args, particle_v, i, t))
+    if wp.dot(v, n) <= 0.0:
+        return
+    v_new = reflect_velocity(v, n, args.wall.restitution_normal, args.wall.restitution_tangential,
+                             args.wall.friction)
+    particle_v[i] = v_new
+    follow_new_path(args, i, i, t, v, v_new, args.round[0])
+    wp.atomic_add(args.wall_hits, 0, 1)
+
+
+@wp.kernel
 def swept_mark_dirty(args: SweptArgs):
     """Dirty next round: parcels that collided in this round and those whose pending partner did."""
     i = wp.tid()
@@ -952,6 +1081,7 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
         wp.launch(swept_find, dim=n, device=device, inputs=[args, particle_v], outputs=[detected, skipped])
         events_found.zero_()
         args.batch_count.zero_()
+        args.wall_count.zero_()
         if args.sequential != 0:
             args.global_key.fill_(EVENT_NONE_VALUE)
             wp.launch(swept_global_min, dim=n, device=device, inputs=[args])
@@ -959,6 +1089,8 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
         if batch_forest is not None:
             eval_forest(batch_forest, args.features, args.batch_out, device=device, row_count=args.batch_count)
         wp.launch(swept_resolve, dim=n, device=device, inputs=[args, forest], outputs=[particle_v, calls, collisions])
+        if args.walls != 0:
+            wp.launch(swept_resolve_walls, dim=n, device=device, inputs=[args], outputs=[particle_v])
         wp.launch(swept_mark_dirty, dim=n, device=device, inputs=[args])
         wp.launch(swept_next_round, dim=1, device=device, inputs=[args],
                   outputs=[events_found, event_rounds, round_cap_hit])
