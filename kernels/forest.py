@@ -576,28 +576,31 @@ def paper_velocities_kernel(targets: wp.array2d(dtype=wp.float32),
 # ------------------------------------------------------------------------------ launch wrappers
 
 
-def eval_forest(forest: Forest, features, out, *, rows_per_thread: int = 1, device=None, row_count=None) -> None:
+def eval_forest(forest: Forest, features, out, *, rows_per_thread: int = 1, device=None, row_count=None,
+                record: bool = False):
     """``out[row, t]`` = prediction of target t for ``features[row]`` (raw float32 features).
 
     ``rows_per_thread`` applies to the explicit layout; the perfect layout uses BLOCK_ROWS and takes an
-    optional device ``row_count`` (int32 array: only the first row_count[0] rows).
+    optional device ``row_count`` (int32 array: only the first row_count[0] rows). ``record``: launch nothing and
+    return the recorded ``wp.Launch`` (``.launch()`` replays it without packing the arguments again; None for
+    zero rows).
     """
     n_rows = features.shape[0]
     if n_rows == 0:
-        return
+        return None
     device = device or features.device
     if forest.perfect:
         if not features.is_contiguous:
             raise ValueError("eval_forest: the perfect layout needs contiguous (row-major) features")
-        wp.launch(eval_forest_perfect_kernel, dim=(n_rows + BLOCK_ROWS - 1) // BLOCK_ROWS,
-                  inputs=[forest, features.flatten(), n_rows, features.shape[1], row_count], outputs=[out],
-                  device=device)
-    else:
-        if row_count is not None:
-            raise ValueError("eval_forest: row_count needs the perfect layout")
-        rows_per_thread = max(1, int(rows_per_thread))
-        wp.launch(eval_forest_explicit_kernel, dim=(n_rows + rows_per_thread - 1) // rows_per_thread,
-                  inputs=[forest, features, n_rows, rows_per_thread], outputs=[out], device=device)
+        return wp.launch(eval_forest_perfect_kernel, dim=(n_rows + BLOCK_ROWS - 1) // BLOCK_ROWS,
+                         inputs=[forest, features.flatten(), n_rows, features.shape[1], row_count], outputs=[out],
+                         device=device, record_cmd=record)
+    if row_count is not None:
+        raise ValueError("eval_forest: row_count needs the perfect layout")
+    rows_per_thread = max(1, int(rows_per_thread))
+    return wp.launch(eval_forest_explicit_kernel, dim=(n_rows + rows_per_thread - 1) // rows_per_thread,
+                     inputs=[forest, features, n_rows, rows_per_thread], outputs=[out], device=device,
+                     record_cmd=record)
 
 
 def contact_features(v1, v2, n, d1, d2, rho1, rho2, features, *, device=None) -> None:
