@@ -272,7 +272,8 @@ class SurrogateCollision:
         """Velocity jumps of the step's collisions (``solver.pool.particles.v``); a_coll = 0."""
         solver.fields.parcel_a_coll.zero_()
         self._solver_grid = solver.grid  # the cell detection's collision cells
-        if self._walls is None and solver.config.walls and getattr(solver, "shapes", None) is not None:
+        walls = getattr(getattr(solver, "config", None), "walls", False)
+        if self._walls is None and walls and getattr(solver, "shapes", None) is not None:
             self.set_walls(solver.shapes, solver.wall_params)
         self.collide(solver.pool.particles, solver.config.dt)
 
