@@ -303,7 +303,7 @@ class CellCollisions:
         (once; a no-op after a step of one sub-step)."""
         if not self._shift_pending:
             return
-        from kernels.cell_collide import launch_add_shift
+        from kernels.collide import launch_add_shift  # the swept detection's x += shift
 
         launch_add_shift(self._shift, particles.alive, particles.x)
         self._shift_pending = False

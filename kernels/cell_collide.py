@@ -488,19 +488,6 @@ def path_shift(
 
 
 @wp.kernel
-def add_shift(
-    shift: wp.array(dtype=wp.vec3),
-    particle_alive: wp.array(dtype=wp.int32),
-    # outputs
-    particle_x: wp.array(dtype=wp.vec3),
-):
-    """After the push: x += shift (the sub-stepped paths' position changes)."""
-    i = wp.tid()
-    if particle_alive[i] != 0:
-        particle_x[i] = particle_x[i] + shift[i]
-
-
-@wp.kernel
 def cell_next_round(
     max_rounds: int,
     min_rows: int,
@@ -645,10 +632,6 @@ def path_shifts(path_x, particle_x, particle_v, particle_alive, dt: float, shift
     wp.launch(path_shift, dim=path_x.shape[0], device=path_x.device,
               inputs=[path_x, particle_x, particle_v, particle_alive, float(dt)], outputs=[shift])
 
-
-def launch_add_shift(shift, particle_alive, particle_x) -> None:
-    wp.launch(add_shift, dim=particle_x.shape[0], device=particle_x.device, inputs=[shift, particle_alive],
-              outputs=[particle_x])
 
 
 def restore_energy(args: CellArgs, particle_v, block: int) -> None:
