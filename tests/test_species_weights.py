@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -44,13 +43,9 @@ def hc():
 
 @pytest.fixture(scope="module")
 def cs():
-    import importlib.util
+    from hel_warp.commands._common import load_case_module
 
-    spec = importlib.util.spec_from_file_location("colliding_streams_weights", ROOT / "cases" / "colliding_streams.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["colliding_streams_weights"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_case_module(str(ROOT / "cases" / "colliding_streams.py"))
 
 
 @pytest.fixture(scope="module")
