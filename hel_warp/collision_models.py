@@ -111,7 +111,7 @@ class SurrogateCollision:
     def __init__(self, *, model_dir: str, mode: str = "pairwise", detection: str | None = None,
                  periodic_box=None, n_streams: int = DEFAULT_STREAMS, batched: bool = True,
                  max_rounds: int = MAX_ROUNDS, ordering: str = "parallel", cell=None, seed: int = 0,
-                 wall_events: bool = False):
+                 wall_events: bool = True):
         from hel_warp.forest import load_forest
 
         if mode not in ("pairwise", "paper"):
@@ -155,13 +155,12 @@ class SurrogateCollision:
         """The ``cell`` detection (its random state is :meth:`state`)."""
         self._solver_grid = None
         self.wall_events = bool(wall_events)
-        """Swept detection in a solver with walls: True reflects a parcel whose path crosses the wall within the
-        step at the crossing, in time order with its collisions (it then collides on its reflected path); False
-        (default) leaves walls to the push's end-of-step reflection (the collisions of a parcel that bounces
-        within a step are then found on its straight path through the wall, or one step late). Measured on the
-        rig at dt = 1e-3 s (docs/FIGURES.md, issue 10, sixth session): the collision rate goes from -55 % to
-        +28 % of the CFD-DEM's onsets (the point walls pin parcels of the dense holders' cloud into chains of
-        wall-parcel-parcel events), the stream metrics stay, the run costs 4.3x: not the default."""
+        """Swept detection in a solver with walls: True (default) reflects a parcel whose path crosses the wall
+        within the step at the crossing, in time order with its collisions (it then collides on its reflected
+        path); False leaves walls to the push's end-of-step reflection (the collisions of a parcel that bounces
+        within a step are then found on its straight path through the wall, or one step late). Measured on the rig
+        at dt = 1e-3 s (docs/FIGURES.md, issue 10, seventh session): the collision rate -55 % of the CFD-DEM's
+        onsets without, +14 % with wall events; at 1e-4 s +3.3 % / +1.2 %; the run costs 1.1x."""
         self._walls = None
 
     def set_walls(self, shapes, params) -> None:
@@ -196,6 +195,8 @@ class SurrogateCollision:
         self.round_cap_hit = zeros(1, wp.int32)
         self.event_rounds = zeros(1, wp.int32)
         self.v_out = zeros(n, wp.vec3)
+        self.v_swept = zeros(n, wp.vec3)
+        """Velocities at the end of the last swept collide (the paths' last segments), for :meth:`correct_positions`."""
         self.paper_features = zeros((n, 10), wp.float32)
         self.paper_batch_row = zeros(n, wp.int32)
         self.paper_batch_out = zeros((n, 3), wp.float32)
@@ -314,6 +315,8 @@ class SurrogateCollision:
         self._collide_pairwise(particles, r_max, sweep, alive)
 
     def _collide_pairwise(self, particles, r_max: float, sweep: float, alive: np.ndarray) -> None:
+        import warp as wp
+
         from kernels.collide import launch_swept_start, resolve_swept
 
         a = self.swept
@@ -348,6 +351,8 @@ class SurrogateCollision:
         self._shift_pending = sweep > 0.0
         resolve_swept(a, self.forest, particles.v, self.events_found, self.event_rounds, self.round_cap_hit,
                       self.calls, self.collisions, self.detected, self.skipped, batch_forest=self.batch_forest)
+        if sweep > 0.0:
+            wp.copy(self.v_swept, particles.v)
 
     def correct_positions(self, particles) -> None:
         """Add the in-step position corrections of the last swept or cell :meth:`collide` (once; a no-op otherwise)."""
@@ -356,9 +361,10 @@ class SurrogateCollision:
             return
         if not self._shift_pending:
             return
-        from kernels.collide import launch_add_shift
+        from kernels.collide import launch_add_swept_shift
 
-        launch_add_shift(self.swept.shift, particles.alive, particles.x)
+        launch_add_swept_shift(self.swept.shift, self.swept.t_last, self.v_swept, particles.alive, particles.v,
+                               particles.x)
         self._shift_pending = False
 
     def _collide_paper(self, particles, r_max: float) -> None:

@@ -1051,6 +1051,28 @@ def add_shift(
         particle_x[i] = particle_x[i] + shift[i]
 
 
+@wp.kernel
+def add_swept_shift(
+    shift: wp.array(dtype=wp.vec3),
+    t_last: wp.array(dtype=wp.float32),
+    v_swept: wp.array(dtype=wp.vec3),
+    particle_alive: wp.array(dtype=wp.int32),
+    particle_v: wp.array(dtype=wp.vec3),
+    # outputs
+    particle_x: wp.array(dtype=wp.vec3),
+):
+    """End-of-step positions of the swept paths after a push that changed v (drag, gravity): the push moved the
+    parcel by v_push dt from its start; the swept path is base + v_swept t, with its last event at t_last. The
+    velocity change of the push acts over the rest of the step only, (v_push - v_swept)(dt - t_last), not over
+    the part of the path before the last event: x += shift - (v_push - v_swept) t_last. (Applied over the whole
+    step, a strong drag (dt / tau ~ 1 in the rig's dense cloud at 1e-3 s) pulls a pair that collided late in the
+    step back by up to g' dt: thousands of deep overlaps per step that re-collide at once.) With v_push = v_swept
+    (no forces: the cooling box) this is ``add_shift``."""
+    i = wp.tid()
+    if particle_alive[i] != 0:
+        particle_x[i] = particle_x[i] + shift[i] - (particle_v[i] - v_swept[i]) * t_last[i]
+
+
 def launch_swept_start(args: SweptArgs, particle_v, reach_max, reach_sum) -> None:
     """Initial paths of every parcel; ``reach_max`` / ``reach_sum`` (zeroed by the caller) get the max and the sum
     of |v| dt / 2 (the sum only sizes the hash cells: its summation order changes no result)."""
@@ -1121,3 +1143,8 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
 def launch_add_shift(shift, particle_alive, particle_x) -> None:
     wp.launch(add_shift, dim=particle_x.shape[0], device=particle_x.device, inputs=[shift, particle_alive],
               outputs=[particle_x])
+
+
+def launch_add_swept_shift(shift, t_last, v_swept, particle_alive, particle_v, particle_x) -> None:
+    wp.launch(add_swept_shift, dim=particle_x.shape[0], device=particle_x.device,
+              inputs=[shift, t_last, v_swept, particle_alive, particle_v], outputs=[particle_x])

@@ -1,0 +1,66 @@
+"""The swept paths' end positions after a push that changes the velocities (drag, gravity): the push's velocity
+change acts from a parcel's last collision in the step on, not over the part of its path before it
+(kernels/collide.py ``add_swept_shift``, ``SurrogateCollision.correct_positions``).
+
+Reference: the hard-sphere closed form (the constant contact forest of tests/test_swept.py, impulse_n = 1 + e) on
+straight paths, then the push's new velocity over the rest of the step, written out by hand.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tests.test_collision_models import D, make_particles
+from tests.test_swept import E, hard_sphere_model  # noqa: F401  (fixture)
+
+DT = 1e-3
+KEEP = 0.5  # the push keeps half of each velocity: a drag with dt / tau = 1 towards still gas (semi-implicit)
+
+
+def push_and_correct(strategy, p, keep=KEEP):
+    """The push of HelSolver: v *= keep (drag towards gas at rest), x += v dt, then the in-step corrections."""
+    v = p.v.numpy() * keep
+    p.v.assign(v)
+    p.x.assign(p.x.numpy() + v * DT)
+    strategy.correct_positions(p)
+
+
+def test_a_late_collision_under_strong_drag_leaves_the_pair_apart_on_its_new_paths(hard_sphere_model):
+    from hel_warp.collision_models import SurrogateCollision
+
+    # A and B head on at 2 m/s each, touching at t* = 0.8 dt; C alone (no event): the push alone moves it
+    u = 2.0
+    t_star = 0.8 * DT
+    gap = 2.0 * u * t_star
+    x = [[0.0, 0.0, 0.0], [D + gap, 0.0, 0.0], [0.0, 5e-3, 0.0]]
+    v = [[u, 0.0, 0.0], [-u, 0.0, 0.0], [1.0, 0.0, 0.0]]
+    p = make_particles(x, v)
+    strategy = SurrogateCollision(model_dir=hard_sphere_model)
+    strategy.collide(p, DT)
+    assert strategy.counts()["collisions"] == 1
+    va, vb = -E * u, E * u  # equal masses, head on: the relative velocity reversed times e
+    np.testing.assert_allclose(p.v.numpy()[:2, 0], [va, vb], rtol=1e-5)
+    push_and_correct(strategy, p)
+    xa = u * t_star + KEEP * va * (DT - t_star)
+    xb = D + gap - u * t_star + KEEP * vb * (DT - t_star)
+    np.testing.assert_allclose(p.x.numpy()[:, 0], [xa, xb, KEEP * 1.0 * DT], rtol=0, atol=2e-9)
+    assert p.x.numpy()[1, 0] - p.x.numpy()[0, 0] > D  # apart, as the pair leaves its contact
+    # the same push applied over the whole step (x0 + v_push dt + the swept shift) would leave them overlapping:
+    # the scenario does test the rule
+    old_a = KEEP * va * DT + (u - va) * t_star
+    old_b = D + gap + KEEP * vb * DT + (-u - vb) * t_star
+    assert old_b - old_a < D
+
+
+def test_without_a_velocity_change_in_the_push_the_end_positions_are_the_swept_paths(hard_sphere_model):
+    from hel_warp.collision_models import SurrogateCollision
+
+    u, t_star = 3.0, 0.3 * DT
+    x = [[0.0, 0.0, 0.0], [D + 2.0 * u * t_star, 0.0, 0.0]]
+    p = make_particles(x, [[u, 0.0, 0.0], [-u, 0.0, 0.0]])
+    strategy = SurrogateCollision(model_dir=hard_sphere_model)
+    strategy.collide(p, DT)
+    push_and_correct(strategy, p, keep=1.0)
+    xa = u * t_star - E * u * (DT - t_star)
+    xb = D + u * t_star + E * u * (DT - t_star)
+    np.testing.assert_allclose(p.x.numpy()[:, 0], [xa, xb], rtol=0, atol=2e-9)
