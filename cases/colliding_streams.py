@@ -313,6 +313,9 @@ class CaseConfig:
     detection: str = "swept"
     """``surrogate`` pair detection: ``swept`` (continuous, default), ``overlap`` (the paper's end-of-step test) or
     ``cell`` (stochastic per grid cell, the default with ``particles_per_parcel`` > 1; hel_warp/cell_collisions.py)."""
+    wall_events: bool = True
+    """``surrogate`` swept detection: walls as events within the step, in time order with the collisions (False:
+    the push's end-of-step reflection; ``SurrogateCollision.wall_events``)."""
     seed: int = 0
     device: str = "cpu"
     gravity: tuple = (9.80665, 0.0, 0.0)
@@ -385,6 +388,9 @@ def make_config(args) -> CaseConfig:
     if (args.collisions.startswith("surrogate")) and not args.model:
         raise ConfigError(f"--collisions {args.collisions} needs --model MODEL_DIR (a `hel-warp train` output)")
     detection = getattr(args, "detection", None)
+    if getattr(args, "no_wall_events", False) and (args.collisions != "surrogate" or detection in ("overlap", "cell")):
+        raise ConfigError("--no-wall-events is an option of the surrogate's swept detection (got --collisions "
+                          f"{args.collisions}{' --detection ' + detection if detection else ''})")
     if detection is not None and args.collisions != "surrogate":
         raise ConfigError(f"--detection is a surrogate option (got --collisions {args.collisions}); surrogate-paper "
                           "keeps the paper's overlap test")
@@ -402,6 +408,7 @@ def make_config(args) -> CaseConfig:
                       mass_flow=mass_flow, cells=args.cells,
                       gas_warmup=float(args.gas_warmup), output_interval=float(args.output_interval),
                       model=args.model, detection=detection or ("cell" if max(weights) > 1 else "swept"),
+                      wall_events=not getattr(args, "no_wall_events", False),
                       seed=int(args.seed), device=args.device)
 
 
@@ -531,7 +538,8 @@ class CollidingStreams:
         if config.collisions == "ktgf":  # one diameter: a mixture's Sauter mean (no mixture KTGF closures)
             kwargs = {"particle_diameter": self.ktgf_diameter, "particle_density": config.density}
         elif config.collisions == "surrogate":
-            kwargs = {"model_dir": config.model, "detection": config.detection, "seed": config.seed}
+            kwargs = {"model_dir": config.model, "detection": config.detection, "seed": config.seed,
+                      "wall_events": config.wall_events}
         elif config.collisions == "surrogate-paper":
             kwargs = {"model_dir": config.model}
         elif config.collisions == "dem":
@@ -820,6 +828,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="surrogate pair detection: swept (continuous, default), overlap (the paper's "
                              "end-of-step test) or cell (stochastic per grid cell; default with "
                              "--particles-per-parcel > 1)")
+    parser.add_argument("--no-wall-events", action="store_true",
+                        help="surrogate swept detection: walls only at the step's end (the push's reflection) "
+                             "instead of as events in time order with the collisions (the default)")
     parser.add_argument("--force", action="store_true",
                         help="use a model trained for another particle size or material (refused otherwise)")
     parser.add_argument("--no-particle-contacts", action="store_true",

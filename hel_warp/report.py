@@ -545,7 +545,9 @@ MODEL_DIFFERENCES = (
      "dem": "Hertz-Mindlin sphere-wall contact against the SDF at every DEM sub-step: the sphere meets the wall with "
             "its surface (radius), normal restitution from the wall dashpot (Material.wall_restitution_normal), "
             "Coulomb friction of the material, rolling carried by the spin",
-     "hel": "point reflection of the parcel centre once per step (kernels/reflect.py): e_n, e_t "
+     "hel": "point reflection of the parcel centre (kernels/reflect.py): at its crossing within the step, in time "
+            "order with the collisions (the surrogate's swept detection with wall events, its default), else once "
+            "per step at the step's end; e_n, e_t "
             "(Material.wall_restitution_*), tangential loss capped by Coulomb friction (HelConfig.wall_friction); no "
             "spin"},
     {"what": "parcel integration", "intended": False,

@@ -260,3 +260,11 @@ def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
     for label in ("none", "ktgf"):
         keys = {d["key"] for d in by[label]["config_differences_vs_dem"]}
         assert not any(k.startswith(("case.", "gas.", "grid.")) for k in keys), keys
+
+
+def test_no_wall_events_is_refused_outside_the_swept_surrogate(cs, tmp_path, capsys):
+    # one line, exit 2, nothing written: the option only means something for the surrogate's swept detection
+    out = tmp_path / "run"
+    assert cs.main(_args(out, "--no-wall-events")) == 2  # --collisions none
+    assert "--no-wall-events is an option of the surrogate's swept detection" in capsys.readouterr().err
+    assert not out.exists()

@@ -3,7 +3,8 @@ path crosses the wall within the step is reflected at the crossing, in time orde
 
 Reference: the hard-sphere closed form (the constant contact forest of tests/test_swept.py: impulse_n = 1 + e) and
 the point reflection of kernels/reflect.py (v' = -e_n v_n + e_t v_t), written out by hand on straight paths.
-Wall events are an option of the strategy (``wall_events=True``; off by default, see its docstring).
+Wall events are the default of the strategy (``wall_events=True``; False keeps the end-of-step reflection, see
+its docstring).
 """
 
 from __future__ import annotations
