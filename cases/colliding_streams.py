@@ -313,6 +313,9 @@ class CaseConfig:
     detection: str = "swept"
     """``surrogate`` pair detection: ``swept`` (continuous, default), ``overlap`` (the paper's end-of-step test) or
     ``cell`` (stochastic per grid cell, the default with ``particles_per_parcel`` > 1; hel_warp/cell_collisions.py)."""
+    wall_contact: str = "point"
+    """Where HEL parcels meet the walls: ``point`` (their centre, MP-PIC) or ``surface`` (a particle radius from the
+    centre, as the ``dem`` spheres; ``HelConfig.wall_contact``). ``dem`` keeps its Hertz-Mindlin wall contact."""
     wall_events: bool = True
     """``surrogate`` swept detection: walls as events within the step, in time order with the collisions (False:
     the push's end-of-step reflection; ``SurrogateCollision.wall_events``)."""
@@ -409,6 +412,7 @@ def make_config(args) -> CaseConfig:
                       gas_warmup=float(args.gas_warmup), output_interval=float(args.output_interval),
                       model=args.model, detection=detection or ("cell" if max(weights) > 1 else "swept"),
                       wall_events=not getattr(args, "no_wall_events", False),
+                      wall_contact=getattr(args, "wall_contact", "point"),
                       seed=int(args.seed), device=args.device)
 
 
@@ -581,6 +585,7 @@ class CollidingStreams:
                    Outlet(point=(0.0, 0.0, 0.0), normal=(-1.0, 0.0, 0.0)))  # back out through an inlet plane
         self.solver = HelSolver(pool=self.pool, gas_solver=self.gas_solver, gas=self.gas,
                                 config=HelConfig(dt=config.dt, push=push, material=material, walls=True,
+                                                 wall_contact=config.wall_contact,
                                                  injectors=tuple(injectors), outlets=outlets),
                                 collision=self.collision)
 
@@ -828,6 +833,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="surrogate pair detection: swept (continuous, default), overlap (the paper's "
                              "end-of-step test) or cell (stochastic per grid cell; default with "
                              "--particles-per-parcel > 1)")
+    parser.add_argument("--wall-contact", choices=("point", "surface"), default="point",
+                        help="where HEL parcels meet the walls: point (their centre, MP-PIC; default) or surface "
+                             "(a particle radius from the centre, as the dem's spheres)")
     parser.add_argument("--no-wall-events", action="store_true",
                         help="surrogate swept detection: walls only at the step's end (the push's reflection) "
                              "instead of as events in time order with the collisions (the default)")

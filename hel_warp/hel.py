@@ -233,6 +233,9 @@ class HelConfig:
     """Coulomb cap of the tangential wall impulse (mu x the normal one; ``kernels/reflect.py``): None takes
     ``material.friction`` (0.3), 0 gives the bare e_t reflection (a parcel sliding along a wall then loses a
     factor e_t per step, i.e. more the smaller dt)."""
+    wall_contact: str = "point"
+    """Where a parcel meets the wall (``kernels/reflect.py``): ``point`` (MP-PIC: its centre crosses the wall) or
+    ``surface`` (its surface: the centre a particle radius from the wall, as the DEM's sphere-wall contact)."""
     coupling: str = "implicit"
     """Drag exchange between parcels and gas: ``implicit`` (default; gas and parcels relax together per
     cell, stable at any solids loading, momentum to round-off, ``coupling.exchange_push``) or ``explicit``
@@ -251,6 +254,8 @@ class HelConfig:
             raise ConfigError(f"sort_every must be an integer >= 0 (got {self.sort_every!r}); 0 switches sorting off")
         if self.coupling not in ("implicit", "explicit"):
             raise ConfigError(f"coupling must be 'implicit' or 'explicit' (got {self.coupling!r})")
+        if self.wall_contact not in ("point", "surface"):
+            raise ConfigError(f"wall_contact must be 'point' or 'surface' (got {self.wall_contact!r})")
         object.__setattr__(self, "injectors", tuple(self.injectors))
         object.__setattr__(self, "outlets", tuple(self.outlets))
         for k, inj in enumerate(self.injectors):
@@ -308,7 +313,7 @@ class HelSolver:
         wall_friction = config.material.friction if config.wall_friction is None else config.wall_friction
         if not wall_friction >= 0.0:
             raise ConfigError(f"wall_friction must be >= 0 (got {wall_friction}); 0 switches the Coulomb cap off")
-        self.wall_params = make_wall_params(friction=wall_friction,
+        self.wall_params = make_wall_params(friction=wall_friction, surface=config.wall_contact == "surface",
                                             restitution_normal=config.material.wall_restitution_normal,
                                             restitution_tangential=config.material.wall_restitution_tangential)
         self._wall_hits = wp.zeros(1, dtype=wp.int32, device=device)
@@ -428,7 +433,7 @@ class HelSolver:
             from kernels.reflect import reflect_at_walls
 
             p = self.pool.particles
-            reflect_at_walls(self.shapes, self.wall_params, p.alive, p.x, p.v, self._wall_hits)
+            reflect_at_walls(self.shapes, self.wall_params, p.alive, p.x, p.v, self._wall_hits, p.radius)
 
     def inject(self) -> None:
         """Scheduled injectors add the parcels due by the end of this step."""

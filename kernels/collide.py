@@ -517,9 +517,20 @@ def path_position(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), i: int, 
 
 
 @wp.func
+def wall_distance(args: SweptArgs, i: int, x: wp.vec3):
+    """Signed distance of parcel i at x from where the wall acts (> 0 beyond it): the SDF of its centre, plus its
+    radius when the wall meets the parcel's surface (``WallParams.surface``, kernels/reflect.py)."""
+    d = sdf_union(args.shapes, x)
+    if args.wall.surface != 0:
+        d = d + args.particle_radius[i]
+    return d
+
+
+@wp.func
 def wall_touch(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), i: int):
     """Earliest time in [t_last, dt] at which parcel i's centre crosses the wall moving out of the fluid, -1 if its
-    path ends inside (MP-PIC parcels meet walls as points, kernels/reflect.py). A path that starts on or outside
+    path ends inside (MP-PIC parcels meet walls as points, kernels/reflect.py; with ``WallParams.surface`` the
+    wall acts a particle radius from the centre, ``wall_distance``). A path that starts on or outside
     the wall and moves out crosses at once (t_last); one that starts there moving in (after a wall event) is
     followed to its first inside point. The crossing of a path that ends outside is bracketed by bisection on the
     signed distance (the point just outside is returned: its normal is the wall's; two walls met within a step,
@@ -527,14 +538,14 @@ def wall_touch(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), i: int):
     if args.walls == 0 or args.dt <= 0.0:
         return -1.0
     t_lo = args.t_last[i]
-    d_hi = sdf_union(args.shapes, path_position(args, particle_v, i, args.dt))
+    d_hi = wall_distance(args, i, path_position(args, particle_v, i, args.dt))
     if d_hi <= 0.0:
         return -1.0
     v = particle_v[i]
     x_lo = path_position(args, particle_v, i, t_lo)
     lo = t_lo
     hi = args.dt
-    if sdf_union(args.shapes, x_lo) >= 0.0:
+    if wall_distance(args, i, x_lo) >= 0.0:
         if wp.dot(v, sdf_union_normal(args.shapes, x_lo)) > 0.0:
             return t_lo
         # on the wall moving in (the point of its last wall event, just outside, or float32 round-off of the new
@@ -543,14 +554,14 @@ def wall_touch(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), i: int):
         for k in range(WALL_BISECTIONS):
             if found == 0:
                 t_in = t_lo + (args.dt - t_lo) * wp.pow(0.5, float(WALL_BISECTIONS - k))
-                if sdf_union(args.shapes, path_position(args, particle_v, i, t_in)) < 0.0:
+                if wall_distance(args, i, path_position(args, particle_v, i, t_in)) < 0.0:
                     lo = t_in
                     found = 1
         if found == 0:
             return -1.0
     for _ in range(WALL_BISECTIONS):
         mid = 0.5 * (lo + hi)
-        if sdf_union(args.shapes, path_position(args, particle_v, i, mid)) > 0.0:
+        if wall_distance(args, i, path_position(args, particle_v, i, mid)) > 0.0:
             hi = mid
         else:
             lo = mid

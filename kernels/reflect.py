@@ -43,6 +43,9 @@ class WallParams:
     """Distance (m) a parcel is placed inside the fluid when it has to be moved back onto the wall."""
     max_iterations: int
     """Reflections tried per parcel per step (corners need two)."""
+    surface: int
+    """1: a parcel meets the wall with its surface, as the DEM's spheres do: the wall acts at d = sdf + r > 0 (the
+    centre a particle radius from the wall); 0: as a point (MP-PIC, d = sdf > 0)."""
 
 
 @wp.func
@@ -66,6 +69,7 @@ def reflect_kernel(
     shapes: SdfShapes,
     params: WallParams,
     particle_alive: wp.array(dtype=wp.int32),
+    particle_radius: wp.array(dtype=float),
     # outputs (in place)
     particle_x: wp.array(dtype=wp.vec3),
     particle_v: wp.array(dtype=wp.vec3),
@@ -76,7 +80,10 @@ def reflect_kernel(
         return
     x = particle_x[tid]
     v = particle_v[tid]
-    d = sdf_union(shapes, x)
+    offset = float(0.0)
+    if params.surface != 0:
+        offset = particle_radius[tid]
+    d = sdf_union(shapes, x) + offset
     if d <= 0.0:
         return
     hit = int(0)
@@ -90,7 +97,7 @@ def reflect_kernel(
                 hit = 1
             else:
                 x = x - (d + params.margin) * n
-            d = sdf_union(shapes, x)
+            d = sdf_union(shapes, x) + offset
     if d > 0.0:  # still outside (a corner deeper than the iterations reach): back along the normal
         n = sdf_union_normal(shapes, x)
         x = x - (d + params.margin) * n
@@ -117,9 +124,12 @@ def outside_count_kernel(
 # ---------------------------------------------------------------- launch wrappers
 
 def make_wall_params(*, restitution_normal: float = 0.8, restitution_tangential: float = 0.8,
-                     friction: float = 0.0, margin: float = 1.0e-9, max_iterations: int = 3) -> WallParams:
-    """The kernel-side ``WallParams`` (Table 1 defaults e_n = e_t = 0.8; ``friction`` 0: no Coulomb cap)."""
+                     friction: float = 0.0, margin: float = 1.0e-9, max_iterations: int = 3,
+                     surface: bool = False) -> WallParams:
+    """The kernel-side ``WallParams`` (Table 1 defaults e_n = e_t = 0.8; ``friction`` 0: no Coulomb cap;
+    ``surface``: the wall meets the parcel's surface, a particle radius from its centre, instead of its centre)."""
     p = WallParams()
+    p.surface = 1 if surface else 0
     p.restitution_normal = float(restitution_normal)
     p.restitution_tangential = float(restitution_tangential)
     p.friction = float(friction)
@@ -128,10 +138,16 @@ def make_wall_params(*, restitution_normal: float = 0.8, restitution_tangential:
     return p
 
 
-def reflect_at_walls(shapes: SdfShapes, params: WallParams, particle_alive, particle_x, particle_v, wall_hits) -> None:
-    """Reflect, in place, the live parcels that crossed the wall; ``wall_hits[0]`` += how many were reflected."""
+def reflect_at_walls(shapes: SdfShapes, params: WallParams, particle_alive, particle_x, particle_v, wall_hits,
+                     particle_radius=None) -> None:
+    """Reflect, in place, the live parcels that crossed the wall; ``wall_hits[0]`` += how many were reflected.
+    ``particle_radius`` is needed when ``params.surface`` is set."""
+    if particle_radius is None:
+        if params.surface != 0:
+            raise ValueError("surface wall contact needs particle_radius")
+        particle_radius = wp.zeros(1, dtype=float, device=particle_x.device)
     wp.launch(reflect_kernel, dim=particle_x.shape[0], device=particle_x.device,
-              inputs=[shapes, params, particle_alive], outputs=[particle_x, particle_v, wall_hits])
+              inputs=[shapes, params, particle_alive, particle_radius], outputs=[particle_x, particle_v, wall_hits])
 
 
 def count_outside(shapes: SdfShapes, particle_x, particle_alive, outside) -> None:
