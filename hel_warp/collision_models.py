@@ -111,7 +111,7 @@ class SurrogateCollision:
     def __init__(self, *, model_dir: str, mode: str = "pairwise", detection: str | None = None,
                  periodic_box=None, n_streams: int = DEFAULT_STREAMS, batched: bool = True,
                  max_rounds: int = MAX_ROUNDS, ordering: str = "parallel", cell=None, seed: int = 0,
-                 wall_events: bool = True):
+                 wall_events: bool = True, kick_first: bool = True):
         from hel_warp.forest import load_forest
 
         if mode not in ("pairwise", "paper"):
@@ -162,6 +162,15 @@ class SurrogateCollision:
         at dt = 1e-3 s (docs/FIGURES.md, issue 10, seventh session): the collision rate -55 % of the CFD-DEM's
         onsets without, +14 % with wall events; at 1e-4 s +3.3 % / +1.2 %; the run costs 1.1x."""
         self._walls = None
+        self.kick_first = bool(kick_first)
+        """Swept detection in a ``HelSolver``: True (default) applies the push's drag and gravity to the velocities
+        before the collisions (``accelerate``), so that the swept paths are the paths the parcels take in the step
+        (x + v_push t, the push's backward-Euler drift) and the step ends at the swept paths' ends (``advance``);
+        False collides first and pushes the collided velocities (the paths of the detection then differ from the
+        parcels' by (v - v_push) t: where dt / tau ~ 1, the rig's dense cloud at 1e-3 s, by about half the
+        relative motion of neighbours)."""
+        self._kicked = False
+        self._x_scratch = None
 
     def set_walls(self, shapes, params) -> None:
         """The wall geometry (``kernels.sdf.SdfShapes``) and restitution (``kernels.reflect.WallParams``) of the
@@ -276,7 +285,41 @@ class SurrogateCollision:
         walls = getattr(getattr(solver, "config", None), "walls", False)
         if self._walls is None and walls and getattr(solver, "shapes", None) is not None:
             self.set_walls(solver.shapes, solver.wall_params)
-        self.collide(solver.pool.particles, solver.config.dt)
+        particles = solver.pool.particles
+        self._kicked = False
+        if self.kick_first and self._uses_swept(particles):
+            import warp as wp
+
+            # the push's velocities now (drag, gravity; the drag impulses recorded for the gas), the positions
+            # untouched (written to a scratch array): the collisions then act on the paths of the step
+            if self._x_scratch is None or self._x_scratch.shape[0] != particles.x.shape[0]:
+                self._x_scratch = wp.empty_like(particles.x)
+            solver.fluid_push(particle_x_out=self._x_scratch)
+            self._kicked = True
+        self.collide(particles, solver.config.dt)
+
+    def _uses_swept(self, particles) -> bool:
+        """Whether :meth:`collide` takes the swept detection for these particles (``cell`` where auto-detection
+        meets a parcel of weight > 1)."""
+        if self.mode != "pairwise":
+            return False
+        if self.auto_detection:
+            alive = particles.alive.numpy().astype(bool)
+            return not bool((particles.weight.numpy()[alive] > 1.0).any())
+        return self.detection == "swept"
+
+    def advance(self, solver) -> None:
+        """``HelSolver.push``: after a kick (:meth:`accelerate`) the parcels drift along their swept paths (x += v dt
+        + the in-step changes); otherwise the solver's push."""
+        if not self._kicked:
+            solver.fluid_push()
+            return
+        from kernels.collide import launch_drift_swept
+
+        particles = solver.pool.particles
+        launch_drift_swept(self.swept.shift, particles.alive, particles.v, float(solver.config.dt), particles.x)
+        self._shift_pending = False
+        self._kicked = False
 
     def after_push(self, solver) -> None:
         """Called by ``HelSolver.push`` after the parcels moved: the in-step position corrections (swept)."""

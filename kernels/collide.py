@@ -1084,6 +1084,22 @@ def add_swept_shift(
         particle_x[i] = particle_x[i] + shift[i] - (particle_v[i] - v_swept[i]) * t_last[i]
 
 
+@wp.kernel
+def drift_swept(
+    shift: wp.array(dtype=wp.vec3),
+    particle_alive: wp.array(dtype=wp.int32),
+    particle_v: wp.array(dtype=wp.vec3),
+    dt: float,
+    # outputs
+    particle_x: wp.array(dtype=wp.vec3),
+):
+    """End of a step whose velocities were pushed before the collisions: the parcels move to their swept paths'
+    ends, x += v dt + shift."""
+    i = wp.tid()
+    if particle_alive[i] != 0:
+        particle_x[i] = particle_x[i] + particle_v[i] * dt + shift[i]
+
+
 def launch_swept_start(args: SweptArgs, particle_v, reach_max, reach_sum) -> None:
     """Initial paths of every parcel; ``reach_max`` / ``reach_sum`` (zeroed by the caller) get the max and the sum
     of |v| dt / 2 (the sum only sizes the hash cells: its summation order changes no result)."""
@@ -1154,6 +1170,11 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
 def launch_add_shift(shift, particle_alive, particle_x) -> None:
     wp.launch(add_shift, dim=particle_x.shape[0], device=particle_x.device, inputs=[shift, particle_alive],
               outputs=[particle_x])
+
+
+def launch_drift_swept(shift, particle_alive, particle_v, dt: float, particle_x) -> None:
+    wp.launch(drift_swept, dim=particle_x.shape[0], device=particle_x.device,
+              inputs=[shift, particle_alive, particle_v, float(dt)], outputs=[particle_x])
 
 
 def launch_add_swept_shift(shift, t_last, v_swept, particle_alive, particle_v, particle_x) -> None:

@@ -1,6 +1,11 @@
-"""The swept paths' end positions after a push that changes the velocities (drag, gravity): the push's velocity
-change acts from a parcel's last collision in the step on, not over the part of its path before it
-(kernels/collide.py ``add_swept_shift``, ``SurrogateCollision.correct_positions``).
+"""The swept detection and the push's velocity change (drag, gravity) in one step.
+
+- In a ``HelSolver`` (``SurrogateCollision.accelerate`` / ``advance``, ``kick_first``, the default) the push's
+  velocities come first and the collisions act on the paths the parcels then take; the step ends at the swept
+  paths' ends (kernels/collide.py ``drift_swept``).
+- A caller that collides and then pushes (``kick_first=False``, the cooling case's ballistic move): the push's
+  velocity change acts from a parcel's last collision in the step on, not over the part of its path before it
+  (``add_swept_shift``, ``SurrogateCollision.correct_positions``).
 
 Reference: the hard-sphere closed form (the constant contact forest of tests/test_swept.py, impulse_n = 1 + e) on
 straight paths, then the push's new velocity over the rest of the step, written out by hand.
@@ -64,3 +69,68 @@ def test_without_a_velocity_change_in_the_push_the_end_positions_are_the_swept_p
     xa = u * t_star - E * u * (DT - t_star)
     xb = D + u * t_star + E * u * (DT - t_star)
     np.testing.assert_allclose(p.x.numpy()[:, 0], [xa, xb], rtol=0, atol=2e-9)
+
+
+class KickSolver:
+    """A HelSolver stand-in for the strategy interface: no walls, no gas; its push keeps KEEP of each velocity (a
+    drag with dt / tau = 1 towards still gas) and drifts x += v_push dt, as the engine's backward-Euler push."""
+
+    def __init__(self, particles, keep=KEEP):
+        from types import SimpleNamespace
+
+        import warp as wp
+
+        self.pool = SimpleNamespace(particles=particles)
+        self.config = SimpleNamespace(dt=DT, walls=False)
+        self.fields = SimpleNamespace(parcel_a_coll=wp.zeros(particles.x.shape[0], dtype=wp.vec3))
+        self.grid = None
+        self.keep = keep
+        self.pushes = 0
+
+    def fluid_push(self, *, particle_x_out=None, particle_v_out=None):
+        p = self.pool.particles
+        v = p.v.numpy() * self.keep
+        (p.v if particle_v_out is None else particle_v_out).assign(v)
+        (p.x if particle_x_out is None else particle_x_out).assign(p.x.numpy() + v * DT)
+        self.pushes += 1
+
+    def step(self, strategy):
+        strategy.accelerate(self)  # HelSolver.collide
+        strategy.advance(self)  # HelSolver.push
+        strategy.after_push(self)
+
+
+def test_the_kick_comes_first_so_the_swept_paths_are_the_pushed_paths(hard_sphere_model):
+    from hel_warp.collision_models import SurrogateCollision
+
+    # A and B head on at 2 m/s: on their start velocities they would touch at 0.6 dt, on the pushed ones (1 m/s
+    # each) at 1.2 dt, i.e. not in this step: no collision, each drifts by v_push dt
+    u = 2.0
+    gap = 2.0 * u * 0.6 * DT
+    x0 = np.array([[0.0, 0.0, 0.0], [D + gap, 0.0, 0.0]])
+    p = make_particles(x0, [[u, 0.0, 0.0], [-u, 0.0, 0.0]])
+    solver = KickSolver(p)
+    strategy = SurrogateCollision(model_dir=hard_sphere_model)
+    solver.step(strategy)
+    assert solver.pushes == 1 and strategy.counts()["collisions"] == 0
+    np.testing.assert_allclose(p.v.numpy()[:, 0], [KEEP * u, -KEEP * u], rtol=1e-6)
+    np.testing.assert_allclose(p.x.numpy()[:, 0], [KEEP * u * DT, D + gap - KEEP * u * DT], rtol=0, atol=2e-9)
+    # a closer pair touches on the pushed paths at t* = gap / (2 KEEP u) and leaves with -e times them
+    gap = 2.0 * KEEP * u * 0.7 * DT
+    p = make_particles([[0.0, 0.0, 0.0], [D + gap, 0.0, 0.0]], [[u, 0.0, 0.0], [-u, 0.0, 0.0]])
+    solver = KickSolver(p)
+    solver.step(strategy)
+    assert strategy.counts()["collisions"] == 1
+    t_star = 0.7 * DT
+    w = KEEP * u
+    np.testing.assert_allclose(p.v.numpy()[:, 0], [-E * w, E * w], rtol=1e-5)
+    xa = w * t_star - E * w * (DT - t_star)
+    xb = D + gap - w * t_star + E * w * (DT - t_star)
+    np.testing.assert_allclose(p.x.numpy()[:, 0], [xa, xb], rtol=0, atol=2e-9)
+    # kick_first=False: collide on the start velocities (touch at 0.35 dt), then push the collided ones
+    p = make_particles([[0.0, 0.0, 0.0], [D + gap, 0.0, 0.0]], [[u, 0.0, 0.0], [-u, 0.0, 0.0]])
+    solver = KickSolver(p)
+    late = SurrogateCollision(model_dir=hard_sphere_model, kick_first=False)
+    solver.step(late)
+    assert late.counts()["collisions"] == 1
+    np.testing.assert_allclose(p.v.numpy()[:, 0], [-KEEP * E * u, KEEP * E * u], rtol=1e-5)
