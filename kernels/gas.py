@@ -120,6 +120,23 @@ def unit(axis: int):
 
 
 @wp.func
+def unit_f(axis: int):
+    """e_axis as a float vector (``unit``'s comparisons): adding ``c * unit_f(axis)`` changes one component exactly
+    as an element update would, without a write at a run-time index."""
+    return wp.vec3(float(axis == 0), float(axis == 1), float(axis == 2))
+
+
+@wp.func
+def component(v: wp.vec3, axis: int):
+    """v[axis] by branches (a read at a run-time index keeps the vector in memory)."""
+    if axis == 0:
+        return v[0]
+    if axis == 1:
+        return v[1]
+    return v[2]
+
+
+@wp.func
 def wrap_cell(g: GridInfo, c: wp.vec3i):
     """Canonical cell index, or x = -1 when outside a non-periodic boundary."""
     out = c
@@ -248,7 +265,7 @@ def trilinear(values: wp.array3d(dtype=float), i0: int, i1: int, wx: float, j0: 
 def sample_array(g: GridInfo, values: wp.array3d(dtype=float), component: int, x: wp.vec3):
     """Trilinear value at ``x`` of the face array ``values`` of ``component`` (clamped / wrapped at the box)."""
     s = (x - g.origin) / g.spacing - wp.vec3(0.5, 0.5, 0.5)
-    s[component] = s[component] + 0.5
+    s = s + 0.5 * unit_f(component)
     i0, i1, wx = sample_axis(g, 0, component, s[0])
     j0, j1, wy = sample_axis(g, 1, component, s[1])
     k0, k1, wz = sample_axis(g, 2, component, s[2])
@@ -324,8 +341,7 @@ def velocity_at_face(g: GridInfo, vel: FaceFloat, axis: int, f: wp.vec3i):
 
 @wp.func
 def face_position(g: GridInfo, axis: int, f: wp.vec3i):
-    p = wp.vec3(float(f[0]) + 0.5, float(f[1]) + 0.5, float(f[2]) + 0.5)
-    p[axis] = p[axis] - 0.5
+    p = wp.vec3(float(f[0]) + 0.5, float(f[1]) + 0.5, float(f[2]) + 0.5) - 0.5 * unit_f(axis)
     return g.origin + g.spacing * p
 
 
@@ -483,8 +499,8 @@ def momentum_source_increment(g: GridInfo, axis: int, params: FlowParams, cell_f
         c = wrap_cell(g, f - (1 - side) * unit(axis))
         if c[0] >= 0:
             if cell_fluid[c[0], c[1], c[2]] != 0:
-                impulse = impulse + 0.5 * cell_momentum_source[c[0], c[1], c[2]][axis]
-    return params.dt * params.body_accel[axis] + impulse / (params.rho * get_f(face_eps, axis, f) * volume)
+                impulse = impulse + 0.5 * component(cell_momentum_source[c[0], c[1], c[2]], axis)
+    return params.dt * component(params.body_accel, axis) + impulse / (params.rho * get_f(face_eps, axis, f) * volume)
 
 
 @wp.kernel
@@ -880,9 +896,9 @@ def face_forces_kernel(
         c_hi = wrap_cell(g, f)
         volume = g.spacing * g.spacing * g.spacing
         impulse = float(0.0)
-        impulse = impulse + 0.5 * cell_momentum_source[c_lo[0], c_lo[1], c_lo[2]][axis]
-        impulse = impulse + 0.5 * cell_momentum_source[c_hi[0], c_hi[1], c_hi[2]][axis]
-        u = u + (params.dt * params.body_accel[axis] + impulse / (params.rho * get_f(face_eps, axis, f) * volume))
+        impulse = impulse + 0.5 * component(cell_momentum_source[c_lo[0], c_lo[1], c_lo[2]], axis)
+        impulse = impulse + 0.5 * component(cell_momentum_source[c_hi[0], c_hi[1], c_hi[2]], axis)
+        u = u + (params.dt * component(params.body_accel, axis) + impulse / (params.rho * get_f(face_eps, axis, f) * volume))
         gradient = float(p_old[flat_index(g.shape, c_hi)] - p_old[flat_index(g.shape, c_lo)]) / g.spacing
         u = u - params.dt / params.rho * gradient
     elif t == FACE_OUTLET:
