@@ -447,7 +447,6 @@ class GasSolver:
             def precondition():
                 multigrid.apply(r, z)
 
-        iteration = self._pcg_iteration_graph(system, n, run, precondition)
         run["ax"]()
         run["start"]()
         s.zero_()
@@ -463,6 +462,7 @@ class GasSolver:
         wp.copy(p, z)
         s.zero_()
         run["r.z new"]()  # the first iteration's shift moves it to (r.z)_old
+        iteration = self._pcg_iteration_graph(system, n, run, precondition)  # captured, not run, the first time
         while iterations < maxiter:
             wp.capture_launch(iteration)
             iterations += 1
