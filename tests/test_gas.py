@@ -263,6 +263,8 @@ def test_nan_input_is_reported():
 def test_config_errors():
     with pytest.raises(ConfigError, match="smagorinsky"):
         GasConfig(smagorinsky_constant=-0.1)
+    with pytest.raises(ConfigError, match="pressure_multigrid_scale"):
+        GasConfig(pressure_multigrid_scale=2.2)
     with pytest.raises(ConfigError, match="dt"):
         grid = Grid(spacing=1e-3, shape=(4, 4, 4), periodic=(True, True, True))
         domain = Geometry(shapes=(Box(lo=(-1, -1, -1), hi=(1, 1, 1)),)).build(grid)
