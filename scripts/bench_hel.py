@@ -138,7 +138,8 @@ def bench_rig_gas(repeats: int, device) -> dict:
 def profile_rig_gas(rig_steps: int, device, top: int = 20) -> list[dict]:
     """CPU time per kernel of the rig's gas step: ``wp.launch`` wrapped by a timer for ``rig_steps`` steps
     (CPU launches are synchronous, so a launch's CPU time is its kernel plus the host call; recorded launches
-    are timed at their replay, ``Launch.launch``). Sorted, largest
+    are timed at their replay, ``Launch.launch``; a captured PCG iteration, ``GasSolver._pcg_iteration_graph``, at
+    its ``wp.capture_launch``, as one row per system: its kernels run inside the graph). Sorted, largest
     first; the diagnostic behind the issue-14 notes on where the gas step's time goes."""
     import collections
 
@@ -169,14 +170,25 @@ def profile_rig_gas(rig_steps: int, device, top: int = 20) -> list[dict]:
         entry[1] += time.process_time() - start
         return result
 
-    wp.launch, Launch.launch = timed_launch, timed_replay
+    capture_launch = wp.capture_launch
+
+    def timed_capture(graph, *a, **k):
+        start = time.process_time()
+        result = capture_launch(graph, *a, **k)
+        systems = [key[0] for key, g in solver._pcg_graphs.items() if g is graph]
+        entry = stats[f"(PCG iteration graph: {systems[0] if systems else '?'})"]
+        entry[0] += 1
+        entry[1] += time.process_time() - start
+        return result
+
+    wp.launch, Launch.launch, wp.capture_launch = timed_launch, timed_replay, timed_capture
     try:
         start = time.process_time()
         for _ in range(rig_steps):
             solver.step(gas, dt)
         total = (time.process_time() - start) / rig_steps
     finally:
-        wp.launch, Launch.launch = launch, replay
+        wp.launch, Launch.launch, wp.capture_launch = launch, replay, capture_launch
     rows = [{"kernel": key, "launches_per_step": c / rig_steps, "cpu_ms_per_step": 1e3 * t / rig_steps}
             for key, (c, t) in stats.items()]
     rows.sort(key=lambda r: -r["cpu_ms_per_step"])

@@ -15,6 +15,7 @@ import warp as wp
 from hel_warp.errors import ConfigError, HelWarpError
 from hel_warp.gas import GasConfig, GasField, GasSolver
 from hel_warp.grid import Box, Channel, Geometry, Grid, Patch
+from kernels import gas as K
 
 
 def continuity_residual(grid, fluid, face_u, cell_eps_f, cell_eps_prev, dt):
@@ -262,6 +263,8 @@ def test_nan_input_is_reported():
 def test_config_errors():
     with pytest.raises(ConfigError, match="smagorinsky"):
         GasConfig(smagorinsky_constant=-0.1)
+    with pytest.raises(ConfigError, match="pressure_multigrid_scale"):
+        GasConfig(pressure_multigrid_scale=2.2)
     with pytest.raises(ConfigError, match="dt"):
         grid = Grid(spacing=1e-3, shape=(4, 4, 4), periodic=(True, True, True))
         domain = Geometry(shapes=(Box(lo=(-1, -1, -1), hi=(1, 1, 1)),)).build(grid)
@@ -399,3 +402,39 @@ def test_launch_over_is_checked():
     domain = Geometry(shapes=(Box(lo=(-1, -1, -1), hi=(1, 1, 1)),)).build(grid)
     with pytest.raises(ConfigError, match="launch_over"):
         GasSolver(domain, launch_over="solid")
+
+
+@wp.kernel
+def _first_stage_pair(g: K.GridInfo, axis: int, faces: wp.array(dtype=wp.vec3i), vel: K.FaceFloat,
+                      # outputs
+                      direct: wp.array(dtype=wp.vec3), sampled: wp.array(dtype=wp.vec3)):
+    f = faces[wp.tid()]
+    direct[wp.tid()] = K.velocity_at_face(g, vel, axis, f)
+    sampled[wp.tid()] = K.sample_velocity(g, vel, K.face_position(g, axis, f))
+
+
+@pytest.mark.parametrize("periodic", [(False, False, False), (True, False, True), (True, True, True)])
+def test_velocity_at_face_is_the_trilinear_sample_there(periodic):
+    """The advection's first RK2 stage takes the velocity at a face from the face and its neighbours
+    (``velocity_at_face``); the reference is the trilinear ``sample_velocity`` at the face's position, whose weights
+    are 0, 1/2 and 1 there, equal up to the float32 round-off of the sample's grid coordinate s = (x - origin)/h
+    (|ds| <= ~2 ulp(|x|) / h, each of the 8 weights off by that much: |du| <= 8 |ds| max|u| + a few ulp of u), on
+    every face of a box with walls, odd periodic counts and the alias faces (synced, as a GasField holds them), away
+    from the origin."""
+    grid = Grid(spacing=1e-3, shape=(7, 5, 6), periodic=periodic, origin=(0.1, -0.02, 0.3))
+    domain = Geometry(shapes=(Box(lo=(-1, -1, -1), hi=(1, 1, 1)),)).build(grid)
+    gas = GasField(domain)
+    rng = np.random.default_rng(3)
+    gas.set_face_velocity([rng.normal(0.0, 1.0, size=a.shape) for a in gas.face_arrays()])
+    faces = gas.face_velocity
+    x_max = max(abs(o) + n * grid.spacing for o, n in zip(grid.origin, grid.shape))
+    ds = 2.0 * float(np.spacing(np.float32(x_max))) / grid.spacing
+    u_max = max(np.abs(a).max() for a in gas.face_arrays())
+    for axis in range(3):
+        shape = list(grid.shape)
+        shape[axis] += 1
+        every = wp.array(np.argwhere(np.ones(shape, dtype=bool)).astype(np.int32), dtype=wp.vec3i)
+        direct, sampled = (wp.zeros(every.shape[0], dtype=wp.vec3) for _ in range(2))
+        wp.launch(_first_stage_pair, dim=every.shape[0], inputs=[grid.info(), axis, every, faces],
+                  outputs=[direct, sampled])
+        assert np.allclose(direct.numpy(), sampled.numpy(), rtol=0.0, atol=8.0 * ds * u_max + 1e-6), axis
