@@ -313,9 +313,10 @@ class CaseConfig:
     detection: str = "swept"
     """``surrogate`` pair detection: ``swept`` (continuous, default), ``overlap`` (the paper's end-of-step test) or
     ``cell`` (stochastic per grid cell, the default with ``particles_per_parcel`` > 1; hel_warp/cell_collisions.py)."""
-    wall_contact: str = "point"
-    """Where HEL parcels meet the walls: ``point`` (their centre, MP-PIC) or ``surface`` (a particle radius from the
-    centre, as the ``dem`` spheres; ``HelConfig.wall_contact``). ``dem`` keeps its Hertz-Mindlin wall contact."""
+    wall_contact: str = "surface"
+    """Where HEL parcels meet the walls: ``surface`` (default: a particle radius from the centre, as the ``dem``
+    spheres, so that HEL and its reference share the walls' geometry) or ``point`` (their centre, MP-PIC;
+    ``HelConfig.wall_contact``). ``dem`` keeps its Hertz-Mindlin wall contact."""
     wall_events: bool = True
     """``surrogate`` swept detection: walls as events within the step, in time order with the collisions (False:
     the push's end-of-step reflection; ``SurrogateCollision.wall_events``)."""
@@ -412,7 +413,7 @@ def make_config(args) -> CaseConfig:
                       gas_warmup=float(args.gas_warmup), output_interval=float(args.output_interval),
                       model=args.model, detection=detection or ("cell" if max(weights) > 1 else "swept"),
                       wall_events=not getattr(args, "no_wall_events", False),
-                      wall_contact=getattr(args, "wall_contact", "point"),
+                      wall_contact=getattr(args, "wall_contact", "surface"),
                       seed=int(args.seed), device=args.device)
 
 
@@ -833,9 +834,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="surrogate pair detection: swept (continuous, default), overlap (the paper's "
                              "end-of-step test) or cell (stochastic per grid cell; default with "
                              "--particles-per-parcel > 1)")
-    parser.add_argument("--wall-contact", choices=("point", "surface"), default="point",
-                        help="where HEL parcels meet the walls: point (their centre, MP-PIC; default) or surface "
-                             "(a particle radius from the centre, as the dem's spheres)")
+    parser.add_argument("--wall-contact", choices=("point", "surface"), default="surface",
+                        help="where HEL parcels meet the walls: surface (a particle radius from the centre, as the "
+                             "dem's spheres; default) or point (their centre, MP-PIC)")
     parser.add_argument("--no-wall-events", action="store_true",
                         help="surrogate swept detection: walls only at the step's end (the push's reflection) "
                              "instead of as events in time order with the collisions (the default)")
