@@ -42,6 +42,9 @@ reach <= R_cut, the parcels above it are tested one by one (kernels/collide.py `
 events do not depend on it). Measured on the colliding-streams rig (dt = 1e-3 s, where collisions raise the largest
 reach from ~3 to ~8 mean reaches, and 1e-4 s): 2.5 lists ~20 % of the parcels after a few rounds, 6 hardly
 narrows the searches; 4 was as fast as 2.5 or faster, within the noise of a shared machine."""
+BOUND_CUT_FACTOR = 4.0
+"""The event searches' cut on the path bounds (kernels/collide.py ``SweptArgs.bound_cut``), in units of the step's
+mean reach, as R_cut (the events do not depend on it)."""
 REACH_CUT_FLOOR = 0.5
 """R_cut is at least this fraction of r_max (overlap detection: reaches of zero, but end-of-contact turns grow some)."""
 MAX_ROUNDS = 4096
@@ -208,6 +211,7 @@ class SurrogateCollision:
         a.t_last, a.reach, a.reach_max = zeros(n, wp.float32), zeros(n, wp.float32), zeros(1, wp.float32)
         a.path_bound = zeros(n, wp.float32)
         a.large_index, a.large_count = zeros(n, wp.int32), zeros(1, wp.int32)
+        a.bound_index, a.bound_count = zeros(n, wp.int32), zeros(1, wp.int32)
         a.event_key = wp.full(n, 0, dtype=wp.int64, device=dev)
         a.dirty, a.stamp, a.round = zeros(n, wp.int32), zeros(n, wp.int32), zeros(1, wp.int32)
         a.last_partner = zeros(n, wp.int32)
@@ -344,6 +348,7 @@ class SurrogateCollision:
         # it are listed), so one collision that raises a reach far above the rest does not widen every search
         grid = self._hash_grid(a.hash_point, CELL_FACTOR * (r_max + reach_mean), dims=SWEPT_GRID_DIMS)
         a.reach_cut = max(REACH_CUT_FACTOR * reach_mean if reach_mean > 0.0 else 0.0, REACH_CUT_FLOOR * r_max)
+        a.bound_cut = max(BOUND_CUT_FACTOR * reach_mean if reach_mean > 0.0 else 0.0, REACH_CUT_FLOOR * r_max)
         a.grid = grid.id
         self._shift_pending = sweep > 0.0
         resolve_swept(a, self.forest, particles.v, self.events_found, self.event_rounds, self.round_cap_hit,

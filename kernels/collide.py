@@ -378,6 +378,14 @@ class SweptArgs:
     order."""
     large_count: wp.array(dtype=wp.int32)
     """(1,) parcels listed in ``large_index`` (zeroed before each round's ``swept_reset``)."""
+    bound_cut: wp.float32
+    """The event searches' cut: the hash-grid part of a search reaches the partners of ``path_bound`` <= bound_cut,
+    the larger are listed (``bound_index``); ``path_bound`` <= ``reach``, so far fewer than ``large_index`` holds, m."""
+    bound_index: wp.array(dtype=wp.int32)
+    """(n,) the first ``bound_count[0]`` entries: the live parcels of ``path_bound`` > bound_cut at the round's
+    start, in any order."""
+    bound_count: wp.array(dtype=wp.int32)
+    """(1,) parcels listed in ``bound_index`` (zeroed with ``large_count``)."""
     event_key: wp.array(dtype=wp.int64)
     """Earliest pending event: quantised time << 32 | partner, EVENT_NONE if none."""
     dirty: wp.array(dtype=wp.int32)
@@ -602,12 +610,16 @@ def swept_start(
 @wp.kernel
 def swept_reset(args: SweptArgs):
     """Dirty parcels forget their pending event (it is found again, or a new one, by swept_find); the parcels of reach
-    above the cut are listed (``large_index``, ``large_count`` zeroed by the caller)."""
+    above the cut are listed (``large_index``), and those of path bound above the searches' cut (``bound_index``;
+    the counts zeroed by the caller)."""
     i = wp.tid()
     if args.dirty[i] != 0:
         args.event_key[i] = EVENT_NONE
-    if args.particle_alive[i] != 0 and args.reach[i] > args.reach_cut:
-        args.large_index[wp.atomic_add(args.large_count, 0, 1)] = i
+    if args.particle_alive[i] != 0:
+        if args.reach[i] > args.reach_cut:
+            args.large_index[wp.atomic_add(args.large_count, 0, 1)] = i
+        if args.path_bound[i] > args.bound_cut:
+            args.bound_index[wp.atomic_add(args.bound_count, 0, 1)] = i
 
 
 @wp.func
@@ -681,18 +693,18 @@ def swept_find(
                         if reach_i > reach_j or (reach_i == reach_j and i < j):
                             offer_pair(args, particle_v, i, j, True, detected, skipped)
         return
-    # later rounds only dirty parcels query, and must reach every partner: those of reach <= R_cut (path_bound <=
-    # reach) in the grid, the large ones in their list; a pair of two dirty parcels is tested by the lower index
-    # (the other's search finds it as surely: the rule is symmetric)
-    cut = args.reach_cut
+    # later rounds only dirty parcels query, and must reach every partner: those of path_bound <= bound_cut in the
+    # grid (path_bound <= reach <= reach_max), the others in their list; a pair of two dirty parcels is tested by the
+    # lower index (the other's search finds it as surely: the rule is symmetric)
+    cut = args.bound_cut
     radius = (ri + args.max_radius + args.path_bound[i] + wp.min(cut, args.reach_max[0])) * NEAR_MARGIN
     for j in wp.hash_grid_query(args.grid, mi, radius):
         if j != i:
             if paths_near(args, mi, extent_i, j):
-                if args.particle_alive[j] != 0 and args.reach[j] <= cut and (j > i or args.dirty[j] == 0):
+                if args.particle_alive[j] != 0 and args.path_bound[j] <= cut and (j > i or args.dirty[j] == 0):
                     offer_pair(args, particle_v, i, j, False, detected, skipped)
-    for slot in range(args.large_count[0]):
-        j = args.large_index[slot]
+    for slot in range(args.bound_count[0]):
+        j = args.bound_index[slot]
         if j != i:
             if paths_near(args, mi, extent_i, j):
                 if j > i or args.dirty[j] == 0:
@@ -1097,6 +1109,7 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
 
     def one_round():
         args.large_count.zero_()
+        args.bound_count.zero_()
         reset.launch()
         find.launch()
         events_found.zero_()
