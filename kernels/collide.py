@@ -35,6 +35,7 @@ import warp as wp
 from kernels.forest import (COS_FEATURE, GUARD_COULOMB, GUARD_ENERGY, GUARD_SEPARATION, SCALE_NONE, ContactDomain, Forest,
                             admissible_impulse, contact_impulse, scale_factor, sphere_mass, walk_tree,
                             write_contact_features_in_domain)
+from kernels.cell_list import CellList, range_count, range_slots, search_box
 from kernels.reflect import WallParams, reflect_velocity
 from kernels.sdf import SdfShapes, sdf_union, sdf_union_normal
 
@@ -309,7 +310,7 @@ def launch_paper_update(args: PaperArgs, forest: Forest, features, particle_v_ou
 # A pair (a < b) touches first at the smallest root tau >= t_lo = max(t_last_a, t_last_b) of
 # |s(tau)| = r_a + r_b with s(t) = D + base_b - base_a + (v_b - v_a) t (D = m_b - m_a, minimum image in a
 # periodic box), provided it approaches (s . ds/dt < 0) and tau <= dt; the contact normal is s(tau)/|s(tau)|.
-# Rounds: each dirty parcel (round 0: all) finds its earliest event over its hash-grid neighbours and offers it
+# Rounds: each dirty parcel (round 0: all) finds its earliest event over its neighbours in the cell list and offers it
 # to both parcels with an int64 atomic_min on the key (time quantised to dt/2^30, then partner index: ties go
 # to the lower index, deterministic); pairs whose keys point at each other are mutually earliest and are
 # resolved together (disjoint by construction) unless a parcel whose path can reach either of them has an earlier
@@ -318,13 +319,15 @@ def launch_paper_update(args: PaperArgs, forest: Forest, features, particle_v_ou
 # progress. Parcels that collided, and those whose earliest partner collided, are dirty in the next round.
 # Searches after round 0 (and the causality check of every round) must reach every partner k whose path can come
 # near: |m_k - m_i| <= r_i + r_k + reach_i + reach_k. One collision can raise a single reach far above the rest,
-# and the global max bounded every search; instead a step has a cut R_cut: the hash grid is searched out to
+# and the global max bounded every search; instead a step has a cut R_cut: the cell list (kernels/cell_list.py, the
+# live hash points sorted by cell) is searched out to
 # r_i + r_max + reach_i + min(R_cut, max reach) and yields the partners of reach <= R_cut, and the "large" parcels
 # (reach > R_cut, listed anew at each round's start, so a reach grown past the cut by a collision is listed before
 # the next search) are tested one by one. The event search tests a pair with the tighter ``path_bound`` (the
 # farthest end of the present path, not reach's |o(t_last)| + path length) and once: in round 0 by the parcel of
-# the larger reach, later by the lower index when both are dirty. Every pair that can touch is still tested, and
-# the causality check keeps its reach test, so the events and rounds are those of the search out to the max.
+# the larger reach, later by the lower index when both are dirty, and later rounds split it by path_bound (a cut
+# ``bound_cut`` and its own list: path_bound <= reach, so few are listed). Every pair that can touch is still tested,
+# and the causality check keeps its reach test, so the events and rounds are those of the search out to the max.
 
 EVENT_NONE_VALUE = 9223372036854775807
 EVENT_NONE = wp.constant(wp.int64(EVENT_NONE_VALUE))
@@ -337,8 +340,8 @@ EVENT_TIME_SCALE = wp.constant(1073741824.0)
 class SweptArgs:
     """Per-step state of the swept detection (one entry per parcel slot unless said otherwise)."""
 
-    grid: wp.uint64
-    """Hash grid of ``hash_point``."""
+    cells: CellList
+    """The live parcels' ``hash_point`` sorted by cell (kernels/cell_list.py): the searches' candidates."""
     particle_x: wp.array(dtype=wp.vec3)
     particle_radius: wp.array(dtype=wp.float32)
     particle_density: wp.array(dtype=wp.float32)
@@ -372,14 +375,15 @@ class SweptArgs:
     reach_max: wp.array(dtype=wp.float32)
     """(1,) max of ``reach`` (atomic_max; it caps the searches' R_cut), m."""
     reach_cut: wp.float32
-    """R_cut: the hash-grid searches reach the partners of ``reach`` <= R_cut; the larger are listed, m."""
+    """R_cut: the causality checks' cell-list searches reach the partners of ``reach`` <= R_cut; the larger are
+    listed, m."""
     large_index: wp.array(dtype=wp.int32)
     """(n,) the first ``large_count[0]`` entries: the live parcels of ``reach`` > R_cut at the round's start, in any
     order."""
     large_count: wp.array(dtype=wp.int32)
     """(1,) parcels listed in ``large_index`` (zeroed before each round's ``swept_reset``)."""
     bound_cut: wp.float32
-    """The event searches' cut: the hash-grid part of a search reaches the partners of ``path_bound`` <= bound_cut,
+    """The event searches' cut: the cell-list part of a search reaches the partners of ``path_bound`` <= bound_cut,
     the larger are listed (``bound_index``); ``path_bound`` <= ``reach``, so far fewer than ``large_index`` holds, m."""
     bound_index: wp.array(dtype=wp.int32)
     """(n,) the first ``bound_count[0]`` entries: the live parcels of ``path_bound`` > bound_cut at the round's
@@ -636,10 +640,10 @@ def count_start_overlap(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a:
 
 
 @wp.func
-def paths_near(args: SweptArgs, m_i: wp.vec3, extent_i: float, j: int):
-    """The paths of i (hash point m_i, extent_i = r_i + path_bound_i) and j stay within their bounds of their hash
-    points: farther apart than both bounds and radii, they never meet."""
-    d = minimum_image(args.hash_point[j] - m_i, args.periodic, args.box)
+def paths_near(args: SweptArgs, m_i: wp.vec3, extent_i: float, j: int, m_j: wp.vec3):
+    """The paths of i (hash point m_i, extent_i = r_i + path_bound_i) and j (hash point m_j) stay within their bounds
+    of their hash points: farther apart than both bounds and radii, they never meet."""
+    d = minimum_image(m_j - m_i, args.periodic, args.box)
     near = (extent_i + args.particle_radius[j] + args.path_bound[j]) * NEAR_MARGIN
     return wp.dot(d, d) <= near * near
 
@@ -685,10 +689,13 @@ def swept_find(
     if args.round[0] == 0:
         # every parcel queries: a pair is tested by the parcel of the larger reach (then the lower index), whose
         # search out to r_i + r_max + 2 reach_i finds it
-        for j in wp.hash_grid_query(args.grid, mi, (ri + args.max_radius + 2.0 * reach_i) * NEAR_MARGIN):
-            if j != i:
-                if paths_near(args, mi, extent_i, j):
-                    if args.particle_alive[j] != 0:
+        lo, hi = search_box(args.cells, mi, (ri + args.max_radius + 2.0 * reach_i) * NEAR_MARGIN)
+        for k_range in range(range_count(args.cells, lo, hi)):
+            begin, end = range_slots(args.cells, lo, hi, k_range)
+            for slot in range(begin, end):
+                j = args.cells.slot_point[slot]
+                if j != i:
+                    if paths_near(args, mi, extent_i, j, args.cells.slot_position[slot]):
                         reach_j = args.reach[j]
                         if reach_i > reach_j or (reach_i == reach_j and i < j):
                             offer_pair(args, particle_v, i, j, True, detected, skipped)
@@ -698,15 +705,19 @@ def swept_find(
     # lower index (the other's search finds it as surely: the rule is symmetric)
     cut = args.bound_cut
     radius = (ri + args.max_radius + args.path_bound[i] + wp.min(cut, args.reach_max[0])) * NEAR_MARGIN
-    for j in wp.hash_grid_query(args.grid, mi, radius):
-        if j != i:
-            if paths_near(args, mi, extent_i, j):
-                if args.particle_alive[j] != 0 and args.path_bound[j] <= cut and (j > i or args.dirty[j] == 0):
-                    offer_pair(args, particle_v, i, j, False, detected, skipped)
+    lo, hi = search_box(args.cells, mi, radius)
+    for k_range in range(range_count(args.cells, lo, hi)):
+        begin, end = range_slots(args.cells, lo, hi, k_range)
+        for slot in range(begin, end):
+            j = args.cells.slot_point[slot]
+            if j != i:
+                if paths_near(args, mi, extent_i, j, args.cells.slot_position[slot]):
+                    if args.path_bound[j] <= cut and (j > i or args.dirty[j] == 0):
+                        offer_pair(args, particle_v, i, j, False, detected, skipped)
     for slot in range(args.bound_count[0]):
         j = args.bound_index[slot]
         if j != i:
-            if paths_near(args, mi, extent_i, j):
+            if paths_near(args, mi, extent_i, j, args.hash_point[j]):
                 if j > i or args.dirty[j] == 0:
                     offer_pair(args, particle_v, i, j, False, detected, skipped)
 
@@ -746,7 +757,7 @@ def earlier_neighbour_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3)
     on its new path, reach a before t, -1 if none. After its event k moves at most V_k = |v_k| + 2 |v_k - v_p| (p its
     partner: an admissible impulse changes k's velocity by at most 2 m_p/(m_k + m_p) |g| <= 2 |g|); a moves at |v_a|.
     From t1 = max(t_k, t_last_a) the gap |x_a(t1) - x_k(t_k)| - r_a - r_k cannot close before
-    (V_k (t - t_k) + |v_a| (t - t1)). Returns the first such k of the hash grid (reach <= R_cut), else the lowest
+    (V_k (t - t_k) + |v_a| (t - t1)). Returns the first such k of the cell list (reach <= R_cut), else the lowest
     index among the large parcels (their list's order depends on the threads).
 
     Only parcels whose present paths come within reach of a's are tested: a k whose new path (after its event) leaves
@@ -754,11 +765,15 @@ def earlier_neighbour_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3)
     (``guard_late_overlap``, resolved at once); none was found in the tests against the strict event order."""
     cut = args.reach_cut
     radius = (args.particle_radius[a] + args.max_radius + args.reach[a] + wp.min(cut, args.reach_max[0])) * NEAR_MARGIN
-    for k in wp.hash_grid_query(args.grid, args.hash_point[a], radius):
-        # the key first (most candidates have none earlier; a dead parcel has none): fewer loads per candidate
-        if k != a and k != b and may_arrive_first(args, particle_v, a, k, t, q):
-            if args.reach[k] <= cut:
-                return k
+    lo, hi = search_box(args.cells, args.hash_point[a], radius)
+    for k_range in range(range_count(args.cells, lo, hi)):
+        begin, end = range_slots(args.cells, lo, hi, k_range)
+        for slot in range(begin, end):
+            k = args.cells.slot_point[slot]
+            # the key first (most candidates have none earlier): fewer loads per candidate
+            if k != a and k != b and may_arrive_first(args, particle_v, a, k, t, q):
+                if args.reach[k] <= cut:
+                    return k
     found = int(-1)
     for slot in range(args.large_count[0]):
         k = args.large_index[slot]
@@ -1075,7 +1090,7 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
     """Rounds of mutually earliest events until none is left (``wp.capture_while``: a while node where the call is
     captured into a graph - tests/test_device_paths.py does, on the CPU; the engine calls it uncaptured, a host loop
     with one device read per round) or
-    ``args.max_rounds`` is reached (then ``round_cap_hit`` is set). ``args.grid`` must hold ``args.hash_point``;
+    ``args.max_rounds`` is reached (then ``round_cap_hit`` is set). ``args.cells`` must hold ``args.hash_point``;
     ``args.reach_cut`` >= 0 splits the searches between the grid and the list of large parcels (the events do not
     depend on it).
     Round 0 also counts the pairs overlapping at the start into ``detected`` (per stream pair) and ``skipped``.
