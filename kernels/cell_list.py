@@ -11,8 +11,9 @@ dynamics (Allen & Tildesley, *Computer Simulation of Liquids*, sec. 5.3) with it
 (Green, *Particle Simulation using CUDA*, NVIDIA 2010).
 
 A search for the points within ``radius`` of ``p``: ``lo, hi = search_box(cells, p, radius)``, then the slot ranges
-``range_slots(cells, lo, hi, k)`` for k < ``range_count(cells, lo, hi)``: one per (y, z) row in open space, two in a
-periodic box (a row that crosses a face in x is two ranges; otherwise the second is empty). One loop over k, not a
+``range_slots(cells, lo, hi, k, p, radius)`` for k < ``range_count(cells, lo, hi)``: one per (y, z) row in open space,
+two in a periodic box (a row that crosses a face in x is two ranges; otherwise the second is empty); a row holds only
+the cells of the ball's chord (a row beyond the radius none), so the search covers about the ball, not its box. One loop over k, not a
 loop over rows and an unrolled one over the parts: the caller's loop body (often a large inlined test) is generated
 once. Every point within the radius is visited exactly once (a search wider than the periodic box is clamped to its
 cells once), the others of the box of cells too: callers test the distance.
@@ -96,18 +97,34 @@ def range_count(cells: CellList, lo: wp.vec3i, hi: wp.vec3i):
 
 
 @wp.func
-def range_slots(cells: CellList, lo: wp.vec3i, hi: wp.vec3i, k: int):
-    """Slot range [begin, end) number k of the search box: part k % 2 of row k / 2 in a periodic box, row k in open
-    space (y fastest)."""
+def row_distance(cells: CellList, x: float, c: int, axis: int):
+    """Distance from a position component to the cells of coordinate c on an axis (minimum image when periodic)."""
+    width = 1.0 / cells.inv_width
+    e = x - (cells.origin[axis] + (float(c) + 0.5) * width)
+    if cells.periodic != 0:
+        side = float(cells.dims[axis]) * width
+        e = e - side * wp.round(e / side)
+    return wp.max(wp.abs(e) - 0.5 * width, 0.0)
+
+
+@wp.func
+def range_slots(cells: CellList, lo: wp.vec3i, hi: wp.vec3i, k: int, p: wp.vec3, radius: float):
+    """Slot range [begin, end) number k of the search of the ball (p, radius) with the box (lo, hi) of
+    ``search_box``: part k % 2 of row k / 2 in a periodic box, row k in open space (y fastest). A row farther from p
+    than the radius is empty, the others hold only the cells of the ball's chord along x."""
     parts = 1 + cells.periodic
     part = k % parts
     row = k / parts
     ny = hi[1] - lo[1] + 1
     cy = lo[1] + row % ny
     cz = lo[2] + row / ny
+    dy = row_distance(cells, p[1], cy, 1)
+    dz = row_distance(cells, p[2], cz, 2)
+    chord2 = radius * radius - dy * dy - dz * dz
+    if chord2 < 0.0:
+        return 0, 0
     dx = cells.dims[0]
-    x_lo = lo[0]
-    x_hi = hi[0]
+    x_lo, x_hi = axis_range(cells, p[0], wp.sqrt(chord2), 0)
     if cells.periodic != 0:
         cy = wrap(cy, cells.dims[1])
         cz = wrap(cz, cells.dims[2])

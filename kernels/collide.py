@@ -689,9 +689,10 @@ def swept_find(
     if args.round[0] == 0:
         # every parcel queries: a pair is tested by the parcel of the larger reach (then the lower index), whose
         # search out to r_i + r_max + 2 reach_i finds it
-        lo, hi = search_box(args.cells, mi, (ri + args.max_radius + 2.0 * reach_i) * NEAR_MARGIN)
+        radius0 = (ri + args.max_radius + 2.0 * reach_i) * NEAR_MARGIN
+        lo, hi = search_box(args.cells, mi, radius0)
         for k_range in range(range_count(args.cells, lo, hi)):
-            begin, end = range_slots(args.cells, lo, hi, k_range)
+            begin, end = range_slots(args.cells, lo, hi, k_range, mi, radius0)
             for slot in range(begin, end):
                 j = args.cells.slot_point[slot]
                 if j != i:
@@ -707,7 +708,7 @@ def swept_find(
     radius = (ri + args.max_radius + args.path_bound[i] + wp.min(cut, args.reach_max[0])) * NEAR_MARGIN
     lo, hi = search_box(args.cells, mi, radius)
     for k_range in range(range_count(args.cells, lo, hi)):
-        begin, end = range_slots(args.cells, lo, hi, k_range)
+        begin, end = range_slots(args.cells, lo, hi, k_range, mi, radius)
         for slot in range(begin, end):
             j = args.cells.slot_point[slot]
             if j != i:
@@ -765,15 +766,17 @@ def earlier_neighbour_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3)
     (``guard_late_overlap``, resolved at once); none was found in the tests against the strict event order."""
     cut = args.reach_cut
     radius = (args.particle_radius[a] + args.max_radius + args.reach[a] + wp.min(cut, args.reach_max[0])) * NEAR_MARGIN
-    lo, hi = search_box(args.cells, args.hash_point[a], radius)
+    ma = args.hash_point[a]
+    lo, hi = search_box(args.cells, ma, radius)
     for k_range in range(range_count(args.cells, lo, hi)):
-        begin, end = range_slots(args.cells, lo, hi, k_range)
+        begin, end = range_slots(args.cells, lo, hi, k_range, ma, radius)
         for slot in range(begin, end):
             k = args.cells.slot_point[slot]
-            # the key first (most candidates have none earlier): fewer loads per candidate
-            if k != a and k != b and may_arrive_first(args, particle_v, a, k, t, q):
-                if args.reach[k] <= cut:
-                    return k
+            # the key first, here (most candidates have none earlier): no call for them
+            if args.event_key[k] >> wp.int64(32) < q:
+                if k != a and k != b and may_arrive_first(args, particle_v, a, k, t, q):
+                    if args.reach[k] <= cut:
+                        return k
     found = int(-1)
     for slot in range(args.large_count[0]):
         k = args.large_index[slot]

@@ -24,7 +24,7 @@ def neighbours_through_cells(cells: CellList, points: wp.array(dtype=wp.vec3), a
     seen = int(0)
     lo, hi = search_box(cells, p, radius)
     for k in range(range_count(cells, lo, hi)):
-        begin, end = range_slots(cells, lo, hi, k)
+        begin, end = range_slots(cells, lo, hi, k, p, radius)
         for slot in range(begin, end):
             j = cells.slot_point[slot]
             d = cells.slot_position[slot] - p
