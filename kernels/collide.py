@@ -611,19 +611,22 @@ def swept_start(
     wp.atomic_add(reach_sum, 0, r)
 
 
-@wp.kernel
-def swept_reset(args: SweptArgs):
-    """Dirty parcels forget their pending event (it is found again, or a new one, by swept_find); the parcels of reach
-    above the cut are listed (``large_index``), and those of path bound above the searches' cut (``bound_index``;
-    the counts zeroed by the caller)."""
-    i = wp.tid()
-    if args.dirty[i] != 0:
-        args.event_key[i] = EVENT_NONE
+@wp.func
+def list_far_reaching(args: SweptArgs, i: int):
+    """List a live parcel of reach above the cut (``large_index``) and of path bound above the searches' cut
+    (``bound_index``) for the coming round (the counts zeroed before)."""
     if args.particle_alive[i] != 0:
         if args.reach[i] > args.reach_cut:
             args.large_index[wp.atomic_add(args.large_count, 0, 1)] = i
         if args.path_bound[i] > args.bound_cut:
             args.bound_index[wp.atomic_add(args.bound_count, 0, 1)] = i
+
+
+@wp.kernel
+def swept_reset(args: SweptArgs):
+    """Round 0: the far-reaching parcels listed (``list_far_reaching``; every key is EVENT_NONE from swept_start).
+    Later rounds do this in ``swept_mark_dirty``."""
+    list_far_reaching(args, wp.tid())
 
 
 @wp.func
@@ -1035,7 +1038,10 @@ def swept_resolve_walls(
 
 @wp.kernel
 def swept_mark_dirty(args: SweptArgs):
-    """Dirty next round: parcels that collided in this round and those whose pending partner did."""
+    """Dirty next round: parcels that collided in this round and those whose pending partner did; a dirty parcel
+    forgets its pending event (swept_find of the next round finds it again, or a new one), and the far-reaching
+    parcels are listed for the next round (``list_far_reaching``, counts zeroed by the caller). Each thread reads
+    and writes its own key only, so the reset of a round's start is this kernel, not one more over the parcels."""
     i = wp.tid()
     this_round = args.round[0]
     dirty = int(0)
@@ -1048,6 +1054,9 @@ def swept_mark_dirty(args: SweptArgs):
                 if args.stamp[event_partner(key)] == this_round:
                     dirty = 1
     args.dirty[i] = dirty
+    if dirty != 0:
+        args.event_key[i] = EVENT_NONE
+    list_far_reaching(args, i)
 
 
 @wp.kernel
@@ -1058,9 +1067,12 @@ def swept_next_round(
     event_rounds: wp.array(dtype=wp.int32),
     round_cap_hit: wp.array(dtype=wp.int32),
 ):
-    """Next round; counts the rounds that resolved events; stops at ``max_rounds`` (and says so)."""
+    """Next round (its event and wall rows zeroed); counts the rounds that resolved events; stops at ``max_rounds``
+    (and says so)."""
     r = args.round[0] + 1
     args.round[0] = r
+    args.batch_count[0] = 0
+    args.wall_count[0] = 0
     if events_found[0] != 0:
         event_rounds[0] = event_rounds[0] + 1
         if r >= args.max_rounds:
@@ -1110,7 +1122,6 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
     def record(kernel, dim, inputs, outputs=()):
         return wp.launch(kernel, dim=dim, device=device, inputs=inputs, outputs=list(outputs), record_cmd=True)
 
-    reset = record(swept_reset, n, [args])
     find = record(swept_find, n, [args, particle_v], [detected, skipped])
     global_min = record(swept_global_min, n, [args]) if args.sequential != 0 else None
     select = record(swept_select, n, [args, particle_v], [events_found])
@@ -1120,19 +1131,14 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
 
         predict = eval_forest(batch_forest, args.features, args.batch_out, device=device, row_count=args.batch_count,
                               record=True)
-    resolve = record(swept_resolve, n, [args, forest], [particle_v, calls, collisions])
+    resolve = record(swept_resolve, n // 2 + 1, [args, forest], [particle_v, calls, collisions])  # pairs: <= n/2 rows
     walls = record(swept_resolve_walls, n, [args], [particle_v]) if args.walls != 0 else None
     mark_dirty = record(swept_mark_dirty, n, [args])
     next_round = record(swept_next_round, 1, [args], [events_found, event_rounds, round_cap_hit])
 
     def one_round():
-        args.large_count.zero_()
-        args.bound_count.zero_()
-        reset.launch()
         find.launch()
         events_found.zero_()
-        args.batch_count.zero_()
-        args.wall_count.zero_()
         if global_min is not None:
             args.global_key.fill_(EVENT_NONE_VALUE)
             global_min.launch()
@@ -1142,9 +1148,16 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
         resolve.launch()
         if walls is not None:
             walls.launch()
+        args.large_count.zero_()  # the last reader of both lists was select
+        args.bound_count.zero_()
         mark_dirty.launch()
         next_round.launch()
 
+    args.large_count.zero_()
+    args.bound_count.zero_()
+    args.batch_count.zero_()
+    args.wall_count.zero_()
+    wp.launch(swept_reset, dim=n, device=device, inputs=[args])  # round 0's lists; later rounds' in mark_dirty
     events_found.fill_(1)
     wp.capture_while(events_found, one_round)
 
