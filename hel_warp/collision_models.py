@@ -220,6 +220,8 @@ class SurrogateCollision:
         a.large_index, a.large_count = zeros(n, wp.int32), zeros(1, wp.int32)
         a.bound_index, a.bound_count = zeros(n, wp.int32), zeros(1, wp.int32)
         a.event_key = wp.full(n, 0, dtype=wp.int64, device=dev)
+        a.second_key = wp.full(n, 0, dtype=wp.int64, device=dev)
+        a.second_ok = zeros(n, wp.int32)
         a.dirty, a.stamp, a.round = zeros(n, wp.int32), zeros(n, wp.int32), zeros(1, wp.int32)
         a.last_partner = zeros(n, wp.int32)
         a.event_i, a.event_j = zeros(n, wp.int32), zeros(n, wp.int32)

@@ -392,6 +392,12 @@ class SweptArgs:
     """(1,) parcels listed in ``bound_index`` (zeroed with ``large_count``)."""
     event_key: wp.array(dtype=wp.int64)
     """Earliest pending event: quantised time << 32 | partner, EVENT_NONE if none."""
+    second_key: wp.array(dtype=wp.int64)
+    """The second earliest of the events offered to the parcel (``offer_event``); it is the parcel's earliest event
+    with any partner but that of ``event_key`` while ``second_ok`` is 1."""
+    second_ok: wp.array(dtype=wp.int32)
+    """1 while ``second_key`` is exact: set by a full search (round 0, a dirty parcel's), cleared when its partner
+    collides or it is promoted to ``event_key`` (``swept_mark_dirty``)."""
     dirty: wp.array(dtype=wp.int32)
     stamp: wp.array(dtype=wp.int32)
     """Round in which the parcel last collided (-1: none yet)."""
@@ -469,6 +475,14 @@ def event_key(t: float, dt: float, partner: int):
 @wp.func
 def event_partner(key: wp.int64):
     return wp.int32(key & wp.int64(4294967295))
+
+
+@wp.func
+def offer_event(args: SweptArgs, i: int, key: wp.int64):
+    """Offer an event to parcel i: its earliest (``event_key``, atomic_min) and second earliest (``second_key``: what
+    the first min displaced or rejected; atomic, so the two are the two smallest offers whatever the order)."""
+    old = wp.atomic_min(args.event_key, i, key)
+    wp.atomic_min(args.second_key, i, wp.max(old, key))
 
 
 @wp.func
@@ -582,6 +596,8 @@ def swept_start(
     """Initial paths: hash point, base = -v dt/2, reach = |v| dt/2; every live parcel dirty."""
     i = wp.tid()
     args.event_key[i] = EVENT_NONE
+    args.second_key[i] = EVENT_NONE
+    args.second_ok[i] = 1  # round 0 offers every pair to both parcels
     args.shift[i] = wp.vec3(0.0)
     args.t_last[i] = 0.0
     args.stamp[i] = -1
@@ -662,8 +678,8 @@ def offer_pair(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), i: int, j: 
         count_start_overlap(args, particle_v, a, b, detected, skipped)
     t = first_touch(args, particle_v, a, b)
     if t >= 0.0:
-        wp.atomic_min(args.event_key, i, event_key(t, args.dt, j))
-        wp.atomic_min(args.event_key, j, event_key(t, args.dt, i))
+        offer_event(args, i, event_key(t, args.dt, j))
+        offer_event(args, j, event_key(t, args.dt, i))
 
 
 @wp.kernel
@@ -688,7 +704,7 @@ def swept_find(
     # the parcel's own wall crossing (wall events): an event whose partner is the parcel itself
     t_wall = wall_touch(args, particle_v, i)
     if t_wall >= 0.0:
-        wp.atomic_min(args.event_key, i, event_key(t_wall, args.dt, i))
+        offer_event(args, i, event_key(t_wall, args.dt, i))
     if args.round[0] == 0:
         # every parcel queries: a pair is tested by the parcel of the larger reach (then the lower index), whose
         # search out to r_i + r_max + 2 reach_i finds it
@@ -1038,24 +1054,39 @@ def swept_resolve_walls(
 
 @wp.kernel
 def swept_mark_dirty(args: SweptArgs):
-    """Dirty next round: parcels that collided in this round and those whose pending partner did; a dirty parcel
-    forgets its pending event (swept_find of the next round finds it again, or a new one), and the far-reaching
-    parcels are listed for the next round (``list_far_reaching``, counts zeroed by the caller). Each thread reads
-    and writes its own key only, so the reset of a round's start is this kernel, not one more over the parcels."""
+    """Dirty next round: parcels that collided in this round, and those whose pending partner did unless their exact
+    second event (``second_key``, its partner unmoved) takes the place of the first: every pair whose path did not
+    change keeps its time, and the colliders' searches offer the pairs that did, so the keys after the next
+    swept_find are those of a full search. A dirty parcel forgets its events (its search of the next round finds
+    them again, or new ones; its second is then exact again); the far-reaching parcels are listed for the next
+    round (``list_far_reaching``, counts zeroed by the caller). Each thread reads and writes its own keys only, so
+    the reset of a round's start is this kernel, not one more over the parcels."""
     i = wp.tid()
     this_round = args.round[0]
     dirty = int(0)
     if args.particle_alive[i] != 0:
+        key = args.event_key[i]
+        second = args.second_key[i]
         if args.stamp[i] == this_round:
             dirty = 1
-        else:
-            key = args.event_key[i]
-            if key != EVENT_NONE:
-                if args.stamp[event_partner(key)] == this_round:
+        elif key != EVENT_NONE:
+            second_moved = second != EVENT_NONE and args.stamp[event_partner(second)] == this_round
+            if args.stamp[event_partner(key)] == this_round:
+                if args.second_ok[i] == 0 or second_moved:
                     dirty = 1
+                else:
+                    # no third event is known: the second is exact again only if there was none
+                    args.event_key[i] = second
+                    args.second_key[i] = EVENT_NONE
+                    if second != EVENT_NONE:
+                        args.second_ok[i] = 0
+            elif second_moved:
+                args.second_ok[i] = 0
     args.dirty[i] = dirty
     if dirty != 0:
         args.event_key[i] = EVENT_NONE
+        args.second_key[i] = EVENT_NONE
+        args.second_ok[i] = 1
     list_far_reaching(args, i)
 
 
