@@ -219,6 +219,7 @@ class SurrogateCollision:
         a.path_bound = zeros(n, wp.float32)
         a.large_index, a.large_count = zeros(n, wp.int32), zeros(1, wp.int32)
         a.bound_index, a.bound_count = zeros(n, wp.int32), zeros(1, wp.int32)
+        a.large_point = zeros(n, wp.vec3)
         a.event_key = wp.full(n, 0, dtype=wp.int64, device=dev)
         a.second_key = wp.full(n, 0, dtype=wp.int64, device=dev)
         a.second_ok = zeros(n, wp.int32)

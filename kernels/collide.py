@@ -382,6 +382,8 @@ class SweptArgs:
     order."""
     large_count: wp.array(dtype=wp.int32)
     """(1,) parcels listed in ``large_index`` (zeroed before each round's ``swept_reset``)."""
+    large_point: wp.array(dtype=wp.vec3)
+    """(n,) ``hash_point`` of each ``large_index`` entry (read in order: the list's distance test without a gather), m."""
     bound_cut: wp.float32
     """The event searches' cut: the cell-list part of a search reaches the partners of ``path_bound`` <= bound_cut,
     the larger are listed (``bound_index``); ``path_bound`` <= ``reach``, so far fewer than ``large_index`` holds, m."""
@@ -633,7 +635,9 @@ def list_far_reaching(args: SweptArgs, i: int):
     (``bound_index``) for the coming round (the counts zeroed before)."""
     if args.particle_alive[i] != 0:
         if args.reach[i] > args.reach_cut:
-            args.large_index[wp.atomic_add(args.large_count, 0, 1)] = i
+            slot = wp.atomic_add(args.large_count, 0, 1)
+            args.large_index[slot] = i
+            args.large_point[slot] = args.hash_point[i]
         if args.path_bound[i] > args.bound_cut:
             args.bound_index[wp.atomic_add(args.bound_count, 0, 1)] = i
 
@@ -797,11 +801,16 @@ def earlier_neighbour_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3)
                     if args.reach[k] <= cut:
                         return k
     found = int(-1)
+    ma = args.hash_point[a]
+    far = (args.particle_radius[a] + args.max_radius + args.reach[a] + args.reach_max[0]) * NEAR_MARGIN
     for slot in range(args.large_count[0]):
-        k = args.large_index[slot]
-        if k != a and k != b and (found < 0 or k < found):
-            if may_arrive_first(args, particle_v, a, k, t, q):
-                found = k
+        # may_arrive_first's distance test with the largest r_k and reach_k first: most of the list is far away
+        d = minimum_image(args.large_point[slot] - ma, args.periodic, args.box)
+        if wp.dot(d, d) <= far * far:
+            k = args.large_index[slot]
+            if k != a and k != b and (found < 0 or k < found):
+                if may_arrive_first(args, particle_v, a, k, t, q):
+                    found = k
     return found
 
 
@@ -882,9 +891,10 @@ def swept_select(
     if still_blocked(args, a, key):
         return
     q = key >> wp.int64(32)
-    k = earlier_neighbour_event(args, particle_v, a, b, t, q)
-    if k < 0:
-        k = earlier_neighbour_event(args, particle_v, b, a, t, q)
+    k = int(-1)
+    for side in range(1 + int(b != a)):  # a, then b: a loop, not two call sites (the check stays inlined)
+        if k < 0:
+            k = earlier_neighbour_event(args, particle_v, wp.where(side == 0, a, b), wp.where(side == 0, b, a), t, q)
     if k >= 0:
         args.blocker[a] = k  # remembered: the check is repeated only once k's event or path changed
         args.blocker_key[a] = args.event_key[k]
