@@ -68,12 +68,10 @@ def wrap(c: int, d: int):
 
 
 @wp.func
-def axis_range(cells: CellList, x: float, radius: float, axis: int):
-    """First and last cell coordinate of [x - radius, x + radius] on an axis: clamped into the cells in open space;
-    in a periodic box possibly outside [0, d) (wrapped by the caller), at most d cells."""
+def clamp_span(cells: CellList, lo: int, hi: int, axis: int):
+    """A span of cell coordinates clamped into the cells in open space; in a periodic box kept (wrapped by the
+    caller) unless it holds d cells or more: then the d cells once."""
     d = cells.dims[axis]
-    lo = int(wp.floor((x - radius - cells.origin[axis]) * cells.inv_width))
-    hi = int(wp.floor((x + radius - cells.origin[axis]) * cells.inv_width))
     if cells.periodic == 0:
         return wp.max(lo, 0), wp.min(hi, d - 1)
     if hi - lo + 1 >= d:
@@ -82,11 +80,31 @@ def axis_range(cells: CellList, x: float, radius: float, axis: int):
 
 
 @wp.func
+def axis_range(cells: CellList, x: float, radius: float, axis: int):
+    """First and last cell coordinate of [x - radius, x + radius] on an axis (``clamp_span``)."""
+    lo = int(wp.floor((x - radius - cells.origin[axis]) * cells.inv_width))
+    hi = int(wp.floor((x + radius - cells.origin[axis]) * cells.inv_width))
+    return clamp_span(cells, lo, hi, axis)
+
+
+@wp.func
 def search_box(cells: CellList, p: wp.vec3, radius: float):
-    """The cells of the box [p - radius, p + radius]: (x_lo, x_hi, y_lo, y_hi, z_lo, z_hi) as a vec3i pair."""
+    """The cells of the box [p - radius, p + radius] as a (lo, hi) vec3i pair."""
     x_lo, x_hi = axis_range(cells, p[0], radius, 0)
     y_lo, y_hi = axis_range(cells, p[1], radius, 1)
     z_lo, z_hi = axis_range(cells, p[2], radius, 2)
+    return wp.vec3i(x_lo, y_lo, z_lo), wp.vec3i(x_hi, y_hi, z_hi)
+
+
+@wp.func
+def search_box_pair(cells: CellList, p: wp.vec3, radius_p: float, q: wp.vec3, radius_q: float):
+    """The cells of the box around both balls (p, radius_p) and (q, radius_q); q within half a periodic box of p (the
+    minimum image)."""
+    lo_p, hi_p = search_box(cells, p, radius_p)
+    lo_q, hi_q = search_box(cells, q, radius_q)
+    x_lo, x_hi = clamp_span(cells, wp.min(lo_p[0], lo_q[0]), wp.max(hi_p[0], hi_q[0]), 0)
+    y_lo, y_hi = clamp_span(cells, wp.min(lo_p[1], lo_q[1]), wp.max(hi_p[1], hi_q[1]), 1)
+    z_lo, z_hi = clamp_span(cells, wp.min(lo_p[2], lo_q[2]), wp.max(hi_p[2], hi_q[2]), 2)
     return wp.vec3i(x_lo, y_lo, z_lo), wp.vec3i(x_hi, y_hi, z_hi)
 
 
@@ -108,23 +126,35 @@ def row_distance(cells: CellList, x: float, c: int, axis: int):
 
 
 @wp.func
-def range_slots(cells: CellList, lo: wp.vec3i, hi: wp.vec3i, k: int, p: wp.vec3, radius: float):
-    """Slot range [begin, end) number k of the search of the ball (p, radius) with the box (lo, hi) of
-    ``search_box``: part k % 2 of row k / 2 in a periodic box, row k in open space (y fastest). A row farther from p
-    than the radius is empty, the others hold only the cells of the ball's chord along x."""
-    parts = 1 + cells.periodic
-    part = k % parts
-    row = k / parts
-    ny = hi[1] - lo[1] + 1
-    cy = lo[1] + row % ny
-    cz = lo[2] + row / ny
+def chord(cells: CellList, p: wp.vec3, radius: float, cy: int, cz: int):
+    """Cells along x of the chord of the ball (p, radius) in row (cy, cz), not clamped; first > last when the row is
+    beyond the radius."""
     dy = row_distance(cells, p[1], cy, 1)
     dz = row_distance(cells, p[2], cz, 2)
     chord2 = radius * radius - dy * dy - dz * dz
     if chord2 < 0.0:
+        return 1, 0
+    half = wp.sqrt(chord2)
+    return (int(wp.floor((p[0] - half - cells.origin[0]) * cells.inv_width)),
+            int(wp.floor((p[0] + half - cells.origin[0]) * cells.inv_width)))
+
+
+@wp.func
+def row_of_range(lo: wp.vec3i, hi: wp.vec3i, k: int, parts: int):
+    """Row (cy, cz) of slot range k of a search box (y fastest; ``parts`` ranges per row)."""
+    row = k / parts
+    ny = hi[1] - lo[1] + 1
+    return lo[1] + row % ny, lo[2] + row / ny
+
+
+@wp.func
+def row_slots(cells: CellList, cy: int, cz: int, x_lo: int, x_hi: int, part: int):
+    """Slot range [begin, end) of part 0 or 1 of the cells x_lo..x_hi of row (cy, cz): in a periodic box a span that
+    crosses a face in x is two parts (the second empty otherwise), in open space one."""
+    if x_lo > x_hi:
         return 0, 0
+    x_lo, x_hi = clamp_span(cells, x_lo, x_hi, 0)
     dx = cells.dims[0]
-    x_lo, x_hi = axis_range(cells, p[0], wp.sqrt(chord2), 0)
     if cells.periodic != 0:
         cy = wrap(cy, cells.dims[1])
         cz = wrap(cz, cells.dims[2])
@@ -146,6 +176,36 @@ def range_slots(cells: CellList, lo: wp.vec3i, hi: wp.vec3i, k: int, p: wp.vec3,
         return 0, 0
     first = (cz * cells.dims[1] + cy) * dx
     return cells.cell_start[first + x_lo], cells.cell_start[first + x_hi + 1]
+
+
+@wp.func
+def range_slots(cells: CellList, lo: wp.vec3i, hi: wp.vec3i, k: int, p: wp.vec3, radius: float):
+    """Slot range [begin, end) number k of the search of the ball (p, radius) with the box (lo, hi) of
+    ``search_box``: part k % 2 of row k / 2 in a periodic box, row k in open space (y fastest). A row farther from p
+    than the radius is empty, the others hold only the cells of the ball's chord along x."""
+    parts = 1 + cells.periodic
+    cy, cz = row_of_range(lo, hi, k, parts)
+    x_lo, x_hi = chord(cells, p, radius, cy, cz)
+    return row_slots(cells, cy, cz, x_lo, x_hi, k % parts)
+
+
+@wp.func
+def range_slots_pair(cells: CellList, lo: wp.vec3i, hi: wp.vec3i, k: int, p: wp.vec3, radius_p: float, q: wp.vec3,
+                     radius_q: float):
+    """``range_slots`` of the search of both balls (box of ``search_box_pair``): per row the cells from the first to
+    the last of the two chords, so a point in both balls is visited once."""
+    parts = 1 + cells.periodic
+    cy, cz = row_of_range(lo, hi, k, parts)
+    x_lo, x_hi = chord(cells, p, radius_p, cy, cz)
+    x_lo_q, x_hi_q = chord(cells, q, radius_q, cy, cz)
+    if x_lo_q <= x_hi_q:
+        if x_lo > x_hi:
+            x_lo = x_lo_q
+            x_hi = x_hi_q
+        else:
+            x_lo = wp.min(x_lo, x_lo_q)
+            x_hi = wp.max(x_hi, x_hi_q)
+    return row_slots(cells, cy, cz, x_lo, x_hi, k % parts)
 
 
 @wp.kernel
