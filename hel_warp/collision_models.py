@@ -32,16 +32,20 @@ default when a live parcel's weight exceeds 1)."""
 GUARD_NAMES = ("separation", "coulomb", "energy", "domain_clamped", "late_overlap", "turned")
 """``counts()`` keys ``guard_<name>``: admissibility corrections and domain clamps (``kernels/collide.py``)."""
 CELL_FACTOR = 2.0
-"""Hash cells of the swept search, in units of r_max + the mean reach (smaller cells measured slower on the CPU)."""
-SWEPT_GRID_DIMS = 64
-"""Hash cells per axis of the swept search's grid in open space: a build clears dims^3 cells (on the CPU 128^3 cost
-15 ms a build, 64^3 2.6 ms: a large share of a step at dt <= 1e-4 s); the rig spans < 64 cells of the search."""
+"""Cells of the swept search's cell list (kernels/cell_list.py), in units of r_max + the mean reach (smaller cells
+measured slower on the CPU: more rows per search)."""
+MAX_SWEPT_CELLS = 4_000_000
+"""Cells of the swept search's cell list at most (open space: the box of the live parcels' hash points): wider
+cells beyond (a parcel far from the rest would otherwise size a huge box)."""
 REACH_CUT_FACTOR = 4.0
-"""R_cut of the swept searches, in units of the step's mean reach: the hash grid is searched out to partners of
+"""R_cut of the swept searches, in units of the step's mean reach: the cell list is searched out to partners of
 reach <= R_cut, the parcels above it are tested one by one (kernels/collide.py ``SweptArgs.reach_cut``; the
 events do not depend on it). Measured on the colliding-streams rig (dt = 1e-3 s, where collisions raise the largest
 reach from ~3 to ~8 mean reaches, and 1e-4 s): 2.5 lists ~20 % of the parcels after a few rounds, 6 hardly
 narrows the searches; 4 was as fast as 2.5 or faster, within the noise of a shared machine."""
+BOUND_CUT_FACTOR = 4.0
+"""The event searches' cut on the path bounds (kernels/collide.py ``SweptArgs.bound_cut``), in units of the step's
+mean reach, as R_cut (the events do not depend on it)."""
 REACH_CUT_FLOOR = 0.5
 """R_cut is at least this fraction of r_max (overlap detection: reaches of zero, but end-of-contact turns grow some)."""
 MAX_ROUNDS = 4096
@@ -214,11 +218,21 @@ class SurrogateCollision:
         from kernels.collide import SweptArgs
 
         a = SweptArgs()
+        from kernels.cell_list import CellList
+
+        a.cells = CellList()
+        a.cells.slot_key, a.cells.slot_point = zeros(2 * n, wp.int32), zeros(2 * n, wp.int32)
+        a.cells.slot_position = zeros(n, wp.vec3)
+        self._cell_capacity = 0
         a.hash_point, a.base, a.shift = zeros(n, wp.vec3), zeros(n, wp.vec3), zeros(n, wp.vec3)
         a.t_last, a.reach, a.reach_max = zeros(n, wp.float32), zeros(n, wp.float32), zeros(1, wp.float32)
         a.path_bound = zeros(n, wp.float32)
         a.large_index, a.large_count = zeros(n, wp.int32), zeros(1, wp.int32)
+        a.bound_index, a.bound_count = zeros(n, wp.int32), zeros(1, wp.int32)
+        a.large_point = zeros(n, wp.vec3)
         a.event_key = wp.full(n, 0, dtype=wp.int64, device=dev)
+        a.second_key = wp.full(n, 0, dtype=wp.int64, device=dev)
+        a.second_ok = zeros(n, wp.int32)
         a.dirty, a.stamp, a.round = zeros(n, wp.int32), zeros(n, wp.int32), zeros(1, wp.int32)
         a.last_partner = zeros(n, wp.int32)
         a.event_i, a.event_j = zeros(n, wp.int32), zeros(n, wp.int32)
@@ -249,27 +263,65 @@ class SurrogateCollision:
         self._empty_shapes = a.shapes
         self.swept = a
 
+    def _periodic_cells(self, cell: float):
+        """Cells per axis and their common width that tile the periodic box exactly, near ``cell`` (at most a third
+        of the smallest side: a search spans several cells rather than the box being one cell wide)."""
+        box = self.periodic_box
+        cell = min(cell, min(box) / 3.0)
+        dims = tuple(int(np.floor(side / cell * (1.0 + 1e-6))) for side in box)
+        width = box[0] / dims[0]
+        if any(abs(side / d - width) > 1e-6 * width for side, d in zip(box, dims)):
+            # a common cell width: the sides in the proportion of the dims
+            width = max(side / d for side, d in zip(box, dims))
+            dims = tuple(int(round(side / width)) for side in box)
+            if any(abs(side / d - width) > 1e-6 * width for side, d in zip(box, dims)):
+                raise ConfigError(f"periodic box sides {box} have no common cell width near {cell:.3g} m; use "
+                                  "a cubic box or sides in small integer ratios")
+        return dims, width
+
+    def _cell_list(self, points, alive: np.ndarray, cell: float):
+        """Sort the live ``points`` into the swept search's cell list (kernels/cell_list.py) of cells of at least
+        ``cell``: in a periodic box cells that tile it exactly (a search wraps around the faces), in open space the
+        box of the live points."""
+        import warp as wp
+
+        from kernels.cell_list import build_cell_list
+
+        cells = self.swept.cells
+        if self.periodic_box is not None:
+            dims, width = self._periodic_cells(cell)
+            origin = (0.0, 0.0, 0.0)
+        else:
+            p = points.numpy()[alive]
+            lo, hi = p.min(axis=0), p.max(axis=0)
+            width = float(cell)
+            while True:
+                dims = tuple(int(np.floor((h - l) / width)) + 1 for l, h in zip(lo, hi))
+                if np.prod(dims, dtype=np.float64) <= MAX_SWEPT_CELLS:
+                    break
+                width *= 1.25
+            origin = tuple(float(c) for c in lo)
+        count = int(np.prod(dims))
+        if count + 1 > self._cell_capacity:
+            self._cell_capacity = int(1.5 * (count + 1))
+            self._cell_start = wp.zeros(self._cell_capacity, dtype=wp.int32, device=self._device)
+            self._cell_count = wp.zeros(self._cell_capacity, dtype=wp.int32, device=self._device)
+        cells.origin, cells.inv_width, cells.dims = origin, 1.0 / float(width), dims
+        cells.periodic = 0 if self.periodic_box is None else 1
+        cells.cell_start = self._cell_start[: count + 1]
+        build_cell_list(cells, points, self.swept.particle_alive, self._cell_count[: count + 1])
+
     def _hash_grid(self, points, cell: float, dims: int = 128):
         """A hash grid of ``points`` with cells of at least ``cell`` (kept between steps); in a periodic box the grid tiles the box exactly (dims x cell width = box side), so a query that
         crosses a face finds the images. ``dims``: hash cells per axis in open space (a build clears dims^3 cells:
         smaller is cheaper to build, larger aliases less)."""
         import warp as wp
 
-        box = self.periodic_box
-        if box is None:
+        if self.periodic_box is None:
             dims = (int(dims),) * 3
             width = float(cell)
         else:
-            cell = min(cell, min(box) / 3.0)  # a query spans several cells rather than the box being one cell wide
-            dims = tuple(int(np.floor(side / cell * (1.0 + 1e-6))) for side in box)
-            width = box[0] / dims[0]
-            if any(abs(side / d - width) > 1e-6 * width for side, d in zip(box, dims)):
-                # a common cell width: the sides in the proportion of the dims
-                width = max(side / d for side, d in zip(box, dims))
-                dims = tuple(int(round(side / width)) for side in box)
-                if any(abs(side / d - width) > 1e-6 * width for side, d in zip(box, dims)):
-                    raise ConfigError(f"periodic box sides {box} have no common cell width near {cell:.3g} m; use "
-                                      "a cubic box or sides in small integer ratios")
+            dims, width = self._periodic_cells(cell)
         if self._grid_dims != dims:
             self._grid = wp.HashGrid(*dims, device=self._device)
             self._grid_dims = dims
@@ -386,11 +438,11 @@ class SurrogateCollision:
             raise ConfigError(f"the periodic box {box} is too small for the collision search of this step "
                               f"({2.0 * (r_max + reach_max):.3g} m must stay below half the box side): enlarge the "
                               "box (more particles) or shorten dt")
-        # cells of a typical search; the rounds search the grid out to partners of reach <= R_cut (the few above
+        # cells of a typical search; the rounds search the cells out to partners of reach <= R_cut (the few above
         # it are listed), so one collision that raises a reach far above the rest does not widen every search
-        grid = self._hash_grid(a.hash_point, CELL_FACTOR * (r_max + reach_mean), dims=SWEPT_GRID_DIMS)
+        self._cell_list(a.hash_point, alive, CELL_FACTOR * (r_max + reach_mean))
         a.reach_cut = max(REACH_CUT_FACTOR * reach_mean if reach_mean > 0.0 else 0.0, REACH_CUT_FLOOR * r_max)
-        a.grid = grid.id
+        a.bound_cut = max(BOUND_CUT_FACTOR * reach_mean if reach_mean > 0.0 else 0.0, REACH_CUT_FLOOR * r_max)
         self._shift_pending = sweep > 0.0
         resolve_swept(a, self.forest, particles.v, self.events_found, self.event_rounds, self.round_cap_hit,
                       self.calls, self.collisions, self.detected, self.skipped, batch_forest=self.batch_forest)

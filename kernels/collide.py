@@ -35,6 +35,7 @@ import warp as wp
 from kernels.forest import (COS_FEATURE, GUARD_COULOMB, GUARD_ENERGY, GUARD_SEPARATION, SCALE_NONE, ContactDomain, Forest,
                             admissible_impulse, contact_impulse, scale_factor, sphere_mass, walk_tree,
                             write_contact_features_in_domain)
+from kernels.cell_list import CellList, range_count, range_slots, range_slots_pair, search_box, search_box_pair
 from kernels.reflect import WallParams, reflect_velocity
 from kernels.sdf import SdfShapes, sdf_union, sdf_union_normal
 
@@ -309,7 +310,7 @@ def launch_paper_update(args: PaperArgs, forest: Forest, features, particle_v_ou
 # A pair (a < b) touches first at the smallest root tau >= t_lo = max(t_last_a, t_last_b) of
 # |s(tau)| = r_a + r_b with s(t) = D + base_b - base_a + (v_b - v_a) t (D = m_b - m_a, minimum image in a
 # periodic box), provided it approaches (s . ds/dt < 0) and tau <= dt; the contact normal is s(tau)/|s(tau)|.
-# Rounds: each dirty parcel (round 0: all) finds its earliest event over its hash-grid neighbours and offers it
+# Rounds: each dirty parcel (round 0: all) finds its earliest event over its neighbours in the cell list and offers it
 # to both parcels with an int64 atomic_min on the key (time quantised to dt/2^30, then partner index: ties go
 # to the lower index, deterministic); pairs whose keys point at each other are mutually earliest and are
 # resolved together (disjoint by construction) unless a parcel whose path can reach either of them has an earlier
@@ -318,13 +319,15 @@ def launch_paper_update(args: PaperArgs, forest: Forest, features, particle_v_ou
 # progress. Parcels that collided, and those whose earliest partner collided, are dirty in the next round.
 # Searches after round 0 (and the causality check of every round) must reach every partner k whose path can come
 # near: |m_k - m_i| <= r_i + r_k + reach_i + reach_k. One collision can raise a single reach far above the rest,
-# and the global max bounded every search; instead a step has a cut R_cut: the hash grid is searched out to
+# and the global max bounded every search; instead a step has a cut R_cut: the cell list (kernels/cell_list.py, the
+# live hash points sorted by cell) is searched out to
 # r_i + r_max + reach_i + min(R_cut, max reach) and yields the partners of reach <= R_cut, and the "large" parcels
 # (reach > R_cut, listed anew at each round's start, so a reach grown past the cut by a collision is listed before
 # the next search) are tested one by one. The event search tests a pair with the tighter ``path_bound`` (the
 # farthest end of the present path, not reach's |o(t_last)| + path length) and once: in round 0 by the parcel of
-# the larger reach, later by the lower index when both are dirty. Every pair that can touch is still tested, and
-# the causality check keeps its reach test, so the events and rounds are those of the search out to the max.
+# the larger reach, later by the lower index when both are dirty, and later rounds split it by path_bound (a cut
+# ``bound_cut`` and its own list: path_bound <= reach, so few are listed). Every pair that can touch is still tested,
+# and the causality check keeps its reach test, so the events and rounds are those of the search out to the max.
 
 EVENT_NONE_VALUE = 9223372036854775807
 EVENT_NONE = wp.constant(wp.int64(EVENT_NONE_VALUE))
@@ -337,8 +340,8 @@ EVENT_TIME_SCALE = wp.constant(1073741824.0)
 class SweptArgs:
     """Per-step state of the swept detection (one entry per parcel slot unless said otherwise)."""
 
-    grid: wp.uint64
-    """Hash grid of ``hash_point``."""
+    cells: CellList
+    """The live parcels' ``hash_point`` sorted by cell (kernels/cell_list.py): the searches' candidates."""
     particle_x: wp.array(dtype=wp.vec3)
     particle_radius: wp.array(dtype=wp.float32)
     particle_density: wp.array(dtype=wp.float32)
@@ -372,14 +375,31 @@ class SweptArgs:
     reach_max: wp.array(dtype=wp.float32)
     """(1,) max of ``reach`` (atomic_max; it caps the searches' R_cut), m."""
     reach_cut: wp.float32
-    """R_cut: the hash-grid searches reach the partners of ``reach`` <= R_cut; the larger are listed, m."""
+    """R_cut: the causality checks' cell-list searches reach the partners of ``reach`` <= R_cut; the larger are
+    listed, m."""
     large_index: wp.array(dtype=wp.int32)
     """(n,) the first ``large_count[0]`` entries: the live parcels of ``reach`` > R_cut at the round's start, in any
     order."""
     large_count: wp.array(dtype=wp.int32)
     """(1,) parcels listed in ``large_index`` (zeroed before each round's ``swept_reset``)."""
+    large_point: wp.array(dtype=wp.vec3)
+    """(n,) ``hash_point`` of each ``large_index`` entry (read in order: the list's distance test without a gather), m."""
+    bound_cut: wp.float32
+    """The event searches' cut: the cell-list part of a search reaches the partners of ``path_bound`` <= bound_cut,
+    the larger are listed (``bound_index``); ``path_bound`` <= ``reach``, so far fewer than ``large_index`` holds, m."""
+    bound_index: wp.array(dtype=wp.int32)
+    """(n,) the first ``bound_count[0]`` entries: the live parcels of ``path_bound`` > bound_cut at the round's
+    start, in any order."""
+    bound_count: wp.array(dtype=wp.int32)
+    """(1,) parcels listed in ``bound_index`` (zeroed with ``large_count``)."""
     event_key: wp.array(dtype=wp.int64)
     """Earliest pending event: quantised time << 32 | partner, EVENT_NONE if none."""
+    second_key: wp.array(dtype=wp.int64)
+    """The second earliest of the events offered to the parcel (``offer_event``); it is the parcel's earliest event
+    with any partner but that of ``event_key`` while ``second_ok`` is 1."""
+    second_ok: wp.array(dtype=wp.int32)
+    """1 while ``second_key`` is exact: set by a full search (round 0, a dirty parcel's), cleared when its partner
+    collides or it is promoted to ``event_key`` (``swept_mark_dirty``)."""
     dirty: wp.array(dtype=wp.int32)
     stamp: wp.array(dtype=wp.int32)
     """Round in which the parcel last collided (-1: none yet)."""
@@ -457,6 +477,14 @@ def event_key(t: float, dt: float, partner: int):
 @wp.func
 def event_partner(key: wp.int64):
     return wp.int32(key & wp.int64(4294967295))
+
+
+@wp.func
+def offer_event(args: SweptArgs, i: int, key: wp.int64):
+    """Offer an event to parcel i: its earliest (``event_key``, atomic_min) and second earliest (``second_key``: what
+    the first min displaced or rejected; atomic, so the two are the two smallest offers whatever the order)."""
+    old = wp.atomic_min(args.event_key, i, key)
+    wp.atomic_min(args.second_key, i, wp.max(old, key))
 
 
 @wp.func
@@ -581,6 +609,8 @@ def swept_start(
     """Initial paths: hash point, base = -v dt/2, reach = |v| dt/2; every live parcel dirty."""
     i = wp.tid()
     args.event_key[i] = EVENT_NONE
+    args.second_key[i] = EVENT_NONE
+    args.second_ok[i] = 1  # round 0 offers every pair to both parcels
     args.shift[i] = wp.vec3(0.0)
     args.t_last[i] = 0.0
     args.stamp[i] = -1
@@ -610,15 +640,24 @@ def swept_start(
     wp.atomic_add(reach_sum, 0, r)
 
 
+@wp.func
+def list_far_reaching(args: SweptArgs, i: int):
+    """List a live parcel of reach above the cut (``large_index``) and of path bound above the searches' cut
+    (``bound_index``) for the coming round (the counts zeroed before)."""
+    if args.particle_alive[i] != 0:
+        if args.reach[i] > args.reach_cut:
+            slot = wp.atomic_add(args.large_count, 0, 1)
+            args.large_index[slot] = i
+            args.large_point[slot] = args.hash_point[i]
+        if args.path_bound[i] > args.bound_cut:
+            args.bound_index[wp.atomic_add(args.bound_count, 0, 1)] = i
+
+
 @wp.kernel
 def swept_reset(args: SweptArgs):
-    """Dirty parcels forget their pending event (it is found again, or a new one, by swept_find); the parcels of reach
-    above the cut are listed (``large_index``, ``large_count`` zeroed by the caller)."""
-    i = wp.tid()
-    if args.dirty[i] != 0:
-        args.event_key[i] = EVENT_NONE
-    if args.particle_alive[i] != 0 and args.reach[i] > args.reach_cut:
-        args.large_index[wp.atomic_add(args.large_count, 0, 1)] = i
+    """Round 0: the far-reaching parcels listed (``list_far_reaching``; every key is EVENT_NONE from swept_start).
+    Later rounds do this in ``swept_mark_dirty``."""
+    list_far_reaching(args, wp.tid())
 
 
 @wp.func
@@ -635,10 +674,10 @@ def count_start_overlap(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a:
 
 
 @wp.func
-def paths_near(args: SweptArgs, m_i: wp.vec3, extent_i: float, j: int):
-    """The paths of i (hash point m_i, extent_i = r_i + path_bound_i) and j stay within their bounds of their hash
-    points: farther apart than both bounds and radii, they never meet."""
-    d = minimum_image(args.hash_point[j] - m_i, args.periodic, args.box)
+def paths_near(args: SweptArgs, m_i: wp.vec3, extent_i: float, j: int, m_j: wp.vec3):
+    """The paths of i (hash point m_i, extent_i = r_i + path_bound_i) and j (hash point m_j) stay within their bounds
+    of their hash points: farther apart than both bounds and radii, they never meet."""
+    d = minimum_image(m_j - m_i, args.periodic, args.box)
     near = (extent_i + args.particle_radius[j] + args.path_bound[j]) * NEAR_MARGIN
     return wp.dot(d, d) <= near * near
 
@@ -654,8 +693,8 @@ def offer_pair(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), i: int, j: 
         count_start_overlap(args, particle_v, a, b, detected, skipped)
     t = first_touch(args, particle_v, a, b)
     if t >= 0.0:
-        wp.atomic_min(args.event_key, i, event_key(t, args.dt, j))
-        wp.atomic_min(args.event_key, j, event_key(t, args.dt, i))
+        offer_event(args, i, event_key(t, args.dt, j))
+        offer_event(args, j, event_key(t, args.dt, i))
 
 
 @wp.kernel
@@ -680,32 +719,40 @@ def swept_find(
     # the parcel's own wall crossing (wall events): an event whose partner is the parcel itself
     t_wall = wall_touch(args, particle_v, i)
     if t_wall >= 0.0:
-        wp.atomic_min(args.event_key, i, event_key(t_wall, args.dt, i))
+        offer_event(args, i, event_key(t_wall, args.dt, i))
     if args.round[0] == 0:
         # every parcel queries: a pair is tested by the parcel of the larger reach (then the lower index), whose
         # search out to r_i + r_max + 2 reach_i finds it
-        for j in wp.hash_grid_query(args.grid, mi, (ri + args.max_radius + 2.0 * reach_i) * NEAR_MARGIN):
-            if j != i:
-                if paths_near(args, mi, extent_i, j):
-                    if args.particle_alive[j] != 0:
+        radius0 = (ri + args.max_radius + 2.0 * reach_i) * NEAR_MARGIN
+        lo, hi = search_box(args.cells, mi, radius0)
+        for k_range in range(range_count(args.cells, lo, hi)):
+            begin, end = range_slots(args.cells, lo, hi, k_range, mi, radius0)
+            for slot in range(begin, end):
+                j = args.cells.slot_point[slot]
+                if j != i:
+                    if paths_near(args, mi, extent_i, j, args.cells.slot_position[slot]):
                         reach_j = args.reach[j]
                         if reach_i > reach_j or (reach_i == reach_j and i < j):
                             offer_pair(args, particle_v, i, j, True, detected, skipped)
         return
-    # later rounds only dirty parcels query, and must reach every partner: those of reach <= R_cut (path_bound <=
-    # reach) in the grid, the large ones in their list; a pair of two dirty parcels is tested by the lower index
-    # (the other's search finds it as surely: the rule is symmetric)
-    cut = args.reach_cut
+    # later rounds only dirty parcels query, and must reach every partner: those of path_bound <= bound_cut in the
+    # grid (path_bound <= reach <= reach_max), the others in their list; a pair of two dirty parcels is tested by the
+    # lower index (the other's search finds it as surely: the rule is symmetric)
+    cut = args.bound_cut
     radius = (ri + args.max_radius + args.path_bound[i] + wp.min(cut, args.reach_max[0])) * NEAR_MARGIN
-    for j in wp.hash_grid_query(args.grid, mi, radius):
+    lo, hi = search_box(args.cells, mi, radius)
+    for k_range in range(range_count(args.cells, lo, hi)):
+        begin, end = range_slots(args.cells, lo, hi, k_range, mi, radius)
+        for slot in range(begin, end):
+            j = args.cells.slot_point[slot]
+            if j != i:
+                if paths_near(args, mi, extent_i, j, args.cells.slot_position[slot]):
+                    if args.path_bound[j] <= cut and (j > i or args.dirty[j] == 0):
+                        offer_pair(args, particle_v, i, j, False, detected, skipped)
+    for slot in range(args.bound_count[0]):
+        j = args.bound_index[slot]
         if j != i:
-            if paths_near(args, mi, extent_i, j):
-                if args.particle_alive[j] != 0 and args.reach[j] <= cut and (j > i or args.dirty[j] == 0):
-                    offer_pair(args, particle_v, i, j, False, detected, skipped)
-    for slot in range(args.large_count[0]):
-        j = args.large_index[slot]
-        if j != i:
-            if paths_near(args, mi, extent_i, j):
+            if paths_near(args, mi, extent_i, j, args.hash_point[j]):
                 if j > i or args.dirty[j] == 0:
                     offer_pair(args, particle_v, i, j, False, detected, skipped)
 
@@ -745,7 +792,7 @@ def earlier_neighbour_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3)
     on its new path, reach a before t, -1 if none. After its event k moves at most V_k = |v_k| + 2 |v_k - v_p| (p its
     partner: an admissible impulse changes k's velocity by at most 2 m_p/(m_k + m_p) |g| <= 2 |g|); a moves at |v_a|.
     From t1 = max(t_k, t_last_a) the gap |x_a(t1) - x_k(t_k)| - r_a - r_k cannot close before
-    (V_k (t - t_k) + |v_a| (t - t1)). Returns the first such k of the hash grid (reach <= R_cut), else the lowest
+    (V_k (t - t_k) + |v_a| (t - t1)). Returns the first such k of the cell list (reach <= R_cut), else the lowest
     index among the large parcels (their list's order depends on the threads).
 
     Only parcels whose present paths come within reach of a's are tested: a k whose new path (after its event) leaves
@@ -753,17 +800,28 @@ def earlier_neighbour_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3)
     (``guard_late_overlap``, resolved at once); none was found in the tests against the strict event order."""
     cut = args.reach_cut
     radius = (args.particle_radius[a] + args.max_radius + args.reach[a] + wp.min(cut, args.reach_max[0])) * NEAR_MARGIN
-    for k in wp.hash_grid_query(args.grid, args.hash_point[a], radius):
-        # the key first (most candidates have none earlier; a dead parcel has none): fewer loads per candidate
-        if k != a and k != b and may_arrive_first(args, particle_v, a, k, t, q):
-            if args.reach[k] <= cut:
-                return k
+    ma = args.hash_point[a]
+    lo, hi = search_box(args.cells, ma, radius)
+    for k_range in range(range_count(args.cells, lo, hi)):
+        begin, end = range_slots(args.cells, lo, hi, k_range, ma, radius)
+        for slot in range(begin, end):
+            k = args.cells.slot_point[slot]
+            # the key first, here (most candidates have none earlier): no call for them
+            if args.event_key[k] >> wp.int64(32) < q:
+                if k != a and k != b and may_arrive_first(args, particle_v, a, k, t, q):
+                    if args.reach[k] <= cut:
+                        return k
     found = int(-1)
+    ma = args.hash_point[a]
+    far = (args.particle_radius[a] + args.max_radius + args.reach[a] + args.reach_max[0]) * NEAR_MARGIN
     for slot in range(args.large_count[0]):
-        k = args.large_index[slot]
-        if k != a and k != b and (found < 0 or k < found):
-            if may_arrive_first(args, particle_v, a, k, t, q):
-                found = k
+        # may_arrive_first's distance test with the largest r_k and reach_k first: most of the list is far away
+        d = minimum_image(args.large_point[slot] - ma, args.periodic, args.box)
+        if wp.dot(d, d) <= far * far:
+            k = args.large_index[slot]
+            if k != a and k != b and (found < 0 or k < found):
+                if may_arrive_first(args, particle_v, a, k, t, q):
+                    found = k
     return found
 
 
@@ -844,9 +902,42 @@ def swept_select(
     if still_blocked(args, a, key):
         return
     q = key >> wp.int64(32)
-    k = earlier_neighbour_event(args, particle_v, a, b, t, q)
+    # earlier_neighbour_event of a and of b in one walk of both neighbourhoods (search_box_pair: a candidate near
+    # both is read once) and one pass over the list; here in the kernel, not a function (not inlined, it ran 4x slower)
+    cut = args.reach_cut
+    far = wp.min(cut, args.reach_max[0])
+    radius_a = (args.particle_radius[a] + args.max_radius + args.reach[a] + far) * NEAR_MARGIN
+    radius_b = (args.particle_radius[b] + args.max_radius + args.reach[b] + far) * NEAR_MARGIN
+    ma = args.hash_point[a]
+    mb = ma + minimum_image(args.hash_point[b] - ma, args.periodic, args.box)
+    sides = 1 + int(b != a)  # a loop over a and b, not two inlined copies of may_arrive_first
+    k = int(-1)
+    lo, hi = search_box_pair(args.cells, ma, radius_a, mb, radius_b)
+    for k_range in range(range_count(args.cells, lo, hi)):
+        begin, end = range_slots_pair(args.cells, lo, hi, k_range, ma, radius_a, mb, radius_b)
+        for slot in range(begin, end):
+            c = args.cells.slot_point[slot]
+            if args.event_key[c] >> wp.int64(32) < q:  # the key first: most candidates have none earlier
+                if c != a and c != b and args.reach[c] <= cut:
+                    for side in range(sides):
+                        if k < 0 and may_arrive_first(args, particle_v, wp.where(side == 0, a, b), c, t, q):
+                            k = c
+            if k >= 0:
+                break
+        if k >= 0:
+            break
     if k < 0:
-        k = earlier_neighbour_event(args, particle_v, b, a, t, q)
+        far_a = (args.particle_radius[a] + args.max_radius + args.reach[a] + args.reach_max[0]) * NEAR_MARGIN
+        far_b = (args.particle_radius[b] + args.max_radius + args.reach[b] + args.reach_max[0]) * NEAR_MARGIN
+        for slot in range(args.large_count[0]):
+            d_a = minimum_image(args.large_point[slot] - ma, args.periodic, args.box)
+            d_b = minimum_image(args.large_point[slot] - mb, args.periodic, args.box)
+            if wp.dot(d_a, d_a) <= far_a * far_a or wp.dot(d_b, d_b) <= far_b * far_b:
+                c = args.large_index[slot]
+                if c != a and c != b and (k < 0 or c < k):
+                    for side in range(sides):
+                        if may_arrive_first(args, particle_v, wp.where(side == 0, a, b), c, t, q):
+                            k = c
     if k >= 0:
         args.blocker[a] = k  # remembered: the check is repeated only once k's event or path changed
         args.blocker_key[a] = args.event_key[k]
@@ -1016,19 +1107,40 @@ def swept_resolve_walls(
 
 @wp.kernel
 def swept_mark_dirty(args: SweptArgs):
-    """Dirty next round: parcels that collided in this round and those whose pending partner did."""
+    """Dirty next round: parcels that collided in this round, and those whose pending partner did unless their exact
+    second event (``second_key``, its partner unmoved) takes the place of the first: every pair whose path did not
+    change keeps its time, and the colliders' searches offer the pairs that did, so the keys after the next
+    swept_find are those of a full search. A dirty parcel forgets its events (its search of the next round finds
+    them again, or new ones; its second is then exact again); the far-reaching parcels are listed for the next
+    round (``list_far_reaching``, counts zeroed by the caller). Each thread reads and writes its own keys only, so
+    the reset of a round's start is this kernel, not one more over the parcels."""
     i = wp.tid()
     this_round = args.round[0]
     dirty = int(0)
     if args.particle_alive[i] != 0:
+        key = args.event_key[i]
+        second = args.second_key[i]
         if args.stamp[i] == this_round:
             dirty = 1
-        else:
-            key = args.event_key[i]
-            if key != EVENT_NONE:
-                if args.stamp[event_partner(key)] == this_round:
+        elif key != EVENT_NONE:
+            second_moved = second != EVENT_NONE and args.stamp[event_partner(second)] == this_round
+            if args.stamp[event_partner(key)] == this_round:
+                if args.second_ok[i] == 0 or second_moved:
                     dirty = 1
+                else:
+                    # no third event is known: the second is exact again only if there was none
+                    args.event_key[i] = second
+                    args.second_key[i] = EVENT_NONE
+                    if second != EVENT_NONE:
+                        args.second_ok[i] = 0
+            elif second_moved:
+                args.second_ok[i] = 0
     args.dirty[i] = dirty
+    if dirty != 0:
+        args.event_key[i] = EVENT_NONE
+        args.second_key[i] = EVENT_NONE
+        args.second_ok[i] = 1
+    list_far_reaching(args, i)
 
 
 @wp.kernel
@@ -1039,9 +1151,12 @@ def swept_next_round(
     event_rounds: wp.array(dtype=wp.int32),
     round_cap_hit: wp.array(dtype=wp.int32),
 ):
-    """Next round; counts the rounds that resolved events; stops at ``max_rounds`` (and says so)."""
+    """Next round (its event and wall rows zeroed); counts the rounds that resolved events; stops at ``max_rounds``
+    (and says so)."""
     r = args.round[0] + 1
     args.round[0] = r
+    args.batch_count[0] = 0
+    args.wall_count[0] = 0
     if events_found[0] != 0:
         event_rounds[0] = event_rounds[0] + 1
         if r >= args.max_rounds:
@@ -1112,7 +1227,7 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
     """Rounds of mutually earliest events until none is left (``wp.capture_while``: a while node where the call is
     captured into a graph - tests/test_device_paths.py does, on the CPU; the engine calls it uncaptured, a host loop
     with one device read per round) or
-    ``args.max_rounds`` is reached (then ``round_cap_hit`` is set). ``args.grid`` must hold ``args.hash_point``;
+    ``args.max_rounds`` is reached (then ``round_cap_hit`` is set). ``args.cells`` must hold ``args.hash_point``;
     ``args.reach_cut`` >= 0 splits the searches between the grid and the list of large parcels (the events do not
     depend on it).
     Round 0 also counts the pairs overlapping at the start into ``detected`` (per stream pair) and ``skipped``.
@@ -1129,7 +1244,6 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
     def record(kernel, dim, inputs, outputs=()):
         return wp.launch(kernel, dim=dim, device=device, inputs=inputs, outputs=list(outputs), record_cmd=True)
 
-    reset = record(swept_reset, n, [args])
     find = record(swept_find, n, [args, particle_v], [detected, skipped])
     global_min = record(swept_global_min, n, [args]) if args.sequential != 0 else None
     select = record(swept_select, n, [args, particle_v], [events_found])
@@ -1139,18 +1253,14 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
 
         predict = eval_forest(batch_forest, args.features, args.batch_out, device=device, row_count=args.batch_count,
                               record=True)
-    resolve = record(swept_resolve, n, [args, forest], [particle_v, calls, collisions])
+    resolve = record(swept_resolve, n // 2 + 1, [args, forest], [particle_v, calls, collisions])  # pairs: <= n/2 rows
     walls = record(swept_resolve_walls, n, [args], [particle_v]) if args.walls != 0 else None
     mark_dirty = record(swept_mark_dirty, n, [args])
     next_round = record(swept_next_round, 1, [args], [events_found, event_rounds, round_cap_hit])
 
     def one_round():
-        args.large_count.zero_()
-        reset.launch()
         find.launch()
         events_found.zero_()
-        args.batch_count.zero_()
-        args.wall_count.zero_()
         if global_min is not None:
             args.global_key.fill_(EVENT_NONE_VALUE)
             global_min.launch()
@@ -1160,9 +1270,16 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
         resolve.launch()
         if walls is not None:
             walls.launch()
+        args.large_count.zero_()  # the last reader of both lists was select
+        args.bound_count.zero_()
         mark_dirty.launch()
         next_round.launch()
 
+    args.large_count.zero_()
+    args.bound_count.zero_()
+    args.batch_count.zero_()
+    args.wall_count.zero_()
+    wp.launch(swept_reset, dim=n, device=device, inputs=[args])  # round 0's lists; later rounds' in mark_dirty
     events_found.fill_(1)
     wp.capture_while(events_found, one_round)
 
