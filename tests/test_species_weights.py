@@ -27,6 +27,7 @@ import numpy as np
 import pytest
 
 from tests.test_cell_collisions import make_gas, strategy
+from tests.test_mixture import _rig_args
 from tests.test_swept import write_constant_contact_forest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -180,17 +181,8 @@ def test_rig_mixture_keeps_the_real_mass_at_any_weights(cs):
         assert real[0] == pytest.approx(one.particles, rel=0.01) and real[1] == pytest.approx(one.particles2, rel=0.01)
         assert cs.sauter_mean_of(c) == pytest.approx(cs.sauter_mean_of(one), rel=1e-3)
         assert c.detection == "cell" and c.mass_flow == one.mass_flow
-    one_size = cs.make_config(_one_size_args(cs, "--particles-per-parcel", "8"))
+    one_size = cs.make_config(_rig_args(cs, "--particles-per-parcel", "8"))
     assert one_size.particles == 12000 and one_size.weights() == [8.0]  # one size: the parcel count stays
-
-
-def _one_size_args(cs, *extra):
-    import argparse
-
-    parser = argparse.ArgumentParser()
-    cs.add_arguments(parser)
-    return parser.parse_args(["--diameter", str(D1), "--dt", "1e-3", "--collisions", "none", "--end-time", "0.003",
-                              "--out", "unused", *extra])
 
 
 def test_rig_holders_release_each_species_with_its_weight(cs):
