@@ -229,6 +229,7 @@ class SurrogateCollision:
         a.path_bound = zeros(n, wp.float32)
         a.large_index, a.large_count = zeros(n, wp.int32), zeros(1, wp.int32)
         a.bound_index, a.bound_count = zeros(n, wp.int32), zeros(1, wp.int32)
+        a.listed = zeros(n, wp.int32)
         a.large_point = zeros(n, wp.vec3)
         a.event_key = wp.full(n, 0, dtype=wp.int64, device=dev)
         a.second_key = wp.full(n, 0, dtype=wp.int64, device=dev)
@@ -262,6 +263,8 @@ class SurrogateCollision:
         a.wall_i, a.wall_time = zeros(n, wp.int32), zeros(n, wp.float32)
         self._empty_shapes = a.shapes
         self.swept = a
+        self._swept_store = wp.empty(1, dtype=SweptArgs, device=dev)
+        """The step's ``SweptArgs`` on the device for the round kernels (``kernels.collide.resolve_swept``)."""
 
     def _periodic_cells(self, cell: float):
         """Cells per axis and their common width that tile the periodic box exactly, near ``cell`` (at most a third
@@ -445,7 +448,8 @@ class SurrogateCollision:
         a.bound_cut = max(BOUND_CUT_FACTOR * reach_mean if reach_mean > 0.0 else 0.0, REACH_CUT_FLOOR * r_max)
         self._shift_pending = sweep > 0.0
         resolve_swept(a, self.forest, particles.v, self.events_found, self.event_rounds, self.round_cap_hit,
-                      self.calls, self.collisions, self.detected, self.skipped, batch_forest=self.batch_forest)
+                      self.calls, self.collisions, self.detected, self.skipped, batch_forest=self.batch_forest,
+                      args_store=self._swept_store)
         if sweep > 0.0:
             wp.copy(self.v_swept, particles.v)
 

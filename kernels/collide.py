@@ -378,8 +378,8 @@ class SweptArgs:
     """R_cut: the causality checks' cell-list searches reach the partners of ``reach`` <= R_cut; the larger are
     listed, m."""
     large_index: wp.array(dtype=wp.int32)
-    """(n,) the first ``large_count[0]`` entries: the live parcels of ``reach`` > R_cut at the round's start, in any
-    order."""
+    """(n,) the first ``large_count[0]`` entries: every live parcel of ``reach`` > R_cut at the round's start (and
+    some below it, skipped by the readers: ``listed``), in any order."""
     large_count: wp.array(dtype=wp.int32)
     """(1,) parcels listed in ``large_index`` (zeroed before each round's ``swept_reset``)."""
     large_point: wp.array(dtype=wp.vec3)
@@ -388,10 +388,16 @@ class SweptArgs:
     """The event searches' cut: the cell-list part of a search reaches the partners of ``path_bound`` <= bound_cut,
     the larger are listed (``bound_index``); ``path_bound`` <= ``reach``, so far fewer than ``large_index`` holds, m."""
     bound_index: wp.array(dtype=wp.int32)
-    """(n,) the first ``bound_count[0]`` entries: the live parcels of ``path_bound`` > bound_cut at the round's
-    start, in any order."""
+    """(n,) the first ``bound_count[0]`` entries: every live parcel of ``path_bound`` > bound_cut at the round's
+    start (and some below it, skipped by the readers: ``listed``), in any order."""
     bound_count: wp.array(dtype=wp.int32)
     """(1,) parcels listed in ``bound_index`` (zeroed with ``large_count``)."""
+    listed: wp.array(dtype=wp.int32)
+    """(n,) bit LISTED_LARGE: the parcel is in ``large_index``, bit LISTED_BOUND: in ``bound_index``. The lists are
+    kept over the step's rounds: built in round 0 (``swept_reset``), a parcel added when a collision or a wall event
+    raises its reach or path bound above the cut (``swept_mark_dirty``). An entry whose value fell back below the cut
+    stays listed; the readers skip it (the grid finds it), so the lists split the candidates exactly as a list
+    rebuilt each round would."""
     event_key: wp.array(dtype=wp.int64)
     """Earliest pending event: quantised time << 32 | partner, EVENT_NONE if none."""
     second_key: wp.array(dtype=wp.int64)
@@ -616,6 +622,7 @@ def swept_start(
     args.stamp[i] = -1
     args.last_partner[i] = -1
     args.blocker[i] = -1
+    args.listed[i] = 0
     v = particle_v[i]
     half = 0.5 * args.dt
     if args.particle_alive[i] == 0:
@@ -640,23 +647,33 @@ def swept_start(
     wp.atomic_add(reach_sum, 0, r)
 
 
+LISTED_LARGE = wp.constant(1)
+"""Bit of ``SweptArgs.listed``: the parcel is in ``large_index``."""
+LISTED_BOUND = wp.constant(2)
+"""Bit of ``SweptArgs.listed``: the parcel is in ``bound_index``."""
+
+
 @wp.func
 def list_far_reaching(args: SweptArgs, i: int):
-    """List a live parcel of reach above the cut (``large_index``) and of path bound above the searches' cut
-    (``bound_index``) for the coming round (the counts zeroed before)."""
+    """Add a live parcel of reach above the cut to ``large_index`` and one of path bound above the searches' cut to
+    ``bound_index``, unless it is listed already (``listed``; one thread per parcel)."""
     if args.particle_alive[i] != 0:
-        if args.reach[i] > args.reach_cut:
+        listed = args.listed[i]
+        if args.reach[i] > args.reach_cut and (listed & LISTED_LARGE) == 0:
             slot = wp.atomic_add(args.large_count, 0, 1)
             args.large_index[slot] = i
             args.large_point[slot] = args.hash_point[i]
-        if args.path_bound[i] > args.bound_cut:
+            listed = listed | LISTED_LARGE
+        if args.path_bound[i] > args.bound_cut and (listed & LISTED_BOUND) == 0:
             args.bound_index[wp.atomic_add(args.bound_count, 0, 1)] = i
+            listed = listed | LISTED_BOUND
+        args.listed[i] = listed
 
 
 @wp.kernel
 def swept_reset(args: SweptArgs):
-    """Round 0: the far-reaching parcels listed (``list_far_reaching``; every key is EVENT_NONE from swept_start).
-    Later rounds do this in ``swept_mark_dirty``."""
+    """Round 0: the far-reaching parcels listed (``list_far_reaching``; every key is EVENT_NONE and nothing listed
+    from swept_start). Later rounds add the parcels whose reach a collision raised, in ``swept_mark_dirty``."""
     list_far_reaching(args, wp.tid())
 
 
@@ -699,7 +716,8 @@ def offer_pair(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), i: int, j: 
 
 @wp.kernel
 def swept_find(
-    args: SweptArgs,
+    args_store: wp.array(dtype=SweptArgs),
+    dirty: wp.array(dtype=wp.int32),
     particle_v: wp.array(dtype=wp.vec3),
     # outputs
     detected: wp.array(dtype=wp.int32),
@@ -708,10 +726,12 @@ def swept_find(
     """Each dirty parcel offers its pair events to both parcels' keys (int64 atomic_min); in round 0 the pairs
     overlapping at the start are counted too (once each: by the parcel of the larger reach, then lower index).
     The candidates are tested nearest first (``paths_near``, the one test that rejects most) and then by the rest,
-    so that a far candidate costs few loads."""
+    so that a far candidate costs few loads. ``args_store``: the step's ``SweptArgs`` (``store_swept_args``), read
+    only by the threads that work (``dirty``: ``args.dirty``)."""
     i = wp.tid()
-    if args.dirty[i] == 0:
+    if dirty[i] == 0:
         return
+    args = args_store[0]
     ri = args.particle_radius[i]
     reach_i = args.reach[i]
     mi = args.hash_point[i]
@@ -751,7 +771,7 @@ def swept_find(
                         offer_pair(args, particle_v, i, j, False, detected, skipped)
     for slot in range(args.bound_count[0]):
         j = args.bound_index[slot]
-        if j != i:
+        if j != i and args.path_bound[j] > cut:  # below the cut: found in the grid
             if paths_near(args, mi, extent_i, j, args.hash_point[j]):
                 if j > i or args.dirty[j] == 0:
                     offer_pair(args, particle_v, i, j, False, detected, skipped)
@@ -819,7 +839,7 @@ def earlier_neighbour_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3)
         d = minimum_image(args.large_point[slot] - ma, args.periodic, args.box)
         if wp.dot(d, d) <= far * far:
             k = args.large_index[slot]
-            if k != a and k != b and (found < 0 or k < found):
+            if k != a and k != b and (found < 0 or k < found) and args.reach[k] > cut:  # below the cut: in the grid
                 if may_arrive_first(args, particle_v, a, k, t, q):
                     found = k
     return found
@@ -875,17 +895,27 @@ def select_wall_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: i
 
 @wp.kernel
 def swept_select(
-    args: SweptArgs,
+    args_store: wp.array(dtype=SweptArgs),
+    event_key: wp.array(dtype=wp.int64),
     particle_v: wp.array(dtype=wp.vec3),
     # outputs
     events_found: wp.array(dtype=wp.int32),
 ):
-    """Mutually earliest pairs (a < b) become this round's events: time, contact normal, contact features."""
+    """Mutually earliest pairs (a < b) become this round's events: time, contact normal, contact features.
+    ``args_store``: the step's ``SweptArgs``, read only by the threads of a mutual pair or a wall event
+    (``event_key``: ``args.event_key``)."""
     a = wp.tid()
-    key = args.event_key[a]
+    key = event_key[a]
     if key == EVENT_NONE:
         return
     b = event_partner(key)
+    if b != a:
+        if b < a:
+            return
+        key_b = event_key[b]
+        if key_b == EVENT_NONE or event_partner(key_b) != a:
+            return
+    args = args_store[0]
     if b == a:
         select_wall_event(args, particle_v, a, key, events_found)
         return
@@ -934,7 +964,7 @@ def swept_select(
             d_b = minimum_image(args.large_point[slot] - mb, args.periodic, args.box)
             if wp.dot(d_a, d_a) <= far_a * far_a or wp.dot(d_b, d_b) <= far_b * far_b:
                 c = args.large_index[slot]
-                if c != a and c != b and (k < 0 or c < k):
+                if c != a and c != b and (k < 0 or c < k) and args.reach[c] > cut:  # below the cut: in the grid
                     for side in range(sides):
                         if may_arrive_first(args, particle_v, wp.where(side == 0, a, b), c, t, q):
                             k = c
@@ -1017,17 +1047,20 @@ def end_of_contact_normal(args: SweptArgs, i: int, j: int, t: float, n: wp.vec3,
 
 @wp.kernel
 def swept_resolve(
-    args: SweptArgs,
+    args_store: wp.array(dtype=SweptArgs),
+    batch_count: wp.array(dtype=wp.int32),
     forest: Forest,
     # outputs
     particle_v: wp.array(dtype=wp.vec3),
     calls: wp.array(dtype=wp.int32),
     collisions: wp.array(dtype=wp.int32),
 ):
-    """The round's events: surrogate impulse, equal and opposite (weights as the pairwise rule), new paths."""
+    """The round's events: surrogate impulse, equal and opposite (weights as the pairwise rule), new paths.
+    ``batch_count``: ``args.batch_count``."""
     row = wp.tid()
-    if row >= args.batch_count[0]:
+    if row >= batch_count[0]:
         return
+    args = args_store[0]
     i = args.event_i[row]
     j = args.event_j[row]
     t = args.event_time[row]
@@ -1083,15 +1116,17 @@ def swept_resolve(
 
 @wp.kernel
 def swept_resolve_walls(
-    args: SweptArgs,
+    args_store: wp.array(dtype=SweptArgs),
+    wall_count: wp.array(dtype=wp.int32),
     # outputs
     particle_v: wp.array(dtype=wp.vec3),
 ):
     """The round's wall events: the parcel reflected at its crossing (e_n, e_t, Coulomb cap as the push's
-    reflection, kernels/reflect.py), its new path from there."""
+    reflection, kernels/reflect.py), its new path from there. ``wall_count``: ``args.wall_count``."""
     row = wp.tid()
-    if row >= args.wall_count[0]:
+    if row >= wall_count[0]:
         return
+    args = args_store[0]
     i = args.wall_i[row]
     t = args.wall_time[row]
     v = particle_v[i]
@@ -1106,27 +1141,43 @@ def swept_resolve_walls(
 
 
 @wp.kernel
-def swept_mark_dirty(args: SweptArgs):
+def swept_mark_dirty(
+    args_store: wp.array(dtype=SweptArgs),
+    round_now: wp.array(dtype=wp.int32),
+    stamp: wp.array(dtype=wp.int32),
+    event_key: wp.array(dtype=wp.int64),
+    # outputs
+    dirty: wp.array(dtype=wp.int32),
+):
     """Dirty next round: parcels that collided in this round, and those whose pending partner did unless their exact
     second event (``second_key``, its partner unmoved) takes the place of the first: every pair whose path did not
     change keeps its time, and the colliders' searches offer the pairs that did, so the keys after the next
     swept_find are those of a full search. A dirty parcel forgets its events (its search of the next round finds
-    them again, or new ones; its second is then exact again); the far-reaching parcels are listed for the next
-    round (``list_far_reaching``, counts zeroed by the caller). Each thread reads and writes its own keys only, so
-    the reset of a round's start is this kernel, not one more over the parcels."""
+    them again, or new ones; its second is then exact again); a collider whose reach rose above the cut is added to
+    the far-reaching lists for the next round (``list_far_reaching``). Each thread reads and writes its own keys only,
+    so the reset of a round's start is this kernel, not one more over the parcels; a parcel with no event that did
+    not collide (most of them) only clears its flag, without reading ``args_store`` (the step's ``SweptArgs``;
+    ``round_now``, ``stamp``, ``event_key``, ``dirty``: its arrays of those names)."""
     i = wp.tid()
-    this_round = args.round[0]
-    dirty = int(0)
+    this_round = round_now[0]
+    stamped = stamp[i] == this_round
+    if not stamped and event_key[i] == EVENT_NONE:
+        # no event and no collision (most parcels, the dead ones too): clean, nothing listed anew
+        if dirty[i] != 0:
+            dirty[i] = 0
+        return
+    args = args_store[0]
+    is_dirty = int(0)
     if args.particle_alive[i] != 0:
         key = args.event_key[i]
         second = args.second_key[i]
-        if args.stamp[i] == this_round:
-            dirty = 1
+        if stamped:
+            is_dirty = 1
         elif key != EVENT_NONE:
             second_moved = second != EVENT_NONE and args.stamp[event_partner(second)] == this_round
             if args.stamp[event_partner(key)] == this_round:
                 if args.second_ok[i] == 0 or second_moved:
-                    dirty = 1
+                    is_dirty = 1
                 else:
                     # no third event is known: the second is exact again only if there was none
                     args.event_key[i] = second
@@ -1135,12 +1186,13 @@ def swept_mark_dirty(args: SweptArgs):
                         args.second_ok[i] = 0
             elif second_moved:
                 args.second_ok[i] = 0
-    args.dirty[i] = dirty
-    if dirty != 0:
+    dirty[i] = is_dirty
+    if is_dirty != 0:
         args.event_key[i] = EVENT_NONE
         args.second_key[i] = EVENT_NONE
         args.second_ok[i] = 1
-    list_far_reaching(args, i)
+    if stamped:
+        list_far_reaching(args, i)  # its collision or wall event changed its reach and path bound
 
 
 @wp.kernel
@@ -1215,6 +1267,18 @@ def drift_swept(
         particle_x[i] = particle_x[i] + particle_v[i] * dt + shift[i]
 
 
+@wp.kernel
+def store_swept_args(
+    args: SweptArgs,
+    # outputs
+    args_store: wp.array(dtype=SweptArgs),
+):
+    """args_store[0] = args: the round kernels take the step's ``SweptArgs`` from a one-element array, so that only
+    the threads that work copy it (a kernel argument struct is copied by every CPU thread, ~10 ns for this one;
+    most threads of a round exit at once)."""
+    args_store[0] = args
+
+
 def launch_swept_start(args: SweptArgs, particle_v, reach_max, reach_sum) -> None:
     """Initial paths of every parcel; ``reach_max`` / ``reach_sum`` (zeroed by the caller) get the max and the sum
     of |v| dt / 2 (the sum only sizes the hash cells: its summation order changes no result)."""
@@ -1223,7 +1287,7 @@ def launch_swept_start(args: SweptArgs, particle_v, reach_max, reach_sum) -> Non
 
 
 def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, event_rounds, round_cap_hit, calls,
-                  collisions, detected, skipped, batch_forest: Forest | None = None) -> None:
+                  collisions, detected, skipped, batch_forest: Forest | None = None, args_store=None) -> None:
     """Rounds of mutually earliest events until none is left (``wp.capture_while``: a while node where the call is
     captured into a graph - tests/test_device_paths.py does, on the CPU; the engine calls it uncaptured, a host loop
     with one device read per round) or
@@ -1236,26 +1300,33 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
 
     Every launch of a round is recorded once per call (``record_cmd``: the arguments, ``args`` included, are
     packed once, as they stay the same over the step) and replayed each round: on the CPU packing the
-    ``SweptArgs`` struct cost ~40-80 us per launch, i.e. ~0.3 ms per round of the rig's 100-200 rounds per step."""
+    ``SweptArgs`` struct cost ~40-80 us per launch, i.e. ~0.3 ms per round of the rig's 100-200 rounds per step.
+    The round kernels launched over every parcel read ``args`` from ``args_store`` (a one-element array, written
+    here; allocated if None) in the threads that work only: a struct kernel argument is copied by every CPU
+    thread (~10 ns for ``SweptArgs``), and most threads of a round have nothing to do."""
     device = particle_v.device
     n = particle_v.shape[0]
     args.batched = 0 if batch_forest is None else 1
+    if args_store is None:
+        args_store = wp.empty(1, dtype=SweptArgs, device=device)
+    wp.launch(store_swept_args, dim=1, device=device, inputs=[args], outputs=[args_store])
 
     def record(kernel, dim, inputs, outputs=()):
         return wp.launch(kernel, dim=dim, device=device, inputs=inputs, outputs=list(outputs), record_cmd=True)
 
-    find = record(swept_find, n, [args, particle_v], [detected, skipped])
+    find = record(swept_find, n, [args_store, args.dirty, particle_v], [detected, skipped])
     global_min = record(swept_global_min, n, [args]) if args.sequential != 0 else None
-    select = record(swept_select, n, [args, particle_v], [events_found])
+    select = record(swept_select, n, [args_store, args.event_key, particle_v], [events_found])
     predict = None
     if batch_forest is not None:
         from kernels.forest import eval_forest
 
         predict = eval_forest(batch_forest, args.features, args.batch_out, device=device, row_count=args.batch_count,
                               record=True)
-    resolve = record(swept_resolve, n // 2 + 1, [args, forest], [particle_v, calls, collisions])  # pairs: <= n/2 rows
-    walls = record(swept_resolve_walls, n, [args], [particle_v]) if args.walls != 0 else None
-    mark_dirty = record(swept_mark_dirty, n, [args])
+    resolve = record(swept_resolve, n // 2 + 1, [args_store, args.batch_count, forest],
+                     [particle_v, calls, collisions])  # pairs: <= n/2 rows
+    walls = record(swept_resolve_walls, n, [args_store, args.wall_count], [particle_v]) if args.walls != 0 else None
+    mark_dirty = record(swept_mark_dirty, n, [args_store, args.round, args.stamp, args.event_key], [args.dirty])
     next_round = record(swept_next_round, 1, [args], [events_found, event_rounds, round_cap_hit])
 
     def one_round():
@@ -1270,8 +1341,6 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
         resolve.launch()
         if walls is not None:
             walls.launch()
-        args.large_count.zero_()  # the last reader of both lists was select
-        args.bound_count.zero_()
         mark_dirty.launch()
         next_round.launch()
 
