@@ -406,6 +406,8 @@ def test_cell_list_built_on_the_device_is_the_stable_sort_by_cell_of_a_brute_for
         ref_count, ref_sum = brute_force(pts, live, 1.1e-3, periodic_side)
         on = live != 0
         assert np.array_equal(count[on], ref_count[on]) and np.array_equal(index_sum[on], ref_sum[on])
+    print(f"cell list on {device}: {n} points ({int((alive == 0).sum())} dead), up to {counts.max()} per cell, "
+          "= numpy's stable sort and exclusive scan exactly; searches = brute force (open, periodic)")
 
 
 # ------------------------------------------------------------------------------ swept HEL step: kick, walls
@@ -531,7 +533,10 @@ def test_deposit_on_the_device_is_run_to_run_exact_and_equals_the_cpu(device):
             _, fields, _, _ = _deposit_random(seed=11, n=3000)
             runs.append({name: getattr(fields, name).numpy().astype(np.float64) for name in names})
     first, again, cpu = runs
+    worst = 0.0
     for name in names:
         assert np.array_equal(first[name], again[name]), name
         scale = np.abs(cpu[name]).max()
+        worst = max(worst, np.abs(first[name] - cpu[name]).max() / scale)
         assert scale > 0 and np.abs(first[name] - cpu[name]).max() <= 1e-12 * scale, name
+    print(f"deposit on {device}: twice bit for bit; vs the CPU max |diff| / max |cell| = {worst:.1e}")
