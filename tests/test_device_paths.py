@@ -411,15 +411,17 @@ def test_cell_list_built_on_the_device_is_the_stable_sort_by_cell_of_a_brute_for
 
 
 # ------------------------------------------------------------------------------ swept HEL step: kick, walls
+@pytest.mark.parametrize("wall_contact", ["surface", "point"])
 def test_swept_hel_steps_kick_first_with_wall_events_captured_equal_the_eager_steps(device, trained_models,
-                                                                                   monkeypatch):
+                                                                                   monkeypatch, wall_contact):
     """The rig's surrogate path (cases/colliding_streams.py with ``--collisions surrogate``, the gpu_check's
     ``rig_surrogate`` on CUDA): in a ``HelSolver`` with walls, ``SurrogateCollision.accelerate`` pushes the
     velocities first (``kick_first``), the swept rounds resolve collisions and wall events (``swept_resolve_walls``)
     in time order, with the batched forest, and ``advance`` drifts the parcels to their paths' ends
     (``drift_swept``). The rounds (``resolve_swept``) captured into a graph and replayed (the while node a CUDA
-    graph would take) against the same steps eager: positions, velocities and every count bit for bit, over three
-    HEL steps of 315 um parcels in the closed box of tests/test_hel_step.py."""
+    graph would take) against the same steps eager: positions, velocities and every count bit for bit, over two
+    HEL steps of 315 um parcels in the closed box of tests/test_hel_step.py, the walls met by the parcels' surface
+    (the rig's default) or their centre."""
     import kernels.collide as kc
     from hel_warp.collision_models import SurrogateCollision
     from tests.test_hel_step import BOX_HI, make_solver
@@ -454,22 +456,23 @@ def test_swept_hel_steps_kick_first_with_wall_events_captured_equal_the_eager_st
             monkeypatch.setattr(kc, "resolve_swept", resolve)
             strategy = SurrogateCollision(model_dir=trained_models["contact"], detection="swept")
             assert strategy.kick_first and strategy.wall_events
-            solver = make_solver(x=x, v=v, radius=radius, density=RHO, collision=strategy)
+            solver = make_solver(x=x, v=v, radius=radius, density=RHO, collision=strategy, wall_contact=wall_contact)
+            assert solver.wall_params.surface == (wall_contact == "surface")
             assert solver.pool.particles.device == wp.get_device(device)
             counts = {"collisions": 0, "wall_events": 0, "rounds": 0}
-            for _ in range(3):
+            for _ in range(2):
                 solver.step()
                 for key in counts:
                     counts[key] += strategy.counts()[key]
             assert strategy.batch_forest is not None
             p = solver.pool.particles
             results.append((p.x.numpy().copy(), p.v.numpy().copy(), counts))
-    assert calls == {"replays": 3, "drifts": 6}  # every step took the kick-first path, captured once per step
+    assert calls == {"replays": 2, "drifts": 4}  # every step took the kick-first path, captured once per step
     (x_eager, v_eager, c_eager), (x_graph, v_graph, c_graph) = results
-    assert c_eager["collisions"] > 20 and c_eager["wall_events"] > 20 and c_eager["rounds"] > 6
+    assert c_eager["collisions"] > 20 and c_eager["wall_events"] > 20 and c_eager["rounds"] > 4
     assert c_graph == c_eager
     assert np.array_equal(x_graph, x_eager) and np.array_equal(v_graph, v_eager)
-    print(f"swept HEL steps (kick first, wall events) captured = eager: {c_eager}")
+    print(f"swept HEL steps (kick first, {wall_contact} wall events) captured = eager: {c_eager}")
 
 
 # ------------------------------------------------------------------------------ swept rounds: thread order
