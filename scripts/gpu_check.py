@@ -118,7 +118,10 @@ def junit_report(path: str) -> dict:
 
 
 def rig_report(run_dir: str) -> dict:
-    """A rig run's summary (``run.zarr`` attrs) with the median wall time of each sub-step over its steps."""
+    """A rig run's summary (``run.zarr`` attrs) with the median wall time of each sub-step over its steps, the
+    collision path it took (``detection``, ``wall_events``, ``wall_contact``, ``particles_per_parcel``) and the
+    totals over its steps of the collisions, rounds and in-step wall events (so the figures show that the rounds
+    ran on the device, not only that the run ended)."""
     import numpy as np
     import zarr
 
@@ -133,7 +136,13 @@ def rig_report(run_dir: str) -> dict:
             if values.size:
                 timings[key[len("timing_"):]] = {"median_s": float(np.median(values)), "max_s": float(values.max())}
     case = attrs.get("config", {}).get("case", {})
-    return {"run": run_dir, "collisions": summary.get("collisions"), "device": case.get("device"),
+    totals = {}
+    for key in ("collisions_collisions", "collisions_rounds", "collisions_wall_events", "wall_hits"):
+        if key in series:
+            totals[key] = int(np.asarray(series[key][:], dtype=np.int64).sum())
+    path = {key: case.get(key) for key in ("detection", "wall_events", "wall_contact", "particles_per_parcel")}
+    return {"run": run_dir, "collisions": summary.get("collisions"), "device": case.get("device"), **path,
+            "totals": totals,
             "grid_cells": case.get("grid_cells"), "fluid_cells": case.get("fluid_cells"),
             "particles": case.get("particles"), "steps": summary.get("steps"),
             "median_step_s": timings.get("step", {}).get("median_s"), "sub_steps": timings, "summary": summary}

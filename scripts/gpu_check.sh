@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The first GPU run as a confirmation (issue 15): device report, kernel compilation, the device-agnostic tests on the
-# device, the DEM / forest / HEL benches and a short rig run for ktgf, surrogate and dem, every figure as JSON.
+# device, the DEM / forest / HEL benches and a short rig run for ktgf, surrogate (swept detection, kick first, wall
+# events), dem and surrogate at 8 particles per parcel (cell detection), every figure as JSON.
 #
 #   scripts/gpu_check.sh [--dry-run] [--out DIR]
 #
@@ -10,7 +11,8 @@
 # steps.tsv, a .log per step and summary.json. Stops at the first failing step and names its command; exit 0 only if
 # every step passed. Environment: MODEL=DIR runs the rig's surrogate with that contact-form model instead of the
 # tests' tiny one; HEL_WARP_TINY_MODELS=DIR keeps the tests' tiny models there (trained once); STEP_TIMEOUT=S caps
-# each step (default 300 s), TOTAL_TIMEOUT=S the whole check (default 480 s on the GPU, 900 s dry); PYTHON.
+# each step (default 300 s), TOTAL_TIMEOUT=S the whole check (default 450 s on the GPU, 900 s dry: no step starts
+# after it and none runs past it, so the check ends within TOTAL_TIMEOUT + 10 s of kill grace + the summary); PYTHON.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
@@ -24,7 +26,7 @@ while [ $# -gt 0 ]; do
     --dry-run) dry=1 ;;
     --out) [ $# -ge 2 ] || { echo "gpu_check: --out needs a directory" >&2; exit 2; }; out=$2; shift ;;
     --out=*) out=${1#--out=} ;;
-    -h|--help) sed -n '2,13p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    -h|--help) sed -n '2,15p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "gpu_check: unknown argument '$1' (usage: scripts/gpu_check.sh [--dry-run] [--out DIR])" >&2; exit 2 ;;
   esac
   shift
@@ -33,10 +35,12 @@ mkdir -p "$out" || exit 2
 out=$(cd "$out" && pwd)
 : > "$out/steps.tsv"
 step_timeout=${STEP_TIMEOUT:-300}
+kill_grace=10  # a step still running this long after its SIGTERM gets SIGKILL (timeout -k)
 
 # The device-agnostic tests the device run repeats (tests/conftest.py: HEL_WARP_DEVICE sets Warp's default device).
 tests=(tests/test_device_paths.py tests/test_gas.py tests/test_multigrid.py tests/test_forest.py tests/test_contacts.py
-       tests/test_swept.py)
+       tests/test_swept.py tests/test_cell_list.py tests/test_swept_walls.py tests/test_swept_push.py
+       tests/test_wall_contact.py tests/test_coupling.py)
 if [ "$dry" = 1 ]; then
   device=cpu
   dem_args=(--cases --sizes 2000 --repeats 1 --budget 0.2)
@@ -51,7 +55,7 @@ else
   forest_args=(--samples 1000000 --repeats 5)
   hel_args=(--repeats 3)
   rig_args=(--end-time 0.003 --gas-warmup 0.005)
-  total_timeout=${TOTAL_TIMEOUT:-480}  # a lent GPU has ~15 min in all, the machine's start included
+  total_timeout=${TOTAL_TIMEOUT:-450}  # a lent GPU has ~15 min in all, the machine's start included: < 8 min
 fi
 
 started=$(date +%s.%N)
@@ -81,18 +85,20 @@ _step() {
   if [ "$limit" -le 0 ]; then
     rc=124
   elif [ -n "$json" ]; then
-    timeout "$limit" "$@" > "$json" 2> >(tee "$out/$name.log" >&2)
+    timeout -k "$kill_grace" "$limit" "$@" > "$json" 2> >(tee "$out/$name.log" >&2)
     rc=$?
   else
-    timeout "$limit" "$@" > >(tee "$out/$name.log") 2>&1
+    timeout -k "$kill_grace" "$limit" "$@" > >(tee "$out/$name.log") 2>&1
     rc=$?
   fi
   t1=$(date +%s.%N)
   printf '%s\t%s\t%s\t%s\n' "$name" "$rc" "$(awk -v a="$t0" -v b="$t1" 'BEGIN { printf "%.2f", b - a }')" "$*" \
     >> "$out/steps.tsv"
   if [ "$rc" != 0 ]; then
-    [ "$rc" = 124 ] && echo "gpu_check: step '$name' ran out of time (STEP_TIMEOUT=$step_timeout s per step," \
-      "TOTAL_TIMEOUT=$total_timeout s in all)" >&2
+    if [ "$rc" = 124 ] || [ "$rc" = 137 ]; then
+      echo "gpu_check: step '$name' ran out of time (STEP_TIMEOUT=$step_timeout s per step," \
+        "TOTAL_TIMEOUT=$total_timeout s in all)" >&2
+    fi
     echo "gpu_check: FAILED at step '$name' (exit $rc): $*" >&2
     echo "gpu_check: its output is in $out/$name.log" >&2
     finish 1
@@ -120,4 +126,10 @@ for collisions in ktgf surrogate dem; do
     --out "$out/rig_$collisions"
   run "rig_${collisions}_json" "$py" scripts/gpu_check.py rig "$out/rig_$collisions" --out "$out/rig_$collisions.json"
 done
+# the cell detection (issue 12): parcels of 8 particles collide per cell, its rounds with the batched forest
+run rig_surrogate_cell "$py" cases/colliding_streams.py --diameter 315e-6 --dt 1e-3 --collisions surrogate \
+  --particles-per-parcel 8 --model "$model" --device "$device" "${rig_args[@]}" --no-vtk --no-gas-snapshots \
+  --no-progress --overwrite --out "$out/rig_surrogate_cell"
+run rig_surrogate_cell_json "$py" scripts/gpu_check.py rig "$out/rig_surrogate_cell" \
+  --out "$out/rig_surrogate_cell.json"
 finish 0

@@ -139,6 +139,20 @@ def test_dem_graph_path_defaults_to_no_sort_and_agrees_with_the_cpu_default(devi
     assert dx <= 1e-9 and dv <= 1e-6
 
 
+def test_the_cpu_only_half_list_is_refused_on_cuda_and_the_cpu_default(device):
+    """``DEMConfig.half_list`` (each pair once, forces scattered to both spheres in one fused pass) relies on the
+    CPU running threads in index order; on CUDA it is refused with a message (DEMSolver and
+    ``launch_forces_kick``), on the CPU it is the default. Equality with the full list: the graph tests above."""
+    from hel_warp.errors import ConfigError
+
+    if wp.get_device(device).is_cuda:
+        with pytest.raises(ConfigError, match="half_list"):
+            _dem_column(device, half_list=True)
+        assert not _dem_column(device).half_list
+    else:
+        assert _dem_column(device).half_list and _dem_column(device, half_list=True).half_list
+
+
 # ------------------------------------------------------------------------------ gas: warp.optim.linear.cg
 def _projection_problem(device, linear_solver, preconditioner):
     """The closed L-shaped cavity of tests/test_gas.py with random face velocities and eps_f: one projection."""
@@ -344,3 +358,188 @@ def test_cell_rounds_captured_as_a_graph_loop_equal_the_eager_rounds(device, tra
     assert c_eager["rounds"] > 1 and c_eager["collisions"] > 100  # the loop really loops
     assert c_graph == c_eager and np.array_equal(v_graph, v_eager)
     print(f"cell rounds: captured = eager, {c_eager['collisions']} collisions, {c_eager['rounds']} batched rounds")
+
+
+# ------------------------------------------------------------------------------ the swept search's cell list
+def test_cell_list_built_on_the_device_is_the_stable_sort_by_cell_of_a_brute_force(device):
+    """kernels/cell_list.py ``build_cell_list`` sorts with ``wp.utils.radix_sort_pairs`` and scans with
+    ``wp.utils.array_scan``: CUB's radix sort and scan on CUDA, Warp's host loops on the CPU. The swept rounds
+    rely on the order it documents (by cell, x fastest; within a cell by point index, dead points last), so the
+    structure built on the device must equal numpy's stable argsort of the keys and the exclusive cumulative sum
+    of the counts, exactly. Points are jittered by at most 0.3 cell widths about cell centres, so each key is
+    unambiguous in any rounding (no point within 0.2 widths of a face). Then the searches through it against the
+    O(N^2) brute force of tests/test_cell_list.py (open and periodic), on the device."""
+    from kernels.cell_list import DEAD_CELL_KEY, CellList, build_cell_list
+    from tests.test_cell_list import brute_force, search
+
+    rng = np.random.default_rng(21)
+    n, dims, width = 3000, (7, 5, 6), 1e-3
+    origin = np.array([-2e-3, 1e-3, 0.5e-3])
+    cell = np.stack([rng.integers(0, d, n) for d in dims], axis=1)  # several points per cell: ties to break
+    points = (origin + (cell + 0.5 + rng.uniform(-0.3, 0.3, (n, 3))) * width).astype(np.float32)
+    alive = (rng.uniform(size=n) > 0.15).astype(np.int32)
+    cells = CellList()
+    cells.origin, cells.inv_width, cells.dims, cells.periodic = tuple(origin), 1.0 / width, dims, 0
+    total = int(np.prod(dims))
+    cells.cell_start = wp.zeros(total + 1, dtype=wp.int32, device=device)
+    cells.slot_key = wp.zeros(2 * n, dtype=wp.int32, device=device)
+    cells.slot_point = wp.zeros(2 * n, dtype=wp.int32, device=device)
+    cells.slot_position = wp.zeros(n, dtype=wp.vec3, device=device)
+    build_cell_list(cells, wp.array(points, dtype=wp.vec3, device=device), wp.array(alive, dtype=wp.int32,
+                    device=device), wp.zeros(total + 1, dtype=wp.int32, device=device))
+    # reference: the key of every point (x fastest), dead ones after every cell; stable sort; exclusive scan
+    key = np.where(alive != 0, (cell[:, 2] * dims[1] + cell[:, 1]) * dims[0] + cell[:, 0], int(DEAD_CELL_KEY))
+    order = np.argsort(key, kind="stable")
+    counts = np.bincount(key[alive != 0], minlength=total + 1)
+    assert np.array_equal(cells.slot_key.numpy()[:n], key[order])
+    assert np.array_equal(cells.slot_point.numpy()[:n], order)
+    assert np.array_equal(cells.cell_start.numpy(), np.concatenate([[0], np.cumsum(counts)[:-1]]))
+    assert int(cells.cell_start.numpy()[-1]) == int(alive.sum())
+    assert np.array_equal(cells.slot_position.numpy(), points[order])
+    assert counts.max() >= 4  # within-cell order really tested
+    # the searches through the list, on the device, against the brute force
+    for periodic_side in (None, 0.01):
+        pts = rng.uniform(0.0, 0.01, size=(1200, 3)).astype(np.float32)
+        live = (rng.uniform(size=len(pts)) > 0.1).astype(np.int32)
+        with wp.ScopedDevice(device):
+            _, count, index_sum, _ = search(pts, live, 1.1e-3, 5e-4, periodic_side)
+        ref_count, ref_sum = brute_force(pts, live, 1.1e-3, periodic_side)
+        on = live != 0
+        assert np.array_equal(count[on], ref_count[on]) and np.array_equal(index_sum[on], ref_sum[on])
+    print(f"cell list on {device}: {n} points ({int((alive == 0).sum())} dead), up to {counts.max()} per cell, "
+          "= numpy's stable sort and exclusive scan exactly; searches = brute force (open, periodic)")
+
+
+# ------------------------------------------------------------------------------ swept HEL step: kick, walls
+@pytest.mark.parametrize("wall_contact", ["surface", "point"])
+def test_swept_hel_steps_kick_first_with_wall_events_captured_equal_the_eager_steps(device, trained_models,
+                                                                                   monkeypatch, wall_contact):
+    """The rig's surrogate path (cases/colliding_streams.py with ``--collisions surrogate``, the gpu_check's
+    ``rig_surrogate`` on CUDA): in a ``HelSolver`` with walls, ``SurrogateCollision.accelerate`` pushes the
+    velocities first (``kick_first``), the swept rounds resolve collisions and wall events (``swept_resolve_walls``)
+    in time order, with the batched forest, and ``advance`` drifts the parcels to their paths' ends
+    (``drift_swept``). The rounds (``resolve_swept``) captured into a graph and replayed (the while node a CUDA
+    graph would take) against the same steps eager: positions, velocities and every count bit for bit, over two
+    HEL steps of 315 um parcels in the closed box of tests/test_hel_step.py, the walls met by the parcels' surface
+    (the rig's default) or their centre."""
+    import kernels.collide as kc
+    from hel_warp.collision_models import SurrogateCollision
+    from tests.test_hel_step import BOX_HI, make_solver
+
+    require_graph_conditionals(device)
+    eager_resolve, eager_drift = kc.resolve_swept, kc.launch_drift_swept
+    calls = {"replays": 0, "drifts": 0}
+
+    def captured_resolve(*args, **kwargs):
+        with wp.ScopedCapture(device=args[2].device) as capture:
+            eager_resolve(*args, **kwargs)
+        wp.capture_launch(capture.graph)
+        calls["replays"] += 1
+
+    def counted_drift(*args, **kwargs):
+        calls["drifts"] += 1
+        return eager_drift(*args, **kwargs)
+
+    monkeypatch.setattr(kc, "launch_drift_swept", counted_drift)
+    rng = np.random.default_rng(8)
+    radius = 0.5 * D
+    x = rng.uniform([1.5 * radius] * 3, np.asarray(BOX_HI) - 1.5 * radius, (6000, 3))
+    keep = np.ones(len(x), bool)
+    for i in range(len(x)):  # a non-overlapping start
+        if keep[i]:
+            keep &= (np.linalg.norm(x - x[i], axis=1) >= 2.02 * radius) | (np.arange(len(x)) <= i)
+    x = x[keep][:1500]
+    v = rng.normal(0.0, 1.5, (len(x), 3))
+    results = []
+    with wp.ScopedDevice(device):
+        for resolve in (eager_resolve, captured_resolve):
+            monkeypatch.setattr(kc, "resolve_swept", resolve)
+            strategy = SurrogateCollision(model_dir=trained_models["contact"], detection="swept")
+            assert strategy.kick_first and strategy.wall_events
+            solver = make_solver(x=x, v=v, radius=radius, density=RHO, collision=strategy, wall_contact=wall_contact)
+            assert solver.wall_params.surface == (wall_contact == "surface")
+            assert solver.pool.particles.device == wp.get_device(device)
+            counts = {"collisions": 0, "wall_events": 0, "rounds": 0}
+            for _ in range(2):
+                solver.step()
+                for key in counts:
+                    counts[key] += strategy.counts()[key]
+            assert strategy.batch_forest is not None
+            p = solver.pool.particles
+            results.append((p.x.numpy().copy(), p.v.numpy().copy(), counts))
+    assert calls == {"replays": 2, "drifts": 4}  # every step took the kick-first path, captured once per step
+    (x_eager, v_eager, c_eager), (x_graph, v_graph, c_graph) = results
+    assert c_eager["collisions"] > 20 and c_eager["wall_events"] > 20 and c_eager["rounds"] > 4
+    assert c_graph == c_eager
+    assert np.array_equal(x_graph, x_eager) and np.array_equal(v_graph, v_eager)
+    print(f"swept HEL steps (kick first, {wall_contact} wall events) captured = eager: {c_eager}")
+
+
+# ------------------------------------------------------------------------------ swept rounds: thread order
+@pytest.mark.parametrize("space", ["periodic", "walls"])
+def test_swept_rounds_do_not_depend_on_which_thread_holds_which_parcel(device, trained_models, space):
+    """A GPU runs a launch's threads in no fixed order; the CPU runs them in index order. The swept rounds are
+    written so that no result depends on it: events go to both parcels by an int64 atomic_min on (time, partner),
+    the batched forest's rows, the wall events' rows and the large-parcel list are filled by atomic counters
+    whose order changes no outcome. The CPU's proxy for another thread order: the same parcels under other
+    labels (a random permutation: every launch then visits them in another order, the cell list holds them in
+    another order within a cell). Reference: the unpermuted call, mapped back: measured equal bit for bit, counts
+    included (a race between threads of one launch, invisible to the CPU's fixed order, would show here as a
+    difference under some labelling)."""
+    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.particles import Particles
+    from tests.test_swept_walls import SIDE, box_walls
+
+    if space == "periodic":
+        x, v, side = _periodic_gas(1000, 0.05)
+        box, dt = (side,) * 3, 2e-4
+    else:  # 800 parcels in the walled box [0, SIDE]^3, fast enough that many meet a wall within the step
+        x, v, _ = _periodic_gas(800, 0.03, seed=6, theta=4.0)
+        x = x * (SIDE - 2 * D) / x.max() + D
+        box, dt = None, 1e-3
+    perm = np.random.default_rng(3).permutation(len(x))
+    results = []
+    for order in (np.arange(len(x)), perm):
+        p = Particles.from_numpy(x[order], 0.5 * D, v=v[order], density=RHO, check_overlap=False, device=device)
+        strategy = SurrogateCollision(model_dir=trained_models["contact"], periodic_box=box, detection="swept")
+        if box is None:
+            strategy.set_walls(*box_walls())
+        strategy.collide(p, dt)
+        v_back = np.empty((len(x), 3), np.float32)
+        v_back[order] = p.v.numpy()
+        t_back = np.empty(len(x), np.float32)
+        t_back[order] = strategy.swept.t_last.numpy()
+        results.append((v_back, t_back, strategy.counts()))
+    (v_a, t_a, c_a), (v_b, t_b, c_b) = results
+    assert c_a["collisions"] > 50 and c_a["rounds"] > 2
+    if space == "walls":
+        assert c_a["wall_events"] > 20
+    same_counts = {k: c_a[k] for k in ("collisions", "surrogate_calls", "rounds", "wall_events", "detected_pairs")}
+    assert {k: c_b[k] for k in same_counts} == same_counts
+    assert np.array_equal(v_a, v_b) and np.array_equal(t_a, t_b)
+    print(f"swept rounds ({space}) under permuted labels = unpermuted: {same_counts}")
+
+
+# ------------------------------------------------------------------------------ deposition: deterministic atomics
+def test_deposit_on_the_device_is_run_to_run_exact_and_equals_the_cpu(device):
+    """kernels/deposit.py sets Warp's ``deterministic`` module option: on CUDA its float atomics then launch
+    through Warp's scatter-sort-reduce (``launch_deterministic``, CUDA only), summing each cell's contributions in
+    thread-index order; the CPU runs the threads in that order anyway. Run twice on the device: bit for bit; against
+    the same deposit on the CPU: equal to float64 round-off of the per-parcel weights (the CUDA compiler may fuse
+    multiply-adds; 1e-12 of the largest cell value asked, measured 0 on the CPU)."""
+    from tests.test_coupling import _deposit_random
+
+    names = ("cell_solid_volume", "cell_momentum_source", "cell_drag_coeff", "cell_solid_momentum")
+    runs = []
+    for dev in (device, device, "cpu"):
+        with wp.ScopedDevice(dev):
+            _, fields, _, _ = _deposit_random(seed=11, n=3000)
+            runs.append({name: getattr(fields, name).numpy().astype(np.float64) for name in names})
+    first, again, cpu = runs
+    worst = 0.0
+    for name in names:
+        assert np.array_equal(first[name], again[name]), name
+        scale = np.abs(cpu[name]).max()
+        worst = max(worst, np.abs(first[name] - cpu[name]).max() / scale)
+        assert scale > 0 and np.abs(first[name] - cpu[name]).max() <= 1e-12 * scale, name
+    print(f"deposit on {device}: twice bit for bit; vs the CPU max |diff| / max |cell| = {worst:.1e}")

@@ -15,6 +15,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from tests.test_collision_models import trained_models  # noqa: F401  (fixture)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,7 +38,8 @@ def test_dry_run_passes_and_writes_every_figure_as_json(tmp_path, trained_models
     assert summary["passed"] and summary["failed_step"] is None
     names = [s["step"] for s in summary["steps"]]
     assert names == ["device", "kernels", "models", "tests", "tests_json", "bench_dem", "bench_forest", "bench_hel",
-                     "rig_ktgf", "rig_ktgf_json", "rig_surrogate", "rig_surrogate_json", "rig_dem", "rig_dem_json"]
+                     "rig_ktgf", "rig_ktgf_json", "rig_surrogate", "rig_surrogate_json", "rig_dem", "rig_dem_json",
+                     "rig_surrogate_cell", "rig_surrogate_cell_json"]
     fig = summary["figures"]
     assert fig["device"]["device"] == "cpu" and fig["kernels"]["kernel_load_s"] >= 0
     assert fig["tests"]["tests"] >= 10 and fig["tests"]["failures"] == fig["tests"]["errors"] == 0
@@ -46,10 +49,16 @@ def test_dry_run_passes_and_writes_every_figure_as_json(tmp_path, trained_models
     assert forest["max_abs_diff_vs_xgboost"] <= 1e-5 and forest["xgboost_device_requested"] == "cpu"
     assert forest["xgboost_device_used"] == "cpu" and forest["warp_kernel_samples_per_s"] > 0
     assert fig["bench_hel"]["gas"] and fig["bench_hel"]["gas"][0]["per_cell_us"] > 0
-    for model in ("ktgf", "surrogate", "dem"):
-        rig = fig[f"rig_{model}"]
+    for run, model in (("ktgf", "ktgf"), ("surrogate", "surrogate"), ("dem", "dem"), ("surrogate_cell", "surrogate")):
+        rig = fig[f"rig_{run}"]
         assert rig["collisions"] == model and rig["device"] == "cpu" and rig["summary"]["status"] == "complete"
         assert rig["steps"] == 2 and rig["median_step_s"] > 0 and not rig["summary"]["check_errors"]
+    # the rig's surrogate paths: swept with in-step wall events at weight 1, cell detection at 8 per parcel
+    swept, cell = fig["rig_surrogate"], fig["rig_surrogate_cell"]
+    assert swept["detection"] == "swept" and swept["wall_events"] and swept["particles_per_parcel"] == 1
+    assert cell["detection"] == "cell" and cell["particles_per_parcel"] == 8
+    assert swept["totals"]["collisions_rounds"] > 0 and cell["totals"]["collisions_rounds"] > 0
+    assert swept["totals"]["collisions_wall_events"] > 0  # walls met inside the swept rounds, not at the step end
 
 
 def test_the_first_failing_step_stops_the_check_and_is_named(tmp_path):
@@ -81,3 +90,36 @@ def test_a_spent_time_budget_stops_the_check_at_the_next_step(tmp_path):
     done = _run("--dry-run", "--out", str(out), env={"TOTAL_TIMEOUT": "0"}, timeout=120)
     assert done.returncode == 1
     assert "step 'device' ran out of time" in done.stderr and "FAILED at step 'device' (exit 124)" in done.stderr
+
+
+def test_a_step_past_its_time_cap_is_killed_and_named(tmp_path):
+    # STEP_TIMEOUT caps every step (the GPU run's 8 minutes hold by construction): a device step that would sleep
+    # 60 s is stopped at 2 s (timeout's exit 124), the check fails there, names it and ends well before the sleep
+    import time
+
+    fake = tmp_path / "python"
+    fake.write_text(f'#!/usr/bin/env bash\nif [ "$2" = device ]; then sleep 60; fi\nexec {sys.executable} "$@"\n')
+    fake.chmod(fake.stat().st_mode | stat.S_IEXEC)
+    out = tmp_path / "gpu_out"
+    start = time.monotonic()
+    done = _run("--dry-run", "--out", str(out), env={"PYTHON": str(fake), "STEP_TIMEOUT": "2"}, timeout=120)
+    wall = time.monotonic() - start
+    assert done.returncode == 1 and wall < 30, (done.returncode, wall)
+    assert "step 'device' ran out of time" in done.stderr and "FAILED at step 'device' (exit 124)" in done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert [s["step"] for s in summary["steps"]] == ["device"] and summary["steps"][0]["seconds"] < 15
+
+
+def test_the_gpu_run_without_a_gpu_stops_at_its_first_step(tmp_path):
+    # The real (non-dry) sequence asks Warp for "cuda" first: where there is none (this machine) the check stops at
+    # the device step, names its command and exits 1 without running anything else
+    import warp as wp
+
+    if wp.is_cuda_available():
+        pytest.skip("a GPU is present: the real run is scripts/gpu_check.sh itself")
+    out = tmp_path / "gpu_out"
+    done = _run("--out", str(out), timeout=120)
+    assert done.returncode == 1
+    assert "FAILED at step 'device' (exit" in done.stderr and "gpu_check.py device --device cuda" in done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert [s["step"] for s in summary["steps"]] == ["device"] and not summary["passed"]

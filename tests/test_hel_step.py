@@ -17,7 +17,7 @@ H = 1.0e-3
 
 def make_solver(x=None, v=None, *, capacity=None, radius=0.5e-3, density=8000.0, injectors=(), outlets=(),
                 collision=None, gravity=(0.0, 0.0, -9.80665), walls=True, material=None, sort_every=0, dt=1e-3,
-                wall_friction=None):
+                wall_friction=None, wall_contact="point"):
     """A closed box of still air (grid = geometry, 12 x 6 x 10 cells of 1 mm) with parcels at ``x``."""
     import warp as wp
 
@@ -45,7 +45,8 @@ def make_solver(x=None, v=None, *, capacity=None, radius=0.5e-3, density=8000.0,
         p.particle_id.assign(np.arange(n, dtype=np.int32))
         pool.used = n
     config = HelConfig(dt=dt, push=push, material=material or Material(), injectors=injectors,
-                       outlets=outlets, walls=walls, sort_every=sort_every, wall_friction=wall_friction)
+                       outlets=outlets, walls=walls, sort_every=sort_every, wall_friction=wall_friction,
+                       wall_contact=wall_contact)
     return HelSolver(pool=pool, gas_solver=gas_solver, gas=gas, config=config, collision=collision)
 
 
