@@ -205,6 +205,10 @@ class CellCollisions:
         a.pending_normal = wp.zeros(n_cells, dtype=wp.vec3, device=dev)
         a.particle_deficit = wp.zeros(n, dtype=wp.float32, device=dev)
         self._more = wp.zeros(1, dtype=wp.int32, device=dev)
+        from kernels.cell_collide import CellArgs
+
+        self._args_store = wp.empty(1, dtype=CellArgs, device=dev)
+        """The ``CellArgs`` on the device for the cell kernels (``kernels.cell_collide.collide_cells``)."""
         self._round = wp.zeros(1, dtype=wp.int32, device=dev)
         self._rounds = wp.zeros(1, dtype=wp.int32, device=dev)
         self._path = wp.zeros(n, dtype=wp.vec3, device=dev)
@@ -289,7 +293,7 @@ class CellCollisions:
             a.seed = step_seed(seed, k)
             sort_by_cell(a)
             collide_cells(a, forest, particles.v, self._more, self._round, self._rounds, batch_forest=batch_forest,
-                          max_rounds=cfg.batched_rounds, min_rows=cfg.batched_min_rows)
+                          max_rounds=cfg.batched_rounds, min_rows=cfg.batched_min_rows, args_store=self._args_store)
             if apply and cfg.restore_energy:
                 restore_energy(a, particles.v, int(cfg.restore_block))
             if substeps > 1:

@@ -355,7 +355,8 @@ def cell_prepare(
 
 @wp.kernel
 def cell_select(
-    args: CellArgs,
+    args_store: wp.array(dtype=CellArgs),
+    cell_remaining: wp.array(dtype=wp.int32),
     forest: Forest,
     # outputs
     particle_v: wp.array(dtype=wp.vec3),
@@ -363,11 +364,14 @@ def cell_select(
 ):
     """The cell's candidates in order: selection, acceptance, sampled normal. ``args.batched`` = 1: stop at the
     next accepted pair, write its features into a batch row (resolved by ``cell_apply`` after the batched forest
-    evaluation; ``more[0]`` = 1); 0: resolve every accepted pair at once with inline tree walks."""
+    evaluation; ``more[0]`` = 1); 0: resolve every accepted pair at once with inline tree walks. ``args_store[0]``:
+    the ``CellArgs``, read by the cells with candidates only (``cell_remaining``: ``args.cell_remaining``; a struct
+    kernel argument is copied by every CPU thread, and most cells have none)."""
     cell = wp.tid()
-    remaining = args.cell_remaining[cell]
+    remaining = cell_remaining[cell]
     if remaining <= 0:
         return
+    args = args_store[0]
     start = args.cell_start[cell]
     count = args.cell_end[cell] - start
     state = args.cell_rng[cell]
@@ -440,20 +444,34 @@ def cell_select(
 
 @wp.kernel
 def cell_apply(
-    args: CellArgs,
+    args_store: wp.array(dtype=CellArgs),
+    pending_row: wp.array(dtype=wp.int32),
     # outputs
     particle_v: wp.array(dtype=wp.vec3),
 ):
-    """The batched round's outcome of each cell's pending pair (``batch_out`` row), guarded and applied."""
+    """The batched round's outcome of each cell's pending pair (``batch_out`` row), guarded and applied
+    (``args_store[0]``: the ``CellArgs``, read by the cells with a pending pair only; ``pending_row``:
+    ``args.pending_row``)."""
     cell = wp.tid()
-    row = args.pending_row[cell]
+    row = pending_row[cell]
     if row < 0:
         return
+    args = args_store[0]
     pair = args.pending_pair[cell]
     flags = resolve_pair(args, pair[0], pair[1], args.pending_normal[cell], args.batch_out[row, 0],
                          args.batch_out[row, 1], particle_v)
     count_guard(args, flags)
     args.pending_row[cell] = -1
+
+
+@wp.kernel
+def store_cell_args(
+    args: CellArgs,
+    # outputs
+    args_store: wp.array(dtype=CellArgs),
+):
+    """args_store[0] = args (``cell_select``, ``cell_apply``)."""
+    args_store[0] = args
 
 
 @wp.kernel
@@ -657,31 +675,55 @@ def sort_by_cell(args: CellArgs) -> None:
 
 
 def collide_cells(args: CellArgs, forest: Forest, particle_v, more, round_count, rounds_total,
-                  batch_forest: Forest | None = None, max_rounds: int = 64, min_rows: int = 32) -> None:
+                  batch_forest: Forest | None = None, max_rounds: int = 64, min_rows: int = 32,
+                  args_store=None) -> None:
     """Every cell's candidates, acceptance and outcomes (after :func:`sort_by_cell`); counters accumulate (the
     caller zeroes them per step). With ``batch_forest`` (perfect layout): rounds of one accepted pair per cell,
     each round's pairs predicted in one batched evaluation, until no cell has candidates left
     (``wp.capture_while``: a graph loop on CUDA), ``max_rounds`` rounds or a round of fewer than ``min_rows`` pairs,
     the rest inline; else one round of
     inline walks of ``forest`` (explicit layout). ``more``, ``round_count``: (1,) int32 scratch; ``rounds_total``
-    (1,) += the batched rounds taken. Both give the same pairs in the same order per cell."""
+    (1,) += the batched rounds taken. Both give the same pairs in the same order per cell. ``args_store``: a
+    one-element ``CellArgs`` array (allocated if None) from which the cell kernels read ``args``; the rounds'
+    launches are recorded once per call and replayed."""
     device = particle_v.device
     n_cells = args.cell_start.shape[0]
+    if args_store is None:
+        args_store = wp.empty(1, dtype=CellArgs, device=device)
     args.batched = 0 if batch_forest is None else 1
     wp.launch(cell_prepare, dim=n_cells, device=device, inputs=[args, particle_v])
+
+    def select_inline():
+        args.batched = 0
+        wp.launch(store_cell_args, dim=1, device=device, inputs=[args], outputs=[args_store])
+        wp.launch(cell_select, dim=n_cells, device=device, inputs=[args_store, args.cell_remaining, forest],
+                  outputs=[particle_v, more])
+
     if batch_forest is None:
-        wp.launch(cell_select, dim=n_cells, device=device, inputs=[args, forest], outputs=[particle_v, more])
+        select_inline()
         return
     from kernels.forest import eval_forest
+
+    wp.launch(store_cell_args, dim=1, device=device, inputs=[args], outputs=[args_store])
+
+    def record(kernel, dim, inputs, outputs):
+        return wp.launch(kernel, dim=dim, device=device, inputs=inputs, outputs=outputs, record_cmd=True)
+
+    select = record(cell_select, n_cells, [args_store, args.cell_remaining, forest], [particle_v, more])
+    predict = eval_forest(batch_forest, args.batch_features, args.batch_out, device=device,
+                          row_count=args.batch_count, record=True)
+    apply = record(cell_apply, n_cells, [args_store, args.pending_row], [particle_v])
+    next_round = record(cell_next_round, 1, [int(max_rounds), int(min_rows), args.batch_count],
+                        [more, round_count, rounds_total])
 
     def one_round():
         more.zero_()
         args.batch_count.zero_()
-        wp.launch(cell_select, dim=n_cells, device=device, inputs=[args, forest], outputs=[particle_v, more])
-        eval_forest(batch_forest, args.batch_features, args.batch_out, device=device, row_count=args.batch_count)
-        wp.launch(cell_apply, dim=n_cells, device=device, inputs=[args], outputs=[particle_v])
-        wp.launch(cell_next_round, dim=1, device=device, inputs=[int(max_rounds), int(min_rows), args.batch_count],
-                  outputs=[more, round_count, rounds_total])
+        select.launch()
+        if predict is not None:
+            predict.launch()
+        apply.launch()
+        next_round.launch()
 
     more.fill_(1)
     round_count.zero_()
@@ -689,5 +731,4 @@ def collide_cells(args: CellArgs, forest: Forest, particle_v, more, round_count,
     # the cells still holding candidates after the rounds (dense cells: one round per accepted pair would take
     # thousands; the last few pairs of a sparse step: a batch of a few rows costs a whole block) finish inline, in
     # the same order
-    args.batched = 0
-    wp.launch(cell_select, dim=n_cells, device=device, inputs=[args, forest], outputs=[particle_v, more])
+    select_inline()
