@@ -311,9 +311,12 @@ class GasSolver:
         return params
 
     def _launch(self, kernel, items, inputs):
-        """One thread per entry of the index list ``items`` (the list is the kernel's input named in ``inputs``)."""
-        if items.shape[0]:
-            wp.launch(kernel, dim=items.shape[0], inputs=inputs, device=self.device)
+        """The kernel over the index list ``items`` (the list is the kernel's input named in ``inputs``), ``block``
+        entries per thread (kernels/gas.py "Launches": ``CPU_BLOCK`` on the CPU, one on CUDA)."""
+        n = items.shape[0]
+        if n:
+            block = 1 if self.device.is_cuda else K.CPU_BLOCK
+            wp.launch(kernel, dim=(n + block - 1) // block, inputs=[block, *inputs], device=self.device)
 
     def _row_map(self, solved: np.ndarray) -> tuple:
         """(rows, box_to_row) of a system whose solved box rows are ``solved`` (see ``_solve``)."""
