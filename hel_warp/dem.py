@@ -137,24 +137,49 @@ class DEMConfig:
 
 @dataclass
 class ContactList:
-    """Per-particle contact rows (see ``kernels/contacts.py``)."""
+    """Per-particle contact rows (see ``kernels/contacts.py``). The (N, capacity) arrays hold row i in row i
+    in the padded layout (every device, the default); a packed list (``DEMSolver`` with the half list on the
+    CPU) keeps its rows back to back from ``start[i]`` in the same memory: read it with :meth:`padded`."""
 
     partner: object
-    """(N, capacity) int32 partner index, -1 where empty, rows sorted."""
+    """(N, capacity) int32 partner index (padded layout: -1 where empty, rows sorted)."""
     count: object
     """(N,) int32 entries used per row."""
+    start: object
+    """(N,) int32 flat index of row i's first entry (padded: i * capacity)."""
     shear: object
     """(N, capacity) vec3 Mindlin shear displacement, m."""
     touching: object
     """(N, capacity) int32, 1 where the contact was closed at the last force evaluation (onset counting)."""
 
     def rows(self):
-        """The ``kernels.contacts.ContactRows`` view of these arrays (no copy)."""
+        """The ``kernels.contacts.ContactRows`` view of these arrays (flat views, no copy)."""
         from kernels.contacts import ContactRows
 
+        n, capacity = self.partner.shape
         r = ContactRows()
-        r.partner, r.count, r.shear, r.touching = self.partner, self.count, self.shear, self.touching
+        r.partner = self.partner.reshape((n * capacity,))
+        r.shear = self.shear.reshape((n * capacity,))
+        r.touching = self.touching.reshape((n * capacity,))
+        r.count, r.start, r.capacity = self.count, self.start, int(capacity)
         return r
+
+    def padded(self) -> dict:
+        """Host copies of the rows in the padded layout, whatever the device layout: ``partner`` (-1 where
+        empty), ``count``, ``shear``, ``touching`` as (N, capacity) / (N,) numpy arrays."""
+        n, capacity = self.partner.shape
+        count, start = self.count.numpy(), self.start.numpy().astype(np.int64)
+        flat = {"partner": self.partner.numpy().reshape(-1), "shear": self.shear.numpy().reshape(-1, 3),
+                "touching": self.touching.numpy().reshape(-1)}
+        k = np.arange(capacity)
+        used = k[None, :] < count[:, None]
+        index = np.where(used, start[:, None] + k[None, :], 0)
+        out = {name: a[index] for name, a in flat.items()}
+        out["partner"] = np.where(used, out["partner"], -1).astype(np.int32)
+        out["shear"] = np.where(used[:, :, None], out["shear"], 0.0).astype(np.float32)
+        out["touching"] = np.where(used, out["touching"], 0).astype(np.int32)
+        out["count"] = count
+        return out
 
     @classmethod
     def empty(cls, n: int, capacity: int, device) -> "ContactList":
@@ -162,6 +187,7 @@ class ContactList:
 
         return cls(partner=wp.full((n, capacity), -1, dtype=wp.int32, device=device),
                    count=wp.zeros(n, dtype=wp.int32, device=device),
+                   start=wp.array(np.arange(n, dtype=np.int32) * np.int32(capacity), dtype=wp.int32, device=device),
                    shear=wp.zeros((n, capacity), dtype=wp.vec3, device=device),
                    touching=wp.zeros((n, capacity), dtype=wp.int32, device=device))
 
@@ -170,6 +196,7 @@ class ContactList:
 
         wp.copy(self.partner, other.partner)
         wp.copy(self.count, other.count)
+        wp.copy(self.start, other.start)
         wp.copy(self.shear, other.shear)
         wp.copy(self.touching, other.touching)
 
@@ -529,7 +556,8 @@ class DEMSolver:
         else:
             self._old_contacts.copy_from(self.contacts)
         launch_build_contact_list(self.grid, self.spheres, self.r_max, self.skin, self.old_rows, self.rows,
-                                  self.x_at_build, self.overflow, box=self.box, half=self.half_list)
+                                  self.x_at_build, self.overflow, box=self.box, half=self.half_list,
+                                  packed=self.half_list)
         if self.half_list and self.config.walls:
             from kernels.dem_step import launch_mark_near_walls
 
@@ -614,16 +642,14 @@ class DEMSolver:
         n = self.particles.count
         counts = wp.zeros(n, dtype=wp.int32, device=self.device)
         wp.launch(kc.count_touching_pairs, dim=n, device=self.device,
-                  inputs=[self.particles.x, self.particles.radius, self.contacts.partner, self.contacts.count],
-                  outputs=[counts])
+                  inputs=[self.particles.x, self.particles.radius, self.rows], outputs=[counts])
         offsets = wp.zeros(n, dtype=wp.int32, device=self.device)
         wp.utils.array_scan(counts, offsets, inclusive=False)
         total = int(counts.numpy().sum())
         pair_i = wp.zeros(max(total, 1), dtype=wp.int32, device=self.device)
         pair_j = wp.zeros(max(total, 1), dtype=wp.int32, device=self.device)
         wp.launch(kc.fill_touching_pairs, dim=n, device=self.device,
-                  inputs=[self.particles.x, self.particles.radius, self.contacts.partner, self.contacts.count, offsets],
-                  outputs=[pair_i, pair_j])
+                  inputs=[self.particles.x, self.particles.radius, self.rows, offsets], outputs=[pair_i, pair_j])
         if not as_numpy:
             return pair_i, pair_j, wp.array([total], dtype=wp.int32, device=self.device)
         return pair_i.numpy()[:total], pair_j.numpy()[:total]

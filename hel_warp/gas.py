@@ -195,6 +195,9 @@ class GasField:
             target.assign(values)
 
 
+RECORDED_LAUNCHES = 256
+"""Cell and face launches ``GasSolver._launch`` keeps recorded (~40 per step and GasField; the oldest go first)."""
+
 LAUNCH_OVER = ("fluid", "box")
 """What ``GasSolver`` launches its cell and face kernels over (``launch_over``)."""
 
@@ -239,6 +242,8 @@ class GasSolver:
         self.config = config or GasConfig()
         self.device = wp.get_device(device)
         self.launch_over = launch_over
+        self._recorded_launches = {}  # _launch's recorded cell and face launches, by kernel and arguments
+        self._params_cache = {}  # dt -> FlowParams (_params)
         grid = domain.grid
         self.grid_info = grid.info()
         self._n_cells = int(np.prod(grid.shape))
@@ -300,6 +305,16 @@ class GasSolver:
 
     # ------------------------------------------------------------------ helpers
     def _params(self, dt: float) -> K.FlowParams:
+        """The ``FlowParams`` of a step of ``dt``: one struct per dt, kept (``_launch`` records launches by the
+        identity of their arguments)."""
+        params = self._params_cache.get(dt)
+        if params is None:
+            if len(self._params_cache) >= RECORDED_LAUNCHES:
+                self._params_cache.pop(next(iter(self._params_cache)))
+            params = self._params_cache[dt] = self._new_params(dt)
+        return params
+
+    def _new_params(self, dt: float) -> K.FlowParams:
         c = self.config
         params = K.FlowParams()
         params.rho = float(c.density)
@@ -311,9 +326,24 @@ class GasSolver:
         return params
 
     def _launch(self, kernel, items, inputs):
-        """One thread per entry of the index list ``items`` (the list is the kernel's input named in ``inputs``)."""
-        if items.shape[0]:
-            wp.launch(kernel, dim=items.shape[0], inputs=inputs, device=self.device)
+        """The kernel over the index list ``items`` (the list is the kernel's input named in ``inputs``), ``block``
+        entries per thread (kernels/gas.py "Launches": ``CPU_BLOCK`` on the CPU, one on CUDA)."""
+        n = items.shape[0]
+        if not n:
+            return
+        # recorded once per kernel and arguments (the same objects: arrays, structs; scalars by value), replayed
+        # after: packing a launch's struct arguments costs ~70 us of host time on the CPU (~35 launches per step)
+        key = (kernel.key, *(v if isinstance(v, (int, float)) else id(v) for v in (items, *inputs)))
+        entry = self._recorded_launches.get(key)
+        if entry is None:
+            if len(self._recorded_launches) >= RECORDED_LAUNCHES:
+                self._recorded_launches.pop(next(iter(self._recorded_launches)))
+            block = 1 if self.device.is_cuda else K.CPU_BLOCK
+            launch = wp.launch(kernel, dim=(n + block - 1) // block, inputs=[block, *inputs], device=self.device,
+                               record_cmd=True)
+            # the arguments are kept with the launch: an id is not reused while its object lives
+            entry = self._recorded_launches[key] = (launch, (items, *inputs))
+        entry[0].launch()
 
     def _row_map(self, solved: np.ndarray) -> tuple:
         """(rows, box_to_row) of a system whose solved box rows are ``solved`` (see ``_solve``)."""

@@ -32,9 +32,18 @@ What it computes
 - A compact pair list (i < j, touching only) for collision-rate and statistics kernels.
 - A spatial sort (gather by hash-grid cell order) that keeps neighbours close in memory.
 
-Layout: ``contact_partner`` (N, capacity) int32, -1 where empty; ``contact_count`` (N,) int32;
-``contact_shear`` (N, capacity) vec3, m (tangential spring displacement, Mindlin 1949);
-``contact_touching`` (N, capacity) int32, 1 while the contact is closed (onset bookkeeping).
+Layout (:class:`ContactRows`): flat arrays of N * capacity entries, ``partner`` int32, ``shear`` vec3, m
+(tangential spring displacement, Mindlin 1949), ``touching`` int32 (1 while the contact is closed: onset
+bookkeeping); row i is the ``count[i]`` entries from ``start[i]``, sorted by partner. Two layouts of the same
+arrays:
+
+- *padded* (every device): ``start[i] = i * capacity``, -1 in the unused partner slots; the host reads the
+  rows as (N, capacity) arrays (``hel_warp.dem.ContactList``);
+- *packed* (``build_contact_list`` with ``packed = 1``; a device that runs threads in ``tid`` order, the
+  CPU): row i follows row i - 1 (``start[i] = start[i-1] + count[i-1]``), so the entries in use are one
+  contiguous stream. A sparse list (a falling bed: 0.4 entries per sphere in the half list) then costs
+  one sequential read instead of three scattered cache lines per non-empty row (measured on the 1e5 falling
+  bed: the rows' reads 46 -> 12 ns per sphere and step).
 """
 
 from __future__ import annotations
@@ -49,16 +58,20 @@ from kernels.integrate import SphereArrays, sphere_mass
 
 @wp.struct
 class ContactRows:
-    """Per-particle contact rows (layout in the module docstring)."""
+    """Per-particle contact rows (layout in the module docstring): entry k of row i is at ``start[i] + k``."""
 
-    partner: wp.array2d(dtype=wp.int32)
-    """(N, capacity) partner index, -1 where empty; row i sorted ascending."""
+    partner: wp.array(dtype=wp.int32)
+    """(N * capacity,) partner index; row i sorted ascending (padded layout: -1 where empty)."""
     count: wp.array(dtype=wp.int32)
     """(N,) entries used in row i."""
-    shear: wp.array2d(dtype=wp.vec3)
-    """(N, capacity) Mindlin shear displacement of each contact, m."""
-    touching: wp.array2d(dtype=wp.int32)
-    """(N, capacity) 1 where the contact had overlap > 0 at the last force evaluation, else 0."""
+    start: wp.array(dtype=wp.int32)
+    """(N,) flat index of the first entry of row i (padded: i * capacity; packed: the rows back to back)."""
+    shear: wp.array(dtype=wp.vec3)
+    """(N * capacity,) Mindlin shear displacement of each contact, m."""
+    touching: wp.array(dtype=wp.int32)
+    """(N * capacity,) 1 where the contact had overlap > 0 at the last force evaluation, else 0."""
+    capacity: int
+    """Entries a row may hold."""
 
 
 @wp.struct
@@ -202,6 +215,7 @@ def build_contact_list(
     box: PeriodicBox,
     old: ContactRows,
     half: int,
+    packed: int,
     # outputs
     rows: ContactRows,
     particle_x_at_build: wp.array[wp.vec3],
@@ -215,6 +229,10 @@ def build_contact_list(
     shear's sign reversed (the owner's frame). ``overflow[0]`` receives the largest candidate count of a row
     that did not fit (integer atomic max); in a half list too it counts every candidate, j < i included, so a
     capacity that works on one device works on the other.
+
+    ``packed = 1``: the packed layout (module docstring), row i written right after row i - 1: threads must run
+    in ``tid`` order (the CPU device). Row i's start is at most ``i * capacity``, so its slots never reach
+    past the padded row's end. ``old`` may be in either layout.
     """
     i = wp.tid()
     particle_x = spheres.x
@@ -222,7 +240,11 @@ def build_contact_list(
     particle_alive = spheres.alive
     contact_partner = rows.partner
     old_partner = old.partner
-    capacity = contact_partner.shape[1]
+    capacity = rows.capacity
+    base = i * capacity
+    if packed != 0 and i > 0:
+        base = rows.start[i - 1] + rows.count[i - 1]
+    rows.start[i] = base
     xi = particle_x[i]
     particle_x_at_build[i] = xi
     n = int(0)
@@ -240,42 +262,45 @@ def build_contact_list(
                         k = int(-1)
                         if n < capacity:
                             k = n
-                        elif contact_partner[i, capacity - 1] > j:
+                        elif contact_partner[base + capacity - 1] > j:
                             k = capacity - 1
                         if k >= 0:
-                            while k > 0 and contact_partner[i, k - 1] > j:
-                                contact_partner[i, k] = contact_partner[i, k - 1]
+                            while k > 0 and contact_partner[base + k - 1] > j:
+                                contact_partner[base + k] = contact_partner[base + k - 1]
                                 k = k - 1
-                            contact_partner[i, k] = j
+                            contact_partner[base + k] = j
                         n = n + 1
     if candidates > capacity:
         wp.atomic_max(overflow, 0, candidates)
     m = wp.min(n, capacity)
     rows.count[i] = m
-    for k in range(m, capacity):
-        contact_partner[i, k] = -1
+    if packed == 0:
+        for k in range(m, capacity):
+            contact_partner[base + k] = -1
     # merge with the old row (both sorted by partner id) to carry the shear history and touching flag
     old_n = old.count[i]
+    old_base = old.start[i]
     o = int(0)
     for k in range(m):
-        j = contact_partner[i, k]
+        j = contact_partner[base + k]
         s = wp.vec3(0.0)
         touching = int(0)
-        while o < old_n and old_partner[i, o] < j:
+        while o < old_n and old_partner[old_base + o] < j:
             o = o + 1
         found = int(0)
         if o < old_n:
-            if old_partner[i, o] == j:
-                s = old.shear[i, o]
-                touching = old.touching[i, o]
+            if old_partner[old_base + o] == j:
+                s = old.shear[old_base + o]
+                touching = old.touching[old_base + o]
                 found = 1
         if half != 0 and found == 0:
+            j_base = old.start[j]
             for q in range(old.count[j]):
-                if old_partner[j, q] == i:
-                    s = -old.shear[j, q]
-                    touching = old.touching[j, q]
-        rows.shear[i, k] = s
-        rows.touching[i, k] = touching
+                if old_partner[j_base + q] == i:
+                    s = -old.shear[j_base + q]
+                    touching = old.touching[j_base + q]
+        rows.shear[base + k] = s
+        rows.touching[base + k] = touching
 
 
 @wp.kernel
@@ -314,8 +339,10 @@ def contact_forces(
     mi = sphere_mass(ri, particle_density[i])
     f = wp.vec3(0.0)
     t = wp.vec3(0.0)
+    base = rows.start[i]
     for k in range(rows.count[i]):
-        j = contact_partner[i, k]
+        e = base + k
+        j = contact_partner[e]
         d = minimum_image(box, particle_x[j] - xi)
         dist = wp.length(d)
         rj = particle_radius[j]
@@ -324,23 +351,23 @@ def contact_forces(
             n = d / dist
             wj = particle_omega[j]
             vj = particle_v[j]
-            if rows.touching[i, k] == 0:
-                rows.touching[i, k] = 1
+            if rows.touching[e] == 0:
+                rows.touching[e] = 1
                 if onsets.counting != 0 and i < j:
                     record_onset(onsets, i, j, wp.dot(vi - vj, n))
             v_rel = vi - vj + wp.cross(ri * wi + rj * wj, n)
             mj = sphere_mass(rj, particle_density[j])
             p = with_bodies(params, ri * rj / (ri + rj), mi * mj / (mi + mj))
-            fc, shear_new, fn = contact_force(n, overlap, v_rel, contact_shear[i, k], p, dt)
-            contact_shear[i, k] = shear_new
+            fc, shear_new, fn = contact_force(n, overlap, v_rel, contact_shear[e], p, dt)
+            contact_shear[e] = shear_new
             f = f + fc
             t = t + wp.cross(ri * n, fc)
             if p.rolling_friction > 0.0:
                 t = t + rolling_torque(p, n, wi - wj, fn)
         else:
-            contact_shear[i, k] = wp.vec3(0.0)
-            if rows.touching[i, k] != 0:
-                rows.touching[i, k] = 0
+            contact_shear[e] = wp.vec3(0.0)
+            if rows.touching[e] != 0:
+                rows.touching[e] = 0
     particle_f[i] = f
     particle_torque[i] = t
 
@@ -357,16 +384,16 @@ def is_touching_partner(particle_x: wp.array[wp.vec3], particle_radius: wp.array
 def count_touching_pairs(
     particle_x: wp.array[wp.vec3],
     particle_radius: wp.array[wp.float32],
-    contact_partner: wp.array2d[wp.int32],
-    contact_count: wp.array[wp.int32],
+    rows: ContactRows,
     # outputs
     pair_count: wp.array[wp.int32],
 ):
     """pair_count[i] = number of partners j > i with overlap > 0."""
     i = wp.tid()
     c = int(0)
-    for k in range(contact_count[i]):
-        if is_touching_partner(particle_x, particle_radius, i, contact_partner[i, k]):
+    base = rows.start[i]
+    for k in range(rows.count[i]):
+        if is_touching_partner(particle_x, particle_radius, i, rows.partner[base + k]):
             c = c + 1
     pair_count[i] = c
 
@@ -375,8 +402,7 @@ def count_touching_pairs(
 def fill_touching_pairs(
     particle_x: wp.array[wp.vec3],
     particle_radius: wp.array[wp.float32],
-    contact_partner: wp.array2d[wp.int32],
-    contact_count: wp.array[wp.int32],
+    rows: ContactRows,
     pair_offset: wp.array[wp.int32],
     # outputs
     pair_i: wp.array[wp.int32],
@@ -385,8 +411,9 @@ def fill_touching_pairs(
     """Write the touching pairs (i < j) of row i at ``pair_offset[i]`` (exclusive scan of the counts)."""
     i = wp.tid()
     c = pair_offset[i]
-    for k in range(contact_count[i]):
-        j = contact_partner[i, k]
+    base = rows.start[i]
+    for k in range(rows.count[i]):
+        j = rows.partner[base + k]
         if is_touching_partner(particle_x, particle_radius, i, j):
             pair_i[c] = i
             pair_j[c] = j
@@ -410,8 +437,9 @@ def count_touching_stream_pairs(
         return
     xi = spheres.x[i]
     ri = spheres.radius[i]
+    base = rows.start[i]
     for k in range(rows.count[i]):
-        j = rows.partner[i, k]
+        j = rows.partner[base + k]
         if j > i:
             if wp.length(minimum_image(box, spheres.x[j] - xi)) < ri + spheres.radius[j]:
                 wp.atomic_add(touching, stream_pair_slot(particle_stream[i], particle_stream[j], n_streams), 1)
@@ -465,27 +493,30 @@ def gather_contact_rows(
     dst: ContactRows,
 ):
     """Move contact rows (shear, touching flag) to the new particle order and renumber partners, keeping
-    rows sorted by id."""
+    rows sorted by id. ``src`` in either layout; ``dst`` is written padded (``start[k] = k * capacity``)."""
     k = wp.tid()
     old = new_to_old[k]
     m = src.count[old]
+    src_base = src.start[old]
+    capacity = dst.capacity
+    base = k * capacity
+    dst.start[k] = base
     dst.count[k] = m
-    capacity = dst.partner.shape[1]
     for c in range(m):
-        j = old_to_new[src.partner[old, c]]
-        s = src.shear[old, c]
-        touching = src.touching[old, c]
+        j = old_to_new[src.partner[src_base + c]]
+        s = src.shear[src_base + c]
+        touching = src.touching[src_base + c]
         p = c
-        while p > 0 and dst.partner[k, p - 1] > j:
-            dst.partner[k, p] = dst.partner[k, p - 1]
-            dst.shear[k, p] = dst.shear[k, p - 1]
-            dst.touching[k, p] = dst.touching[k, p - 1]
+        while p > 0 and dst.partner[base + p - 1] > j:
+            dst.partner[base + p] = dst.partner[base + p - 1]
+            dst.shear[base + p] = dst.shear[base + p - 1]
+            dst.touching[base + p] = dst.touching[base + p - 1]
             p = p - 1
-        dst.partner[k, p] = j
-        dst.shear[k, p] = s
-        dst.touching[k, p] = touching
+        dst.partner[base + p] = j
+        dst.shear[base + p] = s
+        dst.touching[base + p] = touching
     for c in range(m, capacity):
-        dst.partner[k, c] = -1
+        dst.partner[base + c] = -1
 
 
 @wp.kernel
@@ -548,13 +579,17 @@ def launch_wrap_into_box(box: PeriodicBox, x, x_grid) -> None:
 
 def launch_build_contact_list(grid, spheres: SphereArrays, max_radius: float, skin: float, old: ContactRows,
                               rows: ContactRows, x_at_build, overflow, box: PeriodicBox | None = None,
-                              half: bool = False) -> None:
+                              half: bool = False, packed: bool = False) -> None:
     """Rebuild ``rows`` from ``old`` (their previous contents; shear and touching flag carried by partner id).
 
     ``grid`` holds ``x * box.grid_scale`` (``launch_wrap_into_box`` first in a periodic box); ``box`` None
-    is open space; ``half``: keep only partners j > i (``kernels/dem_step.py``)."""
+    is open space; ``half``: keep only partners j > i (``kernels/dem_step.py``); ``packed``: the packed
+    layout (module docstring; CPU device only)."""
+    if packed and spheres.x.device.is_cuda:
+        raise ValueError("the packed contact layout is built by threads in tid order: CPU device only")
     wp.launch(build_contact_list, dim=spheres.x.shape[0], device=spheres.x.device,
-              inputs=[grid.id, spheres, max_radius, skin, box if box is not None else open_space(), old, int(half)],
+              inputs=[grid.id, spheres, max_radius, skin, box if box is not None else open_space(), old, int(half),
+                      int(packed)],
               outputs=[rows, x_at_build, overflow])
 
 

@@ -19,6 +19,8 @@ differs is how the work is arranged, for a device that runs a kernel's threads o
   is complete when thread i starts (every j < i has run) and its own row is done, so its kick follows
   at once; and no later thread reads x_i (their rows hold partners j' > j > i only), so i may move on
   to the next step before the others. The list check then runs between the passes.
+- **Packed rows** (``build_contact_list`` with ``packed = 1``): row i starts where row i - 1 ends, so the
+  pass reads the entries in use as one stream (a sparse list's rows are otherwise scattered cache lines).
 - **Wall list**: at each list build ``mark_near_walls`` flags the walls within r + skin of a particle
   (LIGGGHTS keeps a neighbour list for its walls too); the others cannot be reached before the next
   build and are not tested.
@@ -139,8 +141,10 @@ def forces_kick_one(
     mi = sphere_mass(ri, particle_density[i])
     f = particle_f[i]  # the pairs (j', i), j' < i, whose threads ran before this one
     t = particle_torque[i]
+    base = rows.start[i]
     for k in range(rows.count[i]):
-        j = contact_partner[i, k]
+        e = base + k
+        j = contact_partner[e]
         d = minimum_image(box, particle_x[j] - xi)
         dist = wp.length(d)
         rj = particle_radius[j]
@@ -149,15 +153,15 @@ def forces_kick_one(
             n = d / dist
             wj = particle_omega[j]
             vj = particle_v[j]
-            if rows.touching[i, k] == 0:
-                rows.touching[i, k] = 1
+            if rows.touching[e] == 0:
+                rows.touching[e] = 1
                 if onsets.counting != 0:
                     record_onset(onsets, i, j, wp.dot(vi - vj, n))
             v_rel = vi - vj + wp.cross(ri * wi + rj * wj, n)
             mj = sphere_mass(rj, particle_density[j])
             p = with_bodies(params, ri * rj / (ri + rj), mi * mj / (mi + mj))
-            fc, shear_new, fn = contact_force(n, overlap, v_rel, contact_shear[i, k], p, dt)
-            contact_shear[i, k] = shear_new
+            fc, shear_new, fn = contact_force(n, overlap, v_rel, contact_shear[e], p, dt)
+            contact_shear[e] = shear_new
             f = f + fc
             t = t + wp.cross(ri * n, fc)
             particle_f[j] = particle_f[j] - fc
@@ -167,9 +171,9 @@ def forces_kick_one(
                 t = t + roll
                 particle_torque[j] = particle_torque[j] - roll
         else:
-            contact_shear[i, k] = wp.vec3(0.0)
-            if rows.touching[i, k] != 0:
-                rows.touching[i, k] = 0
+            contact_shear[e] = wp.vec3(0.0)
+            if rows.touching[e] != 0:
+                rows.touching[e] = 0
     near = walls.near[i]
     if spheres.alive[i] != 0 and near != 0:
         fw = wp.vec3(0.0)

@@ -26,10 +26,18 @@ Launches: every cell and face kernel runs one thread per entry of an index list 
 ``wp.array(dtype=wp.vec3i)``, built once by ``GasSolver``): the fluid cells and the faces a kernel updates,
 not the whole box (on the colliding-streams rig 34,768 of 102,400 cells are fluid). The kernels keep their
 branches for solid cells and fixed faces, so a list of the whole box gives the same fields
-(``GasSolver(launch_over="box")``, the reference of tests/test_gas.py).
+(``GasSolver(launch_over="box")``, the reference of tests/test_gas.py). Each such kernel is a ``@wp.func``
+``<name>_one(..., index)`` for one entry and a ``@wp.kernel`` whose thread runs ``block`` consecutive entries
+(``CPU_BLOCK`` on the CPU, 1 on CUDA): Warp's CPU loop copies a kernel's arguments for every thread, ~1 kB
+of structs here (``FaceFloat``, ``FaceInt``, ``FaceBc``: ~30 ns per thread, measured), once per block instead.
+The entries run in the same order on the CPU, so the fields are the same bits.
 """
 
 import warp as wp
+
+CPU_BLOCK = 64
+"""Index-list entries per thread of the cell and face kernels on the CPU (module docstring, "Launches"; 64-256
+measured alike on ``face_forces_kernel``: 65 -> 33-35 ns per face)."""
 
 FACE_WALL = wp.constant(0)
 """Fixed zero normal velocity (solid neighbour cell or domain wall)."""
@@ -345,21 +353,21 @@ def face_position(g: GridInfo, axis: int, f: wp.vec3i):
     return g.origin + g.spacing * p
 
 
-@wp.kernel
-def advect_kernel(
+@wp.func
+def advect_one(
     g: GridInfo,
     axis: int,
     faces: wp.array(dtype=wp.vec3i),
     types: FaceInt,
     vel_old: FaceFloat,
     dt: float,
-    # outputs
     vel_new: FaceFloat,
+    index: int,
 ):
     """Semi-Lagrangian advection with an RK2 (midpoint) back-trace; fixed faces keep their value. The first stage
     takes the velocity at the face from the face and its neighbours (``velocity_at_face``), the other two sample
     trilinearly."""
-    f = faces[wp.tid()]
+    f = faces[index]
     t = get_t(types, axis, f)
     if is_solved(t):
         x = face_position(g, axis, f)
@@ -370,20 +378,39 @@ def advect_kernel(
         set_f(vel_new, axis, f, get_f(vel_old, axis, f))
 
 
+@wp.kernel
+def advect_kernel(
+    block: int,
+    g: GridInfo,
+    axis: int,
+    faces: wp.array(dtype=wp.vec3i),
+    types: FaceInt,
+    vel_old: FaceFloat,
+    dt: float,
+    # outputs
+    vel_new: FaceFloat,
+):
+    """``advect_one`` for ``block`` consecutive entries of ``faces`` per thread (module
+    docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
+        advect_one(g, axis, faces, types, vel_old, dt, vel_new, index)
+
+
 # ----------------------------------------------------------------- cell quantities
 
 
-@wp.kernel
-def eps_f_kernel(
+@wp.func
+def eps_f_one(
     cells: wp.array(dtype=wp.vec3i),
     cell_eps_s: wp.array3d(dtype=float),
     cell_fluid: wp.array3d(dtype=wp.int32),
     eps_min: float,
-    # outputs
     cell_eps_f: wp.array3d(dtype=float),
+    index: int,
 ):
     """eps_f = max(1 - eps_s, eps_min) in fluid cells, 1 in solid cells."""
-    c = cells[wp.tid()]
+    c = cells[index]
     i, j, k = c[0], c[1], c[2]
     if cell_fluid[i, j, k] != 0:
         cell_eps_f[i, j, k] = wp.clamp(1.0 - cell_eps_s[i, j, k], eps_min, 1.0)
@@ -392,16 +419,33 @@ def eps_f_kernel(
 
 
 @wp.kernel
-def cell_velocity_kernel(
+def eps_f_kernel(
+    block: int,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_eps_s: wp.array3d(dtype=float),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    eps_min: float,
+    # outputs
+    cell_eps_f: wp.array3d(dtype=float),
+):
+    """``eps_f_one`` for ``block`` consecutive entries of ``cells`` per thread (module
+    docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
+        eps_f_one(cells, cell_eps_s, cell_fluid, eps_min, cell_eps_f, index)
+
+
+@wp.func
+def cell_velocity_one(
     g: GridInfo,
     cells: wp.array(dtype=wp.vec3i),
     cell_fluid: wp.array3d(dtype=wp.int32),
     vel: FaceFloat,
-    # outputs
     cell_velocity: wp.array3d(dtype=wp.vec3),
+    index: int,
 ):
     """Cell-centred velocity = mean of the two faces per axis (0 in solid cells)."""
-    c = cells[wp.tid()]
+    c = cells[index]
     i, j, k = c[0], c[1], c[2]
     u = wp.vec3(0.0, 0.0, 0.0)
     if cell_fluid[i, j, k] != 0:
@@ -409,6 +453,23 @@ def cell_velocity_kernel(
             hi = wrap_face(g, a, c + unit(a))
             u[a] = 0.5 * (get_f(vel, a, c) + get_f(vel, a, hi))
     cell_velocity[i, j, k] = u
+
+
+@wp.kernel
+def cell_velocity_kernel(
+    block: int,
+    g: GridInfo,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    vel: FaceFloat,
+    # outputs
+    cell_velocity: wp.array3d(dtype=wp.vec3),
+):
+    """``cell_velocity_one`` for ``block`` consecutive entries of ``cells`` per thread (module
+    docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
+        cell_velocity_one(g, cells, cell_fluid, vel, cell_velocity, index)
 
 
 @wp.func
@@ -419,20 +480,20 @@ def cell_value(g: GridInfo, field: wp.array3d(dtype=wp.vec3), c: wp.vec3i, fallb
     return field[w[0], w[1], w[2]]
 
 
-@wp.kernel
-def smagorinsky_kernel(
+@wp.func
+def smagorinsky_one(
     g: GridInfo,
     params: FlowParams,
     cells: wp.array(dtype=wp.vec3i),
     cell_fluid: wp.array3d(dtype=wp.int32),
     cell_velocity: wp.array3d(dtype=wp.vec3),
     cell_eps_f: wp.array3d(dtype=float),
-    # outputs
     cell_nu_t: wp.array3d(dtype=float),
     cell_kappa: wp.array3d(dtype=float),
+    index: int,
 ):
     """nu_t = (C_s h)^2 sqrt(2 S:S) (Smagorinsky 1963), kappa = eps_f (mu + rho nu_t)."""
-    c = cells[wp.tid()]
+    c = cells[index]
     i, j, k = c[0], c[1], c[2]
     grad = wp.mat33(0.0)
     for d in range(3):
@@ -455,19 +516,39 @@ def smagorinsky_kernel(
 
 
 @wp.kernel
-def face_coefficients_kernel(
+def smagorinsky_kernel(
+    block: int,
+    g: GridInfo,
+    params: FlowParams,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    cell_velocity: wp.array3d(dtype=wp.vec3),
+    cell_eps_f: wp.array3d(dtype=float),
+    # outputs
+    cell_nu_t: wp.array3d(dtype=float),
+    cell_kappa: wp.array3d(dtype=float),
+):
+    """``smagorinsky_one`` for ``block`` consecutive entries of ``cells`` per thread (module
+    docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
+        smagorinsky_one(g, params, cells, cell_fluid, cell_velocity, cell_eps_f, cell_nu_t, cell_kappa, index)
+
+
+@wp.func
+def face_coefficients_one(
     g: GridInfo,
     axis: int,
     faces: wp.array(dtype=wp.vec3i),
     cell_fluid: wp.array3d(dtype=wp.int32),
     cell_eps_f: wp.array3d(dtype=float),
     cell_kappa: wp.array3d(dtype=float),
-    # outputs
     face_eps: FaceFloat,
     face_kappa: FaceFloat,
+    index: int,
 ):
     """Face eps_f and eps_f mu_eff: mean over the adjacent fluid cells (1 and 0 if none)."""
-    f = faces[wp.tid()]
+    f = faces[index]
     eps_sum = float(0.0)
     kappa_sum = float(0.0)
     count = float(0.0)
@@ -484,6 +565,26 @@ def face_coefficients_kernel(
     else:
         set_f(face_eps, axis, f, 1.0)
         set_f(face_kappa, axis, f, 0.0)
+
+
+@wp.kernel
+def face_coefficients_kernel(
+    block: int,
+    g: GridInfo,
+    axis: int,
+    faces: wp.array(dtype=wp.vec3i),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    cell_eps_f: wp.array3d(dtype=float),
+    cell_kappa: wp.array3d(dtype=float),
+    # outputs
+    face_eps: FaceFloat,
+    face_kappa: FaceFloat,
+):
+    """``face_coefficients_one`` for ``block`` consecutive entries of ``faces`` per thread (module
+    docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
+        face_coefficients_one(g, axis, faces, cell_fluid, cell_eps_f, cell_kappa, face_eps, face_kappa, index)
 
 
 @wp.func
@@ -503,20 +604,36 @@ def momentum_source_increment(g: GridInfo, axis: int, params: FlowParams, cell_f
     return params.dt * component(params.body_accel, axis) + impulse / (params.rho * get_f(face_eps, axis, f) * volume)
 
 
+@wp.func
+def periodic_sync_one(
+    g: GridInfo,
+    axis: int,
+    faces: wp.array(dtype=wp.vec3i),
+    vel: FaceFloat,
+    index: int,
+):
+    """Copy face 0 of a periodic axis onto its alias face n_a."""
+    f = faces[index]
+    if f[axis] == g.shape[axis] and g.periodic[axis] != 0:
+        f0 = f
+        f0[axis] = 0
+        set_f(vel, axis, f, get_f(vel, axis, f0))
+
+
 @wp.kernel
 def periodic_sync_kernel(
+    block: int,
     g: GridInfo,
     axis: int,
     faces: wp.array(dtype=wp.vec3i),
     # outputs
     vel: FaceFloat,
 ):
-    """Copy face 0 of a periodic axis onto its alias face n_a."""
-    f = faces[wp.tid()]
-    if f[axis] == g.shape[axis] and g.periodic[axis] != 0:
-        f0 = f
-        f0[axis] = 0
-        set_f(vel, axis, f, get_f(vel, axis, f0))
+    """``periodic_sync_one`` for ``block`` consecutive entries of ``faces`` per thread (module
+    docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
+        periodic_sync_one(g, axis, faces, vel, index)
 
 
 # ----------------------------------------------------------------- implicit viscous step
@@ -585,20 +702,20 @@ class ViscousTopology:
     """Its Dirichlet value, m/s."""
 
 
-@wp.kernel
-def viscous_topology_kernel(
+@wp.func
+def viscous_topology_one(
     g: GridInfo,
     axis: int,
     faces: wp.array(dtype=wp.vec3i),
     face_row: wp.array(dtype=wp.int32),
     types: FaceInt,
     bc: FaceBc,
-    # outputs
     topology: ViscousTopology,
+    index: int,
 ):
     """Classify the six neighbours of every solved face of ``axis`` (``viscous_neighbour``; the face types and
     boundary values are fixed)."""
-    f = faces[wp.tid()]
+    f = faces[index]
     shape = face_shape(g, axis)
     row = face_row[flat_index(shape, f)]
     if row < 0:
@@ -620,7 +737,26 @@ def viscous_topology_kernel(
 
 
 @wp.kernel
-def viscous_rhs_kernel(
+def viscous_topology_kernel(
+    block: int,
+    g: GridInfo,
+    axis: int,
+    faces: wp.array(dtype=wp.vec3i),
+    face_row: wp.array(dtype=wp.int32),
+    types: FaceInt,
+    bc: FaceBc,
+    # outputs
+    topology: ViscousTopology,
+):
+    """``viscous_topology_one`` for ``block`` consecutive entries of ``faces`` per thread (module
+    docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
+        viscous_topology_one(g, axis, faces, face_row, types, bc, topology, index)
+
+
+@wp.func
+def viscous_rhs_one(
     g: GridInfo,
     axis: int,
     params: FlowParams,
@@ -630,17 +766,17 @@ def viscous_rhs_kernel(
     face_eps: FaceFloat,
     face_kappa: FaceFloat,
     vel: FaceFloat,
-    # outputs
     rhs: wp.array(dtype=wp.float64),
     guess: wp.array(dtype=wp.float64),
     A: Stencil,
+    index: int,
 ):
     """Backward-Euler viscous system of one component: (rho eps/dt) u - div(kappa grad u) = (rho eps/dt) u*,
     as a 7-point stencil (diag, coef, neighbour) for ``stencil_matvec_kernel``, written straight into the
     compact system: row ``face_row[flat face index]`` (-1: a fixed face, no row; see "compacted systems").
     Neighbours as ``topology`` classified them: coupled (coef = mean kappa / h^2), Dirichlet (kappa_f factor /
     h^2 on the diagonal, times the value on the right), or zero gradient (nothing)."""
-    f = faces[wp.tid()]
+    f = faces[index]
     shape = face_shape(g, axis)
     row = face_row[flat_index(shape, f)]
     if row < 0:
@@ -672,7 +808,49 @@ def viscous_rhs_kernel(
 
 
 @wp.kernel
+def viscous_rhs_kernel(
+    block: int,
+    g: GridInfo,
+    axis: int,
+    params: FlowParams,
+    faces: wp.array(dtype=wp.vec3i),
+    face_row: wp.array(dtype=wp.int32),
+    topology: ViscousTopology,
+    face_eps: FaceFloat,
+    face_kappa: FaceFloat,
+    vel: FaceFloat,
+    # outputs
+    rhs: wp.array(dtype=wp.float64),
+    guess: wp.array(dtype=wp.float64),
+    A: Stencil,
+):
+    """``viscous_rhs_one`` for ``block`` consecutive entries of ``faces`` per thread (module
+    docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
+        viscous_rhs_one(g, axis, params, faces, face_row, topology, face_eps, face_kappa, vel, rhs, guess, A, index)
+
+
+@wp.func
+def store_component_one(
+    g: GridInfo,
+    axis: int,
+    faces: wp.array(dtype=wp.vec3i),
+    face_row: wp.array(dtype=wp.int32),
+    x: wp.array(dtype=wp.float64),
+    vel: FaceFloat,
+    index: int,
+):
+    """u_f = x[row of f] on the solved faces (the viscous solution; fixed faces keep their value)."""
+    f = faces[index]
+    row = face_row[flat_index(face_shape(g, axis), f)]
+    if row >= 0:
+        set_f(vel, axis, f, float(x[row]))
+
+
+@wp.kernel
 def store_component_kernel(
+    block: int,
     g: GridInfo,
     axis: int,
     faces: wp.array(dtype=wp.vec3i),
@@ -681,18 +859,18 @@ def store_component_kernel(
     # outputs
     vel: FaceFloat,
 ):
-    """u_f = x[row of f] on the solved faces (the viscous solution; fixed faces keep their value)."""
-    f = faces[wp.tid()]
-    row = face_row[flat_index(face_shape(g, axis), f)]
-    if row >= 0:
-        set_f(vel, axis, f, float(x[row]))
+    """``store_component_one`` for ``block`` consecutive entries of ``faces`` per thread (module
+    docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
+        store_component_one(g, axis, faces, face_row, x, vel, index)
 
 
 # ----------------------------------------------------------------- pressure projection
 
 
-@wp.kernel
-def pressure_rhs_kernel(
+@wp.func
+def pressure_rhs_one(
     g: GridInfo,
     params: FlowParams,
     cells: wp.array(dtype=wp.vec3i),
@@ -705,17 +883,17 @@ def pressure_rhs_kernel(
     cell_eps_f: wp.array3d(dtype=float),
     cell_eps_f_prev: wp.array3d(dtype=float),
     outlet_weight: float,
-    # outputs
     rhs: wp.array(dtype=wp.float64),
     A: Stencil,
     active: wp.array(dtype=wp.int32),
     fluid_sum: wp.array(dtype=wp.float64),
+    index: int,
 ):
     """b_c = -(rho h^2/dt)(div(eps u*) + d eps/dt) + sum_outlet 2 eps_f p_out; and the matrix
     (A p)_c = diag_c p_c - sum_m coef_cm p_nb(c,m): diag = sum_fluid eps_f + sum_outlet 2 eps_f,
     coef = eps_f on the 6 faces (0 on walls, inlets, outlets); written straight into the compact system,
     row ``cell_row[flat cell index]`` (-1: a solid cell, no row)."""
-    c = cells[wp.tid()]
+    c = cells[index]
     i, j, k = c[0], c[1], c[2]
     row = cell_row[flat_index(g.shape, c)]
     if row < 0:
@@ -765,6 +943,35 @@ def pressure_rhs_kernel(
 
 
 @wp.kernel
+def pressure_rhs_kernel(
+    block: int,
+    g: GridInfo,
+    params: FlowParams,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_row: wp.array(dtype=wp.int32),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    types: FaceInt,
+    bc: FaceBc,
+    face_eps: FaceFloat,
+    vel: FaceFloat,
+    cell_eps_f: wp.array3d(dtype=float),
+    cell_eps_f_prev: wp.array3d(dtype=float),
+    outlet_weight: float,
+    # outputs
+    rhs: wp.array(dtype=wp.float64),
+    A: Stencil,
+    active: wp.array(dtype=wp.int32),
+    fluid_sum: wp.array(dtype=wp.float64),
+):
+    """``pressure_rhs_one`` for ``block`` consecutive entries of ``cells`` per thread (module
+    docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
+        pressure_rhs_one(g, params, cells, cell_row, cell_fluid, types, bc, face_eps, vel, cell_eps_f,
+                  cell_eps_f_prev, outlet_weight, rhs, A, active, fluid_sum, index)
+
+
+@wp.kernel
 def remove_mean_kernel(
     active: wp.array(dtype=wp.int32),
     fluid_sum: wp.array(dtype=wp.float64),
@@ -795,8 +1002,28 @@ def stencil_matvec_kernel(
     z[row] = alpha * ax + beta * y[row]
 
 
+@wp.func
+def pressure_increment_one(
+    g: GridInfo,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_row: wp.array(dtype=wp.int32),
+    x: wp.array(dtype=wp.float64),
+    increment: wp.array(dtype=wp.float64),
+    total: wp.array(dtype=wp.float64),
+    index: int,
+):
+    """dp = x[row of c] (flat, box-sized) and p^{n+1} = p^n + dp on the fluid cells (solid cells keep 0)."""
+    c = cells[index]
+    flat = flat_index(g.shape, c)
+    row = cell_row[flat]
+    if row >= 0:
+        increment[flat] = x[row]
+        total[flat] = total[flat] + x[row]
+
+
 @wp.kernel
 def pressure_increment_kernel(
+    block: int,
     g: GridInfo,
     cells: wp.array(dtype=wp.vec3i),
     cell_row: wp.array(dtype=wp.int32),
@@ -805,13 +1032,11 @@ def pressure_increment_kernel(
     increment: wp.array(dtype=wp.float64),
     total: wp.array(dtype=wp.float64),
 ):
-    """dp = x[row of c] (flat, box-sized) and p^{n+1} = p^n + dp on the fluid cells (solid cells keep 0)."""
-    c = cells[wp.tid()]
-    flat = flat_index(g.shape, c)
-    row = cell_row[flat]
-    if row >= 0:
-        increment[flat] = x[row]
-        total[flat] = total[flat] + x[row]
+    """``pressure_increment_one`` for ``block`` consecutive entries of ``cells`` per thread (module
+    docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
+        pressure_increment_one(g, cells, cell_row, x, increment, total, index)
 
 
 @wp.kernel
@@ -847,8 +1072,29 @@ def face_pressure_gradient(g: GridInfo, types: FaceInt, bc: FaceBc, p: wp.array(
     return 2.0 * (p_out - float(p[flat_index(g.shape, f - unit(axis))])) / h
 
 
+@wp.func
+def pressure_correct_one(
+    g: GridInfo,
+    axis: int,
+    params: FlowParams,
+    faces: wp.array(dtype=wp.vec3i),
+    types: FaceInt,
+    bc: FaceBc,
+    p: wp.array(dtype=wp.float64),
+    outlet_weight: float,
+    vel: FaceFloat,
+    index: int,
+):
+    """u_f = u*_f - (dt/rho) dp/dx_axis on solved faces."""
+    f = faces[index]
+    if is_solved(get_t(types, axis, f)):
+        gp = face_pressure_gradient(g, types, bc, p, outlet_weight, axis, f)
+        set_f(vel, axis, f, get_f(vel, axis, f) - params.dt / params.rho * gp)
+
+
 @wp.kernel
 def pressure_correct_kernel(
+    block: int,
     g: GridInfo,
     axis: int,
     params: FlowParams,
@@ -860,15 +1106,15 @@ def pressure_correct_kernel(
     # outputs
     vel: FaceFloat,
 ):
-    """u_f = u*_f - (dt/rho) dp/dx_axis on solved faces."""
-    f = faces[wp.tid()]
-    if is_solved(get_t(types, axis, f)):
-        gp = face_pressure_gradient(g, types, bc, p, outlet_weight, axis, f)
-        set_f(vel, axis, f, get_f(vel, axis, f) - params.dt / params.rho * gp)
+    """``pressure_correct_one`` for ``block`` consecutive entries of ``faces`` per thread (module
+    docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
+        pressure_correct_one(g, axis, params, faces, types, bc, p, outlet_weight, vel, index)
 
 
-@wp.kernel
-def face_forces_kernel(
+@wp.func
+def face_forces_one(
     g: GridInfo,
     axis: int,
     params: FlowParams,
@@ -880,13 +1126,13 @@ def face_forces_kernel(
     cell_momentum_source: wp.array3d(dtype=wp.vec3),
     p_old: wp.array(dtype=wp.float64),
     advected: FaceFloat,
-    # outputs
     vel: FaceFloat,
+    index: int,
 ):
     """u_f = u_adv + du_source - (dt/rho) dp^n/dx_axis on solved faces (the particle momentum source and imposed
     mean gradient, ``momentum_source_increment``, then the predictor of the incremental projection, Goda 1979);
     fixed faces take ``advected`` as it is."""
-    f = faces[wp.tid()]
+    f = faces[index]
     u = get_f(advected, axis, f)
     t = get_t(types, axis, f)
     if t == FACE_FLUID:
@@ -908,7 +1154,32 @@ def face_forces_kernel(
 
 
 @wp.kernel
-def cell_pressure_kernel(
+def face_forces_kernel(
+    block: int,
+    g: GridInfo,
+    axis: int,
+    params: FlowParams,
+    faces: wp.array(dtype=wp.vec3i),
+    types: FaceInt,
+    bc: FaceBc,
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    face_eps: FaceFloat,
+    cell_momentum_source: wp.array3d(dtype=wp.vec3),
+    p_old: wp.array(dtype=wp.float64),
+    advected: FaceFloat,
+    # outputs
+    vel: FaceFloat,
+):
+    """``face_forces_one`` for ``block`` consecutive entries of ``faces`` per thread (module
+    docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
+        face_forces_one(g, axis, params, faces, types, bc, cell_fluid, face_eps, cell_momentum_source, p_old,
+                  advected, vel, index)
+
+
+@wp.func
+def cell_pressure_one(
     g: GridInfo,
     params: FlowParams,
     cells: wp.array(dtype=wp.vec3i),
@@ -916,12 +1187,12 @@ def cell_pressure_kernel(
     types: FaceInt,
     bc: FaceBc,
     p: wp.array(dtype=wp.float64),
-    # outputs
     cell_pressure: wp.array3d(dtype=float),
     cell_grad_p: wp.array3d(dtype=wp.vec3),
+    index: int,
 ):
     """Cell pressure and grad p' = mean of the solved-face gradients + imposed mean gradient."""
-    c = cells[wp.tid()]
+    c = cells[index]
     i, j, k = c[0], c[1], c[2]
     grad = -params.rho * params.body_accel
     if cell_fluid[i, j, k] != 0:
@@ -942,18 +1213,55 @@ def cell_pressure_kernel(
 
 
 @wp.kernel
+def cell_pressure_kernel(
+    block: int,
+    g: GridInfo,
+    params: FlowParams,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    types: FaceInt,
+    bc: FaceBc,
+    p: wp.array(dtype=wp.float64),
+    # outputs
+    cell_pressure: wp.array3d(dtype=float),
+    cell_grad_p: wp.array3d(dtype=wp.vec3),
+):
+    """``cell_pressure_one`` for ``block`` consecutive entries of ``cells`` per thread (module
+    docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
+        cell_pressure_one(g, params, cells, cell_fluid, types, bc, p, cell_pressure, cell_grad_p, index)
+
+
+@wp.func
+def finite_check_one(
+    cells: wp.array(dtype=wp.vec3i),
+    cell_velocity: wp.array3d(dtype=wp.vec3),
+    cell_pressure: wp.array3d(dtype=float),
+    bad_count: wp.array(dtype=wp.int32),
+    index: int,
+):
+    c = cells[index]
+    i, j, k = c[0], c[1], c[2]
+    u = cell_velocity[i, j, k]
+    if not (wp.isfinite(u) and wp.isfinite(cell_pressure[i, j, k])):
+        wp.atomic_add(bad_count, 0, 1)
+
+
+@wp.kernel
 def finite_check_kernel(
+    block: int,
     cells: wp.array(dtype=wp.vec3i),
     cell_velocity: wp.array3d(dtype=wp.vec3),
     cell_pressure: wp.array3d(dtype=float),
     # outputs
     bad_count: wp.array(dtype=wp.int32),
 ):
-    c = cells[wp.tid()]
-    i, j, k = c[0], c[1], c[2]
-    u = cell_velocity[i, j, k]
-    if not (wp.isfinite(u) and wp.isfinite(cell_pressure[i, j, k])):
-        wp.atomic_add(bad_count, 0, 1)
+    """``finite_check_one`` for ``block`` consecutive entries of ``cells`` per thread (module
+    docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
+        finite_check_one(cells, cell_velocity, cell_pressure, bad_count, index)
 
 
 # ----------------------------------------------------------------- compacted systems

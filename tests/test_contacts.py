@@ -223,3 +223,49 @@ def test_touching_pair_list_equals_brute_force():
     assert int(gcount.numpy()[0]) == len(ii)
     np.testing.assert_array_equal(gi.numpy()[: len(ii)], di)
     np.testing.assert_array_equal(gj.numpy()[: len(ii)], dj)
+
+
+
+def test_packed_rows_hold_the_padded_rows_back_to_back():
+    """The packed layout (row i right after row i - 1, built by threads in tid order) holds the same rows, shear
+    history and touching flags as the padded one, full and half list, rebuilt from an old list of its own layout."""
+    x, radius = random_polydisperse(900, seed=8)
+    skin = 0.3e-3
+    p = Particles.from_numpy(x, radius, check_overlap=False)
+    n, capacity = len(x), 64
+    r_max = float(p.radius.numpy().max())
+    grid = wp.HashGrid(16, 16, 16)
+    moved = x + np.random.default_rng(10).normal(scale=0.4e-3, size=x.shape)
+
+    def build(positions, old, half, packed):
+        p.x.assign(positions.astype(np.float32))
+        grid.build(p.x, 2.0 * r_max + skin)
+        new = ContactList.empty(n, capacity, None)
+        kc.launch_build_contact_list(grid, sphere_arrays(p), r_max, skin, old.rows(), new.rows(),
+                                     wp.zeros(n, dtype=wp.vec3), wp.zeros(1, dtype=wp.int32), half=half, packed=packed)
+        return new
+
+    for half in (False, True):
+        result = {}
+        for packed in (False, True):
+            first = build(x, ContactList.empty(n, capacity, None), half, packed)
+            # tag every entry with its pair (shear) and the parity of i + j (touching flag), in its own layout
+            start, count = first.start.numpy(), first.count.numpy()
+            partner = first.partner.numpy().reshape(-1)
+            shear = np.zeros((n * capacity, 3), np.float32)
+            touching = np.zeros(n * capacity, np.int32)
+            for i in range(n):
+                e = np.arange(start[i], start[i] + count[i])
+                shear[e] = np.column_stack([np.full(len(e), i), partner[e], np.ones(len(e))])
+                touching[e] = (i + partner[e]) % 2
+            first.shear.assign(shear.reshape(n, capacity, 3))
+            first.touching.assign(touching.reshape(n, capacity))
+            second = build(moved, first, half, packed)
+            start, count = second.start.numpy(), second.count.numpy()
+            expected = np.concatenate([[0], np.cumsum(count)[:-1]]) if packed else np.arange(n) * capacity
+            np.testing.assert_array_equal(start, expected)
+            result[packed] = second.padded()
+        a, b = result[False], result[True]
+        assert a["count"].sum() > 2000 and np.count_nonzero(a["touching"]) > 100  # rows and carried history
+        for name in ("count", "partner", "shear", "touching"):
+            np.testing.assert_array_equal(a[name], b[name], err_msg=f"{name}, half={half}")
