@@ -29,6 +29,7 @@ a fictitious partner drawn from local statistics.
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -148,6 +149,27 @@ def bounding_lattice(x: np.ndarray, r_max: float, parcels_per_cell: float, cell_
     return lo, np.full(3, cell_size), shape
 
 
+SATURATION_WARN = 0.3
+"""``pair_saturation`` above which the cell detection warns once per run: two cold counter-streaming beams of
+weight-w parcels exchange 2 % / 17 % / 33 % less momentum than kinetic theory's at 0.16 / 0.62 / 1.25 (FIGURES,
+issue 12, eighth session)."""
+
+
+def pair_saturation(particles, alive: np.ndarray, edges) -> float:
+    """w_max sigma_max h_max / V of the collision cells (sigma_max = pi (2 r_max)^2): the expected collisions of a
+    parcel pair of the largest weight while it crosses a cell side by side (the cell's real number density of one
+    parcel, w / V, times sigma times the path h). NTC collides a parcel pair with the rate of w real partners, but
+    each collision turns the whole partner parcel: once this nears 1 the pair collides again with its own
+    deflected self instead of fresh partners, and the momentum exchange saturates below kinetic theory's (the
+    Bird / O'Rourke schemes assume it << 1)."""
+    if not alive.any():
+        return 0.0
+    w_max = float(particles.weight.numpy()[alive].max())
+    r_max = float(particles.radius.numpy()[alive].max())
+    e = [float(x) for x in edges]
+    return w_max * math.pi * (2.0 * r_max) ** 2 * max(e) / (e[0] * e[1] * e[2])
+
+
 class CellCollisions:
     """NTC collisions per cell for a ``SurrogateCollision`` (``detection="cell"``); see the module docstring.
 
@@ -171,6 +193,10 @@ class CellCollisions:
         """(origin, cell edges, shape) of the last step."""
         self.substeps = 0
         """Sub-steps of the last step."""
+        self.pair_saturation = 0.0
+        """Of the last step: w_max pi (2 r_max)^2 h_max / V, the collisions a parcel pair of the largest weight
+        and size meets while it crosses one collision cell together (``pair_saturation``)."""
+        self._saturation_warned = False
         self._shift_pending = False
 
     # ------------------------------------------------------------------ device arrays
@@ -266,6 +292,15 @@ class CellCollisions:
         if n_cells >= 2**31 - 1:
             raise ConfigError(f"{n_cells} collision cells do not fit int32 keys: give a larger cell_size")
         self.lattice = (origin, edges, shape)
+        self.pair_saturation = pair_saturation(particles, alive, edges)
+        if self.pair_saturation > SATURATION_WARN and not self._saturation_warned:
+            self._saturation_warned = True
+            w_max = float(particles.weight.numpy()[alive].max())
+            print(f"hel-warp: warning: cell detection: a parcel pair of weight {w_max:g} meets "
+                  f"{self.pair_saturation:.2g} collisions while it crosses one collision cell of "
+                  f"{1e3 * float(np.max(edges)):.3g} mm (w sigma h / V > {SATURATION_WARN:g}): the pair collides with "
+                  "itself and the momentum it exchanges saturates (too little, docs/FIGURES.md issue 12, eighth "
+                  "session); use a lower weight or coarser collision cells", file=sys.stderr)
         self._allocate(particles, n_cells)
         a = self._args
         cfg = self.config
