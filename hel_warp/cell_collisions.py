@@ -65,6 +65,13 @@ class CellConfig:
     """Cell edge, m; overrides ``parcels_per_cell`` (periodic box / bounding box)."""
     subdivision: int = 1
     """Sub-cells per grid cell and axis with a HEL solver's grid (1: the grid cell)."""
+    coarsen: int | None = None
+    """Grid cells per collision cell and axis with a HEL solver's grid (k^3 grid cells merged into one). None: the
+    smallest k that keeps a parcel pair of the largest weight from saturating, ``pair_saturation`` <=
+    ``SATURATION_TARGET`` (h >= sqrt(w sigma / 0.2): 4 cells of the rig's 1 mm grid at weight 8), when a parcel
+    weighs more than 1 and no subdivision is asked; else 1. Coarser cells average the number density over more
+    volume: the collisions of dense clouds smaller than a cell are undercounted (FIGURES, issue 12, eighth
+    session)."""
     enskog: bool = True
     """Enskog's factor g0 (Carnahan-Starling) of the cell's real solids fraction; False: Boltzmann (g0 = 1)."""
     eps_cap: float = EPS_CAP
@@ -96,6 +103,10 @@ class CellConfig:
             raise ConfigError(f"cell cell_size must be > 0 m (got {self.cell_size!r})")
         if int(self.subdivision) != self.subdivision or self.subdivision < 1:
             raise ConfigError(f"cell subdivision must be a positive integer (got {self.subdivision!r})")
+        if self.coarsen is not None and (int(self.coarsen) != self.coarsen or self.coarsen < 1):
+            raise ConfigError(f"cell coarsen must be a positive integer or None (got {self.coarsen!r})")
+        if self.subdivision > 1 and self.coarsen not in (None, 1):
+            raise ConfigError("cell subdivision and coarsen exclude each other: give one of them")
         if not 0.0 < self.eps_cap < 1.0:
             raise ConfigError(f"cell eps_cap must lie in (0, 1) (got {self.eps_cap!r})")
         if not (math.isfinite(self.cfl) and self.cfl > 0.0):
@@ -130,11 +141,19 @@ def periodic_lattice(box, n_parcels: int, parcels_per_cell: float, cell_size: fl
     return np.zeros(3), box / shape, shape
 
 
-def grid_lattice(grid, subdivision: int):
-    """(origin, cell edges, shape) of a HEL grid's cells cut into ``subdivision``^3 sub-cells."""
-    s = int(subdivision)
-    h = float(grid.spacing) / s
-    return np.asarray(grid.origin, np.float64), np.full(3, h), np.asarray(grid.shape, int) * s
+def grid_lattice(grid, subdivision: int, coarsen: int = 1):
+    """(origin, cell edges, shape) of a HEL grid's cells cut into ``subdivision``^3 sub-cells, or merged by
+    ``coarsen``^3 (the last collision cell of an axis may reach past the grid)."""
+    s, k = int(subdivision), int(coarsen)
+    h = float(grid.spacing) * k / s
+    return np.asarray(grid.origin, np.float64), np.full(3, h), -(-np.asarray(grid.shape, int) * s // k)
+
+
+def unsaturated_coarsening(grid_spacing: float, w_max: float, r_max: float) -> int:
+    """The smallest k >= 1 with w_max pi (2 r_max)^2 / (k h)^2 <= SATURATION_TARGET (``pair_saturation`` of cubic
+    cells of edge k h)."""
+    h_needed = math.sqrt(w_max * math.pi * (2.0 * r_max) ** 2 / SATURATION_TARGET)
+    return max(1, math.ceil(h_needed / grid_spacing * (1.0 - 1e-9)))
 
 
 def bounding_lattice(x: np.ndarray, r_max: float, parcels_per_cell: float, cell_size: float | None):
@@ -149,6 +168,9 @@ def bounding_lattice(x: np.ndarray, r_max: float, parcels_per_cell: float, cell_
     return lo, np.full(3, cell_size), shape
 
 
+SATURATION_TARGET = 0.2
+"""``pair_saturation`` that the automatic coarsening of a HEL grid's collision cells aims below (``CellConfig.coarsen``):
+the beams then exchange 0.98 of weight 1's momentum (FIGURES, issue 12, eighth session)."""
 SATURATION_WARN = 0.3
 """``pair_saturation`` above which the cell detection warns once per run: two cold counter-streaming beams of
 weight-w parcels exchange 2 % / 17 % / 33 % less momentum than kinetic theory's at 0.16 / 0.62 / 1.25 (FIGURES,
@@ -258,7 +280,14 @@ class CellCollisions:
         if periodic_box is not None:
             return periodic_lattice(periodic_box, n_alive, cfg.parcels_per_cell, cfg.cell_size)
         if grid is not None:
-            return grid_lattice(grid, cfg.subdivision)
+            k = cfg.coarsen
+            if k is None:
+                k = 1
+                w_max = float(particles.weight.numpy()[alive].max()) if n_alive else 1.0
+                if w_max > 1.0 and cfg.subdivision == 1:
+                    k = unsaturated_coarsening(float(grid.spacing), w_max,
+                                               float(particles.radius.numpy()[alive].max()))
+            return grid_lattice(grid, cfg.subdivision, k)
         x = particles.x.numpy()[alive].astype(np.float64)
         r_max = float(particles.radius.numpy()[alive].max())
         return bounding_lattice(x, r_max + reach, cfg.parcels_per_cell, cfg.cell_size)

@@ -285,7 +285,7 @@ def test_cells_follow_the_solver_grid(constant_model, device):
     p.x.assign(x)
     for subdivision in (1, 2):
         s = SurrogateCollision(model_dir=constant_model, seed=1,
-                               cell=CellConfig(subdivision=subdivision, log_capacity=5000, max_substeps=1))
+                               cell=CellConfig(subdivision=subdivision, coarsen=1, log_capacity=5000, max_substeps=1))
         solver = SimpleNamespace(grid=grid, pool=SimpleNamespace(particles=p), config=SimpleNamespace(dt=2e-3),
                                  fields=SimpleNamespace(parcel_a_coll=wp.zeros(n, dtype=wp.vec3, device=device)))
         s.accelerate(solver)
@@ -506,3 +506,43 @@ def test_counter_streaming_beams_lose_momentum_at_kinetic_theorys_rate_unless_a_
     print(f"beams: weight 1 {initial:.3f} of kinetic theory initially; over 1 ms weight 8 (saturation "
           f"{s8.cells.pair_saturation:.2f}) {r8 / r1:.3f} and weight 64 ({s64.cells.pair_saturation:.2f}) "
           f"{r64 / r1:.3f} of weight 1")
+
+
+def test_weighted_parcels_get_collision_cells_coarse_enough_not_to_saturate(constant_model, device):
+    """With a HEL grid the collision cells of weighted parcels merge k^3 grid cells, k the smallest with
+    w sigma / (k h)^2 <= SATURATION_TARGET (closed form); pairs stay within one merged cell; an explicit coarsen and
+    weight 1 keep the grid cells."""
+    import warp as wp
+    from types import SimpleNamespace
+
+    from hel_warp.cell_collisions import SATURATION_TARGET, CellConfig
+    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.coupling import GridSpec
+    from hel_warp.errors import ConfigError
+
+    rng = np.random.default_rng(12)
+    n, h = 800, 1e-3
+    grid = GridSpec(origin=(0.0, 0.0, 0.0), spacing=h, shape=(12, 9, 6))
+    x = rng.uniform(0.0, 1.0, size=(n, 3)) * np.array([12e-3, 9e-3, 6e-3])
+    for weight, coarsen in ((8.0, None), (64.0, None), (8.0, 2), (1.0, None)):
+        p = make_gas(n, 1.0, weight, rng, device)
+        p.x.assign(x)
+        s = SurrogateCollision(model_dir=constant_model, seed=1, detection="cell",
+                               cell=CellConfig(coarsen=coarsen, log_capacity=20000, max_substeps=1))
+        solver = SimpleNamespace(grid=grid, pool=SimpleNamespace(particles=p), config=SimpleNamespace(dt=1e-3),
+                                 fields=SimpleNamespace(parcel_a_coll=wp.zeros(n, dtype=wp.vec3, device=device)))
+        s.accelerate(solver)
+        origin, edges, shape = s.cells.lattice
+        sigma = math.pi * D**2
+        k = coarsen if coarsen is not None else (
+            1 if weight == 1.0 else math.ceil(math.sqrt(weight * sigma / SATURATION_TARGET) / h))
+        assert np.allclose(edges, k * h), (weight, coarsen, edges)
+        assert tuple(shape) == tuple(-(-np.array(grid.shape) // k))
+        if coarsen is None and weight > 1.0:
+            assert s.cells.pair_saturation <= SATURATION_TARGET < weight * sigma / ((k - 1) * h) ** 2
+        pairs = s.cells.event_log()["pair"]
+        assert len(pairs) > 20
+        cell = np.floor(x / (k * h)).astype(int)
+        assert np.array_equal(cell[pairs[:, 0]], cell[pairs[:, 1]])
+    with pytest.raises(ConfigError):
+        CellConfig(subdivision=2, coarsen=2)
