@@ -152,7 +152,7 @@ def grid_lattice(grid, subdivision: int, coarsen: int = 1):
 def unsaturated_coarsening(grid_spacing: float, w_max: float, r_max: float) -> int:
     """The smallest k >= 1 with w_max pi (2 r_max)^2 / (k h)^2 <= SATURATION_TARGET (``pair_saturation`` of cubic
     cells of edge k h)."""
-    h_needed = math.sqrt(w_max * math.pi * (2.0 * r_max) ** 2 / SATURATION_TARGET)
+    h_needed = math.sqrt(pair_saturation(w_max, r_max, (1.0, 1.0, 1.0)) / SATURATION_TARGET)  # it goes as 1 / h^2
     return max(1, math.ceil(h_needed / grid_spacing * (1.0 - 1e-9)))
 
 
@@ -177,17 +177,20 @@ weight-w parcels exchange 2 % / 17 % / 33 % less momentum than kinetic theory's 
 issue 12, eighth session)."""
 
 
-def pair_saturation(particles, alive: np.ndarray, edges) -> float:
+def largest_weight_and_radius(particles, alive: np.ndarray) -> tuple[float, float]:
+    """(w_max, r_max) of the live parcels (1, 0 when none is alive)."""
+    if not alive.any():
+        return 1.0, 0.0
+    return float(particles.weight.numpy()[alive].max()), float(particles.radius.numpy()[alive].max())
+
+
+def pair_saturation(w_max: float, r_max: float, edges) -> float:
     """w_max sigma_max h_max / V of the collision cells (sigma_max = pi (2 r_max)^2): the expected collisions of a
     parcel pair of the largest weight while it crosses a cell side by side (the cell's real number density of one
     parcel, w / V, times sigma times the path h). NTC collides a parcel pair with the rate of w real partners, but
     each collision turns the whole partner parcel: once this nears 1 the pair collides again with its own
     deflected self instead of fresh partners, and the momentum exchange saturates below kinetic theory's (the
     Bird / O'Rourke schemes assume it << 1)."""
-    if not alive.any():
-        return 0.0
-    w_max = float(particles.weight.numpy()[alive].max())
-    r_max = float(particles.radius.numpy()[alive].max())
     e = [float(x) for x in edges]
     return w_max * math.pi * (2.0 * r_max) ** 2 * max(e) / (e[0] * e[1] * e[2])
 
@@ -272,10 +275,13 @@ class CellCollisions:
         self._args = a
         self._key = key
 
-    def choose_lattice(self, particles, alive: np.ndarray, *, periodic_box=None, grid=None, reach: float = 0.0):
+    def choose_lattice(self, particles, alive: np.ndarray, *, periodic_box=None, grid=None, reach: float = 0.0,
+                       extremes: tuple[float, float] | None = None):
         """(origin, cell edges, shape) of this step's collision cells (see the module docstring); ``reach``: the
-        largest path length of the step (pads the bounding box)."""
+        largest path length of the step (pads the bounding box); ``extremes``: (w_max, r_max) of the live parcels
+        when the caller has them (``largest_weight_and_radius``)."""
         cfg = self.config
+        w_max, r_max = extremes if extremes is not None else largest_weight_and_radius(particles, alive)
         n_alive = int(np.count_nonzero(alive))
         if periodic_box is not None:
             return periodic_lattice(periodic_box, n_alive, cfg.parcels_per_cell, cfg.cell_size)
@@ -283,13 +289,10 @@ class CellCollisions:
             k = cfg.coarsen
             if k is None:
                 k = 1
-                w_max = float(particles.weight.numpy()[alive].max()) if n_alive else 1.0
                 if w_max > 1.0 and cfg.subdivision == 1:
-                    k = unsaturated_coarsening(float(grid.spacing), w_max,
-                                               float(particles.radius.numpy()[alive].max()))
+                    k = unsaturated_coarsening(float(grid.spacing), w_max, r_max)
             return grid_lattice(grid, cfg.subdivision, k)
         x = particles.x.numpy()[alive].astype(np.float64)
-        r_max = float(particles.radius.numpy()[alive].max())
         return bounding_lattice(x, r_max + reach, cfg.parcels_per_cell, cfg.cell_size)
 
     # ------------------------------------------------------------------ one step
@@ -315,16 +318,16 @@ class CellCollisions:
             self._zero_counts()
             return
         v_max = float(np.linalg.norm(particles.v.numpy()[alive].astype(np.float64), axis=1).max())
+        w_max, r_max = largest_weight_and_radius(particles, alive)
         origin, edges, shape = self.choose_lattice(particles, alive, periodic_box=periodic_box, grid=grid,
-                                                   reach=v_max * dt)
+                                                   reach=v_max * dt, extremes=(w_max, r_max))
         n_cells = int(np.prod(shape))
         if n_cells >= 2**31 - 1:
             raise ConfigError(f"{n_cells} collision cells do not fit int32 keys: give a larger cell_size")
         self.lattice = (origin, edges, shape)
-        self.pair_saturation = pair_saturation(particles, alive, edges)
+        self.pair_saturation = pair_saturation(w_max, r_max, edges)
         if self.pair_saturation > SATURATION_WARN and not self._saturation_warned:
             self._saturation_warned = True
-            w_max = float(particles.weight.numpy()[alive].max())
             print(f"hel-warp: warning: cell detection: a parcel pair of weight {w_max:g} meets "
                   f"{self.pair_saturation:.2g} collisions while it crosses one collision cell of "
                   f"{1e3 * float(np.max(edges)):.3g} mm (w sigma h / V > {SATURATION_WARN:g}): the pair collides with "
