@@ -909,21 +909,15 @@ def swept_select(
     if key == EVENT_NONE:
         return
     b = event_partner(key)
+    key_b = event_key[b]  # b = a: a wall event
     if b != a:
-        if b < a:
-            return
-        key_b = event_key[b]
-        if key_b == EVENT_NONE or event_partner(key_b) != a:
+        if b < a or key_b == EVENT_NONE or event_partner(key_b) != a:
             return
     args = args_store[0]
     if b == a:
         select_wall_event(args, particle_v, a, key, events_found)
         return
-    if b < a or args.event_key[b] == EVENT_NONE:
-        return
-    if event_partner(args.event_key[b]) != a:
-        return
-    if args.sequential != 0 and args.event_key[b] != args.global_key[0]:
+    if args.sequential != 0 and key_b != args.global_key[0]:
         return  # the earliest key of all is held by b of the earliest pair: (time, a) < (time, b)
     t = first_touch(args, particle_v, a, b)  # the pair's exact time (the key holds it quantised)
     if t < 0.0:
