@@ -317,6 +317,9 @@ class CaseConfig:
     """Where HEL parcels meet the walls: ``surface`` (default: a particle radius from the centre, as the ``dem``
     spheres, so that HEL and its reference share the walls' geometry) or ``point`` (their centre, MP-PIC;
     ``HelConfig.wall_contact``). ``dem`` keeps its Hertz-Mindlin wall contact."""
+    cell_coarsen: int | None = None
+    """``surrogate`` cell detection: grid cells per collision cell and axis (``CellConfig.coarsen``; None: the
+    automatic choice, merged cells for weighted parcels)."""
     wall_events: bool = True
     """``surrogate`` swept detection: walls as events within the step, in time order with the collisions (False:
     the push's end-of-step reflection; ``SurrogateCollision.wall_events``)."""
@@ -333,6 +336,10 @@ class CaseConfig:
     """Mass fraction of the second species in every holder (0: one size)."""
     particles2: int = 0
     """Parcels of the second species released, both holders together (``particles`` counts the first)."""
+    release_weight: float = 1.0
+    """One size: the real particles each parcel counts in the holders' release window (``--real-particles``:
+    paper parcels / parcels, so that any number of real particles leaves over the paper's window; 1: the
+    window of the paper's parcels of one particle, whatever the weight)."""
 
     @property
     def mixture(self) -> bool:
@@ -354,7 +361,7 @@ class CaseConfig:
     def release_weights(self) -> list:
         """Per species, the weight the holders' mass (and so the release window) counts: a mixture's real mass
         (its weights), one size's parcels of one particle (the mass flow scales with the weight, as before)."""
-        return self.weights() if self.mixture else [1.0]
+        return self.weights() if self.mixture else [self.release_weight]
 
 
 def make_config(args) -> CaseConfig:
@@ -379,6 +386,20 @@ def make_config(args) -> CaseConfig:
     known = min(PAPER_PARTICLES, key=lambda d: abs(d - args.diameter))
     paper_size = abs(known - args.diameter) < 1e-3 * known
     particles = PAPER_PARTICLES[known] if paper_size else int(round(12000 * (315e-6 / args.diameter) ** 3))
+    release_weight = 1.0
+    real = getattr(args, "real_particles", None)
+    if real is not None:
+        if two_sizes:
+            raise ConfigError("--real-particles is a one-size option (a mixture keeps the paper's real mass); drop "
+                              "it or --diameter2")
+        if not real >= 2 * weights[0]:
+            raise ConfigError(f"--real-particles must be >= 2 x --particles-per-parcel (got {real}); e.g. 96000 "
+                              "(the paper's second HEL run, 0.0016 kg at 315 um)")
+        # the holders release `real` particles over the paper's window (the paper's parcel count, one particle
+        # each): the mass flow scales with real / paper, as the paper's second run (8 x the mass, same parcels)
+        parcels = max(2, int(round(real / weights[0])))
+        release_weight = particles / parcels
+        particles = parcels
     if args.max_particles is not None:
         if args.max_particles < 2:
             raise ConfigError(f"--max-particles must be >= 2 (got {args.max_particles})")
@@ -392,6 +413,13 @@ def make_config(args) -> CaseConfig:
     if (args.collisions.startswith("surrogate")) and not args.model:
         raise ConfigError(f"--collisions {args.collisions} needs --model MODEL_DIR (a `hel-warp train` output)")
     detection = getattr(args, "detection", None)
+    coarsen = getattr(args, "cell_coarsen", None)
+    if coarsen is not None and not (args.collisions == "surrogate" and (detection == "cell" or (
+            detection is None and max(weights) > 1))):
+        raise ConfigError("--cell-coarsen is an option of the surrogate's cell detection (give --detection cell or "
+                          "--particles-per-parcel > 1)")
+    if coarsen is not None and coarsen < 1:
+        raise ConfigError(f"--cell-coarsen must be >= 1 grid cell (got {coarsen})")
     if getattr(args, "no_wall_events", False) and (args.collisions != "surrogate" or detection in ("overlap", "cell")):
         raise ConfigError("--no-wall-events is an option of the surrogate's swept detection (got --collisions "
                           f"{args.collisions}{' --detection ' + detection if detection else ''})")
@@ -408,11 +436,11 @@ def make_config(args) -> CaseConfig:
     return CaseConfig(diameter=float(args.diameter), dt=float(args.dt), collisions=args.collisions,
                       end_time=float(args.end_time), particles_per_parcel=float(weights[0]),
                       particle_contacts=not args.no_particle_contacts,
-                      particles=particles, diameter_std=std, **mixture,
+                      particles=particles, diameter_std=std, **mixture, release_weight=release_weight,
                       mass_flow=mass_flow, cells=args.cells,
                       gas_warmup=float(args.gas_warmup), output_interval=float(args.output_interval),
                       model=args.model, detection=detection or ("cell" if max(weights) > 1 else "swept"),
-                      wall_events=not getattr(args, "no_wall_events", False),
+                      wall_events=not getattr(args, "no_wall_events", False), cell_coarsen=coarsen,
                       wall_contact=getattr(args, "wall_contact", "surface"),
                       seed=int(args.seed), device=args.device)
 
@@ -545,6 +573,10 @@ class CollidingStreams:
         elif config.collisions == "surrogate":
             kwargs = {"model_dir": config.model, "detection": config.detection, "seed": config.seed,
                       "wall_events": config.wall_events}
+            if config.cell_coarsen is not None:
+                from hel_warp.cell_collisions import CellConfig
+
+                kwargs["cell"] = CellConfig(coarsen=config.cell_coarsen)
         elif config.collisions == "surrogate-paper":
             kwargs = {"model_dir": config.model}
         elif config.collisions == "dem":
@@ -852,7 +884,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--overwrite", action="store_true", help="replace an existing run directory")
     group.add_argument("--resume", action="store_true", help="continue an existing run directory")
     parser.add_argument("--cells", type=int, default=None, help="shrink the grid to about N cells (CI)")
+    parser.add_argument("--cell-coarsen", type=int, default=None,
+                        help="cell detection: grid cells per collision cell and axis (default: 1 at weight 1, else "
+                             "the smallest that keeps a parcel pair from saturating, 4 on the 1 mm grid at 8 per "
+                             "parcel)")
     parser.add_argument("--max-particles", type=int, default=None, help="cap the parcels released (CI)")
+    parser.add_argument("--real-particles", type=int, default=None,
+                        help="one size: real particles released over the paper's window (default: the paper's "
+                             "parcels x --particles-per-parcel, 12,000 x W at 315 um); parcels = real / W. The "
+                             "paper's second HEL run: 96000 (its DEM reference: 96000 at weight 1)")
     parser.add_argument("--monodisperse", action="store_true", help="all particles of the mean diameter")
     parser.add_argument("--gas-warmup", type=finite_float, default=0.01, help="gas-only time before release, s")
     parser.add_argument("--output-interval", type=finite_float, default=1e-3, help="time between snapshots, s")

@@ -202,6 +202,32 @@ def test_paper_particle_sets(cs):
     assert mass == pytest.approx(0.000196, rel=0.01)
     eight = config("315e-6", "--particles-per-parcel", "8")
     assert eight.particles == 12000 and eight.particles_per_parcel == 8.0  # parcel count kept, mass x 8
+    # --real-particles: N real over the paper's window (parcels x the weight the window counts = the paper's 12,000)
+    for extra, parcels in ((("--real-particles", "96000"), 96000),
+                           (("--real-particles", "96000", "--particles-per-parcel", "8"), 12000),
+                           (("--real-particles", "12000", "--particles-per-parcel", "64"), 188)):
+        c = config("315e-6", *extra)
+        assert c.particles == parcels and c.particles * c.release_weights()[0] == pytest.approx(12000)
+    from hel_warp.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="one-size option"):
+        config("315e-6", "--real-particles", "96000", "--diameter2", "475e-6", "--mass-fraction2", "0.5")
+    with pytest.raises(ConfigError, match="--real-particles must be"):
+        config("315e-6", "--real-particles", "10", "--particles-per-parcel", "8")
+    # --cell-coarsen: an option of the surrogate's cell detection only
+    def surrogate(*extra):
+        return cs.make_config(parser.parse_args(["--diameter", "315e-6", "--dt", "1e-3", "--collisions", "surrogate",
+                                                 "--model", "m", "--end-time", "0.02", "--out", "x", *extra]))
+
+    assert surrogate("--particles-per-parcel", "8", "--cell-coarsen", "3").cell_coarsen == 3
+    assert surrogate("--detection", "cell", "--cell-coarsen", "2").cell_coarsen == 2
+    assert surrogate("--particles-per-parcel", "8").cell_coarsen is None
+    with pytest.raises(ConfigError, match="--cell-coarsen is an option"):
+        config("315e-6", "--particles-per-parcel", "8", "--cell-coarsen", "3")
+    with pytest.raises(ConfigError, match="--cell-coarsen is an option"):
+        surrogate("--cell-coarsen", "3")  # weight 1: swept detection
+    with pytest.raises(ConfigError, match="--cell-coarsen must be"):
+        surrogate("--particles-per-parcel", "8", "--cell-coarsen", "0")
 
 
 def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
@@ -260,6 +286,20 @@ def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
     for label in ("none", "ktgf"):
         keys = {d["key"] for d in by[label]["config_differences_vs_dem"]}
         assert not any(k.startswith(("case.", "gas.", "grid.")) for k in keys), keys
+    # scripts/rig_ensemble.py: the metrics are ratios over the parcels, so a run pooled with itself (twice the
+    # parcels at half the weight) has the metrics of the run; runs of another snapshot schedule are refused
+    spec = importlib.util.spec_from_file_location("rig_ensemble", ROOT / "scripts" / "rig_ensemble.py")
+    ens = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ens)
+    one = ens.ensemble_metrics([runs[0]], [runs[1]], min_samples=1)
+    two = ens.ensemble_metrics([runs[0], runs[0]], [runs[1], runs[1], runs[1]], min_samples=1)
+    for key in ("stream_crossing", "reference_stream_crossing", "transverse_velocity_rms", "stream_crossing_vs_dem"):
+        assert two[key] == pytest.approx(one[key], rel=1e-12), key
+    assert one["stream_crossing"] == pytest.approx(by["none"]["stream_metrics"]["stream_crossing"], rel=1e-12)
+    from hel_warp.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="snapshot times differ"):
+        ens.ensemble_metrics([runs[0], runs[2]], [runs[1]], min_samples=1)
 
 
 def test_no_wall_events_is_refused_outside_the_swept_surrogate(cs, tmp_path, capsys):
