@@ -72,6 +72,11 @@ class CellConfig:
     weighs more than 1 and no subdivision is asked; else 1. Coarser cells average the number density over more
     volume: the collisions of dense clouds smaller than a cell are undercounted (FIGURES, issue 12, eighth
     session)."""
+    shift: bool | None = None
+    """Shift the collision lattice by a random offset in [0, h)^3 every sub-step (Ihle & Kroll 2001's grid shift):
+    whether two parcels can meet then depends on their separation only, not on where a fixed cell face falls (the
+    rig's channel axis is a face of the merged 4 mm cells: the two streams would only meet once a parcel has
+    crossed it). None: shift merged cells (``coarsen`` > 1), keep grid cells and periodic lattices as they are."""
     enskog: bool = True
     """Enskog's factor g0 (Carnahan-Starling) of the cell's real solids fraction; False: Boltzmann (g0 = 1)."""
     eps_cap: float = EPS_CAP
@@ -281,6 +286,7 @@ class CellCollisions:
         largest path length of the step (pads the bounding box); ``extremes``: (w_max, r_max) of the live parcels
         when the caller has them (``largest_weight_and_radius``)."""
         cfg = self.config
+        self._merged = False
         w_max, r_max = extremes if extremes is not None else largest_weight_and_radius(particles, alive)
         n_alive = int(np.count_nonzero(alive))
         if periodic_box is not None:
@@ -291,6 +297,7 @@ class CellCollisions:
                 k = 1
                 if w_max > 1.0 and cfg.subdivision == 1:
                     k = unsaturated_coarsening(float(grid.spacing), w_max, r_max)
+            self._merged = k > 1
             return grid_lattice(grid, cfg.subdivision, k)
         x = particles.x.numpy()[alive].astype(np.float64)
         return bounding_lattice(x, r_max + reach, cfg.parcels_per_cell, cfg.cell_size)
@@ -321,6 +328,9 @@ class CellCollisions:
         w_max, r_max = largest_weight_and_radius(particles, alive)
         origin, edges, shape = self.choose_lattice(particles, alive, periodic_box=periodic_box, grid=grid,
                                                    reach=v_max * dt, extremes=(w_max, r_max))
+        shift = self.config.shift if self.config.shift is not None else self._merged
+        if shift and periodic_box is None:
+            shape = np.asarray(shape, int) + 1  # a shifted lattice reaches one cell further on every axis
         n_cells = int(np.prod(shape))
         if n_cells >= 2**31 - 1:
             raise ConfigError(f"{n_cells} collision cells do not fit int32 keys: give a larger cell_size")
@@ -358,6 +368,10 @@ class CellCollisions:
         self._rounds.zero_()
         for k in range(substeps):
             a.seed = step_seed(seed, k)
+            if shift:  # the sub-step's random lattice offset, from the step's seed (restart-exact)
+                offset = np.random.default_rng((a.seed, 0x5EED)).uniform(0.0, 1.0, 3) * np.asarray(edges)
+                a.origin = tuple(float(v) for v in np.asarray(origin) - offset)
+                self.lattice = (np.asarray(origin) - offset, edges, shape)
             sort_by_cell(a)
             collide_cells(a, forest, particles.v, self._more, self._round, self._rounds, batch_forest=batch_forest,
                           max_rounds=cfg.batched_rounds, min_rows=cfg.batched_min_rows, args_store=self._args_store)

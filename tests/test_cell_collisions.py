@@ -537,12 +537,70 @@ def test_weighted_parcels_get_collision_cells_coarse_enough_not_to_saturate(cons
         k = coarsen if coarsen is not None else (
             1 if weight == 1.0 else math.ceil(math.sqrt(weight * sigma / SATURATION_TARGET) / h))
         assert np.allclose(edges, k * h), (weight, coarsen, edges)
-        assert tuple(shape) == tuple(-(-np.array(grid.shape) // k))
+        merged = k > 1  # merged cells are shifted by a random offset (CellConfig.shift): one more cell per axis
+        assert tuple(shape) == tuple(-(-np.array(grid.shape) // k) + (1 if merged else 0))
+        offset = np.asarray(grid.origin) - np.asarray(origin)
+        assert (np.all((offset >= 0.0) & (offset < k * h)) and np.any(offset > 0.0)) if merged else np.all(offset == 0)
         if coarsen is None and weight > 1.0:
             assert s.cells.pair_saturation <= SATURATION_TARGET < weight * sigma / ((k - 1) * h) ** 2
         pairs = s.cells.event_log()["pair"]
         assert len(pairs) > 20
-        cell = np.floor(x / (k * h)).astype(int)
+        cell = np.floor((x - origin) / (k * h)).astype(int)
         assert np.array_equal(cell[pairs[:, 0]], cell[pairs[:, 1]])
     with pytest.raises(ConfigError):
         CellConfig(subdivision=2, coarsen=2)
+
+
+def test_shifted_merged_cells_let_parcels_meet_across_a_fixed_face(constant_model, device):
+    """Two slabs of weighted parcels on either side of a face of the merged (unshifted) lattice, each thinner than a
+    cell: with a fixed lattice no pair can meet; with the random shift (Ihle & Kroll) a pair at separation dx meets
+    when no shifted face falls between them, probability 1 - |dx| / (k h) along x (Boltzmann rate: no density
+    dependence): the accepted pairs' mean
+    |dx| / (k h) is that of the tent kernel over the slabs' pairs, and the offsets of the steps
+    are spread over [0, k h)."""
+    import warp as wp
+    from types import SimpleNamespace
+
+    from hel_warp.cell_collisions import CellConfig
+    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.coupling import GridSpec
+
+    rng = np.random.default_rng(13)
+    n, h, weight = 600, 1e-3, 8.0
+    grid = GridSpec(origin=(0.0, 0.0, 0.0), spacing=h, shape=(8, 8, 8))
+    x = rng.uniform(0.0, 1.0, size=(n, 3)) * np.array([2e-3, 8e-3, 8e-3])
+    x[:, 0] += 3e-3  # the slabs 3-4 mm and 4-5 mm: the face x = 4 mm of the 4 mm merged cells between them
+    left = x[:, 0] < 4e-3
+    found = {}
+    for shift in (False, True):
+        dxs, offsets = [], []
+        for step in range(12):
+            p = make_gas(n, 1.0, weight, rng, device)
+            p.x.assign(x)
+            s = SurrogateCollision(model_dir=constant_model, seed=step, detection="cell",
+                                   cell=CellConfig(coarsen=4, shift=shift, enskog=False, log_capacity=20000,
+                                                   max_substeps=1))
+            solver = SimpleNamespace(grid=grid, pool=SimpleNamespace(particles=p), config=SimpleNamespace(dt=1e-3),
+                                     fields=SimpleNamespace(parcel_a_coll=wp.zeros(n, dtype=wp.vec3, device=device)))
+            s.accelerate(solver)
+            offsets.append(np.asarray(grid.origin) - s.cells.lattice[0])
+            pairs = s.cells.event_log()["pair"]
+            cross = left[pairs[:, 0]] != left[pairs[:, 1]]
+            dxs.extend(np.abs(x[pairs[cross, 0], 0] - x[pairs[cross, 1], 0]) / (4 * h))
+        found[shift] = (np.asarray(dxs), np.asarray(offsets))
+    assert len(found[False][0]) == 0 and np.all(found[False][1] == 0.0)
+    dx, offsets = found[True]
+    assert len(dx) > 200 and np.all(dx < 1.0)
+    assert np.all((offsets >= 0.0) & (offsets < 4 * h)) and offsets.std(axis=0).min() > 0.2 * 4 * h / math.sqrt(12)
+    # every cross pair that shares a cell of a step's shifted lattice is equally likely to collide (the rate does not
+    # depend on position): the expected mean dx over the steps' recorded offsets; over uniform offsets the weight of
+    # a pair is the tent 1 - dx along x
+    il, ir = np.flatnonzero(left), np.flatnonzero(~left)
+    num = den = 0.0
+    for off in offsets:
+        c = np.floor((x + off) / (4 * h)).astype(int)
+        same = np.all(c[il][:, None, :] == c[ir][None, :, :], axis=2)
+        d = np.abs(x[il, 0][:, None] - x[ir, 0][None, :]) / (4 * h)
+        num, den = num + float(d[same].sum()), den + float(same.sum())
+    expected = num / den
+    assert dx.mean() == pytest.approx(expected, abs=4 * dx.std() / math.sqrt(len(dx)))
