@@ -1,0 +1,116 @@
+"""Stream metrics of an ensemble: runs that differ only in their seed, pooled, against a (pooled) reference.
+
+A run of W particles per parcel carries the real particles of a weight-1 run in 1/W of the parcels, so one run's
+per-section crossing and transverse rms rest on W times fewer samples (``scripts/rig_metric_subsample.py``
+measures that noise). Runs of the same case with different ``--seed`` are independent samples of the same flow:
+pooling their snapshots (each snapshot time, the parcels of every run, weights divided by the number of runs so
+the real mass is one run's) gives the metrics of W x more parcels at no change of physics. The reference (``dem``
+runs, one or several seeds) is pooled the same way (issue 12, docs/FIGURES.md):
+
+    python scripts/rig_ensemble.py --reference runs/dem_s0 runs/dem_s1 --runs runs/w8_s* --label cell_w8
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+
+import numpy as np
+
+
+def pooled(runs, label: str | None = None):
+    """One run whose snapshot k holds the parcels of snapshot k of every run, weights / len(runs).
+
+    The runs must share their snapshot times (same dt, output interval and end time); the pooled run has the first
+    run's config and label (or ``label``)."""
+    from hel_warp.errors import ConfigError
+
+    if not runs:
+        raise ConfigError("no runs to pool")
+    n = len(runs[0].times)
+    for r in runs[1:]:
+        if len(r.times) != n or not np.allclose(r.times, runs[0].times, rtol=0.0, atol=1e-9):
+            raise ConfigError(f"{r.path}: snapshot times differ from {runs[0].path}; pool runs of one case "
+                              "(same --dt, --output-interval, --end-time) that differ in --seed only")
+    scale = 1.0 / len(runs)
+    snaps = []
+    for k in range(n):
+        parts = [r.snapshots[k] for r in runs]
+        count = [len(np.asarray(p["x"])) for p in parts]
+        out = {}
+        for name, a in parts[0].items():
+            arrays = [p.get(name) for p in parts]
+            if all(isinstance(b, np.ndarray) and b.shape[:1] == (c,) for b, c in zip(arrays, count)):
+                out[name] = np.concatenate(arrays)
+            else:
+                out[name] = a
+        out["weight"] = np.asarray(out["weight"], dtype=np.float64) * scale
+        snaps.append(out)
+    return dataclasses.replace(runs[0], snapshots=snaps, times=np.asarray(runs[0].times[:n]),
+                               label=label or runs[0].label)
+
+
+def ensemble_metrics(paths, reference_paths, min_samples: int = 10, label: str | None = None) -> dict:
+    """Crossing and transverse rms of the pooled ``paths`` against the pooled ``reference_paths``."""
+    from hel_warp.report import DEFAULT_BOXES, load_run, stream_metrics, stream_metrics_vs
+
+    from hel_warp.report import size_class_view, size_classes
+
+    ref_run = pooled([load_run(p) for p in reference_paths])
+    run = pooled([load_run(p) for p in paths], label)
+
+    def compare(r, q) -> dict:
+        m = stream_metrics(r, DEFAULT_BOXES, min_samples=min_samples)
+        ref = stream_metrics(q, DEFAULT_BOXES, min_samples=min_samples)
+        vs = stream_metrics_vs(m, ref, DEFAULT_BOXES, min_samples=min_samples)
+        return {"stream_crossing": m["stream_crossing"], "reference_stream_crossing": ref["stream_crossing"],
+                "stream_crossing_vs_dem": vs["stream_crossing_vs_dem"]["difference"],
+                "transverse_velocity_rms": m["transverse_velocity_rms"],
+                "reference_transverse_velocity_rms": ref["transverse_velocity_rms"],
+                "transverse_velocity_rms_vs_dem": vs["transverse_velocity_rms_vs_dem"]["relative_difference"],
+                "crossing_per_section": [s.get("stream_crossing") for s in m.get("sections", [])],
+                "reference_crossing_per_section": [s.get("stream_crossing") for s in ref.get("sections", [])]}
+
+    out = {"label": run.label, "runs": len(paths), "reference_runs": len(reference_paths), **compare(run, ref_run)}
+    classes = size_classes(run)
+    if classes is not None and size_classes(ref_run) is not None:  # a mixture: each size class against its own
+        out["size_classes"] = [{"diameter": float(c["diameter"]),
+                                **compare(size_class_view(run, k), size_class_view(ref_run, k))}
+                               for k, c in enumerate(classes)]
+    return out
+
+
+def main(argv=None) -> int:
+    from hel_warp.errors import ConfigError
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--runs", nargs="+", required=True, help="run directories of one case, different --seed")
+    p.add_argument("--reference", nargs="+", required=True, help="reference run directories (dem), pooled alike")
+    p.add_argument("--label", default=None, help="name of the ensemble in the output")
+    p.add_argument("--min-samples", type=int, default=10, help="as hel-warp report --min-samples")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    args = p.parse_args(argv)
+    try:
+        out = ensemble_metrics(args.runs, args.reference, args.min_samples, args.label)
+    except ConfigError as exc:
+        print(f"rig_ensemble: error: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(out))
+    else:
+        print(f"{out['label']} ({out['runs']} runs) vs reference ({out['reference_runs']} runs): crossing "
+              f"{out['stream_crossing']:.3f} vs {out['reference_stream_crossing']:.3f} "
+              f"({out['stream_crossing_vs_dem']:+.3f}), v_y rms {out['transverse_velocity_rms']:.3f} vs "
+              f"{out['reference_transverse_velocity_rms']:.3f} m/s ({100 * out['transverse_velocity_rms_vs_dem']:+.1f} %)")
+        for c in out.get("size_classes", []):
+            print(f"  {1e6 * c['diameter']:.0f} um: crossing {c['stream_crossing']:.3f} vs "
+                  f"{c['reference_stream_crossing']:.3f} ({c['stream_crossing_vs_dem']:+.3f}), v_y rms "
+                  f"{c['transverse_velocity_rms']:.3f} vs {c['reference_transverse_velocity_rms']:.3f} m/s "
+                  f"({100 * c['transverse_velocity_rms_vs_dem']:+.1f} %)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
