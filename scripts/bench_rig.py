@@ -34,13 +34,33 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 MODELS = ("none", "ktgf", "surrogate", "surrogate-paper", "dem")
 
 
-def build_model(case, name: str, args):
-    """The rig for model ``name`` after its gas warm-up (untimed); the release starts with the next step."""
+def run_label(name: str, weight: float | None) -> str:
+    """``surrogate_w8``: the surrogate with cell detection at 8 real particles per parcel (``--weights``)."""
+    return name if weight is None else f"{name}_w{weight:g}"
+
+
+def split_label(label: str):
+    """(model, weight or None) of a ``run_label``."""
+    name, _, w = label.partition("_w")
+    return name, (float(w) if w else None)
+
+
+def build_model(case, label: str, args):
+    """The rig for ``label`` (a model, or ``surrogate_wW``: cell detection at weight W, the same real particles)
+    after its gas warm-up (untimed); the release starts with the next step."""
+    name, weight = split_label(label)
+    detection = (args.detection if name == "surrogate" else None) if weight is None else "cell"
+    real = None
+    if weight is not None:  # the weight-1 run's real particles in 1/W of the parcels
+        real = int(round(case.PAPER_PARTICLES[min(case.PAPER_PARTICLES, key=lambda d: abs(d - args.diameter))]))
+        if args.max_particles is not None:  # the cap counts the weight-1 run's parcels (at least 2 of weight W)
+            real = min(real, max(args.max_particles, int(2 * weight)))
     ns = argparse.Namespace(diameter=args.diameter, dt=args.dt, collisions=name, end_time=args.end_time,
-                            particles_per_parcel=1.0, max_particles=args.max_particles, monodisperse=False,
+                            particles_per_parcel=weight or 1.0, real_particles=real, max_particles=None if real
+                            else args.max_particles, monodisperse=False,
                             model=(args.paper_model if name == "surrogate-paper" else args.model),
                             cells=args.cells, gas_warmup=0.01, output_interval=args.end_time, seed=0,
-                            device=args.device, detection=(args.detection if name == "surrogate" else None),
+                            device=args.device, detection=detection,
                             no_particle_contacts=False)
     config = case.make_config(ns)
     if name.startswith("surrogate"):
@@ -126,6 +146,10 @@ def main(argv=None) -> int:
     parser.add_argument("--cells", type=int, default=None, help="shrink the grid to about N cells (smoke runs)")
     parser.add_argument("--max-particles", type=int, default=None, help="cap the parcels released")
     parser.add_argument("--device", default="cpu", help="Warp device (default cpu)")
+    parser.add_argument("--weights", type=float, nargs="+", default=None,
+                        help="also the surrogate with cell detection at these real particles per parcel (e.g. 1 8 "
+                             "64), each with the real particles of the weight-1 runs (--real-particles): rows "
+                             "surrogate_wW and the ratio dem_over_helscm_wW")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     args = parser.parse_args(argv)
     models = args.models
@@ -138,6 +162,12 @@ def main(argv=None) -> int:
         parser.error("--models surrogate-paper needs --paper-model MODEL_DIR")
     if not (args.end_time > 0 and args.dt > 0 and args.end_time >= args.dt):
         parser.error("need --end-time >= --dt > 0")
+    if args.weights:
+        if not args.model:
+            parser.error("--weights needs --model MODEL_DIR (the surrogate's cell detection)")
+        if any(not (w >= 1.0) for w in args.weights):
+            parser.error(f"--weights must be >= 1 (got {args.weights})")
+        models = list(models) + [run_label("surrogate", w) for w in args.weights]
 
     from hel_warp.forest import quiet_warp
     from hel_warp.commands._common import load_case_module
@@ -150,6 +180,8 @@ def main(argv=None) -> int:
     ratios = {}
     pairs = {"helscm_over_hel": ("surrogate", "ktgf"), "dem_over_helscm": ("dem", "surrogate"),
              "helscm_paper_over_hel": ("surrogate-paper", "ktgf")}
+    for w in args.weights or ():
+        pairs[f"dem_over_helscm_w{w:g}"] = ("dem", run_label("surrogate", w))
     for key, (a, b) in pairs.items():
         if a in rows and b in rows:
             ratios[key] = rows[a]["total_s"] / rows[b]["total_s"]
