@@ -117,6 +117,9 @@ class CellArgs:
     """This step's seed (the host mixes the run seed with the step counter)."""
     enskog: wp.int32
     """1: Enskog's factor chi = g0 (Carnahan-Starling); 0: chi = 1 (Boltzmann)."""
+    approaching: wp.int32
+    """1: only a pair whose centres approach, (x_j - x_i) . (v_i - v_j) > 0, can collide, at twice the rate (half
+    of a homogeneous cell's pairs approach: the rate is kept); 0: any pair of the cell (Bird's NTC)."""
     eps_cap: wp.float32
     """Largest solids fraction put into g0 (Carnahan-Starling diverges at 1; an MP-PIC cell can overfill)."""
     apply: wp.int32
@@ -157,6 +160,8 @@ class CellArgs:
     """(n_cells,) batch row of the cell's accepted pair this round, -1: none."""
     pending_pair: wp.array(dtype=wp.vec2i)
     pending_normal: wp.array(dtype=wp.vec3)
+    last_partner: wp.array(dtype=wp.int32)
+    """(N,) the slot of each parcel's last accepted partner (-1: none); kept across steps (the checkpoint's)."""
     particle_deficit: wp.array(dtype=wp.float32)
     """(N,) energy the parcel's partial impulses lost this sub-step against w_min real collisions, J (0 for a
     parcel never the heavier of its pairs); restored and zeroed by ``cell_restore``."""
@@ -338,6 +343,8 @@ def cell_prepare(
     if args.enskog != 0:
         chi_max = carnahan_starling(solids / args.cell_volume, args.eps_cap)
     sigma_g_max = wp.pi * (2.0 * r_max) * (2.0 * r_max) * (2.0 * u_max)
+    if args.approaching != 0:  # approaching pairs collide at twice the rate: twice the majorant
+        sigma_g_max = 2.0 * sigma_g_max
     args.cell_sigma_g_max[cell] = sigma_g_max
     expected = 0.5 * float(count) * float(count - 1) * w_max * chi_max * sigma_g_max * args.dt / args.cell_volume
     args.cell_candidates[cell] = expected
@@ -401,11 +408,36 @@ def cell_select(
         if args.enskog != 0:
             chi = carnahan_starling((solids - wi * sphere_volume(ri) - wj * sphere_volume(rj)) / volume, args.eps_cap)
         rate = wp.pi * (ri + rj) * (ri + rj) * g_mag * wp.max(wi, wj) * chi
+        if args.approaching != 0:
+            dx = args.particle_x[j] - args.particle_x[i]
+            if args.periodic != 0:  # the nearest image (a shifted lattice's cell may straddle the box's side)
+                for ax in range(3):
+                    side = args.cell_size[ax] * float(args.shape[ax])
+                    dx[ax] = dx[ax] - side * wp.round(dx[ax] / side)
+            # a parcel of w particles is a cloud: its w - 1 other particles fill (w - 1) V_p / eps_cell around the
+            # centre; the colliding particle of each is drawn uniformly from a cube of that volume (0 at weight 1)
+            u_i = wp.vec3(wp.randf(state) - 0.5, wp.randf(state) - 0.5, wp.randf(state) - 0.5)
+            u_j = wp.vec3(wp.randf(state) - 0.5, wp.randf(state) - 0.5, wp.randf(state) - 0.5)
+            if solids > 0.0:
+                spread_i = wp.pow((wi - 1.0) * sphere_volume(ri) * volume / solids, 1.0 / 3.0)
+                spread_j = wp.pow((wj - 1.0) * sphere_volume(rj) * volume / solids, 1.0 / 3.0)
+                dx = dx + spread_j * u_j - spread_i * u_i
+            met = args.last_partner[i] == j or args.last_partner[j] == i
+            if met and wp.max(wi, wj) > 1.0:
+                # a parcel that last met this weighted partner: its next real collision is with another particle
+                # of the cloud, not the receding one (a weight-1 pair that collided stays filtered: it recedes)
+                rate = rate
+            elif wp.dot(dx, g) > 0.0:
+                rate = 2.0 * rate
+            else:
+                rate = 0.0
         if rate > bound:
             wp.atomic_add(args.counts, COUNT_OVER_MAX, 1)
         if not (u_accept * bound < rate):
             continue
         wp.atomic_add(args.counts, COUNT_ACCEPTED, 1)
+        args.last_partner[i] = j
+        args.last_partner[j] = i
         n = sample_normal(g, u_b2, u_phi)
         if args.log_pair.shape[0] > 0:
             slot = wp.atomic_add(args.log_count, 0, 1)

@@ -73,9 +73,11 @@ def select(s, particles, dt):
     return s.cells.counts()
 
 
-def brute_force_expectation(particles, lattice, dt):
+def brute_force_expectation(particles, lattice, dt, approaching=False):
     """Per the NTC formula and by brute force over every same-cell pair: (expected candidates, expected accepted,
-    largest pair sigma g w_max chi over the largest majorant bound ratio) for one step."""
+    largest pair sigma g w_max chi over the largest majorant bound ratio) for one step. ``approaching``: a pair
+    counts at twice its rate if its centres approach, (x_j - x_i) . (v_i - v_j) > 0 (nearest periodic image of the
+    lattice's box), else not at all, against twice the majorant."""
     origin, edges, shape = lattice
     x = particles.x.numpy().astype(np.float64)
     v = particles.v.numpy().astype(np.float64)
@@ -99,35 +101,51 @@ def brute_force_expectation(particles, lattice, dt):
         sigma = math.pi * (r[a] + r[b]) ** 2
         chi = g0_cs((solids - w[a] * 4 / 3 * math.pi * r[a] ** 3 - w[b] * 4 / 3 * math.pi * r[b] ** 3) / vol_cell)
         rate = sigma * g * np.maximum(w[a], w[b]) * chi
+        factor = 1.0
+        if approaching:
+            box = np.asarray(edges) * np.asarray(shape)
+            dx = x[b] - x[a]
+            dx -= box * np.round(dx / box)
+            rate = rate * 2.0 * (np.einsum("ij,ij->i", dx, v[a] - v[b]) > 0.0)
+            factor = 2.0
         accepted += rate.sum() * dt / vol_cell
         # the majorant of the NTC formula: sigma_max = pi (2 r_max)^2, g_max = 2 max |v - <v>|, w_max, g0 of the cell
         c = v[members].mean(axis=0)
         bound = (math.pi * (2 * r[members].max()) ** 2 * 2 * np.linalg.norm(v[members] - c, axis=1).max()
-                 * w[members].max() * g0_cs(solids / vol_cell))
+                 * w[members].max() * g0_cs(solids / vol_cell)) * factor
         candidates += 0.5 * n * (n - 1) * bound * dt / vol_cell
         worst = max(worst, float(rate.max() / bound))
     return candidates, accepted, worst
 
 
-@pytest.mark.parametrize("eps, weights, dt", [(0.01, (1.0,), 1e-3), (0.05, (1.0, 8.0, 64.0), 2e-4)])
-def test_candidates_and_acceptance_follow_the_ntc_formula(constant_model, device, eps, weights, dt):
+@pytest.mark.parametrize("eps, weights, dt, approaching", [(0.01, (1.0,), 1e-3, False),
+                                                          (0.05, (1.0, 8.0, 64.0), 2e-4, False),
+                                                          (0.05, (1.0,), 2e-4, True)])
+def test_candidates_and_acceptance_follow_the_ntc_formula(constant_model, device, eps, weights, dt, approaching):
     rng = np.random.default_rng(1)
     n, reps = 2000, 12
     w = rng.choice(weights, size=n)
     side = box_side(w.sum(), eps)
-    s = strategy(constant_model, side, max_substeps=1)  # one sampling at the start positions
+    s = strategy(constant_model, side, max_substeps=1, approaching=approaching,  # one sampling at the start
+                 log=20000 if approaching else 0)
     drawn = accepted = exp_candidates = exp_accepted = 0.0
     worst = 0.0
     for _ in range(reps):
         p = make_gas(n, side, w, rng, device)
         c = select(s, p, dt)
-        ec, ea, wr = brute_force_expectation(p, s.cells.lattice, dt)
+        ec, ea, wr = brute_force_expectation(p, s.cells.lattice, dt, approaching)
         drawn += c["cell_candidates"]
         accepted += c["cell_accepted"]
         exp_candidates += ec
         exp_accepted += ea
         worst = max(worst, wr)
         assert c["cell_over_max"] == 0  # nothing rises above the majorant without collisions
+        if approaching:  # every accepted pair of single particles approaches (nearest image)
+            log = s.cells.event_log()
+            x = p.x.numpy().astype(np.float64)
+            dx = x[log["pair"][:, 1]] - x[log["pair"][:, 0]]
+            dx -= side * np.round(dx / side)
+            assert len(dx) > 100 and np.all(np.einsum("ij,ij->i", dx, log["g"].astype(np.float64)) > 0.0)
     assert worst <= 1.0  # the majorant bounds every pair (acceptance probability <= 1)
     # Poisson-like counts: 4 standard errors (the integer draw of the candidates has less variance than Poisson)
     assert abs(drawn - exp_candidates) <= 4.0 * math.sqrt(exp_candidates), (drawn, exp_candidates)
@@ -554,8 +572,8 @@ def test_weighted_parcels_get_collision_cells_coarse_enough_not_to_saturate(cons
 def test_shifted_merged_cells_let_parcels_meet_across_a_fixed_face(constant_model, device):
     """Two slabs of weighted parcels on either side of a face of the merged (unshifted) lattice, each thinner than a
     cell: with a fixed lattice no pair can meet; with the random shift (Ihle & Kroll) a pair at separation dx meets
-    when no shifted face falls between them, probability 1 - |dx| / (k h) along x (Boltzmann rate: no density
-    dependence): the accepted pairs' mean
+    when no shifted face falls between them, probability 1 - |dx| / (k h) along x (Boltzmann rate, any pair of a
+    cell: no density or approach dependence): the accepted pairs' mean
     |dx| / (k h) is that of the tent kernel over the slabs' pairs, and the offsets of the steps
     are spread over [0, k h)."""
     import warp as wp
@@ -578,8 +596,8 @@ def test_shifted_merged_cells_let_parcels_meet_across_a_fixed_face(constant_mode
             p = make_gas(n, 1.0, weight, rng, device)
             p.x.assign(x)
             s = SurrogateCollision(model_dir=constant_model, seed=step, detection="cell",
-                                   cell=CellConfig(coarsen=4, shift=shift, enskog=False, log_capacity=20000,
-                                                   max_substeps=1))
+                                   cell=CellConfig(coarsen=4, shift=shift, enskog=False, approaching=False,
+                                                   log_capacity=20000, max_substeps=1))
             solver = SimpleNamespace(grid=grid, pool=SimpleNamespace(particles=p), config=SimpleNamespace(dt=1e-3),
                                      fields=SimpleNamespace(parcel_a_coll=wp.zeros(n, dtype=wp.vec3, device=device)))
             s.accelerate(solver)
