@@ -99,16 +99,20 @@ def main(argv=None) -> int:
         return 2
     if args.json:
         print(json.dumps(out))
-    else:
-        print(f"{out['label']} ({out['runs']} runs) vs reference ({out['reference_runs']} runs): crossing "
-              f"{out['stream_crossing']:.3f} vs {out['reference_stream_crossing']:.3f} "
-              f"({out['stream_crossing_vs_dem']:+.3f}), v_y rms {out['transverse_velocity_rms']:.3f} vs "
-              f"{out['reference_transverse_velocity_rms']:.3f} m/s ({100 * out['transverse_velocity_rms_vs_dem']:+.1f} %)")
-        for c in out.get("size_classes", []):
-            print(f"  {1e6 * c['diameter']:.0f} um: crossing {c['stream_crossing']:.3f} vs "
-                  f"{c['reference_stream_crossing']:.3f} ({c['stream_crossing_vs_dem']:+.3f}), v_y rms "
-                  f"{c['transverse_velocity_rms']:.3f} vs {c['reference_transverse_velocity_rms']:.3f} m/s "
-                  f"({100 * c['transverse_velocity_rms_vs_dem']:+.1f} %)")
+        return 0
+
+    def num(x, spec):
+        return "-" if x is None else format(x, spec)
+
+    def line(name, m):
+        return (f"{name}: crossing {num(m['stream_crossing'], '.3f')} vs {num(m['reference_stream_crossing'], '.3f')} "
+                f"({num(m['stream_crossing_vs_dem'], '+.3f')}), v_y rms {num(m['transverse_velocity_rms'], '.3f')} vs "
+                f"{num(m['reference_transverse_velocity_rms'], '.3f')} m/s "
+                f"({num(None if m['transverse_velocity_rms_vs_dem'] is None else 100 * m['transverse_velocity_rms_vs_dem'], '+.1f')} %)")
+
+    print(line(f"{out['label']} ({out['runs']} runs) vs reference ({out['reference_runs']} runs)", out))
+    for c in out.get("size_classes", []):
+        print("  " + line(f"{1e6 * c['diameter']:.0f} um", c))
     return 0
 
 
