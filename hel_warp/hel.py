@@ -363,9 +363,16 @@ class HelSolver:
 
         A strategy with ``advance(solver)`` moves the parcels itself instead (CFD-DEM sub-steps)."""
         advance = getattr(self.collision, "advance", None)
+        self._straight_push = advance is None
         if advance is not None:
             advance(self)
         else:
+            import warp as wp
+
+            p = self.pool.particles
+            if getattr(self, "_x_step_start", None) is None or self._x_step_start.shape != p.x.shape:
+                self._x_step_start = wp.empty_like(p.x)
+            wp.copy(self._x_step_start, p.x)  # the straight paths' starts: walls reflect where a path crossed them
             self.fluid_push()
         after_push = getattr(self.collision, "after_push", None)
         if after_push is not None:
@@ -426,14 +433,18 @@ class HelSolver:
             self.pool.remove_beyond_plane(outlet.point, outlet.normal)
 
     def reflect_at_walls(self) -> None:
-        """Parcels whose centre crossed the SDF wall come back with e_n, e_t (``kernels/reflect.py``).
+        """Parcels whose centre crossed the SDF wall come back with e_n, e_t (``kernels/reflect.py``), against the
+        wall where their straight path of the push crossed it (a strategy with its own ``advance`` moved them on
+        other paths: the end point's nearest wall).
 
         Skipped for a strategy with ``handles_walls = True`` (``dem``: sphere-wall contacts in its sub-steps)."""
         if self.config.walls and not getattr(self.collision, "handles_walls", False):
             from kernels.reflect import reflect_at_walls
 
             p = self.pool.particles
-            reflect_at_walls(self.shapes, self.wall_params, p.alive, p.x, p.v, self._wall_hits, p.radius)
+            start = self._x_step_start if getattr(self, "_straight_push", False) else None
+            reflect_at_walls(self.shapes, self.wall_params, p.alive, p.x, p.v, self._wall_hits, p.radius,
+                             particle_x_start=start)
 
     def inject(self) -> None:
         """Scheduled injectors add the parcels due by the end of this step."""

@@ -64,17 +64,28 @@ def reflect_velocity(v: wp.vec3, n: wp.vec3, e_n: float, e_t: float, friction: f
     return -e_n * v_n + kept
 
 
+CROSSING_BISECTIONS = 30
+"""Bisections of the step's segment for the wall crossing (``reflect_kernel`` with start positions): 2^-30 of a
+step's path, below float32's resolution of the position."""
+
+
 @wp.kernel
 def reflect_kernel(
     shapes: SdfShapes,
     params: WallParams,
     particle_alive: wp.array(dtype=wp.int32),
     particle_radius: wp.array(dtype=float),
+    particle_x_start: wp.array(dtype=wp.vec3),
+    use_start: int,
     # outputs (in place)
     particle_x: wp.array(dtype=wp.vec3),
     particle_v: wp.array(dtype=wp.vec3),
     wall_hits: wp.array(dtype=wp.int32),
 ):
+    """``use_start`` = 1: the parcel moved on a straight segment from ``particle_x_start`` (inside the fluid) to its
+    position; the first reflection is against the tangent plane where that segment crosses the wall (bisection),
+    not at the end point's nearest wall: at a concave corner (the rig's dead-end supply channels) a parcel that went
+    deep past one face is nearer another, whose normal would send it the wrong way."""
     tid = wp.tid()
     if particle_alive[tid] == 0:
         return
@@ -87,6 +98,25 @@ def reflect_kernel(
     if d <= 0.0:
         return
     hit = int(0)
+    if use_start != 0:
+        x0 = particle_x_start[tid]
+        if sdf_union(shapes, x0) + offset <= 0.0:
+            lo = float(0.0)
+            hi = float(1.0)
+            for _ in range(CROSSING_BISECTIONS):
+                mid = 0.5 * (lo + hi)
+                if sdf_union(shapes, x0 + mid * (x - x0)) + offset > 0.0:
+                    hi = mid
+                else:
+                    lo = mid
+            xc = x0 + hi * (x - x0)
+            n = sdf_union_normal(shapes, xc)
+            depth = wp.dot(x - xc, n)
+            if depth > 0.0 and wp.dot(v, n) > 0.0:
+                v = reflect_velocity(v, n, params.restitution_normal, params.restitution_tangential, params.friction)
+                x = x - (1.0 + params.restitution_normal) * depth * n
+                hit = 1
+                d = sdf_union(shapes, x) + offset
     for _ in range(params.max_iterations):
         if d > 0.0:
             n = sdf_union_normal(shapes, x)
@@ -139,15 +169,20 @@ def make_wall_params(*, restitution_normal: float = 0.8, restitution_tangential:
 
 
 def reflect_at_walls(shapes: SdfShapes, params: WallParams, particle_alive, particle_x, particle_v, wall_hits,
-                     particle_radius=None) -> None:
+                     particle_radius=None, particle_x_start=None) -> None:
     """Reflect, in place, the live parcels that crossed the wall; ``wall_hits[0]`` += how many were reflected.
-    ``particle_radius`` is needed when ``params.surface`` is set."""
+    ``particle_radius`` is needed when ``params.surface`` is set. ``particle_x_start``: the positions the parcels
+    moved from in a straight line this step (the push's start): the first reflection is then against the wall
+    where that path crossed it (None: the end point's nearest wall)."""
     if particle_radius is None:
         if params.surface != 0:
             raise ValueError("surface wall contact needs particle_radius")
         particle_radius = wp.zeros(1, dtype=float, device=particle_x.device)
+    use_start = 0 if particle_x_start is None else 1
+    start = particle_x if particle_x_start is None else particle_x_start
     wp.launch(reflect_kernel, dim=particle_x.shape[0], device=particle_x.device,
-              inputs=[shapes, params, particle_alive, particle_radius], outputs=[particle_x, particle_v, wall_hits])
+              inputs=[shapes, params, particle_alive, particle_radius, start, use_start],
+              outputs=[particle_x, particle_v, wall_hits])
 
 
 def count_outside(shapes: SdfShapes, particle_x, particle_alive, outside) -> None:

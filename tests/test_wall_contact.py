@@ -87,3 +87,37 @@ def test_wall_contact_is_validated():
     assert HelConfig(dt=1e-3).wall_contact == "point"
     with pytest.raises(ConfigError, match="wall_contact must be 'point' or 'surface'"):
         HelConfig(dt=1e-3, wall_contact="sphere")
+
+
+def test_the_push_reflection_at_a_concave_corner_uses_the_face_its_path_crossed():
+    """A dead end (box A, x < 10 mm) beside a longer, lower box B (y < 2 mm): a parcel at y = 3 mm moving +x ends the
+    step at x = 12 mm, past A's end face but nearer B's top face (1 mm against 2 mm). Reflected at its end point's
+    nearest wall, its velocity is along that face and it is only moved down into B: it has passed through A's end
+    wall. With the step's start positions the reflection is against the face the path crossed (the plane x = 10 mm):
+    v' = -e_n v, and the depth 2 mm comes back shortened by e_n, x' = 10 - e_n 2 mm (hand-written reference)."""
+    import warp as wp
+
+    from hel_warp.grid import Box, Geometry
+    from kernels.reflect import make_wall_params, reflect_at_walls
+
+    mm = 1e-3
+    geometry = Geometry(shapes=(Box(lo=(0.0, 0.0, 0.0), hi=(10 * mm, 10 * mm, 10 * mm)),
+                                Box(lo=(0.0, -10 * mm, 0.0), hi=(20 * mm, 2 * mm, 10 * mm))))
+    shapes = geometry.shapes_struct(None)
+    params = make_wall_params(restitution_normal=E_WALL, restitution_tangential=E_WALL)
+    start = np.array([[9.0 * mm, 3.0 * mm, 5.0 * mm]], np.float32)
+    end = np.array([[12.0 * mm, 3.0 * mm, 5.0 * mm]], np.float32)
+    v = np.array([[3.0, 0.0, 0.0]], np.float32)
+    results = []
+    for with_start in (False, True):
+        px = wp.array(end, dtype=wp.vec3)
+        pv = wp.array(v, dtype=wp.vec3)
+        hits = wp.zeros(1, dtype=wp.int32)
+        reflect_at_walls(shapes, params, wp.ones(1, dtype=wp.int32), px, pv, hits,
+                         particle_x_start=wp.array(start, dtype=wp.vec3) if with_start else None)
+        results.append((px.numpy()[0], pv.numpy()[0], int(hits.numpy()[0])))
+    (x_old, v_old, _), (x_new, v_new, hits_new) = results
+    assert x_old[0] > 10 * mm and v_old[0] > 0.0  # the old way: through A's end wall, still moving on
+    np.testing.assert_allclose(v_new, [-E_WALL * 3.0, 0.0, 0.0], rtol=1e-6)
+    assert x_new[0] == pytest.approx(10 * mm - E_WALL * 2 * mm, abs=1e-8) and hits_new == 1
+    np.testing.assert_allclose(x_new[1:], end[0, 1:], atol=1e-9)
