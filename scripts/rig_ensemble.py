@@ -52,8 +52,30 @@ def pooled(runs, label: str | None = None):
                                label=label or runs[0].label)
 
 
-def ensemble_metrics(paths, reference_paths, min_samples: int = 10, label: str | None = None) -> dict:
-    """Crossing and transverse rms of the pooled ``paths`` against the pooled ``reference_paths``."""
+def fixed_sections(m: dict, ref: dict, sections) -> dict:
+    """Crossing difference and relative v_y rms difference over the given sections (1-based) only, as
+    ``stream_metrics_vs`` computes them (mean of the per-section crossing differences; relative difference of the
+    mean v_y rms): ensembles of different sizes fill different sections, and the whole-run figure moves with the
+    set; None when a section lacks a value on either side."""
+    idx = [k - 1 for k in sections]
+    if any(k < 0 or k >= len(m["sections"]) for k in idx):
+        return {"sections": list(sections), "stream_crossing_vs_dem": None, "transverse_velocity_rms_vs_dem": None}
+    a = [m["sections"][k] for k in idx]
+    b = [ref["sections"][k] for k in idx]
+    if any(x["stream_crossing"] is None or y["stream_crossing"] is None or x["transverse_velocity_rms"] is None
+           or y["transverse_velocity_rms"] is None for x, y in zip(a, b)):
+        return {"sections": list(sections), "stream_crossing_vs_dem": None, "transverse_velocity_rms_vs_dem": None}
+    crossing = float(np.mean([x["stream_crossing"] - y["stream_crossing"] for x, y in zip(a, b)]))
+    vy_a = float(np.mean([x["transverse_velocity_rms"] for x in a]))
+    vy_b = float(np.mean([y["transverse_velocity_rms"] for y in b]))
+    return {"sections": list(sections), "stream_crossing_vs_dem": crossing,
+            "transverse_velocity_rms_vs_dem": vy_a / vy_b - 1.0}
+
+
+def ensemble_metrics(paths, reference_paths, min_samples: int = 10, label: str | None = None,
+                     sections=None) -> dict:
+    """Crossing and transverse rms of the pooled ``paths`` against the pooled ``reference_paths`` (and over the
+    fixed ``sections``, 1-based, when given: ``fixed``)."""
     from hel_warp.report import DEFAULT_BOXES, load_run, stream_metrics, stream_metrics_vs
 
     from hel_warp.report import size_class_view, size_classes
@@ -65,7 +87,8 @@ def ensemble_metrics(paths, reference_paths, min_samples: int = 10, label: str |
         m = stream_metrics(r, DEFAULT_BOXES, min_samples=min_samples)
         ref = stream_metrics(q, DEFAULT_BOXES, min_samples=min_samples)
         vs = stream_metrics_vs(m, ref, DEFAULT_BOXES, min_samples=min_samples)
-        return {"stream_crossing": m["stream_crossing"], "reference_stream_crossing": ref["stream_crossing"],
+        extra = {"fixed": fixed_sections(m, ref, sections)} if sections else {}
+        return {**extra, "stream_crossing": m["stream_crossing"], "reference_stream_crossing": ref["stream_crossing"],
                 "stream_crossing_vs_dem": vs["stream_crossing_vs_dem"]["difference"],
                 "transverse_velocity_rms": m["transverse_velocity_rms"],
                 "reference_transverse_velocity_rms": ref["transverse_velocity_rms"],
@@ -90,10 +113,13 @@ def main(argv=None) -> int:
     p.add_argument("--reference", nargs="+", required=True, help="reference run directories (dem), pooled alike")
     p.add_argument("--label", default=None, help="name of the ensemble in the output")
     p.add_argument("--min-samples", type=int, default=10, help="as hel-warp report --min-samples")
+    p.add_argument("--sections", type=int, nargs="+", default=None,
+                   help="also compare over these sections only (1-based, e.g. 1 2 3 4), the same set for every "
+                        "ensemble")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     args = p.parse_args(argv)
     try:
-        out = ensemble_metrics(args.runs, args.reference, args.min_samples, args.label)
+        out = ensemble_metrics(args.runs, args.reference, args.min_samples, args.label, args.sections)
     except ConfigError as exc:
         print(f"rig_ensemble: error: {exc}", file=sys.stderr)
         return 2
@@ -110,9 +136,17 @@ def main(argv=None) -> int:
                 f"{num(m['reference_transverse_velocity_rms'], '.3f')} m/s "
                 f"({num(None if m['transverse_velocity_rms_vs_dem'] is None else 100 * m['transverse_velocity_rms_vs_dem'], '+.1f')} %)")
 
-    print(line(f"{out['label']} ({out['runs']} runs) vs reference ({out['reference_runs']} runs)", out))
+    def fixed(m):
+        f = m.get("fixed")
+        if not f:
+            return ""
+        vy = f["transverse_velocity_rms_vs_dem"]
+        return (f"; sections {','.join(str(k) for k in f['sections'])}: crossing "
+                f"{num(f['stream_crossing_vs_dem'], '+.3f')}, v_y rms {num(None if vy is None else 100 * vy, '+.1f')} %")
+
+    print(line(f"{out['label']} ({out['runs']} runs) vs reference ({out['reference_runs']} runs)", out) + fixed(out))
     for c in out.get("size_classes", []):
-        print("  " + line(f"{1e6 * c['diameter']:.0f} um", c))
+        print("  " + line(f"{1e6 * c['diameter']:.0f} um", c) + fixed(c))
     return 0
 
 

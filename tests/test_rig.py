@@ -291,10 +291,14 @@ def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
     spec = importlib.util.spec_from_file_location("rig_ensemble", ROOT / "scripts" / "rig_ensemble.py")
     ens = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(ens)
-    one = ens.ensemble_metrics([runs[0]], [runs[1]], min_samples=1)
-    two = ens.ensemble_metrics([runs[0], runs[0]], [runs[1], runs[1], runs[1]], min_samples=1)
+    filled = [k + 1 for k, s in enumerate(by["none"]["stream_metrics"]["sections"]) if s["samples"]]
+    one = ens.ensemble_metrics([runs[0]], [runs[1]], min_samples=1, sections=filled[:2])
+    two = ens.ensemble_metrics([runs[0], runs[0]], [runs[1], runs[1], runs[1]], min_samples=1, sections=filled[:2])
     for key in ("stream_crossing", "reference_stream_crossing", "transverse_velocity_rms", "stream_crossing_vs_dem"):
         assert two[key] == pytest.approx(one[key], rel=1e-12), key
+    for key in ("stream_crossing_vs_dem", "transverse_velocity_rms_vs_dem"):  # the fixed sections alike
+        assert (two["fixed"][key] is None and one["fixed"][key] is None) or \
+            two["fixed"][key] == pytest.approx(one["fixed"][key], rel=1e-12, abs=1e-12)
     assert one["stream_crossing"] == pytest.approx(by["none"]["stream_metrics"]["stream_crossing"], rel=1e-12)
     from hel_warp.errors import ConfigError
 
