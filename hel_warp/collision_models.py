@@ -334,7 +334,8 @@ class SurrogateCollision:
 
     # ------------------------------------------------------------------ the strategy interface
     def accelerate(self, solver) -> None:
-        """Velocity jumps of the step's collisions (``solver.pool.particles.v``); a_coll = 0."""
+        """Velocity jumps of the step's collisions (``solver.pool.particles.v``); a_coll = 0 (the cell detection:
+        its packing stress, ``CellConfig.packing_stress``)."""
         solver.fields.parcel_a_coll.zero_()
         self._solver_grid = solver.grid  # the cell detection's collision cells
         walls = getattr(getattr(solver, "config", None), "walls", False)
@@ -342,7 +343,10 @@ class SurrogateCollision:
             self.set_walls(solver.shapes, solver.wall_params)
         particles = solver.pool.particles
         self._kicked = False
-        if self.kick_first and self._uses_swept(particles):
+        uses_swept = self._uses_swept(particles)
+        if not uses_swept and self.mode == "pairwise":
+            self._packing_stress(solver)
+        if self.kick_first and uses_swept:
             import warp as wp
 
             # the push's velocities now (drag, gravity; the drag impulses recorded for the gas), the positions
@@ -352,6 +356,23 @@ class SurrogateCollision:
             solver.fluid_push(particle_x_out=self._x_scratch)
             self._kicked = True
         self.collide(particles, solver.config.dt)
+
+    def _packing_stress(self, solver) -> None:
+        """The cell detection's MP-PIC packing stress into ``solver.fields.parcel_a_coll`` (``CellConfig.
+        packing_stress``; the deposited ``cell_eps_s`` of this step)."""
+        cfg = self.cells.config if self.cells is not None else None
+        fields = solver.fields
+        if cfg is None or not cfg.packing_stress or getattr(fields, "cell_eps_s", None) is None:
+            return
+        from kernels.ktgf import cell_gradient, collision_acceleration, packing_pressure
+
+        grid = solver.grid
+        packing_pressure(fields.cell_eps_s, fields.cell_p_s, p_solid=cfg.packing_pressure, beta=cfg.packing_beta,
+                         packed=cfg.packing_fraction, eps=1.0e-7)
+        cell_gradient(grid.spacing, fields.cell_p_s, fields.cell_grad_p_s, periodic=grid.periodic)
+        particles = solver.pool.particles
+        collision_acceleration(grid.cell_grid(), 1.0e-6, particles.x, particles.density, fields.cell_grad_p_s,
+                               fields.cell_eps_s, fields.parcel_a_coll, dt=solver.config.dt)
 
     def _uses_swept(self, particles) -> bool:
         """Whether :meth:`collide` takes the swept detection for these particles (``cell`` where auto-detection

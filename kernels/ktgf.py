@@ -403,6 +403,29 @@ def ktgf_cells(params: KtgfParams, spacing: float, cell_eps_s, cell_solid_veloci
               outputs=[cell_g0, cell_theta, cell_p_s, cell_mu_s, cell_mu_fric])
 
 
+@wp.kernel
+def packing_pressure_kernel(
+    cell_eps_s: wp.array3d(dtype=float),
+    p_solid: float,
+    beta: float,
+    packed: float,
+    eps: float,
+    # outputs
+    cell_p: wp.array3d(dtype=float),
+):
+    """tau = p_solid eps_s^beta / max(packed - eps_s, eps (1 - eps_s)) (Harris & Crighton 1994, as Snider 2001's
+    MP-PIC particle normal stress and OpenFOAM's ``HarrisCrighton``)."""
+    i, j, k = wp.tid()
+    e = wp.clamp(cell_eps_s[i, j, k], 0.0, 0.999999)
+    cell_p[i, j, k] = p_solid * wp.pow(e, beta) / wp.max(packed - e, eps * (1.0 - e))
+
+
+def packing_pressure(cell_eps_s, cell_p, *, p_solid: float, beta: float, packed: float, eps: float) -> None:
+    """The MP-PIC packing stress of each cell (``packing_pressure_kernel``), Pa, into ``cell_p``."""
+    wp.launch(packing_pressure_kernel, dim=cell_eps_s.shape, device=cell_eps_s.device,
+              inputs=[cell_eps_s, float(p_solid), float(beta), float(packed), float(eps)], outputs=[cell_p])
+
+
 def cell_gradient(spacing: float, cell_field, cell_gradient_out, periodic=(False, False, False)):
     """Central-difference gradient of a float32 cell field (wrapped along periodic axes)."""
     wp.launch(gradient_kernel, dim=cell_field.shape, device=cell_field.device,

@@ -622,3 +622,43 @@ def test_shifted_merged_cells_let_parcels_meet_across_a_fixed_face(constant_mode
         num, den = num + float(d[same].sum()), den + float(same.sum())
     expected = num / den
     assert dx.mean() == pytest.approx(expected, abs=4 * dx.std() / math.sqrt(len(dx)))
+
+
+def test_packing_stress_follows_harris_crighton_and_pushes_parcels_out_of_a_packed_cell(constant_model, device):
+    """``CellConfig(packing_stress=True)``: tau = P eps^beta / max(eps_cp - eps, 1e-7 (1 - eps)) per cell (the
+    closed form, evaluated here), and a parcel beside an overfull cell is pushed away from it (-grad tau)."""
+    import warp as wp
+    from types import SimpleNamespace
+
+    from hel_warp.cell_collisions import CellConfig
+    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.coupling import GridSpec
+    from kernels.ktgf import packing_pressure
+
+    eps = np.array([0.0, 0.1, 0.3, 0.5, 0.57, 0.6, 0.9], np.float32).reshape(7, 1, 1)
+    out = wp.zeros(eps.shape, dtype=float, device=device)
+    packing_pressure(wp.array(eps, dtype=float, device=device), out, p_solid=10.0, beta=2.0, packed=0.58, eps=1e-7)
+    e = eps.astype(np.float64).ravel()
+    expected = 10.0 * e**2 / np.maximum(0.58 - e, 1e-7 * (1.0 - e))
+    np.testing.assert_allclose(out.numpy().ravel(), expected, rtol=2e-5)
+
+    grid = GridSpec(origin=(0.0, 0.0, 0.0), spacing=1e-3, shape=(5, 5, 5))
+    cell_eps = np.full((5, 5, 5), 0.05, np.float32)
+    cell_eps[2, 2, 2] = 0.7  # overfull
+    n = 2
+    p = make_gas(n, 1.0, 1.0, np.random.default_rng(0), device)
+    p.x.assign(np.array([[1.6e-3, 2.5e-3, 2.5e-3], [3.4e-3, 2.5e-3, 2.5e-3]], np.float32))  # either side along x
+    fields = SimpleNamespace(cell_eps_s=wp.array(cell_eps, dtype=float, device=device),
+                             cell_p_s=wp.zeros((5, 5, 5), dtype=float, device=device),
+                             cell_grad_p_s=wp.zeros((5, 5, 5), dtype=wp.vec3, device=device),
+                             parcel_a_coll=wp.zeros(n, dtype=wp.vec3, device=device))
+    s = SurrogateCollision(model_dir=constant_model, seed=1, detection="cell", cell=CellConfig(packing_stress=True))
+    solver = SimpleNamespace(grid=grid, pool=SimpleNamespace(particles=p), config=SimpleNamespace(dt=1e-3),
+                             fields=fields)
+    s._packing_stress(solver)
+    a = fields.parcel_a_coll.numpy()
+    assert a[0, 0] < 0.0 < a[1, 0]  # away from the packed cell on both sides
+    s_off = SurrogateCollision(model_dir=constant_model, seed=1, detection="cell")
+    fields.parcel_a_coll.zero_()
+    s_off._packing_stress(solver)
+    assert not np.any(fields.parcel_a_coll.numpy())  # off by default
