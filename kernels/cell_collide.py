@@ -436,8 +436,9 @@ def cell_select(
         if not (u_accept * bound < rate):
             continue
         wp.atomic_add(args.counts, COUNT_ACCEPTED, 1)
-        args.last_partner[i] = j
-        args.last_partner[j] = i
+        if args.approaching != 0:  # only the approach filter reads the memory
+            args.last_partner[i] = j
+            args.last_partner[j] = i
         n = sample_normal(g, u_b2, u_phi)
         if args.log_pair.shape[0] > 0:
             slot = wp.atomic_add(args.log_count, 0, 1)
