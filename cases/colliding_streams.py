@@ -320,6 +320,11 @@ class CaseConfig:
     cell_coarsen: int | None = None
     """``surrogate`` cell detection: grid cells per collision cell and axis (``CellConfig.coarsen``; None: the
     automatic choice, merged cells for weighted parcels)."""
+    cell_packing_stress: bool = True
+    """``surrogate`` cell detection: the MP-PIC packing stress (``CellConfig.packing_stress``)."""
+    cell_nearest: int = 0
+    """``surrogate`` cell detection: nearest-neighbour partners among this many parcels (``CellConfig.nearest``;
+    0: random partners)."""
     wall_events: bool = True
     """``surrogate`` swept detection: walls as events within the step, in time order with the collisions (False:
     the push's end-of-step reflection; ``SurrogateCollision.wall_events``)."""
@@ -414,10 +419,15 @@ def make_config(args) -> CaseConfig:
         raise ConfigError(f"--collisions {args.collisions} needs --model MODEL_DIR (a `hel-warp train` output)")
     detection = getattr(args, "detection", None)
     coarsen = getattr(args, "cell_coarsen", None)
-    if coarsen is not None and not (args.collisions == "surrogate" and (detection == "cell" or (
-            detection is None and max(weights) > 1))):
-        raise ConfigError("--cell-coarsen is an option of the surrogate's cell detection (give --detection cell or "
-                          "--particles-per-parcel > 1)")
+    uses_cell = args.collisions == "surrogate" and (detection == "cell" or (detection is None and max(weights) > 1))
+    nearest = getattr(args, "cell_nearest", None)
+    for flag, given in (("--cell-coarsen", coarsen is not None), ("--cell-nearest", nearest is not None),
+                        ("--no-packing-stress", getattr(args, "no_packing_stress", False))):
+        if given and not uses_cell:
+            raise ConfigError(f"{flag} is an option of the surrogate's cell detection (give --detection cell or "
+                              "--particles-per-parcel > 1)")
+    if nearest is not None and nearest < 0:
+        raise ConfigError(f"--cell-nearest must be >= 0 parcels (got {nearest}; 0: random partners)")
     if coarsen is not None and coarsen < 1:
         raise ConfigError(f"--cell-coarsen must be >= 1 grid cell (got {coarsen})")
     if getattr(args, "no_wall_events", False) and (args.collisions != "surrogate" or detection in ("overlap", "cell")):
@@ -441,6 +451,8 @@ def make_config(args) -> CaseConfig:
                       gas_warmup=float(args.gas_warmup), output_interval=float(args.output_interval),
                       model=args.model, detection=detection or ("cell" if max(weights) > 1 else "swept"),
                       wall_events=not getattr(args, "no_wall_events", False), cell_coarsen=coarsen,
+                      cell_packing_stress=not getattr(args, "no_packing_stress", False),
+                      cell_nearest=int(nearest or 0),
                       wall_contact=getattr(args, "wall_contact", "surface"),
                       seed=int(args.seed), device=args.device)
 
@@ -573,10 +585,11 @@ class CollidingStreams:
         elif config.collisions == "surrogate":
             kwargs = {"model_dir": config.model, "detection": config.detection, "seed": config.seed,
                       "wall_events": config.wall_events}
-            if config.cell_coarsen is not None:
+            if config.cell_coarsen is not None or not config.cell_packing_stress or config.cell_nearest:
                 from hel_warp.cell_collisions import CellConfig
 
-                kwargs["cell"] = CellConfig(coarsen=config.cell_coarsen)
+                kwargs["cell"] = CellConfig(coarsen=config.cell_coarsen, packing_stress=config.cell_packing_stress,
+                                            nearest=config.cell_nearest)
         elif config.collisions == "surrogate-paper":
             kwargs = {"model_dir": config.model}
         elif config.collisions == "dem":
@@ -888,6 +901,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="cell detection: grid cells per collision cell and axis (default: 1 at weight 1, else "
                              "the smallest that keeps a parcel pair from saturating, 4 on the 1 mm grid at 8 per "
                              "parcel)")
+    parser.add_argument("--cell-nearest", type=int, default=None,
+                        help="cell detection: the partner of a candidate is the nearest of up to N parcels of its "
+                             "cell (Bird's nearest-neighbour collisions; default 0: a random one)")
+    parser.add_argument("--no-packing-stress", action="store_true",
+                        help="cell detection: without the MP-PIC packing stress (on by default: the cell scheme's "
+                             "parcels have no excluded volume)")
     parser.add_argument("--max-particles", type=int, default=None, help="cap the parcels released (CI)")
     parser.add_argument("--real-particles", type=int, default=None,
                         help="one size: real particles released over the paper's window (default: the paper's "

@@ -87,14 +87,22 @@ class CellConfig:
     out, so fewer than half of a cell's pairs approach: Enskog's frequency falls to 0.985 / 0.975 / 0.968 at weights
     1 / 8 / 64 at eps_s = 0.01 and 0.92 / 0.89 / 0.80 at 0.05 (FIGURES, issue 12, ninth session). False (default):
     any pair of the cell, whatever its positions (Bird's NTC, exact for the homogeneous gas)."""
-    packing_stress: bool = False
+    nearest: int = 0
+    """> 0: nearest-neighbour partners (Bird 2007; SPARTA's ``collide_modify nearcp yes Nlimit``): each candidate's
+    second parcel is the nearest to the first among up to ``nearest`` parcels of the cell (all when fewer), the
+    first's last partner excluded; the acceptance is unchanged. 0: a uniformly drawn pair (Bird's NTC)."""
+    packing_stress: bool = True
     """With a HEL solver: the MP-PIC packing stress (Harris & Crighton 1994; Snider 2001; OpenFOAM's
     ``HarrisCrighton``), tau = ``packing_pressure`` eps_s^``packing_beta`` / max(``packing_fraction`` - eps_s,
     1e-7 (1 - eps_s)) of the deposited solids fraction, as the parcels' a_coll = -grad tau / (eps_s rho_p). The cell
-    detection has no excluded volume: on the rig at dt = 1e-4 s its clouds piled up to eps_s > 1 in a 1 mm cell.
-    With the stress the 99th percentile falls from 0.74 to 0.40 (the DEM's 0.30), but the stream metrics do not
-    improve with it: weight 1 at 1e-4 s goes from +0.085 / +20 % to +0.124 / +29 %, and weight 8 at 1e-3 s from
-    +0.050 / +5.5 % to +0.033 / +1.3 % (FIGURES, issue 12, ninth session). So it is off by default."""
+    detection has no excluded volume (parcels may overlap; DEM spheres and the swept detection's parcels may not):
+    without it the rig's injection clouds overpack (eps_s > 1 in a 1 mm cell at dt = 1e-4 s; at 1e-3 s the
+    collision rate of the weight-1 clouds, from their own snapshots, is 3-5x the CFD-DEM's in the supply channels
+    and arms), over-collide and leave the holders too hot. On by default (tenth session): on the rig at weight 8,
+    dt = 1e-3 s, sixteen seeds against two CFD-DEM seeds, crossing +0.005 and v_y rms -0.4 % (without: +0.019 /
+    +6.9 %); at 1e-4 s, eight seeds against one, +0.053 / +3.4 % (without: +0.023 / +4.3 %). At weight 1 and 1e-4
+    s both miss (+0.124 / +29 % with, +0.085 / +20 % without; the swept detection is weight 1's default). A periodic
+    box (no grid) has no stress (FIGURES, issue 12, ninth and tenth sessions)."""
     packing_pressure: float = 10.0
     """P_s of the packing stress, Pa (OpenFOAM's ``pSolid`` default)."""
     packing_beta: float = 2.0
@@ -136,6 +144,9 @@ class CellConfig:
             raise ConfigError(f"cell coarsen must be a positive integer or None (got {self.coarsen!r})")
         if self.subdivision > 1 and self.coarsen not in (None, 1):
             raise ConfigError("cell subdivision and coarsen exclude each other: give one of them")
+        if int(self.nearest) != self.nearest or self.nearest < 0:
+            raise ConfigError(f"cell nearest must be an integer >= 0 (got {self.nearest!r}): parcels scanned for "
+                              "the nearest partner, 0 for a random one")
         if not 0.0 < self.eps_cap < 1.0:
             raise ConfigError(f"cell eps_cap must lie in (0, 1) (got {self.eps_cap!r})")
         if not (math.isfinite(self.cfl) and self.cfl > 0.0):
@@ -396,6 +407,7 @@ class CellCollisions:
         a.dt = sub_dt
         a.enskog = 1 if self.config.enskog else 0
         a.approaching = 1 if self.config.approaching else 0
+        a.nearest = int(self.config.nearest)
         a.eps_cap = float(self.config.eps_cap)
         a.apply = 1 if apply else 0
         a.domain = domain

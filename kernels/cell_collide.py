@@ -20,6 +20,10 @@ whatever w. Per collision cell of volume V holding N parcels, in one step dt:
   |v_i - v_j| <= |v_i - c| + |v_j - c|), w_max the cell's largest weight. A collision can raise a parcel's
   distance from c (by up to sqrt 2 for equal masses), so a later candidate may exceed the bound; it is then
   accepted and counted (``over_max``: the bias, measured ~0);
+- optionally (``nearest`` > 0; Bird 2007's nearest-neighbour collisions, SPARTA's ``collide_modify nearcp``) the
+  second parcel of a candidate is the nearest to the first among up to ``nearest`` of the cell, the first's last
+  partner excluded; the acceptance is the same (the partner's g is a random pair's where positions carry no
+  information on velocities, so Enskog's frequency stays);
 - impact geometry of an accepted pair: the impact parameter uniform in b^2 on [0, (r_i + r_j)^2] and a uniform
   azimuth about g (PHYSICS-NOTES "Impact parameter"): ``n = cos(chi) g_hat + sin(chi) (cos(phi) e1 + sin(phi)
   e2)``, sin^2(chi) = b^2 / (r_i + r_j)^2, so g.n = |g| cos(chi) > 0 (approaching), n from i to j;
@@ -120,6 +124,10 @@ class CellArgs:
     approaching: wp.int32
     """1: only a pair whose centres approach, (x_j - x_i) . (v_i - v_j) > 0, can collide, at twice the rate (half
     of a homogeneous cell's pairs approach: the rate is kept); 0: any pair of the cell (Bird's NTC)."""
+    nearest: wp.int32
+    """> 0: the partner of the first drawn parcel is the nearest of up to ``nearest`` parcels of the cell (all of
+    them when the cell holds fewer), its last partner excluded (Bird 2007's nearest-neighbour collisions; SPARTA's
+    ``collide_modify nearcp``); 0: a uniformly drawn second parcel (Bird's NTC)."""
     eps_cap: wp.float32
     """Largest solids fraction put into g0 (Carnahan-Starling diverges at 1; an MP-PIC cell can overfill)."""
     apply: wp.int32
@@ -308,6 +316,17 @@ def count_guard(args: CellArgs, flags: int):
         wp.atomic_add(args.counts, COUNT_ENERGY, 1)
 
 
+@wp.func
+def cell_offset(args: CellArgs, i: int, j: int):
+    """x_j - x_i, the nearest image in a periodic box (a shifted lattice's cell may straddle the box's side)."""
+    dx = args.particle_x[j] - args.particle_x[i]
+    if args.periodic != 0:
+        for ax in range(3):
+            side = args.cell_size[ax] * float(args.shape[ax])
+            dx[ax] = dx[ax] - side * wp.round(dx[ax] / side)
+    return dx
+
+
 @wp.kernel
 def cell_prepare(
     args: CellArgs,
@@ -360,6 +379,38 @@ def cell_prepare(
     wp.atomic_add(args.counts, COUNT_CELLS, 1)
 
 
+@wp.func
+def nearest_partner(args: CellArgs, start: int, count: int, a: int, state: wp.uint32):
+    """Position in the cell of the parcel nearest to the cell's ``a``-th, among all the others or ``args.nearest``
+    drawn ones, the last partner of ``a`` left out unless it is the only other parcel; returns (position, state)."""
+    i = args.cell_slot[start + a]
+    last = args.last_partner[i]
+    best = int(-1)
+    best_d2 = float(0.0)
+    scan_all = count - 1 <= args.nearest
+    tries = count
+    if not scan_all:
+        tries = args.nearest
+    for t in range(tries):
+        k = t
+        if not scan_all:
+            k = wp.min(int(wp.randf(state) * float(count - 1)), count - 2)
+            if k >= a:
+                k += 1
+        if k != a:
+            p = args.cell_slot[start + k]
+            if p != last:
+                d2 = wp.length_sq(cell_offset(args, i, p))
+                if best < 0 or d2 < best_d2:
+                    best = k
+                    best_d2 = d2
+    if best < 0:  # only the last partner is left
+        best = wp.min(int(wp.randf(state) * float(count - 1)), count - 2)
+        if best >= a:
+            best += 1
+    return best, state
+
+
 @wp.kernel
 def cell_select(
     args_store: wp.array(dtype=CellArgs),
@@ -388,9 +439,13 @@ def cell_select(
     while remaining > 0:
         remaining -= 1
         a = wp.min(int(wp.randf(state) * float(count)), count - 1)
-        b = wp.min(int(wp.randf(state) * float(count - 1)), count - 2)
-        if b >= a:
-            b += 1
+        b = int(0)
+        if args.nearest > 0:
+            b, state = nearest_partner(args, start, count, a, state)
+        else:
+            b = wp.min(int(wp.randf(state) * float(count - 1)), count - 2)
+            if b >= a:
+                b += 1
         i = args.cell_slot[start + a]
         j = args.cell_slot[start + b]
         u_accept = wp.randf(state)
@@ -409,11 +464,7 @@ def cell_select(
             chi = carnahan_starling((solids - wi * sphere_volume(ri) - wj * sphere_volume(rj)) / volume, args.eps_cap)
         rate = wp.pi * (ri + rj) * (ri + rj) * g_mag * wp.max(wi, wj) * chi
         if args.approaching != 0:
-            dx = args.particle_x[j] - args.particle_x[i]
-            if args.periodic != 0:  # the nearest image (a shifted lattice's cell may straddle the box's side)
-                for ax in range(3):
-                    side = args.cell_size[ax] * float(args.shape[ax])
-                    dx[ax] = dx[ax] - side * wp.round(dx[ax] / side)
+            dx = cell_offset(args, i, j)
             # a parcel of w particles is a cloud: its w - 1 other particles fill (w - 1) V_p / eps_cell around the
             # centre; the colliding particle of each is drawn uniformly from a cube of that volume (0 at weight 1)
             u_i = wp.vec3(wp.randf(state) - 0.5, wp.randf(state) - 0.5, wp.randf(state) - 0.5)
@@ -436,7 +487,7 @@ def cell_select(
         if not (u_accept * bound < rate):
             continue
         wp.atomic_add(args.counts, COUNT_ACCEPTED, 1)
-        if args.approaching != 0:  # only the approach filter reads the memory
+        if args.approaching != 0 or args.nearest > 0:  # only these read the memory
             args.last_partner[i] = j
             args.last_partner[j] = i
         n = sample_normal(g, u_b2, u_phi)

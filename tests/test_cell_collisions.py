@@ -625,7 +625,7 @@ def test_shifted_merged_cells_let_parcels_meet_across_a_fixed_face(constant_mode
 
 
 def test_packing_stress_follows_harris_crighton_and_pushes_parcels_out_of_a_packed_cell(constant_model, device):
-    """``CellConfig(packing_stress=True)``: tau = P eps^beta / max(eps_cp - eps, 1e-7 (1 - eps)) per cell (the
+    """``CellConfig(packing_stress=True)`` (the default): tau = P eps^beta / max(eps_cp - eps, 1e-7 (1 - eps)) per cell (the
     closed form, evaluated here), and a parcel beside an overfull cell is pushed away from it (-grad tau)."""
     import warp as wp
     from types import SimpleNamespace
@@ -658,7 +658,60 @@ def test_packing_stress_follows_harris_crighton_and_pushes_parcels_out_of_a_pack
     s._packing_stress(solver)
     a = fields.parcel_a_coll.numpy()
     assert a[0, 0] < 0.0 < a[1, 0]  # away from the packed cell on both sides
-    s_off = SurrogateCollision(model_dir=constant_model, seed=1, detection="cell")
+    on = a.copy()
+    s_default = SurrogateCollision(model_dir=constant_model, seed=1, detection="cell")
+    fields.parcel_a_coll.zero_()
+    s_default._packing_stress(solver)
+    np.testing.assert_array_equal(fields.parcel_a_coll.numpy(), on)  # on by default
+    s_off = SurrogateCollision(model_dir=constant_model, seed=1, detection="cell",
+                               cell=CellConfig(packing_stress=False))
     fields.parcel_a_coll.zero_()
     s_off._packing_stress(solver)
-    assert not np.any(fields.parcel_a_coll.numpy())  # off by default
+    assert not np.any(fields.parcel_a_coll.numpy())
+
+
+def test_nearest_partners_keep_enskogs_frequency(constant_model, device):
+    """Nearest-neighbour partners (``CellConfig.nearest``, Bird 2007; SPARTA ``nearcp``) change which pair collides,
+    not how often: in a gas whose positions carry no information on velocities the partner's g is that of a random
+    pair, so the frequency per real particle stays Enskog's at weights 1 and 8 (selection only)."""
+    rng = np.random.default_rng(21)
+    n, dt, reps, eps = 2000, 2e-4, 10, 0.05
+    for weight in (1.0, 8.0):
+        side = box_side(n * weight, eps)
+        s = strategy(constant_model, side, nearest=8)
+        real = expected = 0.0
+        for _ in range(reps):
+            p = make_gas(n, side, weight, rng, device)
+            v = p.v.numpy().astype(np.float64)
+            theta = float(((v - v.mean(axis=0)) ** 2).sum() / (3 * n))
+            omega = 24.0 * eps * g0_cs(eps) * math.sqrt(theta) / (math.sqrt(math.pi) * D)
+            real += select(s, p, dt)["collisions"]
+            expected += 0.5 * n * weight * omega * dt
+        events = expected / weight
+        assert abs(real / expected - 1.0) <= 4.0 / math.sqrt(events), (weight, real / expected)
+
+
+@pytest.mark.parametrize("nearest", [0, 64])
+def test_nearest_partners_stay_within_their_cluster(constant_model, device, nearest):
+    """One cell holding two tight clusters of 12 parcels that fly apart (+-1 m/s along x, 0.05 m/s spread within a
+    cluster): with nearest partners (all of the cell scanned) every accepted pair lies within a cluster; with random
+    partners (Bird's NTC) most accepted pairs are the fast cross pairs."""
+    rng = np.random.default_rng(22)
+    side = 4e-3
+    s = strategy(constant_model, side, nearest=nearest, cell_size=side, enskog=False, max_substeps=1, log=20000)
+    cross = within = 0
+    for _ in range(20):
+        centre = np.repeat([[0.25 * side, 0.5 * side, 0.5 * side], [0.75 * side, 0.5 * side, 0.5 * side]], 12, axis=0)
+        x = centre + rng.uniform(-0.05 * side, 0.05 * side, size=(24, 3))
+        v = np.repeat([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]], 12, axis=0) + rng.normal(0.0, 0.05, size=(24, 3))
+        from hel_warp.particles import Particles
+        p = Particles.from_numpy(x, 0.5 * D, v=v, density=RHO, weight=1.0, check_overlap=False, device=device)
+        select(s, p, 0.05)
+        pairs = s.cells.event_log()["pair"]
+        same = (pairs[:, 0] < 12) == (pairs[:, 1] < 12)
+        within += int(same.sum())
+        cross += int((~same).sum())
+    if nearest:
+        assert cross == 0 and within > 20
+    else:
+        assert cross > 4 * within and cross > 20

@@ -228,6 +228,16 @@ def test_paper_particle_sets(cs):
         surrogate("--cell-coarsen", "3")  # weight 1: swept detection
     with pytest.raises(ConfigError, match="--cell-coarsen must be"):
         surrogate("--particles-per-parcel", "8", "--cell-coarsen", "0")
+    # --cell-nearest, --no-packing-stress: cell detection only
+    c = surrogate("--particles-per-parcel", "8", "--cell-nearest", "8", "--no-packing-stress")
+    assert c.cell_nearest == 8 and c.cell_packing_stress is False
+    assert surrogate("--particles-per-parcel", "8").cell_packing_stress is True
+    with pytest.raises(ConfigError, match="--no-packing-stress is an option"):
+        surrogate("--no-packing-stress")  # weight 1: swept detection
+    with pytest.raises(ConfigError, match="--cell-nearest is an option"):
+        config("315e-6", "--cell-nearest", "8")
+    with pytest.raises(ConfigError, match="--cell-nearest must be"):
+        surrogate("--detection", "cell", "--cell-nearest", "-1")
 
 
 def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
