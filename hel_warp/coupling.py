@@ -40,6 +40,10 @@ class GridSpec:
     """Cells per axis (nx, ny, nz)."""
     periodic: tuple[bool, bool, bool] = (False, False, False)
     """Periodic flag per axis (the stencil wraps around)."""
+    spread: bool = True
+    """Parcels heavier than ~3.4 real particles couple (deposit, interpolation, drag exchange) through a tent of
+    half-width round(w^(1/3)) cells instead of the trilinear stencil (``kernels/interp.py`` ``spread_half_width``);
+    False: trilinear at any weight. Weight 1 is trilinear either way."""
 
     def __post_init__(self):
         if len(self.origin) != 3 or len(self.shape) != 3:
@@ -59,7 +63,7 @@ class GridSpec:
         """The kernel-side ``CellGrid`` struct."""
         from kernels.interp import make_cell_grid
 
-        return make_cell_grid(self.origin, self.spacing, self.shape, self.periodic)
+        return make_cell_grid(self.origin, self.spacing, self.shape, self.periodic, spread=self.spread)
 
     @classmethod
     def of(cls, grid) -> "GridSpec":
@@ -217,12 +221,13 @@ def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields) -> None:
 
 def interpolate_gas(grid: GridSpec, particles, cell_velocity, cell_grad_p, fields: CouplingFields) -> None:
     """Step 3: gas velocity, grad p' and eps_s at the parcels (same weights as the deposit)."""
-    from kernels.interp import interpolate_scalar, interpolate_vec3
+    from kernels.interp import interpolate_scalar_parcels, interpolate_vec3_parcels
 
     g = grid.cell_grid()
-    interpolate_vec3(g, particles.x, cell_velocity, fields.parcel_u_f)
-    interpolate_vec3(g, particles.x, cell_grad_p, fields.parcel_grad_p)
-    interpolate_scalar(g, particles.x, fields.cell_eps_s, fields.parcel_eps_s)
+    w = particles.weight
+    interpolate_vec3_parcels(g, particles.x, w, cell_velocity, fields.parcel_u_f)
+    interpolate_vec3_parcels(g, particles.x, w, cell_grad_p, fields.parcel_grad_p)
+    interpolate_scalar_parcels(g, particles.x, w, fields.cell_eps_s, fields.parcel_eps_s)
 
 
 def ktgf_collision(grid: GridSpec, particles, fields: CouplingFields, params, *, dt: float | None = None) -> None:
@@ -276,7 +281,7 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
     import warp as wp
 
     from kernels.deposit import exchange_cells, exchange_correct, exchange_deposit
-    from kernels.interp import interpolate_vec3, parcel_arrays
+    from kernels.interp import interpolate_vec3_parcels, parcel_arrays
     from kernels.push import push_at_rate
 
     p = particles
@@ -294,7 +299,7 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
         exchange_cells(float(gas_density) * grid.cell_volume, eps_f_min, cell_fluid, f.cell_eps_s, cell_velocity,
                        f.cell_exchange_coeff, f.cell_exchange_momentum, cell_u_eq=f.cell_u_eq,
                        cell_gas_impulse=f.cell_gas_impulse, cell_mismatch=f.cell_mismatch)
-        interpolate_vec3(g, f.parcel_x_start, f.cell_u_eq, f.parcel_u_eq)
+        interpolate_vec3_parcels(g, f.parcel_x_start, p.weight, f.cell_u_eq, f.parcel_u_eq)
         slip_against = f.parcel_u_eq
     push_at_rate(push_params, start, f.parcel_u_eq, f.parcel_rate, f.parcel_grad_p, f.parcel_a_coll,
                  f.parcel_drag_impulse, f.parcel_drag_coeff, particle_x_out=x_out, particle_v_out=v_out)

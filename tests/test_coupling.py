@@ -15,7 +15,7 @@ from hel_warp.coupling import (CouplingFields, GridSpec, PushConfig, deposit_par
 from hel_warp.errors import ConfigError, HelWarpError
 from hel_warp.parcels import ParcelPool, VolumeInjection
 from hel_warp.particles import Particles
-from kernels.interp import interpolate_scalar, interpolate_vec3, stencil_weights
+from kernels.interp import interpolate_scalar, interpolate_vec3, interpolate_vec3_parcels, stencil_weights
 
 GRID = GridSpec(origin=(-0.01, 0.02, 0.0), spacing=0.005, shape=(6, 5, 4))
 
@@ -101,7 +101,8 @@ def test_deposit_and_interpolation_use_the_same_weights():
     rng = np.random.default_rng(9)
     u_cells = rng.normal(0, 1, GRID.shape + (3,)).astype(np.float32)
     u_f = wp.zeros(parts.count, dtype=wp.vec3)
-    interpolate_vec3(GRID.cell_grid(), parts.x, wp.array(u_cells, dtype=wp.vec3), u_f)
+    # weights 1..8: the heavier parcels spread over wider tents (kernels/interp.py spread_half_width), read alike
+    interpolate_vec3_parcels(GRID.cell_grid(), parts.x, parts.weight, wp.array(u_cells, dtype=wp.vec3), u_f)
     lhs = np.sum(fields.cell_momentum_source.numpy() * u_cells.astype(np.float64))
     rhs = -np.sum((impulse * u_f.numpy().astype(np.float64))[alive == 1])
     assert lhs == pytest.approx(rhs, rel=1e-6)  # u_f stored in float32
@@ -405,3 +406,39 @@ def test_closed_periodic_box_momentum_change_is_the_gravity_impulse():
     # the gas is dragged along, never faster than the parcels: it holds at most its mass share of the impulse
     mass_share = push.fluid_density * (1 - eps_s) / (eps_s * rho_p)
     assert gas_p[2] < 0.0 and abs(gas_p[2]) <= mass_share * impulse * 1.001
+
+
+@pytest.mark.parametrize("weight, half_width", [(8.0, 2), (64.0, 4)])
+def test_heavy_parcels_spread_over_tents_that_grow_with_their_weight(weight, half_width):
+    """A parcel of w real particles couples through a tent of half-width K = round(w^(1/3)) cells: its (2K)^3 weights
+    are a partition of unity, centred on the parcel (a linear field is read exactly away from the sides), the
+    deposit keeps its volume, and a parcel at a cell centre spreads over (2K - 1)^3 cells (the tent's zeros at
+    +-K); with ``spread=False`` the same parcel deposits trilinearly (one cell)."""
+    grid = GridSpec(origin=(0.0, 0.0, 0.0), spacing=1e-3, shape=(16, 16, 16))
+    rng = np.random.default_rng(4)
+    n = 200
+    x = rng.uniform(half_width + 0.5, 16 - half_width - 0.5, size=(n, 3)) * 1e-3  # K cells from the sides
+    parts = Particles.from_numpy(x, 100e-6, density=2000.0, weight=weight, check_overlap=False)
+    a, b = 0.3, np.array([2.0, -1.0, 4.0])
+    i, j, k = np.meshgrid(*[np.arange(16)] * 3, indexing="ij")
+    centres = (np.stack([i, j, k], -1) + 0.5) * 1e-3
+    field = (a + centres @ b).astype(np.float32)
+    out = wp.zeros(n, dtype=float)
+    from kernels.interp import interpolate_scalar_parcels
+
+    interpolate_scalar_parcels(grid.cell_grid(), parts.x, parts.weight, wp.array(field, dtype=float), out)
+    xs = parts.x.numpy().astype(np.float64)
+    assert np.allclose(out.numpy(), a + xs @ b, rtol=0, atol=2e-6)
+    fields = CouplingFields.allocate(grid, n)
+    deposit_parcels(grid, parts, fields)
+    volume = weight * 4.0 / 3.0 * math.pi * float(np.float32(100e-6)) ** 3 * n
+    assert fields.cell_solid_volume.numpy().sum() == pytest.approx(volume, rel=1e-12)
+    centre = np.array([[7.5e-3, 8.5e-3, 6.5e-3]])
+    one = Particles.from_numpy(centre, 100e-6, density=2000.0, weight=weight, check_overlap=False)
+    for spread, cells in ((True, (2 * half_width - 1) ** 3), (False, 1)):
+        g = GridSpec(origin=(0.0, 0.0, 0.0), spacing=1e-3, shape=(16, 16, 16), spread=spread)
+        f = CouplingFields.allocate(g, 1)
+        deposit_parcels(g, one, f)
+        vol = f.cell_solid_volume.numpy()
+        assert np.count_nonzero(vol > 1e-6 * vol.max()) == cells
+        assert vol.sum() == pytest.approx(weight * 4.0 / 3.0 * math.pi * float(np.float32(100e-6)) ** 3, rel=1e-12)
