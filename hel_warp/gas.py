@@ -304,6 +304,8 @@ class GasSolver:
         """The linear solver actually used ('warp' or 'native')."""
         self._bad = wp.zeros(1, dtype=wp.int32, device=dev)
         self._velocity_tmp = GasField._faces(grid, dev)
+        self._face_grad_p = GasField._faces(grid, dev)
+        """d p / d x_axis of the new pressure at the solved faces (``pressure_correct_kernel``), Pa/m."""
         self._cell_kappa = wp.zeros(grid.shape, dtype=float, device=dev)
         self._pcg_recorded = {}  # system -> the native PCG's recorded launches (_pcg_launches)
         self._pcg_graphs = {}  # (system, rows) -> one captured PCG iteration (_pcg_iteration_graph)
@@ -391,7 +393,7 @@ class GasSolver:
         self._launch(K.cell_velocity_kernel, solid, [g, solid, dom.cell_fluid, gas.face_velocity, gas.cell_velocity])
         self._launch(K.smagorinsky_kernel, solid, [g, params, solid, dom.cell_fluid, gas.cell_velocity,
                                                    gas.cell_eps_f, gas.cell_nu_t, self._cell_kappa])
-        self._launch(K.cell_pressure_kernel, solid, [g, params, solid, dom.cell_fluid, dom.face_type, dom.face_bc,
+        self._launch(K.cell_pressure_kernel, solid, [g, params, solid, dom.cell_fluid, dom.face_type, self._face_grad_p,
                                                      gas.pressure_solution, gas.cell_pressure, gas.cell_grad_p])
         for axis in range(3):
             far = self._far_faces[axis]
@@ -616,13 +618,13 @@ class GasSolver:
         for axis in range(3):
             faces = self._solved_faces[axis]
             self._launch(K.pressure_correct_kernel, faces, [g, axis, params, faces, dom.face_type, dom.face_bc, dp,
-                                                            0.0, gas.face_velocity])
+                                                            0.0, gas.pressure_solution, gas.face_velocity,
+                                                            self._face_grad_p])
             alias = self._alias_faces[axis]
             self._launch(K.periodic_sync_kernel, alias, [g, axis, alias, gas.face_velocity])
-        self._launch(K.cell_pressure_kernel, cells,
-                     [g, params, cells, dom.cell_fluid, dom.face_type, dom.face_bc, gas.pressure_solution,
-                      gas.cell_pressure, gas.cell_grad_p])
-        self._launch(K.cell_velocity_kernel, cells, [g, cells, dom.cell_fluid, gas.face_velocity, gas.cell_velocity])
+        self._launch(K.cell_projected_kernel, cells,
+                     [g, params, cells, dom.cell_fluid, dom.face_type, self._face_grad_p, gas.pressure_solution,
+                      gas.face_velocity, gas.cell_pressure, gas.cell_grad_p, gas.cell_velocity])
 
     # ------------------------------------------------------------------ the step
     def step(self, gas: GasField, dt: float) -> None:

@@ -1082,14 +1082,19 @@ def pressure_correct_one(
     bc: FaceBc,
     p: wp.array(dtype=wp.float64),
     outlet_weight: float,
+    p_total: wp.array(dtype=wp.float64),
     vel: FaceFloat,
+    face_grad_p: FaceFloat,
     index: int,
 ):
-    """u_f = u*_f - (dt/rho) dp/dx_axis on solved faces."""
+    """u_f = u*_f - (dt/rho) dp/dx_axis on solved faces; and the face gradient of the new pressure ``p_total``
+    (outlet weight 1) into ``face_grad_p``, which ``cell_pressure_one`` averages (the same function and values it
+    computed itself before: the two cells' pressures are read here anyway)."""
     f = faces[index]
     if is_solved(get_t(types, axis, f)):
         gp = face_pressure_gradient(g, types, bc, p, outlet_weight, axis, f)
         set_f(vel, axis, f, get_f(vel, axis, f) - params.dt / params.rho * gp)
+        set_f(face_grad_p, axis, f, face_pressure_gradient(g, types, bc, p_total, 1.0, axis, f))
 
 
 @wp.kernel
@@ -1103,14 +1108,16 @@ def pressure_correct_kernel(
     bc: FaceBc,
     p: wp.array(dtype=wp.float64),
     outlet_weight: float,
+    p_total: wp.array(dtype=wp.float64),
     # outputs
     vel: FaceFloat,
+    face_grad_p: FaceFloat,
 ):
     """``pressure_correct_one`` for ``block`` consecutive entries of ``faces`` per thread (module
     docstring, "Launches")."""
     t = wp.tid()
     for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
-        pressure_correct_one(g, axis, params, faces, types, bc, p, outlet_weight, vel, index)
+        pressure_correct_one(g, axis, params, faces, types, bc, p, outlet_weight, p_total, vel, face_grad_p, index)
 
 
 @wp.func
@@ -1185,13 +1192,14 @@ def cell_pressure_one(
     cells: wp.array(dtype=wp.vec3i),
     cell_fluid: wp.array3d(dtype=wp.int32),
     types: FaceInt,
-    bc: FaceBc,
+    face_grad_p: FaceFloat,
     p: wp.array(dtype=wp.float64),
     cell_pressure: wp.array3d(dtype=float),
     cell_grad_p: wp.array3d(dtype=wp.vec3),
     index: int,
 ):
-    """Cell pressure and grad p' = mean of the solved-face gradients + imposed mean gradient."""
+    """Cell pressure and grad p' = mean of the solved-face gradients (``face_grad_p``, written by
+    ``pressure_correct_one``) + imposed mean gradient."""
     c = cells[index]
     i, j, k = c[0], c[1], c[2]
     grad = -params.rho * params.body_accel
@@ -1202,7 +1210,7 @@ def cell_pressure_one(
             for side in range(2):
                 f = wrap_face(g, a, c + side * unit(a))
                 if is_solved(get_t(types, a, f)):
-                    acc = acc + face_pressure_gradient(g, types, bc, p, 1.0, a, f)
+                    acc = acc + get_f(face_grad_p, a, f)
                     n = n + 1.0
             if n > 0.0:
                 grad[a] = grad[a] + acc / n
@@ -1220,7 +1228,7 @@ def cell_pressure_kernel(
     cells: wp.array(dtype=wp.vec3i),
     cell_fluid: wp.array3d(dtype=wp.int32),
     types: FaceInt,
-    bc: FaceBc,
+    face_grad_p: FaceFloat,
     p: wp.array(dtype=wp.float64),
     # outputs
     cell_pressure: wp.array3d(dtype=float),
@@ -1230,7 +1238,31 @@ def cell_pressure_kernel(
     docstring, "Launches")."""
     t = wp.tid()
     for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
-        cell_pressure_one(g, params, cells, cell_fluid, types, bc, p, cell_pressure, cell_grad_p, index)
+        cell_pressure_one(g, params, cells, cell_fluid, types, face_grad_p, p, cell_pressure, cell_grad_p, index)
+
+
+@wp.kernel
+def cell_projected_kernel(
+    block: int,
+    g: GridInfo,
+    params: FlowParams,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    types: FaceInt,
+    face_grad_p: FaceFloat,
+    p: wp.array(dtype=wp.float64),
+    vel: FaceFloat,
+    # outputs
+    cell_pressure: wp.array3d(dtype=float),
+    cell_grad_p: wp.array3d(dtype=wp.vec3),
+    cell_velocity: wp.array3d(dtype=wp.vec3),
+):
+    """The cell fields after the projection in one pass over ``cells``: ``cell_pressure_one`` and
+    ``cell_velocity_one`` for ``block`` consecutive entries per thread (module docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
+        cell_pressure_one(g, params, cells, cell_fluid, types, face_grad_p, p, cell_pressure, cell_grad_p, index)
+        cell_velocity_one(g, cells, cell_fluid, vel, cell_velocity, index)
 
 
 @wp.func
