@@ -309,6 +309,9 @@ class GasSolver:
         self._cell_kappa = wp.zeros(grid.shape, dtype=float, device=dev)
         self._pcg_recorded = {}  # system -> the native PCG's recorded launches (_pcg_launches)
         self._pcg_graphs = {}  # (system, rows) -> one captured PCG iteration (_pcg_iteration_graph)
+        self._ordered_slots = int(not any(bool(v) for v in grid.periodic))
+        """1 when every compact system couples a row to lower rows only through slots -x, -y, -z (no axis
+        periodic: no coupling wraps around), which ``ic0_step_apply_kernel`` then takes without index tests."""
         self._primed = weakref.WeakSet()  # GasFields whose solid cells and far faces hold the constants
         self.last_iterations = {"pressure": 0, "viscous": [0, 0, 0]}
         """CG iterations of the last step (diagnostic)."""
@@ -471,9 +474,11 @@ class GasSolver:
             "start": record(K.pcg_start_kernel, n, [rhs, ap], [r]),
             "b.b": dot(rhs, rhs, 1), "r.r": dot(r, r, 3), "r.z new": dot(r, z, 2),
             "r.z new, r.r": record(K.pcg_dot_pair_kernel, dot_dim, [r, z, 2, 3], [s]),
-            "ap": record(K.stencil_matvec_kernel, n, [A, p, p, one, zero], [ap]), "p.ap": dot(p, ap, 1),
+            "ap, p.ap": record(K.pcg_matvec_dot_kernel, dot_dim, [A, p, 1], [ap, s]),
             "alpha": record(K.pcg_ratio_kernel, 1, [0, 1, 4], [s]),
             "step": record(K.pcg_step_kernel, n, [p, ap, s], [x, r]),
+            "step, ic0 apply": record(K.ic0_step_apply_kernel, 1, [pivot_inverse, A, p, ap, s, n, self._ordered_slots],
+                                      [x, r, z]),
             "beta": record(K.pcg_ratio_kernel, 1, [2, 0, 5], [s]),
             "direction": record(K.pcg_direction_kernel, n, [z, s], [p]),
             "shift": record(K.pcg_shift_kernel, 1, [], [s]),
@@ -513,7 +518,8 @@ class GasSolver:
         wp.copy(p, z)
         s.zero_()
         run["r.z new"]()  # the first iteration's shift moves it to (r.z)_old
-        iteration = self._pcg_iteration_graph(system, n, run, precondition)  # captured, not run, the first time
+        # captured, not run, the first time; IC(0) takes the step inside its forward substitution
+        iteration = self._pcg_iteration_graph(system, n, run, None if multigrid is None else precondition)
         while iterations < maxiter:
             wp.capture_launch(iteration)
             iterations += 1
@@ -524,20 +530,23 @@ class GasSolver:
 
     def _pcg_iteration_graph(self, system, n: int, run: dict, precondition):
         """One PCG iteration of ``system`` as a captured graph (``wp.ScopedCapture``: a CUDA graph, or Warp's CPU
-        replay), captured once and launched every iteration: its ~10 launches (~50 with the V-cycle) without the
+        replay), captured once and launched every iteration: its ~7 launches (~50 with the V-cycle) without the
         host's per-launch cost (~6 us each on the CPU). Scalars as ``kernels/gas.py`` "native PCG": the shift
         of (r.z)_new into (r.z)_old first, then the iteration, which ends with the residual check's r.r in
-        scalars[3]."""
+        scalars[3]. ``precondition`` None: IC(0), whose forward substitution takes the step x += alpha p,
+        r -= alpha Ap (``ic0_step_apply_kernel``); the matrix product and p.Ap in one pass."""
         key = (system, n)
         graph = self._pcg_graphs.get(key)
         if graph is None:
             with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
                 run["shift"]()
-                run["ap"]()
-                run["p.ap"]()
+                run["ap, p.ap"]()
                 run["alpha"]()
-                run["step"]()
-                precondition()
+                if precondition is None:
+                    run["step, ic0 apply"]()
+                else:
+                    run["step"]()
+                    precondition()
                 run["r.z new, r.r"]()  # the residual check's r.r in the same pass, every iteration
                 run["beta"]()
                 run["direction"]()

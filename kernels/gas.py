@@ -1546,6 +1546,55 @@ def pcg_dot_pair_kernel(
     wp.atomic_add(scalars, slot_aa, (aa0 + aa1) + (aa2 + aa3))
 
 
+@wp.func
+def stencil_row(A: Stencil, x: wp.array(dtype=wp.float64), row: int):
+    """(A x)_row = diag x_row - sum_m coef x_neighbour, in ``stencil_matvec_kernel``'s order."""
+    ax = A.diag[row] * x[row]
+    for m in range(6):
+        ax = ax - A.coef[row, m] * x[A.neighbour[row, m]]
+    return ax
+
+
+@wp.kernel
+def pcg_matvec_dot_kernel(
+    A: Stencil,
+    p: wp.array(dtype=wp.float64),
+    slot: int,
+    # outputs
+    ap: wp.array(dtype=wp.float64),
+    scalars: wp.array(dtype=wp.float64),
+):
+    """ap = A p and scalars[slot] += p . ap in one pass over the chunk [tid * DOT_CHUNK, ...) (launch
+    ceil(n / DOT_CHUNK) threads): the numbers of ``stencil_matvec_kernel`` (alpha 1, beta 0) then
+    ``pcg_dot_kernel`` (the same chunks and four interleaved partial sums), without a second pass over p and ap."""
+    t = wp.tid()
+    first = t * DOT_CHUNK
+    last = wp.min(first + DOT_CHUNK, p.shape[0])
+    acc0 = wp.float64(0.0)
+    acc1 = wp.float64(0.0)
+    acc2 = wp.float64(0.0)
+    acc3 = wp.float64(0.0)
+    quads = first + (last - first) // 4 * 4
+    for i in range(first, quads, 4):
+        v0 = stencil_row(A, p, i)
+        v1 = stencil_row(A, p, i + 1)
+        v2 = stencil_row(A, p, i + 2)
+        v3 = stencil_row(A, p, i + 3)
+        ap[i] = v0
+        ap[i + 1] = v1
+        ap[i + 2] = v2
+        ap[i + 3] = v3
+        acc0 = acc0 + p[i] * v0
+        acc1 = acc1 + p[i + 1] * v1
+        acc2 = acc2 + p[i + 2] * v2
+        acc3 = acc3 + p[i + 3] * v3
+    for i in range(quads, last):
+        v = stencil_row(A, p, i)
+        ap[i] = v
+        acc0 = acc0 + p[i] * v
+    wp.atomic_add(scalars, slot, (acc0 + acc1) + (acc2 + acc3))
+
+
 @wp.kernel
 def pcg_start_kernel(
     rhs: wp.array(dtype=wp.float64),
@@ -1637,6 +1686,57 @@ def ic0_apply_kernel(
             j = A.neighbour[i, m]
             if j > i:
                 acc = acc + A.coef[i, m] * z[j]
+        z[i] = z[i] + acc * pivot_inverse[i]
+
+
+@wp.kernel
+def ic0_step_apply_kernel(
+    pivot_inverse: wp.array(dtype=wp.float64),
+    A: Stencil,
+    p: wp.array(dtype=wp.float64),
+    ap: wp.array(dtype=wp.float64),
+    scalars: wp.array(dtype=wp.float64),
+    n: int,
+    ordered: int,
+    # outputs
+    x: wp.array(dtype=wp.float64),
+    r: wp.array(dtype=wp.float64),
+    z: wp.array(dtype=wp.float64),
+):
+    """``pcg_step_kernel`` (x += alpha p, r -= alpha Ap, alpha = scalars[4]) folded into the forward substitution
+    of ``ic0_apply_kernel``, which reads r row by row in the same order: one pass over the rows instead of two,
+    the same numbers. ``ordered`` 1: every coupling to a lower row sits in slot 0, 2 or 4 (-x, -y, -z) and to a
+    higher row in 1, 3 or 5 (true of the compact systems when no axis is periodic; an unused slot has coef 0 and
+    points at the row itself), so the substitutions take those three slots without the index tests: the unused
+    slot adds coef 0 times z of its own row, zeroed before the forward row and finite after it."""
+    alpha = scalars[4]
+    for i in range(n):
+        x[i] = x[i] + alpha * p[i]
+        r[i] = r[i] - alpha * ap[i]
+        acc = r[i]
+        if ordered != 0:
+            z[i] = wp.float64(0.0)
+            acc = acc + A.coef[i, 0] * z[A.neighbour[i, 0]]
+            acc = acc + A.coef[i, 2] * z[A.neighbour[i, 2]]
+            acc = acc + A.coef[i, 4] * z[A.neighbour[i, 4]]
+        else:
+            for m in range(6):
+                j = A.neighbour[i, m]
+                if j < i:
+                    acc = acc + A.coef[i, m] * z[j]
+        z[i] = acc * pivot_inverse[i]
+    for step in range(n):
+        i = n - 1 - step
+        acc = wp.float64(0.0)
+        if ordered != 0:
+            acc = acc + A.coef[i, 1] * z[A.neighbour[i, 1]]
+            acc = acc + A.coef[i, 3] * z[A.neighbour[i, 3]]
+            acc = acc + A.coef[i, 5] * z[A.neighbour[i, 5]]
+        else:
+            for m in range(6):
+                j = A.neighbour[i, m]
+                if j > i:
+                    acc = acc + A.coef[i, m] * z[j]
         z[i] = z[i] + acc * pivot_inverse[i]
 
 
