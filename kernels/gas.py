@@ -1596,15 +1596,53 @@ def pcg_matvec_dot_kernel(
 
 
 @wp.kernel
-def pcg_start_kernel(
+def pcg_residual_start_kernel(
+    A: Stencil,
+    x: wp.array(dtype=wp.float64),
     rhs: wp.array(dtype=wp.float64),
-    ax: wp.array(dtype=wp.float64),
     # outputs
     r: wp.array(dtype=wp.float64),
+    scalars: wp.array(dtype=wp.float64),
 ):
-    """r = b - A x."""
-    i = wp.tid()
-    r[i] = rhs[i] - ax[i]
+    """r = b - A x, scalars[1] += b . b and scalars[3] += r . r over the chunk [tid * DOT_CHUNK, ...) (launch
+    ceil(n / DOT_CHUNK) threads): the numbers of ``stencil_matvec_kernel`` (alpha 1, beta 0), the subtraction and two
+    ``pcg_dot_kernel`` passes (the same chunks and partial sums) in one pass."""
+    t = wp.tid()
+    first = t * DOT_CHUNK
+    last = wp.min(first + DOT_CHUNK, x.shape[0])
+    bb0 = wp.float64(0.0)
+    bb1 = wp.float64(0.0)
+    bb2 = wp.float64(0.0)
+    bb3 = wp.float64(0.0)
+    rr0 = wp.float64(0.0)
+    rr1 = wp.float64(0.0)
+    rr2 = wp.float64(0.0)
+    rr3 = wp.float64(0.0)
+    quads = first + (last - first) // 4 * 4
+    for i in range(first, quads, 4):
+        r0 = rhs[i] - stencil_row(A, x, i)
+        r1 = rhs[i + 1] - stencil_row(A, x, i + 1)
+        r2 = rhs[i + 2] - stencil_row(A, x, i + 2)
+        r3 = rhs[i + 3] - stencil_row(A, x, i + 3)
+        r[i] = r0
+        r[i + 1] = r1
+        r[i + 2] = r2
+        r[i + 3] = r3
+        bb0 = bb0 + rhs[i] * rhs[i]
+        bb1 = bb1 + rhs[i + 1] * rhs[i + 1]
+        bb2 = bb2 + rhs[i + 2] * rhs[i + 2]
+        bb3 = bb3 + rhs[i + 3] * rhs[i + 3]
+        rr0 = rr0 + r0 * r0
+        rr1 = rr1 + r1 * r1
+        rr2 = rr2 + r2 * r2
+        rr3 = rr3 + r3 * r3
+    for i in range(quads, last):
+        ri = rhs[i] - stencil_row(A, x, i)
+        r[i] = ri
+        bb0 = bb0 + rhs[i] * rhs[i]
+        rr0 = rr0 + ri * ri
+    wp.atomic_add(scalars, 1, (bb0 + bb1) + (bb2 + bb3))
+    wp.atomic_add(scalars, 3, (rr0 + rr1) + (rr2 + rr3))
 
 
 @wp.kernel
