@@ -563,34 +563,27 @@ class GasSolver:
                                                              self._cell_kappa, gas.face_eps, gas.face_kappa])
 
     def advect(self, gas: GasField, dt: float) -> None:
-        """Semi-Lagrangian advection of the face velocities into the scratch faces (``add_forces`` writes them
-        back)."""
+        """Semi-Lagrangian advection of the face velocities into the scratch faces (``add_forces_and_diffuse`` takes
+        them from there)."""
         g, dom = self.grid_info, self.domain
         for axis in range(3):
             faces = self._solved_faces[axis]
             self._launch(K.advect_kernel, faces, [g, axis, faces, dom.face_type, gas.face_velocity, float(dt),
                                                   self._velocity_tmp])
 
-    def add_forces(self, gas: GasField, dt: float) -> None:
-        """Advected velocity + particle momentum source + imposed mean pressure gradient, less the old pressure
+    def add_forces_and_diffuse(self, gas: GasField, dt: float) -> None:
+        """u* = advected velocity + particle momentum source + imposed mean pressure gradient, less the old pressure
         gradient (predictor u -= (dt/rho) grad p^n of the incremental projection, Goda 1979, so that a steady
-        balance of force and pressure, e.g. a fluidised bed, is a fixed point of the step), into the face
-        velocity."""
-        g, dom, params = self.grid_info, self.domain, self._params(dt)
-        for axis in range(3):
-            faces = self._solved_faces[axis]
-            self._launch(K.face_forces_kernel, faces,
-                         [g, axis, params, faces, dom.face_type, dom.face_bc, dom.cell_fluid, gas.face_eps,
-                          gas.cell_momentum_source, gas.pressure_solution, self._velocity_tmp, gas.face_velocity])
-
-    def diffuse(self, gas: GasField, dt: float) -> None:
-        """Backward-Euler viscous step, one CG solve per component."""
+        balance of force and pressure, e.g. a fluidised bed, is a fixed point of the step), then the
+        backward-Euler viscous step from u*, one CG solve per component, into the face velocity. u* is formed by
+        the assembly of each system (kernels/gas.py ``forced_velocity``), not stored by a pass of its own."""
         g, dom, params, c = self.grid_info, self.domain, self._params(dt), self.config
         for axis in range(3):
             faces, face_row = self._solved_faces[axis], self._systems[axis][1]
             self._launch(K.viscous_rhs_kernel, faces,
-                         [g, axis, params, faces, face_row, self._viscous_topology[axis], gas.face_eps,
-                          gas.face_kappa, gas.face_velocity, self._c_rhs, self._c_x, self._c_full])
+                         [g, axis, params, faces, face_row, self._viscous_topology[axis], dom.face_type, dom.face_bc,
+                          dom.cell_fluid, gas.face_eps, gas.face_kappa, gas.cell_momentum_source,
+                          gas.pressure_solution, self._velocity_tmp, self._c_rhs, self._c_x, self._c_full])
             self.last_iterations["viscous"][axis] = self._solve(
                 axis, f"viscous ({'xyz'[axis]})", c.viscous_tolerance, c.viscous_max_iterations)
             self._launch(K.store_component_kernel, faces, [g, axis, faces, face_row, self._c_x, gas.face_velocity])
@@ -646,8 +639,7 @@ class GasSolver:
             wp.copy(gas.cell_eps_f_prev, gas.cell_eps_f)
         self.update_cell_state(gas)
         self.advect(gas, dt)
-        self.add_forces(gas, dt)
-        self.diffuse(gas, dt)
+        self.add_forces_and_diffuse(gas, dt)
         self.project(gas, dt)
         if self.config.check_finite:
             # the solid cells hold constants: the fluid cells are where a NaN can appear

@@ -37,7 +37,7 @@ import warp as wp
 
 CPU_BLOCK = 64
 """Index-list entries per thread of the cell and face kernels on the CPU (module docstring, "Launches"; 64-256
-measured alike on ``face_forces_kernel``: 65 -> 33-35 ns per face)."""
+measured alike on the former ``face_forces_kernel``: 65 -> 33-35 ns per face)."""
 
 FACE_WALL = wp.constant(0)
 """Fixed zero normal velocity (solid neighbour cell or domain wall)."""
@@ -756,6 +756,44 @@ def viscous_topology_kernel(
 
 
 @wp.func
+def forced_velocity(
+    g: GridInfo,
+    axis: int,
+    params: FlowParams,
+    types: FaceInt,
+    bc: FaceBc,
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    face_eps: FaceFloat,
+    cell_momentum_source: wp.array3d(dtype=wp.vec3),
+    p_old: wp.array(dtype=wp.float64),
+    advected: FaceFloat,
+    f: wp.vec3i,
+):
+    """u* = u_adv + du_source - (dt/rho) dp^n/dx_axis at a solved face ``f`` (the particle momentum source and
+    imposed mean gradient, ``momentum_source_increment``, then the predictor of the incremental projection, Goda
+    1979, so that a steady balance of force and pressure, e.g. a fluidised bed, is a fixed point of the step);
+    a fixed face keeps ``advected`` as it is."""
+    u = get_f(advected, axis, f)
+    t = get_t(types, axis, f)
+    if t == FACE_FLUID:
+        # an interior face: both cells valid and fluid, found once for the source and the gradient (the same
+        # operations as momentum_source_increment and face_pressure_gradient)
+        c_lo = wrap_cell(g, f - unit(axis))
+        c_hi = wrap_cell(g, f)
+        volume = g.spacing * g.spacing * g.spacing
+        impulse = float(0.0)
+        impulse = impulse + 0.5 * component(cell_momentum_source[c_lo[0], c_lo[1], c_lo[2]], axis)
+        impulse = impulse + 0.5 * component(cell_momentum_source[c_hi[0], c_hi[1], c_hi[2]], axis)
+        u = u + (params.dt * component(params.body_accel, axis) + impulse / (params.rho * get_f(face_eps, axis, f) * volume))
+        gradient = float(p_old[flat_index(g.shape, c_hi)] - p_old[flat_index(g.shape, c_lo)]) / g.spacing
+        u = u - params.dt / params.rho * gradient
+    elif t == FACE_OUTLET:
+        u = u + momentum_source_increment(g, axis, params, cell_fluid, face_eps, cell_momentum_source, f)
+        u = u - params.dt / params.rho * face_pressure_gradient(g, types, bc, p_old, 1.0, axis, f)
+    return u
+
+
+@wp.func
 def viscous_rhs_one(
     g: GridInfo,
     axis: int,
@@ -763,16 +801,22 @@ def viscous_rhs_one(
     faces: wp.array(dtype=wp.vec3i),
     face_row: wp.array(dtype=wp.int32),
     topology: ViscousTopology,
+    types: FaceInt,
+    bc: FaceBc,
+    cell_fluid: wp.array3d(dtype=wp.int32),
     face_eps: FaceFloat,
     face_kappa: FaceFloat,
-    vel: FaceFloat,
+    cell_momentum_source: wp.array3d(dtype=wp.vec3),
+    p_old: wp.array(dtype=wp.float64),
+    advected: FaceFloat,
     rhs: wp.array(dtype=wp.float64),
     guess: wp.array(dtype=wp.float64),
     A: Stencil,
     index: int,
 ):
     """Backward-Euler viscous system of one component: (rho eps/dt) u - div(kappa grad u) = (rho eps/dt) u*,
-    as a 7-point stencil (diag, coef, neighbour) for ``stencil_matvec_kernel``, written straight into the
+    u* = ``forced_velocity`` (the advected velocity and the forces, formed here where the system needs it: no
+    pass of its own over the faces), as a 7-point stencil (diag, coef, neighbour) for ``stencil_matvec_kernel``, written straight into the
     compact system: row ``face_row[flat face index]`` (-1: a fixed face, no row; see "compacted systems").
     Neighbours as ``topology`` classified them: coupled (coef = mean kappa / h^2), Dirichlet (kappa_f factor /
     h^2 on the diagonal, times the value on the right), or zero gradient (nothing)."""
@@ -781,7 +825,7 @@ def viscous_rhs_one(
     row = face_row[flat_index(shape, f)]
     if row < 0:
         return
-    u_star = get_f(vel, axis, f)
+    u_star = forced_velocity(g, axis, params, types, bc, cell_fluid, face_eps, cell_momentum_source, p_old, advected, f)
     guess[row] = wp.float64(u_star)
     h2 = g.spacing * g.spacing
     mass = params.rho * get_f(face_eps, axis, f) / params.dt
@@ -816,9 +860,14 @@ def viscous_rhs_kernel(
     faces: wp.array(dtype=wp.vec3i),
     face_row: wp.array(dtype=wp.int32),
     topology: ViscousTopology,
+    types: FaceInt,
+    bc: FaceBc,
+    cell_fluid: wp.array3d(dtype=wp.int32),
     face_eps: FaceFloat,
     face_kappa: FaceFloat,
-    vel: FaceFloat,
+    cell_momentum_source: wp.array3d(dtype=wp.vec3),
+    p_old: wp.array(dtype=wp.float64),
+    advected: FaceFloat,
     # outputs
     rhs: wp.array(dtype=wp.float64),
     guess: wp.array(dtype=wp.float64),
@@ -828,7 +877,8 @@ def viscous_rhs_kernel(
     docstring, "Launches")."""
     t = wp.tid()
     for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
-        viscous_rhs_one(g, axis, params, faces, face_row, topology, face_eps, face_kappa, vel, rhs, guess, A, index)
+        viscous_rhs_one(g, axis, params, faces, face_row, topology, types, bc, cell_fluid, face_eps, face_kappa,
+                        cell_momentum_source, p_old, advected, rhs, guess, A, index)
 
 
 @wp.func
@@ -1118,71 +1168,6 @@ def pressure_correct_kernel(
     t = wp.tid()
     for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
         pressure_correct_one(g, axis, params, faces, types, bc, p, outlet_weight, p_total, vel, face_grad_p, index)
-
-
-@wp.func
-def face_forces_one(
-    g: GridInfo,
-    axis: int,
-    params: FlowParams,
-    faces: wp.array(dtype=wp.vec3i),
-    types: FaceInt,
-    bc: FaceBc,
-    cell_fluid: wp.array3d(dtype=wp.int32),
-    face_eps: FaceFloat,
-    cell_momentum_source: wp.array3d(dtype=wp.vec3),
-    p_old: wp.array(dtype=wp.float64),
-    advected: FaceFloat,
-    vel: FaceFloat,
-    index: int,
-):
-    """u_f = u_adv + du_source - (dt/rho) dp^n/dx_axis on solved faces (the particle momentum source and imposed
-    mean gradient, ``momentum_source_increment``, then the predictor of the incremental projection, Goda 1979);
-    fixed faces take ``advected`` as it is."""
-    f = faces[index]
-    u = get_f(advected, axis, f)
-    t = get_t(types, axis, f)
-    if t == FACE_FLUID:
-        # an interior face: both cells valid and fluid, found once for the source and the gradient (the same
-        # operations as momentum_source_increment and face_pressure_gradient)
-        c_lo = wrap_cell(g, f - unit(axis))
-        c_hi = wrap_cell(g, f)
-        volume = g.spacing * g.spacing * g.spacing
-        impulse = float(0.0)
-        impulse = impulse + 0.5 * component(cell_momentum_source[c_lo[0], c_lo[1], c_lo[2]], axis)
-        impulse = impulse + 0.5 * component(cell_momentum_source[c_hi[0], c_hi[1], c_hi[2]], axis)
-        u = u + (params.dt * component(params.body_accel, axis) + impulse / (params.rho * get_f(face_eps, axis, f) * volume))
-        gradient = float(p_old[flat_index(g.shape, c_hi)] - p_old[flat_index(g.shape, c_lo)]) / g.spacing
-        u = u - params.dt / params.rho * gradient
-    elif t == FACE_OUTLET:
-        u = u + momentum_source_increment(g, axis, params, cell_fluid, face_eps, cell_momentum_source, f)
-        u = u - params.dt / params.rho * face_pressure_gradient(g, types, bc, p_old, 1.0, axis, f)
-    set_f(vel, axis, f, u)
-
-
-@wp.kernel
-def face_forces_kernel(
-    block: int,
-    g: GridInfo,
-    axis: int,
-    params: FlowParams,
-    faces: wp.array(dtype=wp.vec3i),
-    types: FaceInt,
-    bc: FaceBc,
-    cell_fluid: wp.array3d(dtype=wp.int32),
-    face_eps: FaceFloat,
-    cell_momentum_source: wp.array3d(dtype=wp.vec3),
-    p_old: wp.array(dtype=wp.float64),
-    advected: FaceFloat,
-    # outputs
-    vel: FaceFloat,
-):
-    """``face_forces_one`` for ``block`` consecutive entries of ``faces`` per thread (module
-    docstring, "Launches")."""
-    t = wp.tid()
-    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
-        face_forces_one(g, axis, params, faces, types, bc, cell_fluid, face_eps, cell_momentum_source, p_old,
-                  advected, vel, index)
 
 
 @wp.func
