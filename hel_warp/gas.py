@@ -142,6 +142,8 @@ class GasField:
         """eps_f on faces (used by the last projection)."""
         self.face_kappa = self._faces(grid, device)
         """eps_f (mu + rho nu_t) on faces, Pa s."""
+        self.face_kappa_flat = tuple(a.flatten() for a in (self.face_kappa.x, self.face_kappa.y, self.face_kappa.z))
+        """``face_kappa`` per axis as flat views of the same memory (indexed by flat face index)."""
         self.cell_velocity = wp.zeros(shape, dtype=wp.vec3, device=device)
         """Cell-centred gas velocity, m/s."""
         self.cell_pressure = wp.zeros(shape, dtype=float, device=device)
@@ -280,18 +282,22 @@ class GasSolver:
         self._systems = {"pressure": self._row_map(fluid.ravel())}
         for axis in range(3):
             self._systems[axis] = self._row_map(solved_masks[axis])
+        # one stencil per system; its neighbour rows are fixed by the mask and face types, written here once
+        self._stencils = {system: self._new_stencil(max(1, rows.shape[0])) for system, (rows, _) in self._systems.items()}
+        """The compact matrix of each system (kernels/gas.py ``Stencil``): coefficients by the assembly kernels every
+        step, neighbour rows once at set-up."""
         self._viscous_topology = [self._viscous_stencil_topology(axis) for axis in range(3)]
+        self._launch(K.pressure_neighbours_kernel, self._fluid_cells,
+                     [self.grid_info, self._fluid_cells, self._systems["pressure"][1], domain.cell_fluid,
+                      domain.face_type, self._stencils["pressure"]])
         self._pressure_mg = None
         if self.config.pressure_preconditioner == "multigrid":
             self._pressure_mg = AggregationMultigrid(self._systems["pressure"][0].numpy(), grid.shape,
                                                      tuple(bool(p) for p in grid.periodic), dev,
                                                      scale=self.config.pressure_multigrid_scale)
         n_rows = max(1, max(rows.shape[0] for rows, _ in self._systems.values()))
-        self._c_rhs, self._c_x, self._c_diag = (wp.zeros(n_rows, dtype=wp.float64, device=dev) for _ in range(3))
-        self._c_coef = wp.zeros((n_rows, 6), dtype=wp.float64, device=dev)
-        self._c_neighbour = wp.zeros((n_rows, 6), dtype=wp.int32, device=dev)
+        self._c_rhs, self._c_x = (wp.zeros(n_rows, dtype=wp.float64, device=dev) for _ in range(2))
         self._c_active = wp.zeros(n_rows, dtype=wp.int32, device=dev)
-        self._c_full = K.make_stencil(self._c_diag, self._c_coef, self._c_neighbour)  # what the assembly kernels write
         self._pcg = [wp.zeros(n_rows, dtype=wp.float64, device=dev) for _ in range(4)]  # r, z, p, Ap
         self._scalars = wp.zeros(6, dtype=wp.float64, device=dev)  # kernels/gas.py "native Jacobi-PCG"
         self._pivot = wp.zeros(n_rows, dtype=wp.float64, device=dev)
@@ -372,18 +378,20 @@ class GasSolver:
         dev, dom = self.device, self.domain
         n = max(1, self._systems[axis][0].shape[0])
         topology = K.ViscousTopology()
-        topology.neighbour_row = wp.full((n, 6), -1, dtype=wp.int32, device=dev)
-        topology.neighbour_face = wp.zeros((n, 6), dtype=wp.vec3i, device=dev)
+        topology.neighbour_flat = wp.full((n, 6), -1, dtype=wp.int32, device=dev)
         topology.factor = wp.zeros((n, 6), dtype=float, device=dev)
         topology.value = wp.zeros((n, 6), dtype=float, device=dev)
         faces = self._solved_faces[axis]
         self._launch(K.viscous_topology_kernel, faces, [self.grid_info, axis, faces, self._systems[axis][1],
-                                                        dom.face_type, dom.face_bc, topology])
+                                                        dom.face_type, dom.face_bc, topology, self._stencils[axis]])
         return topology
 
-    def _compact(self, n: int) -> K.Stencil:
-        """The first ``n`` rows of the compact system arrays."""
-        return K.make_stencil(self._c_diag[:n], self._c_coef[:n], self._c_neighbour[:n])
+    def _new_stencil(self, n: int) -> K.Stencil:
+        """An empty compact matrix of ``n`` rows (every slot unused: coefficient 0, pointing at its own row)."""
+        neighbour = np.repeat(np.arange(n, dtype=np.int32)[:, None], 6, axis=1)
+        return K.make_stencil(wp.zeros(n, dtype=wp.float64, device=self.device),
+                              wp.zeros((n, 6), dtype=wp.float64, device=self.device),
+                              wp.array(neighbour, dtype=wp.int32, device=self.device))
 
     def _prime(self, gas: GasField) -> None:
         """Once per GasField: the constants of the solid cells and of the faces away from the fluid, which the
@@ -407,15 +415,15 @@ class GasSolver:
     def _solve(self, system, what: str, tol: float, maxiter: int, atol_floor: float = 0.0,
                relaxation: float = 0.0, multigrid: AggregationMultigrid | None = None) -> int:
         """CG (see ``GasConfig.linear_solver``) of the compact system the assembly kernels wrote (``_c_rhs``,
-        ``_c_x`` as the first guess, ``_c_diag``, ``_c_coef``, ``_c_neighbour``; ``system``: a key of
-        ``_systems``); the solution is left in ``_c_x``. Preconditioner: ``multigrid`` if given, else (modified)
+        ``_c_x`` as the first guess, ``_stencils[system]``; ``system``: a key of ``_systems``); the solution is
+        left in ``_c_x``. Preconditioner: ``multigrid`` if given, else (modified)
         IC(0) on the native solver and Jacobi on warp's."""
         rows, _ = self._systems[system]
         n = rows.shape[0]
         if n == 0:
             return 0
-        rhs, x, diag = self._c_rhs[:n], self._c_x[:n], self._c_diag[:n]
-        A = self._compact(n)
+        A = self._stencils[system]
+        rhs, x, diag = self._c_rhs[:n], self._c_x[:n], A.diag
         if multigrid is not None:
             multigrid.setup(A)
         if self.linear_solver == "native":
@@ -582,8 +590,8 @@ class GasSolver:
             faces, face_row = self._solved_faces[axis], self._systems[axis][1]
             self._launch(K.viscous_rhs_kernel, faces,
                          [g, axis, params, faces, face_row, self._viscous_topology[axis], dom.face_type, dom.face_bc,
-                          dom.cell_fluid, gas.face_eps, gas.face_kappa, gas.cell_momentum_source,
-                          gas.pressure_solution, self._velocity_tmp, self._c_rhs, self._c_x, self._c_full])
+                          dom.cell_fluid, gas.face_eps, gas.face_kappa_flat[axis], gas.cell_momentum_source,
+                          gas.pressure_solution, self._velocity_tmp, self._c_rhs, self._c_x, self._stencils[axis]])
             self.last_iterations["viscous"][axis] = self._solve(
                 axis, f"viscous ({'xyz'[axis]})", c.viscous_tolerance, c.viscous_max_iterations)
             self._launch(K.store_component_kernel, faces, [g, axis, faces, face_row, self._c_x, gas.face_velocity])
@@ -598,8 +606,8 @@ class GasSolver:
         self._fluid_sum.zero_()
         self._launch(K.pressure_rhs_kernel, cells,
                      [g, params, cells, cell_row, dom.cell_fluid, dom.face_type, dom.face_bc, gas.face_eps,
-                      gas.face_velocity, gas.cell_eps_f, gas.cell_eps_f_prev, 0.0, self._c_rhs, self._c_full,
-                      self._c_active, self._fluid_sum])
+                      gas.face_velocity, gas.cell_eps_f, gas.cell_eps_f_prev, 0.0, self._c_rhs,
+                      self._stencils["pressure"], self._c_active, self._fluid_sum])
         if not dom.has_outlet and n:
             wp.launch(K.remove_mean_kernel, dim=n, inputs=[self._c_active[:n], self._fluid_sum, self._c_rhs[:n]],
                       device=self.device)

@@ -692,10 +692,9 @@ class ViscousTopology:
     """The fixed part of one viscous system, per row and slot m = -x, +x, -y, +y, -z, +z, from
     ``viscous_neighbour`` once at set-up (``viscous_topology_kernel``)."""
 
-    neighbour_row: wp.array2d(dtype=wp.int32)
-    """Row of the coupled neighbour face (kind 1), -1 for none."""
-    neighbour_face: wp.array2d(dtype=wp.vec3i)
-    """That face (its kappa is read every step)."""
+    neighbour_flat: wp.array2d(dtype=wp.int32)
+    """Flat index (in the face arrays of the axis) of the coupled neighbour face (kind 1; its kappa is read every
+    step), -1 for none. Its row is the stencil's ``neighbour`` entry, written once by ``viscous_topology_kernel``."""
     factor: wp.array2d(dtype=float)
     """Distance factor of a Dirichlet neighbour (kind 2: value at h / factor), 0 for none."""
     value: wp.array2d(dtype=float)
@@ -711,10 +710,12 @@ def viscous_topology_one(
     types: FaceInt,
     bc: FaceBc,
     topology: ViscousTopology,
+    A: Stencil,
     index: int,
 ):
     """Classify the six neighbours of every solved face of ``axis`` (``viscous_neighbour``; the face types and
-    boundary values are fixed)."""
+    boundary values are fixed), and write the stencil's neighbour rows, which stay: a coupled neighbour's row
+    (its coefficient, a mean of two positive kappa, is never 0), the row itself for an unused slot."""
     f = faces[index]
     shape = face_shape(g, axis)
     row = face_row[flat_index(shape, f)]
@@ -724,13 +725,14 @@ def viscous_topology_one(
         for side in range(2):
             m = 2 * d + side
             kind, nb, value, factor = viscous_neighbour(g, axis, types, bc, f, d, 2 * side - 1)
-            topology.neighbour_row[row, m] = -1
-            topology.neighbour_face[row, m] = f
+            topology.neighbour_flat[row, m] = -1
             topology.factor[row, m] = 0.0
             topology.value[row, m] = 0.0
+            A.coef[row, m] = wp.float64(0.0)
+            A.neighbour[row, m] = row
             if kind == 1:
-                topology.neighbour_row[row, m] = face_row[flat_index(shape, nb)]
-                topology.neighbour_face[row, m] = nb
+                topology.neighbour_flat[row, m] = flat_index(shape, nb)
+                A.neighbour[row, m] = face_row[flat_index(shape, nb)]
             elif kind == 2:
                 topology.factor[row, m] = factor
                 topology.value[row, m] = value
@@ -747,12 +749,13 @@ def viscous_topology_kernel(
     bc: FaceBc,
     # outputs
     topology: ViscousTopology,
+    A: Stencil,
 ):
     """``viscous_topology_one`` for ``block`` consecutive entries of ``faces`` per thread (module
     docstring, "Launches")."""
     t = wp.tid()
     for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
-        viscous_topology_one(g, axis, faces, face_row, types, bc, topology, index)
+        viscous_topology_one(g, axis, faces, face_row, types, bc, topology, A, index)
 
 
 @wp.func
@@ -805,7 +808,7 @@ def viscous_rhs_one(
     bc: FaceBc,
     cell_fluid: wp.array3d(dtype=wp.int32),
     face_eps: FaceFloat,
-    face_kappa: FaceFloat,
+    face_kappa: wp.array(dtype=float),
     cell_momentum_source: wp.array3d(dtype=wp.vec3),
     p_old: wp.array(dtype=wp.float64),
     advected: FaceFloat,
@@ -816,37 +819,37 @@ def viscous_rhs_one(
 ):
     """Backward-Euler viscous system of one component: (rho eps/dt) u - div(kappa grad u) = (rho eps/dt) u*,
     u* = ``forced_velocity`` (the advected velocity and the forces, formed here where the system needs it: no
-    pass of its own over the faces), as a 7-point stencil (diag, coef, neighbour) for ``stencil_matvec_kernel``, written straight into the
+    pass of its own over the faces), as a 7-point stencil (diag, coef; the neighbour rows stay as
+    ``viscous_topology_kernel`` wrote them) for ``stencil_matvec_kernel``, written straight into the
     compact system: row ``face_row[flat face index]`` (-1: a fixed face, no row; see "compacted systems").
     Neighbours as ``topology`` classified them: coupled (coef = mean kappa / h^2), Dirichlet (kappa_f factor /
-    h^2 on the diagonal, times the value on the right), or zero gradient (nothing)."""
+    h^2 on the diagonal, times the value on the right), or zero gradient (nothing). ``face_kappa``: the kappa of
+    this axis's faces as a flat array (``GasField.face_kappa_flat``)."""
     f = faces[index]
     shape = face_shape(g, axis)
-    row = face_row[flat_index(shape, f)]
+    flat = flat_index(shape, f)
+    row = face_row[flat]
     if row < 0:
         return
     u_star = forced_velocity(g, axis, params, types, bc, cell_fluid, face_eps, cell_momentum_source, p_old, advected, f)
     guess[row] = wp.float64(u_star)
     h2 = g.spacing * g.spacing
     mass = params.rho * get_f(face_eps, axis, f) / params.dt
-    kappa_f = get_f(face_kappa, axis, f)
+    kappa_f = face_kappa[flat]
     b = mass * u_star
     a_diag = mass
     for m in range(6):
         coef = float(0.0)
-        neighbour = row
-        nb_row = topology.neighbour_row[row, m]
-        factor = topology.factor[row, m]
-        if nb_row >= 0:
-            coef = 0.5 * (kappa_f + get_f(face_kappa, axis, topology.neighbour_face[row, m])) / h2
+        neighbour_flat = topology.neighbour_flat[row, m]
+        if neighbour_flat >= 0:
+            coef = 0.5 * (kappa_f + face_kappa[neighbour_flat]) / h2
             a_diag = a_diag + coef
-            if coef != 0.0:  # an unused slot points at the row itself
-                neighbour = nb_row
-        elif factor > 0.0:
-            a_diag = a_diag + factor * kappa_f / h2
-            b = b + factor * kappa_f * topology.value[row, m] / h2
+        else:
+            factor = topology.factor[row, m]  # read where there is no coupling only (near walls and outlets)
+            if factor > 0.0:
+                a_diag = a_diag + factor * kappa_f / h2
+                b = b + factor * kappa_f * topology.value[row, m] / h2
         A.coef[row, m] = wp.float64(coef)
-        A.neighbour[row, m] = neighbour
     rhs[row] = wp.float64(b)
     A.diag[row] = wp.float64(a_diag)
 
@@ -864,7 +867,7 @@ def viscous_rhs_kernel(
     bc: FaceBc,
     cell_fluid: wp.array3d(dtype=wp.int32),
     face_eps: FaceFloat,
-    face_kappa: FaceFloat,
+    face_kappa: wp.array(dtype=float),
     cell_momentum_source: wp.array3d(dtype=wp.vec3),
     p_old: wp.array(dtype=wp.float64),
     advected: FaceFloat,
@@ -942,16 +945,14 @@ def pressure_rhs_one(
     """b_c = -(rho h^2/dt)(div(eps u*) + d eps/dt) + sum_outlet 2 eps_f p_out; and the matrix
     (A p)_c = diag_c p_c - sum_m coef_cm p_nb(c,m): diag = sum_fluid eps_f + sum_outlet 2 eps_f,
     coef = eps_f on the 6 faces (0 on walls, inlets, outlets); written straight into the compact system,
-    row ``cell_row[flat cell index]`` (-1: a solid cell, no row)."""
+    row ``cell_row[flat cell index]`` (-1: a solid cell, no row); the neighbour rows stay as
+    ``pressure_neighbours_kernel`` wrote them."""
     c = cells[index]
     i, j, k = c[0], c[1], c[2]
     row = cell_row[flat_index(g.shape, c)]
     if row < 0:
         return
     active[row] = 0
-    for m in range(6):
-        A.coef[row, m] = wp.float64(0.0)
-        A.neighbour[row, m] = row
     h = wp.float64(g.spacing)
     div = wp.float64(0.0)
     gross = wp.float64(0.0)
@@ -966,14 +967,14 @@ def pressure_rhs_one(
             div = div + sign * flux
             gross = gross + wp.abs(flux)
             t = get_t(types, a, f)
+            coef = wp.float64(0.0)
             if t == FACE_FLUID and cell_fluid[i, j, k] != 0:
                 a_diag = a_diag + eps
-                A.coef[row, 2 * a + side] = eps
-                if eps != wp.float64(0.0):  # an unused slot points at the row itself
-                    A.neighbour[row, 2 * a + side] = cell_row[flat_index(g.shape, wrap_cell(g, c + (2 * side - 1) * unit(a)))]
+                coef = eps
             elif t == FACE_OUTLET:
                 a_diag = a_diag + wp.float64(2.0) * eps
                 b = b + wp.float64(2.0) * eps * wp.float64(outlet_weight * get_f(bc.pressure, a, f))
+            A.coef[row, 2 * a + side] = coef
     div = div / h  # the face fluxes summed first, divided by h once
     gross = gross / h
     d_eps_dt = wp.float64(cell_eps_f[i, j, k] - cell_eps_f_prev[i, j, k]) / wp.float64(params.dt)
@@ -1019,6 +1020,50 @@ def pressure_rhs_kernel(
     for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
         pressure_rhs_one(g, params, cells, cell_row, cell_fluid, types, bc, face_eps, vel, cell_eps_f,
                   cell_eps_f_prev, outlet_weight, rhs, A, active, fluid_sum, index)
+
+
+@wp.func
+def pressure_neighbours_one(
+    g: GridInfo,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_row: wp.array(dtype=wp.int32),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    types: FaceInt,
+    A: Stencil,
+    index: int,
+):
+    """The fixed neighbour rows of the pressure system (once, at set-up): across a fluid face of a fluid cell the
+    neighbour cell's row (its coefficient eps_f >= eps_min is never 0), else the row itself (an unused slot);
+    coefficients 0 until ``pressure_rhs_kernel`` writes them."""
+    c = cells[index]
+    row = cell_row[flat_index(g.shape, c)]
+    if row < 0:
+        return
+    for a in range(3):
+        for side in range(2):
+            f = wrap_face(g, a, c + side * unit(a))
+            A.coef[row, 2 * a + side] = wp.float64(0.0)
+            A.neighbour[row, 2 * a + side] = row
+            if get_t(types, a, f) == FACE_FLUID and cell_fluid[c[0], c[1], c[2]] != 0:
+                A.neighbour[row, 2 * a + side] = cell_row[flat_index(g.shape, wrap_cell(g, c + (2 * side - 1) * unit(a)))]
+
+
+@wp.kernel
+def pressure_neighbours_kernel(
+    block: int,
+    g: GridInfo,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_row: wp.array(dtype=wp.int32),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    types: FaceInt,
+    # outputs
+    A: Stencil,
+):
+    """``pressure_neighbours_one`` for ``block`` consecutive entries of ``cells`` per thread (module
+    docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
+        pressure_neighbours_one(g, cells, cell_row, cell_fluid, types, A, index)
 
 
 @wp.kernel
