@@ -561,8 +561,8 @@ class GasSolver:
         """eps_f from eps_s, cell velocity, Smagorinsky viscosity and face coefficients."""
         self._prime(gas)
         g, dom, params, cells = self.grid_info, self.domain, self._params(1.0), self._fluid_cells
-        self._launch(K.eps_f_kernel, cells, [cells, gas.cell_eps_s, dom.cell_fluid, params.eps_min, gas.cell_eps_f])
-        self._launch(K.cell_velocity_kernel, cells, [g, cells, dom.cell_fluid, gas.face_velocity, gas.cell_velocity])
+        self._launch(K.cell_state_kernel, cells, [g, cells, gas.cell_eps_s, dom.cell_fluid, params.eps_min,
+                                                  gas.face_velocity, gas.cell_eps_f, gas.cell_velocity])
         self._launch(K.smagorinsky_kernel, cells, [g, params, cells, dom.cell_fluid, gas.cell_velocity,
                                                    gas.cell_eps_f, gas.cell_nu_t, self._cell_kappa])
         for axis in range(3):
@@ -627,9 +627,10 @@ class GasSolver:
                                                             self._face_grad_p])
             alias = self._alias_faces[axis]
             self._launch(K.periodic_sync_kernel, alias, [g, axis, alias, gas.face_velocity])
+        self._bad.zero_()
         self._launch(K.cell_projected_kernel, cells,
                      [g, params, cells, dom.cell_fluid, dom.face_type, self._face_grad_p, gas.pressure_solution,
-                      gas.face_velocity, gas.cell_pressure, gas.cell_grad_p, gas.cell_velocity])
+                      gas.face_velocity, gas.cell_pressure, gas.cell_grad_p, gas.cell_velocity, self._bad])
 
     # ------------------------------------------------------------------ the step
     def step(self, gas: GasField, dt: float) -> None:
@@ -650,9 +651,7 @@ class GasSolver:
         self.add_forces_and_diffuse(gas, dt)
         self.project(gas, dt)
         if self.config.check_finite:
-            # the solid cells hold constants: the fluid cells are where a NaN can appear
-            self._bad.zero_()
-            self._launch(K.finite_check_kernel, cells, [cells, gas.cell_velocity, gas.cell_pressure, self._bad])
+            # counted by the projection's cell pass over the fluid cells (the solid cells hold constants)
             if int(self._bad.numpy()[0]) > 0:
                 raise HelWarpError(f"gas field holds NaN/inf in {int(self._bad.numpy()[0])} cells after the step; "
                                    "reduce dt or check eps_s and the momentum source for NaN")

@@ -472,6 +472,27 @@ def cell_velocity_kernel(
         cell_velocity_one(g, cells, cell_fluid, vel, cell_velocity, index)
 
 
+@wp.kernel
+def cell_state_kernel(
+    block: int,
+    g: GridInfo,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_eps_s: wp.array3d(dtype=float),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    eps_min: float,
+    vel: FaceFloat,
+    # outputs
+    cell_eps_f: wp.array3d(dtype=float),
+    cell_velocity: wp.array3d(dtype=wp.vec3),
+):
+    """``eps_f_one`` and ``cell_velocity_one`` in one pass, ``block`` consecutive entries of ``cells`` per thread
+    (module docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
+        eps_f_one(cells, cell_eps_s, cell_fluid, eps_min, cell_eps_f, index)
+        cell_velocity_one(g, cells, cell_fluid, vel, cell_velocity, index)
+
+
 @wp.func
 def cell_value(g: GridInfo, field: wp.array3d(dtype=wp.vec3), c: wp.vec3i, fallback: wp.vec3i):
     w = wrap_cell(g, c)
@@ -1168,6 +1189,28 @@ def face_pressure_gradient(g: GridInfo, types: FaceInt, bc: FaceBc, p: wp.array(
 
 
 @wp.func
+def face_pressure_gradients(g: GridInfo, types: FaceInt, bc: FaceBc, increment: wp.array(dtype=wp.float64),
+                            outlet_weight: float, total: wp.array(dtype=wp.float64), axis: int, f: wp.vec3i):
+    """``face_pressure_gradient`` of ``increment`` (outlet weight ``outlet_weight``) and of ``total`` (outlet
+    weight 1) at one solved face, the face's type and cells found once: the same two numbers."""
+    t = get_t(types, axis, f)
+    h = g.spacing
+    if t == FACE_FLUID:
+        lo = flat_index(g.shape, wrap_cell(g, f - unit(axis)))
+        hi = flat_index(g.shape, wrap_cell(g, f))
+        return float(increment[hi] - increment[lo]) / h, float(total[hi] - total[lo]) / h
+    # outlet
+    p_out = get_f(bc.pressure, axis, f)
+    increment_out = outlet_weight * p_out
+    total_out = 1.0 * p_out
+    if f[axis] == 0:
+        inside = flat_index(g.shape, f)
+        return 2.0 * (float(increment[inside]) - increment_out) / h, 2.0 * (float(total[inside]) - total_out) / h
+    inside = flat_index(g.shape, f - unit(axis))
+    return 2.0 * (increment_out - float(increment[inside])) / h, 2.0 * (total_out - float(total[inside])) / h
+
+
+@wp.func
 def pressure_correct_one(
     g: GridInfo,
     axis: int,
@@ -1187,9 +1230,9 @@ def pressure_correct_one(
     computed itself before: the two cells' pressures are read here anyway)."""
     f = faces[index]
     if is_solved(get_t(types, axis, f)):
-        gp = face_pressure_gradient(g, types, bc, p, outlet_weight, axis, f)
+        gp, gp_total = face_pressure_gradients(g, types, bc, p, outlet_weight, p_total, axis, f)
         set_f(vel, axis, f, get_f(vel, axis, f) - params.dt / params.rho * gp)
-        set_f(face_grad_p, axis, f, face_pressure_gradient(g, types, bc, p_total, 1.0, axis, f))
+        set_f(face_grad_p, axis, f, gp_total)
 
 
 @wp.kernel
@@ -1271,6 +1314,51 @@ def cell_pressure_kernel(
         cell_pressure_one(g, params, cells, cell_fluid, types, face_grad_p, p, cell_pressure, cell_grad_p, index)
 
 
+@wp.func
+def cell_projected_one(
+    g: GridInfo,
+    params: FlowParams,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    types: FaceInt,
+    face_grad_p: FaceFloat,
+    p: wp.array(dtype=wp.float64),
+    vel: FaceFloat,
+    cell_pressure: wp.array3d(dtype=float),
+    cell_grad_p: wp.array3d(dtype=wp.vec3),
+    cell_velocity: wp.array3d(dtype=wp.vec3),
+    bad_count: wp.array(dtype=wp.int32),
+    index: int,
+):
+    """``cell_pressure_one`` and ``cell_velocity_one`` with each face of the cell found once (the same numbers);
+    a cell whose velocity or pressure is not finite adds 1 to ``bad_count[0]``."""
+    c = cells[index]
+    i, j, k = c[0], c[1], c[2]
+    grad = -params.rho * params.body_accel
+    u = wp.vec3(0.0, 0.0, 0.0)
+    pressure = float(0.0)
+    if cell_fluid[i, j, k] != 0:
+        for a in range(3):
+            hi = wrap_face(g, a, c + unit(a))  # the lower face is c itself
+            u[a] = 0.5 * (get_f(vel, a, c) + get_f(vel, a, hi))
+            acc = float(0.0)
+            n = float(0.0)
+            if is_solved(get_t(types, a, c)):
+                acc = acc + get_f(face_grad_p, a, c)
+                n = n + 1.0
+            if is_solved(get_t(types, a, hi)):
+                acc = acc + get_f(face_grad_p, a, hi)
+                n = n + 1.0
+            if n > 0.0:
+                grad[a] = grad[a] + acc / n
+        pressure = float(p[flat_index(g.shape, c)])
+    cell_pressure[i, j, k] = pressure
+    cell_grad_p[i, j, k] = grad
+    cell_velocity[i, j, k] = u
+    if not (wp.isfinite(u) and wp.isfinite(pressure)):
+        wp.atomic_add(bad_count, 0, 1)
+
+
 @wp.kernel
 def cell_projected_kernel(
     block: int,
@@ -1286,44 +1374,14 @@ def cell_projected_kernel(
     cell_pressure: wp.array3d(dtype=float),
     cell_grad_p: wp.array3d(dtype=wp.vec3),
     cell_velocity: wp.array3d(dtype=wp.vec3),
-):
-    """The cell fields after the projection in one pass over ``cells``: ``cell_pressure_one`` and
-    ``cell_velocity_one`` for ``block`` consecutive entries per thread (module docstring, "Launches")."""
-    t = wp.tid()
-    for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
-        cell_pressure_one(g, params, cells, cell_fluid, types, face_grad_p, p, cell_pressure, cell_grad_p, index)
-        cell_velocity_one(g, cells, cell_fluid, vel, cell_velocity, index)
-
-
-@wp.func
-def finite_check_one(
-    cells: wp.array(dtype=wp.vec3i),
-    cell_velocity: wp.array3d(dtype=wp.vec3),
-    cell_pressure: wp.array3d(dtype=float),
-    bad_count: wp.array(dtype=wp.int32),
-    index: int,
-):
-    c = cells[index]
-    i, j, k = c[0], c[1], c[2]
-    u = cell_velocity[i, j, k]
-    if not (wp.isfinite(u) and wp.isfinite(cell_pressure[i, j, k])):
-        wp.atomic_add(bad_count, 0, 1)
-
-
-@wp.kernel
-def finite_check_kernel(
-    block: int,
-    cells: wp.array(dtype=wp.vec3i),
-    cell_velocity: wp.array3d(dtype=wp.vec3),
-    cell_pressure: wp.array3d(dtype=float),
-    # outputs
     bad_count: wp.array(dtype=wp.int32),
 ):
-    """``finite_check_one`` for ``block`` consecutive entries of ``cells`` per thread (module
-    docstring, "Launches")."""
+    """The cell fields after the projection in one pass over ``cells`` (``cell_projected_one``), ``block``
+    consecutive entries per thread (module docstring, "Launches"); ``bad_count`` counts cells left non-finite."""
     t = wp.tid()
     for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
-        finite_check_one(cells, cell_velocity, cell_pressure, bad_count, index)
+        cell_projected_one(g, params, cells, cell_fluid, types, face_grad_p, p, vel, cell_pressure, cell_grad_p,
+                           cell_velocity, bad_count, index)
 
 
 # ----------------------------------------------------------------- compacted systems
