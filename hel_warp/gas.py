@@ -576,8 +576,8 @@ class GasSolver:
         g, dom = self.grid_info, self.domain
         for axis in range(3):
             faces = self._solved_faces[axis]
-            self._launch(K.advect_kernel, faces, [g, axis, faces, dom.face_type, gas.face_velocity, float(dt),
-                                                  self._velocity_tmp])
+            self._launch(K.ADVECT_KERNELS[axis], faces, [g, faces, dom.face_type, gas.face_velocity, float(dt),
+                                                         self._velocity_tmp])
 
     def add_forces_and_diffuse(self, gas: GasField, dt: float) -> None:
         """u* = advected velocity + particle momentum source + imposed mean pressure gradient, less the old pressure
