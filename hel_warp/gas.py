@@ -283,7 +283,8 @@ class GasSolver:
         for axis in range(3):
             self._systems[axis] = self._row_map(solved_masks[axis])
         # one stencil per system; its neighbour rows are fixed by the mask and face types, written here once
-        self._stencils = {system: self._new_stencil(max(1, rows.shape[0])) for system, (rows, _) in self._systems.items()}
+        self._stencils = {system: self._new_stencil(max(1, rows.shape[0]))
+                          for system, (rows, _) in self._systems.items()}
         """The compact matrix of each system (kernels/gas.py ``Stencil``): coefficients by the assembly kernels every
         step, neighbour rows once at set-up."""
         self._viscous_topology = [self._viscous_stencil_topology(axis) for axis in range(3)]
@@ -408,8 +409,8 @@ class GasSolver:
                                                      gas.pressure_solution, gas.cell_pressure, gas.cell_grad_p])
         for axis in range(3):
             far = self._far_faces[axis]
-            self._launch(K.face_coefficients_kernel, far, [g, axis, far, dom.cell_fluid, gas.cell_eps_f,
-                                                           self._cell_kappa, gas.face_eps, gas.face_kappa])
+            self._launch(K.FACE_COEFFICIENTS_KERNELS[axis], far, [g, far, dom.cell_fluid, gas.cell_eps_f,
+                                                                  self._cell_kappa, gas.face_eps, gas.face_kappa])
         self._primed.add(gas)
 
     def _solve(self, system, what: str, tol: float, maxiter: int, atol_floor: float = 0.0,
@@ -567,8 +568,8 @@ class GasSolver:
                                                    gas.cell_eps_f, gas.cell_nu_t, self._cell_kappa])
         for axis in range(3):
             faces = self._coefficient_faces[axis]
-            self._launch(K.face_coefficients_kernel, faces, [g, axis, faces, dom.cell_fluid, gas.cell_eps_f,
-                                                             self._cell_kappa, gas.face_eps, gas.face_kappa])
+            self._launch(K.FACE_COEFFICIENTS_KERNELS[axis], faces, [g, faces, dom.cell_fluid, gas.cell_eps_f,
+                                                                    self._cell_kappa, gas.face_eps, gas.face_kappa])
 
     def advect(self, gas: GasField, dt: float) -> None:
         """Semi-Lagrangian advection of the face velocities into the scratch faces (``add_forces_and_diffuse`` takes
@@ -588,13 +589,13 @@ class GasSolver:
         g, dom, params, c = self.grid_info, self.domain, self._params(dt), self.config
         for axis in range(3):
             faces, face_row = self._solved_faces[axis], self._systems[axis][1]
-            self._launch(K.viscous_rhs_kernel, faces,
-                         [g, axis, params, faces, face_row, self._viscous_topology[axis], dom.face_type, dom.face_bc,
+            self._launch(K.VISCOUS_RHS_KERNELS[axis], faces,
+                         [g, params, faces, face_row, self._viscous_topology[axis], dom.face_type, dom.face_bc,
                           dom.cell_fluid, gas.face_eps, gas.face_kappa_flat[axis], gas.cell_momentum_source,
                           gas.pressure_solution, self._velocity_tmp, self._c_rhs, self._c_x, self._stencils[axis]])
             self.last_iterations["viscous"][axis] = self._solve(
                 axis, f"viscous ({'xyz'[axis]})", c.viscous_tolerance, c.viscous_max_iterations)
-            self._launch(K.store_component_kernel, faces, [g, axis, faces, face_row, self._c_x, gas.face_velocity])
+            self._launch(K.STORE_COMPONENT_KERNELS[axis], faces, [g, faces, face_row, self._c_x, gas.face_velocity])
 
     def project(self, gas: GasField, dt: float) -> None:
         """Projection onto d(eps_f)/dt + div(eps_f u) = 0 with a pressure increment dp (outlet dp = 0);
@@ -622,9 +623,9 @@ class GasSolver:
         self._launch(K.pressure_increment_kernel, cells, [g, cells, cell_row, self._c_x, dp, gas.pressure_solution])
         for axis in range(3):
             faces = self._solved_faces[axis]
-            self._launch(K.pressure_correct_kernel, faces, [g, axis, params, faces, dom.face_type, dom.face_bc, dp,
-                                                            0.0, gas.pressure_solution, gas.face_velocity,
-                                                            self._face_grad_p])
+            self._launch(K.PRESSURE_CORRECT_KERNELS[axis], faces,
+                         [g, params, faces, dom.face_type, dom.face_bc, dp, 0.0, gas.pressure_solution,
+                          gas.face_velocity, self._face_grad_p])
             alias = self._alias_faces[axis]
             self._launch(K.periodic_sync_kernel, alias, [g, axis, alias, gas.face_velocity])
         self._bad.zero_()

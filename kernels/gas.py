@@ -395,7 +395,8 @@ def _advect_kernel(axis_constant: int):
         for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
             advect_one(g, wp.static(axis_constant), faces, types, vel_old, dt, vel_new, index)
 
-    return wp.Kernel(advect_kernel, key=f"advect_kernel_{'xyz'[axis_constant]}", module=wp.get_module(__name__))
+    return wp.Kernel(advect_kernel, key=f"advect_kernel_{'xyz'[axis_constant]}",
+                     module=wp.get_module(__name__))
 
 
 ADVECT_KERNELS = tuple(_advect_kernel(axis) for axis in range(3))
@@ -594,24 +595,32 @@ def face_coefficients_one(
         set_f(face_kappa, axis, f, 0.0)
 
 
-@wp.kernel
-def face_coefficients_kernel(
-    block: int,
-    g: GridInfo,
-    axis: int,
-    faces: wp.array(dtype=wp.vec3i),
-    cell_fluid: wp.array3d(dtype=wp.int32),
-    cell_eps_f: wp.array3d(dtype=float),
-    cell_kappa: wp.array3d(dtype=float),
-    # outputs
-    face_eps: FaceFloat,
-    face_kappa: FaceFloat,
-):
-    """``face_coefficients_one`` for ``block`` consecutive entries of ``faces`` per thread (module
-    docstring, "Launches")."""
-    t = wp.tid()
-    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
-        face_coefficients_one(g, axis, faces, cell_fluid, cell_eps_f, cell_kappa, face_eps, face_kappa, index)
+def _face_coefficients_kernel(axis_constant: int):
+    def face_coefficients_kernel(
+        block: int,
+        g: GridInfo,
+        faces: wp.array(dtype=wp.vec3i),
+        cell_fluid: wp.array3d(dtype=wp.int32),
+        cell_eps_f: wp.array3d(dtype=float),
+        cell_kappa: wp.array3d(dtype=float),
+        # outputs
+        face_eps: FaceFloat,
+        face_kappa: FaceFloat,
+    ):
+        """``face_coefficients_one`` for ``block`` consecutive entries of ``faces`` per thread (module
+        docstring, "Launches"), the face axis a compile-time constant."""
+        t = wp.tid()
+        for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
+            face_coefficients_one(g, wp.static(axis_constant), faces, cell_fluid, cell_eps_f, cell_kappa, face_eps,
+                                  face_kappa, index)
+
+    return wp.Kernel(face_coefficients_kernel, key=f"face_coefficients_kernel_{'xyz'[axis_constant]}",
+                     module=wp.get_module(__name__))
+
+
+FACE_COEFFICIENTS_KERNELS = tuple(_face_coefficients_kernel(axis) for axis in range(3))
+"""``face_coefficients_one``'s kernel per face axis (x, y, z), the axis a compile-time constant (as
+``ADVECT_KERNELS``)."""
 
 
 @wp.func
@@ -881,34 +890,41 @@ def viscous_rhs_one(
     A.diag[row] = wp.float64(a_diag)
 
 
-@wp.kernel
-def viscous_rhs_kernel(
-    block: int,
-    g: GridInfo,
-    axis: int,
-    params: FlowParams,
-    faces: wp.array(dtype=wp.vec3i),
-    face_row: wp.array(dtype=wp.int32),
-    topology: ViscousTopology,
-    types: FaceInt,
-    bc: FaceBc,
-    cell_fluid: wp.array3d(dtype=wp.int32),
-    face_eps: FaceFloat,
-    face_kappa: wp.array(dtype=float),
-    cell_momentum_source: wp.array3d(dtype=wp.vec3),
-    p_old: wp.array(dtype=wp.float64),
-    advected: FaceFloat,
-    # outputs
-    rhs: wp.array(dtype=wp.float64),
-    guess: wp.array(dtype=wp.float64),
-    A: Stencil,
-):
-    """``viscous_rhs_one`` for ``block`` consecutive entries of ``faces`` per thread (module
-    docstring, "Launches")."""
-    t = wp.tid()
-    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
-        viscous_rhs_one(g, axis, params, faces, face_row, topology, types, bc, cell_fluid, face_eps, face_kappa,
-                        cell_momentum_source, p_old, advected, rhs, guess, A, index)
+def _viscous_rhs_kernel(axis_constant: int):
+    def viscous_rhs_kernel(
+        block: int,
+        g: GridInfo,
+        params: FlowParams,
+        faces: wp.array(dtype=wp.vec3i),
+        face_row: wp.array(dtype=wp.int32),
+        topology: ViscousTopology,
+        types: FaceInt,
+        bc: FaceBc,
+        cell_fluid: wp.array3d(dtype=wp.int32),
+        face_eps: FaceFloat,
+        face_kappa: wp.array(dtype=float),
+        cell_momentum_source: wp.array3d(dtype=wp.vec3),
+        p_old: wp.array(dtype=wp.float64),
+        advected: FaceFloat,
+        # outputs
+        rhs: wp.array(dtype=wp.float64),
+        guess: wp.array(dtype=wp.float64),
+        A: Stencil,
+    ):
+        """``viscous_rhs_one`` for ``block`` consecutive entries of ``faces`` per thread (module
+        docstring, "Launches"), the face axis a compile-time constant."""
+        t = wp.tid()
+        for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
+            viscous_rhs_one(g, wp.static(axis_constant), params, faces, face_row, topology, types, bc, cell_fluid,
+                            face_eps, face_kappa, cell_momentum_source, p_old, advected, rhs, guess, A, index)
+
+    return wp.Kernel(viscous_rhs_kernel, key=f"viscous_rhs_kernel_{'xyz'[axis_constant]}",
+                     module=wp.get_module(__name__))
+
+
+VISCOUS_RHS_KERNELS = tuple(_viscous_rhs_kernel(axis) for axis in range(3))
+"""``viscous_rhs_one``'s kernel per face axis (x, y, z), the axis a compile-time constant (as
+``ADVECT_KERNELS``)."""
 
 
 @wp.func
@@ -928,22 +944,29 @@ def store_component_one(
         set_f(vel, axis, f, float(x[row]))
 
 
-@wp.kernel
-def store_component_kernel(
-    block: int,
-    g: GridInfo,
-    axis: int,
-    faces: wp.array(dtype=wp.vec3i),
-    face_row: wp.array(dtype=wp.int32),
-    x: wp.array(dtype=wp.float64),
-    # outputs
-    vel: FaceFloat,
-):
-    """``store_component_one`` for ``block`` consecutive entries of ``faces`` per thread (module
-    docstring, "Launches")."""
-    t = wp.tid()
-    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
-        store_component_one(g, axis, faces, face_row, x, vel, index)
+def _store_component_kernel(axis_constant: int):
+    def store_component_kernel(
+        block: int,
+        g: GridInfo,
+        faces: wp.array(dtype=wp.vec3i),
+        face_row: wp.array(dtype=wp.int32),
+        x: wp.array(dtype=wp.float64),
+        # outputs
+        vel: FaceFloat,
+    ):
+        """``store_component_one`` for ``block`` consecutive entries of ``faces`` per thread (module
+        docstring, "Launches"), the face axis a compile-time constant."""
+        t = wp.tid()
+        for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
+            store_component_one(g, wp.static(axis_constant), faces, face_row, x, vel, index)
+
+    return wp.Kernel(store_component_kernel, key=f"store_component_kernel_{'xyz'[axis_constant]}",
+                     module=wp.get_module(__name__))
+
+
+STORE_COMPONENT_KERNELS = tuple(_store_component_kernel(axis) for axis in range(3))
+"""``store_component_one``'s kernel per face axis (x, y, z), the axis a compile-time constant (as
+``ADVECT_KERNELS``)."""
 
 
 # ----------------------------------------------------------------- pressure projection
@@ -1072,7 +1095,8 @@ def pressure_neighbours_one(
             A.coef[row, 2 * a + side] = wp.float64(0.0)
             A.neighbour[row, 2 * a + side] = row
             if get_t(types, a, f) == FACE_FLUID and cell_fluid[c[0], c[1], c[2]] != 0:
-                A.neighbour[row, 2 * a + side] = cell_row[flat_index(g.shape, wrap_cell(g, c + (2 * side - 1) * unit(a)))]
+                nb = wrap_cell(g, c + (2 * side - 1) * unit(a))
+                A.neighbour[row, 2 * a + side] = cell_row[flat_index(g.shape, nb)]
 
 
 @wp.kernel
@@ -1241,27 +1265,35 @@ def pressure_correct_one(
         set_f(face_grad_p, axis, f, gp_total)
 
 
-@wp.kernel
-def pressure_correct_kernel(
-    block: int,
-    g: GridInfo,
-    axis: int,
-    params: FlowParams,
-    faces: wp.array(dtype=wp.vec3i),
-    types: FaceInt,
-    bc: FaceBc,
-    p: wp.array(dtype=wp.float64),
-    outlet_weight: float,
-    p_total: wp.array(dtype=wp.float64),
-    # outputs
-    vel: FaceFloat,
-    face_grad_p: FaceFloat,
-):
-    """``pressure_correct_one`` for ``block`` consecutive entries of ``faces`` per thread (module
-    docstring, "Launches")."""
-    t = wp.tid()
-    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
-        pressure_correct_one(g, axis, params, faces, types, bc, p, outlet_weight, p_total, vel, face_grad_p, index)
+def _pressure_correct_kernel(axis_constant: int):
+    def pressure_correct_kernel(
+        block: int,
+        g: GridInfo,
+        params: FlowParams,
+        faces: wp.array(dtype=wp.vec3i),
+        types: FaceInt,
+        bc: FaceBc,
+        p: wp.array(dtype=wp.float64),
+        outlet_weight: float,
+        p_total: wp.array(dtype=wp.float64),
+        # outputs
+        vel: FaceFloat,
+        face_grad_p: FaceFloat,
+    ):
+        """``pressure_correct_one`` for ``block`` consecutive entries of ``faces`` per thread (module
+        docstring, "Launches"), the face axis a compile-time constant."""
+        t = wp.tid()
+        for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
+            pressure_correct_one(g, wp.static(axis_constant), params, faces, types, bc, p, outlet_weight, p_total, vel,
+                                 face_grad_p, index)
+
+    return wp.Kernel(pressure_correct_kernel, key=f"pressure_correct_kernel_{'xyz'[axis_constant]}",
+                     module=wp.get_module(__name__))
+
+
+PRESSURE_CORRECT_KERNELS = tuple(_pressure_correct_kernel(axis) for axis in range(3))
+"""``pressure_correct_one``'s kernel per face axis (x, y, z), the axis a compile-time constant (as
+``ADVECT_KERNELS``)."""
 
 
 @wp.func
