@@ -219,7 +219,7 @@ def _index_list(mask: np.ndarray, device) -> wp.array:
 
 def _touches_fluid(fluid: np.ndarray, axis: int, periodic: bool) -> np.ndarray:
     """Faces of ``axis`` with a fluid cell on either side (the periodic wrap as ``wrap_cell``): the faces whose
-    eps_f and kappa are means over cells (kernels/gas.py ``face_coefficients_kernel``)."""
+    eps_f and kappa are means over cells (kernels/gas.py ``face_coefficients_one``)."""
     n = fluid.shape[axis]
     index = np.arange(n + 1)
     out = np.zeros(tuple(s + (a == axis) for a, s in enumerate(fluid.shape)), dtype=bool)
@@ -312,7 +312,7 @@ class GasSolver:
         self._bad = wp.zeros(1, dtype=wp.int32, device=dev)
         self._velocity_tmp = GasField._faces(grid, dev)
         self._face_grad_p = GasField._faces(grid, dev)
-        """d p / d x_axis of the new pressure at the solved faces (``pressure_correct_kernel``), Pa/m."""
+        """d p / d x_axis of the new pressure at the solved faces (kernels/gas.py ``pressure_correct_one``), Pa/m."""
         self._cell_kappa = wp.zeros(grid.shape, dtype=float, device=dev)
         self._pcg_recorded = {}  # system -> the native PCG's recorded launches (_pcg_launches)
         self._pcg_graphs = {}  # (system, rows) -> one captured PCG iteration (_pcg_iteration_graph)
@@ -396,7 +396,7 @@ class GasSolver:
 
     def _prime(self, gas: GasField) -> None:
         """Once per GasField: the constants of the solid cells and of the faces away from the fluid, which the
-        fluid launches never write (the cell kernels' and ``face_coefficients_kernel``'s solid branches)."""
+        fluid launches never write (the cell kernels' and ``face_coefficients_one``'s solid branches)."""
         if gas in self._primed:
             return
         g, dom, params, solid = self.grid_info, self.domain, self._params(1.0), self._solid_cells

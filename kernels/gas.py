@@ -30,7 +30,9 @@ branches for solid cells and fixed faces, so a list of the whole box gives the s
 ``<name>_one(..., index)`` for one entry and a ``@wp.kernel`` whose thread runs ``block`` consecutive entries
 (``CPU_BLOCK`` on the CPU, 1 on CUDA): Warp's CPU loop copies a kernel's arguments for every thread, ~1 kB
 of structs here (``FaceFloat``, ``FaceInt``, ``FaceBc``: ~30 ns per thread, measured), once per block instead.
-The entries run in the same order on the CPU, so the fields are the same bits.
+The entries run in the same order on the CPU, so the fields are the same bits. The face kernels of the step
+come as one kernel per face axis (``ADVECT_KERNELS`` and the like, built by ``wp.Kernel`` with the axis a
+``wp.static`` constant): the branches of ``get_f`` / ``set_f`` / ``component`` on the axis fold away at compile time.
 """
 
 import warp as wp
