@@ -45,6 +45,9 @@ FLOAT32_FLOOR = 1e-7
 """Continuity residual below which the float32 face velocities cannot resolve it, relative to the
 gross face flux through the cells (floor of the pressure solver's absolute tolerance)."""
 
+FLOAT32_UNIT_ROUNDOFF = 2.0**-24
+"""Unit round-off of float32 (5.96e-8): the relative error of rounding a value to the stored float32."""
+
 
 @dataclass(frozen=True, kw_only=True)
 class GasConfig:
@@ -77,8 +80,13 @@ class GasConfig:
     pressure_preconditioner_relaxation: float = 0.97
     """tau of the modified incomplete Cholesky of the 'ic' preconditioner: 0 is plain IC(0); 0.97
     (Bridson 2015) takes 120 iterations on the rig where IC(0) takes 180."""
-    viscous_tolerance: float = 1e-8
-    """Relative residual of each viscous system."""
+    viscous_tolerance: float = FLOAT32_UNIT_ROUNDOFF
+    """Relative residual of each viscous system (||b - A u|| <= tol ||b||). The default is float32's unit
+    round-off, 2^-24 = 5.96e-8: the solution is stored as float32 face velocities, and rounding even the exact
+    solution to float32 leaves a relative residual of 3.6-5.7e-8 on the colliding-streams rig (the three
+    components, measured; A is dominated by its diagonal there, so the residual of a rounding is about the
+    rounding itself), so a tighter tolerance (1e-8 before) buys digits the stored field cannot keep. On the rig it
+    takes 6 / 6 / 6 IC(0)-PCG iterations where 1e-8 took 6 / 7 / 7."""
     viscous_max_iterations: int = 1000
     linear_solver: str = "auto"
     """'warp' (warp.optim.linear.cg, Jacobi preconditioner), 'native' (PCG with an IC(0)
@@ -134,6 +142,8 @@ class GasField:
         """eps_f on faces (used by the last projection)."""
         self.face_kappa = self._faces(grid, device)
         """eps_f (mu + rho nu_t) on faces, Pa s."""
+        self.face_kappa_flat = tuple(a.flatten() for a in (self.face_kappa.x, self.face_kappa.y, self.face_kappa.z))
+        """``face_kappa`` per axis as flat views of the same memory (indexed by flat face index)."""
         self.cell_velocity = wp.zeros(shape, dtype=wp.vec3, device=device)
         """Cell-centred gas velocity, m/s."""
         self.cell_pressure = wp.zeros(shape, dtype=float, device=device)
@@ -209,7 +219,7 @@ def _index_list(mask: np.ndarray, device) -> wp.array:
 
 def _touches_fluid(fluid: np.ndarray, axis: int, periodic: bool) -> np.ndarray:
     """Faces of ``axis`` with a fluid cell on either side (the periodic wrap as ``wrap_cell``): the faces whose
-    eps_f and kappa are means over cells (kernels/gas.py ``face_coefficients_kernel``)."""
+    eps_f and kappa are means over cells (kernels/gas.py ``face_coefficients_one``)."""
     n = fluid.shape[axis]
     index = np.arange(n + 1)
     out = np.zeros(tuple(s + (a == axis) for a, s in enumerate(fluid.shape)), dtype=bool)
@@ -272,18 +282,23 @@ class GasSolver:
         self._systems = {"pressure": self._row_map(fluid.ravel())}
         for axis in range(3):
             self._systems[axis] = self._row_map(solved_masks[axis])
+        # one stencil per system; its neighbour rows are fixed by the mask and face types, written here once
+        self._stencils = {system: self._new_stencil(max(1, rows.shape[0]))
+                          for system, (rows, _) in self._systems.items()}
+        """The compact matrix of each system (kernels/gas.py ``Stencil``): coefficients by the assembly kernels every
+        step, neighbour rows once at set-up."""
         self._viscous_topology = [self._viscous_stencil_topology(axis) for axis in range(3)]
+        self._launch(K.pressure_neighbours_kernel, self._fluid_cells,
+                     [self.grid_info, self._fluid_cells, self._systems["pressure"][1], domain.cell_fluid,
+                      domain.face_type, self._stencils["pressure"]])
         self._pressure_mg = None
         if self.config.pressure_preconditioner == "multigrid":
             self._pressure_mg = AggregationMultigrid(self._systems["pressure"][0].numpy(), grid.shape,
                                                      tuple(bool(p) for p in grid.periodic), dev,
                                                      scale=self.config.pressure_multigrid_scale)
         n_rows = max(1, max(rows.shape[0] for rows, _ in self._systems.values()))
-        self._c_rhs, self._c_x, self._c_diag = (wp.zeros(n_rows, dtype=wp.float64, device=dev) for _ in range(3))
-        self._c_coef = wp.zeros((n_rows, 6), dtype=wp.float64, device=dev)
-        self._c_neighbour = wp.zeros((n_rows, 6), dtype=wp.int32, device=dev)
+        self._c_rhs, self._c_x = (wp.zeros(n_rows, dtype=wp.float64, device=dev) for _ in range(2))
         self._c_active = wp.zeros(n_rows, dtype=wp.int32, device=dev)
-        self._c_full = K.make_stencil(self._c_diag, self._c_coef, self._c_neighbour)  # what the assembly kernels write
         self._pcg = [wp.zeros(n_rows, dtype=wp.float64, device=dev) for _ in range(4)]  # r, z, p, Ap
         self._scalars = wp.zeros(6, dtype=wp.float64, device=dev)  # kernels/gas.py "native Jacobi-PCG"
         self._pivot = wp.zeros(n_rows, dtype=wp.float64, device=dev)
@@ -296,9 +311,14 @@ class GasSolver:
         """The linear solver actually used ('warp' or 'native')."""
         self._bad = wp.zeros(1, dtype=wp.int32, device=dev)
         self._velocity_tmp = GasField._faces(grid, dev)
+        self._face_grad_p = GasField._faces(grid, dev)
+        """d p / d x_axis of the new pressure at the solved faces (kernels/gas.py ``pressure_correct_one``), Pa/m."""
         self._cell_kappa = wp.zeros(grid.shape, dtype=float, device=dev)
         self._pcg_recorded = {}  # system -> the native PCG's recorded launches (_pcg_launches)
         self._pcg_graphs = {}  # (system, rows) -> one captured PCG iteration (_pcg_iteration_graph)
+        self._ordered_slots = int(not any(bool(v) for v in grid.periodic))
+        """1 when every compact system couples a row to lower rows only through slots -x, -y, -z (no axis
+        periodic: no coupling wraps around), which ``ic0_step_apply_kernel`` then takes without index tests."""
         self._primed = weakref.WeakSet()  # GasFields whose solid cells and far faces hold the constants
         self.last_iterations = {"pressure": 0, "viscous": [0, 0, 0]}
         """CG iterations of the last step (diagnostic)."""
@@ -359,22 +379,24 @@ class GasSolver:
         dev, dom = self.device, self.domain
         n = max(1, self._systems[axis][0].shape[0])
         topology = K.ViscousTopology()
-        topology.neighbour_row = wp.full((n, 6), -1, dtype=wp.int32, device=dev)
-        topology.neighbour_face = wp.zeros((n, 6), dtype=wp.vec3i, device=dev)
+        topology.neighbour_flat = wp.full((n, 6), -1, dtype=wp.int32, device=dev)
         topology.factor = wp.zeros((n, 6), dtype=float, device=dev)
         topology.value = wp.zeros((n, 6), dtype=float, device=dev)
         faces = self._solved_faces[axis]
         self._launch(K.viscous_topology_kernel, faces, [self.grid_info, axis, faces, self._systems[axis][1],
-                                                        dom.face_type, dom.face_bc, topology])
+                                                        dom.face_type, dom.face_bc, topology, self._stencils[axis]])
         return topology
 
-    def _compact(self, n: int) -> K.Stencil:
-        """The first ``n`` rows of the compact system arrays."""
-        return K.make_stencil(self._c_diag[:n], self._c_coef[:n], self._c_neighbour[:n])
+    def _new_stencil(self, n: int) -> K.Stencil:
+        """An empty compact matrix of ``n`` rows (every slot unused: coefficient 0, pointing at its own row)."""
+        neighbour = np.repeat(np.arange(n, dtype=np.int32)[:, None], 6, axis=1)
+        return K.make_stencil(wp.zeros(n, dtype=wp.float64, device=self.device),
+                              wp.zeros((n, 6), dtype=wp.float64, device=self.device),
+                              wp.array(neighbour, dtype=wp.int32, device=self.device))
 
     def _prime(self, gas: GasField) -> None:
         """Once per GasField: the constants of the solid cells and of the faces away from the fluid, which the
-        fluid launches never write (the cell kernels' and ``face_coefficients_kernel``'s solid branches)."""
+        fluid launches never write (the cell kernels' and ``face_coefficients_one``'s solid branches)."""
         if gas in self._primed:
             return
         g, dom, params, solid = self.grid_info, self.domain, self._params(1.0), self._solid_cells
@@ -383,26 +405,26 @@ class GasSolver:
         self._launch(K.cell_velocity_kernel, solid, [g, solid, dom.cell_fluid, gas.face_velocity, gas.cell_velocity])
         self._launch(K.smagorinsky_kernel, solid, [g, params, solid, dom.cell_fluid, gas.cell_velocity,
                                                    gas.cell_eps_f, gas.cell_nu_t, self._cell_kappa])
-        self._launch(K.cell_pressure_kernel, solid, [g, params, solid, dom.cell_fluid, dom.face_type, dom.face_bc,
+        self._launch(K.cell_pressure_kernel, solid, [g, params, solid, dom.cell_fluid, dom.face_type, self._face_grad_p,
                                                      gas.pressure_solution, gas.cell_pressure, gas.cell_grad_p])
         for axis in range(3):
             far = self._far_faces[axis]
-            self._launch(K.face_coefficients_kernel, far, [g, axis, far, dom.cell_fluid, gas.cell_eps_f,
-                                                           self._cell_kappa, gas.face_eps, gas.face_kappa])
+            self._launch(K.FACE_COEFFICIENTS_KERNELS[axis], far, [g, far, dom.cell_fluid, gas.cell_eps_f,
+                                                                  self._cell_kappa, gas.face_eps, gas.face_kappa])
         self._primed.add(gas)
 
     def _solve(self, system, what: str, tol: float, maxiter: int, atol_floor: float = 0.0,
                relaxation: float = 0.0, multigrid: AggregationMultigrid | None = None) -> int:
         """CG (see ``GasConfig.linear_solver``) of the compact system the assembly kernels wrote (``_c_rhs``,
-        ``_c_x`` as the first guess, ``_c_diag``, ``_c_coef``, ``_c_neighbour``; ``system``: a key of
-        ``_systems``); the solution is left in ``_c_x``. Preconditioner: ``multigrid`` if given, else (modified)
+        ``_c_x`` as the first guess, ``_stencils[system]``; ``system``: a key of ``_systems``); the solution is
+        left in ``_c_x``. Preconditioner: ``multigrid`` if given, else (modified)
         IC(0) on the native solver and Jacobi on warp's."""
         rows, _ = self._systems[system]
         n = rows.shape[0]
         if n == 0:
             return 0
-        rhs, x, diag = self._c_rhs[:n], self._c_x[:n], self._c_diag[:n]
-        A = self._compact(n)
+        A = self._stencils[system]
+        rhs, x, diag = self._c_rhs[:n], self._c_x[:n], A.diag
         if multigrid is not None:
             multigrid.setup(A)
         if self.linear_solver == "native":
@@ -455,15 +477,15 @@ class GasSolver:
         def dot(a, b, slot):
             return record(K.pcg_dot_kernel, dot_dim, [a, b, slot], [s])
 
-        one, zero = wp.float64(1.0), wp.float64(0.0)
         launches = {
-            "ax": record(K.stencil_matvec_kernel, n, [A, x, rhs, one, zero], [ap]),
-            "start": record(K.pcg_start_kernel, n, [rhs, ap], [r]),
-            "b.b": dot(rhs, rhs, 1), "r.r": dot(r, r, 3), "r.z new": dot(r, z, 2),
+            "r = b - A x, b.b, r.r": record(K.pcg_residual_start_kernel, dot_dim, [A, x, rhs], [r, s]),
+            "r.z new": dot(r, z, 2),
             "r.z new, r.r": record(K.pcg_dot_pair_kernel, dot_dim, [r, z, 2, 3], [s]),
-            "ap": record(K.stencil_matvec_kernel, n, [A, p, p, one, zero], [ap]), "p.ap": dot(p, ap, 1),
+            "ap, p.ap": record(K.pcg_matvec_dot_kernel, dot_dim, [A, p, 1], [ap, s]),
             "alpha": record(K.pcg_ratio_kernel, 1, [0, 1, 4], [s]),
             "step": record(K.pcg_step_kernel, n, [p, ap, s], [x, r]),
+            "step, ic0 apply": record(K.ic0_step_apply_kernel, 1, [pivot_inverse, A, p, ap, s, n, self._ordered_slots],
+                                      [x, r, z]),
             "beta": record(K.pcg_ratio_kernel, 1, [2, 0, 5], [s]),
             "direction": record(K.pcg_direction_kernel, n, [z, s], [p]),
             "shift": record(K.pcg_shift_kernel, 1, [], [s]),
@@ -488,11 +510,8 @@ class GasSolver:
             def precondition():
                 multigrid.apply(r, z)
 
-        run["ax"]()
-        run["start"]()
         s.zero_()
-        run["b.b"]()
-        run["r.r"]()
+        run["r = b - A x, b.b, r.r"]()
         host = s.numpy()
         atol = max(tol * float(np.sqrt(host[1])), atol_floor)
         residual = float(np.sqrt(host[3]))
@@ -503,7 +522,8 @@ class GasSolver:
         wp.copy(p, z)
         s.zero_()
         run["r.z new"]()  # the first iteration's shift moves it to (r.z)_old
-        iteration = self._pcg_iteration_graph(system, n, run, precondition)  # captured, not run, the first time
+        # captured, not run, the first time; IC(0) takes the step inside its forward substitution
+        iteration = self._pcg_iteration_graph(system, n, run, None if multigrid is None else precondition)
         while iterations < maxiter:
             wp.capture_launch(iteration)
             iterations += 1
@@ -514,20 +534,23 @@ class GasSolver:
 
     def _pcg_iteration_graph(self, system, n: int, run: dict, precondition):
         """One PCG iteration of ``system`` as a captured graph (``wp.ScopedCapture``: a CUDA graph, or Warp's CPU
-        replay), captured once and launched every iteration: its ~10 launches (~50 with the V-cycle) without the
+        replay), captured once and launched every iteration: its ~7 launches (~50 with the V-cycle) without the
         host's per-launch cost (~6 us each on the CPU). Scalars as ``kernels/gas.py`` "native PCG": the shift
         of (r.z)_new into (r.z)_old first, then the iteration, which ends with the residual check's r.r in
-        scalars[3]."""
+        scalars[3]. ``precondition`` None: IC(0), whose forward substitution takes the step x += alpha p,
+        r -= alpha Ap (``ic0_step_apply_kernel``); the matrix product and p.Ap in one pass."""
         key = (system, n)
         graph = self._pcg_graphs.get(key)
         if graph is None:
             with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
                 run["shift"]()
-                run["ap"]()
-                run["p.ap"]()
+                run["ap, p.ap"]()
                 run["alpha"]()
-                run["step"]()
-                precondition()
+                if precondition is None:
+                    run["step, ic0 apply"]()
+                else:
+                    run["step"]()
+                    precondition()
                 run["r.z new, r.r"]()  # the residual check's r.r in the same pass, every iteration
                 run["beta"]()
                 run["direction"]()
@@ -539,47 +562,40 @@ class GasSolver:
         """eps_f from eps_s, cell velocity, Smagorinsky viscosity and face coefficients."""
         self._prime(gas)
         g, dom, params, cells = self.grid_info, self.domain, self._params(1.0), self._fluid_cells
-        self._launch(K.eps_f_kernel, cells, [cells, gas.cell_eps_s, dom.cell_fluid, params.eps_min, gas.cell_eps_f])
-        self._launch(K.cell_velocity_kernel, cells, [g, cells, dom.cell_fluid, gas.face_velocity, gas.cell_velocity])
+        self._launch(K.cell_state_kernel, cells, [g, cells, gas.cell_eps_s, dom.cell_fluid, params.eps_min,
+                                                  gas.face_velocity, gas.cell_eps_f, gas.cell_velocity])
         self._launch(K.smagorinsky_kernel, cells, [g, params, cells, dom.cell_fluid, gas.cell_velocity,
                                                    gas.cell_eps_f, gas.cell_nu_t, self._cell_kappa])
         for axis in range(3):
             faces = self._coefficient_faces[axis]
-            self._launch(K.face_coefficients_kernel, faces, [g, axis, faces, dom.cell_fluid, gas.cell_eps_f,
-                                                             self._cell_kappa, gas.face_eps, gas.face_kappa])
+            self._launch(K.FACE_COEFFICIENTS_KERNELS[axis], faces, [g, faces, dom.cell_fluid, gas.cell_eps_f,
+                                                                    self._cell_kappa, gas.face_eps, gas.face_kappa])
 
     def advect(self, gas: GasField, dt: float) -> None:
-        """Semi-Lagrangian advection of the face velocities into the scratch faces (``add_forces`` writes them
-        back)."""
+        """Semi-Lagrangian advection of the face velocities into the scratch faces (``add_forces_and_diffuse`` takes
+        them from there)."""
         g, dom = self.grid_info, self.domain
         for axis in range(3):
             faces = self._solved_faces[axis]
-            self._launch(K.advect_kernel, faces, [g, axis, faces, dom.face_type, gas.face_velocity, float(dt),
-                                                  self._velocity_tmp])
+            self._launch(K.ADVECT_KERNELS[axis], faces, [g, faces, dom.face_type, gas.face_velocity, float(dt),
+                                                         self._velocity_tmp])
 
-    def add_forces(self, gas: GasField, dt: float) -> None:
-        """Advected velocity + particle momentum source + imposed mean pressure gradient, less the old pressure
+    def add_forces_and_diffuse(self, gas: GasField, dt: float) -> None:
+        """u* = advected velocity + particle momentum source + imposed mean pressure gradient, less the old pressure
         gradient (predictor u -= (dt/rho) grad p^n of the incremental projection, Goda 1979, so that a steady
-        balance of force and pressure, e.g. a fluidised bed, is a fixed point of the step), into the face
-        velocity."""
-        g, dom, params = self.grid_info, self.domain, self._params(dt)
-        for axis in range(3):
-            faces = self._solved_faces[axis]
-            self._launch(K.face_forces_kernel, faces,
-                         [g, axis, params, faces, dom.face_type, dom.face_bc, dom.cell_fluid, gas.face_eps,
-                          gas.cell_momentum_source, gas.pressure_solution, self._velocity_tmp, gas.face_velocity])
-
-    def diffuse(self, gas: GasField, dt: float) -> None:
-        """Backward-Euler viscous step, one CG solve per component."""
+        balance of force and pressure, e.g. a fluidised bed, is a fixed point of the step), then the
+        backward-Euler viscous step from u*, one CG solve per component, into the face velocity. u* is formed by
+        the assembly of each system (kernels/gas.py ``forced_velocity``), not stored by a pass of its own."""
         g, dom, params, c = self.grid_info, self.domain, self._params(dt), self.config
         for axis in range(3):
             faces, face_row = self._solved_faces[axis], self._systems[axis][1]
-            self._launch(K.viscous_rhs_kernel, faces,
-                         [g, axis, params, faces, face_row, self._viscous_topology[axis], gas.face_eps,
-                          gas.face_kappa, gas.face_velocity, self._c_rhs, self._c_x, self._c_full])
+            self._launch(K.VISCOUS_RHS_KERNELS[axis], faces,
+                         [g, params, faces, face_row, self._viscous_topology[axis], dom.face_type, dom.face_bc,
+                          dom.cell_fluid, gas.face_eps, gas.face_kappa_flat[axis], gas.cell_momentum_source,
+                          gas.pressure_solution, self._velocity_tmp, self._c_rhs, self._c_x, self._stencils[axis]])
             self.last_iterations["viscous"][axis] = self._solve(
                 axis, f"viscous ({'xyz'[axis]})", c.viscous_tolerance, c.viscous_max_iterations)
-            self._launch(K.store_component_kernel, faces, [g, axis, faces, face_row, self._c_x, gas.face_velocity])
+            self._launch(K.STORE_COMPONENT_KERNELS[axis], faces, [g, faces, face_row, self._c_x, gas.face_velocity])
 
     def project(self, gas: GasField, dt: float) -> None:
         """Projection onto d(eps_f)/dt + div(eps_f u) = 0 with a pressure increment dp (outlet dp = 0);
@@ -591,8 +607,8 @@ class GasSolver:
         self._fluid_sum.zero_()
         self._launch(K.pressure_rhs_kernel, cells,
                      [g, params, cells, cell_row, dom.cell_fluid, dom.face_type, dom.face_bc, gas.face_eps,
-                      gas.face_velocity, gas.cell_eps_f, gas.cell_eps_f_prev, 0.0, self._c_rhs, self._c_full,
-                      self._c_active, self._fluid_sum])
+                      gas.face_velocity, gas.cell_eps_f, gas.cell_eps_f_prev, 0.0, self._c_rhs,
+                      self._stencils["pressure"], self._c_active, self._fluid_sum])
         if not dom.has_outlet and n:
             wp.launch(K.remove_mean_kernel, dim=n, inputs=[self._c_active[:n], self._fluid_sum, self._c_rhs[:n]],
                       device=self.device)
@@ -607,14 +623,15 @@ class GasSolver:
         self._launch(K.pressure_increment_kernel, cells, [g, cells, cell_row, self._c_x, dp, gas.pressure_solution])
         for axis in range(3):
             faces = self._solved_faces[axis]
-            self._launch(K.pressure_correct_kernel, faces, [g, axis, params, faces, dom.face_type, dom.face_bc, dp,
-                                                            0.0, gas.face_velocity])
+            self._launch(K.PRESSURE_CORRECT_KERNELS[axis], faces,
+                         [g, params, faces, dom.face_type, dom.face_bc, dp, 0.0, gas.pressure_solution,
+                          gas.face_velocity, self._face_grad_p])
             alias = self._alias_faces[axis]
             self._launch(K.periodic_sync_kernel, alias, [g, axis, alias, gas.face_velocity])
-        self._launch(K.cell_pressure_kernel, cells,
-                     [g, params, cells, dom.cell_fluid, dom.face_type, dom.face_bc, gas.pressure_solution,
-                      gas.cell_pressure, gas.cell_grad_p])
-        self._launch(K.cell_velocity_kernel, cells, [g, cells, dom.cell_fluid, gas.face_velocity, gas.cell_velocity])
+        self._bad.zero_()
+        self._launch(K.cell_projected_kernel, cells,
+                     [g, params, cells, dom.cell_fluid, dom.face_type, self._face_grad_p, gas.pressure_solution,
+                      gas.face_velocity, gas.cell_pressure, gas.cell_grad_p, gas.cell_velocity, self._bad])
 
     # ------------------------------------------------------------------ the step
     def step(self, gas: GasField, dt: float) -> None:
@@ -632,13 +649,10 @@ class GasSolver:
             wp.copy(gas.cell_eps_f_prev, gas.cell_eps_f)
         self.update_cell_state(gas)
         self.advect(gas, dt)
-        self.add_forces(gas, dt)
-        self.diffuse(gas, dt)
+        self.add_forces_and_diffuse(gas, dt)
         self.project(gas, dt)
         if self.config.check_finite:
-            # the solid cells hold constants: the fluid cells are where a NaN can appear
-            self._bad.zero_()
-            self._launch(K.finite_check_kernel, cells, [cells, gas.cell_velocity, gas.cell_pressure, self._bad])
+            # counted by the projection's cell pass over the fluid cells (the solid cells hold constants)
             if int(self._bad.numpy()[0]) > 0:
                 raise HelWarpError(f"gas field holds NaN/inf in {int(self._bad.numpy()[0])} cells after the step; "
                                    "reduce dt or check eps_s and the momentum source for NaN")

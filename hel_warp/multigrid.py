@@ -26,9 +26,10 @@ from kernels import gas as K
 
 COARSEST_ROWS = 32
 """Stop coarsening below this many rows."""
-RECORDED_CYCLES = 4
-"""V-cycles kept recorded (``wp.launch(record_cmd=True)``), one per (r, z, fine matrix) memory seen; a replay
-skips the argument packing of ~40 launches (~25 us each on the CPU, most of a coarse level's smoothing)."""
+RECORDED_CYCLES = 8
+"""V-cycles and set-ups kept recorded (``wp.launch(record_cmd=True)``), one per (r, z, fine matrix) memory seen
+(set-up: per fine matrix memory); a replay skips the argument packing of ~40 launches (~25 us each on the CPU,
+most of a coarse level's smoothing)."""
 
 
 def _colours(coords: np.ndarray, shape: tuple, periodic: tuple) -> tuple[np.ndarray, int]:
@@ -104,17 +105,23 @@ class AggregationMultigrid:
         return [level.n for level in self.levels]
 
     def setup(self, A: K.Stencil) -> None:
-        """Take the fine matrix (compact arrays, n rows) and build the coarse ones."""
-        dev = self.device
+        """Take the fine matrix (compact arrays, n rows) and build the coarse ones (the launches recorded once per
+        fine matrix memory, like ``apply``'s)."""
         fine = self.levels[0]
         fine.A = A
-        for level, coarse in zip(self.levels[:-1], self.levels[1:]):
-            wp.launch(K.mg_coarsen_kernel, dim=coarse.n,
-                      inputs=[coarse.child_start, coarse.children, level.parent, level.A], outputs=[coarse.A],
-                      device=dev)
-        for level in self.levels:
-            wp.launch(K.mg_inverse_diagonal_kernel, dim=level.n, inputs=[level.A], outputs=[level.inverse_diag],
-                      device=dev)
+        key = ("setup", A.diag.ptr, A.coef.ptr, A.neighbour.ptr, A.diag.shape[0])
+        launches = self._recorded.get(key)
+        if launches is None:
+            if len(self._recorded) >= RECORDED_CYCLES:
+                self._recorded.pop(next(iter(self._recorded)))
+            launches = self._recorded[key] = []
+            for level, coarse in zip(self.levels[:-1], self.levels[1:]):
+                self._record(launches, K.mg_coarsen_kernel, coarse.n,
+                             [coarse.child_start, coarse.children, level.parent, level.A], [coarse.A])
+            for level in self.levels:
+                self._record(launches, K.mg_inverse_diagonal_kernel, level.n, [level.A], [level.inverse_diag])
+        for launch in launches:
+            launch.launch()
 
     def apply(self, r, z) -> None:
         """z = M^-1 r (one V-cycle from z = 0)."""

@@ -30,14 +30,16 @@ branches for solid cells and fixed faces, so a list of the whole box gives the s
 ``<name>_one(..., index)`` for one entry and a ``@wp.kernel`` whose thread runs ``block`` consecutive entries
 (``CPU_BLOCK`` on the CPU, 1 on CUDA): Warp's CPU loop copies a kernel's arguments for every thread, ~1 kB
 of structs here (``FaceFloat``, ``FaceInt``, ``FaceBc``: ~30 ns per thread, measured), once per block instead.
-The entries run in the same order on the CPU, so the fields are the same bits.
+The entries run in the same order on the CPU, so the fields are the same bits. The face kernels of the step
+come as one kernel per face axis (``ADVECT_KERNELS`` and the like, built by ``wp.Kernel`` with the axis a
+``wp.static`` constant): the branches of ``get_f`` / ``set_f`` / ``component`` on the axis fold away at compile time.
 """
 
 import warp as wp
 
 CPU_BLOCK = 64
 """Index-list entries per thread of the cell and face kernels on the CPU (module docstring, "Launches"; 64-256
-measured alike on ``face_forces_kernel``: 65 -> 33-35 ns per face)."""
+measured alike on the former ``face_forces_kernel``: 65 -> 33-35 ns per face)."""
 
 FACE_WALL = wp.constant(0)
 """Fixed zero normal velocity (solid neighbour cell or domain wall)."""
@@ -378,23 +380,30 @@ def advect_one(
         set_f(vel_new, axis, f, get_f(vel_old, axis, f))
 
 
-@wp.kernel
-def advect_kernel(
-    block: int,
-    g: GridInfo,
-    axis: int,
-    faces: wp.array(dtype=wp.vec3i),
-    types: FaceInt,
-    vel_old: FaceFloat,
-    dt: float,
-    # outputs
-    vel_new: FaceFloat,
-):
-    """``advect_one`` for ``block`` consecutive entries of ``faces`` per thread (module
-    docstring, "Launches")."""
-    t = wp.tid()
-    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
-        advect_one(g, axis, faces, types, vel_old, dt, vel_new, index)
+def _advect_kernel(axis_constant: int):
+    def advect_kernel(
+        block: int,
+        g: GridInfo,
+        faces: wp.array(dtype=wp.vec3i),
+        types: FaceInt,
+        vel_old: FaceFloat,
+        dt: float,
+        # outputs
+        vel_new: FaceFloat,
+    ):
+        """``advect_one`` for ``block`` consecutive entries of ``faces`` per thread (module docstring, "Launches"),
+        the face axis a compile-time constant."""
+        t = wp.tid()
+        for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
+            advect_one(g, wp.static(axis_constant), faces, types, vel_old, dt, vel_new, index)
+
+    return wp.Kernel(advect_kernel, key=f"advect_kernel_{'xyz'[axis_constant]}",
+                     module=wp.get_module(__name__))
+
+
+ADVECT_KERNELS = tuple(_advect_kernel(axis) for axis in range(3))
+"""``advect_one``'s kernel per face axis (x, y, z): with the axis known when the kernel is compiled, its branches on
+the axis (which face array, which component) fold away (~11 % of the advection on the rig, the same numbers)."""
 
 
 # ----------------------------------------------------------------- cell quantities
@@ -469,6 +478,27 @@ def cell_velocity_kernel(
     docstring, "Launches")."""
     t = wp.tid()
     for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
+        cell_velocity_one(g, cells, cell_fluid, vel, cell_velocity, index)
+
+
+@wp.kernel
+def cell_state_kernel(
+    block: int,
+    g: GridInfo,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_eps_s: wp.array3d(dtype=float),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    eps_min: float,
+    vel: FaceFloat,
+    # outputs
+    cell_eps_f: wp.array3d(dtype=float),
+    cell_velocity: wp.array3d(dtype=wp.vec3),
+):
+    """``eps_f_one`` and ``cell_velocity_one`` in one pass, ``block`` consecutive entries of ``cells`` per thread
+    (module docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
+        eps_f_one(cells, cell_eps_s, cell_fluid, eps_min, cell_eps_f, index)
         cell_velocity_one(g, cells, cell_fluid, vel, cell_velocity, index)
 
 
@@ -567,24 +597,32 @@ def face_coefficients_one(
         set_f(face_kappa, axis, f, 0.0)
 
 
-@wp.kernel
-def face_coefficients_kernel(
-    block: int,
-    g: GridInfo,
-    axis: int,
-    faces: wp.array(dtype=wp.vec3i),
-    cell_fluid: wp.array3d(dtype=wp.int32),
-    cell_eps_f: wp.array3d(dtype=float),
-    cell_kappa: wp.array3d(dtype=float),
-    # outputs
-    face_eps: FaceFloat,
-    face_kappa: FaceFloat,
-):
-    """``face_coefficients_one`` for ``block`` consecutive entries of ``faces`` per thread (module
-    docstring, "Launches")."""
-    t = wp.tid()
-    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
-        face_coefficients_one(g, axis, faces, cell_fluid, cell_eps_f, cell_kappa, face_eps, face_kappa, index)
+def _face_coefficients_kernel(axis_constant: int):
+    def face_coefficients_kernel(
+        block: int,
+        g: GridInfo,
+        faces: wp.array(dtype=wp.vec3i),
+        cell_fluid: wp.array3d(dtype=wp.int32),
+        cell_eps_f: wp.array3d(dtype=float),
+        cell_kappa: wp.array3d(dtype=float),
+        # outputs
+        face_eps: FaceFloat,
+        face_kappa: FaceFloat,
+    ):
+        """``face_coefficients_one`` for ``block`` consecutive entries of ``faces`` per thread (module
+        docstring, "Launches"), the face axis a compile-time constant."""
+        t = wp.tid()
+        for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
+            face_coefficients_one(g, wp.static(axis_constant), faces, cell_fluid, cell_eps_f, cell_kappa, face_eps,
+                                  face_kappa, index)
+
+    return wp.Kernel(face_coefficients_kernel, key=f"face_coefficients_kernel_{'xyz'[axis_constant]}",
+                     module=wp.get_module(__name__))
+
+
+FACE_COEFFICIENTS_KERNELS = tuple(_face_coefficients_kernel(axis) for axis in range(3))
+"""``face_coefficients_one``'s kernel per face axis (x, y, z), the axis a compile-time constant (as
+``ADVECT_KERNELS``)."""
 
 
 @wp.func
@@ -692,10 +730,9 @@ class ViscousTopology:
     """The fixed part of one viscous system, per row and slot m = -x, +x, -y, +y, -z, +z, from
     ``viscous_neighbour`` once at set-up (``viscous_topology_kernel``)."""
 
-    neighbour_row: wp.array2d(dtype=wp.int32)
-    """Row of the coupled neighbour face (kind 1), -1 for none."""
-    neighbour_face: wp.array2d(dtype=wp.vec3i)
-    """That face (its kappa is read every step)."""
+    neighbour_flat: wp.array2d(dtype=wp.int32)
+    """Flat index (in the face arrays of the axis) of the coupled neighbour face (kind 1; its kappa is read every
+    step), -1 for none. Its row is the stencil's ``neighbour`` entry, written once by ``viscous_topology_kernel``."""
     factor: wp.array2d(dtype=float)
     """Distance factor of a Dirichlet neighbour (kind 2: value at h / factor), 0 for none."""
     value: wp.array2d(dtype=float)
@@ -711,10 +748,12 @@ def viscous_topology_one(
     types: FaceInt,
     bc: FaceBc,
     topology: ViscousTopology,
+    A: Stencil,
     index: int,
 ):
     """Classify the six neighbours of every solved face of ``axis`` (``viscous_neighbour``; the face types and
-    boundary values are fixed)."""
+    boundary values are fixed), and write the stencil's neighbour rows, which stay: a coupled neighbour's row
+    (its coefficient, a mean of two positive kappa, is never 0), the row itself for an unused slot."""
     f = faces[index]
     shape = face_shape(g, axis)
     row = face_row[flat_index(shape, f)]
@@ -724,13 +763,14 @@ def viscous_topology_one(
         for side in range(2):
             m = 2 * d + side
             kind, nb, value, factor = viscous_neighbour(g, axis, types, bc, f, d, 2 * side - 1)
-            topology.neighbour_row[row, m] = -1
-            topology.neighbour_face[row, m] = f
+            topology.neighbour_flat[row, m] = -1
             topology.factor[row, m] = 0.0
             topology.value[row, m] = 0.0
+            A.coef[row, m] = wp.float64(0.0)
+            A.neighbour[row, m] = row
             if kind == 1:
-                topology.neighbour_row[row, m] = face_row[flat_index(shape, nb)]
-                topology.neighbour_face[row, m] = nb
+                topology.neighbour_flat[row, m] = flat_index(shape, nb)
+                A.neighbour[row, m] = face_row[flat_index(shape, nb)]
             elif kind == 2:
                 topology.factor[row, m] = factor
                 topology.value[row, m] = value
@@ -747,12 +787,51 @@ def viscous_topology_kernel(
     bc: FaceBc,
     # outputs
     topology: ViscousTopology,
+    A: Stencil,
 ):
     """``viscous_topology_one`` for ``block`` consecutive entries of ``faces`` per thread (module
     docstring, "Launches")."""
     t = wp.tid()
     for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
-        viscous_topology_one(g, axis, faces, face_row, types, bc, topology, index)
+        viscous_topology_one(g, axis, faces, face_row, types, bc, topology, A, index)
+
+
+@wp.func
+def forced_velocity(
+    g: GridInfo,
+    axis: int,
+    params: FlowParams,
+    types: FaceInt,
+    bc: FaceBc,
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    face_eps: FaceFloat,
+    cell_momentum_source: wp.array3d(dtype=wp.vec3),
+    p_old: wp.array(dtype=wp.float64),
+    advected: FaceFloat,
+    f: wp.vec3i,
+):
+    """u* = u_adv + du_source - (dt/rho) dp^n/dx_axis at a solved face ``f`` (the particle momentum source and
+    imposed mean gradient, ``momentum_source_increment``, then the predictor of the incremental projection, Goda
+    1979, so that a steady balance of force and pressure, e.g. a fluidised bed, is a fixed point of the step);
+    a fixed face keeps ``advected`` as it is."""
+    u = get_f(advected, axis, f)
+    t = get_t(types, axis, f)
+    if t == FACE_FLUID:
+        # an interior face: both cells valid and fluid, found once for the source and the gradient (the same
+        # operations as momentum_source_increment and face_pressure_gradient)
+        c_lo = wrap_cell(g, f - unit(axis))
+        c_hi = wrap_cell(g, f)
+        volume = g.spacing * g.spacing * g.spacing
+        impulse = float(0.0)
+        impulse = impulse + 0.5 * component(cell_momentum_source[c_lo[0], c_lo[1], c_lo[2]], axis)
+        impulse = impulse + 0.5 * component(cell_momentum_source[c_hi[0], c_hi[1], c_hi[2]], axis)
+        u = u + (params.dt * component(params.body_accel, axis) + impulse / (params.rho * get_f(face_eps, axis, f) * volume))
+        gradient = float(p_old[flat_index(g.shape, c_hi)] - p_old[flat_index(g.shape, c_lo)]) / g.spacing
+        u = u - params.dt / params.rho * gradient
+    elif t == FACE_OUTLET:
+        u = u + momentum_source_increment(g, axis, params, cell_fluid, face_eps, cell_momentum_source, f)
+        u = u - params.dt / params.rho * face_pressure_gradient(g, types, bc, p_old, 1.0, axis, f)
+    return u
 
 
 @wp.func
@@ -763,72 +842,91 @@ def viscous_rhs_one(
     faces: wp.array(dtype=wp.vec3i),
     face_row: wp.array(dtype=wp.int32),
     topology: ViscousTopology,
+    types: FaceInt,
+    bc: FaceBc,
+    cell_fluid: wp.array3d(dtype=wp.int32),
     face_eps: FaceFloat,
-    face_kappa: FaceFloat,
-    vel: FaceFloat,
+    face_kappa: wp.array(dtype=float),
+    cell_momentum_source: wp.array3d(dtype=wp.vec3),
+    p_old: wp.array(dtype=wp.float64),
+    advected: FaceFloat,
     rhs: wp.array(dtype=wp.float64),
     guess: wp.array(dtype=wp.float64),
     A: Stencil,
     index: int,
 ):
     """Backward-Euler viscous system of one component: (rho eps/dt) u - div(kappa grad u) = (rho eps/dt) u*,
-    as a 7-point stencil (diag, coef, neighbour) for ``stencil_matvec_kernel``, written straight into the
+    u* = ``forced_velocity`` (the advected velocity and the forces, formed here where the system needs it: no
+    pass of its own over the faces), as a 7-point stencil (diag, coef; the neighbour rows stay as
+    ``viscous_topology_kernel`` wrote them) for ``stencil_matvec_kernel``, written straight into the
     compact system: row ``face_row[flat face index]`` (-1: a fixed face, no row; see "compacted systems").
     Neighbours as ``topology`` classified them: coupled (coef = mean kappa / h^2), Dirichlet (kappa_f factor /
-    h^2 on the diagonal, times the value on the right), or zero gradient (nothing)."""
+    h^2 on the diagonal, times the value on the right), or zero gradient (nothing). ``face_kappa``: the kappa of
+    this axis's faces as a flat array (``GasField.face_kappa_flat``)."""
     f = faces[index]
     shape = face_shape(g, axis)
-    row = face_row[flat_index(shape, f)]
+    flat = flat_index(shape, f)
+    row = face_row[flat]
     if row < 0:
         return
-    u_star = get_f(vel, axis, f)
+    u_star = forced_velocity(g, axis, params, types, bc, cell_fluid, face_eps, cell_momentum_source, p_old, advected, f)
     guess[row] = wp.float64(u_star)
     h2 = g.spacing * g.spacing
     mass = params.rho * get_f(face_eps, axis, f) / params.dt
-    kappa_f = get_f(face_kappa, axis, f)
+    kappa_f = face_kappa[flat]
     b = mass * u_star
     a_diag = mass
     for m in range(6):
         coef = float(0.0)
-        neighbour = row
-        nb_row = topology.neighbour_row[row, m]
-        factor = topology.factor[row, m]
-        if nb_row >= 0:
-            coef = 0.5 * (kappa_f + get_f(face_kappa, axis, topology.neighbour_face[row, m])) / h2
+        neighbour_flat = topology.neighbour_flat[row, m]
+        if neighbour_flat >= 0:
+            coef = 0.5 * (kappa_f + face_kappa[neighbour_flat]) / h2
             a_diag = a_diag + coef
-            if coef != 0.0:  # an unused slot points at the row itself
-                neighbour = nb_row
-        elif factor > 0.0:
-            a_diag = a_diag + factor * kappa_f / h2
-            b = b + factor * kappa_f * topology.value[row, m] / h2
+        else:
+            factor = topology.factor[row, m]  # read where there is no coupling only (near walls and outlets)
+            if factor > 0.0:
+                a_diag = a_diag + factor * kappa_f / h2
+                b = b + factor * kappa_f * topology.value[row, m] / h2
         A.coef[row, m] = wp.float64(coef)
-        A.neighbour[row, m] = neighbour
     rhs[row] = wp.float64(b)
     A.diag[row] = wp.float64(a_diag)
 
 
-@wp.kernel
-def viscous_rhs_kernel(
-    block: int,
-    g: GridInfo,
-    axis: int,
-    params: FlowParams,
-    faces: wp.array(dtype=wp.vec3i),
-    face_row: wp.array(dtype=wp.int32),
-    topology: ViscousTopology,
-    face_eps: FaceFloat,
-    face_kappa: FaceFloat,
-    vel: FaceFloat,
-    # outputs
-    rhs: wp.array(dtype=wp.float64),
-    guess: wp.array(dtype=wp.float64),
-    A: Stencil,
-):
-    """``viscous_rhs_one`` for ``block`` consecutive entries of ``faces`` per thread (module
-    docstring, "Launches")."""
-    t = wp.tid()
-    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
-        viscous_rhs_one(g, axis, params, faces, face_row, topology, face_eps, face_kappa, vel, rhs, guess, A, index)
+def _viscous_rhs_kernel(axis_constant: int):
+    def viscous_rhs_kernel(
+        block: int,
+        g: GridInfo,
+        params: FlowParams,
+        faces: wp.array(dtype=wp.vec3i),
+        face_row: wp.array(dtype=wp.int32),
+        topology: ViscousTopology,
+        types: FaceInt,
+        bc: FaceBc,
+        cell_fluid: wp.array3d(dtype=wp.int32),
+        face_eps: FaceFloat,
+        face_kappa: wp.array(dtype=float),
+        cell_momentum_source: wp.array3d(dtype=wp.vec3),
+        p_old: wp.array(dtype=wp.float64),
+        advected: FaceFloat,
+        # outputs
+        rhs: wp.array(dtype=wp.float64),
+        guess: wp.array(dtype=wp.float64),
+        A: Stencil,
+    ):
+        """``viscous_rhs_one`` for ``block`` consecutive entries of ``faces`` per thread (module
+        docstring, "Launches"), the face axis a compile-time constant."""
+        t = wp.tid()
+        for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
+            viscous_rhs_one(g, wp.static(axis_constant), params, faces, face_row, topology, types, bc, cell_fluid,
+                            face_eps, face_kappa, cell_momentum_source, p_old, advected, rhs, guess, A, index)
+
+    return wp.Kernel(viscous_rhs_kernel, key=f"viscous_rhs_kernel_{'xyz'[axis_constant]}",
+                     module=wp.get_module(__name__))
+
+
+VISCOUS_RHS_KERNELS = tuple(_viscous_rhs_kernel(axis) for axis in range(3))
+"""``viscous_rhs_one``'s kernel per face axis (x, y, z), the axis a compile-time constant (as
+``ADVECT_KERNELS``)."""
 
 
 @wp.func
@@ -848,22 +946,29 @@ def store_component_one(
         set_f(vel, axis, f, float(x[row]))
 
 
-@wp.kernel
-def store_component_kernel(
-    block: int,
-    g: GridInfo,
-    axis: int,
-    faces: wp.array(dtype=wp.vec3i),
-    face_row: wp.array(dtype=wp.int32),
-    x: wp.array(dtype=wp.float64),
-    # outputs
-    vel: FaceFloat,
-):
-    """``store_component_one`` for ``block`` consecutive entries of ``faces`` per thread (module
-    docstring, "Launches")."""
-    t = wp.tid()
-    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
-        store_component_one(g, axis, faces, face_row, x, vel, index)
+def _store_component_kernel(axis_constant: int):
+    def store_component_kernel(
+        block: int,
+        g: GridInfo,
+        faces: wp.array(dtype=wp.vec3i),
+        face_row: wp.array(dtype=wp.int32),
+        x: wp.array(dtype=wp.float64),
+        # outputs
+        vel: FaceFloat,
+    ):
+        """``store_component_one`` for ``block`` consecutive entries of ``faces`` per thread (module
+        docstring, "Launches"), the face axis a compile-time constant."""
+        t = wp.tid()
+        for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
+            store_component_one(g, wp.static(axis_constant), faces, face_row, x, vel, index)
+
+    return wp.Kernel(store_component_kernel, key=f"store_component_kernel_{'xyz'[axis_constant]}",
+                     module=wp.get_module(__name__))
+
+
+STORE_COMPONENT_KERNELS = tuple(_store_component_kernel(axis) for axis in range(3))
+"""``store_component_one``'s kernel per face axis (x, y, z), the axis a compile-time constant (as
+``ADVECT_KERNELS``)."""
 
 
 # ----------------------------------------------------------------- pressure projection
@@ -892,16 +997,14 @@ def pressure_rhs_one(
     """b_c = -(rho h^2/dt)(div(eps u*) + d eps/dt) + sum_outlet 2 eps_f p_out; and the matrix
     (A p)_c = diag_c p_c - sum_m coef_cm p_nb(c,m): diag = sum_fluid eps_f + sum_outlet 2 eps_f,
     coef = eps_f on the 6 faces (0 on walls, inlets, outlets); written straight into the compact system,
-    row ``cell_row[flat cell index]`` (-1: a solid cell, no row)."""
+    row ``cell_row[flat cell index]`` (-1: a solid cell, no row); the neighbour rows stay as
+    ``pressure_neighbours_kernel`` wrote them."""
     c = cells[index]
     i, j, k = c[0], c[1], c[2]
     row = cell_row[flat_index(g.shape, c)]
     if row < 0:
         return
     active[row] = 0
-    for m in range(6):
-        A.coef[row, m] = wp.float64(0.0)
-        A.neighbour[row, m] = row
     h = wp.float64(g.spacing)
     div = wp.float64(0.0)
     gross = wp.float64(0.0)
@@ -916,14 +1019,14 @@ def pressure_rhs_one(
             div = div + sign * flux
             gross = gross + wp.abs(flux)
             t = get_t(types, a, f)
+            coef = wp.float64(0.0)
             if t == FACE_FLUID and cell_fluid[i, j, k] != 0:
                 a_diag = a_diag + eps
-                A.coef[row, 2 * a + side] = eps
-                if eps != wp.float64(0.0):  # an unused slot points at the row itself
-                    A.neighbour[row, 2 * a + side] = cell_row[flat_index(g.shape, wrap_cell(g, c + (2 * side - 1) * unit(a)))]
+                coef = eps
             elif t == FACE_OUTLET:
                 a_diag = a_diag + wp.float64(2.0) * eps
                 b = b + wp.float64(2.0) * eps * wp.float64(outlet_weight * get_f(bc.pressure, a, f))
+            A.coef[row, 2 * a + side] = coef
     div = div / h  # the face fluxes summed first, divided by h once
     gross = gross / h
     d_eps_dt = wp.float64(cell_eps_f[i, j, k] - cell_eps_f_prev[i, j, k]) / wp.float64(params.dt)
@@ -969,6 +1072,51 @@ def pressure_rhs_kernel(
     for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
         pressure_rhs_one(g, params, cells, cell_row, cell_fluid, types, bc, face_eps, vel, cell_eps_f,
                   cell_eps_f_prev, outlet_weight, rhs, A, active, fluid_sum, index)
+
+
+@wp.func
+def pressure_neighbours_one(
+    g: GridInfo,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_row: wp.array(dtype=wp.int32),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    types: FaceInt,
+    A: Stencil,
+    index: int,
+):
+    """The fixed neighbour rows of the pressure system (once, at set-up): across a fluid face of a fluid cell the
+    neighbour cell's row (its coefficient eps_f >= eps_min is never 0), else the row itself (an unused slot);
+    coefficients 0 until ``pressure_rhs_kernel`` writes them."""
+    c = cells[index]
+    row = cell_row[flat_index(g.shape, c)]
+    if row < 0:
+        return
+    for a in range(3):
+        for side in range(2):
+            f = wrap_face(g, a, c + side * unit(a))
+            A.coef[row, 2 * a + side] = wp.float64(0.0)
+            A.neighbour[row, 2 * a + side] = row
+            if get_t(types, a, f) == FACE_FLUID and cell_fluid[c[0], c[1], c[2]] != 0:
+                nb = wrap_cell(g, c + (2 * side - 1) * unit(a))
+                A.neighbour[row, 2 * a + side] = cell_row[flat_index(g.shape, nb)]
+
+
+@wp.kernel
+def pressure_neighbours_kernel(
+    block: int,
+    g: GridInfo,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_row: wp.array(dtype=wp.int32),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    types: FaceInt,
+    # outputs
+    A: Stencil,
+):
+    """``pressure_neighbours_one`` for ``block`` consecutive entries of ``cells`` per thread (module
+    docstring, "Launches")."""
+    t = wp.tid()
+    for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
+        pressure_neighbours_one(g, cells, cell_row, cell_fluid, types, A, index)
 
 
 @wp.kernel
@@ -1073,6 +1221,28 @@ def face_pressure_gradient(g: GridInfo, types: FaceInt, bc: FaceBc, p: wp.array(
 
 
 @wp.func
+def face_pressure_gradients(g: GridInfo, types: FaceInt, bc: FaceBc, increment: wp.array(dtype=wp.float64),
+                            outlet_weight: float, total: wp.array(dtype=wp.float64), axis: int, f: wp.vec3i):
+    """``face_pressure_gradient`` of ``increment`` (outlet weight ``outlet_weight``) and of ``total`` (outlet
+    weight 1) at one solved face, the face's type and cells found once: the same two numbers."""
+    t = get_t(types, axis, f)
+    h = g.spacing
+    if t == FACE_FLUID:
+        lo = flat_index(g.shape, wrap_cell(g, f - unit(axis)))
+        hi = flat_index(g.shape, wrap_cell(g, f))
+        return float(increment[hi] - increment[lo]) / h, float(total[hi] - total[lo]) / h
+    # outlet
+    p_out = get_f(bc.pressure, axis, f)
+    increment_out = outlet_weight * p_out
+    total_out = 1.0 * p_out
+    if f[axis] == 0:
+        inside = flat_index(g.shape, f)
+        return 2.0 * (float(increment[inside]) - increment_out) / h, 2.0 * (float(total[inside]) - total_out) / h
+    inside = flat_index(g.shape, f - unit(axis))
+    return 2.0 * (increment_out - float(increment[inside])) / h, 2.0 * (total_out - float(total[inside])) / h
+
+
+@wp.func
 def pressure_correct_one(
     g: GridInfo,
     axis: int,
@@ -1082,100 +1252,50 @@ def pressure_correct_one(
     bc: FaceBc,
     p: wp.array(dtype=wp.float64),
     outlet_weight: float,
+    p_total: wp.array(dtype=wp.float64),
     vel: FaceFloat,
+    face_grad_p: FaceFloat,
     index: int,
 ):
-    """u_f = u*_f - (dt/rho) dp/dx_axis on solved faces."""
+    """u_f = u*_f - (dt/rho) dp/dx_axis on solved faces; and the face gradient of the new pressure ``p_total``
+    (outlet weight 1) into ``face_grad_p``, which ``cell_pressure_one`` averages (the same function and values it
+    computed itself before: the two cells' pressures are read here anyway)."""
     f = faces[index]
     if is_solved(get_t(types, axis, f)):
-        gp = face_pressure_gradient(g, types, bc, p, outlet_weight, axis, f)
+        gp, gp_total = face_pressure_gradients(g, types, bc, p, outlet_weight, p_total, axis, f)
         set_f(vel, axis, f, get_f(vel, axis, f) - params.dt / params.rho * gp)
+        set_f(face_grad_p, axis, f, gp_total)
 
 
-@wp.kernel
-def pressure_correct_kernel(
-    block: int,
-    g: GridInfo,
-    axis: int,
-    params: FlowParams,
-    faces: wp.array(dtype=wp.vec3i),
-    types: FaceInt,
-    bc: FaceBc,
-    p: wp.array(dtype=wp.float64),
-    outlet_weight: float,
-    # outputs
-    vel: FaceFloat,
-):
-    """``pressure_correct_one`` for ``block`` consecutive entries of ``faces`` per thread (module
-    docstring, "Launches")."""
-    t = wp.tid()
-    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
-        pressure_correct_one(g, axis, params, faces, types, bc, p, outlet_weight, vel, index)
+def _pressure_correct_kernel(axis_constant: int):
+    def pressure_correct_kernel(
+        block: int,
+        g: GridInfo,
+        params: FlowParams,
+        faces: wp.array(dtype=wp.vec3i),
+        types: FaceInt,
+        bc: FaceBc,
+        p: wp.array(dtype=wp.float64),
+        outlet_weight: float,
+        p_total: wp.array(dtype=wp.float64),
+        # outputs
+        vel: FaceFloat,
+        face_grad_p: FaceFloat,
+    ):
+        """``pressure_correct_one`` for ``block`` consecutive entries of ``faces`` per thread (module
+        docstring, "Launches"), the face axis a compile-time constant."""
+        t = wp.tid()
+        for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
+            pressure_correct_one(g, wp.static(axis_constant), params, faces, types, bc, p, outlet_weight, p_total, vel,
+                                 face_grad_p, index)
+
+    return wp.Kernel(pressure_correct_kernel, key=f"pressure_correct_kernel_{'xyz'[axis_constant]}",
+                     module=wp.get_module(__name__))
 
 
-@wp.func
-def face_forces_one(
-    g: GridInfo,
-    axis: int,
-    params: FlowParams,
-    faces: wp.array(dtype=wp.vec3i),
-    types: FaceInt,
-    bc: FaceBc,
-    cell_fluid: wp.array3d(dtype=wp.int32),
-    face_eps: FaceFloat,
-    cell_momentum_source: wp.array3d(dtype=wp.vec3),
-    p_old: wp.array(dtype=wp.float64),
-    advected: FaceFloat,
-    vel: FaceFloat,
-    index: int,
-):
-    """u_f = u_adv + du_source - (dt/rho) dp^n/dx_axis on solved faces (the particle momentum source and imposed
-    mean gradient, ``momentum_source_increment``, then the predictor of the incremental projection, Goda 1979);
-    fixed faces take ``advected`` as it is."""
-    f = faces[index]
-    u = get_f(advected, axis, f)
-    t = get_t(types, axis, f)
-    if t == FACE_FLUID:
-        # an interior face: both cells valid and fluid, found once for the source and the gradient (the same
-        # operations as momentum_source_increment and face_pressure_gradient)
-        c_lo = wrap_cell(g, f - unit(axis))
-        c_hi = wrap_cell(g, f)
-        volume = g.spacing * g.spacing * g.spacing
-        impulse = float(0.0)
-        impulse = impulse + 0.5 * component(cell_momentum_source[c_lo[0], c_lo[1], c_lo[2]], axis)
-        impulse = impulse + 0.5 * component(cell_momentum_source[c_hi[0], c_hi[1], c_hi[2]], axis)
-        u = u + (params.dt * component(params.body_accel, axis) + impulse / (params.rho * get_f(face_eps, axis, f) * volume))
-        gradient = float(p_old[flat_index(g.shape, c_hi)] - p_old[flat_index(g.shape, c_lo)]) / g.spacing
-        u = u - params.dt / params.rho * gradient
-    elif t == FACE_OUTLET:
-        u = u + momentum_source_increment(g, axis, params, cell_fluid, face_eps, cell_momentum_source, f)
-        u = u - params.dt / params.rho * face_pressure_gradient(g, types, bc, p_old, 1.0, axis, f)
-    set_f(vel, axis, f, u)
-
-
-@wp.kernel
-def face_forces_kernel(
-    block: int,
-    g: GridInfo,
-    axis: int,
-    params: FlowParams,
-    faces: wp.array(dtype=wp.vec3i),
-    types: FaceInt,
-    bc: FaceBc,
-    cell_fluid: wp.array3d(dtype=wp.int32),
-    face_eps: FaceFloat,
-    cell_momentum_source: wp.array3d(dtype=wp.vec3),
-    p_old: wp.array(dtype=wp.float64),
-    advected: FaceFloat,
-    # outputs
-    vel: FaceFloat,
-):
-    """``face_forces_one`` for ``block`` consecutive entries of ``faces`` per thread (module
-    docstring, "Launches")."""
-    t = wp.tid()
-    for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
-        face_forces_one(g, axis, params, faces, types, bc, cell_fluid, face_eps, cell_momentum_source, p_old,
-                  advected, vel, index)
+PRESSURE_CORRECT_KERNELS = tuple(_pressure_correct_kernel(axis) for axis in range(3))
+"""``pressure_correct_one``'s kernel per face axis (x, y, z), the axis a compile-time constant (as
+``ADVECT_KERNELS``)."""
 
 
 @wp.func
@@ -1185,13 +1305,14 @@ def cell_pressure_one(
     cells: wp.array(dtype=wp.vec3i),
     cell_fluid: wp.array3d(dtype=wp.int32),
     types: FaceInt,
-    bc: FaceBc,
+    face_grad_p: FaceFloat,
     p: wp.array(dtype=wp.float64),
     cell_pressure: wp.array3d(dtype=float),
     cell_grad_p: wp.array3d(dtype=wp.vec3),
     index: int,
 ):
-    """Cell pressure and grad p' = mean of the solved-face gradients + imposed mean gradient."""
+    """Cell pressure and grad p' = mean of the solved-face gradients (``face_grad_p``, written by
+    ``pressure_correct_one``) + imposed mean gradient."""
     c = cells[index]
     i, j, k = c[0], c[1], c[2]
     grad = -params.rho * params.body_accel
@@ -1202,7 +1323,7 @@ def cell_pressure_one(
             for side in range(2):
                 f = wrap_face(g, a, c + side * unit(a))
                 if is_solved(get_t(types, a, f)):
-                    acc = acc + face_pressure_gradient(g, types, bc, p, 1.0, a, f)
+                    acc = acc + get_f(face_grad_p, a, f)
                     n = n + 1.0
             if n > 0.0:
                 grad[a] = grad[a] + acc / n
@@ -1220,7 +1341,7 @@ def cell_pressure_kernel(
     cells: wp.array(dtype=wp.vec3i),
     cell_fluid: wp.array3d(dtype=wp.int32),
     types: FaceInt,
-    bc: FaceBc,
+    face_grad_p: FaceFloat,
     p: wp.array(dtype=wp.float64),
     # outputs
     cell_pressure: wp.array3d(dtype=float),
@@ -1230,38 +1351,77 @@ def cell_pressure_kernel(
     docstring, "Launches")."""
     t = wp.tid()
     for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
-        cell_pressure_one(g, params, cells, cell_fluid, types, bc, p, cell_pressure, cell_grad_p, index)
+        cell_pressure_one(g, params, cells, cell_fluid, types, face_grad_p, p, cell_pressure, cell_grad_p, index)
 
 
 @wp.func
-def finite_check_one(
+def cell_projected_one(
+    g: GridInfo,
+    params: FlowParams,
     cells: wp.array(dtype=wp.vec3i),
-    cell_velocity: wp.array3d(dtype=wp.vec3),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    types: FaceInt,
+    face_grad_p: FaceFloat,
+    p: wp.array(dtype=wp.float64),
+    vel: FaceFloat,
     cell_pressure: wp.array3d(dtype=float),
+    cell_grad_p: wp.array3d(dtype=wp.vec3),
+    cell_velocity: wp.array3d(dtype=wp.vec3),
     bad_count: wp.array(dtype=wp.int32),
     index: int,
 ):
+    """``cell_pressure_one`` and ``cell_velocity_one`` with each face of the cell found once (the same numbers);
+    a cell whose velocity or pressure is not finite adds 1 to ``bad_count[0]``."""
     c = cells[index]
     i, j, k = c[0], c[1], c[2]
-    u = cell_velocity[i, j, k]
-    if not (wp.isfinite(u) and wp.isfinite(cell_pressure[i, j, k])):
+    grad = -params.rho * params.body_accel
+    u = wp.vec3(0.0, 0.0, 0.0)
+    pressure = float(0.0)
+    if cell_fluid[i, j, k] != 0:
+        for a in range(3):
+            hi = wrap_face(g, a, c + unit(a))  # the lower face is c itself
+            u[a] = 0.5 * (get_f(vel, a, c) + get_f(vel, a, hi))
+            acc = float(0.0)
+            n = float(0.0)
+            if is_solved(get_t(types, a, c)):
+                acc = acc + get_f(face_grad_p, a, c)
+                n = n + 1.0
+            if is_solved(get_t(types, a, hi)):
+                acc = acc + get_f(face_grad_p, a, hi)
+                n = n + 1.0
+            if n > 0.0:
+                grad[a] = grad[a] + acc / n
+        pressure = float(p[flat_index(g.shape, c)])
+    cell_pressure[i, j, k] = pressure
+    cell_grad_p[i, j, k] = grad
+    cell_velocity[i, j, k] = u
+    if not (wp.isfinite(u) and wp.isfinite(pressure)):
         wp.atomic_add(bad_count, 0, 1)
 
 
 @wp.kernel
-def finite_check_kernel(
+def cell_projected_kernel(
     block: int,
+    g: GridInfo,
+    params: FlowParams,
     cells: wp.array(dtype=wp.vec3i),
-    cell_velocity: wp.array3d(dtype=wp.vec3),
-    cell_pressure: wp.array3d(dtype=float),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    types: FaceInt,
+    face_grad_p: FaceFloat,
+    p: wp.array(dtype=wp.float64),
+    vel: FaceFloat,
     # outputs
+    cell_pressure: wp.array3d(dtype=float),
+    cell_grad_p: wp.array3d(dtype=wp.vec3),
+    cell_velocity: wp.array3d(dtype=wp.vec3),
     bad_count: wp.array(dtype=wp.int32),
 ):
-    """``finite_check_one`` for ``block`` consecutive entries of ``cells`` per thread (module
-    docstring, "Launches")."""
+    """The cell fields after the projection in one pass over ``cells`` (``cell_projected_one``), ``block``
+    consecutive entries per thread (module docstring, "Launches"); ``bad_count`` counts cells left non-finite."""
     t = wp.tid()
     for index in range(t * block, wp.min(cells.shape[0], (t + 1) * block)):
-        finite_check_one(cells, cell_velocity, cell_pressure, bad_count, index)
+        cell_projected_one(g, params, cells, cell_fluid, types, face_grad_p, p, vel, cell_pressure, cell_grad_p,
+                           cell_velocity, bad_count, index)
 
 
 # ----------------------------------------------------------------- compacted systems
@@ -1514,16 +1674,103 @@ def pcg_dot_pair_kernel(
     wp.atomic_add(scalars, slot_aa, (aa0 + aa1) + (aa2 + aa3))
 
 
+@wp.func
+def stencil_row(A: Stencil, x: wp.array(dtype=wp.float64), row: int):
+    """(A x)_row = diag x_row - sum_m coef x_neighbour, in ``stencil_matvec_kernel``'s order."""
+    ax = A.diag[row] * x[row]
+    for m in range(6):
+        ax = ax - A.coef[row, m] * x[A.neighbour[row, m]]
+    return ax
+
+
 @wp.kernel
-def pcg_start_kernel(
+def pcg_matvec_dot_kernel(
+    A: Stencil,
+    p: wp.array(dtype=wp.float64),
+    slot: int,
+    # outputs
+    ap: wp.array(dtype=wp.float64),
+    scalars: wp.array(dtype=wp.float64),
+):
+    """ap = A p and scalars[slot] += p . ap in one pass over the chunk [tid * DOT_CHUNK, ...) (launch
+    ceil(n / DOT_CHUNK) threads): the numbers of ``stencil_matvec_kernel`` (alpha 1, beta 0) then
+    ``pcg_dot_kernel`` (the same chunks and four interleaved partial sums), without a second pass over p and ap."""
+    t = wp.tid()
+    first = t * DOT_CHUNK
+    last = wp.min(first + DOT_CHUNK, p.shape[0])
+    acc0 = wp.float64(0.0)
+    acc1 = wp.float64(0.0)
+    acc2 = wp.float64(0.0)
+    acc3 = wp.float64(0.0)
+    quads = first + (last - first) // 4 * 4
+    for i in range(first, quads, 4):
+        v0 = stencil_row(A, p, i)
+        v1 = stencil_row(A, p, i + 1)
+        v2 = stencil_row(A, p, i + 2)
+        v3 = stencil_row(A, p, i + 3)
+        ap[i] = v0
+        ap[i + 1] = v1
+        ap[i + 2] = v2
+        ap[i + 3] = v3
+        acc0 = acc0 + p[i] * v0
+        acc1 = acc1 + p[i + 1] * v1
+        acc2 = acc2 + p[i + 2] * v2
+        acc3 = acc3 + p[i + 3] * v3
+    for i in range(quads, last):
+        v = stencil_row(A, p, i)
+        ap[i] = v
+        acc0 = acc0 + p[i] * v
+    wp.atomic_add(scalars, slot, (acc0 + acc1) + (acc2 + acc3))
+
+
+@wp.kernel
+def pcg_residual_start_kernel(
+    A: Stencil,
+    x: wp.array(dtype=wp.float64),
     rhs: wp.array(dtype=wp.float64),
-    ax: wp.array(dtype=wp.float64),
     # outputs
     r: wp.array(dtype=wp.float64),
+    scalars: wp.array(dtype=wp.float64),
 ):
-    """r = b - A x."""
-    i = wp.tid()
-    r[i] = rhs[i] - ax[i]
+    """r = b - A x, scalars[1] += b . b and scalars[3] += r . r over the chunk [tid * DOT_CHUNK, ...) (launch
+    ceil(n / DOT_CHUNK) threads): the numbers of ``stencil_matvec_kernel`` (alpha 1, beta 0), the subtraction and two
+    ``pcg_dot_kernel`` passes (the same chunks and partial sums) in one pass."""
+    t = wp.tid()
+    first = t * DOT_CHUNK
+    last = wp.min(first + DOT_CHUNK, x.shape[0])
+    bb0 = wp.float64(0.0)
+    bb1 = wp.float64(0.0)
+    bb2 = wp.float64(0.0)
+    bb3 = wp.float64(0.0)
+    rr0 = wp.float64(0.0)
+    rr1 = wp.float64(0.0)
+    rr2 = wp.float64(0.0)
+    rr3 = wp.float64(0.0)
+    quads = first + (last - first) // 4 * 4
+    for i in range(first, quads, 4):
+        r0 = rhs[i] - stencil_row(A, x, i)
+        r1 = rhs[i + 1] - stencil_row(A, x, i + 1)
+        r2 = rhs[i + 2] - stencil_row(A, x, i + 2)
+        r3 = rhs[i + 3] - stencil_row(A, x, i + 3)
+        r[i] = r0
+        r[i + 1] = r1
+        r[i + 2] = r2
+        r[i + 3] = r3
+        bb0 = bb0 + rhs[i] * rhs[i]
+        bb1 = bb1 + rhs[i + 1] * rhs[i + 1]
+        bb2 = bb2 + rhs[i + 2] * rhs[i + 2]
+        bb3 = bb3 + rhs[i + 3] * rhs[i + 3]
+        rr0 = rr0 + r0 * r0
+        rr1 = rr1 + r1 * r1
+        rr2 = rr2 + r2 * r2
+        rr3 = rr3 + r3 * r3
+    for i in range(quads, last):
+        ri = rhs[i] - stencil_row(A, x, i)
+        r[i] = ri
+        bb0 = bb0 + rhs[i] * rhs[i]
+        rr0 = rr0 + ri * ri
+    wp.atomic_add(scalars, 1, (bb0 + bb1) + (bb2 + bb3))
+    wp.atomic_add(scalars, 3, (rr0 + rr1) + (rr2 + rr3))
 
 
 @wp.kernel
@@ -1605,6 +1852,57 @@ def ic0_apply_kernel(
             j = A.neighbour[i, m]
             if j > i:
                 acc = acc + A.coef[i, m] * z[j]
+        z[i] = z[i] + acc * pivot_inverse[i]
+
+
+@wp.kernel
+def ic0_step_apply_kernel(
+    pivot_inverse: wp.array(dtype=wp.float64),
+    A: Stencil,
+    p: wp.array(dtype=wp.float64),
+    ap: wp.array(dtype=wp.float64),
+    scalars: wp.array(dtype=wp.float64),
+    n: int,
+    ordered: int,
+    # outputs
+    x: wp.array(dtype=wp.float64),
+    r: wp.array(dtype=wp.float64),
+    z: wp.array(dtype=wp.float64),
+):
+    """``pcg_step_kernel`` (x += alpha p, r -= alpha Ap, alpha = scalars[4]) folded into the forward substitution
+    of ``ic0_apply_kernel``, which reads r row by row in the same order: one pass over the rows instead of two,
+    the same numbers. ``ordered`` 1: every coupling to a lower row sits in slot 0, 2 or 4 (-x, -y, -z) and to a
+    higher row in 1, 3 or 5 (true of the compact systems when no axis is periodic; an unused slot has coef 0 and
+    points at the row itself), so the substitutions take those three slots without the index tests: the unused
+    slot adds coef 0 times z of its own row, zeroed before the forward row and finite after it."""
+    alpha = scalars[4]
+    for i in range(n):
+        x[i] = x[i] + alpha * p[i]
+        r[i] = r[i] - alpha * ap[i]
+        acc = r[i]
+        if ordered != 0:
+            z[i] = wp.float64(0.0)
+            acc = acc + A.coef[i, 0] * z[A.neighbour[i, 0]]
+            acc = acc + A.coef[i, 2] * z[A.neighbour[i, 2]]
+            acc = acc + A.coef[i, 4] * z[A.neighbour[i, 4]]
+        else:
+            for m in range(6):
+                j = A.neighbour[i, m]
+                if j < i:
+                    acc = acc + A.coef[i, m] * z[j]
+        z[i] = acc * pivot_inverse[i]
+    for step in range(n):
+        i = n - 1 - step
+        acc = wp.float64(0.0)
+        if ordered != 0:
+            acc = acc + A.coef[i, 1] * z[A.neighbour[i, 1]]
+            acc = acc + A.coef[i, 3] * z[A.neighbour[i, 3]]
+            acc = acc + A.coef[i, 5] * z[A.neighbour[i, 5]]
+        else:
+            for m in range(6):
+                j = A.neighbour[i, m]
+                if j > i:
+                    acc = acc + A.coef[i, m] * z[j]
         z[i] = z[i] + acc * pivot_inverse[i]
 
 

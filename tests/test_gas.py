@@ -438,3 +438,119 @@ def test_velocity_at_face_is_the_trilinear_sample_there(periodic):
         wp.launch(_first_stage_pair, dim=every.shape[0], inputs=[grid.info(), axis, every, faces],
                   outputs=[direct, sampled])
         assert np.allclose(direct.numpy(), sampled.numpy(), rtol=0.0, atol=8.0 * ds * u_max + 1e-6), axis
+
+
+def _stencil_system(shape, periodic, seed):
+    """A 7-point SPD system on the cells of ``shape`` with a random mask (the compact rows of ``GasSolver``:
+    ascending flat order, slots -x, +x, -y, +y, -z, +z, an unused slot coef 0 pointing at its own row): random
+    positive couplings, diagonal = mass + their sum (a viscous-like M + K)."""
+    rng = np.random.default_rng(seed)
+    fluid = rng.uniform(size=shape) < 0.8
+    rows = np.flatnonzero(fluid.ravel())
+    row_of = np.full(fluid.size, -1)
+    row_of[rows] = np.arange(rows.size)
+    coords = np.stack(np.unravel_index(rows, shape), axis=1)
+    n = rows.size
+    coef = np.zeros((n, 6))
+    neighbour = np.repeat(np.arange(n)[:, None], 6, axis=1)
+    for a in range(3):
+        for side in range(2):
+            c = coords.copy()
+            c[:, a] += 2 * side - 1
+            inside = (c[:, a] >= 0) & (c[:, a] < shape[a])
+            if periodic[a]:
+                c[:, a] %= shape[a]
+                inside[:] = True
+            nb = np.full(n, -1)
+            nb[inside] = row_of[np.ravel_multi_index(c[inside].T, shape)]
+            coupled = nb >= 0
+            neighbour[coupled, 2 * a + side] = nb[coupled]
+    # symmetric couplings: one random value per pair of neighbours (slot m of r, the opposite slot of j)
+    for r in range(n):
+        for m in range(6):
+            j = neighbour[r, m]
+            if j != r and coef[r, m] == 0.0:
+                value = rng.uniform(0.2, 1.0)
+                coef[r, m] = value
+                back = (m // 2) * 2 + (1 - m % 2)
+                if neighbour[j, back] == r:
+                    coef[j, back] = value
+    diag = rng.uniform(0.5, 2.0, n) + coef.sum(axis=1)
+    A = K.make_stencil(wp.array(diag, dtype=wp.float64), wp.array(coef, dtype=wp.float64),
+                       wp.array(neighbour.astype(np.int32), dtype=wp.int32))
+    return A, n, rng
+
+
+@pytest.mark.parametrize("periodic", [(False, False, False), (True, False, True)])
+def test_fused_pcg_kernels_equal_the_separate_passes(periodic):
+    """The native PCG's fused passes compute the numbers of the passes they replace, bit for bit on the CPU (the
+    same operations on every row, the dot products in the same chunks and partial sums): A p with p.Ap; r = b - A x
+    with b.b and r.r; the step x += alpha p, r -= alpha Ap inside IC(0)'s forward substitution, with the slot
+    reading of a system without a periodic axis (``ordered``) and with the index tests."""
+    A, n, rng = _stencil_system((9, 7, 6), periodic, seed=4)
+    coef, neighbour = A.coef.numpy(), A.neighbour.numpy()
+    back = [1, 0, 3, 2, 5, 4]
+    assert all(coef[neighbour[r, m], back[m]] == coef[r, m] for r in range(n) for m in range(6) if coef[r, m])
+    vec = lambda: wp.array(rng.normal(size=n), dtype=wp.float64)  # noqa: E731
+    dots = (n + K.DOT_CHUNK - 1) // K.DOT_CHUNK
+    one, zero = wp.float64(1.0), wp.float64(0.0)
+
+    p, ap_fused, ap = vec(), wp.zeros(n, dtype=wp.float64), wp.zeros(n, dtype=wp.float64)
+    fused, separate = wp.zeros(6, dtype=wp.float64), wp.zeros(6, dtype=wp.float64)
+    wp.launch(K.pcg_matvec_dot_kernel, dim=dots, inputs=[A, p, 1], outputs=[ap_fused, fused])
+    wp.launch(K.stencil_matvec_kernel, dim=n, inputs=[A, p, p, one, zero], outputs=[ap])
+    wp.launch(K.pcg_dot_kernel, dim=dots, inputs=[p, ap, 1], outputs=[separate])
+    assert np.array_equal(ap_fused.numpy(), ap.numpy()) and np.array_equal(fused.numpy(), separate.numpy())
+
+    x, b, r_fused = vec(), vec(), wp.zeros(n, dtype=wp.float64)
+    fused.zero_()
+    separate.zero_()
+    wp.launch(K.pcg_residual_start_kernel, dim=dots, inputs=[A, x, b], outputs=[r_fused, fused])
+    wp.launch(K.stencil_matvec_kernel, dim=n, inputs=[A, x, b, one, zero], outputs=[ap])
+    r = wp.array(b.numpy() - ap.numpy(), dtype=wp.float64)
+    wp.launch(K.pcg_dot_kernel, dim=dots, inputs=[b, b, 1], outputs=[separate])
+    wp.launch(K.pcg_dot_kernel, dim=dots, inputs=[r, r, 3], outputs=[separate])
+    assert np.array_equal(r_fused.numpy(), r.numpy()) and np.array_equal(fused.numpy(), separate.numpy())
+
+    pivot, pivot_inverse = wp.zeros(n, dtype=wp.float64), wp.zeros(n, dtype=wp.float64)
+    wp.launch(K.ic0_factor_kernel, dim=1, inputs=[A, n, wp.float64(0.0)], outputs=[pivot, pivot_inverse])
+    scalars = wp.array([0.0, 0.0, 0.0, 0.0, 0.37, 0.0], dtype=wp.float64)  # alpha in slot 4
+    x0, r0, ap = x.numpy(), r.numpy(), vec()
+    x_ref, r_ref, z_ref = wp.array(x0, dtype=wp.float64), wp.array(r0, dtype=wp.float64), wp.zeros(n, dtype=wp.float64)
+    wp.launch(K.pcg_step_kernel, dim=n, inputs=[p, ap, scalars], outputs=[x_ref, r_ref])
+    wp.launch(K.ic0_apply_kernel, dim=1, inputs=[pivot_inverse, A, r_ref, n], outputs=[z_ref])
+    for ordered in (0, 1) if periodic == (False, False, False) else (0,):
+        x_f, r_f = wp.array(x0, dtype=wp.float64), wp.array(r0, dtype=wp.float64)
+        z_f = wp.array(np.full(n, np.nan), dtype=wp.float64)  # stale values: the slot reading must not see them
+        wp.launch(K.ic0_step_apply_kernel, dim=1, inputs=[pivot_inverse, A, p, ap, scalars, n, ordered],
+                  outputs=[x_f, r_f, z_f])
+        for fused_v, ref in ((x_f, x_ref), (r_f, r_ref), (z_f, z_ref)):
+            assert np.array_equal(fused_v.numpy(), ref.numpy()), ordered
+
+
+def test_viscous_tolerance_keeps_the_float32_field():
+    """The default viscous tolerance is float32's unit round-off (2^-24): the step's face velocities then differ
+    from those of a solve converged far below round-off (tolerance 1e-13) by no more than a few float32 ulps of
+    the largest velocity. Reference: backward-Euler viscous systems with off-diagonal sums up to ~0.8 of the
+    diagonal have a condition number <= (1 + 0.8) / (1 - 0.8) = 9, so a relative residual of 2^-24 bounds the
+    relative error of the solution by 9 * 2^-24 = 5.4e-7 (~4.5 ulp at the largest velocity)."""
+    h, width, length = 1.25e-3, 5e-3, 25e-3
+    grid = Grid(spacing=h, shape=(20, 4, 4))
+    geometry = Geometry(shapes=(Box(lo=(-1e-3, 0, 0), hi=(length + 1e-3, width, width)),),
+                        patches=(Patch(name="in", kind="inlet", axis=0, side="min", velocity=(20.0, 0, 0)),
+                                 Patch(name="out", kind="outlet", axis=0, side="max")))
+    domain = geometry.build(grid)
+    assert GasConfig().viscous_tolerance == 2.0**-24
+    fields, iterations = {}, {}
+    for tol in (GasConfig().viscous_tolerance, 1e-13):
+        solver, gas = GasSolver(domain, GasConfig(viscous_tolerance=tol)), GasField(domain)
+        for _ in range(5):
+            solver.step(gas, 1e-3)
+        fields[tol], iterations[tol] = gas.face_arrays(), sum(solver.last_iterations["viscous"])
+    default, tight = fields[2.0**-24], fields[1e-13]
+    u_max = max(np.abs(a).max() for a in tight)
+    error = max(np.abs(d.astype(np.float64) - t).max() for d, t in zip(default, tight))
+    print(f"viscous tolerance 2^-24 vs 1e-13: max |du| {error:.3e} m/s = {error / u_max:.2e} of max |u|, "
+          f"iterations {iterations[2.0**-24]} vs {iterations[1e-13]}")
+    assert error <= 9.0 * 2.0**-24 * u_max + 4 * float(np.spacing(np.float32(u_max)))
+    assert iterations[2.0**-24] < iterations[1e-13]
