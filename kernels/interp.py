@@ -172,7 +172,10 @@ def interp_vec3_parcels_kernel(
     parcel_value: wp.array(dtype=wp.vec3),
 ):
     tid = wp.tid()
-    base, frac, k = parcel_stencil(grid, particle_x[tid], particle_weight[tid])
+    weight = float(1.0)
+    if particle_weight.shape[0] > 0:  # no weights: trilinear
+        weight = particle_weight[tid]
+    base, frac, k = parcel_stencil(grid, particle_x[tid], weight)
     acc = wp.vec3d(0.0, 0.0, 0.0)
     for n in range(8 * k * k * k):
         idx, w = parcel_cell(grid, base, frac, k, n)
@@ -191,45 +194,13 @@ def interp_scalar_parcels_kernel(
     parcel_value: wp.array(dtype=float),
 ):
     tid = wp.tid()
-    base, frac, k = parcel_stencil(grid, particle_x[tid], particle_weight[tid])
+    weight = float(1.0)
+    if particle_weight.shape[0] > 0:  # no weights: trilinear
+        weight = particle_weight[tid]
+    base, frac, k = parcel_stencil(grid, particle_x[tid], weight)
     acc = wp.float64(0.0)
     for n in range(8 * k * k * k):
         idx, w = parcel_cell(grid, base, frac, k, n)
-        acc = acc + w * wp.float64(cell_field[idx[0], idx[1], idx[2]])
-    parcel_value[tid] = float(acc)
-
-
-@wp.kernel
-def interp_vec3_kernel(
-    grid: CellGrid,
-    particle_x: wp.array(dtype=wp.vec3),
-    cell_field: wp.array3d(dtype=wp.vec3),
-    # outputs
-    parcel_value: wp.array(dtype=wp.vec3),
-):
-    tid = wp.tid()
-    base, frac = cic_stencil(grid, particle_x[tid])
-    acc = wp.vec3d(0.0, 0.0, 0.0)
-    for corner in range(8):
-        idx, w = cic_corner(grid, base, frac, corner)
-        f = cell_field[idx[0], idx[1], idx[2]]
-        acc = acc + w * wp.vec3d(wp.float64(f[0]), wp.float64(f[1]), wp.float64(f[2]))
-    parcel_value[tid] = wp.vec3(float(acc[0]), float(acc[1]), float(acc[2]))
-
-
-@wp.kernel
-def interp_scalar_kernel(
-    grid: CellGrid,
-    particle_x: wp.array(dtype=wp.vec3),
-    cell_field: wp.array3d(dtype=float),
-    # outputs
-    parcel_value: wp.array(dtype=float),
-):
-    tid = wp.tid()
-    base, frac = cic_stencil(grid, particle_x[tid])
-    acc = wp.float64(0.0)
-    for corner in range(8):
-        idx, w = cic_corner(grid, base, frac, corner)
         acc = acc + w * wp.float64(cell_field[idx[0], idx[1], idx[2]])
     parcel_value[tid] = float(acc)
 
@@ -317,28 +288,41 @@ def make_cell_grid(origin, spacing: float, shape, periodic=(False, False, False)
 
 
 def interpolate_vec3(grid: CellGrid, particle_x, cell_field, parcel_value):
-    """Trilinear value of a vec3 cell field at each parcel, into ``parcel_value``."""
-    wp.launch(interp_vec3_kernel, dim=particle_x.shape[0], device=particle_x.device,
-              inputs=[grid, particle_x, cell_field], outputs=[parcel_value])
+    """Trilinear value of a vec3 cell field at each point, into ``parcel_value``."""
+    interpolate_vec3_parcels(grid, particle_x, None, cell_field, parcel_value)
+
+
+_NO_WEIGHTS = {}
+
+
+def _weights_or_none(particle_weight, particle_x):
+    """``particle_weight``, or an empty array (trilinear for every point) kept once per device."""
+    if particle_weight is not None:
+        return particle_weight
+    key = str(particle_x.device)
+    if key not in _NO_WEIGHTS:
+        _NO_WEIGHTS[key] = wp.empty(0, dtype=float, device=particle_x.device)
+    return _NO_WEIGHTS[key]
 
 
 def interpolate_vec3_parcels(grid: CellGrid, particle_x, particle_weight, cell_field, parcel_value):
-    """A vec3 cell field at each parcel with the parcel's stencil (``parcel_stencil``: trilinear at weight 1 or
-    without ``grid.spread``), into ``parcel_value``."""
+    """A vec3 cell field at each parcel with the parcel's stencil (``parcel_stencil``: trilinear at weight 1,
+    without ``grid.spread`` or with ``particle_weight`` None), into ``parcel_value``."""
     wp.launch(interp_vec3_parcels_kernel, dim=particle_x.shape[0], device=particle_x.device,
-              inputs=[grid, particle_x, particle_weight, cell_field], outputs=[parcel_value])
+              inputs=[grid, particle_x, _weights_or_none(particle_weight, particle_x), cell_field],
+              outputs=[parcel_value])
 
 
 def interpolate_scalar_parcels(grid: CellGrid, particle_x, particle_weight, cell_field, parcel_value):
     """A float32 cell field at each parcel with the parcel's stencil, into ``parcel_value``."""
     wp.launch(interp_scalar_parcels_kernel, dim=particle_x.shape[0], device=particle_x.device,
-              inputs=[grid, particle_x, particle_weight, cell_field], outputs=[parcel_value])
+              inputs=[grid, particle_x, _weights_or_none(particle_weight, particle_x), cell_field],
+              outputs=[parcel_value])
 
 
 def interpolate_scalar(grid: CellGrid, particle_x, cell_field, parcel_value):
-    """Trilinear value of a float32 cell field at each parcel, into ``parcel_value``."""
-    wp.launch(interp_scalar_kernel, dim=particle_x.shape[0], device=particle_x.device,
-              inputs=[grid, particle_x, cell_field], outputs=[parcel_value])
+    """Trilinear value of a float32 cell field at each point, into ``parcel_value``."""
+    interpolate_scalar_parcels(grid, particle_x, None, cell_field, parcel_value)
 
 
 def stencil_weights(grid: CellGrid, particle_x, parcel_cells, parcel_weights):

@@ -59,6 +59,16 @@ def continuity_residual(grid, fluid, face_u, cell_eps_f, cell_eps_prev, dt):
 @pytest.mark.parametrize("case,linear_solver,preconditioner,relaxation", [
     ("periodic", "native", "multigrid", 0.0), ("walls", "native", "multigrid", 0.0), ("walls", "native", "ic", 0.97),
     ("walls", "native", "ic", 0.0), ("walls", "warp", "multigrid", 0.0), ("walls", "warp", "ic", 0.0)])
+def inlet_duct_20ms():
+    """A 5 mm square duct 25 mm long on h = 1.25 mm cells (20 x 4 x 4), 20 m/s inlet, outlet opposite."""
+    h, width, length = 1.25e-3, 5e-3, 25e-3
+    grid = Grid(spacing=h, shape=(20, 4, 4))
+    geometry = Geometry(shapes=(Box(lo=(-1e-3, 0, 0), hi=(length + 1e-3, width, width)),),
+                        patches=(Patch(name="in", kind="inlet", axis=0, side="min", velocity=(20.0, 0, 0)),
+                                 Patch(name="out", kind="outlet", axis=0, side="max")))
+    return geometry.build(grid)
+
+
 def test_projection_divergence_free(case, linear_solver, preconditioner, relaxation):
     """After the projection, div(eps_f u) + d eps_f/dt = 0 to the CG tolerance.
 
@@ -278,12 +288,7 @@ def test_stable_at_high_cfl():
     Euler, so the speed stays bounded by a small multiple of the inlet speed (the projection can
     accelerate the flow where it is squeezed, never without bound) and mass balances at every step.
     """
-    h, width, length = 1.25e-3, 5e-3, 25e-3
-    grid = Grid(spacing=h, shape=(20, 4, 4))
-    geometry = Geometry(shapes=(Box(lo=(-1e-3, 0, 0), hi=(length + 1e-3, width, width)),),
-                        patches=(Patch(name="in", kind="inlet", axis=0, side="min", velocity=(20.0, 0, 0)),
-                                 Patch(name="out", kind="outlet", axis=0, side="max")))
-    domain = geometry.build(grid)
+    domain = inlet_duct_20ms()
     solver = GasSolver(domain, GasConfig())
     gas = GasField(domain)
     for _ in range(30):
@@ -534,12 +539,7 @@ def test_viscous_tolerance_keeps_the_float32_field():
     the largest velocity. Reference: backward-Euler viscous systems with off-diagonal sums up to ~0.8 of the
     diagonal have a condition number <= (1 + 0.8) / (1 - 0.8) = 9, so a relative residual of 2^-24 bounds the
     relative error of the solution by 9 * 2^-24 = 5.4e-7 (~4.5 ulp at the largest velocity)."""
-    h, width, length = 1.25e-3, 5e-3, 25e-3
-    grid = Grid(spacing=h, shape=(20, 4, 4))
-    geometry = Geometry(shapes=(Box(lo=(-1e-3, 0, 0), hi=(length + 1e-3, width, width)),),
-                        patches=(Patch(name="in", kind="inlet", axis=0, side="min", velocity=(20.0, 0, 0)),
-                                 Patch(name="out", kind="outlet", axis=0, side="max")))
-    domain = geometry.build(grid)
+    domain = inlet_duct_20ms()
     assert GasConfig().viscous_tolerance == 2.0**-24
     fields, iterations = {}, {}
     for tol in (GasConfig().viscous_tolerance, 1e-13):
