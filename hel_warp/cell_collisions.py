@@ -101,10 +101,11 @@ class CellConfig:
     detection has no excluded volume (parcels may overlap; DEM spheres and the swept detection's parcels may not):
     without it the rig's injection clouds overpack (eps_s > 1 in a 1 mm cell at dt = 1e-4 s; at 1e-3 s the
     collision rate of the weight-1 clouds, from their own snapshots, is 3-5x the CFD-DEM's in the supply channels
-    and arms), over-collide and leave the holders too hot. On by default (tenth session): on the rig at weight 8,
-    dt = 1e-3 s, sixteen seeds against two CFD-DEM seeds, crossing +0.005 and v_y rms -0.4 % (without: +0.019 /
-    +6.9 %); at 1e-4 s, eight seeds against one, +0.053 / +3.4 % (without: +0.023 / +4.3 %). At weight 1 and 1e-4
-    s both miss (+0.124 / +29 % with, +0.085 / +20 % without; the swept detection is weight 1's default). A periodic
+    and arms), over-collide and leave the holders too hot. On by default (tenth session). With the trilinear
+    coupling it took the rig at weight 8, dt = 1e-3 s (sixteen seeds against two CFD-DEM seeds) from +0.019 /
+    +6.9 % to +0.005 / -0.4 % in crossing / v_y rms; beside the weight-scaled coupling tents (``GridSpec.spread``)
+    it changes little there (seeds 0-7: +0.055 / -1.8 % with, +0.059 / -1.8 % without). At weight 1 and 1e-4 s
+    both miss (+0.124 / +29 % with, +0.085 / +20 % without; the swept detection is weight 1's default). A periodic
     box (no grid) has no stress (FIGURES, issue 12, ninth and tenth sessions)."""
     packing_pressure: float = 10.0
     """P_s of the packing stress, Pa (OpenFOAM's ``pSolid`` default)."""
