@@ -59,11 +59,11 @@ class GridSpec:
     def cell_volume(self) -> float:
         return self.spacing**3
 
-    def cell_grid(self):
-        """The kernel-side ``CellGrid`` struct."""
+    def cell_grid(self, fluid=None):
+        """The kernel-side ``CellGrid`` struct (``fluid``: the int32 fluid mask the tents keep to, None: all fluid)."""
         from kernels.interp import make_cell_grid
 
-        return make_cell_grid(self.origin, self.spacing, self.shape, self.periodic, spread=self.spread)
+        return make_cell_grid(self.origin, self.spacing, self.shape, self.periodic, spread=self.spread, fluid=fluid)
 
     @classmethod
     def of(cls, grid) -> "GridSpec":
@@ -206,12 +206,13 @@ class CouplingFields:
             parcel_u_eq=parcels(wp.vec3), parcel_x_start=parcels(wp.vec3))
 
 
-def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields) -> None:
-    """Step 1: parcels -> cells (volume, momentum source from the last push, sum beta V, solids momentum)."""
+def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields, cell_fluid=None) -> None:
+    """Step 1: parcels -> cells (volume, momentum source from the last push, sum beta V, solids momentum);
+    ``cell_fluid``: the int32 fluid mask heavy parcels' tents keep to."""
     from kernels.deposit import deposit, finish_cells
     from kernels.interp import parcel_arrays
 
-    deposit(grid.cell_grid(), parcel_arrays(particles), fields.parcel_drag_impulse, fields.parcel_drag_coeff,
+    deposit(grid.cell_grid(cell_fluid), parcel_arrays(particles), fields.parcel_drag_impulse, fields.parcel_drag_coeff,
             cell_solid_volume=fields.cell_solid_volume,
             cell_momentum_source=fields.cell_momentum_source, cell_drag_coeff=fields.cell_drag_coeff,
             cell_solid_mass=fields.cell_solid_mass, cell_solid_momentum=fields.cell_solid_momentum)
@@ -219,11 +220,12 @@ def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields) -> None:
                  cell_eps_s=fields.cell_eps_s, cell_solid_velocity=fields.cell_solid_velocity)
 
 
-def interpolate_gas(grid: GridSpec, particles, cell_velocity, cell_grad_p, fields: CouplingFields) -> None:
+def interpolate_gas(grid: GridSpec, particles, cell_velocity, cell_grad_p, fields: CouplingFields,
+                    cell_fluid=None) -> None:
     """Step 3: gas velocity, grad p' and eps_s at the parcels (same weights as the deposit)."""
     from kernels.interp import interpolate_scalar_parcels, interpolate_vec3_parcels
 
-    g = grid.cell_grid()
+    g = grid.cell_grid(cell_fluid)
     w = particles.weight
     interpolate_vec3_parcels(g, particles.x, w, cell_velocity, fields.parcel_u_f)
     interpolate_vec3_parcels(g, particles.x, w, cell_grad_p, fields.parcel_grad_p)
@@ -286,7 +288,7 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
 
     p = particles
     f = fields
-    g = grid.cell_grid()
+    g = grid.cell_grid(cell_fluid)
     x_out = p.x if particle_x_out is None else particle_x_out
     v_out = p.v if particle_v_out is None else particle_v_out
     wp.copy(f.parcel_x_start, p.x)

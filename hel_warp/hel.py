@@ -338,7 +338,7 @@ class HelSolver:
 
         from kernels.deposit import to_float32
 
-        deposit_parcels(self.grid, self.pool.particles, self.fields)
+        deposit_parcels(self.grid, self.pool.particles, self.fields, self.cell_fluid)
         if self.config.coupling == "implicit":
             wp.copy(self.fields.cell_momentum_source, self.fields.cell_gas_impulse)
         wp.copy(self.gas.cell_eps_s, self.fields.cell_eps_s)
@@ -352,7 +352,8 @@ class HelSolver:
 
     def interpolate(self) -> None:
         """3. gas velocity, grad p' and eps_s at the parcels, with the deposit's weights."""
-        interpolate_gas(self.grid, self.pool.particles, self.gas.cell_velocity, self.gas.cell_grad_p, self.fields)
+        interpolate_gas(self.grid, self.pool.particles, self.gas.cell_velocity, self.gas.cell_grad_p, self.fields,
+                        self.cell_fluid)
 
     def collide(self) -> None:
         """4. the collision model's acceleration (and/or velocity jumps)."""

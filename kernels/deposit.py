@@ -55,9 +55,9 @@ def deposit_kernel(
     momentum = mass * wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
     source = -parcel_drag_impulse[tid]
     coeff = parcel_drag_coeff[tid]
-    base, frac, kw = parcel_stencil(grid, parcels.x[tid], parcels.weight[tid])
+    base, frac, kw, norm = parcel_stencil(grid, parcels.x[tid], parcels.weight[tid])
     for corner in range(8 * kw * kw * kw):
-        idx, w = parcel_cell(grid, base, frac, kw, corner)
+        idx, w = parcel_cell(grid, base, frac, kw, norm, corner)
         i = idx[0]
         j = idx[1]
         k = idx[2]
@@ -153,9 +153,9 @@ def exchange_deposit_kernel(
     parcel_exchange[tid] = d
     v_star = v + params.dt * body_acceleration(params, rho_p, parcel_grad_p[tid], parcel_a_coll[tid])
     dv = d * wp.vec3d(wp.float64(v_star[0]), wp.float64(v_star[1]), wp.float64(v_star[2]))
-    base, frac, kw = parcel_stencil(grid, parcels.x[tid], parcels.weight[tid])
+    base, frac, kw, norm = parcel_stencil(grid, parcels.x[tid], parcels.weight[tid])
     for corner in range(8 * kw * kw * kw):
-        idx, w = parcel_cell(grid, base, frac, kw, corner)
+        idx, w = parcel_cell(grid, base, frac, kw, norm, corner)
         wp.atomic_add(cell_exchange_coeff, idx[0], idx[1], idx[2], w * d)
         wp.atomic_add(cell_exchange_momentum, idx[0], idx[1], idx[2], w * dv)
 
@@ -207,9 +207,9 @@ def impulse_deposit_kernel(
     if parcels.alive[tid] == 0:
         return
     j = parcel_drag_impulse[tid]
-    base, frac, kw = parcel_stencil(grid, parcels.x[tid], parcels.weight[tid])
+    base, frac, kw, norm = parcel_stencil(grid, parcels.x[tid], parcels.weight[tid])
     for corner in range(8 * kw * kw * kw):
-        idx, w = parcel_cell(grid, base, frac, kw, corner)
+        idx, w = parcel_cell(grid, base, frac, kw, norm, corner)
         wp.atomic_add(cell_mismatch, idx[0], idx[1], idx[2], w * j)
 
 
@@ -232,9 +232,9 @@ def exchange_correct_kernel(
     if parcels.alive[tid] == 0:
         return
     corr = wp.vec3d(0.0, 0.0, 0.0)
-    base, frac, kw = parcel_stencil(grid, parcels.x[tid], parcels.weight[tid])
+    base, frac, kw, norm = parcel_stencil(grid, parcels.x[tid], parcels.weight[tid])
     for corner in range(8 * kw * kw * kw):
-        idx, w = parcel_cell(grid, base, frac, kw, corner)
+        idx, w = parcel_cell(grid, base, frac, kw, norm, corner)
         a = cell_exchange_coeff[idx[0], idx[1], idx[2]]
         if cell_fluid[idx[0], idx[1], idx[2]] != 0 and a > wp.float64(0.0):
             corr = corr + (w / a) * cell_mismatch[idx[0], idx[1], idx[2]]

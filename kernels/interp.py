@@ -35,6 +35,10 @@ class CellGrid:
     spread: wp.int32
     """1: a parcel of w real particles couples through a tent of half-width K = round(w^(1/3)) cells per axis
     (``parcel_stencil``; K = 1 is the trilinear stencil), 0: the trilinear stencil at any weight."""
+    fluid: wp.array3d(dtype=wp.int32)
+    """(nx, ny, nz) 1 for fluid cells, or empty (all fluid): a tent (K >= 2) keeps its weights on fluid cells,
+    renormalised, so that a heavy parcel near a wall neither reads the solid cells' zero gas velocity nor deposits
+    into them (the trilinear stencil, K = 1, is left as it is)."""
 
 
 @wp.struct
@@ -122,14 +126,6 @@ def spread_half_width(grid: CellGrid, weight: float):
 
 
 @wp.func
-def parcel_stencil(grid: CellGrid, x: wp.vec3, weight: float):
-    """The stencil of a parcel of ``weight``: its trilinear base cell and fractions, and the tent's half-width K
-    (``parcel_cell`` walks its (2 K)^3 cells)."""
-    base, frac = cic_stencil(grid, x)
-    return base, frac, spread_half_width(grid, weight)
-
-
-@wp.func
 def tent_index(i: int, n: int, periodic: int):
     """Tent cell index on the grid: wrapped when periodic, else clamped into [0, n - 1] (the share of a cell past
     the side goes to the last one: the sum is kept)."""
@@ -148,10 +144,8 @@ def tent_weight(offset: int, k: int, f: wp.float64):
 
 
 @wp.func
-def parcel_cell(grid: CellGrid, base: wp.vec3i, frac: wp.vec3d, k: int, n: int):
-    """Cell index and weight of entry n in [0, (2K)^3) of a parcel's stencil (K = 1: ``cic_corner``, bitwise)."""
-    if k == 1:
-        return cic_corner(grid, base, frac, n)
+def tent_cell(grid: CellGrid, base: wp.vec3i, frac: wp.vec3d, k: int, n: int):
+    """Cell index and raw tent weight of entry n in [0, (2K)^3) (K >= 2)."""
     m = 2 * k
     a = n % m
     b = (n / m) % m
@@ -160,6 +154,40 @@ def parcel_cell(grid: CellGrid, base: wp.vec3i, frac: wp.vec3d, k: int, n: int):
                    tent_index(base[1] - k + 1 + b, grid.shape[1], grid.periodic[1]),
                    tent_index(base[2] - k + 1 + c, grid.shape[2], grid.periodic[2]))
     return idx, tent_weight(a, k, frac[0]) * tent_weight(b, k, frac[1]) * tent_weight(c, k, frac[2])
+
+
+@wp.func
+def parcel_stencil(grid: CellGrid, x: wp.vec3, weight: float):
+    """The stencil of a parcel of ``weight``: its trilinear base cell and fractions, the tent's half-width K
+    (``parcel_cell`` walks its (2 K)^3 cells) and the tent's weight on fluid cells (1 at K = 1, without a mask,
+    or when the whole tent lies in solid cells)."""
+    base, frac = cic_stencil(grid, x)
+    k = spread_half_width(grid, weight)
+    norm = wp.float64(1.0)
+    if k > 1 and grid.fluid.shape[0] > 0:
+        total = wp.float64(0.0)
+        for n in range(8 * k * k * k):
+            idx, w = tent_cell(grid, base, frac, k, n)
+            if grid.fluid[idx[0], idx[1], idx[2]] != 0:
+                total = total + w
+        if total > wp.float64(0.0):
+            norm = total
+    return base, frac, k, norm
+
+
+@wp.func
+def parcel_cell(grid: CellGrid, base: wp.vec3i, frac: wp.vec3d, k: int, norm: wp.float64, n: int):
+    """Cell index and weight of entry n in [0, (2K)^3) of a parcel's stencil (K = 1: ``cic_corner``, bitwise; a
+    tent's weight on a solid cell is 0 and the fluid cells' are divided by ``norm``, ``parcel_stencil``'s)."""
+    if k == 1:
+        return cic_corner(grid, base, frac, n)
+    idx, w = tent_cell(grid, base, frac, k, n)
+    if grid.fluid.shape[0] > 0 and norm != wp.float64(1.0):
+        if grid.fluid[idx[0], idx[1], idx[2]] == 0:
+            w = wp.float64(0.0)
+        else:
+            w = w / norm
+    return idx, w
 
 
 @wp.kernel
@@ -175,10 +203,10 @@ def interp_vec3_parcels_kernel(
     weight = float(1.0)
     if particle_weight.shape[0] > 0:  # no weights: trilinear
         weight = particle_weight[tid]
-    base, frac, k = parcel_stencil(grid, particle_x[tid], weight)
+    base, frac, k, norm = parcel_stencil(grid, particle_x[tid], weight)
     acc = wp.vec3d(0.0, 0.0, 0.0)
     for n in range(8 * k * k * k):
-        idx, w = parcel_cell(grid, base, frac, k, n)
+        idx, w = parcel_cell(grid, base, frac, k, norm, n)
         f = cell_field[idx[0], idx[1], idx[2]]
         acc = acc + w * wp.vec3d(wp.float64(f[0]), wp.float64(f[1]), wp.float64(f[2]))
     parcel_value[tid] = wp.vec3(float(acc[0]), float(acc[1]), float(acc[2]))
@@ -197,10 +225,10 @@ def interp_scalar_parcels_kernel(
     weight = float(1.0)
     if particle_weight.shape[0] > 0:  # no weights: trilinear
         weight = particle_weight[tid]
-    base, frac, k = parcel_stencil(grid, particle_x[tid], weight)
+    base, frac, k, norm = parcel_stencil(grid, particle_x[tid], weight)
     acc = wp.float64(0.0)
     for n in range(8 * k * k * k):
-        idx, w = parcel_cell(grid, base, frac, k, n)
+        idx, w = parcel_cell(grid, base, frac, k, norm, n)
         acc = acc + w * wp.float64(cell_field[idx[0], idx[1], idx[2]])
     parcel_value[tid] = float(acc)
 
@@ -275,11 +303,14 @@ def parcel_arrays(particles, *, x=None, v=None) -> ParcelArrays:
     return p
 
 
-def make_cell_grid(origin, spacing: float, shape, periodic=(False, False, False), spread: bool = False) -> CellGrid:
+def make_cell_grid(origin, spacing: float, shape, periodic=(False, False, False), spread: bool = False,
+                   fluid=None) -> CellGrid:
     """A ``CellGrid`` from plain values (origin m, spacing m, shape and periodic flags of three entries; ``spread``:
-    weighted parcels couple through tents that grow with their weight, ``spread_half_width``)."""
+    weighted parcels couple through tents that grow with their weight, ``spread_half_width``; ``fluid``: the
+    int32 fluid mask the tents keep to, None: all fluid)."""
     grid = CellGrid()
     grid.spread = 1 if spread else 0
+    grid.fluid = fluid if fluid is not None else _no_mask()
     grid.origin = wp.vec3d(*[float(o) for o in origin])
     grid.spacing = wp.float64(spacing)
     grid.shape = wp.vec3i(*[int(n) for n in shape])
@@ -293,6 +324,15 @@ def interpolate_vec3(grid: CellGrid, particle_x, cell_field, parcel_value):
 
 
 _NO_WEIGHTS = {}
+_NO_MASK = {}
+
+
+def _no_mask():
+    """An empty int32 mask (all fluid) on the default device, kept once per device."""
+    key = str(wp.get_device())
+    if key not in _NO_MASK:
+        _NO_MASK[key] = wp.empty((0, 0, 0), dtype=wp.int32)
+    return _NO_MASK[key]
 
 
 def _weights_or_none(particle_weight, particle_x):

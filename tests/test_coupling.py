@@ -442,3 +442,32 @@ def test_heavy_parcels_spread_over_tents_that_grow_with_their_weight(weight, hal
         vol = f.cell_solid_volume.numpy()
         assert np.count_nonzero(vol > 1e-6 * vol.max()) == cells
         assert vol.sum() == pytest.approx(weight * 4.0 / 3.0 * math.pi * float(np.float32(100e-6)) ** 3, rel=1e-12)
+
+
+def test_a_heavy_parcels_tent_keeps_to_the_fluid_next_to_a_wall():
+    """A weight-64 parcel (tent of half-width 4 cells) 1.5 cells from a wall: with the fluid mask its tent's weights
+    lie on fluid cells only and sum to 1, so it deposits nothing into the solid cells and reads a uniform fluid
+    velocity exactly (the solid cells hold 0, which the unmasked tent would average in); the weight-1 parcel
+    beside it keeps its trilinear stencil."""
+    from kernels.interp import interpolate_vec3_parcels
+
+    shape = (16, 16, 16)
+    grid = GridSpec(origin=(0.0, 0.0, 0.0), spacing=1e-3, shape=shape)
+    fluid = np.ones(shape, np.int32)
+    fluid[:, :, :3] = 0  # a wall: the cells below z = 3 mm are solid
+    mask = wp.array(fluid, dtype=wp.int32)
+    x = np.array([[8.2e-3, 7.9e-3, 4.5e-3], [8.2e-3, 7.9e-3, 4.5e-3]])  # 1.5 cells above the wall
+    parts = Particles.from_numpy(x, 100e-6, density=2000.0, weight=np.array([64.0, 1.0]), check_overlap=False)
+    u_cells = np.zeros(shape + (3,), np.float32)
+    u_cells[fluid == 1] = (3.0, -1.0, 0.5)
+    u = wp.zeros(2, dtype=wp.vec3)
+    interpolate_vec3_parcels(grid.cell_grid(mask), parts.x, parts.weight, wp.array(u_cells, dtype=wp.vec3), u)
+    assert np.allclose(u.numpy()[0], (3.0, -1.0, 0.5), rtol=0, atol=1e-6)
+    interpolate_vec3_parcels(grid.cell_grid(), parts.x, parts.weight, wp.array(u_cells, dtype=wp.vec3), u)
+    assert u.numpy()[0, 0] < 0.9 * 3.0  # without the mask the tent averages in the solid cells' zeros
+    fields = CouplingFields.allocate(grid, 2)
+    deposit_parcels(grid, parts, fields, mask)
+    vol = fields.cell_solid_volume.numpy()
+    v_p = 4.0 / 3.0 * math.pi * float(np.float32(100e-6)) ** 3
+    assert vol.sum() == pytest.approx(65.0 * v_p, rel=1e-12)
+    assert vol[fluid == 0].sum() == 0.0  # the trilinear parcel 1.5 cells up does not reach the wall either
