@@ -73,15 +73,74 @@ def fixed_sections(m: dict, ref: dict, sections) -> dict:
 
 
 def ensemble_metrics(paths, reference_paths, min_samples: int = 10, label: str | None = None,
-                     sections=None) -> dict:
+                     sections=None, jackknife: bool = False) -> dict:
     """Crossing and transverse rms of the pooled ``paths`` against the pooled ``reference_paths`` (and over the
-    fixed ``sections``, 1-based, when given: ``fixed``)."""
-    from hel_warp.report import DEFAULT_BOXES, load_run, stream_metrics, stream_metrics_vs
+    fixed ``sections``, 1-based, when given: ``fixed``); ``jackknife``: their standard errors (``jackknife``)."""
+    from hel_warp.report import load_run
 
-    from hel_warp.report import size_class_view, size_classes
+    runs = [load_run(p) for p in paths]
+    refs = [load_run(p) for p in reference_paths]
+    out = pooled_metrics(runs, refs, min_samples, label, sections)
+    if jackknife:
+        out["jackknife"] = jackknife_errors(runs, refs, min_samples, out)
+    return out
 
-    ref_run = pooled([load_run(p) for p in reference_paths])
-    run = pooled([load_run(p) for p in paths], label)
+
+JACKKNIFE_KEYS = ("stream_crossing_vs_dem", "transverse_velocity_rms_vs_dem")
+
+
+def _jackknife_values(m: dict) -> dict:
+    """The compared figures of a ``pooled_metrics`` result, flat: whole run and each size class."""
+    vals = {k: m[k] for k in JACKKNIFE_KEYS}
+    for c in m.get("size_classes", []):
+        for k in JACKKNIFE_KEYS:
+            vals[f"{1e6 * c['diameter']:.0f}um_{k}"] = c[k]
+    return vals
+
+
+def _leave_one_out_error(estimates: list[dict]) -> dict:
+    """Jackknife standard error sqrt((n - 1) / n sum (t_i - t_mean)^2) of each figure over leave-one-out estimates
+    (None where any estimate lacks it or fewer than two)."""
+    out = {}
+    for key in estimates[0]:
+        v = [e.get(key) for e in estimates]
+        if len(v) < 2 or any(x is None for x in v):
+            out[key] = None
+            continue
+        a = np.asarray(v, dtype=np.float64)
+        out[key] = float(np.sqrt((len(a) - 1) / len(a) * np.sum((a - a.mean()) ** 2)))
+    return out
+
+
+def jackknife_errors(runs, refs, min_samples: int, full: dict) -> dict:
+    """Standard errors of the ``*_vs_dem`` figures (whole run and per size class) from the seed-to-seed spread:
+    leave one run out of the ensemble (``runs``), and of the reference (``refs``) when it holds two or more runs;
+    ``combined`` adds the two in quadrature. A difference from the reference smaller than ~2 combined errors is not
+    resolved by these ensembles."""
+    base = _jackknife_values(full)
+    out = {"runs": None, "reference": None}
+    if len(runs) >= 2:
+        out["runs"] = _leave_one_out_error([_jackknife_values(pooled_metrics(runs[:k] + runs[k + 1:], refs,
+                                                                             min_samples))
+                                            for k in range(len(runs))])
+    if len(refs) >= 2:
+        out["reference"] = _leave_one_out_error([_jackknife_values(pooled_metrics(runs, refs[:k] + refs[k + 1:],
+                                                                                  min_samples))
+                                                 for k in range(len(refs))])
+    combined = {}
+    for key in base:
+        parts = [src[key] for src in (out["runs"], out["reference"]) if src is not None]
+        combined[key] = None if not parts or any(x is None for x in parts) else float(np.hypot.reduce(parts))
+    out["combined"] = combined
+    return out
+
+
+def pooled_metrics(runs, refs, min_samples: int = 10, label: str | None = None, sections=None) -> dict:
+    """``ensemble_metrics`` of runs already loaded (``hel_warp.report.load_run``)."""
+    from hel_warp.report import DEFAULT_BOXES, size_class_view, size_classes, stream_metrics, stream_metrics_vs
+
+    ref_run = pooled(refs)
+    run = pooled(runs, label)
 
     def compare(r, q) -> dict:
         m = stream_metrics(r, DEFAULT_BOXES, min_samples=min_samples)
@@ -96,7 +155,7 @@ def ensemble_metrics(paths, reference_paths, min_samples: int = 10, label: str |
                 "crossing_per_section": [s.get("stream_crossing") for s in m.get("sections", [])],
                 "reference_crossing_per_section": [s.get("stream_crossing") for s in ref.get("sections", [])]}
 
-    out = {"label": run.label, "runs": len(paths), "reference_runs": len(reference_paths), **compare(run, ref_run)}
+    out = {"label": run.label, "runs": len(runs), "reference_runs": len(refs), **compare(run, ref_run)}
     classes = size_classes(run)
     if classes is not None and size_classes(ref_run) is not None:  # a mixture: each size class against its own
         out["size_classes"] = [{"diameter": float(c["diameter"]),
@@ -116,10 +175,14 @@ def main(argv=None) -> int:
     p.add_argument("--sections", type=int, nargs="+", default=None,
                    help="also compare over these sections only (1-based, e.g. 1 2 3 4), the same set for every "
                         "ensemble")
+    p.add_argument("--jackknife", action="store_true",
+                   help="also the standard errors of the *_vs_dem figures, leaving one run (and one reference run) "
+                        "out at a time (one pooled evaluation per run)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     args = p.parse_args(argv)
     try:
-        out = ensemble_metrics(args.runs, args.reference, args.min_samples, args.label, args.sections)
+        out = ensemble_metrics(args.runs, args.reference, args.min_samples, args.label, args.sections,
+                               jackknife=args.jackknife)
     except ConfigError as exc:
         print(f"rig_ensemble: error: {exc}", file=sys.stderr)
         return 2
@@ -144,9 +207,19 @@ def main(argv=None) -> int:
         return (f"; sections {','.join(str(k) for k in f['sections'])}: crossing "
                 f"{num(f['stream_crossing_vs_dem'], '+.3f')}, v_y rms {num(None if vy is None else 100 * vy, '+.1f')} %")
 
-    print(line(f"{out['label']} ({out['runs']} runs) vs reference ({out['reference_runs']} runs)", out) + fixed(out))
+    def errors(prefix=""):
+        jk = out.get("jackknife")
+        if not jk:
+            return ""
+        c = jk["combined"]
+        x, v = c.get(prefix + JACKKNIFE_KEYS[0]), c.get(prefix + JACKKNIFE_KEYS[1])
+        return (f"; standard error (runs and reference, jackknife): crossing {num(x, '.3f')}, v_y rms "
+                f"{num(None if v is None else 100 * v, '.1f')} %")
+
+    print(line(f"{out['label']} ({out['runs']} runs) vs reference ({out['reference_runs']} runs)", out) + fixed(out)
+          + errors())
     for c in out.get("size_classes", []):
-        print("  " + line(f"{1e6 * c['diameter']:.0f} um", c) + fixed(c))
+        print("  " + line(f"{1e6 * c['diameter']:.0f} um", c) + fixed(c) + errors(f"{1e6 * c['diameter']:.0f}um_"))
     return 0
 
 

@@ -303,9 +303,17 @@ def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
     spec.loader.exec_module(ens)
     filled = [k + 1 for k, s in enumerate(by["none"]["stream_metrics"]["sections"]) if s["samples"]]
     one = ens.ensemble_metrics([runs[0]], [runs[1]], min_samples=1, sections=filled[:2])
-    two = ens.ensemble_metrics([runs[0], runs[0]], [runs[1], runs[1], runs[1]], min_samples=1, sections=filled[:2])
+    two = ens.ensemble_metrics([runs[0], runs[0]], [runs[1], runs[1], runs[1]], min_samples=1, sections=filled[:2],
+                               jackknife=True)
     for key in ("stream_crossing", "reference_stream_crossing", "transverse_velocity_rms", "stream_crossing_vs_dem"):
         assert two[key] == pytest.approx(one[key], rel=1e-12), key
+    # identical runs leave nothing to the seed-to-seed spread: every jackknife error is 0 (--jackknife)
+    for part in ("runs", "reference", "combined"):
+        assert all(v == pytest.approx(0.0, abs=1e-12) for v in two["jackknife"][part].values()), part
+    # the jackknife of a mean is the standard error of the mean, std(x, ddof=1) / sqrt(n) (closed form)
+    x = np.random.default_rng(4).normal(size=9)
+    loo = [{"a": float(np.delete(x, k).mean())} for k in range(len(x))]
+    assert ens._leave_one_out_error(loo)["a"] == pytest.approx(x.std(ddof=1) / np.sqrt(len(x)), rel=1e-12)
     for key in ("stream_crossing_vs_dem", "transverse_velocity_rms_vs_dem"):  # the fixed sections alike
         assert (two["fixed"][key] is None and one["fixed"][key] is None) or \
             two["fixed"][key] == pytest.approx(one["fixed"][key], rel=1e-12, abs=1e-12)
