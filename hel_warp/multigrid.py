@@ -9,7 +9,8 @@ before (colours ascending) and after (descending), the residual restricted by su
 correction prolonged times ``scale`` (piecewise-constant prolongation under-corrects smooth errors;
 Braess 1995 scales by ~1.8, Notay 2010 discusses why), symmetric Gauss-Seidel sweeps on the coarsest level.
 The cycle is a fixed symmetric linear map, as CG needs. Coarse matrices and restricted residuals are gathered per coarse row from its fine rows in a fixed order
-(no float atomics: the same numbers on any device). Colours: parity of i + j + k, or (with a periodic
+(no float atomics: the same numbers on any device). On the CPU the cycle's row loops are the native ones of
+``kernels/gas_cpu.py`` (the same numbers). Colours: parity of i + j + k, or (with a periodic
 axis of odd count, where parity does not separate neighbours across the wrap) the sum mod 3 of per-axis
 colours {0, 1} with 2 on the last cell of such an axis — a proper colouring of the product graph.
 
@@ -23,6 +24,7 @@ import numpy as np
 import warp as wp
 
 from kernels import gas as K
+from kernels import gas_cpu
 
 COARSEST_ROWS = 32
 """Stop coarsening below this many rows."""
@@ -137,7 +139,8 @@ class AggregationMultigrid:
             launch.launch()
 
     def _record(self, launches: list, kernel, dim: int, inputs: list, outputs: list) -> None:
-        if dim:
+        if dim:  # the native row loops on the CPU (kernels/gas_cpu.py)
+            kernel, dim = gas_cpu.for_device(kernel, dim, self.device, inputs + outputs)
             launches.append(wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=self.device,
                                       record_cmd=True))
 

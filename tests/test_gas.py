@@ -16,6 +16,7 @@ from hel_warp.errors import ConfigError, HelWarpError
 from hel_warp.gas import GasConfig, GasField, GasSolver
 from hel_warp.grid import Box, Channel, Geometry, Grid, Patch
 from kernels import gas as K
+from kernels import gas_cpu
 
 
 def continuity_residual(grid, fluid, face_u, cell_eps_f, cell_eps_prev, dt):
@@ -531,6 +532,70 @@ def test_fused_pcg_kernels_equal_the_separate_passes(periodic):
                   outputs=[x_f, r_f, z_f])
         for fused_v, ref in ((x_f, x_ref), (r_f, r_ref), (z_f, z_ref)):
             assert np.array_equal(fused_v.numpy(), ref.numpy()), ordered
+
+
+@pytest.mark.parametrize("periodic", [(False, False, False), (True, False, True)], ids=["walled", "periodic"])
+def test_native_cpu_loops_equal_the_warp_kernels(periodic):
+    """kernels/gas_cpu.py's native row loops (what ``GasSolver`` and the V-cycle launch on the CPU) give the numbers
+    of the Warp kernels they stand for, bit for bit: the same operations on every row in the same order, the dot
+    products in the same chunks and partial sums; the IC(0) factor plain and modified, its substitutions with the
+    slot reading (``ordered``) and the index tests, and the V-cycle's passes on a two-level aggregation."""
+    from hel_warp.multigrid import AggregationMultigrid
+
+    shape = (9, 7, 6)
+    A, n, rng = _stencil_system(shape, periodic, seed=5)
+    vec = lambda: rng.normal(size=n)  # noqa: E731
+    dots = (n + K.DOT_CHUNK - 1) // K.DOT_CHUNK
+
+    def both(name, dim, inputs, outputs):
+        """Run kernels/gas.py's ``name`` and its native version on copies of ``outputs`` (numpy); compare."""
+        results = []
+        for kernel, threads in ((getattr(K, name), dim), gas_cpu.for_device(getattr(K, name), dim, "cpu", inputs)):
+            outs = [wp.array(o, dtype=wp.int32 if o.dtype == np.int32 else wp.float64) for o in outputs]
+            wp.launch(kernel, dim=threads, inputs=inputs, outputs=outs)
+            results.append([o.numpy() for o in outs])
+        assert gas_cpu.for_device(getattr(K, name), dim, "cpu", inputs)[0] is not getattr(K, name)
+        for warp_out, native_out in zip(*results):
+            assert np.array_equal(warp_out, native_out, equal_nan=True), name
+        return results[0]
+
+    f64 = lambda a: wp.array(a, dtype=wp.float64)  # noqa: E731
+    p, x, b = f64(vec()), f64(vec()), f64(vec())
+    scalars = np.array([0.3, 0.0, 0.0, 0.0, 0.37, 0.61])  # alpha in slot 4, beta in slot 5
+    both("pcg_matvec_dot_kernel", dots, [A, p, 1], [np.zeros(n), scalars])
+    both("pcg_residual_start_kernel", dots, [A, x, b], [np.zeros(n), scalars])
+    both("pcg_dot_pair_kernel", dots, [p, b, 2, 3], [scalars])
+    both("pcg_step_kernel", n, [p, b, f64(scalars)], [vec(), vec()])
+    both("pcg_direction_kernel", n, [x, f64(scalars)], [vec()])
+    for relaxation in (0.0, 0.97):
+        pivot, pivot_inverse = both("ic0_factor_kernel", 1, [A, n, wp.float64(relaxation)], [np.zeros(n), np.zeros(n)])
+    pivot_inverse = f64(pivot_inverse)
+    both("ic0_apply_kernel", 1, [pivot_inverse, A, b, n], [np.full(n, np.nan)])
+    for ordered in (0, 1) if periodic == (False, False, False) else (0,):
+        both("ic0_step_apply_kernel", 1, [pivot_inverse, A, p, b, f64(scalars), n, ordered],
+             [vec(), vec(), np.full(n, np.nan)])
+
+    rows = np.flatnonzero(np.random.default_rng(5).uniform(size=shape) < 0.8)  # _stencil_system's mask
+    mg = AggregationMultigrid(rows, shape, periodic, "cpu")
+    mg.setup(A)
+    fine, coarse = mg.levels[0], mg.levels[1]
+    inverse_diag = fine.inverse_diag
+    coarse_matrices = []
+    native = gas_cpu.for_device(K.mg_coarsen_kernel, coarse.n, "cpu", [A])
+    for kernel, threads in ((K.mg_coarsen_kernel, coarse.n), native):
+        Ac = K.make_stencil(wp.zeros(coarse.n, dtype=wp.float64), wp.zeros((coarse.n, 6), dtype=wp.float64),
+                            wp.zeros((coarse.n, 6), dtype=wp.int32))
+        wp.launch(kernel, dim=threads, inputs=[coarse.child_start, coarse.children, fine.parent, A], outputs=[Ac])
+        coarse_matrices.append([Ac.diag.numpy(), Ac.coef.numpy(), Ac.neighbour.numpy()])
+    for warp_out, native_out in zip(*coarse_matrices):
+        assert np.array_equal(warp_out, native_out)
+    z = vec()
+    for colour_rows in fine.colour_rows:
+        both("mg_smooth_kernel", colour_rows.shape[0], [A, inverse_diag, colour_rows, b], [z])
+    both("mg_smooth_from_zero_kernel", n, [inverse_diag, fine.colour, b], [z])
+    both("mg_residual_restrict_kernel", coarse.n,
+         [coarse.child_start, coarse.children, A, b, f64(z), fine.colour, fine.n_colours - 1], [np.zeros(coarse.n)])
+    both("mg_prolong_kernel", n, [fine.parent, f64(rng.normal(size=coarse.n)), wp.float64(1.7)], [z])
 
 
 def test_viscous_tolerance_keeps_the_float32_field():

@@ -1,0 +1,673 @@
+"""The linear solvers' row loops as native C++ (``wp.func_native``) for the CPU device: the same arithmetic as their
+Warp counterparts in ``kernels/gas.py``, in the same order, so the same bits.
+
+Why: a Warp CPU kernel addresses every array element through ``wp::address``, which wraps negative indices and
+multiplies runtime strides on each access (arrays inside a struct, 2-d arrays), and the many array descriptors
+spill registers; a 7-point stencil row costs ~7-12 ns that way on this machine's cores. The same loop over raw
+pointers (contiguous arrays, checked when a launch is recorded: ``require_contiguous``) costs ~3-5 ns (the rig's
+viscous matrix, 34,416 rows: 7.1 -> 3.1 ns per row at best, 12.1 -> 4.9 median, same bits). The multiplications and
+additions are separate statements, as Warp emits them, so the compiler contracts nothing that Warp's code does
+not (the module is built without FMA contraction either way: no ``vfmadd`` in the object code).
+
+Each kernel here has the signature of the kernel of ``kernels/gas.py`` with the same name (``SAME_SIGNATURE``), so a
+launch takes either; the row loops run in one thread (``dim=1``: the CPU runs a launch's threads one after another
+in order, so one thread over all rows is the same order) except the chunked dot-product passes, which keep
+``DOT_CHUNK`` rows per thread and one atomic add per chunk (the same partial sums). Only the CPU launches these: the
+CUDA path keeps the Warp kernels (this module is never loaded on a GPU).
+"""
+
+import warp as wp
+
+from kernels import gas as K
+
+f64 = wp.float64
+
+# a stencil row (A x)_i = diag_i x_i - sum_m coef_im x_nb(i,m), ``kernels/gas.py`` ``stencil_row``'s order
+_ROW = """
+    auto stencil_row = [&](const double* __restrict__ xv, int i) {
+        double ax = d[i] * xv[i];
+        const double* ci = c + 6 * (size_t)i;
+        const int* ni = nb + 6 * (size_t)i;
+        for (int m = 0; m < 6; ++m) {
+            double t = ci[m] * xv[ni[m]];
+            ax = ax - t;
+        }
+        return ax;
+    };
+"""
+
+_STENCIL = """
+    const double* __restrict__ d = diag.data;
+    const double* __restrict__ c = coef.data;
+    const int* __restrict__ nb = neighbour.data;
+"""
+
+
+@wp.func_native(_STENCIL + _ROW + """
+    const double* __restrict__ x = p.data;
+    double* __restrict__ y = ap.data;
+    double acc0 = 0.0, acc1 = 0.0, acc2 = 0.0, acc3 = 0.0;
+    int quads = first + (last - first) / 4 * 4;
+    for (int i = first; i < quads; i += 4) {
+        double v0 = stencil_row(x, i);
+        double v1 = stencil_row(x, i + 1);
+        double v2 = stencil_row(x, i + 2);
+        double v3 = stencil_row(x, i + 3);
+        y[i] = v0;
+        y[i + 1] = v1;
+        y[i + 2] = v2;
+        y[i + 3] = v3;
+        double t0 = x[i] * v0;
+        double t1 = x[i + 1] * v1;
+        double t2 = x[i + 2] * v2;
+        double t3 = x[i + 3] * v3;
+        acc0 = acc0 + t0;
+        acc1 = acc1 + t1;
+        acc2 = acc2 + t2;
+        acc3 = acc3 + t3;
+    }
+    for (int i = quads; i < last; ++i) {
+        double v = stencil_row(x, i);
+        y[i] = v;
+        double t = x[i] * v;
+        acc0 = acc0 + t;
+    }
+    double s01 = acc0 + acc1;
+    double s23 = acc2 + acc3;
+    return s01 + s23;
+""")
+def matvec_dot_chunk(diag: wp.array(dtype=f64), coef: wp.array2d(dtype=f64), neighbour: wp.array2d(dtype=wp.int32),
+                     p: wp.array(dtype=f64), ap: wp.array(dtype=f64), first: int, last: int) -> f64:
+    """ap = A p over rows [first, last) and the chunk's p . ap (``pcg_matvec_dot_kernel``)."""
+    ...
+
+
+@wp.kernel
+def pcg_matvec_dot_kernel(
+    A: K.Stencil,
+    p: wp.array(dtype=f64),
+    slot: int,
+    # outputs
+    ap: wp.array(dtype=f64),
+    scalars: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``pcg_matvec_dot_kernel`` (one ``DOT_CHUNK`` per thread)."""
+    t = wp.tid()
+    first = t * K.DOT_CHUNK
+    last = wp.min(first + K.DOT_CHUNK, p.shape[0])
+    wp.atomic_add(scalars, slot, matvec_dot_chunk(A.diag, A.coef, A.neighbour, p, ap, first, last))
+
+
+@wp.func_native(_STENCIL + _ROW + """
+    const double* __restrict__ xv = x.data;
+    const double* __restrict__ b = rhs.data;
+    double* __restrict__ rv = r.data;
+    double bb0 = 0.0, bb1 = 0.0, bb2 = 0.0, bb3 = 0.0;
+    double rr0 = 0.0, rr1 = 0.0, rr2 = 0.0, rr3 = 0.0;
+    int quads = first + (last - first) / 4 * 4;
+    for (int i = first; i < quads; i += 4) {
+        double r0 = b[i] - stencil_row(xv, i);
+        double r1 = b[i + 1] - stencil_row(xv, i + 1);
+        double r2 = b[i + 2] - stencil_row(xv, i + 2);
+        double r3 = b[i + 3] - stencil_row(xv, i + 3);
+        rv[i] = r0;
+        rv[i + 1] = r1;
+        rv[i + 2] = r2;
+        rv[i + 3] = r3;
+        double q0 = b[i] * b[i];
+        double q1 = b[i + 1] * b[i + 1];
+        double q2 = b[i + 2] * b[i + 2];
+        double q3 = b[i + 3] * b[i + 3];
+        bb0 = bb0 + q0;
+        bb1 = bb1 + q1;
+        bb2 = bb2 + q2;
+        bb3 = bb3 + q3;
+        double s0 = r0 * r0;
+        double s1 = r1 * r1;
+        double s2 = r2 * r2;
+        double s3 = r3 * r3;
+        rr0 = rr0 + s0;
+        rr1 = rr1 + s1;
+        rr2 = rr2 + s2;
+        rr3 = rr3 + s3;
+    }
+    for (int i = quads; i < last; ++i) {
+        double ri = b[i] - stencil_row(xv, i);
+        rv[i] = ri;
+        double q = b[i] * b[i];
+        bb0 = bb0 + q;
+        double s = ri * ri;
+        rr0 = rr0 + s;
+    }
+    double b01 = bb0 + bb1;
+    double b23 = bb2 + bb3;
+    double r01 = rr0 + rr1;
+    double r23 = rr2 + rr3;
+    return wp::vec_t<2, double>(b01 + b23, r01 + r23);
+""")
+def residual_start_chunk(diag: wp.array(dtype=f64), coef: wp.array2d(dtype=f64),
+                         neighbour: wp.array2d(dtype=wp.int32), x: wp.array(dtype=f64), rhs: wp.array(dtype=f64),
+                         r: wp.array(dtype=f64), first: int, last: int) -> wp.vec2d:
+    """r = b - A x over rows [first, last); the chunk's (b . b, r . r) (``pcg_residual_start_kernel``)."""
+    ...
+
+
+@wp.kernel
+def pcg_residual_start_kernel(
+    A: K.Stencil,
+    x: wp.array(dtype=f64),
+    rhs: wp.array(dtype=f64),
+    # outputs
+    r: wp.array(dtype=f64),
+    scalars: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``pcg_residual_start_kernel`` (one ``DOT_CHUNK`` per thread)."""
+    t = wp.tid()
+    first = t * K.DOT_CHUNK
+    last = wp.min(first + K.DOT_CHUNK, x.shape[0])
+    sums = residual_start_chunk(A.diag, A.coef, A.neighbour, x, rhs, r, first, last)
+    wp.atomic_add(scalars, 1, sums[0])
+    wp.atomic_add(scalars, 3, sums[1])
+
+
+@wp.func_native("""
+    const double* __restrict__ pv = p.data;
+    const double* __restrict__ apv = ap.data;
+    double* __restrict__ xv = x.data;
+    double* __restrict__ rv = r.data;
+    double alpha = scalars.data[4];
+    int n = p.shape[0];
+    for (int i = 0; i < n; ++i) {
+        double t = alpha * pv[i];
+        xv[i] = xv[i] + t;
+        double u = alpha * apv[i];
+        rv[i] = rv[i] - u;
+    }
+""")
+def step_rows(p: wp.array(dtype=f64), ap: wp.array(dtype=f64), scalars: wp.array(dtype=f64),
+              x: wp.array(dtype=f64), r: wp.array(dtype=f64)):
+    ...
+
+
+@wp.kernel
+def pcg_step_kernel(
+    p: wp.array(dtype=f64),
+    ap: wp.array(dtype=f64),
+    scalars: wp.array(dtype=f64),
+    # outputs
+    x: wp.array(dtype=f64),
+    r: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``pcg_step_kernel`` over every row (launch one thread)."""
+    step_rows(p, ap, scalars, x, r)
+
+
+@wp.func_native("""
+    const double* __restrict__ zv = z.data;
+    double* __restrict__ pv = p.data;
+    double beta = scalars.data[5];
+    int n = p.shape[0];
+    for (int i = 0; i < n; ++i) {
+        double t = beta * pv[i];
+        pv[i] = zv[i] + t;
+    }
+""")
+def direction_rows(z: wp.array(dtype=f64), scalars: wp.array(dtype=f64), p: wp.array(dtype=f64)):
+    ...
+
+
+@wp.kernel
+def pcg_direction_kernel(
+    z: wp.array(dtype=f64),
+    scalars: wp.array(dtype=f64),
+    # outputs
+    p: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``pcg_direction_kernel`` over every row (launch one thread)."""
+    direction_rows(z, scalars, p)
+
+
+@wp.func_native("""
+    const double* __restrict__ av = a.data;
+    const double* __restrict__ bv = b.data;
+    double ab0 = 0.0, ab1 = 0.0, ab2 = 0.0, ab3 = 0.0;
+    double aa0 = 0.0, aa1 = 0.0, aa2 = 0.0, aa3 = 0.0;
+    int quads = first + (last - first) / 4 * 4;
+    for (int i = first; i < quads; i += 4) {
+        double t0 = av[i] * bv[i];
+        double t1 = av[i + 1] * bv[i + 1];
+        double t2 = av[i + 2] * bv[i + 2];
+        double t3 = av[i + 3] * bv[i + 3];
+        ab0 = ab0 + t0;
+        ab1 = ab1 + t1;
+        ab2 = ab2 + t2;
+        ab3 = ab3 + t3;
+        double s0 = av[i] * av[i];
+        double s1 = av[i + 1] * av[i + 1];
+        double s2 = av[i + 2] * av[i + 2];
+        double s3 = av[i + 3] * av[i + 3];
+        aa0 = aa0 + s0;
+        aa1 = aa1 + s1;
+        aa2 = aa2 + s2;
+        aa3 = aa3 + s3;
+    }
+    for (int i = quads; i < last; ++i) {
+        double t = av[i] * bv[i];
+        ab0 = ab0 + t;
+        double s = av[i] * av[i];
+        aa0 = aa0 + s;
+    }
+    double x01 = ab0 + ab1;
+    double x23 = ab2 + ab3;
+    double y01 = aa0 + aa1;
+    double y23 = aa2 + aa3;
+    return wp::vec_t<2, double>(x01 + x23, y01 + y23);
+""")
+def dot_pair_chunk(a: wp.array(dtype=f64), b: wp.array(dtype=f64), first: int, last: int) -> wp.vec2d:
+    ...
+
+
+@wp.kernel
+def pcg_dot_pair_kernel(
+    a: wp.array(dtype=f64),
+    b: wp.array(dtype=f64),
+    slot_ab: int,
+    slot_aa: int,
+    # outputs
+    scalars: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``pcg_dot_pair_kernel`` (one ``DOT_CHUNK`` per thread)."""
+    t = wp.tid()
+    first = t * K.DOT_CHUNK
+    last = wp.min(first + K.DOT_CHUNK, a.shape[0])
+    sums = dot_pair_chunk(a, b, first, last)
+    wp.atomic_add(scalars, slot_ab, sums[0])
+    wp.atomic_add(scalars, slot_aa, sums[1])
+
+
+# ----------------------------------------------------------------- incomplete Cholesky (one thread, as in kernels/gas.py)
+
+
+@wp.func_native(_STENCIL + """
+    double* __restrict__ pv = pivot.data;
+    double* __restrict__ pinv = pivot_inverse.data;
+    double floor = 1.0e-3;
+    if (relaxation > 0.0)
+        floor = 0.25;
+    for (int i = 0; i < n; ++i) {
+        double di = d[i];
+        for (int m = 0; m < 6; ++m) {
+            int j = nb[6 * (size_t)i + m];
+            double cm = c[6 * (size_t)i + m];
+            if (j < i && cm != 0.0) {
+                double fill = 0.0;
+                if (relaxation > 0.0) {
+                    for (int m2 = 0; m2 < 6; ++m2) {
+                        int k = nb[6 * (size_t)j + m2];
+                        if (k > j && k != i)
+                            fill = fill + c[6 * (size_t)j + m2];
+                    }
+                }
+                double t1 = relaxation * fill;
+                double t2 = cm + t1;
+                double t3 = cm * t2;
+                double t4 = t3 / pv[j];
+                di = di - t4;
+            }
+        }
+        double bound = floor * d[i];
+        if (di <= bound)
+            di = d[i];
+        pv[i] = di;
+        pinv[i] = 1.0 / di;
+    }
+""")
+def ic0_factor_rows(diag: wp.array(dtype=f64), coef: wp.array2d(dtype=f64), neighbour: wp.array2d(dtype=wp.int32),
+                    n: int, relaxation: f64, pivot: wp.array(dtype=f64), pivot_inverse: wp.array(dtype=f64)):
+    ...
+
+
+@wp.kernel
+def ic0_factor_kernel(
+    A: K.Stencil,
+    n: int,
+    relaxation: f64,
+    # outputs
+    pivot: wp.array(dtype=f64),
+    pivot_inverse: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``ic0_factor_kernel`` (one thread)."""
+    ic0_factor_rows(A.diag, A.coef, A.neighbour, n, relaxation, pivot, pivot_inverse)
+
+
+# forward then backward substitution of IC(0) into z (``ic0_apply_kernel``'s order); ``rv`` the right-hand side,
+# FORWARD_PROLOGUE what a row does before its forward substitution (``ic0_step_apply_kernel``: the step)
+_SUBSTITUTIONS = """
+    for (int i = 0; i < n; ++i) {
+        FORWARD_PROLOGUE
+        double acc = rv[i];
+        if (ordered != 0) {
+            zv[i] = 0.0;
+            for (int m = 0; m < 6; m += 2) {
+                double t = c[6 * (size_t)i + m] * zv[nb[6 * (size_t)i + m]];
+                acc = acc + t;
+            }
+        } else {
+            for (int m = 0; m < 6; ++m) {
+                int j = nb[6 * (size_t)i + m];
+                if (j < i) {
+                    double t = c[6 * (size_t)i + m] * zv[j];
+                    acc = acc + t;
+                }
+            }
+        }
+        zv[i] = acc * pinv[i];
+    }
+    for (int step = 0; step < n; ++step) {
+        int i = n - 1 - step;
+        double acc = 0.0;
+        if (ordered != 0) {
+            for (int m = 1; m < 6; m += 2) {
+                double t = c[6 * (size_t)i + m] * zv[nb[6 * (size_t)i + m]];
+                acc = acc + t;
+            }
+        } else {
+            for (int m = 0; m < 6; ++m) {
+                int j = nb[6 * (size_t)i + m];
+                if (j > i) {
+                    double t = c[6 * (size_t)i + m] * zv[j];
+                    acc = acc + t;
+                }
+            }
+        }
+        double u = acc * pinv[i];
+        zv[i] = zv[i] + u;
+    }
+"""
+
+
+@wp.func_native("""
+    const double* __restrict__ c = coef.data;
+    const int* __restrict__ nb = neighbour.data;
+    const double* __restrict__ pinv = pivot_inverse.data;
+    const double* __restrict__ rv = r.data;
+    double* __restrict__ zv = z.data;
+    const int ordered = 0;
+""" + _SUBSTITUTIONS.replace("FORWARD_PROLOGUE", ""))
+def ic0_apply_rows(pivot_inverse: wp.array(dtype=f64), coef: wp.array2d(dtype=f64),
+                   neighbour: wp.array2d(dtype=wp.int32), r: wp.array(dtype=f64), n: int, z: wp.array(dtype=f64)):
+    ...
+
+
+@wp.kernel
+def ic0_apply_kernel(
+    pivot_inverse: wp.array(dtype=f64),
+    A: K.Stencil,
+    r: wp.array(dtype=f64),
+    n: int,
+    # outputs
+    z: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``ic0_apply_kernel`` (one thread)."""
+    ic0_apply_rows(pivot_inverse, A.coef, A.neighbour, r, n, z)
+
+
+@wp.func_native("""
+    const double* __restrict__ c = coef.data;
+    const int* __restrict__ nb = neighbour.data;
+    const double* __restrict__ pinv = pivot_inverse.data;
+    const double* __restrict__ pv = p.data;
+    const double* __restrict__ apv = ap.data;
+    double* __restrict__ xv = x.data;
+    double* __restrict__ rv = r.data;
+    double* __restrict__ zv = z.data;
+    double alpha = scalars.data[4];
+""" + _SUBSTITUTIONS.replace("FORWARD_PROLOGUE", """
+        double step_x = alpha * pv[i];
+        xv[i] = xv[i] + step_x;
+        double step_r = alpha * apv[i];
+        rv[i] = rv[i] - step_r;"""))
+def ic0_step_apply_rows(pivot_inverse: wp.array(dtype=f64), coef: wp.array2d(dtype=f64),
+                        neighbour: wp.array2d(dtype=wp.int32), p: wp.array(dtype=f64), ap: wp.array(dtype=f64),
+                        scalars: wp.array(dtype=f64), n: int, ordered: int, x: wp.array(dtype=f64),
+                        r: wp.array(dtype=f64), z: wp.array(dtype=f64)):
+    ...
+
+
+@wp.kernel
+def ic0_step_apply_kernel(
+    pivot_inverse: wp.array(dtype=f64),
+    A: K.Stencil,
+    p: wp.array(dtype=f64),
+    ap: wp.array(dtype=f64),
+    scalars: wp.array(dtype=f64),
+    n: int,
+    ordered: int,
+    # outputs
+    x: wp.array(dtype=f64),
+    r: wp.array(dtype=f64),
+    z: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``ic0_step_apply_kernel`` (one thread)."""
+    ic0_step_apply_rows(pivot_inverse, A.coef, A.neighbour, p, ap, scalars, n, ordered, x, r, z)
+
+
+# ----------------------------------------------------------------- multigrid V-cycle (hel_warp/multigrid.py), one thread
+
+
+@wp.func_native(_STENCIL + """
+    const double* __restrict__ invd = inverse_diag.data;
+    const int* __restrict__ rw = rows.data;
+    const double* __restrict__ bv = b.data;
+    double* __restrict__ zv = z.data;
+    int count = rows.shape[0];
+    for (int idx = 0; idx < count; ++idx) {
+        int r = rw[idx];
+        double acc = bv[r];
+        const double* cr = c + 6 * (size_t)r;
+        const int* nr = nb + 6 * (size_t)r;
+        for (int m = 0; m < 6; ++m) {
+            double t = cr[m] * zv[nr[m]];
+            acc = acc + t;
+        }
+        if (invd[r] > 0.0)
+            zv[r] = acc * invd[r];
+    }
+""")
+def smooth_rows(diag: wp.array(dtype=f64), coef: wp.array2d(dtype=f64), neighbour: wp.array2d(dtype=wp.int32),
+                inverse_diag: wp.array(dtype=f64), rows: wp.array(dtype=wp.int32), b: wp.array(dtype=f64),
+                z: wp.array(dtype=f64)):
+    ...
+
+
+@wp.kernel
+def mg_smooth_kernel(
+    A: K.Stencil,
+    inverse_diag: wp.array(dtype=f64),
+    rows: wp.array(dtype=wp.int32),
+    b: wp.array(dtype=f64),
+    # outputs
+    z: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``mg_smooth_kernel`` over every entry of ``rows`` in order (launch one thread)."""
+    smooth_rows(A.diag, A.coef, A.neighbour, inverse_diag, rows, b, z)
+
+
+@wp.func_native("""
+    const double* __restrict__ invd = inverse_diag.data;
+    const int* __restrict__ col = colour.data;
+    const double* __restrict__ bv = b.data;
+    double* __restrict__ zv = z.data;
+    int n = z.shape[0];
+    for (int r = 0; r < n; ++r) {
+        zv[r] = 0.0;
+        if (col[r] == 0 && invd[r] > 0.0)
+            zv[r] = bv[r] * invd[r];
+    }
+""")
+def smooth_from_zero_rows(inverse_diag: wp.array(dtype=f64), colour: wp.array(dtype=wp.int32),
+                          b: wp.array(dtype=f64), z: wp.array(dtype=f64)):
+    ...
+
+
+@wp.kernel
+def mg_smooth_from_zero_kernel(
+    inverse_diag: wp.array(dtype=f64),
+    colour: wp.array(dtype=wp.int32),
+    b: wp.array(dtype=f64),
+    # outputs
+    z: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``mg_smooth_from_zero_kernel`` over every row (launch one thread)."""
+    smooth_from_zero_rows(inverse_diag, colour, b, z)
+
+
+@wp.func_native(_STENCIL + _ROW + """
+    const int* __restrict__ start = child_start.data;
+    const int* __restrict__ kids = children.data;
+    const double* __restrict__ bv = b.data;
+    const double* __restrict__ zv = z.data;
+    const int* __restrict__ col = colour.data;
+    double* __restrict__ cb = c_b.data;
+    int coarse = c_b.shape[0];
+    for (int C = 0; C < coarse; ++C) {
+        double acc = 0.0;
+        for (int idx = start[C]; idx < start[C + 1]; ++idx) {
+            int r = kids[idx];
+            if (col[r] != last_colour || !(d[r] > 0.0)) {
+                double ax = stencil_row(zv, r);
+                double t1 = -1.0 * ax;
+                double t2 = 1.0 * bv[r];
+                double res = t1 + t2;
+                acc = acc + res;
+            }
+        }
+        cb[C] = acc;
+    }
+""")
+def residual_restrict_rows(child_start: wp.array(dtype=wp.int32), children: wp.array(dtype=wp.int32),
+                           diag: wp.array(dtype=f64), coef: wp.array2d(dtype=f64),
+                           neighbour: wp.array2d(dtype=wp.int32), b: wp.array(dtype=f64), z: wp.array(dtype=f64),
+                           colour: wp.array(dtype=wp.int32), last_colour: int, c_b: wp.array(dtype=f64)):
+    ...
+
+
+@wp.kernel
+def mg_residual_restrict_kernel(
+    child_start: wp.array(dtype=wp.int32),
+    children: wp.array(dtype=wp.int32),
+    A: K.Stencil,
+    b: wp.array(dtype=f64),
+    z: wp.array(dtype=f64),
+    colour: wp.array(dtype=wp.int32),
+    last_colour: int,
+    # outputs
+    c_b: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``mg_residual_restrict_kernel`` over every coarse row (launch one thread)."""
+    residual_restrict_rows(child_start, children, A.diag, A.coef, A.neighbour, b, z, colour, last_colour, c_b)
+
+
+@wp.func_native("""
+    const int* __restrict__ par = parent.data;
+    const double* __restrict__ cz = c_z.data;
+    double* __restrict__ zv = z.data;
+    int n = z.shape[0];
+    for (int r = 0; r < n; ++r) {
+        double t = scale * cz[par[r]];
+        zv[r] = zv[r] + t;
+    }
+""")
+def prolong_rows(parent: wp.array(dtype=wp.int32), c_z: wp.array(dtype=f64), scale: f64, z: wp.array(dtype=f64)):
+    ...
+
+
+@wp.kernel
+def mg_prolong_kernel(
+    parent: wp.array(dtype=wp.int32),
+    c_z: wp.array(dtype=f64),
+    scale: f64,
+    # outputs
+    z: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``mg_prolong_kernel`` over every row (launch one thread)."""
+    prolong_rows(parent, c_z, scale, z)
+
+
+@wp.func_native("""
+    const int* __restrict__ start = child_start.data;
+    const int* __restrict__ kids = children.data;
+    const int* __restrict__ par = parent.data;
+    const double* __restrict__ d = diag.data;
+    const double* __restrict__ c = coef.data;
+    const int* __restrict__ nb = neighbour.data;
+    double* __restrict__ cd = c_diag.data;
+    double* __restrict__ cc = c_coef.data;
+    int* __restrict__ cn = c_neighbour.data;
+    int coarse = c_diag.shape[0];
+    for (int C = 0; C < coarse; ++C) {
+        double dc = 0.0;
+        for (int m = 0; m < 6; ++m) {
+            cc[6 * (size_t)C + m] = 0.0;
+            cn[6 * (size_t)C + m] = C;
+        }
+        for (int idx = start[C]; idx < start[C + 1]; ++idx) {
+            int r = kids[idx];
+            dc = dc + d[r];
+            for (int m = 0; m < 6; ++m) {
+                double cm = c[6 * (size_t)r + m];
+                if (cm != 0.0) {
+                    int D = par[nb[6 * (size_t)r + m]];
+                    if (D == C) {
+                        dc = dc - cm;
+                    } else {
+                        cc[6 * (size_t)C + m] = cc[6 * (size_t)C + m] + cm;
+                        cn[6 * (size_t)C + m] = D;
+                    }
+                }
+            }
+        }
+        cd[C] = dc;
+    }
+""")
+def coarsen_rows(child_start: wp.array(dtype=wp.int32), children: wp.array(dtype=wp.int32),
+                 parent: wp.array(dtype=wp.int32), diag: wp.array(dtype=f64), coef: wp.array2d(dtype=f64),
+                 neighbour: wp.array2d(dtype=wp.int32), c_diag: wp.array(dtype=f64), c_coef: wp.array2d(dtype=f64),
+                 c_neighbour: wp.array2d(dtype=wp.int32)):
+    ...
+
+
+@wp.kernel
+def mg_coarsen_kernel(
+    child_start: wp.array(dtype=wp.int32),
+    children: wp.array(dtype=wp.int32),
+    parent: wp.array(dtype=wp.int32),
+    A: K.Stencil,
+    # outputs
+    Ac: K.Stencil,
+):
+    """``kernels/gas.py`` ``mg_coarsen_kernel`` over every coarse row (launch one thread)."""
+    coarsen_rows(child_start, children, parent, A.diag, A.coef, A.neighbour, Ac.diag, Ac.coef, Ac.neighbour)
+
+
+ONE_THREAD = frozenset({"pcg_step_kernel", "pcg_direction_kernel", "ic0_factor_kernel", "ic0_apply_kernel",
+                        "ic0_step_apply_kernel", "mg_smooth_kernel", "mg_smooth_from_zero_kernel",
+                        "mg_residual_restrict_kernel", "mg_prolong_kernel", "mg_coarsen_kernel"})
+"""The kernels here whose one thread runs every row (launch ``dim=1``); the others keep their Warp launch dims."""
+
+_NATIVE = ("pcg_matvec_dot_kernel", "pcg_residual_start_kernel", "pcg_dot_pair_kernel", *sorted(ONE_THREAD))
+
+
+def for_device(kernel, dim: int, device, arguments) -> tuple:
+    """(kernel, dim) to launch for ``kernel`` of ``kernels/gas.py`` over ``dim`` threads on ``device``: on the CPU this
+    module's native version where there is one (its own dim), else ``kernel`` itself. The native loops take raw
+    pointers, so every array among ``arguments`` (also inside a ``Stencil``) must be contiguous (checked here, when a
+    launch is recorded)."""
+    if not wp.get_device(device).is_cpu or getattr(K, kernel.key, None) is not kernel or kernel.key not in _NATIVE:
+        return kernel, dim
+    for value in arguments:
+        arrays = (value.diag, value.coef, value.neighbour) if hasattr(value, "neighbour") else (value,)
+        for array in arrays:
+            if isinstance(array, wp.array) and not array.is_contiguous:
+                raise ValueError(f"{kernel.key}: the native CPU loop needs contiguous arrays")
+    return globals()[kernel.key], 1 if kernel.key in ONE_THREAD else dim
