@@ -361,8 +361,9 @@ class GasSolver:
             if len(self._recorded_launches) >= RECORDED_LAUNCHES:
                 self._recorded_launches.pop(next(iter(self._recorded_launches)))
             block = 1 if self.device.is_cuda else K.CPU_BLOCK
-            launch = wp.launch(kernel, dim=(n + block - 1) // block, inputs=[block, *inputs], device=self.device,
-                               record_cmd=True)
+            dim = (n + block - 1) // block
+            kernel, dim = gas_cpu.for_device(kernel, dim, self.device, inputs)  # native loops on the CPU
+            launch = wp.launch(kernel, dim=dim, inputs=[block, *inputs], device=self.device, record_cmd=True)
             # the arguments are kept with the launch: an id is not reused while its object lives
             entry = self._recorded_launches[key] = (launch, (items, *inputs))
         entry[0].launch()

@@ -9,11 +9,16 @@ viscous matrix, 34,416 rows: 7.1 -> 3.1 ns per row at best, 12.1 -> 4.9 median, 
 additions are separate statements, as Warp emits them, so the compiler contracts nothing that Warp's code does
 not (the module is built without FMA contraction either way: no ``vfmadd`` in the object code).
 
+The advection (``ADVECT_KERNELS``) is here too, as the same per-face arithmetic in float32: its cost is the
+gathers of the back-traced samples and the divisions more than the addressing, so it gains less (~20 % on the rig's
+faces, 8.0 -> 6.1 ms at best for the three axes, same bits).
+
 Each kernel here has the signature of the kernel of ``kernels/gas.py`` with the same name (``SAME_SIGNATURE``), so a
 launch takes either; the row loops run in one thread (``dim=1``: the CPU runs a launch's threads one after another
 in order, so one thread over all rows is the same order) except the chunked dot-product passes, which keep
-``DOT_CHUNK`` rows per thread and one atomic add per chunk (the same partial sums). Only the CPU launches these: the
-CUDA path keeps the Warp kernels (this module is never loaded on a GPU).
+``DOT_CHUNK`` rows per thread and one atomic add per chunk (the same partial sums). The advection keeps the face kernels'
+blocks of ``block`` entries per thread. Only the CPU launches these (``for_device``): the CUDA path keeps the Warp
+kernels (this module is never loaded on a GPU).
 """
 
 import warp as wp
@@ -650,6 +655,199 @@ def mg_coarsen_kernel(
     coarsen_rows(child_start, children, parent, A.diag, A.coef, A.neighbour, Ac.diag, Ac.coef, Ac.neighbour)
 
 
+# ----------------------------------------------------------------- semi-Lagrangian advection (the face kernels' blocks)
+
+
+@wp.func_native("""
+    const int shape[3] = {g.shape.c[0], g.shape.c[1], g.shape.c[2]};
+    const int periodic[3] = {g.periodic.c[0], g.periodic.c[1], g.periodic.c[2]};
+    const float origin[3] = {g.origin.c[0], g.origin.c[1], g.origin.c[2]};
+    const float h = g.spacing;
+    const float* __restrict__ old[3] = {vel_old.x.data, vel_old.y.data, vel_old.z.data};
+    const int* __restrict__ type = axis == 0 ? types.x.data : (axis == 1 ? types.y.data : types.z.data);
+    float* __restrict__ out = axis == 0 ? vel_new.x.data : (axis == 1 ? vel_new.y.data : vel_new.z.data);
+    const wp::vec_t<3, int>* __restrict__ list = faces.data;
+    // flat index of face (i, j, k) in the face array of axis a (shape + e_a, C order)
+    auto at = [&](int a, int i, int j, int k) -> size_t {
+        size_t sy = (size_t)(shape[1] + (a == 1));
+        size_t sz = (size_t)(shape[2] + (a == 2));
+        return ((size_t)i * sy + (size_t)j) * sz + (size_t)k;
+    };
+    auto clamp = [](int x, int lo, int hi) { return x < lo ? lo : (x > hi ? hi : x); };
+    // sample_axis
+    auto sample_axis = [&](int a, int comp, float s, int& lo, int& hi, float& w) {
+        float fl = floorf(s);
+        lo = (int)fl;
+        hi = lo + 1;
+        int n = shape[a];
+        if (periodic[a] != 0) {
+            lo = (lo % n + n) % n;
+            hi = (hi % n + n) % n;
+        } else {
+            int upper = n - 1;
+            if (a == comp)
+                upper = n;
+            lo = clamp(lo, 0, upper);
+            hi = clamp(hi, 0, upper);
+        }
+        w = s - fl;
+    };
+    // neighbour_pair
+    auto pair = [&](int a, int lo, int upper, int& p0, int& p1) {
+        int hi = lo + 1;
+        if (periodic[a] != 0) {
+            int n = shape[a];
+            p0 = (lo % n + n) % n;
+            p1 = (hi % n + n) % n;
+        } else {
+            p0 = clamp(lo, 0, upper);
+            p1 = clamp(hi, 0, upper);
+        }
+    };
+    // trilinear: corners in the order 000, 100, 010, ..., 111, each weight a product in x, y, z order
+    auto trilinear = [&](int a, int i0, int i1, float wx, int j0, int j1, float wy, int k0, int k1, float wz) {
+        const float* v = old[a];
+        float ux = 1.0f - wx;
+        float uy = 1.0f - wy;
+        float uz = 1.0f - wz;
+        float result = 0.0f;
+        float t;
+        t = ux * uy; t = t * uz; t = t * v[at(a, i0, j0, k0)]; result = result + t;
+        t = wx * uy; t = t * uz; t = t * v[at(a, i1, j0, k0)]; result = result + t;
+        t = ux * wy; t = t * uz; t = t * v[at(a, i0, j1, k0)]; result = result + t;
+        t = wx * wy; t = t * uz; t = t * v[at(a, i1, j1, k0)]; result = result + t;
+        t = ux * uy; t = t * wz; t = t * v[at(a, i0, j0, k1)]; result = result + t;
+        t = wx * uy; t = t * wz; t = t * v[at(a, i1, j0, k1)]; result = result + t;
+        t = ux * wy; t = t * wz; t = t * v[at(a, i0, j1, k1)]; result = result + t;
+        t = wx * wy; t = t * wz; t = t * v[at(a, i1, j1, k1)]; result = result + t;
+        return result;
+    };
+    // grid coordinates (x - origin) / h - 1/2
+    auto grid_coords = [&](const float* x, float* s) {
+        for (int c = 0; c < 3; ++c) {
+            float t = x[c] - origin[c];
+            t = t / h;
+            s[c] = t - 0.5f;
+        }
+    };
+    // a 4-face mean 0.25 ((a + b) + (c + d))
+    auto mean4 = [](float a, float b, float c, float d) {
+        float ab = a + b;
+        float cd = c + d;
+        float sum = ab + cd;
+        return 0.25f * sum;
+    };
+    for (int index = first; index < last; ++index) {
+        int i = list[index].c[0], j = list[index].c[1], k = list[index].c[2];
+        size_t self = at(axis, i, j, k);
+        int t = type[self];
+        if (!(t == 1 || t == 3)) {  // not solved (FACE_FLUID, FACE_OUTLET): keeps its value
+            out[self] = old[axis][self];
+            continue;
+        }
+        // face_position
+        float x[3];
+        int f[3] = {i, j, k};
+        for (int c = 0; c < 3; ++c) {
+            float p = (float)f[c] + 0.5f;
+            float e = 0.5f * (float)(axis == c);
+            p = p - e;
+            float q = h * p;
+            x[c] = origin[c] + q;
+        }
+        // velocity_at_face
+        float vf[3];
+        int i0, i1, j0, j1, k0, k1;
+        if (axis == 0) {
+            pair(0, i - 1, shape[0] - 1, i0, i1);
+            pair(1, j, shape[1], j0, j1);
+            pair(2, k, shape[2], k0, k1);
+            vf[0] = old[0][self];
+            vf[1] = mean4(old[1][at(1, i0, j0, k)], old[1][at(1, i1, j0, k)], old[1][at(1, i0, j1, k)], old[1][at(1, i1, j1, k)]);
+            vf[2] = mean4(old[2][at(2, i0, j, k0)], old[2][at(2, i1, j, k0)], old[2][at(2, i0, j, k1)], old[2][at(2, i1, j, k1)]);
+        } else if (axis == 1) {
+            pair(1, j - 1, shape[1] - 1, j0, j1);
+            pair(0, i, shape[0], i0, i1);
+            pair(2, k, shape[2], k0, k1);
+            vf[0] = mean4(old[0][at(0, i0, j0, k)], old[0][at(0, i0, j1, k)], old[0][at(0, i1, j0, k)], old[0][at(0, i1, j1, k)]);
+            vf[1] = old[1][self];
+            vf[2] = mean4(old[2][at(2, i, j0, k0)], old[2][at(2, i, j1, k0)], old[2][at(2, i, j0, k1)], old[2][at(2, i, j1, k1)]);
+        } else {
+            pair(2, k - 1, shape[2] - 1, k0, k1);
+            pair(0, i, shape[0], i0, i1);
+            pair(1, j, shape[1], j0, j1);
+            vf[0] = mean4(old[0][at(0, i0, j, k0)], old[0][at(0, i0, j, k1)], old[0][at(0, i1, j, k0)], old[0][at(0, i1, j, k1)]);
+            vf[1] = mean4(old[1][at(1, i, j0, k0)], old[1][at(1, i, j0, k1)], old[1][at(1, i, j1, k0)], old[1][at(1, i, j1, k1)]);
+            vf[2] = old[2][self];
+        }
+        // x_mid = x - (0.5 dt) v_face
+        float half_dt = 0.5f * dt;
+        float xm[3];
+        for (int c = 0; c < 3; ++c) {
+            float d = half_dt * vf[c];
+            xm[c] = x[c] - d;
+        }
+        // sample_velocity at x_mid
+        float s[3];
+        grid_coords(xm, s);
+        int ci0, ci1, cj0, cj1, ck0, ck1, fi0, fi1, fj0, fj1, fk0, fk1;
+        float cwx, cwy, cwz, fwx, fwy, fwz;
+        sample_axis(0, -1, s[0], ci0, ci1, cwx);
+        sample_axis(1, -1, s[1], cj0, cj1, cwy);
+        sample_axis(2, -1, s[2], ck0, ck1, cwz);
+        sample_axis(0, 0, s[0] + 0.5f, fi0, fi1, fwx);
+        sample_axis(1, 1, s[1] + 0.5f, fj0, fj1, fwy);
+        sample_axis(2, 2, s[2] + 0.5f, fk0, fk1, fwz);
+        float vm[3];
+        vm[0] = trilinear(0, fi0, fi1, fwx, cj0, cj1, cwy, ck0, ck1, cwz);
+        vm[1] = trilinear(1, ci0, ci1, cwx, fj0, fj1, fwy, ck0, ck1, cwz);
+        vm[2] = trilinear(2, ci0, ci1, cwx, cj0, cj1, cwy, fk0, fk1, fwz);
+        // x_dep = x - dt v_mid; sample_component of the face's axis there (sample_array)
+        float xd[3];
+        for (int c = 0; c < 3; ++c) {
+            float d = dt * vm[c];
+            xd[c] = x[c] - d;
+        }
+        grid_coords(xd, s);
+        int lo[3], hi[3];
+        float w[3];
+        for (int c = 0; c < 3; ++c) {
+            float e = 0.5f * (float)(axis == c);
+            float sc = s[c] + e;
+            sample_axis(c, axis, sc, lo[c], hi[c], w[c]);
+        }
+        out[self] = trilinear(axis, lo[0], hi[0], w[0], lo[1], hi[1], w[1], lo[2], hi[2], w[2]);
+    }
+""")
+def advect_faces(g: K.GridInfo, axis: int, faces: wp.array(dtype=wp.vec3i), types: K.FaceInt, vel_old: K.FaceFloat,
+                 dt: float, vel_new: K.FaceFloat, first: int, last: int):
+    """``kernels/gas.py`` ``advect_one`` for the entries [first, last) of ``faces``."""
+    ...
+
+
+def _advect_kernel(axis_constant: int):
+    def advect_kernel(
+        block: int,
+        g: K.GridInfo,
+        faces: wp.array(dtype=wp.vec3i),
+        types: K.FaceInt,
+        vel_old: K.FaceFloat,
+        dt: float,
+        # outputs
+        vel_new: K.FaceFloat,
+    ):
+        """``kernels/gas.py`` ``ADVECT_KERNELS[axis]``: ``block`` consecutive entries of ``faces`` per thread."""
+        t = wp.tid()
+        advect_faces(g, wp.static(axis_constant), faces, types, vel_old, dt, vel_new, t * block,
+                     wp.min(faces.shape[0], (t + 1) * block))
+
+    return wp.Kernel(advect_kernel, key=f"advect_kernel_{'xyz'[axis_constant]}", module=wp.get_module(__name__))
+
+
+ADVECT_KERNELS = tuple(_advect_kernel(axis) for axis in range(3))
+"""``kernels/gas.py`` ``ADVECT_KERNELS``' native versions (same launch, same bits)."""
+
+
 ONE_THREAD = frozenset({"pcg_step_kernel", "pcg_direction_kernel", "ic0_factor_kernel", "ic0_apply_kernel",
                         "ic0_step_apply_kernel", "mg_smooth_kernel", "mg_smooth_from_zero_kernel",
                         "mg_residual_restrict_kernel", "mg_prolong_kernel", "mg_coarsen_kernel"})
@@ -663,11 +861,22 @@ def for_device(kernel, dim: int, device, arguments) -> tuple:
     module's native version where there is one (its own dim), else ``kernel`` itself. The native loops take raw
     pointers, so every array among ``arguments`` (also inside a ``Stencil``) must be contiguous (checked here, when a
     launch is recorded)."""
-    if not wp.get_device(device).is_cpu or getattr(K, kernel.key, None) is not kernel or kernel.key not in _NATIVE:
+    if not wp.get_device(device).is_cpu:
+        return kernel, dim
+    if kernel in K.ADVECT_KERNELS:
+        native = ADVECT_KERNELS[K.ADVECT_KERNELS.index(kernel)]
+    elif getattr(K, kernel.key, None) is kernel and kernel.key in _NATIVE:
+        native = globals()[kernel.key]
+    else:
         return kernel, dim
     for value in arguments:
-        arrays = (value.diag, value.coef, value.neighbour) if hasattr(value, "neighbour") else (value,)
+        if hasattr(value, "neighbour"):  # Stencil
+            arrays = (value.diag, value.coef, value.neighbour)
+        elif hasattr(value, "z") and hasattr(value, "y"):  # FaceFloat, FaceInt
+            arrays = (value.x, value.y, value.z)
+        else:
+            arrays = (value,)
         for array in arrays:
             if isinstance(array, wp.array) and not array.is_contiguous:
                 raise ValueError(f"{kernel.key}: the native CPU loop needs contiguous arrays")
-    return globals()[kernel.key], 1 if kernel.key in ONE_THREAD else dim
+    return native, 1 if kernel.key in ONE_THREAD else dim

@@ -446,6 +446,31 @@ def test_velocity_at_face_is_the_trilinear_sample_there(periodic):
         assert np.allclose(direct.numpy(), sampled.numpy(), rtol=0.0, atol=8.0 * ds * u_max + 1e-6), axis
 
 
+@pytest.mark.parametrize("periodic", [(False, False, False), (True, False, True)], ids=["walled", "periodic"])
+def test_native_advection_equals_the_warp_kernel(periodic):
+    """kernels/gas_cpu.py's native advection (what ``GasSolver`` launches on the CPU) gives the face velocities of
+    kernels/gas.py's ``ADVECT_KERNELS`` bit for bit, on every face of a box (walls and alias faces keep their value)
+    with back-traces of up to ~4 cells that leave the box (clamped) or wrap (periodic axes, odd counts)."""
+    grid = Grid(spacing=1e-3, shape=(7, 5, 6), periodic=periodic, origin=(0.1, -0.02, 0.3))
+    domain = Geometry(shapes=(Box(lo=(-1, -1, -1), hi=(1, 1, 1)),)).build(grid)
+    gas = GasField(domain)
+    rng = np.random.default_rng(8)
+    gas.set_face_velocity([rng.normal(0.0, 1.0, size=a.shape) for a in gas.face_arrays()])
+    for axis in range(3):
+        shape = list(grid.shape)
+        shape[axis] += 1
+        every = wp.array(np.argwhere(np.ones(shape, dtype=bool)).astype(np.int32), dtype=wp.vec3i)
+        native, dim = gas_cpu.for_device(K.ADVECT_KERNELS[axis], 3, "cpu", [])
+        assert native is not K.ADVECT_KERNELS[axis]
+        results = []
+        for kernel in (K.ADVECT_KERNELS[axis], native):
+            out = GasField._faces(grid, None, fill=np.nan)
+            wp.launch(kernel, dim=(every.shape[0] + 15) // 16,
+                      inputs=[16, grid.info(), every, domain.face_type, gas.face_velocity, 4e-3, out])
+            results.append((out.x, out.y, out.z)[axis].numpy())
+        assert np.isfinite(results[0]).all() and np.array_equal(results[0], results[1]), axis
+
+
 def _stencil_system(shape, periodic, seed):
     """A 7-point SPD system on the cells of ``shape`` with a random mask (the compact rows of ``GasSolver``:
     ascending flat order, slots -x, +x, -y, +y, -z, +z, an unused slot coef 0 pointing at its own row): random
