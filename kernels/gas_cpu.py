@@ -299,6 +299,7 @@ def pcg_dot_pair_kernel(
     double floor = 1.0e-3;
     if (relaxation > 0.0)
         floor = 0.25;
+    double p_previous = 0.0;  // pivot of row i - 1 in a register (the -z neighbour of a row is the row before)
     for (int i = 0; i < n; ++i) {
         double di = d[i];
         for (int m = 0; m < 6; ++m) {
@@ -316,13 +317,14 @@ def pcg_dot_pair_kernel(
                 double t1 = relaxation * fill;
                 double t2 = cm + t1;
                 double t3 = cm * t2;
-                double t4 = t3 / pv[j];
+                double t4 = t3 / (j == i - 1 ? p_previous : pv[j]);
                 di = di - t4;
             }
         }
         double bound = floor * d[i];
         if (di <= bound)
             di = d[i];
+        p_previous = di;
         pv[i] = di;
         pinv[i] = 1.0 / di;
     }
@@ -348,45 +350,57 @@ def ic0_factor_kernel(
 # forward then backward substitution of IC(0) into z (``ic0_apply_kernel``'s order); ``rv`` the right-hand side,
 # FORWARD_PROLOGUE what a row does before its forward substitution (``ic0_step_apply_kernel``: the step)
 _SUBSTITUTIONS = """
+    double z_previous = 0.0;  // z of row i - 1, kept in a register: the -z neighbour of a row is the row before
     for (int i = 0; i < n; ++i) {
         FORWARD_PROLOGUE
         double acc = rv[i];
         if (ordered != 0) {
             zv[i] = 0.0;
-            for (int m = 0; m < 6; m += 2) {
+            for (int m = 0; m < 4; m += 2) {
                 double t = c[6 * (size_t)i + m] * zv[nb[6 * (size_t)i + m]];
                 acc = acc + t;
             }
+            int below = nb[6 * (size_t)i + 4];
+            double z_below = below == i - 1 ? z_previous : zv[below];
+            double t = c[6 * (size_t)i + 4] * z_below;
+            acc = acc + t;
         } else {
             for (int m = 0; m < 6; ++m) {
                 int j = nb[6 * (size_t)i + m];
                 if (j < i) {
-                    double t = c[6 * (size_t)i + m] * zv[j];
+                    double t = c[6 * (size_t)i + m] * (j == i - 1 ? z_previous : zv[j]);
                     acc = acc + t;
                 }
             }
         }
-        zv[i] = acc * pinv[i];
+        z_previous = acc * pinv[i];
+        zv[i] = z_previous;
     }
+    double z_next = 0.0;  // z of row i + 1 (its +z neighbour when in the same column), in a register
     for (int step = 0; step < n; ++step) {
         int i = n - 1 - step;
         double acc = 0.0;
         if (ordered != 0) {
-            for (int m = 1; m < 6; m += 2) {
+            for (int m = 1; m < 4; m += 2) {
                 double t = c[6 * (size_t)i + m] * zv[nb[6 * (size_t)i + m]];
                 acc = acc + t;
             }
+            int above = nb[6 * (size_t)i + 5];
+            double z_above = above == i + 1 ? z_next : zv[above];
+            double t = c[6 * (size_t)i + 5] * z_above;
+            acc = acc + t;
         } else {
             for (int m = 0; m < 6; ++m) {
                 int j = nb[6 * (size_t)i + m];
                 if (j > i) {
-                    double t = c[6 * (size_t)i + m] * zv[j];
+                    double t = c[6 * (size_t)i + m] * (j == i + 1 ? z_next : zv[j]);
                     acc = acc + t;
                 }
             }
         }
         double u = acc * pinv[i];
-        zv[i] = zv[i] + u;
+        z_next = zv[i] + u;
+        zv[i] = z_next;
     }
 """
 
