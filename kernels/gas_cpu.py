@@ -13,6 +13,11 @@ The advection (``ADVECT_KERNELS``) is here too, as the same per-face arithmetic 
 gathers of the back-traced samples and the divisions more than the addressing, so it gains less (~20 % on the rig's
 faces, 8.0 -> 6.1 ms at best for the three axes, same bits).
 
+Three cell passes are here as well, per cell in the same arithmetic: the pressure right-hand side and matrix
+(``pressure_rhs_kernel``, 4.7 -> 2.7 ms at best on the rig), the projection's cell pass (``cell_projected_kernel``,
+2.3 -> 1.4 ms) and the Smagorinsky viscosity (``smagorinsky_kernel``, 2.1 -> 1.7 ms: nine divisions and a square
+root per cell).
+
 Each kernel here has the signature of the kernel of ``kernels/gas.py`` with the same name (``SAME_SIGNATURE``), so a
 launch takes either; the row loops run in one thread (``dim=1``: the CPU runs a launch's threads one after another
 in order, so one thread over all rows is the same order) except the chunked dot-product passes, which keep
@@ -862,12 +867,322 @@ ADVECT_KERNELS = tuple(_advect_kernel(axis) for axis in range(3))
 """``kernels/gas.py`` ``ADVECT_KERNELS``' native versions (same launch, same bits)."""
 
 
+# ----------------------------------------------------------------- the projection's cell pass (block entries per thread)
+
+_GRID = """
+    const int shape[3] = {g.shape.c[0], g.shape.c[1], g.shape.c[2]};
+    const int periodic[3] = {g.periodic.c[0], g.periodic.c[1], g.periodic.c[2]};
+    // flat index of face (i, j, k) in the face array of axis a (shape + e_a, C order); of cell (i, j, k)
+    auto at = [&](int a, int i, int j, int k) -> size_t {
+        size_t sy = (size_t)(shape[1] + (a == 1));
+        size_t sz = (size_t)(shape[2] + (a == 2));
+        return ((size_t)i * sy + (size_t)j) * sz + (size_t)k;
+    };
+    auto cell_at = [&](int i, int j, int k) -> size_t {
+        return ((size_t)i * (size_t)shape[1] + (size_t)j) * (size_t)shape[2] + (size_t)k;
+    };
+"""
+
+
+@wp.func_native(_GRID + """
+    const wp::vec_t<3, int>* __restrict__ list = cells.data;
+    const int* __restrict__ fluid = cell_fluid.data;
+    const int* __restrict__ type[3] = {types.x.data, types.y.data, types.z.data};
+    const float* __restrict__ gp[3] = {face_grad_p.x.data, face_grad_p.y.data, face_grad_p.z.data};
+    const float* __restrict__ v[3] = {vel.x.data, vel.y.data, vel.z.data};
+    const double* __restrict__ pv = p.data;
+    float* __restrict__ out_p = cell_pressure.data;
+    wp::vec_t<3, float>* __restrict__ out_grad = cell_grad_p.data;
+    wp::vec_t<3, float>* __restrict__ out_u = cell_velocity.data;
+    const float minus_rho = -params.rho;
+    for (int index = first; index < last; ++index) {
+        int c[3] = {list[index].c[0], list[index].c[1], list[index].c[2]};
+        size_t cell = cell_at(c[0], c[1], c[2]);
+        float grad[3];
+        float u[3] = {0.0f, 0.0f, 0.0f};
+        for (int a = 0; a < 3; ++a)
+            grad[a] = minus_rho * params.body_accel.c[a];
+        float pressure = 0.0f;
+        if (fluid[cell] != 0) {
+            for (int a = 0; a < 3; ++a) {
+                int hi[3] = {c[0], c[1], c[2]};
+                hi[a] = hi[a] + 1;
+                if (periodic[a] != 0 && hi[a] >= shape[a])  // wrap_face: the alias face is face 0
+                    hi[a] = (hi[a] % shape[a] + shape[a]) % shape[a];
+                size_t lo_face = at(a, c[0], c[1], c[2]);
+                size_t hi_face = at(a, hi[0], hi[1], hi[2]);
+                float sum = v[a][lo_face] + v[a][hi_face];
+                u[a] = 0.5f * sum;
+                float acc = 0.0f;
+                float n = 0.0f;
+                int t_lo = type[a][lo_face];
+                if (t_lo == 1 || t_lo == 3) {
+                    acc = acc + gp[a][lo_face];
+                    n = n + 1.0f;
+                }
+                int t_hi = type[a][hi_face];
+                if (t_hi == 1 || t_hi == 3) {
+                    acc = acc + gp[a][hi_face];
+                    n = n + 1.0f;
+                }
+                if (n > 0.0f) {
+                    float mean = acc / n;
+                    grad[a] = grad[a] + mean;
+                }
+            }
+            pressure = (float)pv[cell];
+        }
+        out_p[cell] = pressure;
+        out_grad[cell] = wp::vec_t<3, float>(grad[0], grad[1], grad[2]);
+        out_u[cell] = wp::vec_t<3, float>(u[0], u[1], u[2]);
+        if (!(wp::isfinite(u[0]) && wp::isfinite(u[1]) && wp::isfinite(u[2]) && wp::isfinite(pressure)))
+            bad_count.data[0] += 1;
+    }
+""")
+def cell_projected_cells(g: K.GridInfo, params: K.FlowParams, cells: wp.array(dtype=wp.vec3i),
+                         cell_fluid: wp.array3d(dtype=wp.int32), types: K.FaceInt, face_grad_p: K.FaceFloat,
+                         p: wp.array(dtype=f64), vel: K.FaceFloat, cell_pressure: wp.array3d(dtype=float),
+                         cell_grad_p: wp.array3d(dtype=wp.vec3), cell_velocity: wp.array3d(dtype=wp.vec3),
+                         bad_count: wp.array(dtype=wp.int32), first: int, last: int):
+    """``kernels/gas.py`` ``cell_projected_one`` for the entries [first, last) of ``cells``."""
+    ...
+
+
+@wp.kernel
+def cell_projected_kernel(
+    block: int,
+    g: K.GridInfo,
+    params: K.FlowParams,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    types: K.FaceInt,
+    face_grad_p: K.FaceFloat,
+    p: wp.array(dtype=f64),
+    vel: K.FaceFloat,
+    # outputs
+    cell_pressure: wp.array3d(dtype=float),
+    cell_grad_p: wp.array3d(dtype=wp.vec3),
+    cell_velocity: wp.array3d(dtype=wp.vec3),
+    bad_count: wp.array(dtype=wp.int32),
+):
+    """``kernels/gas.py`` ``cell_projected_kernel``: ``block`` consecutive entries of ``cells`` per thread."""
+    t = wp.tid()
+    cell_projected_cells(g, params, cells, cell_fluid, types, face_grad_p, p, vel, cell_pressure, cell_grad_p,
+                         cell_velocity, bad_count, t * block, wp.min(cells.shape[0], (t + 1) * block))
+
+
+@wp.func_native(_GRID + """
+    const wp::vec_t<3, int>* __restrict__ list = cells.data;
+    const int* __restrict__ row_of = cell_row.data;
+    const int* __restrict__ fluid = cell_fluid.data;
+    const int* __restrict__ type[3] = {types.x.data, types.y.data, types.z.data};
+    const float* __restrict__ outlet_p[3] = {bc.pressure.x.data, bc.pressure.y.data, bc.pressure.z.data};
+    const float* __restrict__ eps_face[3] = {face_eps.x.data, face_eps.y.data, face_eps.z.data};
+    const float* __restrict__ v[3] = {vel.x.data, vel.y.data, vel.z.data};
+    const float* __restrict__ eps_now = cell_eps_f.data;
+    const float* __restrict__ eps_before = cell_eps_f_prev.data;
+    double* __restrict__ b_out = rhs.data;
+    double* __restrict__ diag_out = A.diag.data;
+    double* __restrict__ coef_out = A.coef.data;
+    int* __restrict__ act = active.data;
+    double* __restrict__ sums = fluid_sum.data;
+    const double h = (double)g.spacing;
+    for (int index = first; index < last; ++index) {
+        int c[3] = {list[index].c[0], list[index].c[1], list[index].c[2]};
+        size_t cell = cell_at(c[0], c[1], c[2]);
+        int row = row_of[cell];
+        if (row < 0)
+            continue;
+        act[row] = 0;
+        double div = 0.0;
+        double gross = 0.0;
+        double b = 0.0;
+        double a_diag = 0.0;
+        for (int a = 0; a < 3; ++a) {
+            for (int side = 0; side < 2; ++side) {
+                int f[3] = {c[0], c[1], c[2]};
+                f[a] = f[a] + side;
+                if (periodic[a] != 0 && f[a] >= shape[a])  // wrap_face: the alias face is face 0
+                    f[a] = (f[a] % shape[a] + shape[a]) % shape[a];
+                size_t face = at(a, f[0], f[1], f[2]);
+                double sign = (double)(2 * side - 1);
+                double eps = (double)eps_face[a][face];
+                double flux = eps * (double)v[a][face];
+                double signed_flux = sign * flux;
+                div = div + signed_flux;
+                gross = gross + fabs(flux);
+                int t = type[a][face];
+                double coef = 0.0;
+                if (t == 1 && fluid[cell] != 0) {
+                    a_diag = a_diag + eps;
+                    coef = eps;
+                } else if (t == 3) {
+                    double twice = 2.0 * eps;
+                    a_diag = a_diag + twice;
+                    float weighted = outlet_weight * outlet_p[a][face];
+                    double term = twice * (double)weighted;
+                    b = b + term;
+                }
+                coef_out[6 * (size_t)row + 2 * a + side] = coef;
+            }
+        }
+        div = div / h;
+        gross = gross / h;
+        float change = eps_now[cell] - eps_before[cell];
+        double d_eps_dt = (double)change / (double)params.dt;
+        double scale = (double)params.rho * h;
+        scale = scale * h;
+        scale = scale / (double)params.dt;
+        double source = div + d_eps_dt;
+        double term = scale * source;
+        b = b - term;
+        if (a_diag == 0.0) {  // enclosed fluid cell: nothing can flow, keep p = 0
+            b_out[row] = 0.0;
+            diag_out[row] = 1.0;
+            continue;
+        }
+        b_out[row] = b;
+        diag_out[row] = a_diag;
+        act[row] = 1;
+        sums[0] = sums[0] + b;
+        sums[1] = sums[1] + 1.0;
+        gross = scale * gross;
+        double gross2 = gross * gross;
+        sums[2] = sums[2] + gross2;
+    }
+""")
+def pressure_rhs_cells(g: K.GridInfo, params: K.FlowParams, cells: wp.array(dtype=wp.vec3i),
+                       cell_row: wp.array(dtype=wp.int32), cell_fluid: wp.array3d(dtype=wp.int32), types: K.FaceInt,
+                       bc: K.FaceBc, face_eps: K.FaceFloat, vel: K.FaceFloat, cell_eps_f: wp.array3d(dtype=float),
+                       cell_eps_f_prev: wp.array3d(dtype=float), outlet_weight: float, rhs: wp.array(dtype=f64),
+                       A: K.Stencil, active: wp.array(dtype=wp.int32), fluid_sum: wp.array(dtype=f64), first: int,
+                       last: int):
+    """``kernels/gas.py`` ``pressure_rhs_one`` for the entries [first, last) of ``cells``."""
+    ...
+
+
+@wp.kernel
+def pressure_rhs_kernel(
+    block: int,
+    g: K.GridInfo,
+    params: K.FlowParams,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_row: wp.array(dtype=wp.int32),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    types: K.FaceInt,
+    bc: K.FaceBc,
+    face_eps: K.FaceFloat,
+    vel: K.FaceFloat,
+    cell_eps_f: wp.array3d(dtype=float),
+    cell_eps_f_prev: wp.array3d(dtype=float),
+    outlet_weight: float,
+    # outputs
+    rhs: wp.array(dtype=f64),
+    A: K.Stencil,
+    active: wp.array(dtype=wp.int32),
+    fluid_sum: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``pressure_rhs_kernel``: ``block`` consecutive entries of ``cells`` per thread (the sums in
+    ``fluid_sum`` added in the same order)."""
+    t = wp.tid()
+    pressure_rhs_cells(g, params, cells, cell_row, cell_fluid, types, bc, face_eps, vel, cell_eps_f, cell_eps_f_prev,
+                       outlet_weight, rhs, A, active, fluid_sum, t * block, wp.min(cells.shape[0], (t + 1) * block))
+
+
+@wp.func_native(_GRID + """
+    const wp::vec_t<3, int>* __restrict__ list = cells.data;
+    const int* __restrict__ fluid = cell_fluid.data;
+    const wp::vec_t<3, float>* __restrict__ u = cell_velocity.data;
+    const float* __restrict__ eps = cell_eps_f.data;
+    float* __restrict__ nu_out = cell_nu_t.data;
+    float* __restrict__ kappa_out = cell_kappa.data;
+    const float h = g.spacing;
+    for (int index = first; index < last; ++index) {
+        int c[3] = {list[index].c[0], list[index].c[1], list[index].c[2]};
+        size_t cell = cell_at(c[0], c[1], c[2]);
+        float grad[3][3];
+        for (int d = 0; d < 3; ++d) {
+            // cell_value: the neighbour along d (wrapped on a periodic axis), the cell itself beyond a wall
+            int up[3] = {c[0], c[1], c[2]};
+            int down[3] = {c[0], c[1], c[2]};
+            up[d] = up[d] + 1;
+            down[d] = down[d] - 1;
+            int n = shape[d];
+            if (up[d] >= n) {
+                if (periodic[d] != 0)
+                    up[d] = (up[d] % n + n) % n;
+                else
+                    up[d] = c[d];
+            }
+            if (down[d] < 0) {
+                if (periodic[d] != 0)
+                    down[d] = (down[d] % n + n) % n;
+                else
+                    down[d] = c[d];
+            }
+            const wp::vec_t<3, float>& vu = u[cell_at(up[0], up[1], up[2])];
+            const wp::vec_t<3, float>& vd = u[cell_at(down[0], down[1], down[2])];
+            float two_h = 2.0f * h;
+            for (int a = 0; a < 3; ++a) {
+                float difference = vu.c[a] - vd.c[a];
+                grad[a][d] = difference / two_h;
+            }
+        }
+        float ss = 0.0f;
+        for (int a = 0; a < 3; ++a) {
+            for (int d = 0; d < 3; ++d) {
+                float sum = grad[a][d] + grad[d][a];
+                float strain = 0.5f * sum;
+                float square = strain * strain;
+                ss = ss + square;
+            }
+        }
+        float length = params.smagorinsky * h;
+        float length2 = length * length;
+        float twice = 2.0f * ss;
+        float nu_t = length2 * wp::sqrt(twice);
+        if (fluid[cell] == 0)
+            nu_t = 0.0f;
+        nu_out[cell] = nu_t;
+        float turbulent = params.rho * nu_t;
+        float mu_eff = params.mu + turbulent;
+        kappa_out[cell] = eps[cell] * mu_eff;
+    }
+""")
+def smagorinsky_cells(g: K.GridInfo, params: K.FlowParams, cells: wp.array(dtype=wp.vec3i),
+                      cell_fluid: wp.array3d(dtype=wp.int32), cell_velocity: wp.array3d(dtype=wp.vec3),
+                      cell_eps_f: wp.array3d(dtype=float), cell_nu_t: wp.array3d(dtype=float),
+                      cell_kappa: wp.array3d(dtype=float), first: int, last: int):
+    """``kernels/gas.py`` ``smagorinsky_one`` for the entries [first, last) of ``cells``."""
+    ...
+
+
+@wp.kernel
+def smagorinsky_kernel(
+    block: int,
+    g: K.GridInfo,
+    params: K.FlowParams,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    cell_velocity: wp.array3d(dtype=wp.vec3),
+    cell_eps_f: wp.array3d(dtype=float),
+    # outputs
+    cell_nu_t: wp.array3d(dtype=float),
+    cell_kappa: wp.array3d(dtype=float),
+):
+    """``kernels/gas.py`` ``smagorinsky_kernel``: ``block`` consecutive entries of ``cells`` per thread."""
+    t = wp.tid()
+    smagorinsky_cells(g, params, cells, cell_fluid, cell_velocity, cell_eps_f, cell_nu_t, cell_kappa, t * block,
+                      wp.min(cells.shape[0], (t + 1) * block))
+
+
 ONE_THREAD = frozenset({"pcg_step_kernel", "pcg_direction_kernel", "ic0_factor_kernel", "ic0_apply_kernel",
                         "ic0_step_apply_kernel", "mg_smooth_kernel", "mg_smooth_from_zero_kernel",
                         "mg_residual_restrict_kernel", "mg_prolong_kernel", "mg_coarsen_kernel"})
 """The kernels here whose one thread runs every row (launch ``dim=1``); the others keep their Warp launch dims."""
 
-_NATIVE = ("pcg_matvec_dot_kernel", "pcg_residual_start_kernel", "pcg_dot_pair_kernel", *sorted(ONE_THREAD))
+_NATIVE = ("pcg_matvec_dot_kernel", "pcg_residual_start_kernel", "pcg_dot_pair_kernel", "cell_projected_kernel",
+           "pressure_rhs_kernel", "smagorinsky_kernel", *sorted(ONE_THREAD))
 
 
 def for_device(kernel, dim: int, device, arguments) -> tuple:
@@ -888,6 +1203,8 @@ def for_device(kernel, dim: int, device, arguments) -> tuple:
             arrays = (value.diag, value.coef, value.neighbour)
         elif hasattr(value, "z") and hasattr(value, "y"):  # FaceFloat, FaceInt
             arrays = (value.x, value.y, value.z)
+        elif hasattr(value, "pressure"):  # FaceBc: the native loops read its outlet pressure
+            arrays = (value.pressure.x, value.pressure.y, value.pressure.z)
         else:
             arrays = (value,)
         for array in arrays:

@@ -363,6 +363,28 @@ def test_fluid_launches_match_the_whole_box(case, linear_solver):
     pressure right-hand side (float64, on a GPU), far below float32 round-off of the stored fields. The solid
     cells hold the constants the interpolation to parcels reads: eps_f 1, velocity 0, grad p' the imposed
     mean gradient."""
+    domain, config = _masked_case(case, linear_solver)
+    grid = domain.grid
+    fluid = domain.cell_fluid.numpy().astype(bool)
+    assert 0.3 < fluid.mean() < 0.9  # a real mask
+    runs = {}
+    for launch_over in ("box", "fluid"):
+        solver = GasSolver(domain, config, launch_over=launch_over)
+        runs[launch_over] = _three_steps(solver, domain), solver.last_iterations
+    assert runs["box"][1] == runs["fluid"][1]  # the same CG iterations
+    for box, fluid_only in zip(runs["box"][0], runs["fluid"][0]):
+        assert box.keys() == fluid_only.keys()
+        for name, expected in box.items():
+            scale = max(np.abs(expected).max(), 1e-30)
+            assert np.allclose(fluid_only[name], expected, rtol=1e-6, atol=1e-6 * scale), name
+    last = runs["fluid"][0][-1]
+    assert np.all(last["cell_eps_f"][~fluid] == 1.0) and np.all(last["cell_velocity"][~fluid] == 0.0)
+    imposed = np.asarray(config.mean_pressure_gradient)
+    assert np.allclose(last["cell_grad_p"][~fluid], imposed, rtol=1e-6, atol=0.0)
+
+
+def _masked_case(case, linear_solver):
+    """The masked boxes of ``test_fluid_launches_match_the_whole_box``: (domain, config)."""
     if case == "inlet_outlet":  # a box with an inclined channel, an inlet and an outlet: walls, inlet, outlet faces
         grid = Grid(spacing=1e-3, shape=(14, 10, 8))
         geometry = Geometry(shapes=(Box(lo=(0, 1e-3, 1e-3), hi=(14e-3, 8e-3, 7e-3)),
@@ -376,31 +398,41 @@ def test_fluid_launches_match_the_whole_box(case, linear_solver):
         geometry = Geometry(shapes=(Box(lo=(-1, 1e-3, -1), hi=(1, 7e-3, 1)),
                                     Box(lo=(3e-3, 0, 2e-3), hi=(6e-3, 9e-3, 5e-3))))
         config = GasConfig(linear_solver=linear_solver, mean_pressure_gradient=(-2.0, 0.0, 0.5))
-    domain = geometry.build(grid)
-    fluid = domain.cell_fluid.numpy().astype(bool)
-    assert 0.3 < fluid.mean() < 0.9  # a real mask
-    runs = {}
-    for launch_over in ("box", "fluid"):
-        rng = np.random.default_rng(5)
-        solver, gas = GasSolver(domain, config, launch_over=launch_over), GasField(domain)
-        gas.set_face_velocity([rng.normal(0.0, 0.2, size=a.shape) for a in gas.face_arrays()])
-        fields = []
-        for _ in range(3):
-            gas.cell_eps_s.assign(rng.uniform(0.0, 0.4, grid.shape).astype(np.float32))
-            gas.cell_momentum_source.assign(rng.normal(0.0, 1e-9, grid.shape + (3,)).astype(np.float32))
-            solver.step(gas, 1e-3)
-            fields.append(_gas_fields(gas))
-        runs[launch_over] = fields, solver.last_iterations
-    assert runs["box"][1] == runs["fluid"][1]  # the same CG iterations
-    for box, fluid_only in zip(runs["box"][0], runs["fluid"][0]):
-        assert box.keys() == fluid_only.keys()
-        for name, expected in box.items():
-            scale = max(np.abs(expected).max(), 1e-30)
-            assert np.allclose(fluid_only[name], expected, rtol=1e-6, atol=1e-6 * scale), name
-    last = runs["fluid"][0][-1]
-    assert np.all(last["cell_eps_f"][~fluid] == 1.0) and np.all(last["cell_velocity"][~fluid] == 0.0)
-    imposed = np.asarray(config.mean_pressure_gradient)
-    assert np.allclose(last["cell_grad_p"][~fluid], imposed, rtol=1e-6, atol=0.0)
+    return geometry.build(grid), config
+
+
+def _three_steps(solver, domain):
+    """Three steps of ``solver`` from random face velocities with random eps_s and particle sources (seeded): the
+    GasField arrays after each (``_gas_fields``)."""
+    rng = np.random.default_rng(5)
+    gas, shape = GasField(domain), domain.grid.shape
+    gas.set_face_velocity([rng.normal(0.0, 0.2, size=a.shape) for a in gas.face_arrays()])
+    fields = []
+    for _ in range(3):
+        gas.cell_eps_s.assign(rng.uniform(0.0, 0.4, shape).astype(np.float32))
+        gas.cell_momentum_source.assign(rng.normal(0.0, 1e-9, shape + (3,)).astype(np.float32))
+        solver.step(gas, 1e-3)
+        fields.append(_gas_fields(gas))
+    return fields
+
+
+@pytest.mark.parametrize("case", ["inlet_outlet", "periodic"])
+@pytest.mark.parametrize("linear_solver", ["native", "warp"])
+def test_native_cpu_loops_give_the_warp_kernels_step(case, linear_solver, monkeypatch):
+    """On the CPU ``GasSolver`` and its V-cycle launch kernels/gas_cpu.py's native loops (solvers, advection,
+    pressure right-hand side, Smagorinsky, the projection's cell pass); with them switched off
+    (``gas_cpu.for_device`` handing back the Warp kernels) three steps on a masked box with walls, an inlet and an
+    outlet, or periodic axes, give every GasField array bit for bit and the same CG iterations."""
+    domain, config = _masked_case(case, linear_solver)
+    native_solver = GasSolver(domain, config)
+    native = _three_steps(native_solver, domain)
+    monkeypatch.setattr(gas_cpu, "for_device", lambda kernel, dim, device, arguments: (kernel, dim))
+    warp_solver = GasSolver(domain, config)
+    reference = _three_steps(warp_solver, domain)
+    assert native_solver.last_iterations == warp_solver.last_iterations
+    for step_native, step_warp in zip(native, reference):
+        for name, expected in step_warp.items():
+            assert np.array_equal(step_native[name], expected, equal_nan=True), name
 
 
 def test_launch_over_is_checked():
