@@ -16,7 +16,8 @@ faces, 8.0 -> 6.1 ms at best for the three axes, same bits).
 Three cell passes are here as well, per cell in the same arithmetic: the pressure right-hand side and matrix
 (``pressure_rhs_kernel``, 4.7 -> 2.7 ms at best on the rig), the projection's cell pass (``cell_projected_kernel``,
 2.3 -> 1.4 ms) and the Smagorinsky viscosity (``smagorinsky_kernel``, 2.1 -> 1.7 ms: nine divisions and a square
-root per cell).
+root per cell); and the viscous systems' assembly with the forces (``VISCOUS_RHS_KERNELS``, 4.5 -> 2.8 ms for the
+three axes).
 
 Each kernel here has the signature of the kernel of ``kernels/gas.py`` with the same name (``SAME_SIGNATURE``), so a
 launch takes either; the row loops run in one thread (``dim=1``: the CPU runs a launch's threads one after another
@@ -1176,6 +1177,193 @@ def smagorinsky_kernel(
                       wp.min(cells.shape[0], (t + 1) * block))
 
 
+# ----------------------------------------------------------------- the viscous systems' assembly (face blocks)
+
+
+@wp.func_native(_GRID + """
+    const wp::vec_t<3, int>* __restrict__ list = faces.data;
+    const int* __restrict__ row_of = face_row.data;
+    const int* __restrict__ nflat = topology.neighbour_flat.data;
+    const float* __restrict__ factors = topology.factor.data;
+    const float* __restrict__ values = topology.value.data;
+    const int* __restrict__ type = axis == 0 ? types.x.data : (axis == 1 ? types.y.data : types.z.data);
+    const float* __restrict__ outlet_p = axis == 0 ? bc.pressure.x.data : (axis == 1 ? bc.pressure.y.data : bc.pressure.z.data);
+    const int* __restrict__ fluid = cell_fluid.data;
+    const float* __restrict__ eps_face = axis == 0 ? face_eps.x.data : (axis == 1 ? face_eps.y.data : face_eps.z.data);
+    const float* __restrict__ kappa = face_kappa.data;
+    const wp::vec_t<3, float>* __restrict__ source = cell_momentum_source.data;
+    const double* __restrict__ pold = p_old.data;
+    const float* __restrict__ adv = axis == 0 ? advected.x.data : (axis == 1 ? advected.y.data : advected.z.data);
+    double* __restrict__ b_out = rhs.data;
+    double* __restrict__ x0 = guess.data;
+    double* __restrict__ diag_out = A.diag.data;
+    double* __restrict__ coef_out = A.coef.data;
+    const float h = g.spacing;
+    const float rho = params.rho;
+    const float dt = params.dt;
+    // wrap_cell of (i, j, k): false when outside a non-periodic boundary
+    auto wrap = [&](int* c) {
+        for (int d = 0; d < 3; ++d) {
+            int n = shape[d];
+            if (c[d] < 0 || c[d] >= n) {
+                if (periodic[d] != 0)
+                    c[d] = (c[d] % n + n) % n;
+                else
+                    return false;
+            }
+        }
+        return true;
+    };
+    for (int index = first; index < last; ++index) {
+        int f[3] = {list[index].c[0], list[index].c[1], list[index].c[2]};
+        size_t flat = at(axis, f[0], f[1], f[2]);
+        int row = row_of[flat];
+        if (row < 0)
+            continue;
+        // forced_velocity
+        float u = adv[flat];
+        int t = type[flat];
+        float eps_f = eps_face[flat];
+        float volume = h * h;
+        volume = volume * h;
+        if (t == 1) {
+            int lo[3] = {f[0], f[1], f[2]};
+            lo[axis] = lo[axis] - 1;
+            int hi[3] = {f[0], f[1], f[2]};
+            wrap(lo);
+            wrap(hi);
+            size_t c_lo = cell_at(lo[0], lo[1], lo[2]);
+            size_t c_hi = cell_at(hi[0], hi[1], hi[2]);
+            float impulse = 0.0f;
+            float half = 0.5f * source[c_lo].c[axis];
+            impulse = impulse + half;
+            half = 0.5f * source[c_hi].c[axis];
+            impulse = impulse + half;
+            float body = dt * params.body_accel.c[axis];
+            float density = rho * eps_f;
+            density = density * volume;
+            float kick = impulse / density;
+            float increment = body + kick;
+            u = u + increment;
+            double dp = pold[c_hi] - pold[c_lo];
+            float gradient = (float)dp / h;
+            float ratio = dt / rho;
+            float correction = ratio * gradient;
+            u = u - correction;
+        } else if (t == 3) {
+            // momentum_source_increment
+            float impulse = 0.0f;
+            for (int side = 0; side < 2; ++side) {
+                int c[3] = {f[0], f[1], f[2]};
+                c[axis] = c[axis] - (1 - side);
+                if (wrap(c)) {
+                    size_t cell = cell_at(c[0], c[1], c[2]);
+                    if (fluid[cell] != 0) {
+                        float half = 0.5f * source[cell].c[axis];
+                        impulse = impulse + half;
+                    }
+                }
+            }
+            float body = dt * params.body_accel.c[axis];
+            float density = rho * eps_f;
+            density = density * volume;
+            float kick = impulse / density;
+            float increment = body + kick;
+            u = u + increment;
+            // face_pressure_gradient at an outlet (weight 1)
+            float p_out = 1.0f * outlet_p[flat];
+            float difference;
+            if (f[axis] == 0) {
+                difference = (float)pold[cell_at(f[0], f[1], f[2])] - p_out;
+            } else {
+                int c[3] = {f[0], f[1], f[2]};
+                c[axis] = c[axis] - 1;
+                difference = p_out - (float)pold[cell_at(c[0], c[1], c[2])];
+            }
+            float twice = 2.0f * difference;
+            float gradient = twice / h;
+            float ratio = dt / rho;
+            float correction = ratio * gradient;
+            u = u - correction;
+        }
+        // viscous_rhs_one
+        x0[row] = (double)u;
+        float h2 = h * h;
+        float mass = rho * eps_f;
+        mass = mass / dt;
+        float kappa_f = kappa[flat];
+        float b = mass * u;
+        float a_diag = mass;
+        for (int m = 0; m < 6; ++m) {
+            float coef = 0.0f;
+            int neighbour = nflat[6 * (size_t)row + m];
+            if (neighbour >= 0) {
+                float sum = kappa_f + kappa[neighbour];
+                sum = 0.5f * sum;
+                coef = sum / h2;
+                a_diag = a_diag + coef;
+            } else {
+                float factor = factors[6 * (size_t)row + m];
+                if (factor > 0.0f) {
+                    float fk = factor * kappa_f;
+                    float term = fk / h2;
+                    a_diag = a_diag + term;
+                    float fkv = fk * values[6 * (size_t)row + m];
+                    fkv = fkv / h2;
+                    b = b + fkv;
+                }
+            }
+            coef_out[6 * (size_t)row + m] = (double)coef;
+        }
+        b_out[row] = (double)b;
+        diag_out[row] = (double)a_diag;
+    }
+""")
+def viscous_rhs_faces(g: K.GridInfo, axis: int, params: K.FlowParams, faces: wp.array(dtype=wp.vec3i),
+                      face_row: wp.array(dtype=wp.int32), topology: K.ViscousTopology, types: K.FaceInt,
+                      bc: K.FaceBc, cell_fluid: wp.array3d(dtype=wp.int32), face_eps: K.FaceFloat,
+                      face_kappa: wp.array(dtype=float), cell_momentum_source: wp.array3d(dtype=wp.vec3),
+                      p_old: wp.array(dtype=f64), advected: K.FaceFloat, rhs: wp.array(dtype=f64),
+                      guess: wp.array(dtype=f64), A: K.Stencil, first: int, last: int):
+    """``kernels/gas.py`` ``viscous_rhs_one`` (with ``forced_velocity``) for the entries [first, last) of ``faces``."""
+    ...
+
+
+def _viscous_rhs_kernel(axis_constant: int):
+    def viscous_rhs_kernel(
+        block: int,
+        g: K.GridInfo,
+        params: K.FlowParams,
+        faces: wp.array(dtype=wp.vec3i),
+        face_row: wp.array(dtype=wp.int32),
+        topology: K.ViscousTopology,
+        types: K.FaceInt,
+        bc: K.FaceBc,
+        cell_fluid: wp.array3d(dtype=wp.int32),
+        face_eps: K.FaceFloat,
+        face_kappa: wp.array(dtype=float),
+        cell_momentum_source: wp.array3d(dtype=wp.vec3),
+        p_old: wp.array(dtype=f64),
+        advected: K.FaceFloat,
+        # outputs
+        rhs: wp.array(dtype=f64),
+        guess: wp.array(dtype=f64),
+        A: K.Stencil,
+    ):
+        """``kernels/gas.py`` ``VISCOUS_RHS_KERNELS[axis]``: ``block`` consecutive entries of ``faces`` per thread."""
+        t = wp.tid()
+        viscous_rhs_faces(g, wp.static(axis_constant), params, faces, face_row, topology, types, bc, cell_fluid,
+                          face_eps, face_kappa, cell_momentum_source, p_old, advected, rhs, guess, A, t * block,
+                          wp.min(faces.shape[0], (t + 1) * block))
+
+    return wp.Kernel(viscous_rhs_kernel, key=f"viscous_rhs_kernel_{'xyz'[axis_constant]}",
+                     module=wp.get_module(__name__))
+
+
+VISCOUS_RHS_KERNELS = tuple(_viscous_rhs_kernel(axis) for axis in range(3))
+"""``kernels/gas.py`` ``VISCOUS_RHS_KERNELS``' native versions (same launch, same bits)."""
+
+
 ONE_THREAD = frozenset({"pcg_step_kernel", "pcg_direction_kernel", "ic0_factor_kernel", "ic0_apply_kernel",
                         "ic0_step_apply_kernel", "mg_smooth_kernel", "mg_smooth_from_zero_kernel",
                         "mg_residual_restrict_kernel", "mg_prolong_kernel", "mg_coarsen_kernel"})
@@ -1194,6 +1382,8 @@ def for_device(kernel, dim: int, device, arguments) -> tuple:
         return kernel, dim
     if kernel in K.ADVECT_KERNELS:
         native = ADVECT_KERNELS[K.ADVECT_KERNELS.index(kernel)]
+    elif kernel in K.VISCOUS_RHS_KERNELS:
+        native = VISCOUS_RHS_KERNELS[K.VISCOUS_RHS_KERNELS.index(kernel)]
     elif getattr(K, kernel.key, None) is kernel and kernel.key in _NATIVE:
         native = globals()[kernel.key]
     else:
@@ -1205,6 +1395,8 @@ def for_device(kernel, dim: int, device, arguments) -> tuple:
             arrays = (value.x, value.y, value.z)
         elif hasattr(value, "pressure"):  # FaceBc: the native loops read its outlet pressure
             arrays = (value.pressure.x, value.pressure.y, value.pressure.z)
+        elif hasattr(value, "neighbour_flat"):  # ViscousTopology
+            arrays = (value.neighbour_flat, value.factor, value.value)
         else:
             arrays = (value,)
         for array in arrays:
