@@ -1364,6 +1364,186 @@ VISCOUS_RHS_KERNELS = tuple(_viscous_rhs_kernel(axis) for axis in range(3))
 """``kernels/gas.py`` ``VISCOUS_RHS_KERNELS``' native versions (same launch, same bits)."""
 
 
+# ----------------------------------------------------------------- face coefficients, pressure correction (face blocks)
+
+_WRAP = """
+    // wrap_cell of (i, j, k) in place: false when outside a non-periodic boundary
+    auto wrap = [&](int* c) {
+        for (int d = 0; d < 3; ++d) {
+            int n = shape[d];
+            if (c[d] < 0 || c[d] >= n) {
+                if (periodic[d] != 0)
+                    c[d] = (c[d] % n + n) % n;
+                else
+                    return false;
+            }
+        }
+        return true;
+    };
+"""
+
+
+@wp.func_native(_GRID + _WRAP + """
+    const wp::vec_t<3, int>* __restrict__ list = faces.data;
+    const int* __restrict__ fluid = cell_fluid.data;
+    const float* __restrict__ eps = cell_eps_f.data;
+    const float* __restrict__ kap = cell_kappa.data;
+    float* __restrict__ eps_out = axis == 0 ? face_eps.x.data : (axis == 1 ? face_eps.y.data : face_eps.z.data);
+    float* __restrict__ kappa_out = axis == 0 ? face_kappa.x.data : (axis == 1 ? face_kappa.y.data : face_kappa.z.data);
+    for (int index = first; index < last; ++index) {
+        int f[3] = {list[index].c[0], list[index].c[1], list[index].c[2]};
+        float eps_sum = 0.0f;
+        float kappa_sum = 0.0f;
+        float count = 0.0f;
+        for (int side = 0; side < 2; ++side) {
+            int c[3] = {f[0], f[1], f[2]};
+            c[axis] = c[axis] - (1 - side);
+            if (wrap(c)) {
+                size_t cell = cell_at(c[0], c[1], c[2]);
+                if (fluid[cell] != 0) {
+                    eps_sum = eps_sum + eps[cell];
+                    kappa_sum = kappa_sum + kap[cell];
+                    count = count + 1.0f;
+                }
+            }
+        }
+        size_t face = at(axis, f[0], f[1], f[2]);
+        if (count > 0.0f) {
+            eps_out[face] = eps_sum / count;
+            kappa_out[face] = kappa_sum / count;
+        } else {
+            eps_out[face] = 1.0f;
+            kappa_out[face] = 0.0f;
+        }
+    }
+""")
+def face_coefficients_faces(g: K.GridInfo, axis: int, faces: wp.array(dtype=wp.vec3i),
+                            cell_fluid: wp.array3d(dtype=wp.int32), cell_eps_f: wp.array3d(dtype=float),
+                            cell_kappa: wp.array3d(dtype=float), face_eps: K.FaceFloat, face_kappa: K.FaceFloat,
+                            first: int, last: int):
+    """``kernels/gas.py`` ``face_coefficients_one`` for the entries [first, last) of ``faces``."""
+    ...
+
+
+def _face_coefficients_kernel(axis_constant: int):
+    def face_coefficients_kernel(
+        block: int,
+        g: K.GridInfo,
+        faces: wp.array(dtype=wp.vec3i),
+        cell_fluid: wp.array3d(dtype=wp.int32),
+        cell_eps_f: wp.array3d(dtype=float),
+        cell_kappa: wp.array3d(dtype=float),
+        # outputs
+        face_eps: K.FaceFloat,
+        face_kappa: K.FaceFloat,
+    ):
+        """``kernels/gas.py`` ``FACE_COEFFICIENTS_KERNELS[axis]``: ``block`` consecutive entries of ``faces`` per
+        thread."""
+        t = wp.tid()
+        face_coefficients_faces(g, wp.static(axis_constant), faces, cell_fluid, cell_eps_f, cell_kappa, face_eps,
+                                face_kappa, t * block, wp.min(faces.shape[0], (t + 1) * block))
+
+    return wp.Kernel(face_coefficients_kernel, key=f"face_coefficients_kernel_{'xyz'[axis_constant]}",
+                     module=wp.get_module(__name__))
+
+
+FACE_COEFFICIENTS_KERNELS = tuple(_face_coefficients_kernel(axis) for axis in range(3))
+"""``kernels/gas.py`` ``FACE_COEFFICIENTS_KERNELS``' native versions (same launch, same bits)."""
+
+
+@wp.func_native(_GRID + _WRAP + """
+    const wp::vec_t<3, int>* __restrict__ list = faces.data;
+    const int* __restrict__ type = axis == 0 ? types.x.data : (axis == 1 ? types.y.data : types.z.data);
+    const float* __restrict__ outlet_p = axis == 0 ? bc.pressure.x.data : (axis == 1 ? bc.pressure.y.data : bc.pressure.z.data);
+    const double* __restrict__ increment = p.data;
+    const double* __restrict__ total = p_total.data;
+    float* __restrict__ v = axis == 0 ? vel.x.data : (axis == 1 ? vel.y.data : vel.z.data);
+    float* __restrict__ gp_out = axis == 0 ? face_grad_p.x.data : (axis == 1 ? face_grad_p.y.data : face_grad_p.z.data);
+    const float h = g.spacing;
+    for (int index = first; index < last; ++index) {
+        int f[3] = {list[index].c[0], list[index].c[1], list[index].c[2]};
+        size_t face = at(axis, f[0], f[1], f[2]);
+        int t = type[face];
+        if (!(t == 1 || t == 3))
+            continue;
+        // face_pressure_gradients
+        float gp, gp_total;
+        if (t == 1) {
+            int lo[3] = {f[0], f[1], f[2]};
+            lo[axis] = lo[axis] - 1;
+            int hi[3] = {f[0], f[1], f[2]};
+            wrap(lo);
+            wrap(hi);
+            size_t c_lo = cell_at(lo[0], lo[1], lo[2]);
+            size_t c_hi = cell_at(hi[0], hi[1], hi[2]);
+            double d_increment = increment[c_hi] - increment[c_lo];
+            double d_total = total[c_hi] - total[c_lo];
+            gp = (float)d_increment / h;
+            gp_total = (float)d_total / h;
+        } else {
+            float p_out = outlet_p[face];
+            float increment_out = outlet_weight * p_out;
+            float total_out = 1.0f * p_out;
+            float a, b;
+            if (f[axis] == 0) {
+                size_t inside = cell_at(f[0], f[1], f[2]);
+                a = (float)increment[inside] - increment_out;
+                b = (float)total[inside] - total_out;
+            } else {
+                int c[3] = {f[0], f[1], f[2]};
+                c[axis] = c[axis] - 1;
+                size_t inside = cell_at(c[0], c[1], c[2]);
+                a = increment_out - (float)increment[inside];
+                b = total_out - (float)total[inside];
+            }
+            a = 2.0f * a;
+            b = 2.0f * b;
+            gp = a / h;
+            gp_total = b / h;
+        }
+        float ratio = params.dt / params.rho;
+        float correction = ratio * gp;
+        v[face] = v[face] - correction;
+        gp_out[face] = gp_total;
+    }
+""")
+def pressure_correct_faces(g: K.GridInfo, axis: int, params: K.FlowParams, faces: wp.array(dtype=wp.vec3i),
+                           types: K.FaceInt, bc: K.FaceBc, p: wp.array(dtype=f64), outlet_weight: float,
+                           p_total: wp.array(dtype=f64), vel: K.FaceFloat, face_grad_p: K.FaceFloat, first: int,
+                           last: int):
+    """``kernels/gas.py`` ``pressure_correct_one`` for the entries [first, last) of ``faces``."""
+    ...
+
+
+def _pressure_correct_kernel(axis_constant: int):
+    def pressure_correct_kernel(
+        block: int,
+        g: K.GridInfo,
+        params: K.FlowParams,
+        faces: wp.array(dtype=wp.vec3i),
+        types: K.FaceInt,
+        bc: K.FaceBc,
+        p: wp.array(dtype=f64),
+        outlet_weight: float,
+        p_total: wp.array(dtype=f64),
+        # outputs
+        vel: K.FaceFloat,
+        face_grad_p: K.FaceFloat,
+    ):
+        """``kernels/gas.py`` ``PRESSURE_CORRECT_KERNELS[axis]``: ``block`` consecutive entries of ``faces`` per
+        thread."""
+        t = wp.tid()
+        pressure_correct_faces(g, wp.static(axis_constant), params, faces, types, bc, p, outlet_weight, p_total, vel,
+                               face_grad_p, t * block, wp.min(faces.shape[0], (t + 1) * block))
+
+    return wp.Kernel(pressure_correct_kernel, key=f"pressure_correct_kernel_{'xyz'[axis_constant]}",
+                     module=wp.get_module(__name__))
+
+
+PRESSURE_CORRECT_KERNELS = tuple(_pressure_correct_kernel(axis) for axis in range(3))
+"""``kernels/gas.py`` ``PRESSURE_CORRECT_KERNELS``' native versions (same launch, same bits)."""
+
+
 ONE_THREAD = frozenset({"pcg_step_kernel", "pcg_direction_kernel", "ic0_factor_kernel", "ic0_apply_kernel",
                         "ic0_step_apply_kernel", "mg_smooth_kernel", "mg_smooth_from_zero_kernel",
                         "mg_residual_restrict_kernel", "mg_prolong_kernel", "mg_coarsen_kernel"})
@@ -1384,6 +1564,10 @@ def for_device(kernel, dim: int, device, arguments) -> tuple:
         native = ADVECT_KERNELS[K.ADVECT_KERNELS.index(kernel)]
     elif kernel in K.VISCOUS_RHS_KERNELS:
         native = VISCOUS_RHS_KERNELS[K.VISCOUS_RHS_KERNELS.index(kernel)]
+    elif kernel in K.FACE_COEFFICIENTS_KERNELS:
+        native = FACE_COEFFICIENTS_KERNELS[K.FACE_COEFFICIENTS_KERNELS.index(kernel)]
+    elif kernel in K.PRESSURE_CORRECT_KERNELS:
+        native = PRESSURE_CORRECT_KERNELS[K.PRESSURE_CORRECT_KERNELS.index(kernel)]
     elif getattr(K, kernel.key, None) is kernel and kernel.key in _NATIVE:
         native = globals()[kernel.key]
     else:
