@@ -1544,13 +1544,158 @@ PRESSURE_CORRECT_KERNELS = tuple(_pressure_correct_kernel(axis) for axis in rang
 """``kernels/gas.py`` ``PRESSURE_CORRECT_KERNELS``' native versions (same launch, same bits)."""
 
 
+# ----------------------------------------------------------------- small cell and face passes (blocks)
+
+
+@wp.func_native(_GRID + """
+    const wp::vec_t<3, int>* __restrict__ list = cells.data;
+    const float* __restrict__ eps_s = cell_eps_s.data;
+    const int* __restrict__ fluid = cell_fluid.data;
+    const float* __restrict__ v[3] = {vel.x.data, vel.y.data, vel.z.data};
+    float* __restrict__ eps_out = cell_eps_f.data;
+    wp::vec_t<3, float>* __restrict__ u_out = cell_velocity.data;
+    for (int index = first; index < last; ++index) {
+        int c[3] = {list[index].c[0], list[index].c[1], list[index].c[2]};
+        size_t cell = cell_at(c[0], c[1], c[2]);
+        // eps_f_one
+        if (fluid[cell] != 0) {
+            float free = 1.0f - eps_s[cell];
+            eps_out[cell] = wp::clamp(free, eps_min, 1.0f);
+        } else {
+            eps_out[cell] = 1.0f;
+        }
+        // cell_velocity_one
+        float u[3] = {0.0f, 0.0f, 0.0f};
+        if (fluid[cell] != 0) {
+            for (int a = 0; a < 3; ++a) {
+                int hi[3] = {c[0], c[1], c[2]};
+                hi[a] = hi[a] + 1;
+                if (periodic[a] != 0 && hi[a] >= shape[a])  // wrap_face: the alias face is face 0
+                    hi[a] = (hi[a] % shape[a] + shape[a]) % shape[a];
+                float sum = v[a][at(a, c[0], c[1], c[2])] + v[a][at(a, hi[0], hi[1], hi[2])];
+                u[a] = 0.5f * sum;
+            }
+        }
+        u_out[cell] = wp::vec_t<3, float>(u[0], u[1], u[2]);
+    }
+""")
+def cell_state_cells(g: K.GridInfo, cells: wp.array(dtype=wp.vec3i), cell_eps_s: wp.array3d(dtype=float),
+                     cell_fluid: wp.array3d(dtype=wp.int32), eps_min: float, vel: K.FaceFloat,
+                     cell_eps_f: wp.array3d(dtype=float), cell_velocity: wp.array3d(dtype=wp.vec3), first: int,
+                     last: int):
+    """``kernels/gas.py`` ``eps_f_one`` and ``cell_velocity_one`` for the entries [first, last) of ``cells``."""
+    ...
+
+
+@wp.kernel
+def cell_state_kernel(
+    block: int,
+    g: K.GridInfo,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_eps_s: wp.array3d(dtype=float),
+    cell_fluid: wp.array3d(dtype=wp.int32),
+    eps_min: float,
+    vel: K.FaceFloat,
+    # outputs
+    cell_eps_f: wp.array3d(dtype=float),
+    cell_velocity: wp.array3d(dtype=wp.vec3),
+):
+    """``kernels/gas.py`` ``cell_state_kernel``: ``block`` consecutive entries of ``cells`` per thread."""
+    t = wp.tid()
+    cell_state_cells(g, cells, cell_eps_s, cell_fluid, eps_min, vel, cell_eps_f, cell_velocity, t * block,
+                     wp.min(cells.shape[0], (t + 1) * block))
+
+
+@wp.func_native(_GRID + """
+    const wp::vec_t<3, int>* __restrict__ list = faces.data;
+    const int* __restrict__ row_of = face_row.data;
+    const double* __restrict__ xv = x.data;
+    float* __restrict__ v = axis == 0 ? vel.x.data : (axis == 1 ? vel.y.data : vel.z.data);
+    for (int index = first; index < last; ++index) {
+        size_t face = at(axis, list[index].c[0], list[index].c[1], list[index].c[2]);
+        int row = row_of[face];
+        if (row >= 0)
+            v[face] = (float)xv[row];
+    }
+""")
+def store_component_faces(g: K.GridInfo, axis: int, faces: wp.array(dtype=wp.vec3i),
+                          face_row: wp.array(dtype=wp.int32), x: wp.array(dtype=f64), vel: K.FaceFloat, first: int,
+                          last: int):
+    """``kernels/gas.py`` ``store_component_one`` for the entries [first, last) of ``faces``."""
+    ...
+
+
+def _store_component_kernel(axis_constant: int):
+    def store_component_kernel(
+        block: int,
+        g: K.GridInfo,
+        faces: wp.array(dtype=wp.vec3i),
+        face_row: wp.array(dtype=wp.int32),
+        x: wp.array(dtype=f64),
+        # outputs
+        vel: K.FaceFloat,
+    ):
+        """``kernels/gas.py`` ``STORE_COMPONENT_KERNELS[axis]``: ``block`` consecutive entries of ``faces`` per
+        thread."""
+        t = wp.tid()
+        store_component_faces(g, wp.static(axis_constant), faces, face_row, x, vel, t * block,
+                              wp.min(faces.shape[0], (t + 1) * block))
+
+    return wp.Kernel(store_component_kernel, key=f"store_component_kernel_{'xyz'[axis_constant]}",
+                     module=wp.get_module(__name__))
+
+
+STORE_COMPONENT_KERNELS = tuple(_store_component_kernel(axis) for axis in range(3))
+"""``kernels/gas.py`` ``STORE_COMPONENT_KERNELS``' native versions (same launch, same bits)."""
+
+
+@wp.func_native(_GRID + """
+    const wp::vec_t<3, int>* __restrict__ list = cells.data;
+    const int* __restrict__ row_of = cell_row.data;
+    const double* __restrict__ xv = x.data;
+    double* __restrict__ dp = increment.data;
+    double* __restrict__ p = total.data;
+    for (int index = first; index < last; ++index) {
+        size_t cell = cell_at(list[index].c[0], list[index].c[1], list[index].c[2]);
+        int row = row_of[cell];
+        if (row >= 0) {
+            dp[cell] = xv[row];
+            p[cell] = p[cell] + xv[row];
+        }
+    }
+""")
+def pressure_increment_cells(g: K.GridInfo, cells: wp.array(dtype=wp.vec3i), cell_row: wp.array(dtype=wp.int32),
+                             x: wp.array(dtype=f64), increment: wp.array(dtype=f64), total: wp.array(dtype=f64),
+                             first: int, last: int):
+    """``kernels/gas.py`` ``pressure_increment_one`` for the entries [first, last) of ``cells``."""
+    ...
+
+
+@wp.kernel
+def pressure_increment_kernel(
+    block: int,
+    g: K.GridInfo,
+    cells: wp.array(dtype=wp.vec3i),
+    cell_row: wp.array(dtype=wp.int32),
+    x: wp.array(dtype=f64),
+    # outputs
+    increment: wp.array(dtype=f64),
+    total: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``pressure_increment_kernel``: ``block`` consecutive entries of ``cells`` per thread."""
+    t = wp.tid()
+    pressure_increment_cells(g, cells, cell_row, x, increment, total, t * block,
+                             wp.min(cells.shape[0], (t + 1) * block))
+
+
 ONE_THREAD = frozenset({"pcg_step_kernel", "pcg_direction_kernel", "ic0_factor_kernel", "ic0_apply_kernel",
                         "ic0_step_apply_kernel", "mg_smooth_kernel", "mg_smooth_from_zero_kernel",
                         "mg_residual_restrict_kernel", "mg_prolong_kernel", "mg_coarsen_kernel"})
 """The kernels here whose one thread runs every row (launch ``dim=1``); the others keep their Warp launch dims."""
 
 _NATIVE = ("pcg_matvec_dot_kernel", "pcg_residual_start_kernel", "pcg_dot_pair_kernel", "cell_projected_kernel",
-           "pressure_rhs_kernel", "smagorinsky_kernel", *sorted(ONE_THREAD))
+           "pressure_rhs_kernel", "smagorinsky_kernel",
+           "cell_state_kernel", "pressure_increment_kernel", *sorted(ONE_THREAD))
 
 
 def for_device(kernel, dim: int, device, arguments) -> tuple:
@@ -1568,6 +1713,8 @@ def for_device(kernel, dim: int, device, arguments) -> tuple:
         native = FACE_COEFFICIENTS_KERNELS[K.FACE_COEFFICIENTS_KERNELS.index(kernel)]
     elif kernel in K.PRESSURE_CORRECT_KERNELS:
         native = PRESSURE_CORRECT_KERNELS[K.PRESSURE_CORRECT_KERNELS.index(kernel)]
+    elif kernel in K.STORE_COMPONENT_KERNELS:
+        native = STORE_COMPONENT_KERNELS[K.STORE_COMPONENT_KERNELS.index(kernel)]
     elif getattr(K, kernel.key, None) is kernel and kernel.key in _NATIVE:
         native = globals()[kernel.key]
     else:
