@@ -518,6 +518,31 @@ def mg_smooth_kernel(
     smooth_rows(A.diag, A.coef, A.neighbour, inverse_diag, rows, b, z)
 
 
+@wp.kernel
+def mg_smooth_schedule_kernel(
+    A: K.Stencil,
+    inverse_diag: wp.array(dtype=f64),
+    rows0: wp.array(dtype=wp.int32),
+    rows1: wp.array(dtype=wp.int32),
+    rows2: wp.array(dtype=wp.int32),
+    schedule: wp.array(dtype=wp.int32),
+    b: wp.array(dtype=f64),
+    # outputs
+    z: wp.array(dtype=f64),
+):
+    """The Gauss-Seidel updates of the colours ``schedule`` lists (0, 1, 2: ``rows0``, ``rows1``, ``rows2``), in that
+    order, in one launch (one thread): ``mg_smooth_kernel`` once per entry, without a launch each (~4 us on the
+    CPU, ~10 half-sweeps per level and V-cycle)."""
+    for s in range(schedule.shape[0]):
+        colour = schedule[s]
+        if colour == 0:
+            smooth_rows(A.diag, A.coef, A.neighbour, inverse_diag, rows0, b, z)
+        elif colour == 1:
+            smooth_rows(A.diag, A.coef, A.neighbour, inverse_diag, rows1, b, z)
+        else:
+            smooth_rows(A.diag, A.coef, A.neighbour, inverse_diag, rows2, b, z)
+
+
 @wp.func_native("""
     const double* __restrict__ invd = inverse_diag.data;
     const int* __restrict__ col = colour.data;
