@@ -655,6 +655,17 @@ def test_native_cpu_loops_equal_the_warp_kernels(periodic):
     both("mg_prolong_kernel", n, [fine.parent, f64(rng.normal(size=coarse.n)), wp.float64(1.7)], [z])
 
 
+def test_native_cpu_module_compiles_for_cuda(tmp_path):
+    """kernels/gas_cpu.py only runs on the CPU, but ``wp.force_load(device=...)`` on a GPU (hel_warp/run.py
+    ``load_kernels``, scripts/gpu_check.py) builds every module for it: the native snippets must be valid CUDA C++
+    as well (compiled here with NVRTC for sm_90 where the toolkit is present, without a GPU)."""
+    wp.init()
+    if getattr(wp._src.context.runtime, "toolkit_version", None) is None:
+        pytest.skip("no CUDA toolkit (NVRTC) in this Warp build")
+    artifacts = wp.compile_aot_module(gas_cpu, arch=90, module_dir=str(tmp_path), use_ptx=True)
+    assert artifacts and all(path.stat().st_size > 0 for path in artifacts)
+
+
 def test_viscous_tolerance_keeps_the_float32_field():
     """The default viscous tolerance is float32's unit round-off (2^-24): the step's face velocities then differ
     from those of a solve converged far below round-off (tolerance 1e-13) by no more than a few float32 ulps of
