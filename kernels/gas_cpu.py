@@ -1,30 +1,34 @@
-"""The linear solvers' row loops as native C++ (``wp.func_native``) for the CPU device: the same arithmetic as their
-Warp counterparts in ``kernels/gas.py``, in the same order, so the same bits.
+"""The gas step's hot loops as native C++ (``wp.func_native``) for the CPU device: the same arithmetic as their Warp
+counterparts in ``kernels/gas.py``, in the same order, so the same bits (tests/test_gas.py: every loop against its
+Warp kernel, and whole steps with and without them, bit for bit).
 
 Why: a Warp CPU kernel addresses every array element through ``wp::address``, which wraps negative indices and
-multiplies runtime strides on each access (arrays inside a struct, 2-d arrays), and the many array descriptors
-spill registers; a 7-point stencil row costs ~7-12 ns that way on this machine's cores. The same loop over raw
-pointers (contiguous arrays, checked when a launch is recorded: ``require_contiguous``) costs ~3-5 ns (the rig's
-viscous matrix, 34,416 rows: 7.1 -> 3.1 ns per row at best, 12.1 -> 4.9 median, same bits). The multiplications and
-additions are separate statements, as Warp emits them, so the compiler contracts nothing that Warp's code does
-not (the module is built without FMA contraction either way: no ``vfmadd`` in the object code).
+multiplies runtime strides on each access (2-d arrays, arrays inside a struct), and the many array descriptors
+spill registers: a 7-point stencil row cost ~7-12 ns that way on this machine's cores. The same loop over raw
+pointers costs ~3-5 ns (the rig's viscous matrix, 34,416 rows: 7.1 -> 3.1 ns per row at best, 12.1 -> 4.9 median).
+Every multiplication and addition is a statement of its own, as Warp emits them, so the compiler contracts nothing
+that Warp's code does not (no ``vfmadd`` in either object code).
 
-The advection (``ADVECT_KERNELS``) is here too, as the same per-face arithmetic in float32: its cost is the
-gathers of the back-traced samples and the divisions more than the addressing, so it gains less (~20 % on the rig's
-faces, 8.0 -> 6.1 ms at best for the three axes, same bits).
+What is here, rig timings (best of 60-300 launches, Warp -> native):
 
-Three cell passes are here as well, per cell in the same arithmetic: the pressure right-hand side and matrix
-(``pressure_rhs_kernel``, 4.7 -> 2.7 ms at best on the rig), the projection's cell pass (``cell_projected_kernel``,
-2.3 -> 1.4 ms) and the Smagorinsky viscosity (``smagorinsky_kernel``, 2.1 -> 1.7 ms: nine divisions and a square
-root per cell); and the viscous systems' assembly with the forces (``VISCOUS_RHS_KERNELS``, 4.5 -> 2.8 ms for the
-three axes).
+- the linear solvers: the native PCG's passes, IC(0) (factor, substitutions: the previous row, the -z neighbour,
+  read from a register, 9.1 -> 4.8 ns per row for the step and both substitutions) and the V-cycle's passes
+  (``mg_smooth_schedule_kernel``: a level's Gauss-Seidel half-sweeps in one launch);
+- the semi-Lagrangian advection (``ADVECT_KERNELS``, 8.0 -> 6.1 ms for the three axes: bound by its gathers and
+  divisions more than by the addressing);
+- the cell and face passes: pressure right-hand side and matrix (4.7 -> 2.7 ms), the projection's cell pass
+  (2.3 -> 1.4), Smagorinsky (2.1 -> 1.7: nine divisions and a square root per cell), the viscous assembly with the
+  forces (``VISCOUS_RHS_KERNELS``, 4.5 -> 2.8 for three axes), face coefficients, pressure correction, cell state,
+  viscous store and pressure increment.
 
-Each kernel here has the signature of the kernel of ``kernels/gas.py`` with the same name (``SAME_SIGNATURE``), so a
-launch takes either; the row loops run in one thread (``dim=1``: the CPU runs a launch's threads one after another
-in order, so one thread over all rows is the same order) except the chunked dot-product passes, which keep
-``DOT_CHUNK`` rows per thread and one atomic add per chunk (the same partial sums). The advection keeps the face kernels'
-blocks of ``block`` entries per thread. Only the CPU launches these (``for_device``): the CUDA path keeps the Warp
-kernels (this module is never loaded on a GPU).
+Each kernel has the signature of the ``kernels/gas.py`` kernel of the same name, so a launch takes either
+(``for_device`` picks, at the bottom). The solver loops run in one thread (``dim=1``: the CPU runs a launch's
+threads one after another in order, so one thread over all rows is the same order), except the chunked
+dot-product passes, which keep ``DOT_CHUNK`` rows per thread and one atomic add per chunk (the same partial sums);
+the cell and face passes keep their kernels' ``block`` entries per thread. The native loops need contiguous
+arrays (``for_device`` checks when a launch is recorded). Only the CPU launches them: the CUDA path keeps the Warp
+kernels (the module still compiles for CUDA, as ``wp.force_load`` on a GPU builds every module: tested with
+NVRTC).
 """
 
 import warp as wp
