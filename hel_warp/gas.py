@@ -6,8 +6,9 @@ molecular + Smagorinsky viscosity, and a pressure projection onto
 ``d(eps_f)/dt + div(eps_f u) = 0``; both linear systems are solved with
 ``warp.optim.linear.cg`` with a Jacobi preconditioner (7-point stencils assembled once per step,
 applied through ``LinearOperator``s) on CUDA, and on the CPU with a native IC(0)-preconditioned
-CG (``GasConfig.linear_solver``). On the CPU the solvers' row loops (PCG passes, IC(0), the V-cycle) run as
-native C++ loops over raw pointers (``kernels/gas_cpu.py``: the same numbers, ~2.4x fewer ns per stencil row).
+CG (``GasConfig.linear_solver``). On the CPU the step's hot loops (the linear solvers, the advection, the cell and
+face passes) run as native C++ loops over raw pointers (``kernels/gas_cpu.py``: the same numbers, ~2x faster on the
+colliding-streams rig).
 
 Interface with the particle side (``kernels/deposit.py``, ``kernels/interp.py``):
 before ``GasSolver.step`` fill ``cell_eps_s``, ``cell_momentum_source`` (N s per cell over
