@@ -9,7 +9,8 @@ before (colours ascending) and after (descending), the residual restricted by su
 correction prolonged times ``scale`` (piecewise-constant prolongation under-corrects smooth errors;
 Braess 1995 scales by ~1.8, Notay 2010 discusses why), symmetric Gauss-Seidel sweeps on the coarsest level.
 The cycle is a fixed symmetric linear map, as CG needs. Coarse matrices and restricted residuals are gathered per coarse row from its fine rows in a fixed order
-(no float atomics: the same numbers on any device). Colours: parity of i + j + k, or (with a periodic
+(no float atomics: the same numbers on any device). On the CPU the cycle's row loops are the native ones of
+``kernels/gas_cpu.py`` (the same numbers). Colours: parity of i + j + k, or (with a periodic
 axis of odd count, where parity does not separate neighbours across the wrap) the sum mod 3 of per-axis
 colours {0, 1} with 2 on the last cell of such an axis — a proper colouring of the product graph.
 
@@ -23,6 +24,7 @@ import numpy as np
 import warp as wp
 
 from kernels import gas as K
+from kernels import gas_cpu
 
 COARSEST_ROWS = 32
 """Stop coarsening below this many rows."""
@@ -58,6 +60,7 @@ class _Level:
         self.n_colours = n_colours
         self.colour_rows = [wp.array(np.flatnonzero(colour == c).astype(np.int32), dtype=wp.int32, device=device)
                             for c in range(n_colours)]
+        self.schedules = {}  # colour sequence -> its wp.array (``AggregationMultigrid._smooth`` on the CPU)
         self.parent = None  # row of the next level, per row
         self.child_start = None  # rows of the previous level in this row's block: children[child_start[r]:...]
         self.children = None
@@ -137,11 +140,26 @@ class AggregationMultigrid:
             launch.launch()
 
     def _record(self, launches: list, kernel, dim: int, inputs: list, outputs: list) -> None:
-        if dim:
+        if dim:  # the native row loops on the CPU (kernels/gas_cpu.py)
+            kernel, dim = gas_cpu.for_device(kernel, dim, self.device, inputs + outputs)
             launches.append(wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=self.device,
                                       record_cmd=True))
 
     def _smooth(self, level: _Level, b, z, colours, launches: list) -> None:
+        """Gauss-Seidel updates of the rows of each colour in ``colours``, in order: one launch per colour, or on the
+        CPU one launch for the whole sequence (``gas_cpu.mg_smooth_schedule_kernel``: the same updates in the same
+        order)."""
+        colours = list(colours)
+        if not colours:
+            return
+        if gas_cpu.for_device(K.mg_smooth_kernel, 1, self.device, [])[0] is not K.mg_smooth_kernel:  # the CPU
+            schedule = level.schedules.get(tuple(colours))
+            if schedule is None:
+                schedule = level.schedules[tuple(colours)] = wp.array(colours, dtype=wp.int32, device=self.device)
+            rows = [level.colour_rows[min(c, level.n_colours - 1)] for c in range(3)]
+            self._record(launches, gas_cpu.mg_smooth_schedule_kernel, 1,
+                         [level.A, level.inverse_diag, *rows, schedule, b], [z])
+            return
         for c in colours:
             rows = level.colour_rows[c]
             self._record(launches, K.mg_smooth_kernel, rows.shape[0], [level.A, level.inverse_diag, rows, b], [z])
@@ -156,13 +174,10 @@ class AggregationMultigrid:
         ascending = list(range(level.n_colours))
         # pre-smoothing from z = 0: the first colour's first update fused with the zeroing
         self._record(launches, K.mg_smooth_from_zero_kernel, level.n, [level.inverse_diag, level.colour, b], [z])
-        self._smooth(level, b, z, ascending[1:], launches)
-        for _ in range(self.sweeps - 1):
-            self._smooth(level, b, z, ascending, launches)
+        self._smooth(level, b, z, ascending[1:] + ascending * (self.sweeps - 1), launches)
         coarse = self.levels[index + 1]
         self._record(launches, K.mg_residual_restrict_kernel, coarse.n,
                      [coarse.child_start, coarse.children, level.A, b, z, level.colour, ascending[-1]], [coarse.b])
         self._cycle(index + 1, coarse.b, coarse.z, launches)
         self._record(launches, K.mg_prolong_kernel, level.n, [level.parent, coarse.z, wp.float64(self.scale)], [z])
-        for _ in range(self.sweeps):
-            self._smooth(level, b, z, ascending[::-1], launches)
+        self._smooth(level, b, z, ascending[::-1] * self.sweeps, launches)

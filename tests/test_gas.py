@@ -16,6 +16,7 @@ from hel_warp.errors import ConfigError, HelWarpError
 from hel_warp.gas import GasConfig, GasField, GasSolver
 from hel_warp.grid import Box, Channel, Geometry, Grid, Patch
 from kernels import gas as K
+from kernels import gas_cpu
 
 
 def continuity_residual(grid, fluid, face_u, cell_eps_f, cell_eps_prev, dt):
@@ -362,6 +363,28 @@ def test_fluid_launches_match_the_whole_box(case, linear_solver):
     pressure right-hand side (float64, on a GPU), far below float32 round-off of the stored fields. The solid
     cells hold the constants the interpolation to parcels reads: eps_f 1, velocity 0, grad p' the imposed
     mean gradient."""
+    domain, config = _masked_case(case, linear_solver)
+    grid = domain.grid
+    fluid = domain.cell_fluid.numpy().astype(bool)
+    assert 0.3 < fluid.mean() < 0.9  # a real mask
+    runs = {}
+    for launch_over in ("box", "fluid"):
+        solver = GasSolver(domain, config, launch_over=launch_over)
+        runs[launch_over] = _three_steps(solver, domain), solver.last_iterations
+    assert runs["box"][1] == runs["fluid"][1]  # the same CG iterations
+    for box, fluid_only in zip(runs["box"][0], runs["fluid"][0]):
+        assert box.keys() == fluid_only.keys()
+        for name, expected in box.items():
+            scale = max(np.abs(expected).max(), 1e-30)
+            assert np.allclose(fluid_only[name], expected, rtol=1e-6, atol=1e-6 * scale), name
+    last = runs["fluid"][0][-1]
+    assert np.all(last["cell_eps_f"][~fluid] == 1.0) and np.all(last["cell_velocity"][~fluid] == 0.0)
+    imposed = np.asarray(config.mean_pressure_gradient)
+    assert np.allclose(last["cell_grad_p"][~fluid], imposed, rtol=1e-6, atol=0.0)
+
+
+def _masked_case(case, linear_solver):
+    """The masked boxes of ``test_fluid_launches_match_the_whole_box``: (domain, config)."""
     if case == "inlet_outlet":  # a box with an inclined channel, an inlet and an outlet: walls, inlet, outlet faces
         grid = Grid(spacing=1e-3, shape=(14, 10, 8))
         geometry = Geometry(shapes=(Box(lo=(0, 1e-3, 1e-3), hi=(14e-3, 8e-3, 7e-3)),
@@ -375,31 +398,41 @@ def test_fluid_launches_match_the_whole_box(case, linear_solver):
         geometry = Geometry(shapes=(Box(lo=(-1, 1e-3, -1), hi=(1, 7e-3, 1)),
                                     Box(lo=(3e-3, 0, 2e-3), hi=(6e-3, 9e-3, 5e-3))))
         config = GasConfig(linear_solver=linear_solver, mean_pressure_gradient=(-2.0, 0.0, 0.5))
-    domain = geometry.build(grid)
-    fluid = domain.cell_fluid.numpy().astype(bool)
-    assert 0.3 < fluid.mean() < 0.9  # a real mask
-    runs = {}
-    for launch_over in ("box", "fluid"):
-        rng = np.random.default_rng(5)
-        solver, gas = GasSolver(domain, config, launch_over=launch_over), GasField(domain)
-        gas.set_face_velocity([rng.normal(0.0, 0.2, size=a.shape) for a in gas.face_arrays()])
-        fields = []
-        for _ in range(3):
-            gas.cell_eps_s.assign(rng.uniform(0.0, 0.4, grid.shape).astype(np.float32))
-            gas.cell_momentum_source.assign(rng.normal(0.0, 1e-9, grid.shape + (3,)).astype(np.float32))
-            solver.step(gas, 1e-3)
-            fields.append(_gas_fields(gas))
-        runs[launch_over] = fields, solver.last_iterations
-    assert runs["box"][1] == runs["fluid"][1]  # the same CG iterations
-    for box, fluid_only in zip(runs["box"][0], runs["fluid"][0]):
-        assert box.keys() == fluid_only.keys()
-        for name, expected in box.items():
-            scale = max(np.abs(expected).max(), 1e-30)
-            assert np.allclose(fluid_only[name], expected, rtol=1e-6, atol=1e-6 * scale), name
-    last = runs["fluid"][0][-1]
-    assert np.all(last["cell_eps_f"][~fluid] == 1.0) and np.all(last["cell_velocity"][~fluid] == 0.0)
-    imposed = np.asarray(config.mean_pressure_gradient)
-    assert np.allclose(last["cell_grad_p"][~fluid], imposed, rtol=1e-6, atol=0.0)
+    return geometry.build(grid), config
+
+
+def _three_steps(solver, domain):
+    """Three steps of ``solver`` from random face velocities with random eps_s and particle sources (seeded): the
+    GasField arrays after each (``_gas_fields``)."""
+    rng = np.random.default_rng(5)
+    gas, shape = GasField(domain), domain.grid.shape
+    gas.set_face_velocity([rng.normal(0.0, 0.2, size=a.shape) for a in gas.face_arrays()])
+    fields = []
+    for _ in range(3):
+        gas.cell_eps_s.assign(rng.uniform(0.0, 0.4, shape).astype(np.float32))
+        gas.cell_momentum_source.assign(rng.normal(0.0, 1e-9, shape + (3,)).astype(np.float32))
+        solver.step(gas, 1e-3)
+        fields.append(_gas_fields(gas))
+    return fields
+
+
+@pytest.mark.parametrize("case", ["inlet_outlet", "periodic"])
+@pytest.mark.parametrize("linear_solver", ["native", "warp"])
+def test_native_cpu_loops_give_the_warp_kernels_step(case, linear_solver, monkeypatch):
+    """On the CPU ``GasSolver`` and its V-cycle launch kernels/gas_cpu.py's native loops (solvers, advection,
+    pressure right-hand side, Smagorinsky, the projection's cell pass); with them switched off
+    (``gas_cpu.for_device`` handing back the Warp kernels) three steps on a masked box with walls, an inlet and an
+    outlet, or periodic axes, give every GasField array bit for bit and the same CG iterations."""
+    domain, config = _masked_case(case, linear_solver)
+    native_solver = GasSolver(domain, config)
+    native = _three_steps(native_solver, domain)
+    monkeypatch.setattr(gas_cpu, "for_device", lambda kernel, dim, device, arguments: (kernel, dim))
+    warp_solver = GasSolver(domain, config)
+    reference = _three_steps(warp_solver, domain)
+    assert native_solver.last_iterations == warp_solver.last_iterations
+    for step_native, step_warp in zip(native, reference):
+        for name, expected in step_warp.items():
+            assert np.array_equal(step_native[name], expected, equal_nan=True), name
 
 
 def test_launch_over_is_checked():
@@ -443,6 +476,31 @@ def test_velocity_at_face_is_the_trilinear_sample_there(periodic):
         wp.launch(_first_stage_pair, dim=every.shape[0], inputs=[grid.info(), axis, every, faces],
                   outputs=[direct, sampled])
         assert np.allclose(direct.numpy(), sampled.numpy(), rtol=0.0, atol=8.0 * ds * u_max + 1e-6), axis
+
+
+@pytest.mark.parametrize("periodic", [(False, False, False), (True, False, True)], ids=["walled", "periodic"])
+def test_native_advection_equals_the_warp_kernel(periodic):
+    """kernels/gas_cpu.py's native advection (what ``GasSolver`` launches on the CPU) gives the face velocities of
+    kernels/gas.py's ``ADVECT_KERNELS`` bit for bit, on every face of a box (walls and alias faces keep their value)
+    with back-traces of up to ~4 cells that leave the box (clamped) or wrap (periodic axes, odd counts)."""
+    grid = Grid(spacing=1e-3, shape=(7, 5, 6), periodic=periodic, origin=(0.1, -0.02, 0.3))
+    domain = Geometry(shapes=(Box(lo=(-1, -1, -1), hi=(1, 1, 1)),)).build(grid)
+    gas = GasField(domain)
+    rng = np.random.default_rng(8)
+    gas.set_face_velocity([rng.normal(0.0, 1.0, size=a.shape) for a in gas.face_arrays()])
+    for axis in range(3):
+        shape = list(grid.shape)
+        shape[axis] += 1
+        every = wp.array(np.argwhere(np.ones(shape, dtype=bool)).astype(np.int32), dtype=wp.vec3i)
+        native, dim = gas_cpu.for_device(K.ADVECT_KERNELS[axis], 3, "cpu", [])
+        assert native is not K.ADVECT_KERNELS[axis]
+        results = []
+        for kernel in (K.ADVECT_KERNELS[axis], native):
+            out = GasField._faces(grid, None, fill=np.nan)
+            wp.launch(kernel, dim=(every.shape[0] + 15) // 16,
+                      inputs=[16, grid.info(), every, domain.face_type, gas.face_velocity, 4e-3, out])
+            results.append((out.x, out.y, out.z)[axis].numpy())
+        assert np.isfinite(results[0]).all() and np.array_equal(results[0], results[1]), axis
 
 
 def _stencil_system(shape, periodic, seed):
@@ -531,6 +589,81 @@ def test_fused_pcg_kernels_equal_the_separate_passes(periodic):
                   outputs=[x_f, r_f, z_f])
         for fused_v, ref in ((x_f, x_ref), (r_f, r_ref), (z_f, z_ref)):
             assert np.array_equal(fused_v.numpy(), ref.numpy()), ordered
+
+
+@pytest.mark.parametrize("periodic", [(False, False, False), (True, False, True)], ids=["walled", "periodic"])
+def test_native_cpu_loops_equal_the_warp_kernels(periodic):
+    """kernels/gas_cpu.py's native row loops (what ``GasSolver`` and the V-cycle launch on the CPU) give the numbers
+    of the Warp kernels they stand for, bit for bit: the same operations on every row in the same order, the dot
+    products in the same chunks and partial sums; the IC(0) factor plain and modified, its substitutions with the
+    slot reading (``ordered``) and the index tests, and the V-cycle's passes on a two-level aggregation."""
+    from hel_warp.multigrid import AggregationMultigrid
+
+    shape = (9, 7, 6)
+    A, n, rng = _stencil_system(shape, periodic, seed=5)
+    vec = lambda: rng.normal(size=n)  # noqa: E731
+    dots = (n + K.DOT_CHUNK - 1) // K.DOT_CHUNK
+
+    def both(name, dim, inputs, outputs):
+        """Run kernels/gas.py's ``name`` and its native version on copies of ``outputs`` (numpy); compare."""
+        results = []
+        for kernel, threads in ((getattr(K, name), dim), gas_cpu.for_device(getattr(K, name), dim, "cpu", inputs)):
+            outs = [wp.array(o, dtype=wp.int32 if o.dtype == np.int32 else wp.float64) for o in outputs]
+            wp.launch(kernel, dim=threads, inputs=inputs, outputs=outs)
+            results.append([o.numpy() for o in outs])
+        assert gas_cpu.for_device(getattr(K, name), dim, "cpu", inputs)[0] is not getattr(K, name)
+        for warp_out, native_out in zip(*results):
+            assert np.array_equal(warp_out, native_out, equal_nan=True), name
+        return results[0]
+
+    f64 = lambda a: wp.array(a, dtype=wp.float64)  # noqa: E731
+    p, x, b = f64(vec()), f64(vec()), f64(vec())
+    scalars = np.array([0.3, 0.0, 0.0, 0.0, 0.37, 0.61])  # alpha in slot 4, beta in slot 5
+    both("pcg_matvec_dot_kernel", dots, [A, p, 1], [np.zeros(n), scalars])
+    both("pcg_residual_start_kernel", dots, [A, x, b], [np.zeros(n), scalars])
+    both("pcg_dot_pair_kernel", dots, [p, b, 2, 3], [scalars])
+    both("pcg_step_kernel", n, [p, b, f64(scalars)], [vec(), vec()])
+    both("pcg_direction_kernel", n, [x, f64(scalars)], [vec()])
+    for relaxation in (0.0, 0.97):
+        pivot, pivot_inverse = both("ic0_factor_kernel", 1, [A, n, wp.float64(relaxation)], [np.zeros(n), np.zeros(n)])
+    pivot_inverse = f64(pivot_inverse)
+    both("ic0_apply_kernel", 1, [pivot_inverse, A, b, n], [np.full(n, np.nan)])
+    for ordered in (0, 1) if periodic == (False, False, False) else (0,):
+        both("ic0_step_apply_kernel", 1, [pivot_inverse, A, p, b, f64(scalars), n, ordered],
+             [vec(), vec(), np.full(n, np.nan)])
+
+    rows = np.flatnonzero(np.random.default_rng(5).uniform(size=shape) < 0.8)  # _stencil_system's mask
+    mg = AggregationMultigrid(rows, shape, periodic, "cpu")
+    mg.setup(A)
+    fine, coarse = mg.levels[0], mg.levels[1]
+    inverse_diag = fine.inverse_diag
+    coarse_matrices = []
+    native = gas_cpu.for_device(K.mg_coarsen_kernel, coarse.n, "cpu", [A])
+    for kernel, threads in ((K.mg_coarsen_kernel, coarse.n), native):
+        Ac = K.make_stencil(wp.zeros(coarse.n, dtype=wp.float64), wp.zeros((coarse.n, 6), dtype=wp.float64),
+                            wp.zeros((coarse.n, 6), dtype=wp.int32))
+        wp.launch(kernel, dim=threads, inputs=[coarse.child_start, coarse.children, fine.parent, A], outputs=[Ac])
+        coarse_matrices.append([Ac.diag.numpy(), Ac.coef.numpy(), Ac.neighbour.numpy()])
+    for warp_out, native_out in zip(*coarse_matrices):
+        assert np.array_equal(warp_out, native_out)
+    z = vec()
+    for colour_rows in fine.colour_rows:
+        both("mg_smooth_kernel", colour_rows.shape[0], [A, inverse_diag, colour_rows, b], [z])
+    both("mg_smooth_from_zero_kernel", n, [inverse_diag, fine.colour, b], [z])
+    both("mg_residual_restrict_kernel", coarse.n,
+         [coarse.child_start, coarse.children, A, b, f64(z), fine.colour, fine.n_colours - 1], [np.zeros(coarse.n)])
+    both("mg_prolong_kernel", n, [fine.parent, f64(rng.normal(size=coarse.n)), wp.float64(1.7)], [z])
+
+
+def test_native_cpu_module_compiles_for_cuda(tmp_path):
+    """kernels/gas_cpu.py only runs on the CPU, but ``wp.force_load(device=...)`` on a GPU (hel_warp/run.py
+    ``load_kernels``, scripts/gpu_check.py) builds every module for it: the native snippets must be valid CUDA C++
+    as well (compiled here with NVRTC for sm_90 where the toolkit is present, without a GPU)."""
+    wp.init()
+    if getattr(wp._src.context.runtime, "toolkit_version", None) is None:
+        pytest.skip("no CUDA toolkit (NVRTC) in this Warp build")
+    artifacts = wp.compile_aot_module(gas_cpu, arch=90, module_dir=str(tmp_path), use_ptx=True)
+    assert artifacts and all(path.stat().st_size > 0 for path in artifacts)
 
 
 def test_viscous_tolerance_keeps_the_float32_field():
