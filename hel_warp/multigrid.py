@@ -177,7 +177,7 @@ class AggregationMultigrid:
         self._smooth(level, b, z, ascending[1:] + ascending * (self.sweeps - 1), launches)
         coarse = self.levels[index + 1]
         self._record(launches, K.mg_residual_restrict_kernel, coarse.n,
-                     [coarse.child_start, coarse.children, level.A, b, z, level.colour, ascending[-1]], [coarse.b])
+                     [coarse.child_start, coarse.children, level.parent, level.A, b, z, level.colour, ascending[-1]], [coarse.b])
         self._cycle(index + 1, coarse.b, coarse.z, launches)
         self._record(launches, K.mg_prolong_kernel, level.n, [level.parent, coarse.z, wp.float64(self.scale)], [z])
         self._smooth(level, b, z, ascending[::-1] * self.sweeps, launches)

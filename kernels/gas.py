@@ -1540,6 +1540,7 @@ def stencil_residual(A: Stencil, b: wp.array(dtype=wp.float64), x: wp.array(dtyp
 def mg_residual_restrict_kernel(
     child_start: wp.array(dtype=wp.int32),
     children: wp.array(dtype=wp.int32),
+    parent: wp.array(dtype=wp.int32),
     A: Stencil,
     b: wp.array(dtype=wp.float64),
     z: wp.array(dtype=wp.float64),
@@ -1551,7 +1552,9 @@ def mg_residual_restrict_kernel(
     """c_b = P^T (b - A z) after a pre-smoothing that ended with the rows of ``last_colour``: the fine residual of
     the block's rows summed in a fixed order (one coarse row per thread; the fine residual is not stored). A row
     of the last colour was just solved for its neighbours' values, so its residual is 0 (up to float64
-    round-off) and is not computed, unless Gauss-Seidel left it alone (diag 0)."""
+    round-off) and is not computed, unless Gauss-Seidel left it alone (diag 0). ``parent`` (each fine row's block)
+    is for the CPU's native loop (kernels/gas_cpu.py), which streams the fine rows in order and adds each residual
+    to its block's sum: the same sums in the same order, as ``children`` lists a block's rows ascending."""
     C = wp.tid()
     acc = wp.float64(0.0)
     for idx in range(child_start[C], child_start[C + 1]):

@@ -577,30 +577,27 @@ def mg_smooth_from_zero_kernel(
 
 
 @wp.func_native(_STENCIL + _ROW + """
-    const int* __restrict__ start = child_start.data;
-    const int* __restrict__ kids = children.data;
+    const int* __restrict__ par = parent.data;
     const double* __restrict__ bv = b.data;
     const double* __restrict__ zv = z.data;
     const int* __restrict__ col = colour.data;
     double* __restrict__ cb = c_b.data;
     int coarse = c_b.shape[0];
-    for (int C = 0; C < coarse; ++C) {
-        double acc = 0.0;
-        for (int idx = start[C]; idx < start[C + 1]; ++idx) {
-            int r = kids[idx];
-            if (col[r] != last_colour || !(d[r] > 0.0)) {
-                double ax = stencil_row(zv, r);
-                double t1 = -1.0 * ax;
-                double t2 = 1.0 * bv[r];
-                double res = t1 + t2;
-                acc = acc + res;
-            }
+    int n = parent.shape[0];
+    for (int C = 0; C < coarse; ++C)
+        cb[C] = 0.0;
+    // the fine rows in ascending order: each block's rows in the order of ``children`` (ascending within a block)
+    for (int r = 0; r < n; ++r) {
+        if (col[r] != last_colour || !(d[r] > 0.0)) {
+            double ax = stencil_row(zv, r);
+            double t1 = -1.0 * ax;
+            double t2 = 1.0 * bv[r];
+            double res = t1 + t2;
+            cb[par[r]] = cb[par[r]] + res;
         }
-        cb[C] = acc;
     }
 """)
-def residual_restrict_rows(child_start: wp.array(dtype=wp.int32), children: wp.array(dtype=wp.int32),
-                           diag: wp.array(dtype=f64), coef: wp.array2d(dtype=f64),
+def residual_restrict_rows(parent: wp.array(dtype=wp.int32), diag: wp.array(dtype=f64), coef: wp.array2d(dtype=f64),
                            neighbour: wp.array2d(dtype=wp.int32), b: wp.array(dtype=f64), z: wp.array(dtype=f64),
                            colour: wp.array(dtype=wp.int32), last_colour: int, c_b: wp.array(dtype=f64)):
     ...
@@ -610,6 +607,7 @@ def residual_restrict_rows(child_start: wp.array(dtype=wp.int32), children: wp.a
 def mg_residual_restrict_kernel(
     child_start: wp.array(dtype=wp.int32),
     children: wp.array(dtype=wp.int32),
+    parent: wp.array(dtype=wp.int32),
     A: K.Stencil,
     b: wp.array(dtype=f64),
     z: wp.array(dtype=f64),
@@ -618,8 +616,10 @@ def mg_residual_restrict_kernel(
     # outputs
     c_b: wp.array(dtype=f64),
 ):
-    """``kernels/gas.py`` ``mg_residual_restrict_kernel`` over every coarse row (launch one thread)."""
-    residual_restrict_rows(child_start, children, A.diag, A.coef, A.neighbour, b, z, colour, last_colour, c_b)
+    """``kernels/gas.py`` ``mg_residual_restrict_kernel`` (launch one thread): the fine rows streamed in order, each
+    residual added to its block's sum (``children`` lists a block's rows ascending, so each sum takes the same terms
+    in the same order as the Warp kernel's gather; a sequential pass instead of a gather through ``children``)."""
+    residual_restrict_rows(parent, A.diag, A.coef, A.neighbour, b, z, colour, last_colour, c_b)
 
 
 @wp.func_native("""
@@ -649,8 +649,6 @@ def mg_prolong_kernel(
 
 
 @wp.func_native("""
-    const int* __restrict__ start = child_start.data;
-    const int* __restrict__ kids = children.data;
     const int* __restrict__ par = parent.data;
     const double* __restrict__ d = diag.data;
     const double* __restrict__ c = coef.data;
@@ -659,25 +657,28 @@ def mg_prolong_kernel(
     double* __restrict__ cc = c_coef.data;
     int* __restrict__ cn = c_neighbour.data;
     int coarse = c_diag.shape[0];
+    int n = parent.shape[0];
     for (int C = 0; C < coarse; ++C) {
-        double dc = 0.0;
+        cd[C] = 0.0;
         for (int m = 0; m < 6; ++m) {
             cc[6 * (size_t)C + m] = 0.0;
             cn[6 * (size_t)C + m] = C;
         }
-        for (int idx = start[C]; idx < start[C + 1]; ++idx) {
-            int r = kids[idx];
-            dc = dc + d[r];
-            for (int m = 0; m < 6; ++m) {
-                double cm = c[6 * (size_t)r + m];
-                if (cm != 0.0) {
-                    int D = par[nb[6 * (size_t)r + m]];
-                    if (D == C) {
-                        dc = dc - cm;
-                    } else {
-                        cc[6 * (size_t)C + m] = cc[6 * (size_t)C + m] + cm;
-                        cn[6 * (size_t)C + m] = D;
-                    }
+    }
+    // the fine rows in ascending order: each block's rows in the order of ``children`` (ascending within a block)
+    for (int r = 0; r < n; ++r) {
+        int C = par[r];
+        double dc = cd[C];
+        dc = dc + d[r];
+        for (int m = 0; m < 6; ++m) {
+            double cm = c[6 * (size_t)r + m];
+            if (cm != 0.0) {
+                int D = par[nb[6 * (size_t)r + m]];
+                if (D == C) {
+                    dc = dc - cm;
+                } else {
+                    cc[6 * (size_t)C + m] = cc[6 * (size_t)C + m] + cm;
+                    cn[6 * (size_t)C + m] = D;
                 }
             }
         }
@@ -700,7 +701,9 @@ def mg_coarsen_kernel(
     # outputs
     Ac: K.Stencil,
 ):
-    """``kernels/gas.py`` ``mg_coarsen_kernel`` over every coarse row (launch one thread)."""
+    """``kernels/gas.py`` ``mg_coarsen_kernel`` (launch one thread): the fine rows streamed in order, each added to its
+    block's row (``children`` lists a block's rows ascending, so each coarse entry takes the same terms in the same
+    order as the Warp kernel's gather through ``children``)."""
     coarsen_rows(child_start, children, parent, A.diag, A.coef, A.neighbour, Ac.diag, Ac.coef, Ac.neighbour)
 
 

@@ -651,7 +651,7 @@ def test_native_cpu_loops_equal_the_warp_kernels(periodic):
         both("mg_smooth_kernel", colour_rows.shape[0], [A, inverse_diag, colour_rows, b], [z])
     both("mg_smooth_from_zero_kernel", n, [inverse_diag, fine.colour, b], [z])
     both("mg_residual_restrict_kernel", coarse.n,
-         [coarse.child_start, coarse.children, A, b, f64(z), fine.colour, fine.n_colours - 1], [np.zeros(coarse.n)])
+         [coarse.child_start, coarse.children, fine.parent, A, b, f64(z), fine.colour, fine.n_colours - 1], [np.zeros(coarse.n)])
     both("mg_prolong_kernel", n, [fine.parent, f64(rng.normal(size=coarse.n)), wp.float64(1.7)], [z])
 
 
