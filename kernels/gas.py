@@ -380,6 +380,17 @@ def advect_one(
         set_f(vel_new, axis, f, get_f(vel_old, axis, f))
 
 
+def per_axis_kernels(make, module_name: str):
+    """One kernel per face axis (x, y, z): ``make(axis)`` returns the kernel function with the axis a ``wp.static``
+    constant; the kernels are keyed ``<function name>_<axis letter>`` in module ``module_name``."""
+    kernels = []
+    for axis in range(3):
+        function = make(axis)
+        kernels.append(wp.Kernel(function, key=f"{function.__name__}_{'xyz'[axis]}",
+                                 module=wp.get_module(module_name)))
+    return tuple(kernels)
+
+
 def _advect_kernel(axis_constant: int):
     def advect_kernel(
         block: int,
@@ -397,11 +408,10 @@ def _advect_kernel(axis_constant: int):
         for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
             advect_one(g, wp.static(axis_constant), faces, types, vel_old, dt, vel_new, index)
 
-    return wp.Kernel(advect_kernel, key=f"advect_kernel_{'xyz'[axis_constant]}",
-                     module=wp.get_module(__name__))
+    return advect_kernel
 
 
-ADVECT_KERNELS = tuple(_advect_kernel(axis) for axis in range(3))
+ADVECT_KERNELS = per_axis_kernels(_advect_kernel, __name__)
 """``advect_one``'s kernel per face axis (x, y, z): with the axis known when the kernel is compiled, its branches on
 the axis (which face array, which component) fold away (~11 % of the advection on the rig, the same numbers)."""
 
@@ -616,11 +626,10 @@ def _face_coefficients_kernel(axis_constant: int):
             face_coefficients_one(g, wp.static(axis_constant), faces, cell_fluid, cell_eps_f, cell_kappa, face_eps,
                                   face_kappa, index)
 
-    return wp.Kernel(face_coefficients_kernel, key=f"face_coefficients_kernel_{'xyz'[axis_constant]}",
-                     module=wp.get_module(__name__))
+    return face_coefficients_kernel
 
 
-FACE_COEFFICIENTS_KERNELS = tuple(_face_coefficients_kernel(axis) for axis in range(3))
+FACE_COEFFICIENTS_KERNELS = per_axis_kernels(_face_coefficients_kernel, __name__)
 """``face_coefficients_one``'s kernel per face axis (x, y, z), the axis a compile-time constant (as
 ``ADVECT_KERNELS``)."""
 
@@ -920,11 +929,10 @@ def _viscous_rhs_kernel(axis_constant: int):
             viscous_rhs_one(g, wp.static(axis_constant), params, faces, face_row, topology, types, bc, cell_fluid,
                             face_eps, face_kappa, cell_momentum_source, p_old, advected, rhs, guess, A, index)
 
-    return wp.Kernel(viscous_rhs_kernel, key=f"viscous_rhs_kernel_{'xyz'[axis_constant]}",
-                     module=wp.get_module(__name__))
+    return viscous_rhs_kernel
 
 
-VISCOUS_RHS_KERNELS = tuple(_viscous_rhs_kernel(axis) for axis in range(3))
+VISCOUS_RHS_KERNELS = per_axis_kernels(_viscous_rhs_kernel, __name__)
 """``viscous_rhs_one``'s kernel per face axis (x, y, z), the axis a compile-time constant (as
 ``ADVECT_KERNELS``)."""
 
@@ -962,11 +970,10 @@ def _store_component_kernel(axis_constant: int):
         for index in range(t * block, wp.min(faces.shape[0], (t + 1) * block)):
             store_component_one(g, wp.static(axis_constant), faces, face_row, x, vel, index)
 
-    return wp.Kernel(store_component_kernel, key=f"store_component_kernel_{'xyz'[axis_constant]}",
-                     module=wp.get_module(__name__))
+    return store_component_kernel
 
 
-STORE_COMPONENT_KERNELS = tuple(_store_component_kernel(axis) for axis in range(3))
+STORE_COMPONENT_KERNELS = per_axis_kernels(_store_component_kernel, __name__)
 """``store_component_one``'s kernel per face axis (x, y, z), the axis a compile-time constant (as
 ``ADVECT_KERNELS``)."""
 
@@ -1289,11 +1296,10 @@ def _pressure_correct_kernel(axis_constant: int):
             pressure_correct_one(g, wp.static(axis_constant), params, faces, types, bc, p, outlet_weight, p_total, vel,
                                  face_grad_p, index)
 
-    return wp.Kernel(pressure_correct_kernel, key=f"pressure_correct_kernel_{'xyz'[axis_constant]}",
-                     module=wp.get_module(__name__))
+    return pressure_correct_kernel
 
 
-PRESSURE_CORRECT_KERNELS = tuple(_pressure_correct_kernel(axis) for axis in range(3))
+PRESSURE_CORRECT_KERNELS = per_axis_kernels(_pressure_correct_kernel, __name__)
 """``pressure_correct_one``'s kernel per face axis (x, y, z), the axis a compile-time constant (as
 ``ADVECT_KERNELS``)."""
 

@@ -893,10 +893,10 @@ def _advect_kernel(axis_constant: int):
         advect_faces(g, wp.static(axis_constant), faces, types, vel_old, dt, vel_new, t * block,
                      wp.min(faces.shape[0], (t + 1) * block))
 
-    return wp.Kernel(advect_kernel, key=f"advect_kernel_{'xyz'[axis_constant]}", module=wp.get_module(__name__))
+    return advect_kernel
 
 
-ADVECT_KERNELS = tuple(_advect_kernel(axis) for axis in range(3))
+ADVECT_KERNELS = K.per_axis_kernels(_advect_kernel, __name__)
 """``kernels/gas.py`` ``ADVECT_KERNELS``' native versions (same launch, same bits)."""
 
 
@@ -1388,11 +1388,10 @@ def _viscous_rhs_kernel(axis_constant: int):
                           face_eps, face_kappa, cell_momentum_source, p_old, advected, rhs, guess, A, t * block,
                           wp.min(faces.shape[0], (t + 1) * block))
 
-    return wp.Kernel(viscous_rhs_kernel, key=f"viscous_rhs_kernel_{'xyz'[axis_constant]}",
-                     module=wp.get_module(__name__))
+    return viscous_rhs_kernel
 
 
-VISCOUS_RHS_KERNELS = tuple(_viscous_rhs_kernel(axis) for axis in range(3))
+VISCOUS_RHS_KERNELS = K.per_axis_kernels(_viscous_rhs_kernel, __name__)
 """``kernels/gas.py`` ``VISCOUS_RHS_KERNELS``' native versions (same launch, same bits)."""
 
 
@@ -1475,11 +1474,10 @@ def _face_coefficients_kernel(axis_constant: int):
         face_coefficients_faces(g, wp.static(axis_constant), faces, cell_fluid, cell_eps_f, cell_kappa, face_eps,
                                 face_kappa, t * block, wp.min(faces.shape[0], (t + 1) * block))
 
-    return wp.Kernel(face_coefficients_kernel, key=f"face_coefficients_kernel_{'xyz'[axis_constant]}",
-                     module=wp.get_module(__name__))
+    return face_coefficients_kernel
 
 
-FACE_COEFFICIENTS_KERNELS = tuple(_face_coefficients_kernel(axis) for axis in range(3))
+FACE_COEFFICIENTS_KERNELS = K.per_axis_kernels(_face_coefficients_kernel, __name__)
 """``kernels/gas.py`` ``FACE_COEFFICIENTS_KERNELS``' native versions (same launch, same bits)."""
 
 
@@ -1568,11 +1566,10 @@ def _pressure_correct_kernel(axis_constant: int):
         pressure_correct_faces(g, wp.static(axis_constant), params, faces, types, bc, p, outlet_weight, p_total, vel,
                                face_grad_p, t * block, wp.min(faces.shape[0], (t + 1) * block))
 
-    return wp.Kernel(pressure_correct_kernel, key=f"pressure_correct_kernel_{'xyz'[axis_constant]}",
-                     module=wp.get_module(__name__))
+    return pressure_correct_kernel
 
 
-PRESSURE_CORRECT_KERNELS = tuple(_pressure_correct_kernel(axis) for axis in range(3))
+PRESSURE_CORRECT_KERNELS = K.per_axis_kernels(_pressure_correct_kernel, __name__)
 """``kernels/gas.py`` ``PRESSURE_CORRECT_KERNELS``' native versions (same launch, same bits)."""
 
 
@@ -1673,11 +1670,10 @@ def _store_component_kernel(axis_constant: int):
         store_component_faces(g, wp.static(axis_constant), faces, face_row, x, vel, t * block,
                               wp.min(faces.shape[0], (t + 1) * block))
 
-    return wp.Kernel(store_component_kernel, key=f"store_component_kernel_{'xyz'[axis_constant]}",
-                     module=wp.get_module(__name__))
+    return store_component_kernel
 
 
-STORE_COMPONENT_KERNELS = tuple(_store_component_kernel(axis) for axis in range(3))
+STORE_COMPONENT_KERNELS = K.per_axis_kernels(_store_component_kernel, __name__)
 """``kernels/gas.py`` ``STORE_COMPONENT_KERNELS``' native versions (same launch, same bits)."""
 
 
