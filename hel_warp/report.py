@@ -66,7 +66,7 @@ Figures are rendered with pyvista off-screen, or with matplotlib when pyvista ca
      "summary_table": [{"label", "model", "diameter", "dt", "stream_crossing", "stream_crossing_vs_dem",
                         "transverse_velocity_rms", "transverse_velocity_rms_vs_dem", "collision_rate",
                         "collision_rate_vs_dem", "profile_rms_vs_dem" (first box count), "wall_clock_s"}, ...],
-     "like_with_like": {"model_differences": [{"what", "dem", "hel", "intended"}], "wall_effect": [{"diameter",
+     "like_with_like": {"model_differences": [{"what", "dem", "hel", "intended", "measured" (optional)}], "wall_effect": [{"diameter",
                         "dt", "none", "dem_no_contacts", "stream_crossing_difference",
                         "transverse_velocity_rms_relative_difference", "transverse_spread_difference_mm",
                         "profile_rms"}], "wall_effect_note"},
@@ -545,11 +545,17 @@ MODEL_DIFFERENCES = (
      "dem": "Hertz-Mindlin sphere-wall contact against the SDF at every DEM sub-step: the sphere meets the wall with "
             "its surface (radius), normal restitution from the wall dashpot (Material.wall_restitution_normal), "
             "Coulomb friction of the material, rolling carried by the spin",
-     "hel": "point reflection of the parcel centre (kernels/reflect.py): at its crossing within the step, in time "
+     "hel": "reflection of the parcel (kernels/reflect.py) where its surface meets the wall (HelConfig.wall_contact "
+            "'surface', the rig's default; 'point': where its centre does): at its crossing within the step, in time "
             "order with the collisions (the surrogate's swept detection with wall events, its default), else once "
             "per step at the step's end; e_n, e_t "
             "(Material.wall_restitution_*), tangential loss capped by Coulomb friction (HelConfig.wall_friction); no "
-            "spin"},
+            "spin",
+     "measured": "single impacts on a plane wall (hel-warp impact --target wall, 315 and 475 um, 1-5 m/s): the dem "
+                 "wall keeps 0.60-0.70 of the tangential speed at 20-60 deg incidence (the sphere leaves rolling), "
+                 "the HEL reflection 0.8 (Table 1) until the Coulomb cap; HEL walls at e_t = 5/7 on the mixture rig "
+                 "(16 seeds, 1e-3 s) gave the 475 um class's transverse rms +14.9 +- 7.5 % of the dem's against "
+                 "+17.2 +- 7.0 % at 0.8 (docs/FIGURES.md, issue 13, eleventh session)"},
     {"what": "parcel integration", "intended": False,
      "dem": "velocity-Verlet sub-steps at the DEM step with the fluid acceleration of the push held over the fluid "
             "step (same fluid impulse per step)",
