@@ -252,7 +252,7 @@ class HelConfig:
     """Compute each trilinear parcel's cloud-in-cell stencil once per step (at the deposit) and read it in the
     interpolation and the implicit exchange's passes (``kernels.interp.ParcelStencil``; a parcel moved in
     between, e.g. by a collision, has its stencil computed again): the same results bit for bit, the parcel
-    phase ~2x faster on the CPU. False: every pass computes the stencils (the reference the tests compare with);
+    phase 1.6-1.7x faster on the CPU. False: every pass computes the stencils (the reference the tests compare with);
     costs 108 bytes per parcel of capacity."""
 
     def __post_init__(self):
