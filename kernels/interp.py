@@ -567,7 +567,8 @@ def interpolate_gas_parcels(grid: CellGrid, particle_x, particle_weight, cell_ve
     :func:`interpolate_vec3_parcels` / :func:`interpolate_scalar_parcels` calls, bit for bit)."""
     wp.launch(interp_gas_kernel, dim=particle_x.shape[0], device=particle_x.device,
               inputs=[grid, stencil_or_empty(stencil, particle_x), particle_x,
-                      _weights_or_none(particle_weight, particle_x), flat_cells(cell_velocity), flat_cells(cell_grad_p), flat_cells(cell_eps_s)],
+                      _weights_or_none(particle_weight, particle_x), flat_cells(cell_velocity), flat_cells(cell_grad_p),
+                      flat_cells(cell_eps_s)],
               outputs=[parcel_u_f, parcel_grad_p, parcel_eps_s])
 
 
