@@ -12,6 +12,12 @@ The order inside one HEL step (ARCHITECTURE.md, "The step"):
 5. :func:`push_parcels`     - eq. (4) with semi-implicit drag; records each parcel's drag impulse,
    which the next :func:`deposit_parcels` hands to the gas with the opposite sign.
 
+Stencil cache: given a ``kernels.interp.ParcelStencil`` (``stencil=``, as ``HelSolver`` does), the deposit
+computes each trilinear parcel's stencil once into it and the interpolation and the implicit exchange's passes
+read it (issue 14: ~12 stencil computations per parcel and step before); every kernel checks per parcel that the
+cached row is at the position it is given and computes it otherwise, so the results are those of the computed
+stencils, bit for bit. None: every stencil computed.
+
 Momentum bookkeeping: the impulse a parcel receives from drag over a step is
 ``weight m F_D dt (u_f - v_new)``; the cells receive exactly minus that, spread with weights
 that sum to one, so sum(cell_momentum_source) + sum(parcel drag impulses) = 0 to float64
@@ -206,30 +212,30 @@ class CouplingFields:
             parcel_u_eq=parcels(wp.vec3), parcel_x_start=parcels(wp.vec3))
 
 
-def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields, cell_fluid=None) -> None:
+def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields, cell_fluid=None, *, stencil=None) -> None:
     """Step 1: parcels -> cells (volume, momentum source from the last push, sum beta V, solids momentum);
-    ``cell_fluid``: the int32 fluid mask heavy parcels' tents keep to."""
+    ``cell_fluid``: the int32 fluid mask heavy parcels' tents keep to; ``stencil``: a ``ParcelStencil`` the
+    deposit fills at the parcels' positions (every trilinear row: the parcels moved since the last step)."""
     from kernels.deposit import deposit, finish_cells
     from kernels.interp import parcel_arrays
 
     deposit(grid.cell_grid(cell_fluid), parcel_arrays(particles), fields.parcel_drag_impulse, fields.parcel_drag_coeff,
             cell_solid_volume=fields.cell_solid_volume,
             cell_momentum_source=fields.cell_momentum_source, cell_drag_coeff=fields.cell_drag_coeff,
-            cell_solid_mass=fields.cell_solid_mass, cell_solid_momentum=fields.cell_solid_momentum)
+            cell_solid_mass=fields.cell_solid_mass, cell_solid_momentum=fields.cell_solid_momentum, stencil=stencil)
     finish_cells(grid.cell_volume, fields.cell_solid_volume, fields.cell_solid_mass, fields.cell_solid_momentum,
                  cell_eps_s=fields.cell_eps_s, cell_solid_velocity=fields.cell_solid_velocity)
 
 
 def interpolate_gas(grid: GridSpec, particles, cell_velocity, cell_grad_p, fields: CouplingFields,
-                    cell_fluid=None) -> None:
-    """Step 3: gas velocity, grad p' and eps_s at the parcels (same weights as the deposit)."""
-    from kernels.interp import interpolate_scalar_parcels, interpolate_vec3_parcels
+                    cell_fluid=None, *, stencil=None) -> None:
+    """Step 3: gas velocity, grad p' and eps_s at the parcels (same weights as the deposit), in one pass;
+    ``stencil``: the deposit's cache (its rows are read where the parcels have not moved since)."""
+    from kernels.interp import interpolate_gas_parcels
 
-    g = grid.cell_grid(cell_fluid)
-    w = particles.weight
-    interpolate_vec3_parcels(g, particles.x, w, cell_velocity, fields.parcel_u_f)
-    interpolate_vec3_parcels(g, particles.x, w, cell_grad_p, fields.parcel_grad_p)
-    interpolate_scalar_parcels(g, particles.x, w, fields.cell_eps_s, fields.parcel_eps_s)
+    interpolate_gas_parcels(grid.cell_grid(cell_fluid), particles.x, particles.weight, cell_velocity, cell_grad_p,
+                            fields.cell_eps_s, parcel_u_f=fields.parcel_u_f, parcel_grad_p=fields.parcel_grad_p,
+                            parcel_eps_s=fields.parcel_eps_s, stencil=stencil)
 
 
 def ktgf_collision(grid: GridSpec, particles, fields: CouplingFields, params, *, dt: float | None = None) -> None:
@@ -271,7 +277,8 @@ drag law's balance with three passes, 3.7 % with two (the iteration alternates a
 
 
 def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params, *, cell_velocity, cell_fluid,
-                  gas_density: float, eps_f_min: float, particle_x_out=None, particle_v_out=None) -> None:
+                  gas_density: float, eps_f_min: float, particle_x_out=None, particle_v_out=None,
+                  stencil=None) -> None:
     """Step 5 with the implicit drag exchange (``kernels/deposit.py``): eq. (4) for the parcels and the gas
     impulse ``fields.cell_gas_impulse`` for the next gas step, solved together per cell so that neither
     phase overshoots their common velocity however dense the cell, and momentum balances to round-off.
@@ -279,11 +286,13 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
     ``cell_velocity``: the gas velocity the parcels were interpolated from; ``cell_fluid``: int32 mask
     (0: outside the fluid, whose share goes to the walls as with :func:`push_parcels`). Outputs in place
     unless ``particle_*_out`` are given; records drag impulses and rates as :func:`push_parcels` does.
+    ``stencil``: a ``ParcelStencil``, brought up to the start positions here (only rows computed elsewhere, e.g.
+    before a collision moved the parcel: none in the plain step) and read by the exchange's eight passes.
     """
     import warp as wp
 
     from kernels.deposit import exchange_cells, exchange_correct, exchange_deposit
-    from kernels.interp import interpolate_vec3_parcels, parcel_arrays
+    from kernels.interp import fill_stencil, interpolate_vec3_parcels, parcel_arrays
     from kernels.push import push_at_rate
 
     p = particles
@@ -293,20 +302,23 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
     v_out = p.v if particle_v_out is None else particle_v_out
     wp.copy(f.parcel_x_start, p.x)
     start = parcel_arrays(p, x=f.parcel_x_start)  # the parcels as they were before the push
+    if stencil is not None:
+        fill_stencil(g, f.parcel_x_start, p.weight, stencil, only_stale=True)
     slip_against = f.parcel_u_f
     for _ in range(EXCHANGE_PASSES):
         exchange_deposit(g, push_params, start, slip_against, f.parcel_eps_s, f.parcel_grad_p, f.parcel_a_coll,
                          parcel_rate=f.parcel_rate, parcel_exchange=f.parcel_exchange,
-                         cell_exchange_coeff=f.cell_exchange_coeff, cell_exchange_momentum=f.cell_exchange_momentum)
+                         cell_exchange_coeff=f.cell_exchange_coeff, cell_exchange_momentum=f.cell_exchange_momentum,
+                         stencil=stencil)
         exchange_cells(float(gas_density) * grid.cell_volume, eps_f_min, cell_fluid, f.cell_eps_s, cell_velocity,
                        f.cell_exchange_coeff, f.cell_exchange_momentum, cell_u_eq=f.cell_u_eq,
                        cell_gas_impulse=f.cell_gas_impulse, cell_mismatch=f.cell_mismatch)
-        interpolate_vec3_parcels(g, f.parcel_x_start, p.weight, f.cell_u_eq, f.parcel_u_eq)
+        interpolate_vec3_parcels(g, f.parcel_x_start, p.weight, f.cell_u_eq, f.parcel_u_eq, stencil=stencil)
         slip_against = f.parcel_u_eq
     push_at_rate(push_params, start, f.parcel_u_eq, f.parcel_rate, f.parcel_grad_p, f.parcel_a_coll,
                  f.parcel_drag_impulse, f.parcel_drag_coeff, particle_x_out=x_out, particle_v_out=v_out)
     exchange_correct(g, push_params.dt, cell_fluid, f.cell_exchange_coeff, f.cell_mismatch, start, f.parcel_exchange,
-                     f.parcel_drag_impulse, particle_x_out=x_out, particle_v_out=v_out)
+                     f.parcel_drag_impulse, particle_x_out=x_out, particle_v_out=v_out, stencil=stencil)
 
 
 def single_particle_response(*, diameter: float, density: float, config: PushConfig, dt: float,

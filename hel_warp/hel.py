@@ -248,6 +248,13 @@ class HelConfig:
     order). Parcel ids (``particle_id``) travel with the parcels; a strategy with per-parcel memory must
     provide ``permute_parcels(new_to_old, old_to_new)`` or the sort is skipped."""
 
+    stencil_cache: bool = True
+    """Compute each trilinear parcel's cloud-in-cell stencil once per step (at the deposit) and read it in the
+    interpolation and the implicit exchange's passes (``kernels.interp.ParcelStencil``; a parcel moved in
+    between, e.g. by a collision, has its stencil computed again): the same results bit for bit, the parcel
+    phase 1.6-1.7x faster on the CPU. False: every pass computes the stencils (the reference the tests compare with);
+    costs 108 bytes per parcel of capacity."""
+
     def __post_init__(self):
         require_positive("dt", self.dt, "s")
         if int(self.sort_every) != self.sort_every or self.sort_every < 0:
@@ -299,6 +306,12 @@ class HelSolver:
                                       f"({theirs}); give the same value to PushConfig and GasConfig")
         device = pool.particles.device
         self.fields = CouplingFields.allocate(self.grid, pool.capacity, device=device)
+        self.stencil = None
+        """The parcels' cached stencils (``HelConfig.stencil_cache``), or None."""
+        if config.stencil_cache:
+            from kernels.interp import make_parcel_stencil
+
+            self.stencil = make_parcel_stencil(pool.capacity, device=device)
         self.push_params = config.push.params(config.dt)
         cell_fluid = getattr(domain, "cell_fluid", None)
         if cell_fluid is None:
@@ -338,7 +351,7 @@ class HelSolver:
 
         from kernels.deposit import to_float32
 
-        deposit_parcels(self.grid, self.pool.particles, self.fields, self.cell_fluid)
+        deposit_parcels(self.grid, self.pool.particles, self.fields, self.cell_fluid, stencil=self.stencil)
         if self.config.coupling == "implicit":
             wp.copy(self.fields.cell_momentum_source, self.fields.cell_gas_impulse)
         wp.copy(self.gas.cell_eps_s, self.fields.cell_eps_s)
@@ -353,7 +366,7 @@ class HelSolver:
     def interpolate(self) -> None:
         """3. gas velocity, grad p' and eps_s at the parcels, with the deposit's weights."""
         interpolate_gas(self.grid, self.pool.particles, self.gas.cell_velocity, self.gas.cell_grad_p, self.fields,
-                        self.cell_fluid)
+                        self.cell_fluid, stencil=self.stencil)
 
     def collide(self) -> None:
         """4. the collision model's acceleration (and/or velocity jumps)."""
@@ -386,7 +399,8 @@ class HelSolver:
         if self.config.coupling == "implicit":
             exchange_push(self.grid, p, self.fields, self.push_params, cell_velocity=self.gas.cell_velocity,
                           cell_fluid=self.cell_fluid, gas_density=self.config.push.fluid_density,
-                          eps_f_min=self.eps_f_min, particle_x_out=particle_x_out, particle_v_out=particle_v_out)
+                          eps_f_min=self.eps_f_min, particle_x_out=particle_x_out, particle_v_out=particle_v_out,
+                          stencil=self.stencil)
         else:
             push_parcels(p, self.fields, self.push_params, particle_x_out=particle_x_out,
                          particle_v_out=particle_v_out)

@@ -11,6 +11,9 @@ weights the gas velocity is read with):
 
 then ``cell_eps_s = cell_solid_volume / h^3`` and the mass-averaged solids velocity.
 
+The parcel kernels take a ``kernels.interp.ParcelStencil`` (the cached trilinear stencils, or an empty one)
+and index the cell arrays flat (``flat_cells``; the launch wrappers take the (nx, ny, nz) arrays).
+
 Accumulation is in float64 with atomics, and this module compiles with Warp's deterministic
 atomics (``DeterministicMode.RUN_TO_RUN``, Warp >= 1.19): the additions into a cell are done in
 an order that does not depend on thread scheduling, so a rerun on the same device is
@@ -23,7 +26,8 @@ import math
 
 import warp as wp
 
-from kernels.interp import CellGrid, ParcelArrays, parcel_cell, parcel_stencil
+from kernels.interp import (CellGrid, ParcelArrays, ParcelStencil, cell_offset, flat_cells, parcel_cell,
+                            parcel_stencil, spread_half_width, stencil_holds, stencil_or_empty, store_stencil)
 from kernels.push import PushParams, body_acceleration, parcel_drag_rate, parcel_mass
 
 SPHERE_VOLUME_FACTOR = wp.constant(wp.float64(4.0 * math.pi / 3.0))  # float64 (wp.pi is float32)
@@ -35,17 +39,23 @@ if hasattr(wp.config, "DeterministicMode"):
 @wp.kernel
 def deposit_kernel(
     grid: CellGrid,
+    stencil: ParcelStencil,
     parcels: ParcelArrays,
     parcel_drag_impulse: wp.array(dtype=wp.vec3d),
     parcel_drag_coeff: wp.array(dtype=wp.float64),
-    # outputs (accumulated into; zero them first)
-    cell_solid_volume: wp.array3d(dtype=wp.float64),
-    cell_momentum_source: wp.array3d(dtype=wp.vec3d),
-    cell_drag_coeff: wp.array3d(dtype=wp.float64),
-    cell_solid_mass: wp.array3d(dtype=wp.float64),
-    cell_solid_momentum: wp.array3d(dtype=wp.vec3d),
+    # outputs (flat, accumulated into; zero them first)
+    cell_solid_volume: wp.array(dtype=wp.float64),
+    cell_momentum_source: wp.array(dtype=wp.vec3d),
+    cell_drag_coeff: wp.array(dtype=wp.float64),
+    cell_solid_mass: wp.array(dtype=wp.float64),
+    cell_solid_momentum: wp.array(dtype=wp.vec3d),
 ):
     tid = wp.tid()
+    x = parcels.x[tid]
+    weight = parcels.weight[tid]
+    cache = stencil.x.shape[0] > 0 and spread_half_width(grid, weight) == 1
+    if cache:  # the step's first pass at these positions: it fills the cache (dead parcels too)
+        store_stencil(grid, stencil, tid, x)
     if parcels.alive[tid] == 0:
         return
     r = wp.float64(parcels.radius[tid])
@@ -55,17 +65,25 @@ def deposit_kernel(
     momentum = mass * wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
     source = -parcel_drag_impulse[tid]
     coeff = parcel_drag_coeff[tid]
-    base, frac, kw, norm = parcel_stencil(grid, parcels.x[tid], parcels.weight[tid])
-    for corner in range(8 * kw * kw * kw):
-        idx, w = parcel_cell(grid, base, frac, kw, norm, corner)
-        i = idx[0]
-        j = idx[1]
-        k = idx[2]
-        wp.atomic_add(cell_solid_volume, i, j, k, w * volume)
-        wp.atomic_add(cell_momentum_source, i, j, k, w * source)
-        wp.atomic_add(cell_drag_coeff, i, j, k, w * coeff)
-        wp.atomic_add(cell_solid_mass, i, j, k, w * mass)
-        wp.atomic_add(cell_solid_momentum, i, j, k, w * momentum)
+    if cache:
+        for corner in range(8):
+            c = stencil.cell[tid, corner]
+            w = stencil.weight[tid, corner]
+            wp.atomic_add(cell_solid_volume, c, w * volume)
+            wp.atomic_add(cell_momentum_source, c, w * source)
+            wp.atomic_add(cell_drag_coeff, c, w * coeff)
+            wp.atomic_add(cell_solid_mass, c, w * mass)
+            wp.atomic_add(cell_solid_momentum, c, w * momentum)
+    else:
+        base, frac, kw, norm = parcel_stencil(grid, x, weight)
+        for corner in range(8 * kw * kw * kw):
+            idx, w = parcel_cell(grid, base, frac, kw, norm, corner)
+            c = cell_offset(grid, idx)
+            wp.atomic_add(cell_solid_volume, c, w * volume)
+            wp.atomic_add(cell_momentum_source, c, w * source)
+            wp.atomic_add(cell_drag_coeff, c, w * coeff)
+            wp.atomic_add(cell_solid_mass, c, w * mass)
+            wp.atomic_add(cell_solid_momentum, c, w * momentum)
 
 
 @wp.kernel
@@ -125,17 +143,18 @@ def to_float32_kernel(
 @wp.kernel
 def exchange_deposit_kernel(
     grid: CellGrid,
+    stencil: ParcelStencil,
     params: PushParams,
     parcels: ParcelArrays,
     parcel_u_f: wp.array(dtype=wp.vec3),
     parcel_eps_s: wp.array(dtype=float),
     parcel_grad_p: wp.array(dtype=wp.vec3),
     parcel_a_coll: wp.array(dtype=wp.vec3),
-    # outputs (cell arrays accumulated into; zero them first)
+    # outputs (cell arrays flat, accumulated into; zero them first)
     parcel_rate: wp.array(dtype=float),
     parcel_exchange: wp.array(dtype=wp.float64),
-    cell_exchange_coeff: wp.array3d(dtype=wp.float64),
-    cell_exchange_momentum: wp.array3d(dtype=wp.vec3d),
+    cell_exchange_coeff: wp.array(dtype=wp.float64),
+    cell_exchange_momentum: wp.array(dtype=wp.vec3d),
 ):
     """F_D at the interpolated gas velocity, D_i, and A_c, B_c (see above)."""
     tid = wp.tid()
@@ -153,11 +172,21 @@ def exchange_deposit_kernel(
     parcel_exchange[tid] = d
     v_star = v + params.dt * body_acceleration(params, rho_p, parcel_grad_p[tid], parcel_a_coll[tid])
     dv = d * wp.vec3d(wp.float64(v_star[0]), wp.float64(v_star[1]), wp.float64(v_star[2]))
-    base, frac, kw, norm = parcel_stencil(grid, parcels.x[tid], parcels.weight[tid])
-    for corner in range(8 * kw * kw * kw):
-        idx, w = parcel_cell(grid, base, frac, kw, norm, corner)
-        wp.atomic_add(cell_exchange_coeff, idx[0], idx[1], idx[2], w * d)
-        wp.atomic_add(cell_exchange_momentum, idx[0], idx[1], idx[2], w * dv)
+    x = parcels.x[tid]
+    weight = parcels.weight[tid]
+    if stencil_holds(stencil, tid, x, spread_half_width(grid, weight)):
+        for corner in range(8):
+            c = stencil.cell[tid, corner]
+            w = stencil.weight[tid, corner]
+            wp.atomic_add(cell_exchange_coeff, c, w * d)
+            wp.atomic_add(cell_exchange_momentum, c, w * dv)
+    else:
+        base, frac, kw, norm = parcel_stencil(grid, x, weight)
+        for corner in range(8 * kw * kw * kw):
+            idx, w = parcel_cell(grid, base, frac, kw, norm, corner)
+            c = cell_offset(grid, idx)
+            wp.atomic_add(cell_exchange_coeff, c, w * d)
+            wp.atomic_add(cell_exchange_momentum, c, w * dv)
 
 
 @wp.kernel
@@ -197,29 +226,37 @@ def exchange_cells_kernel(
 @wp.kernel
 def impulse_deposit_kernel(
     grid: CellGrid,
+    stencil: ParcelStencil,
     parcels: ParcelArrays,
     parcel_drag_impulse: wp.array(dtype=wp.vec3d),
-    # outputs (accumulated into)
-    cell_mismatch: wp.array3d(dtype=wp.vec3d),
+    # outputs (flat, accumulated into)
+    cell_mismatch: wp.array(dtype=wp.vec3d),
 ):
     """cell_mismatch += sum_i w_ic J_i at the parcels' positions before the push (``parcels.x``)."""
     tid = wp.tid()
     if parcels.alive[tid] == 0:
         return
     j = parcel_drag_impulse[tid]
-    base, frac, kw, norm = parcel_stencil(grid, parcels.x[tid], parcels.weight[tid])
-    for corner in range(8 * kw * kw * kw):
-        idx, w = parcel_cell(grid, base, frac, kw, norm, corner)
-        wp.atomic_add(cell_mismatch, idx[0], idx[1], idx[2], w * j)
+    x = parcels.x[tid]
+    weight = parcels.weight[tid]
+    if stencil_holds(stencil, tid, x, spread_half_width(grid, weight)):
+        for corner in range(8):
+            wp.atomic_add(cell_mismatch, stencil.cell[tid, corner], stencil.weight[tid, corner] * j)
+    else:
+        base, frac, kw, norm = parcel_stencil(grid, x, weight)
+        for corner in range(8 * kw * kw * kw):
+            idx, w = parcel_cell(grid, base, frac, kw, norm, corner)
+            wp.atomic_add(cell_mismatch, cell_offset(grid, idx), w * j)
 
 
 @wp.kernel
 def exchange_correct_kernel(
     grid: CellGrid,
+    stencil: ParcelStencil,
     dt: float,
-    cell_fluid: wp.array3d(dtype=wp.int32),
-    cell_exchange_coeff: wp.array3d(dtype=wp.float64),
-    cell_mismatch: wp.array3d(dtype=wp.vec3d),
+    cell_fluid: wp.array(dtype=wp.int32),
+    cell_exchange_coeff: wp.array(dtype=wp.float64),
+    cell_mismatch: wp.array(dtype=wp.vec3d),
     parcels: ParcelArrays,
     parcel_exchange: wp.array(dtype=wp.float64),
     # in/out: the pushed state and impulses (parcels.x: the positions before the push)
@@ -227,17 +264,28 @@ def exchange_correct_kernel(
     particle_v_out: wp.array(dtype=wp.vec3),
     parcel_drag_impulse: wp.array(dtype=wp.vec3d),
 ):
-    """dJ_i = -D_i sum_c w_ic delta_c / A_c over fluid cells with A_c > 0; v and x (= x + dt v) follow."""
+    """dJ_i = -D_i sum_c w_ic delta_c / A_c over fluid cells with A_c > 0; v and x (= x + dt v) follow (cell
+    arrays flat)."""
     tid = wp.tid()
     if parcels.alive[tid] == 0:
         return
     corr = wp.vec3d(0.0, 0.0, 0.0)
-    base, frac, kw, norm = parcel_stencil(grid, parcels.x[tid], parcels.weight[tid])
-    for corner in range(8 * kw * kw * kw):
-        idx, w = parcel_cell(grid, base, frac, kw, norm, corner)
-        a = cell_exchange_coeff[idx[0], idx[1], idx[2]]
-        if cell_fluid[idx[0], idx[1], idx[2]] != 0 and a > wp.float64(0.0):
-            corr = corr + (w / a) * cell_mismatch[idx[0], idx[1], idx[2]]
+    x = parcels.x[tid]
+    weight = parcels.weight[tid]
+    if stencil_holds(stencil, tid, x, spread_half_width(grid, weight)):
+        for corner in range(8):
+            c = stencil.cell[tid, corner]
+            a = cell_exchange_coeff[c]
+            if cell_fluid[c] != 0 and a > wp.float64(0.0):
+                corr = corr + (stencil.weight[tid, corner] / a) * cell_mismatch[c]
+    else:
+        base, frac, kw, norm = parcel_stencil(grid, x, weight)
+        for corner in range(8 * kw * kw * kw):
+            idx, w = parcel_cell(grid, base, frac, kw, norm, corner)
+            c = cell_offset(grid, idx)
+            a = cell_exchange_coeff[c]
+            if cell_fluid[c] != 0 and a > wp.float64(0.0):
+                corr = corr + (w / a) * cell_mismatch[c]
     dj = -parcel_exchange[tid] * corr
     parcel_drag_impulse[tid] = parcel_drag_impulse[tid] + dj
     dv64 = dj / parcel_mass(parcels.weight[tid], parcels.density[tid], 2.0 * parcels.radius[tid])
@@ -249,15 +297,17 @@ def exchange_correct_kernel(
 # ---------------------------------------------------------------- launch wrappers
 
 def deposit(grid: CellGrid, parcels: ParcelArrays, parcel_drag_impulse, parcel_drag_coeff, *, cell_solid_volume,
-            cell_momentum_source, cell_drag_coeff, cell_solid_mass, cell_solid_momentum):
+            cell_momentum_source, cell_drag_coeff, cell_solid_mass, cell_solid_momentum,
+            stencil: ParcelStencil | None = None):
     """Zero the five accumulators and deposit every live parcel into them (``parcels``: see
-    ``kernels.interp.parcel_arrays``)."""
-    for arr in (cell_solid_volume, cell_momentum_source, cell_drag_coeff, cell_solid_mass, cell_solid_momentum):
+    ``kernels.interp.parcel_arrays``); ``stencil``: a ``ParcelStencil`` filled here with every trilinear parcel's
+    row at ``parcels.x`` (the deposit is the step's first pass at new positions), None: no cache."""
+    cells = (cell_solid_volume, cell_momentum_source, cell_drag_coeff, cell_solid_mass, cell_solid_momentum)
+    for arr in cells:
         arr.zero_()
     wp.launch(deposit_kernel, dim=parcels.x.shape[0], device=parcels.x.device,
-              inputs=[grid, parcels, parcel_drag_impulse, parcel_drag_coeff],
-              outputs=[cell_solid_volume, cell_momentum_source, cell_drag_coeff, cell_solid_mass,
-                       cell_solid_momentum])
+              inputs=[grid, stencil_or_empty(stencil, parcels.x), parcels, parcel_drag_impulse, parcel_drag_coeff],
+              outputs=[flat_cells(arr) for arr in cells])
 
 
 def finish_cells(cell_volume: float, cell_solid_volume, cell_solid_mass, cell_solid_momentum, *, cell_eps_s,
@@ -276,13 +326,16 @@ def to_float32(cell_momentum_source, cell_drag_coeff, *, cell_momentum_source_f3
 
 
 def exchange_deposit(grid: CellGrid, params, parcels: ParcelArrays, parcel_u_f, parcel_eps_s, parcel_grad_p,
-                     parcel_a_coll, *, parcel_rate, parcel_exchange, cell_exchange_coeff, cell_exchange_momentum):
-    """Zero A, B and deposit D_i, D_i v*_i (implicit exchange, step 1)."""
+                     parcel_a_coll, *, parcel_rate, parcel_exchange, cell_exchange_coeff, cell_exchange_momentum,
+                     stencil: ParcelStencil | None = None):
+    """Zero A, B and deposit D_i, D_i v*_i (implicit exchange, step 1; ``stencil``: as :func:`deposit`)."""
     cell_exchange_coeff.zero_()
     cell_exchange_momentum.zero_()
     wp.launch(exchange_deposit_kernel, dim=parcels.x.shape[0], device=parcels.x.device,
-              inputs=[grid, params, parcels, parcel_u_f, parcel_eps_s, parcel_grad_p, parcel_a_coll],
-              outputs=[parcel_rate, parcel_exchange, cell_exchange_coeff, cell_exchange_momentum])
+              inputs=[grid, stencil_or_empty(stencil, parcels.x), params, parcels, parcel_u_f, parcel_eps_s,
+                      parcel_grad_p, parcel_a_coll],
+              outputs=[parcel_rate, parcel_exchange, flat_cells(cell_exchange_coeff),
+                       flat_cells(cell_exchange_momentum)])
 
 
 def exchange_cells(gas_mass_full: float, eps_f_min: float, cell_fluid, cell_eps_s, cell_velocity,
@@ -295,12 +348,16 @@ def exchange_cells(gas_mass_full: float, eps_f_min: float, cell_fluid, cell_eps_
 
 
 def exchange_correct(grid: CellGrid, dt: float, cell_fluid, cell_exchange_coeff, cell_mismatch,
-                     parcels: ParcelArrays, parcel_exchange, parcel_drag_impulse, *, particle_x_out, particle_v_out):
+                     parcels: ParcelArrays, parcel_exchange, parcel_drag_impulse, *, particle_x_out, particle_v_out,
+                     stencil: ParcelStencil | None = None):
     """Deposit the push's impulses into the mismatch and take it back from the parcels (steps 4-5);
-    ``parcels.x``: the positions before the push."""
+    ``parcels.x``: the positions before the push (``stencil``: as :func:`deposit`)."""
     n = parcels.x.shape[0]
+    stencil = stencil_or_empty(stencil, parcels.x)
+    mismatch = flat_cells(cell_mismatch)
     wp.launch(impulse_deposit_kernel, dim=n, device=parcels.x.device,
-              inputs=[grid, parcels, parcel_drag_impulse], outputs=[cell_mismatch])
+              inputs=[grid, stencil, parcels, parcel_drag_impulse], outputs=[mismatch])
     wp.launch(exchange_correct_kernel, dim=n, device=parcels.x.device,
-              inputs=[grid, float(dt), cell_fluid, cell_exchange_coeff, cell_mismatch, parcels, parcel_exchange],
+              inputs=[grid, stencil, float(dt), flat_cells(cell_fluid), flat_cells(cell_exchange_coeff), mismatch,
+                      parcels, parcel_exchange],
               outputs=[particle_x_out, particle_v_out, parcel_drag_impulse])
