@@ -317,6 +317,9 @@ class CaseConfig:
     """Where HEL parcels meet the walls: ``surface`` (default: a particle radius from the centre, as the ``dem``
     spheres, so that HEL and its reference share the walls' geometry) or ``point`` (their centre, MP-PIC;
     ``HelConfig.wall_contact``). ``dem`` keeps its Hertz-Mindlin wall contact."""
+    wall_spin: bool = False
+    """HEL parcels meet the walls as rough spheres that carry their spin (``HelConfig.wall_spin``), as the ``dem``
+    spheres roll; False: the spinless reflection with Table 1's e_t = 0.8."""
     cell_coarsen: int | None = None
     """``surrogate`` cell detection: grid cells per collision cell and axis (``CellConfig.coarsen``; None: the
     automatic choice, merged cells for weighted parcels)."""
@@ -454,6 +457,7 @@ def make_config(args) -> CaseConfig:
                       cell_packing_stress=not getattr(args, "no_packing_stress", False),
                       cell_nearest=int(nearest or 0),
                       wall_contact=getattr(args, "wall_contact", "surface"),
+                      wall_spin=bool(getattr(args, "wall_spin", False)),
                       seed=int(args.seed), device=args.device)
 
 
@@ -631,7 +635,7 @@ class CollidingStreams:
                    Outlet(point=(0.0, 0.0, 0.0), normal=(-1.0, 0.0, 0.0)))  # back out through an inlet plane
         self.solver = HelSolver(pool=self.pool, gas_solver=self.gas_solver, gas=self.gas,
                                 config=HelConfig(dt=config.dt, push=push, material=material, walls=True,
-                                                 wall_contact=config.wall_contact,
+                                                 wall_contact=config.wall_contact, wall_spin=config.wall_spin,
                                                  injectors=tuple(injectors), outlets=outlets),
                                 collision=self.collision)
 
@@ -882,6 +886,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--wall-contact", choices=("point", "surface"), default="surface",
                         help="where HEL parcels meet the walls: surface (a particle radius from the centre, as the "
                              "dem's spheres; default) or point (their centre, MP-PIC)")
+    parser.add_argument("--wall-spin", action="store_true",
+                        help="HEL parcels meet the walls as rough spheres that carry their spin (Walton's law, "
+                             "beta = 0: a sphere rolling along a wall keeps its speed), as the dem's spheres do; "
+                             "default: the spinless reflection with Table 1's e_t = 0.8")
     parser.add_argument("--no-wall-events", action="store_true",
                         help="surrogate swept detection: walls only at the step's end (the push's reflection) "
                              "instead of as events in time order with the collisions (the default)")

@@ -470,7 +470,7 @@ class SurrogateCollision:
         self._shift_pending = sweep > 0.0
         resolve_swept(a, self.forest, particles.v, self.events_found, self.event_rounds, self.round_cap_hit,
                       self.calls, self.collisions, self.detected, self.skipped, batch_forest=self.batch_forest,
-                      args_store=self._swept_store)
+                      args_store=self._swept_store, particle_omega=particles.omega)
         if sweep > 0.0:
             wp.copy(self.v_swept, particles.v)
 

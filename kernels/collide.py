@@ -36,7 +36,7 @@ from kernels.forest import (COS_FEATURE, GUARD_COULOMB, GUARD_ENERGY, GUARD_SEPA
                             admissible_impulse, contact_impulse, scale_factor, sphere_mass, walk_tree,
                             write_contact_features_in_domain)
 from kernels.cell_list import CellList, range_count, range_slots, range_slots_pair, search_box, search_box_pair
-from kernels.reflect import WallParams, reflect_velocity
+from kernels.reflect import WallParams, wall_impact
 from kernels.sdf import SdfShapes, sdf_union, sdf_union_normal
 
 PAIR_PENDING = wp.constant(0)
@@ -450,7 +450,7 @@ class SweptArgs:
     shapes: SdfShapes
     """The wall geometry (``walls`` = 1; kernels/sdf.py: negative inside the fluid)."""
     wall: WallParams
-    """Restitution and Coulomb cap of a parcel-wall impact (kernels/reflect.py ``reflect_velocity``)."""
+    """Restitution and Coulomb cap of a parcel-wall impact (kernels/reflect.py ``wall_impact``)."""
     wall_count: wp.array(dtype=wp.int32)
     """(1,) wall events in this round."""
     wall_i: wp.array(dtype=wp.int32)
@@ -1114,9 +1114,11 @@ def swept_resolve_walls(
     wall_count: wp.array(dtype=wp.int32),
     # outputs
     particle_v: wp.array(dtype=wp.vec3),
+    particle_omega: wp.array(dtype=wp.vec3),
 ):
     """The round's wall events: the parcel reflected at its crossing (e_n, e_t, Coulomb cap as the push's
-    reflection, kernels/reflect.py), its new path from there. ``wall_count``: ``args.wall_count``."""
+    reflection, or the rough-sphere law with spin of ``args.wall.spin``: kernels/reflect.py ``wall_impact``), its new
+    path from there. ``wall_count``: ``args.wall_count``; ``particle_omega``: updated with ``args.wall.spin``."""
     row = wp.tid()
     if row >= wall_count[0]:
         return
@@ -1127,9 +1129,13 @@ def swept_resolve_walls(
     n = sdf_union_normal(args.shapes, path_position(args, particle_v, i, t))
     if wp.dot(v, n) <= 0.0:
         return
-    v_new = reflect_velocity(v, n, args.wall.restitution_normal, args.wall.restitution_tangential,
-                             args.wall.friction)
+    omega = wp.vec3(0.0, 0.0, 0.0)
+    if args.wall.spin != 0:
+        omega = particle_omega[i]
+    v_new, omega_new = wall_impact(args.wall, v, omega, n, args.particle_radius[i])
     particle_v[i] = v_new
+    if args.wall.spin != 0:
+        particle_omega[i] = omega_new
     follow_new_path(args, i, i, t, v, v_new, args.round[0])
     wp.atomic_add(args.wall_hits, 0, 1)
 
@@ -1281,7 +1287,8 @@ def launch_swept_start(args: SweptArgs, particle_v, reach_max, reach_sum) -> Non
 
 
 def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, event_rounds, round_cap_hit, calls,
-                  collisions, detected, skipped, batch_forest: Forest | None = None, args_store=None) -> None:
+                  collisions, detected, skipped, batch_forest: Forest | None = None, args_store=None,
+                  particle_omega=None) -> None:
     """Rounds of mutually earliest events until none is left (``wp.capture_while``: a while node where the call is
     captured into a graph - tests/test_device_paths.py does, on the CPU; the engine calls it uncaptured, a host loop
     with one device read per round) or
@@ -1291,6 +1298,7 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
     Round 0 also counts the pairs overlapping at the start into ``detected`` (per stream pair) and ``skipped``.
 
     With ``batch_forest`` (perfect layout) each round's events are predicted in one batched evaluation.
+    ``particle_omega``: the parcels' spins, updated by the wall events when ``args.wall.spin`` is set (needed then).
 
     Every launch of a round is recorded once per call (``record_cmd``: the arguments, ``args`` included, are
     packed once, as they stay the same over the step) and replayed each round: on the CPU packing the
@@ -1319,7 +1327,12 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
                               record=True)
     resolve = record(swept_resolve, n // 2 + 1, [args_store, args.batch_count, forest],
                      [particle_v, calls, collisions])  # pairs: <= n/2 rows
-    walls = record(swept_resolve_walls, n, [args_store, args.wall_count], [particle_v]) if args.walls != 0 else None
+    if particle_omega is None:
+        if args.walls != 0 and args.wall.spin != 0:
+            raise ValueError("wall spin (args.wall.spin) needs particle_omega")
+        particle_omega = wp.zeros(1, dtype=wp.vec3, device=device)
+    walls = (record(swept_resolve_walls, n, [args_store, args.wall_count], [particle_v, particle_omega])
+             if args.walls != 0 else None)
     mark_dirty = record(swept_mark_dirty, n, [args_store, args.round, args.stamp, args.event_key], [args.dirty])
     next_round = record(swept_next_round, 1, [args], [events_found, event_rounds, round_cap_hit])
 
