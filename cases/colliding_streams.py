@@ -418,6 +418,9 @@ def make_config(args) -> CaseConfig:
     if args.no_particle_contacts and args.collisions != "dem":
         raise ConfigError(f"--no-particle-contacts is a dem option (got --collisions {args.collisions}); none "
                           "already has no particle-particle collisions")
+    if getattr(args, "collision_events", None) and args.collisions in ("none", "ktgf"):
+        raise ConfigError(f"--collision-events records the dem and surrogate collisions; --collisions "
+                          f"{args.collisions} resolves none")
     if (args.collisions.startswith("surrogate")) and not args.model:
         raise ConfigError(f"--collisions {args.collisions} needs --model MODEL_DIR (a `hel-warp train` output)")
     detection = getattr(args, "detection", None)
@@ -776,6 +779,53 @@ def case_attrs(rig: CollidingStreams, config: CaseConfig) -> dict:
                       "collision_counts_available": hasattr(rig.collision, "counts")})
 
 
+class EventRecorder:
+    """``--collision-events PATH``: every collision of every step of this call, for ``scripts/collision_events.py``:
+    ``dem`` contact onsets (``DemCollision.onset_events``), the ``surrogate``'s resolved collisions with swept or
+    overlap detection (``SurrogateCollision.collision_events``; switched on here). Saved as one ``.npz`` of equal-length
+    arrays: ``step``, ``particle_a`` < ``particle_b`` (ids), ``speed`` (normal approach speed, m/s), ``time`` (s of
+    the run), ``stream_a`` <= ``stream_b``, ``radius_a``, ``radius_b`` (m), and ``truncated_steps`` (steps whose list
+    overflowed; their counts in the run's series stay exact)."""
+
+    def __init__(self, rig: "CollidingStreams"):
+        from hel_warp.errors import ConfigError
+
+        collision = rig.collision
+        if hasattr(collision, "record_events"):
+            collision.record_events = True
+            self._read = collision.collision_events
+        elif hasattr(collision, "onset_events"):
+            self._read = collision.onset_events
+        else:
+            raise ConfigError(f"--collision-events records the dem and surrogate collisions (got --collisions "
+                              f"{rig.config.collisions}, which resolves none)")
+        self.rows = {k: [] for k in ("step", "particle_a", "particle_b", "speed", "time", "stream_a", "stream_b",
+                                     "radius_a", "radius_b")}
+        self.truncated = []
+
+    def add(self, solver) -> None:
+        ev = self._read()
+        n = len(ev["speed"])
+        p = solver.pool.particles
+        radius = np.full(max(int(p.particle_id.numpy().max(initial=0)) + 1, 1), np.nan, np.float32)
+        alive = p.alive.numpy() != 0
+        radius[p.particle_id.numpy()[alive]] = p.radius.numpy()[alive]
+        step = solver.step_count - 1
+        r = self.rows
+        r["step"].append(np.full(n, step, np.int32))
+        for key in ("particle_a", "particle_b", "speed", "stream_a", "stream_b"):
+            r[key].append(np.asarray(ev[key]))
+        r["time"].append(np.asarray(ev["time"], np.float64) + (solver.time - solver.config.dt))
+        r["radius_a"].append(radius[np.asarray(ev["particle_a"], np.int64)])
+        r["radius_b"].append(radius[np.asarray(ev["particle_b"], np.int64)])
+        if ev.get("truncated"):
+            self.truncated.append(step)
+
+    def save(self, path: str) -> None:
+        out = {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in self.rows.items()}
+        np.savez_compressed(path, **out, truncated_steps=np.asarray(self.truncated, np.int32))
+
+
 def run(args, *, progress: bool = True) -> int:
     """Build the rig, warm the gas up, step to --end-time with ``hel_warp.run.Run`` (checkpoints, --resume)."""
     import zarr
@@ -803,20 +853,25 @@ def run(args, *, progress: bool = True) -> int:
                                        gas_snapshots=not args.no_gas_snapshots),
                  case_config=case_attrs(rig, config), restart=mode == "resume")
     bar = None
-    callback = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=runner.total_steps, initial=rig.solver.step_count, unit="step",
                    desc=f"colliding_streams {config.collisions} dt={config.dt:g}")
+    events = EventRecorder(rig) if getattr(args, "collision_events", None) else None
 
-        def callback(_solver):
+    def callback(solver):
+        if events is not None:
+            events.add(solver)
+        if bar is not None:
             bar.update(1)
     t_loop = time.perf_counter()
     taken = runner.run(progress=callback)
     loop_total_s = time.perf_counter() - t_loop
     if bar is not None:
         bar.close()
+    if events is not None:
+        events.save(args.collision_events)
     errors = check(rig)
     root = zarr.open_group(str(Path(args.out) / "run.zarr"), mode="r+")
     root.attrs["kernel_load_s"] = float(root.attrs.get("kernel_load_s", 0.0)) + kernel_load_s
@@ -890,6 +945,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="HEL parcels meet the walls as rough spheres that carry their spin (Walton's law, "
                              "beta = 0: a sphere rolling along a wall keeps its speed), as the dem's spheres do; "
                              "default: the spinless reflection with Table 1's e_t = 0.8")
+    parser.add_argument("--collision-events", metavar="PATH", default=None,
+                        help="save every collision of every step to PATH (.npz: ids, normal approach speed, time, "
+                             "stream tags, radii; dem contact onsets or the surrogate's resolved collisions) for "
+                             "scripts/collision_events.py")
     parser.add_argument("--no-wall-events", action="store_true",
                         help="surrogate swept detection: walls only at the step's end (the push's reflection) "
                              "instead of as events in time order with the collisions (the default)")

@@ -115,7 +115,7 @@ class SurrogateCollision:
     def __init__(self, *, model_dir: str, mode: str = "pairwise", detection: str | None = None,
                  periodic_box=None, n_streams: int = DEFAULT_STREAMS, batched: bool = True,
                  max_rounds: int = MAX_ROUNDS, ordering: str = "parallel", cell=None, seed: int = 0,
-                 wall_events: bool = True, kick_first: bool = True):
+                 wall_events: bool = True, kick_first: bool = True, collision_events: bool = False):
         from hel_warp.forest import load_forest
 
         if mode not in ("pairwise", "paper"):
@@ -175,6 +175,60 @@ class SurrogateCollision:
         relative motion of neighbours)."""
         self._kicked = False
         self._x_scratch = None
+        self.record_events = bool(collision_events)
+        """Keep every collision the swept (or overlap) detection resolves in a step, for :meth:`collision_events`
+        (one logging launch per round; off by default)."""
+        self._event_log = None
+        self._events = None
+
+    def collision_events(self) -> dict:
+        """The collisions resolved by the last call (``collision_events=True``; swept and overlap detection), one
+        entry each, in the layout of the ``dem`` strategy's ``onset_events``, sorted by (time, particle_a,
+        particle_b): host arrays ``particle_a`` < ``particle_b`` (particle ids), ``speed`` (normal approach speed
+        just before the impulse, m/s), ``time`` (s from the step's start), ``stream_a`` <= ``stream_b``;
+        ``truncated`` is True when the step resolved more than the log held (it grows for the next step). Empty for
+        a step of the cell detection or with the log off."""
+        if self._events is None:
+            return {"particle_a": np.zeros(0, np.int32), "particle_b": np.zeros(0, np.int32),
+                    "speed": np.zeros(0, np.float32), "time": np.zeros(0), "stream_a": np.zeros(0, np.int32),
+                    "stream_b": np.zeros(0, np.int32), "truncated": False}
+        return dict(self._events)
+
+    def _log_events_start(self, particles):
+        """The event log's arrays for this step (None when off), its counter zeroed; sized from the last step's
+        count (at least 2 per parcel)."""
+        if not self.record_events:
+            return None
+        import warp as wp
+
+        want = max(1024, 2 * particles.count)
+        if self._event_log is not None:
+            want = max(want, int(self._event_log[0].numpy()[0]))
+        if self._event_log is None or self._event_log[1].shape[0] < want:
+            dev = particles.v.device
+            self._event_log = (wp.zeros(1, dtype=wp.int32, device=dev), wp.zeros((want, 4), dtype=wp.int32, device=dev),
+                               wp.zeros((want, 2), dtype=wp.float32, device=dev))
+        self._event_log[0].zero_()
+        return self._event_log
+
+    def _log_events_end(self, particles) -> None:
+        """Host copy of the step's log, slots turned into particle ids (:meth:`collision_events`)."""
+        count, log_int, log_float = self._event_log
+        total = int(count.numpy()[0])
+        m = min(total, log_int.shape[0])
+        ij = log_int.numpy()[:m].copy()
+        f = log_float.numpy()[:m].copy()
+        ids = particles.particle_id.numpy()
+        a, b = ids[ij[:, 0]], ids[ij[:, 1]]
+        sa, sb = ij[:, 2], ij[:, 3]
+        swap = a > b
+        a, b = np.where(swap, b, a), np.where(swap, a, b)
+        sa, sb = np.minimum(sa, sb), np.maximum(sa, sb)
+        order = np.lexsort((b, a, f[:, 1]))
+        self._events = {"particle_a": a[order].astype(np.int32), "particle_b": b[order].astype(np.int32),
+                        "speed": f[order, 0], "time": f[order, 1].astype(np.float64),
+                        "stream_a": sa[order].astype(np.int32), "stream_b": sb[order].astype(np.int32),
+                        "truncated": total > m}
 
     def set_walls(self, shapes, params) -> None:
         """The wall geometry (``kernels.sdf.SdfShapes``) and restitution (``kernels.reflect.WallParams``) of the
@@ -410,6 +464,7 @@ class SurrogateCollision:
                     self.event_rounds, self.swept.round, self.swept.guard, self.swept.wall_hits):
             arr.zero_()
         self._counts = None
+        self._events = None
         self._shift_pending = False
         alive = particles.alive.numpy().astype(bool)
         if not alive.any():
@@ -468,9 +523,12 @@ class SurrogateCollision:
         a.reach_cut = max(REACH_CUT_FACTOR * reach_mean if reach_mean > 0.0 else 0.0, REACH_CUT_FLOOR * r_max)
         a.bound_cut = max(BOUND_CUT_FACTOR * reach_mean if reach_mean > 0.0 else 0.0, REACH_CUT_FLOOR * r_max)
         self._shift_pending = sweep > 0.0
+        log = self._log_events_start(particles)
         resolve_swept(a, self.forest, particles.v, self.events_found, self.event_rounds, self.round_cap_hit,
                       self.calls, self.collisions, self.detected, self.skipped, batch_forest=self.batch_forest,
-                      args_store=self._swept_store, particle_omega=particles.omega)
+                      args_store=self._swept_store, particle_omega=particles.omega, event_log=log)
+        if log is not None:
+            self._log_events_end(particles)
         if sweep > 0.0:
             wp.copy(self.v_swept, particles.v)
 

@@ -1109,6 +1109,36 @@ def swept_resolve(
 
 
 @wp.kernel
+def swept_log_events(
+    args_store: wp.array(dtype=SweptArgs),
+    batch_count: wp.array(dtype=wp.int32),
+    particle_v: wp.array(dtype=wp.vec3),
+    # outputs
+    count: wp.array(dtype=wp.int32),
+    log_int: wp.array2d(dtype=wp.int32),
+    log_float: wp.array2d(dtype=wp.float32),
+):
+    """The round's events as they are about to be resolved (launched before ``swept_resolve``): per event one row of
+    ``log_int`` (slot i, slot j, stream of i, stream of j) and of ``log_float`` (normal approach speed |(v_i - v_j) . n|,
+    time in the step, s); ``count[0]`` counts every event, rows past the arrays' length are dropped."""
+    row = wp.tid()
+    if row >= batch_count[0]:
+        return
+    args = args_store[0]
+    i = args.event_i[row]
+    j = args.event_j[row]
+    k = wp.atomic_add(count, 0, 1)
+    if k < log_int.shape[0]:
+        g = particle_v[i] - particle_v[j]
+        log_int[k, 0] = i
+        log_int[k, 1] = j
+        log_int[k, 2] = args.particle_stream[i]
+        log_int[k, 3] = args.particle_stream[j]
+        log_float[k, 0] = wp.abs(wp.dot(g, args.event_normal[row]))
+        log_float[k, 1] = args.event_time[row]
+
+
+@wp.kernel
 def swept_resolve_walls(
     args_store: wp.array(dtype=SweptArgs),
     wall_count: wp.array(dtype=wp.int32),
@@ -1288,7 +1318,7 @@ def launch_swept_start(args: SweptArgs, particle_v, reach_max, reach_sum) -> Non
 
 def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, event_rounds, round_cap_hit, calls,
                   collisions, detected, skipped, batch_forest: Forest | None = None, args_store=None,
-                  particle_omega=None) -> None:
+                  particle_omega=None, event_log=None) -> None:
     """Rounds of mutually earliest events until none is left (``wp.capture_while``: a while node where the call is
     captured into a graph - tests/test_device_paths.py does, on the CPU; the engine calls it uncaptured, a host loop
     with one device read per round) or
@@ -1299,6 +1329,8 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
 
     With ``batch_forest`` (perfect layout) each round's events are predicted in one batched evaluation.
     ``particle_omega``: the parcels' spins, updated by the wall events when ``args.wall.spin`` is set (needed then).
+    ``event_log``: None, or ``(count, log_int, log_float)`` that ``swept_log_events`` fills with every event resolved
+    (``count`` zeroed by the caller).
 
     Every launch of a round is recorded once per call (``record_cmd``: the arguments, ``args`` included, are
     packed once, as they stay the same over the step) and replayed each round: on the CPU packing the
@@ -1325,6 +1357,8 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
 
         predict = eval_forest(batch_forest, args.features, args.batch_out, device=device, row_count=args.batch_count,
                               record=True)
+    log = (record(swept_log_events, n // 2 + 1, [args_store, args.batch_count, particle_v], list(event_log))
+           if event_log is not None else None)
     resolve = record(swept_resolve, n // 2 + 1, [args_store, args.batch_count, forest],
                      [particle_v, calls, collisions])  # pairs: <= n/2 rows
     if particle_omega is None:
@@ -1345,6 +1379,8 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
         select.launch()
         if predict is not None:
             predict.launch()
+        if log is not None:
+            log.launch()
         resolve.launch()
         if walls is not None:
             walls.launch()

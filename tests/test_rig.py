@@ -330,3 +330,49 @@ def test_no_wall_events_is_refused_outside_the_swept_surrogate(cs, tmp_path, cap
     assert cs.main(_args(out, "--no-wall-events")) == 2  # --collisions none
     assert "--no-wall-events is an option of the surrogate's swept detection" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_collision_events_are_saved_and_match_the_run_s_counts(cs, tmp_path, capsys):
+    # the dem's contact onsets of a short reduced run: the file's entries per step equal the run's own counters (an
+    # exact bookkeeping check); scripts/collision_events.py reads it; none is refused at the door
+    import importlib.util
+
+    import zarr
+
+    out, path = tmp_path / "dem", tmp_path / "events.npz"
+    args = _args(out, "--collision-events", str(path), end_time="0.004")
+    args[args.index("none")] = "dem"
+    assert cs.main(args) == 0
+    ev = np.load(path)
+    series = zarr.open_group(str(out / "run.zarr"), mode="r")["series"]
+    per_step = np.asarray(series["collisions_collisions"][...], np.int64)  # one entry per step
+    assert len(ev["truncated_steps"]) == 0
+    assert np.bincount(ev["step"], minlength=len(per_step)).tolist() == per_step.tolist()
+    assert per_step.sum() > 0 and np.all(ev["particle_a"] < ev["particle_b"])
+    assert np.all(np.isfinite(ev["radius_a"])) and np.all(ev["speed"] > 0)
+    spec = importlib.util.spec_from_file_location("collision_events", ROOT / "scripts" / "collision_events.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.summary(mod.load(str(path)))["all"]["count"] == per_step.sum()
+    assert cs.main(_args(tmp_path / "none", "--collision-events", str(path))) == 2
+    assert "--collision-events records the dem and surrogate collisions" in capsys.readouterr().err
+
+
+def test_collision_events_script_counts_repeats_and_size_classes():
+    # synthetic list: pair (1, 2) meets at 0, 0.5 ms and 5 ms -> two repeats, one within 1 ms; two size classes
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("collision_events", ROOT / "scripts" / "collision_events.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    a, b = np.array([1, 1, 3, 1]), np.array([2, 2, 4, 2])
+    t = np.array([0.0, 5e-4, 1e-3, 5e-3])
+    rep, soon = mod.repeats(a, b, t)
+    assert rep.tolist() == [False, True, False, True] and soon.tolist() == [False, True, False, False]
+    d = {"particle_a": a, "particle_b": b, "time": t, "speed": np.array([1.0, 0.1, 2.0, 0.01]),
+         "stream_a": np.array([0, 0, 0, 0]), "stream_b": np.array([1, 1, 0, 1]),
+         "radius_a": np.array([1.0, 1.0, 2.0, 1.0]), "radius_b": np.array([2.0, 2.0, 2.0, 2.0])}
+    res = mod.summary(d)
+    assert res["streams 0-1"]["count"] == 3 and res["streams 0-1"]["repeat_share"] == pytest.approx(2 / 3)
+    assert res["cross small-large"]["count"] == 3 and res["cross large-large"]["count"] == 0
+    assert res["all"]["share_below_0.05"] == pytest.approx(0.25)

@@ -139,6 +139,34 @@ def test_head_on_chain_matches_the_hard_sphere_sequence(hard_sphere_model):
     assert np.abs(momentum(p) - p0).max() <= 1e-6 * p.mass_numpy()[0] * u
 
 
+
+def test_the_event_log_holds_the_chain_in_time_order(hard_sphere_model):
+    # the chain above with collision_events on: three entries at t1 < t2 < t3 with the normal approach speeds of the
+    # closed form (u, then vB, then vA - vB'), ids ordered, same stream; the log changes nothing else
+    from hel_warp.collision_models import SurrogateCollision
+
+    u, g1, g2, dt = 3.0, 1.0e-3, 1.0e-5, 3.0e-3
+    x = np.array([[0.0, 0.0, 0.0], [D + g1, 0.0, 0.0], [2 * D + g1 + g2, 0.0, 0.0]])
+    v = np.array([[u, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    plain, logged = make_particles(x, v), make_particles(x, v)
+    SurrogateCollision(model_dir=hard_sphere_model).collide(plain, dt)
+    strategy = SurrogateCollision(model_dir=hard_sphere_model, collision_events=True)
+    strategy.collide(logged, dt)
+    np.testing.assert_array_equal(logged.v.numpy(), plain.v.numpy())
+    ev = strategy.collision_events()
+    t1 = g1 / u
+    va, vb = u * (1 - E) / 2, u * (1 + E) / 2
+    t2 = t1 + g2 / vb
+    vb2 = vb * (1 - E) / 2
+    xa2, xb2 = u * t1 + va * (t2 - t1), D + g1 + vb * (t2 - t1)
+    t3 = t2 + (xb2 - xa2 - D) / (va - vb2)
+    assert ev["particle_a"].tolist() == [0, 1, 0] and ev["particle_b"].tolist() == [1, 2, 1]
+    assert ev["time"] == pytest.approx([t1, t2, t3], rel=1e-4)
+    assert ev["speed"] == pytest.approx([u, vb, va - vb2], rel=1e-5)
+    assert not ev["truncated"] and ev["stream_a"].tolist() == ev["stream_b"].tolist() == [0, 0, 0]
+    assert len(SurrogateCollision(model_dir=hard_sphere_model).collision_events()["speed"]) == 0
+
+
 def periodic_gas(n, eps, seed=0, theta=1.0):
     """n spheres of D on a jittered lattice in a cube of solids fraction eps, Maxwellian velocities, zero momentum."""
     side = (n * math.pi * D**3 / 6.0 / eps) ** (1.0 / 3.0)
