@@ -18,13 +18,20 @@ ROOT = Path(__file__).resolve().parents[1]
 LITRE_PER_MIN = 1e-3 / 60.0
 
 
-@pytest.fixture(scope="module")
-def cs():
-    spec = importlib.util.spec_from_file_location("colliding_streams", ROOT / "cases" / "colliding_streams.py")
+def load_file(name: str, relative: str, *, register: bool = False):
+    """The module in the repository file ``relative`` (cases/ and scripts/ are not packages); ``register`` also
+    puts it in ``sys.modules`` (dataclasses of the module need it)."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / relative)
     module = importlib.util.module_from_spec(spec)
-    sys.modules["colliding_streams"] = module
+    if register:
+        sys.modules[name] = module
     spec.loader.exec_module(module)
     return module
+
+
+@pytest.fixture(scope="module")
+def cs():
+    return load_file("colliding_streams", "cases/colliding_streams.py", register=True)
 
 
 @pytest.fixture(scope="module")
@@ -298,9 +305,7 @@ def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
         assert not any(k.startswith(("case.", "gas.", "grid.")) for k in keys), keys
     # scripts/rig_ensemble.py: the metrics are ratios over the parcels, so a run pooled with itself (twice the
     # parcels at half the weight) has the metrics of the run; runs of another snapshot schedule are refused
-    spec = importlib.util.spec_from_file_location("rig_ensemble", ROOT / "scripts" / "rig_ensemble.py")
-    ens = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(ens)
+    ens = load_file("rig_ensemble", "scripts/rig_ensemble.py")
     filled = [k + 1 for k, s in enumerate(by["none"]["stream_metrics"]["sections"]) if s["samples"]]
     one = ens.ensemble_metrics([runs[0]], [runs[1]], min_samples=1, sections=filled[:2])
     two = ens.ensemble_metrics([runs[0], runs[0]], [runs[1], runs[1], runs[1]], min_samples=1, sections=filled[:2],
@@ -335,8 +340,6 @@ def test_no_wall_events_is_refused_outside_the_swept_surrogate(cs, tmp_path, cap
 def test_collision_events_are_saved_and_match_the_run_s_counts(cs, tmp_path, capsys):
     # the dem's contact onsets of a short reduced run: the file's entries per step equal the run's own counters (an
     # exact bookkeeping check); scripts/collision_events.py reads it; none is refused at the door
-    import importlib.util
-
     import zarr
 
     out, path = tmp_path / "dem", tmp_path / "events.npz"
@@ -350,9 +353,7 @@ def test_collision_events_are_saved_and_match_the_run_s_counts(cs, tmp_path, cap
     assert np.bincount(ev["step"], minlength=len(per_step)).tolist() == per_step.tolist()
     assert per_step.sum() > 0 and np.all(ev["particle_a"] < ev["particle_b"])
     assert np.all(np.isfinite(ev["radius_a"])) and np.all(ev["speed"] > 0)
-    spec = importlib.util.spec_from_file_location("collision_events", ROOT / "scripts" / "collision_events.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_file("collision_events", "scripts/collision_events.py")
     assert mod.summary(mod.load(str(path)))["all"]["count"] == per_step.sum()
     assert cs.main(_args(tmp_path / "none", "--collision-events", str(path))) == 2
     assert "--collision-events records the dem and surrogate collisions" in capsys.readouterr().err
@@ -360,11 +361,7 @@ def test_collision_events_are_saved_and_match_the_run_s_counts(cs, tmp_path, cap
 
 def test_collision_events_script_counts_repeats_and_size_classes():
     # synthetic list: pair (1, 2) meets at 0, 0.5 ms and 5 ms -> two repeats, one within 1 ms; two size classes
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("collision_events", ROOT / "scripts" / "collision_events.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_file("collision_events", "scripts/collision_events.py")
     a, b = np.array([1, 1, 3, 1]), np.array([2, 2, 4, 2])
     t = np.array([0.0, 5e-4, 1e-3, 5e-3])
     rep, soon = mod.repeats(a, b, t)
