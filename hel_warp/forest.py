@@ -23,8 +23,13 @@ VERSION = 2
 CANONICAL_FEATURES = {
     "paper": ("v1x", "v1y", "v1z", "v2x", "v2y", "v2z", "d1", "d2", "rho1", "rho2"),
     "contact": ("g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio"),
+    "contact_spin": ("g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio", "u_along", "u_across"),
 }
-N_TARGETS = {"paper": 3, "contact": 2}
+N_TARGETS = {"paper": 3, "contact": 2, "contact_spin": 5}
+CONTACT_FORMS = ("contact", "contact_spin")
+"""Contact-frame forms (the pairwise surrogate's): ``contact_spin`` adds the translational slip's components along
+and across the contact points' slip, the impulse across it and the moment impulse that turns the spins
+(surrogate/features.py ``contact_spin_frame``, ``apply_contact_spin_model``)."""
 TARGET_SCALES = ("none", "cos_angle", "sin_angle")
 """What a target's tree sum is multiplied by (the file's ``target_scale``; the index is the kernel's code,
 kernels/forest.py SCALE_*): nothing, the row's cos_angle, or sqrt(1 - cos_angle^2). Contact form only."""
@@ -97,7 +102,7 @@ class FlatForest:
 
         from kernels.forest import ContactDomain
 
-        if self.form != "contact":
+        if self.form not in CONTACT_FORMS:
             raise ConfigError(f"a {self.form!r}-form forest has no contact-frame domain; use a contact-form model")
         domain = ContactDomain()
         domain.feature_lo = wp.array(self.feature_lo, dtype=wp.float32, device=device)
@@ -275,7 +280,7 @@ def parse_forest(doc: dict) -> FlatForest:
     if scale is not None:
         if not isinstance(scale, list) or len(scale) != len(targets) or any(n not in TARGET_SCALES for n in scale):
             raise ConfigError(f"forest target_scale must name one of {list(TARGET_SCALES)} per target, got {scale!r}")
-        if form != "contact" and any(n != "none" for n in scale):
+        if form not in CONTACT_FORMS and any(n != "none" for n in scale):
             raise ConfigError(f"a {form!r}-form forest cannot scale its targets (target_scale {scale!r})")
         scale = list(scale)
     return FlatForest(form, list(doc["features"]), targets, base, start, root, info, value, left,
@@ -343,7 +348,7 @@ class ForestPredictor:
         # GPU: one row per thread.
         # CUDA's one row per thread gives the CPU's 64 bit for bit (tests/test_device_paths.py)
         self.rows_per_thread = rows_per_thread or (64 if self.device.is_cpu else 1)
-        self.domain = flat.domain_to_device(self.device) if flat.form == "contact" else None
+        self.domain = flat.domain_to_device(self.device) if flat.form in CONTACT_FORMS else None
         self.last_counts: dict = {}
 
     def predict_features(self, features) -> np.ndarray:
@@ -360,8 +365,13 @@ class ForestPredictor:
         eval_forest(self.forest, x_wp, out, rows_per_thread=self.rows_per_thread)
         return out.numpy()
 
-    def predict_pairs(self, v1, v2, d1, d2, rho1, rho2, normal=None, *, guard: bool = True):
+    def predict_pairs(self, v1, v2, d1, d2, rho1, rho2, normal=None, *, guard: bool = True, omega1=None,
+                      omega2=None):
         """Post-collision velocities (v1', v2') of N pairs, each (N, 3) float32.
+
+        With ``omega1`` / ``omega2`` (rad/s; contact form, guarded): spinning spheres, as the engine's
+        ``particle_spin`` resolves them: the model is asked at the contact points' relative velocity, the impulse acts
+        through the contact point; returns ``(v1', v2', omega1', omega2')`` (``_predict_spin``).
 
         ``contact`` form needs ``normal`` (unit, from 1 to 2, pairs approaching: ``(v1 - v2).n > 0``);
         the ``paper`` form ignores it. Contact form with ``guard`` (default): features clamped into the
@@ -374,6 +384,9 @@ class ForestPredictor:
 
         from kernels import forest as kf
 
+        if omega1 is not None or omega2 is not None or self.flat.form == "contact_spin":
+            out = self._predict_spin(v1, v2, d1, d2, rho1, rho2, normal, omega1, omega2, guard=guard)
+            return out if (omega1 is not None or omega2 is not None) else out[:2]
         v1 = np.atleast_2d(np.asarray(v1, dtype=np.float32))
         n_pairs = v1.shape[0]
         as_vec = lambda a: wp.array(np.ascontiguousarray(np.atleast_2d(np.asarray(a, np.float32))), dtype=wp.vec3,
@@ -416,3 +429,55 @@ class ForestPredictor:
             kf.paper_velocities(targets, v1_after, v2_after)
             self.last_counts = {"pairs": int(n_pairs)}
         return v1_after.numpy(), v2_after.numpy()
+
+    def _predict_spin(self, v1, v2, d1, d2, rho1, rho2, normal, omega1, omega2, *, guard: bool = True):
+        """``predict_pairs`` of spinning spheres (or of a ``contact_spin`` model): ``(v1', v2', omega1', omega2')``,
+        the engine's path (kernels/forest.py ``contact_point_velocities_kernel``, the features of the model's form
+        at the contact points, ``apply_admissible_contact_spin_kernel``: the impulse through the contact point).
+        ``guard=False`` (bare trees) is refused: this path is the engine's."""
+        import warp as wp
+
+        from kernels import forest as kf
+
+        if self.flat.form not in CONTACT_FORMS or normal is None:
+            raise ConfigError("spinning pairs need a contact-form model and the contact normal of each pair")
+        if not guard and self.flat.form == "contact":
+            raise ConfigError("the spin path is the engine's (guarded); predict spinless pairs for the bare trees")
+        v1 = np.atleast_2d(np.asarray(v1, dtype=np.float32))
+        n_pairs = v1.shape[0]
+        dev = self.device
+        as_vec = lambda a: wp.array(np.ascontiguousarray(np.broadcast_to(np.asarray(a, np.float32), (n_pairs, 3))),
+                                    dtype=wp.vec3, device=dev)
+        as_f = lambda a: wp.array(np.ascontiguousarray(np.broadcast_to(np.asarray(a, np.float32), (n_pairs,))),
+                                  dtype=wp.float32, device=dev)
+        zero = np.zeros(3, np.float32)
+        w_v1, w_v2, w_n = as_vec(v1), as_vec(v2), as_vec(normal)
+        w_o1 = as_vec(zero if omega1 is None else omega1)
+        w_o2 = as_vec(zero if omega2 is None else omega2)
+        w_d1, w_d2, w_r1, w_r2 = as_f(d1), as_f(d2), as_f(rho1), as_f(rho2)
+        c1 = wp.zeros(n_pairs, dtype=wp.vec3, device=dev)
+        c2 = wp.zeros(n_pairs, dtype=wp.vec3, device=dev)
+        wp.launch(kf.contact_point_velocities_kernel, dim=n_pairs, inputs=[w_v1, w_v2, w_o1, w_o2, w_n, w_d1, w_d2],
+                  outputs=[c1, c2], device=dev)
+        feats = wp.zeros((n_pairs, len(self.flat.features)), dtype=wp.float32, device=dev)
+        targets = wp.zeros((n_pairs, len(self.flat.targets)), dtype=wp.float32, device=dev)
+        clamped = wp.zeros(1, dtype=wp.int32, device=dev)
+        guard_counts = wp.zeros(4, dtype=wp.int32, device=dev)
+        if self.flat.form == "contact_spin":
+            wp.launch(kf.contact_spin_features_in_domain_kernel, dim=n_pairs,
+                      inputs=[w_v1, w_v2, c1, c2, w_n, w_d1, w_d2, w_r1, w_r2, self.domain], outputs=[feats, clamped],
+                      device=dev)
+        else:
+            kf.contact_features_in_domain(c1, c2, w_n, w_d1, w_d2, w_r1, w_r2, self.domain, feats, clamped)
+        kf.eval_forest(self.forest, feats, targets, rows_per_thread=self.rows_per_thread)
+        outs = [wp.zeros(n_pairs, dtype=wp.vec3, device=dev) for _ in range(4)]
+        wp.launch(kf.apply_admissible_contact_spin_kernel, dim=n_pairs,
+                  inputs=[w_v1, w_v2, w_o1, w_o2, w_n, w_d1, w_d2, w_r1, w_r2, targets, float(self.flat.friction_bound),
+                          float(self.flat.separation_slack)],
+                  outputs=[*outs, guard_counts], device=dev)
+        counts = guard_counts.numpy()
+        self.last_counts = {"pairs": int(n_pairs), "clamped": int(clamped.numpy()[0]),
+                            "guard_separation": int(counts[0]), "guard_coulomb": int(counts[1]),
+                            "guard_energy": int(counts[2]), "guard_any": int(counts[3])}
+        return tuple(o.numpy() for o in outs)
+

@@ -445,6 +445,52 @@ def admissible_impulse(cos_angle: float, impulse_n: float, impulse_t: float, fri
     return a, b, flags
 
 
+SPIN_ENERGY_FACTOR = 3.5
+"""``m* (1/m1 + 1/m2 + r1^2/I1 + r2^2/I2)`` of two solid spheres (I = 2/5 m r^2): the inverse effective mass of the
+contact point's tangential motion in units of 1/m*, whatever the sizes and densities (docs/TEAM-NOTES.md "Spin in
+particle-particle collisions")."""
+
+
+@wp.func
+def contact_point_velocity(v: wp.vec3, omega: wp.vec3, r: float, n: wp.vec3):
+    """Velocity of a sphere's surface point at ``r n`` from its centre: ``v + omega x (r n)`` (``n`` from 1 to 2
+    for sphere 1, ``-n`` for sphere 2)."""
+    return v + r * wp.cross(omega, n)
+
+
+@wp.func
+def spin_kick(impulse: wp.vec3, n: wp.vec3, r: float, mass: float):
+    """Spin change of either sphere of a pair from the contact impulse ``impulse`` on sphere 2 (sphere 1 gets its
+    opposite), ``n`` from 1 to 2: sphere 1's torque is ``(r1 n) x (-J)``, sphere 2's ``(-r2 n) x J``; both are
+    ``-r n x J``, divided by ``I = 2/5 m r^2``."""
+    return wp.cross(n, impulse) * (-1.0 / (0.4 * mass * r))
+
+
+@wp.func
+def spin_energy_guard(cos_angle: float, impulse_n: float, impulse_t: float):
+    """The total kinetic energy (translation and spin) never grows: returns ``(a, b, flag)``.
+
+    An impulse ``J = m*|g_c| (a n + b t_hat)`` through the contact point (``g_c`` the contact points' relative
+    velocity, ``c = g_c.n/|g_c|``, ``s`` its sine) changes the pair's energy by ``m*|g_c|^2 ((a^2 + K b^2)/2 - a c -
+    b s)``, K = SPIN_ENERGY_FACTOR. Where that is positive, ``b`` is brought into the interval where it is not
+    (``a`` set to ``c`` first if no ``b`` would do), flag GUARD_ENERGY. Stricter than ``admissible_impulse``'s
+    translational bound ``|u| <= 1`` (K = 1), which it follows."""
+    c = wp.clamp(cos_angle, 0.0, 1.0)
+    s = wp.sqrt(wp.max(1.0 - c * c, 0.0))
+    a = impulse_n
+    b = impulse_t
+    k = float(SPIN_ENERGY_FACTOR)
+    if a * a + k * b * b <= 2.0 * (a * c + b * s):
+        return a, b, int(0)
+    disc = s * s - k * (a * a - 2.0 * a * c)
+    if disc < 0.0:
+        a = c
+        disc = s * s + k * c * c
+    root = wp.sqrt(disc)
+    b = wp.clamp(b, (s - root) / k, (s + root) / k)
+    return a, b, int(GUARD_ENERGY)
+
+
 @wp.kernel
 def contact_features_in_domain_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.array(dtype=wp.vec3),
                                       n: wp.array(dtype=wp.vec3), d1: wp.array(dtype=wp.float32),
@@ -479,6 +525,211 @@ def apply_admissible_contact_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.array(dt
     J = contact_impulse(v1[i], v2[i], n[i], m1, m2, a, b)
     v1_after[i] = v1[i] - J / m1
     v2_after[i] = v2[i] + J / m2
+    if flags & GUARD_SEPARATION:
+        wp.atomic_add(guard_counts, 0, 1)
+    if flags & GUARD_COULOMB:
+        wp.atomic_add(guard_counts, 1, 1)
+    if flags & GUARD_ENERGY:
+        wp.atomic_add(guard_counts, 2, 1)
+    if flags != 0:
+        wp.atomic_add(guard_counts, 3, 1)
+
+
+@wp.func
+def contact_spin_frame(v1: wp.vec3, v2: wp.vec3, c1: wp.vec3, c2: wp.vec3, n: wp.vec3):
+    """The contact_spin frame (surrogate/features.py ``contact_spin_frame``, its numpy twin) from the centres'
+    velocities ``v1, v2`` and the contact points' ``c1, c2``: returns ``(t_hat, b_hat, gc_mag, u_along,
+    u_across)``; ``t_hat`` the slip direction of g_c = c1 - c2 (else the translational slip's, else 0)."""
+    g = v1 - v2
+    gc = c1 - c2
+    g_n = wp.dot(g, n)
+    s = gc - wp.dot(gc, n) * n
+    s = s - wp.dot(s, n) * n
+    u = g - g_n * n
+    u = u - wp.dot(u, n) * n
+    slip = wp.length(s)
+    gc_mag = wp.sqrt(g_n * g_n + slip * slip)
+    u_mag = wp.length(u)
+    t_hat = wp.vec3(0.0)
+    if slip > TANGENT_EPS * gc_mag:
+        t_hat = s / slip
+    elif u_mag > TANGENT_EPS * wp.max(gc_mag, u_mag):
+        t_hat = u / u_mag
+    u_along = wp.dot(u, t_hat)
+    rest = u - u_along * t_hat
+    u_across = wp.length(rest)
+    b_hat = wp.vec3(0.0)
+    if u_across > TANGENT_EPS * wp.max(gc_mag, u_mag):
+        b_hat = rest / u_across
+    else:
+        u_across = 0.0
+    return t_hat, b_hat, gc_mag, u_along, u_across
+
+
+@wp.func
+def write_contact_spin_features_in_domain(v1: wp.vec3, v2: wp.vec3, c1: wp.vec3, c2: wp.vec3, n: wp.vec3,
+                                          d1: float, d2: float, rho1: float, rho2: float, domain: ContactDomain,
+                                          row: int,
+                                          # outputs
+                                          features: wp.array2d(dtype=wp.float32)) -> int:
+    """The 8 contact_spin features of the pair into ``features[row]``, clamped into ``domain``: the first six are
+    the contact form's of the contact points' velocities (``write_contact_features_in_domain(c1, c2, ...)``: g_n,
+    the slip, g_n/|g_c|, sizes, densities), then u_along and u_across (each clamped to its range). Returns 1 when
+    anything was clamped."""
+    outside = write_contact_features_in_domain(c1, c2, n, d1, d2, rho1, rho2, domain, row, features)
+    t_hat, b_hat, gc_mag, u_along, u_across = contact_spin_frame(v1, v2, c1, c2, n)
+    extra = wp.vec2(u_along, u_across)
+    for k in range(2):
+        lo = domain.feature_lo[6 + k]
+        hi = domain.feature_hi[6 + k]
+        x = extra[k]
+        if not (x >= lo - DOMAIN_ROUNDOFF * wp.abs(lo) and x <= hi + DOMAIN_ROUNDOFF * wp.abs(hi)):
+            outside = 1
+            x = wp.clamp(x, lo, hi)
+        features[row, 6 + k] = x
+    return outside
+
+
+@wp.func
+def contact_spin_impulse(v1: wp.vec3, v2: wp.vec3, c1: wp.vec3, c2: wp.vec3, n: wp.vec3, m1: float, m2: float,
+                         impulse_n: float, impulse_t: float, impulse_b: float):
+    """Impulse on particle 2 of the contact_spin form, ``J = m*|g_c| (impulse_n n + impulse_t t_hat + impulse_b
+    b_hat)`` (``contact_spin_frame``); particle 1 gets -J."""
+    t_hat, b_hat, gc_mag, u_along, u_across = contact_spin_frame(v1, v2, c1, c2, n)
+    m_eff = m1 * m2 / (m1 + m2)
+    return m_eff * gc_mag * (impulse_n * n + impulse_t * t_hat + impulse_b * b_hat)
+
+
+@wp.func
+def pair_kinetic_energy(v1: wp.vec3, v2: wp.vec3, w1: wp.vec3, w2: wp.vec3, r1: float, r2: float, m1: float,
+                        m2: float, weight1: float, weight2: float):
+    """Kinetic energy with rotation of two parcels (I = 2/5 m r^2 per particle, ``weight`` particles each), J."""
+    e1 = m1 * (wp.dot(v1, v1) + 0.4 * r1 * r1 * wp.dot(w1, w1))
+    e2 = m2 * (wp.dot(v2, v2) + 0.4 * r2 * r2 * wp.dot(w2, w2))
+    return 0.5 * (weight1 * e1 + weight2 * e2)
+
+
+@wp.func
+def turn_spins(v1: wp.vec3, v2: wp.vec3, v1_new: wp.vec3, v2_new: wp.vec3, w1: wp.vec3, w2: wp.vec3, n: wp.vec3,
+               r1: float, r2: float, m1: float, m2: float, weight1: float, weight2: float, share1: float,
+               share2: float, impulse: wp.vec3, impulse_rot: wp.vec3):
+    """The spins after a collision whose impulse ``impulse`` (on 2) moved the centres to ``v1_new, v2_new``:
+    ``omega_k -= share_k r_k n x J_rot / I_k`` (``spin_kick``; ``share_k`` = w_min / weight_k) with the moment
+    impulse ``impulse_rot`` of a contact_spin model (the spins' own target); where that would leave the pair with
+    more kinetic energy (translation and rotation) than before, the impulse's own tangential part (``J_rot = J``,
+    the rigid lever, which the spin guard bounded) instead. Returns ``(w1', w2', fell_back)``."""
+    before = pair_kinetic_energy(v1, v2, w1, w2, r1, r2, m1, m2, weight1, weight2)
+    w1_new = w1 + spin_kick(impulse_rot, n, r1, m1) * share1
+    w2_new = w2 + spin_kick(impulse_rot, n, r2, m2) * share2
+    after = pair_kinetic_energy(v1_new, v2_new, w1_new, w2_new, r1, r2, m1, m2, weight1, weight2)
+    fell_back = int(0)
+    if not (after <= before * (1.0 + 1.0e-6)):
+        w1_new = w1 + spin_kick(impulse, n, r1, m1) * share1
+        w2_new = w2 + spin_kick(impulse, n, r2, m2) * share2
+        fell_back = 1
+    return w1_new, w2_new, fell_back
+
+
+@wp.func
+def spin_guard(cos_angle: float, impulse_n: float, impulse_t: float, impulse_b: float, friction_bound: float,
+               separation_slack: float, rotation: int):
+    """The admissibility guard of a contact_spin (or spinning contact) outcome ``(a, b, c)``: ``admissible_impulse``
+    on ``(a, b)``, the Coulomb bound on ``|(b, c)| <= friction_bound a`` (both scaled), and with ``rotation`` (the
+    impulse turns the spins) the total-energy bound ``spin_energy_guard`` (``c`` dropped first where it fails:
+    ``c`` does no work, g_c has no part along b_hat). Returns ``(a, b, c, flags)``."""
+    a, b, flags = admissible_impulse(cos_angle, impulse_n, impulse_t, friction_bound, separation_slack)
+    c = impulse_b
+    if not (c == c):
+        c = 0.0
+        flags = flags | GUARD_COULOMB
+    tangential = wp.sqrt(b * b + c * c)
+    cap = friction_bound * a
+    if tangential > cap and tangential > 0.0:
+        scale = wp.max(cap, 0.0) / tangential
+        b = b * scale
+        c = c * scale
+        flags = flags | GUARD_COULOMB
+    if rotation != 0:
+        k = float(SPIN_ENERGY_FACTOR)
+        cl = wp.clamp(cos_angle, 0.0, 1.0)
+        sn = wp.sqrt(wp.max(1.0 - cl * cl, 0.0))
+        if a * a + k * (b * b + c * c) > 2.0 * (a * cl + b * sn):
+            c = 0.0
+            a, b, spin_flag = spin_energy_guard(cos_angle, a, b)
+            flags = flags | GUARD_ENERGY | spin_flag
+    return a, b, c, flags
+
+
+@wp.kernel
+def contact_point_velocities_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.array(dtype=wp.vec3),
+                                    omega1: wp.array(dtype=wp.vec3), omega2: wp.array(dtype=wp.vec3),
+                                    n: wp.array(dtype=wp.vec3), d1: wp.array(dtype=wp.float32),
+                                    d2: wp.array(dtype=wp.float32),
+                                    # outputs
+                                    c1: wp.array(dtype=wp.vec3), c2: wp.array(dtype=wp.vec3)):
+    """The contact points' velocities of spinning pairs (``contact_point_velocity``; n from 1 to 2)."""
+    i = wp.tid()
+    c1[i] = contact_point_velocity(v1[i], omega1[i], 0.5 * d1[i], n[i])
+    c2[i] = contact_point_velocity(v2[i], omega2[i], 0.5 * d2[i], -n[i])
+
+
+@wp.kernel
+def contact_spin_features_in_domain_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.array(dtype=wp.vec3),
+                                           c1: wp.array(dtype=wp.vec3), c2: wp.array(dtype=wp.vec3),
+                                           n: wp.array(dtype=wp.vec3), d1: wp.array(dtype=wp.float32),
+                                           d2: wp.array(dtype=wp.float32), rho1: wp.array(dtype=wp.float32),
+                                           rho2: wp.array(dtype=wp.float32), domain: ContactDomain,
+                                           # outputs
+                                           features: wp.array2d(dtype=wp.float32), clamped: wp.array(dtype=wp.int32)):
+    """``write_contact_spin_features_in_domain`` of each pair; ``clamped[0]`` += pairs clamped."""
+    i = wp.tid()
+    if write_contact_spin_features_in_domain(v1[i], v2[i], c1[i], c2[i], n[i], d1[i], d2[i], rho1[i], rho2[i], domain,
+                                             i, features) == 1:
+        wp.atomic_add(clamped, 0, 1)
+
+
+@wp.kernel
+def apply_admissible_contact_spin_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.array(dtype=wp.vec3),
+                                         omega1: wp.array(dtype=wp.vec3), omega2: wp.array(dtype=wp.vec3),
+                                         n: wp.array(dtype=wp.vec3), d1: wp.array(dtype=wp.float32),
+                                         d2: wp.array(dtype=wp.float32), rho1: wp.array(dtype=wp.float32),
+                                         rho2: wp.array(dtype=wp.float32), targets: wp.array2d(dtype=wp.float32),
+                                         friction_bound: wp.float32, separation_slack: wp.float32,
+                                         # outputs
+                                         v1_after: wp.array(dtype=wp.vec3), v2_after: wp.array(dtype=wp.vec3),
+                                         omega1_after: wp.array(dtype=wp.vec3), omega2_after: wp.array(dtype=wp.vec3),
+                                         guard_counts: wp.array(dtype=wp.int32)):
+    """``apply_admissible_contact_kernel`` for spinning spheres: the targets are those of the contact points'
+    relative velocity g_c (features from ``contact_point_velocities_kernel``), the guard adds the total-energy
+    bound (``spin_energy_guard``), the impulse goes through the contact point (``spin_kick``)."""
+    i = wp.tid()
+    r1 = 0.5 * d1[i]
+    r2 = 0.5 * d2[i]
+    c1 = contact_point_velocity(v1[i], omega1[i], r1, n[i])
+    c2 = contact_point_velocity(v2[i], omega2[i], r2, -n[i])
+    g = c1 - c2
+    cos_angle = wp.dot(g, n[i]) / wp.length(g)
+    impulse_b = float(0.0)
+    if targets.shape[1] > 2:
+        impulse_b = targets[i, 2]
+    a, b, c, flags = spin_guard(cos_angle, targets[i, 0], targets[i, 1], impulse_b, friction_bound, separation_slack,
+                                1)
+    m1 = sphere_mass(d1[i], rho1[i])
+    m2 = sphere_mass(d2[i], rho2[i])
+    J = contact_spin_impulse(v1[i], v2[i], c1, c2, n[i], m1, m2, a, b, c)
+    u1 = v1[i] - J / m1
+    u2 = v2[i] + J / m2
+    J_rot = J
+    if targets.shape[1] > 4:  # a contact_spin model's moment impulse
+        J_rot = contact_spin_impulse(v1[i], v2[i], c1, c2, n[i], m1, m2, 0.0, targets[i, 3], targets[i, 4])
+    o1, o2, fell_back = turn_spins(v1[i], v2[i], u1, u2, omega1[i], omega2[i], n[i], r1, r2, m1, m2, 1.0, 1.0, 1.0,
+                                   1.0, J, J_rot)
+    if fell_back != 0:
+        flags = flags | GUARD_ENERGY
+    v1_after[i] = u1
+    v2_after[i] = u2
+    omega1_after[i] = o1
+    omega2_after[i] = o2
     if flags & GUARD_SEPARATION:
         wp.atomic_add(guard_counts, 0, 1)
     if flags & GUARD_COULOMB:

@@ -1,6 +1,6 @@
 """A contact-form surrogate against the verified DEM over incidence angle and speed (issue 10's figure).
 
-    python scripts/check_surrogate.py --model MODEL_DIR [--json] [--diameter D] [--size-ratio R ...]
+    python scripts/check_surrogate.py --model MODEL_DIR [--json] [--diameter D] [--size-ratio R ...] [--spin]
 
 Sphere-sphere impacts at incidence 0-89.5 deg and |g| 0.1-20 m/s, equal sizes and one unequal
 size ratio inside the model's training domain (or ``--size-ratio``), run by the batched DEM of
@@ -32,6 +32,10 @@ def main(argv=None) -> int:
                         help="d2, m: the cross-size pairs of a mixture (= --size-ratio d2/d1 with --diameter d1), "
                              "e.g. --diameter 315e-6 --diameter2 475e-6")
     parser.add_argument("--device", default="cpu", help="Warp device of the surrogate (default cpu)")
+    parser.add_argument("--spin", action="store_true",
+                        help="also the spinning impacts (surrogate.sweep.spin_sweep_against_dem: random spins of "
+                             "surface speed up to 0.1 / 0.3 / 1 / 2 |g|, the engine's particle_spin path and the "
+                             "spins-ignored path against the DEM with the spins)")
     parser.add_argument("--json", action="store_true", help="print the sweep as one JSON object")
     args = parser.parse_args(argv)
     try:
@@ -61,10 +65,25 @@ def main(argv=None) -> int:
                                   diameter=args.diameter or float(defaults.get("d1", 315e-6)),
                                   density=float(defaults.get("rho1", material.get("density", 1000.0))),
                                   size_ratios=args.size_ratio, device=args.device)
+        spin = None
+        if args.spin:
+            from surrogate.sweep import spin_sweep_against_dem
+
+            spin = spin_sweep_against_dem(flat, material, contact_model=meta.get("contact_model") or "hertz",
+                                          diameter=args.diameter or float(defaults.get("d1", 315e-6)),
+                                          density=float(defaults.get("rho1", material.get("density", 1000.0))),
+                                          size_ratios=sweep["size_ratios"], device=args.device)
     except HelWarpError as exc:
         print(f"check_surrogate: error: {exc}", file=sys.stderr)
         return 2
-    print(json.dumps(sweep) if args.json else format_table(sweep))
+    if args.json:
+        print(json.dumps(sweep if spin is None else {**sweep, "spin": spin}))
+    else:
+        print(format_table(sweep))
+        if spin is not None:
+            from surrogate.sweep import format_spin_table
+
+            print(format_spin_table(spin))
     return 0
 
 

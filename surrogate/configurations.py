@@ -164,6 +164,13 @@ class ConfigurationSpec:
     """Smallest normal approach speed (v1 - v2).n at first touch, m/s (>= 0; the paper-like set: 0.05)."""
     touch_time: float = 1e-7
     """Time from the start positions to first touch, s (a couple of DEM steps at most)."""
+    spin_fraction: float = 0.0
+    """Fraction of rows whose spheres spin before the impact (0: none, the spinless set, bytes unchanged): each
+    sphere's spin axis isotropic, its surface speed r|omega| uniform in [0, spin_ratio |v1 - v2|] (drawn from a
+    stream of its own, so the rows' other values are those of the spinless set)."""
+    spin_ratio: float = 1.5
+    """Largest surface speed r|omega| of a spinning row's spheres, in units of the relative speed |v1 - v2| (a sphere
+    rolling on a wall into a partner at rest: 1)."""
 
     def __post_init__(self) -> None:
         values = asdict(self)
@@ -211,6 +218,10 @@ class ConfigurationSpec:
                               "or no pair can collide")
         if not self.touch_time > 0:
             raise ConfigError(f"touch_time must be > 0 s (got {self.touch_time})")
+        if not 0.0 <= self.spin_fraction <= 1.0:
+            raise ConfigError(f"spin_fraction must lie in [0, 1] (got {self.spin_fraction})")
+        if not self.spin_ratio > 0:
+            raise ConfigError(f"spin_ratio must be > 0 (got {self.spin_ratio}); 1.5 covers a sphere rolling into another")
 
     def as_dict(self) -> dict:
         out = asdict(self)
@@ -220,6 +231,8 @@ class ConfigurationSpec:
         else:
             out["mixture_diameters"] = [float(d) for d in self.mixture_diameters]
             out["mixture_diameter_stds"] = [float(d) for d in self.mixture_diameter_stds]
+        if not self.spin_fraction:  # the spinless set keeps its earlier attrs
+            del out["spin_fraction"], out["spin_ratio"]
         if not self.mixture_mass_fractions:  # the --mixture set keeps its earlier attrs
             del out["mixture_mass_fractions"]
         else:
@@ -278,6 +291,10 @@ class Configurations:
     """(n,) impact offset b / (r1 + r2), 0 = central."""
     touch_time: float = field(default=0.0)
     """Time from the start positions to first touch, s."""
+    omega1: np.ndarray | None = None
+    """(n, 3) spin of particle 1 before the impact, rad/s (None: a spinless set)."""
+    omega2: np.ndarray | None = None
+    """(n, 3) spin of particle 2, rad/s."""
 
     def __len__(self) -> int:
         return int(self.config_id.shape[0])
@@ -292,9 +309,12 @@ class Configurations:
         return (-r1 * self.normal - self.touch_time * self.v1, r2 * self.normal - self.touch_time * self.v2)
 
     def inputs(self) -> np.ndarray:
-        """(n, 14) float64 rows ``v1 v2 d1 d2 rho1 rho2 n offset`` (the data set's ``inputs``)."""
-        return np.column_stack([self.v1, self.v2, self.d1, self.d2, self.rho1, self.rho2,
-                                self.normal, self.offset]).astype(np.float64)
+        """(n, 14) float64 rows ``v1 v2 d1 d2 rho1 rho2 n offset`` (the data set's ``inputs``), then for a spinning
+        set the spins ``omega1 omega2`` (n, 20)."""
+        cols = [self.v1, self.v2, self.d1, self.d2, self.rho1, self.rho2, self.normal, self.offset]
+        if self.omega1 is not None:
+            cols += [self.omega1, self.omega2]
+        return np.column_stack(cols).astype(np.float64)
 
 
 def _unit(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -425,9 +445,25 @@ def _draw_block(spec: ConfigurationSpec, seed: int, block: int) -> dict:
         todo = todo[~ok]
         if todo.size == 0:
             rows["family"] = family
+            if spec.spin_fraction > 0:
+                rows.update(_draw_spins(spec, seed, block, rows))
             return rows
     raise ConfigError("could not draw colliding configurations: min_normal_speed / min_relative_speed is too high "
                       "for the speed range")
+
+
+def _draw_spins(spec: ConfigurationSpec, seed: int, block: int, rows: dict) -> dict:
+    """Spins of the block's rows (``spin_fraction`` of them; a random stream of their own)."""
+    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(block, 1)))
+    n = rows["v1"].shape[0]
+    g = np.linalg.norm(rows["v1"] - rows["v2"], axis=1)
+    spinning = rng.random(n) < spec.spin_fraction
+    out = {}
+    for k, d in (("omega1", rows["d1"]), ("omega2", rows["d2"])):
+        axis = _direction(rng, n)
+        surface = spec.spin_ratio * g * rng.random(n)
+        out[k] = np.where(spinning[:, None], axis * (surface / (0.5 * d))[:, None], 0.0)
+    return out
 
 
 def generate(spec: ConfigurationSpec, seed: int, start: int, stop: int) -> Configurations:
@@ -438,11 +474,14 @@ def generate(spec: ConfigurationSpec, seed: int, start: int, stop: int) -> Confi
         raise ConfigError(f"seed must be a non-negative integer (got {seed})")
     if stop == start:
         empty = {name: np.zeros((0, 3) if name in ("x1", "x2", "v1", "v2", "normal") else (0,)) for name in _FIELDS}
+        if spec.spin_fraction > 0:
+            empty.update(omega1=np.zeros((0, 3)), omega2=np.zeros((0, 3)))
         return Configurations(config_id=np.zeros(0, dtype=np.int64), family=np.zeros(0, dtype=np.int8),
                               touch_time=spec.touch_time, **empty)
     first, last = start // BLOCK_ROWS, (stop - 1) // BLOCK_ROWS
     parts = [_draw_block(spec, int(seed), j) for j in range(first, last + 1)]
     lo = start - first * BLOCK_ROWS
-    cat = {name: np.concatenate([p[name] for p in parts])[lo:lo + stop - start] for name in _FIELDS + ("family",)}
+    names = _FIELDS + ("family",) + (("omega1", "omega2") if spec.spin_fraction > 0 else ())
+    cat = {name: np.concatenate([p[name] for p in parts])[lo:lo + stop - start] for name in names}
     return Configurations(config_id=np.arange(start, stop, dtype=np.int64), touch_time=spec.touch_time,
-                          **{name: cat[name] for name in _FIELDS + ("family",)})
+                          **{name: cat[name] for name in names})

@@ -39,6 +39,8 @@ from surrogate.configurations import (FAMILIES, GRAZING_MAX_OFFSET, Configuratio
                                       paper_diameter_std)
 
 INPUT_COLUMNS = ("v1x", "v1y", "v1z", "v2x", "v2y", "v2z", "d1", "d2", "rho1", "rho2", "nx", "ny", "nz", "offset")
+SPIN_INPUT_COLUMNS = ("o1x", "o1y", "o1z", "o2x", "o2y", "o2z")
+"""The spins before the impact (rad/s), after INPUT_COLUMNS in a set made with ``spin_fraction`` > 0."""
 OUTPUT_COLUMNS = ("u1x", "u1y", "u1z", "u2x", "u2y", "u2z", "w1x", "w1y", "w1z", "w2x", "w2y", "w2z",
                   "contact_duration", "max_overlap", "max_normal_force")
 CONTACT_MODELS = ("hertz", "linear")
@@ -112,6 +114,11 @@ class DatasetSpec:
             raise ConfigError(f"contact model must be one of {', '.join(CONTACT_MODELS)} (got {self.contact_model!r})")
 
     @property
+    def input_columns(self) -> tuple:
+        """INPUT_COLUMNS, then SPIN_INPUT_COLUMNS for a spinning set."""
+        return INPUT_COLUMNS + (SPIN_INPUT_COLUMNS if self.configurations.spin_fraction > 0 else ())
+
+    @property
     def n_chunks(self) -> int:
         return math.ceil(self.samples / self.chunk_size)
 
@@ -142,7 +149,7 @@ class DatasetSpec:
             "families": list(FAMILIES),
             "code_version": __version__,
             "code_fingerprint": code_fingerprint(),
-            "input_columns": list(INPUT_COLUMNS),
+            "input_columns": list(self.input_columns),
             "output_columns": list(OUTPUT_COLUMNS),
         }
         return json.loads(json.dumps(attrs))
@@ -155,7 +162,7 @@ def make_spec(*, samples: int, seed: int, diameter: float, diameter_std: float |
               slow_fraction: float = 0.3, min_relative_speed: float = 0.01, min_normal_speed: float = 1e-3,
               speed_max: float = 20.0, touch_steps: float = 2.0, dt_factor: float = 0.5,
               mixture_diameters: tuple = (), mixture_diameter_stds: tuple | None = None,
-              mixture_mass_fractions: tuple = ()) -> DatasetSpec:
+              mixture_mass_fractions: tuple = (), spin_fraction: float = 0.0, spin_ratio: float = 1.5) -> DatasetSpec:
     """A ``DatasetSpec`` from user options.
 
     Defaults cover every impact the engine meets (``surrogate.configurations``: grazing rows up to
@@ -202,7 +209,8 @@ def make_spec(*, samples: int, seed: int, diameter: float, diameter_std: float |
                             grazing_fraction=float(grazing_fraction), grazing_angle=float(grazing_angle),
                             max_offset=float(max_offset), slow_fraction=float(slow_fraction),
                             min_relative_speed=float(min_relative_speed), min_normal_speed=float(min_normal_speed),
-                            touch_time=float(touch_steps * dt_factor * dt))
+                            touch_time=float(touch_steps * dt_factor * dt), spin_fraction=float(spin_fraction),
+                            spin_ratio=float(spin_ratio))
     return DatasetSpec(samples=int(samples), seed=int(seed), configurations=cfg, material=material,
                        contact_model=contact_model, chunk_size=int(chunk_size), dt_factor=float(dt_factor))
 
@@ -272,8 +280,9 @@ def dem_runner(configs: Configurations, spec: DatasetSpec) -> np.ndarray:
     g_n = np.maximum(np.einsum("ij,ij->i", configs.v1 - configs.v2, configs.normal), 1e-12)
     t_hertz = hertz_contact_duration(1.0 / inv_e, r_eff, m_eff, g_n)
     max_steps = int(np.max(4.0 * (configs.touch_time + np.maximum(t_hertz, t_graze)) / dt + 100.0))
+    spins = {} if configs.omega1 is None else {"omega1": configs.omega1, "omega2": configs.omega2}
     result = simulate_pairs(
-        x1=x1, x2=x2, v1=v1, v2=v2,
+        x1=x1, x2=x2, v1=v1, v2=v2, **spins,
         radius1=0.5 * configs.d1, radius2=0.5 * configs.d2, density1=configs.rho1, density2=configs.rho2,
         youngs1=material.youngs_modulus, poisson1=material.poisson_ratio,
         restitution=material.restitution, friction=material.friction,
@@ -330,7 +339,7 @@ def _is_our_store(path: Path) -> bool:
         attrs = json.loads((path / "zarr.json").read_text()).get("attributes", {})
     except (OSError, ValueError, AttributeError):
         return False
-    return attrs.get("input_columns") == list(INPUT_COLUMNS)
+    return attrs.get("input_columns") in (list(INPUT_COLUMNS), list(INPUT_COLUMNS + SPIN_INPUT_COLUMNS))
 
 
 def _open_store(path: Path, spec: DatasetSpec, overwrite: bool):
@@ -365,7 +374,7 @@ def _open_store(path: Path, spec: DatasetSpec, overwrite: bool):
         group = zarr.open_group(str(path), mode="w", attributes=expected)
     n, cs = spec.samples, spec.chunk_size
     layout = {
-        "inputs": ((n, len(INPUT_COLUMNS)), "float64", (cs, len(INPUT_COLUMNS)), 0.0),
+        "inputs": ((n, len(spec.input_columns)), "float64", (cs, len(spec.input_columns)), 0.0),
         "outputs": ((n, len(OUTPUT_COLUMNS)), "float64", (cs, len(OUTPUT_COLUMNS)), 0.0),
         "config_id": ((n,), "int64", (cs,), -1),
         "family": ((n,), "int8", (cs,), -1),
@@ -489,7 +498,7 @@ class Dataset:
     """A complete, verified data set in memory."""
 
     inputs: np.ndarray
-    """(N, 14) float64, columns ``attrs["input_columns"]``."""
+    """(N, 14) float64 (a spinning set: (N, 20)), columns ``attrs["input_columns"]``."""
     outputs: np.ndarray
     """(N, 15) float64, columns ``attrs["output_columns"]``."""
     config_id: np.ndarray

@@ -44,16 +44,24 @@ INPUT_COLUMNS = ("v1x", "v1y", "v1z", "v2x", "v2y", "v2z", "d1", "d2", "rho1", "
 OUTPUT_COLUMNS = ("u1x", "u1y", "u1z", "u2x", "u2y", "u2z", "w1x", "w1y", "w1z", "w2x", "w2y", "w2z",
                   "contact_duration", "max_overlap", "max_normal_force")
 
-FORMS = ("paper", "contact")
+FORMS = ("paper", "contact", "contact_spin")
+CONTACT_FORMS = ("contact", "contact_spin")
+"""The contact-frame forms: the engine's pairwise surrogate takes either."""
+SPIN_INPUT_COLUMNS = ("o1x", "o1y", "o1z", "o2x", "o2y", "o2z")
+"""Spins before the impact (rad/s): after INPUT_COLUMNS in a set made with ``--spin-fraction`` (zeros otherwise)."""
 # Canonical feature order of each form: the flattened forest indexes into this list, and the
 # engine kernels (kernels/forest.py) compute exactly these, in this order.
 CANONICAL_FEATURES = {
     "paper": ("v1x", "v1y", "v1z", "v2x", "v2y", "v2z", "d1", "d2", "rho1", "rho2"),
     "contact": ("g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio"),
+    "contact_spin": ("g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio", "u_along", "u_across"),
 }
-ALWAYS_USED = {"paper": ("v1x", "v1y", "v1z", "v2x", "v2y", "v2z"), "contact": ("g_n", "g_t", "cos_angle")}
-TARGETS = {"paper": ("u", "v", "w"), "contact": ("impulse_n", "impulse_t")}
-TARGET_SCALE = {"contact": ("cos_angle", "sin_angle")}
+ALWAYS_USED = {"paper": ("v1x", "v1y", "v1z", "v2x", "v2y", "v2z"), "contact": ("g_n", "g_t", "cos_angle"),
+               "contact_spin": ("g_n", "g_t", "cos_angle", "u_along", "u_across")}
+TARGETS = {"paper": ("u", "v", "w"), "contact": ("impulse_n", "impulse_t"),
+           "contact_spin": ("impulse_n", "impulse_t", "impulse_b", "moment_t", "moment_b")}
+TARGET_SCALE = {"contact": ("cos_angle", "sin_angle"),
+                "contact_spin": ("cos_angle", "sin_angle", "none", "sin_angle", "none")}
 """Scale of each target when trained scaled (surrogate/train.py, ``TrainConfig.target_scale``): the trees learn
 impulse_n / cos_angle (about 1 + e: nearly constant over the incidence) and impulse_t / sin_angle; the forest
 multiplies its tree sum back (hel_warp/forest.py TARGET_SCALES, kernels/forest.py ``scale_factor``)."""
@@ -75,8 +83,14 @@ class CollisionData:
     attrs: dict = field(default_factory=dict)
     family: np.ndarray | None = None
     """(N,) int8 collision family (0 converging, 1 parallel, 2 head-on), when known."""
+    spins: np.ndarray | None = None
+    """(N, 6) float64 spins before the impact, SPIN_INPUT_COLUMNS (None: a spinless set, all zero)."""
 
     def col(self, name: str) -> np.ndarray:
+        if name in SPIN_INPUT_COLUMNS:
+            if self.spins is None:
+                return np.zeros(self.inputs.shape[0])
+            return self.spins[:, SPIN_INPUT_COLUMNS.index(name)]
         if name in INPUT_COLUMNS:
             return self.inputs[:, INPUT_COLUMNS.index(name)]
         return self.outputs[:, OUTPUT_COLUMNS.index(name)]
@@ -87,7 +101,8 @@ class CollisionData:
 
     def take(self, rows: np.ndarray) -> "CollisionData":
         family = None if self.family is None else self.family[rows]
-        return CollisionData(self.inputs[rows], self.outputs[rows], self.dataset_hash, self.attrs, family)
+        spins = None if self.spins is None else self.spins[rows]
+        return CollisionData(self.inputs[rows], self.outputs[rows], self.dataset_hash, self.attrs, family, spins)
 
     def __len__(self) -> int:
         return int(self.inputs.shape[0])
@@ -102,7 +117,10 @@ def validate_data(data: CollisionData) -> None:
                           f"got {data.outputs.shape}")
     if len(data) == 0:
         raise ConfigError("the data set is empty (0 rows); generate it with `hel-warp dataset` first")
-    used = np.concatenate([data.inputs, data.outputs[:, :6]], axis=1)
+    if data.spins is not None and data.spins.shape != (data.inputs.shape[0], len(SPIN_INPUT_COLUMNS)):
+        raise ConfigError(f"data set spins must have shape (N, 6) with N = {data.inputs.shape[0]}, got "
+                          f"{data.spins.shape}")
+    used = np.concatenate([data.inputs, data.outputs[:, :6]] + ([] if data.spins is None else [data.spins]), axis=1)
     bad = ~np.all(np.isfinite(used), axis=1)
     if bad.any():
         rows = np.flatnonzero(bad)
@@ -127,15 +145,18 @@ def load_collision_data(path: str, *, samples_limit: int | None = None) -> Colli
 
     ds = load_dataset(path)
     attrs = dict(ds.attrs)
-    if tuple(attrs.get("input_columns", INPUT_COLUMNS)) != INPUT_COLUMNS:
+    columns = tuple(attrs.get("input_columns", INPUT_COLUMNS))
+    if columns not in (INPUT_COLUMNS, INPUT_COLUMNS + SPIN_INPUT_COLUMNS):
         raise ConfigError(f"data set {path!r} input_columns {attrs.get('input_columns')} differ from the "
-                          f"agreed schema {list(INPUT_COLUMNS)}")
+                          f"agreed schema {list(INPUT_COLUMNS)} (+ {list(SPIN_INPUT_COLUMNS)} for a spinning set)")
     if tuple(attrs.get("output_columns", OUTPUT_COLUMNS))[:6] != OUTPUT_COLUMNS[:6]:
         raise ConfigError(f"data set {path!r} output_columns {attrs.get('output_columns')} do not start with "
                           f"{list(OUTPUT_COLUMNS[:6])}")
     n = len(ds.inputs) if samples_limit is None else min(int(samples_limit), len(ds.inputs))
-    data = CollisionData(np.asarray(ds.inputs[:n], dtype=np.float64), np.asarray(ds.outputs[:n], dtype=np.float64),
-                         str(attrs.get("dataset_hash", "")), attrs, np.asarray(ds.family[:n]))
+    inputs = np.asarray(ds.inputs[:n], dtype=np.float64)
+    spins = inputs[:, len(INPUT_COLUMNS):].copy() if columns != INPUT_COLUMNS else None
+    data = CollisionData(inputs[:, :len(INPUT_COLUMNS)].copy(), np.asarray(ds.outputs[:n], dtype=np.float64),
+                         str(attrs.get("dataset_hash", "")), attrs, np.asarray(ds.family[:n]), spins)
     validate_data(data)
     return data
 
@@ -168,6 +189,67 @@ def contact_frame(v1, v2, n):
     return g_n, g_t, t_hat, g_mag
 
 
+def contact_spin_frame(v1, v2, n, d1, d2, omega1=None, omega2=None):
+    """The contact_spin form's frame of spinning pairs (``n`` from 1 to 2; kernels/forest.py
+    ``contact_spin_frame`` is the engine's twin).
+
+    The contact points' relative velocity ``g_c = g + (r1 omega1 + r2 omega2) x n`` (g = v1 - v2) has the normal
+    part ``g_n = g.n`` and the slip ``s = g_c - g_n n``; ``t_hat = s/|s|`` (where the slip is below TANGENT_EPS
+    |g_c|: the direction of g's tangential part, or zero). The translational tangential velocity
+    ``u = g - g_n n`` (it turns the centre line during the contact) splits into ``u_along = u.t_hat`` and
+    ``u_across = |u - u_along t_hat|`` >= 0 along ``b_hat``. Spinless: ``g_c = g``, ``u_along = |s|``, ``u_across
+    = 0``. Returns ``(g_n, slip, t_hat, b_hat, gc_mag, u_along, u_across)``."""
+    v1, v2, n = (np.atleast_2d(np.asarray(a, dtype=np.float64)) for a in (v1, v2, n))
+    r1 = 0.5 * np.broadcast_to(np.asarray(d1, np.float64), (v1.shape[0],))
+    r2 = 0.5 * np.broadcast_to(np.asarray(d2, np.float64), (v1.shape[0],))
+    w1 = np.zeros_like(v1) if omega1 is None else np.atleast_2d(np.asarray(omega1, np.float64))
+    w2 = np.zeros_like(v1) if omega2 is None else np.atleast_2d(np.asarray(omega2, np.float64))
+    g = v1 - v2
+    gc = g + np.cross(r1[:, None] * w1 + r2[:, None] * w2, n)
+    g_n = np.einsum("ij,ij->i", g, n)
+    s = gc - np.einsum("ij,ij->i", gc, n)[:, None] * n
+    s = s - np.einsum("ij,ij->i", s, n)[:, None] * n
+    u = g - g_n[:, None] * n
+    u = u - np.einsum("ij,ij->i", u, n)[:, None] * n
+    slip = np.linalg.norm(s, axis=1)
+    gc_mag = np.sqrt(g_n**2 + slip**2)
+    u_mag = np.linalg.norm(u, axis=1)
+    has_s = slip > TANGENT_EPS * gc_mag
+    has_u = u_mag > TANGENT_EPS * np.maximum(gc_mag, u_mag)
+    t_hat = np.where(has_s[:, None], s / np.where(has_s, slip, 1.0)[:, None],
+                     np.where(has_u[:, None], u / np.where(has_u, u_mag, 1.0)[:, None], 0.0))
+    u_along = np.einsum("ij,ij->i", u, t_hat)
+    rest = u - u_along[:, None] * t_hat
+    u_across = np.linalg.norm(rest, axis=1)
+    has_b = u_across > TANGENT_EPS * np.maximum(gc_mag, u_mag)
+    b_hat = np.where(has_b[:, None], rest / np.where(has_b, u_across, 1.0)[:, None], 0.0)
+    u_across = np.where(has_b, u_across, 0.0)
+    return g_n, slip, t_hat, b_hat, gc_mag, u_along, u_across
+
+
+def apply_contact_spin_model(v1, v2, n, d1, d2, rho1, rho2, predicted_targets, omega1=None, omega2=None):
+    """Post-collision velocities and spins from predicted contact_spin targets: ``J = m*|g_c| (impulse_n n +
+    impulse_t t_hat + impulse_b b_hat)`` on particle 2 (:func:`contact_spin_frame`): ``v1' = v1 - J/m1``,
+    ``v2' = v2 + J/m2``; the spins from the moment impulse ``Lambda = int n(t) x F_1 dt = -n x J_rot``,
+    ``J_rot = m*|g_c| (moment_t t_hat + moment_b b_hat)`` (the tangential impulse as the spins see it: the centre
+    line turns during the contact, so ``n x J`` with the first-touch normal is not the torque's integral):
+    ``omega_k' = omega_k - r_k n x J_rot / I_k``. Returns ``(v1', v2', omega1', omega2')``."""
+    v1, v2, n = (np.atleast_2d(np.asarray(a, dtype=np.float64)) for a in (v1, v2, n))
+    targets = np.atleast_2d(np.asarray(predicted_targets, dtype=np.float64))
+    d1 = np.broadcast_to(np.asarray(d1, np.float64), (v1.shape[0],))
+    d2 = np.broadcast_to(np.asarray(d2, np.float64), (v1.shape[0],))
+    m1, m2 = sphere_mass(d1, rho1), sphere_mass(d2, rho2)
+    m_eff = m1 * m2 / (m1 + m2)
+    _, _, t_hat, b_hat, gc_mag, _, _ = contact_spin_frame(v1, v2, n, d1, d2, omega1, omega2)
+    impulse = (m_eff * gc_mag)[:, None] * (targets[:, 0:1] * n + targets[:, 1:2] * t_hat + targets[:, 2:3] * b_hat)
+    w1 = np.zeros_like(v1) if omega1 is None else np.atleast_2d(np.asarray(omega1, np.float64))
+    w2 = np.zeros_like(v1) if omega2 is None else np.atleast_2d(np.asarray(omega2, np.float64))
+    j_rot = (m_eff * gc_mag)[:, None] * (targets[:, 3:4] * t_hat + targets[:, 4:5] * b_hat)
+    kick = -np.cross(n, j_rot)
+    return (v1 - impulse / m1[:, None], v2 + impulse / m2[:, None], w1 + kick / (0.2 * m1 * d1)[:, None],
+            w2 + kick / (0.2 * m2 * d2)[:, None])
+
+
 def apply_contact_model(v1, v2, n, d1, d2, rho1, rho2, predicted_targets):
     """Post-collision velocities from predicted contact-frame impulses (contact form).
 
@@ -192,8 +274,9 @@ def apply_contact_model(v1, v2, n, d1, d2, rho1, rho2, predicted_targets):
 # the two forms
 
 
-def raw_features(form: str, v1, v2, n, d1, d2, rho1, rho2) -> np.ndarray:
-    """All canonical features of ``form`` (CANONICAL_FEATURES order), float64, shape (N, F)."""
+def raw_features(form: str, v1, v2, n, d1, d2, rho1, rho2, omega1=None, omega2=None) -> np.ndarray:
+    """All canonical features of ``form`` (CANONICAL_FEATURES order), float64, shape (N, F); ``omega1`` /
+    ``omega2``: the spins (contact_spin form only; None: spinless)."""
     v1, v2 = np.atleast_2d(v1), np.atleast_2d(v2)
     d1, d2, rho1, rho2 = (np.broadcast_to(np.asarray(a, dtype=np.float64), (v1.shape[0],)) for a in (d1, d2, rho1, rho2))
     if form == "paper":
@@ -201,6 +284,9 @@ def raw_features(form: str, v1, v2, n, d1, d2, rho1, rho2) -> np.ndarray:
     if form == "contact":
         g_n, g_t, _, g_mag = contact_frame(v1, v2, np.atleast_2d(n))
         return np.column_stack([g_n, g_t, g_n / g_mag, d1, d2 / d1, rho2 / rho1])
+    if form == "contact_spin":
+        g_n, slip, _, _, gc_mag, u_along, u_across = contact_spin_frame(v1, v2, n, d1, d2, omega1, omega2)
+        return np.column_stack([g_n, slip, g_n / gc_mag, d1, d2 / d1, rho2 / rho1, u_along, u_across])
     raise ConfigError(f"unknown form {form!r}; choose one of {', '.join(FORMS)}")
 
 
@@ -251,6 +337,27 @@ def form_rows(form: str, data: CollisionData) -> FormRows:
                                    np.einsum("ij,ij->i", impulse, t_hat) / scale])
         feats = raw_features("contact", v1, v2, n, c("d1"), c("d2"), c("rho1"), c("rho2"))
         return FormRows(form, feats.astype(np.float32), targets, np.arange(len(data)), data)
+    if form == "contact_spin":
+        c = data.col
+        v1, v2, n, u1, u2 = data.vec3("v1"), data.vec3("v2"), data.vec3("n"), data.vec3("u1"), data.vec3("u2")
+        w1, w2 = data.vec3("o1"), data.vec3("o2")
+        g_n, slip, t_hat, b_hat, gc_mag, _, _ = contact_spin_frame(v1, v2, n, c("d1"), c("d2"), w1, w2)
+        if np.any(gc_mag <= 0):
+            raise ConfigError(f"{int(np.sum(gc_mag <= 0))} data-set row(s) have a zero contact-point relative "
+                              "velocity (no impact); drop them")
+        m1, m2 = sphere_mass(c("d1"), c("rho1")), sphere_mass(c("d2"), c("rho2"))
+        impulse = 0.5 * (m2[:, None] * (u2 - v2) - m1[:, None] * (u1 - v1))
+        scale = (m1 * m2 / (m1 + m2)) * gc_mag
+        # the moment impulse Lambda = int n(t) x F_1 dt: I_k (omega_k' - omega_k) = r_k Lambda for both spheres
+        lam = 0.5 * ((0.2 * m1 * c("d1"))[:, None] * (data.vec3("w1") - w1)
+                     + (0.2 * m2 * c("d2"))[:, None] * (data.vec3("w2") - w2))
+        targets = np.column_stack([np.einsum("ij,ij->i", impulse, n) / scale,
+                                   np.einsum("ij,ij->i", impulse, t_hat) / scale,
+                                   np.einsum("ij,ij->i", impulse, b_hat) / scale,
+                                   -np.einsum("ij,ij->i", lam, np.cross(n, t_hat)) / scale,
+                                   -np.einsum("ij,ij->i", lam, np.cross(n, b_hat)) / scale])
+        feats = raw_features("contact_spin", v1, v2, n, c("d1"), c("d2"), c("rho1"), c("rho2"), w1, w2)
+        return FormRows(form, feats.astype(np.float32), targets, np.arange(len(data)), data)
     raise ConfigError(f"unknown form {form!r}; choose one of {', '.join(FORMS)}")
 
 
@@ -292,6 +399,12 @@ def predictions_to_lab(form: str, data: CollisionData, group: np.ndarray, predic
         c = sel.col
         v1, v2, n = sel.vec3("v1"), sel.vec3("v2"), sel.vec3("n")
         u1, u2 = apply_contact_model(v1, v2, n, c("d1"), c("d2"), c("rho1"), c("rho2"), predicted)
+        return group, u1, u2
+    if form == "contact_spin":
+        sel = data.take(group)
+        c = sel.col
+        u1, u2, _, _ = apply_contact_spin_model(sel.vec3("v1"), sel.vec3("v2"), sel.vec3("n"), c("d1"), c("d2"),
+                                                c("rho1"), c("rho2"), predicted, sel.vec3("o1"), sel.vec3("o2"))
         return group, u1, u2
     half = predicted.shape[0] // 2
     # form_rows stacks all direct rows first, then all swapped ones; split keeps that order

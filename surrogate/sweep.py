@@ -83,7 +83,7 @@ def sweep_against_dem(flat, material: dict, *, contact_model: str = "hertz", dia
     from hel_warp.forest import CANONICAL_FEATURES, ForestPredictor
     from surrogate.admissibility import guarded_targets
 
-    if flat.form != "contact":
+    if flat.form not in ("contact", "contact_spin"):
         from hel_warp.errors import ConfigError
 
         raise ConfigError("the sweep needs a contact-form model")
@@ -100,7 +100,10 @@ def sweep_against_dem(flat, material: dict, *, contact_model: str = "hertz", dia
     args = (pairs["v1"], pairs["v2"], pairs["d1"], pairs["d2"], pairs["rho"], pairs["rho"])
     s1, s2 = predictor.predict_pairs(*args, normal=pairs["normal"], guard=True)
     counts = dict(predictor.last_counts)
-    r1, r2 = predictor.predict_pairs(*args, normal=pairs["normal"], guard=False)
+    if flat.form == "contact":
+        r1, r2 = predictor.predict_pairs(*args, normal=pairs["normal"], guard=False)
+    else:  # the contact_spin path is always guarded: "model" is the engine's outcome
+        r1, r2 = s1, s2
     engine = 100.0 * np.linalg.norm((s1 - s2) - g_dem, axis=1) / g_mag
     model = 100.0 * np.linalg.norm((r1 - r2) - g_dem, axis=1) / g_mag
     # the DEM outcome's own distance to the admissible set (normalised impulse components)
@@ -126,6 +129,101 @@ def sweep_against_dem(flat, material: dict, *, contact_model: str = "hertz", dia
                          "size_ratio": float(pairs["ratio"][worst]), "error_pct": float(engine[worst])},
         "engine_counts": counts,
     }
+
+
+SPIN_RATIOS = (0.1, 0.3, 1.0, 2.0)
+"""Spin sweep: the largest surface speed r|omega| of each sphere, in units of |g| (drawn uniformly below it)."""
+
+
+def spin_pairs(*, diameter: float, size_ratios, density: float, spin_ratio: float, n: int, seed: int = 0,
+               speeds=(0.1, 20.0)) -> dict:
+    """Random spinning pairs (COM frame): normal and slip plane isotropic, incidence of the translational g
+    uniform in cos (0-89 deg), |g| log-uniform in ``speeds``, each sphere's spin axis isotropic and its surface speed
+    r|omega| uniform in [0, spin_ratio |g|]; size ratio drawn from ``size_ratios``."""
+    rng = np.random.default_rng(seed)
+    unit = lambda a: a / np.linalg.norm(a, axis=1)[:, None]  # noqa: E731
+    ratio = rng.choice(np.asarray(size_ratios, float), n)
+    d1 = np.full(n, float(diameter))
+    d2 = d1 * ratio
+    normal = unit(rng.normal(size=(n, 3)))
+    t_hat = unit(np.cross(normal, rng.normal(size=(n, 3))))
+    speed = np.exp(rng.uniform(np.log(speeds[0]), np.log(speeds[1]), n))
+    chi = np.arccos(rng.uniform(math.cos(math.radians(89.0)), 1.0, n))
+    g = speed[:, None] * (np.cos(chi)[:, None] * normal + np.sin(chi)[:, None] * t_hat)
+    m1, m2 = d1**3, d2**3
+    omega1 = unit(rng.normal(size=(n, 3))) * (spin_ratio * speed * rng.uniform(0, 1, n) / (0.5 * d1))[:, None]
+    omega2 = unit(rng.normal(size=(n, 3))) * (spin_ratio * speed * rng.uniform(0, 1, n) / (0.5 * d2))[:, None]
+    return {"angle": np.degrees(chi), "speed": speed, "ratio": ratio, "d1": d1, "d2": d2,
+            "rho": np.full(n, float(density)), "normal": normal, "v1": (m2 / (m1 + m2))[:, None] * g,
+            "v2": -(m1 / (m1 + m2))[:, None] * g, "omega1": omega1, "omega2": omega2}
+
+
+def spin_sweep_against_dem(flat, material: dict, *, contact_model: str = "hertz", diameter: float, density: float,
+                           size_ratios=(1.0,), spin_ratios=SPIN_RATIOS, n: int = 2000, seed: int = 0,
+                           device="cpu") -> dict:
+    """Spinning impacts: the engine's spin path (``ForestPredictor.predict_pairs(omega1=, omega2=)``) and the spinless
+    path (spins ignored, as without ``particle_spin``) against the DEM with the spins. Errors in % of the
+    translational |g|: post-collision relative velocity ``g'`` and post-collision spins as surface speeds
+    ``r |omega' - omega'_DEM|`` (the larger of the pair's two)."""
+    from hel_warp.errors import HelWarpError
+    from hel_warp.forest import ForestPredictor
+    from hel_warp.impact import place_just_apart, simulate_pairs, stable_time_step
+
+    predictor = ForestPredictor(flat, device=device)
+    e_mod, nu = float(material["youngs_modulus"]), float(material["poisson_ratio"])
+    rows = {}
+    for k, spin_ratio in enumerate(spin_ratios):
+        p = spin_pairs(diameter=diameter, size_ratios=size_ratios, density=density, spin_ratio=spin_ratio, n=n,
+                       seed=seed + k)
+        r1, r2 = 0.5 * p["d1"], 0.5 * p["d2"]
+        vmax = np.maximum(20.0, p["speed"])
+        stable = np.minimum(stable_time_step(r1, p["rho"], e_mod, nu, vmax),
+                            stable_time_step(r2, p["rho"], e_mod, nu, vmax))
+        x1, x2 = place_just_apart(normal=p["normal"], velocity1=p["v1"], velocity2=p["v2"], radius1=r1, radius2=r2,
+                                  dt=stable)
+        res = simulate_pairs(x1=x1, x2=x2, v1=p["v1"], v2=p["v2"], omega1=p["omega1"], omega2=p["omega2"],
+                             radius1=r1, radius2=r2, density1=p["rho"], density2=p["rho"], youngs1=e_mod, poisson1=nu,
+                             restitution=float(material["restitution"]), friction=float(material["friction"]),
+                             rolling_friction=float(material.get("rolling_friction", 0.0)), model=contact_model)
+        if not (res.touched & res.separated).all():
+            raise HelWarpError(f"{int((~(res.touched & res.separated)).sum())} spin pairs did not complete a collision")
+        n_hat = p["normal"]
+        g_mag = np.linalg.norm(p["v1"] - p["v2"], axis=1)
+        dem_g = res.velocity1 - res.velocity2
+        args = (p["v1"], p["v2"], p["d1"], p["d2"], p["rho"], p["rho"])
+        s1, s2, o1, o2 = predictor.predict_pairs(*args, normal=n_hat, omega1=p["omega1"], omega2=p["omega2"])
+        z1, z2 = predictor.predict_pairs(*args, normal=n_hat)
+
+        def spin_error(w1, w2):  # the larger sphere's surface-speed error r |omega' - omega'_DEM|
+            return np.maximum(r1 * np.linalg.norm(w1 - res.omega1, axis=1),
+                              r2 * np.linalg.norm(w2 - res.omega2, axis=1))
+
+        errors = {
+            "spin_g": 100.0 * np.linalg.norm((s1 - s2) - dem_g, axis=1) / g_mag,
+            "spin_omega": 100.0 * spin_error(o1, o2) / g_mag,
+            "spinless_g": 100.0 * np.linalg.norm((z1 - z2) - dem_g, axis=1) / g_mag,
+            "spinless_omega": 100.0 * spin_error(p["omega1"], p["omega2"]) / g_mag,
+        }
+        rows[f"{spin_ratio:g}"] = {name: {"median_pct": float(np.median(e)), "p90_pct": float(np.percentile(e, 90)),
+                                          "p99_pct": float(np.percentile(e, 99)), "max_pct": float(e.max())}
+                                   for name, e in errors.items()}
+    return {"reference": "hel_warp.impact.simulate_pairs with the spins (DEM), sphere-sphere, COM frame",
+            "pairs_per_ratio": int(n), "spin_ratios": [float(r) for r in spin_ratios],
+            "size_ratios": [float(r) for r in size_ratios], "diameter": float(diameter), "rows": rows}
+
+
+def format_spin_table(sweep: dict) -> str:
+    """The spin sweep as text."""
+    lines = [f"spinning impacts vs DEM ({sweep['pairs_per_ratio']} pairs per spin ratio, size ratios "
+             f"{sweep['size_ratios']}, d1 = {sweep['diameter'] * 1e6:.0f} um); error in % of the translational |g|, "
+             "median / p90 / p99",
+             f"{'r|w|/|g| <=':>12} {'spin path: g_prime':>22} {'r omega_prime':>22} {'spins ignored: g_prime':>23} "
+             f"{'r omega_prime':>24}"]
+    for ratio, row in sweep["rows"].items():
+        cells = [f"{row[k]['median_pct']:.2f} / {row[k]['p90_pct']:.2f} / {row[k]['p99_pct']:.2f}"
+                 for k in ("spin_g", "spin_omega", "spinless_g", "spinless_omega")]
+        lines.append(f"{ratio:>12} {cells[0]:>22} {cells[1]:>22} {cells[2]:>22} {cells[3]:>24}")
+    return "\n".join(lines)
 
 
 def format_table(sweep: dict) -> str:

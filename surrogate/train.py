@@ -382,6 +382,19 @@ def train(data: CollisionData, model_dir: str, config: TrainConfig, *, log=print
     doc = _flat_document(config.form, features, targets, boosters, mean, std, domain, target_scale)
     metrics["forest_vs_xgboost_max_abs_diff"] = _forest_check(doc, rows.features[test_r], predicted)
     metrics["fit_wall_time_s"] = round(time.perf_counter() - t_start, 2)
+    if config.form == "contact_spin" and material is not None and config.sweep:
+        from hel_warp.forest import parse_forest
+        from surrogate.sweep import format_spin_table, format_table, spin_sweep_against_dem, sweep_against_dem
+
+        defaults = {k: float(np.mean(data.col(k))) for k in ("d1", "rho1")}
+        contact_model = str(data.attrs.get("contact_model", "hertz"))
+        metrics["sweep"] = sweep_against_dem(parse_forest(doc), material, contact_model=contact_model,
+                                             diameter=defaults["d1"], density=defaults["rho1"])
+        log(format_table(metrics["sweep"]))
+        metrics["spin_sweep"] = spin_sweep_against_dem(parse_forest(doc), material, contact_model=contact_model,
+                                                       diameter=defaults["d1"], density=defaults["rho1"],
+                                                       size_ratios=metrics["sweep"]["size_ratios"])
+        log(format_spin_table(metrics["spin_sweep"]))
     if config.form == "contact":
         metrics["guard"] = guard_metrics(doc, rows, test_r, predicted)
         if metrics["guard"]["flagged"]:
@@ -435,13 +448,16 @@ def _domain(form: str, rows: FormRows, train_rows: np.ndarray, material: dict | 
     from surrogate.admissibility import choose_friction_bound, dem_admissibility, training_domain
 
     friction = float((material or {}).get("friction", 0.0))
-    if form != "contact":
+    if form not in ("contact", "contact_spin"):
         return training_domain(form, rows.features[train_rows], friction=friction, friction_bound=friction,
                                rule="paper form: no impulse guard (the bound is mu)")
-    bound, rule, ratio_max = choose_friction_bound(rows.features, rows.targets, friction)
+    targets = rows.targets
+    if form == "contact_spin":  # the guard bounds the tangential impulse |(b, c)| (kernels/forest.py)
+        targets = np.column_stack([targets[:, 0], np.hypot(targets[:, 1], targets[:, 2])])
+    bound, rule, ratio_max = choose_friction_bound(rows.features, targets, friction)
     return training_domain(form, rows.features[train_rows], friction=friction, friction_bound=bound, rule=rule,
                            dem_max_b_over_a=ratio_max,
-                           dem_admissibility=dem_admissibility(rows.features, rows.targets, friction, bound))
+                           dem_admissibility=dem_admissibility(rows.features, targets, friction, bound))
 
 
 def _flat_document(form, features, targets, boosters, mean, std, domain, target_scale=None) -> dict:

@@ -60,6 +60,13 @@ def add_parser(subparsers):
                    help="smallest relative speed |v1 - v2|, m/s (default 0.01)")
     p.add_argument("--min-normal-speed", type=finite_float, default=None,
                    help="smallest normal approach speed, m/s (default 1e-3; the paper-like set 0.05)")
+    p.add_argument("--spin-fraction", type=finite_float, default=0.0,
+                   help="fraction of rows whose spheres spin before the impact, in [0, 1] (default 0: spinless). "
+                        "The training set of a `--form contact_spin` model, for the engine's particle_spin "
+                        "(e.g. 0.7)")
+    p.add_argument("--spin-ratio", type=finite_float, default=1.5,
+                   help="largest surface speed r|omega| of a spinning sphere, in units of the relative speed "
+                        "(default 1.5)")
     p.add_argument("--dt-factor", type=finite_float, default=0.5,
                    help="DEM time step as a fraction of the eq. (12) stable step, in (0, 1] (default 0.5)")
     add_material_options(p)
@@ -177,7 +184,8 @@ def run(args) -> int:
     diameter, diameter_std, mixture = _size_options(args)
     spec = make_spec(samples=args.samples, seed=args.seed, diameter=diameter, diameter_std=diameter_std,
                      density_std=args.density_std, material=material, contact_model=args.model,
-                     chunk_size=chunk_size, dt_factor=args.dt_factor, **mixture, **offsets)
+                     chunk_size=chunk_size, dt_factor=args.dt_factor, spin_fraction=args.spin_fraction,
+                     spin_ratio=args.spin_ratio, **mixture, **offsets)
     summary = build_dataset(args.out, spec, scheduler=args.scheduler, overwrite=args.overwrite,
                             progress=not args.no_progress and not args.json)
     emit(summary, args.json, [

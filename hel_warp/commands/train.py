@@ -16,9 +16,11 @@ def add_parser(subparsers):
                               description=__doc__)
     p.add_argument("--data", required=True, help="data set directory written by `hel-warp dataset --out`")
     p.add_argument("--out", required=True, help="model directory to write (MODEL_DIR)")
-    p.add_argument("--form", choices=("contact", "paper"), default="contact",
+    p.add_argument("--form", choices=("contact", "contact_spin", "paper"), default="contact",
                    help="contact: contact-frame features and impulses, momentum exact (default); "
-                        "paper: the paper's 6 velocities -> u, v, w of particle 1, central impacts only")
+                        "contact_spin: the same for spinning spheres (a data set made with --spin-fraction; the "
+                        "engine's particle_spin); paper: the paper's 6 velocities -> u, v, w of particle 1, central "
+                        "impacts only")
     p.add_argument("--trials", type=int, default=50, help="finished Optuna trials per target, in all (default 50)")
     p.add_argument("--storage", default=None,
                    help="Optuna storage URL shared by workers (default sqlite:///MODEL_DIR/study.db)")
