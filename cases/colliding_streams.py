@@ -320,6 +320,8 @@ class CaseConfig:
     wall_spin: bool = False
     """HEL parcels meet the walls as rough spheres that carry their spin (``HelConfig.wall_spin``), as the ``dem``
     spheres roll; False: the spinless reflection with Table 1's e_t = 0.8."""
+    particle_spin: bool = False
+    """``surrogate`` (pairwise): collisions at the contact point, the spins turned (``HelConfig.particle_spin``)."""
     cell_coarsen: int | None = None
     """``surrogate`` cell detection: grid cells per collision cell and axis (``CellConfig.coarsen``; None: the
     automatic choice, merged cells for weighted parcels)."""
@@ -421,6 +423,9 @@ def make_config(args) -> CaseConfig:
     if getattr(args, "collision_events", None) and args.collisions in ("none", "ktgf"):
         raise ConfigError(f"--collision-events records the dem and surrogate collisions; --collisions "
                           f"{args.collisions} resolves none")
+    if getattr(args, "particle_spin", False) and args.collisions != "surrogate":
+        raise ConfigError(f"--particle-spin turns the surrogate's collisions at the contact point; --collisions "
+                          f"{args.collisions} does not use it (the dem's spheres spin on their own)")
     if (args.collisions.startswith("surrogate")) and not args.model:
         raise ConfigError(f"--collisions {args.collisions} needs --model MODEL_DIR (a `hel-warp train` output)")
     detection = getattr(args, "detection", None)
@@ -461,6 +466,7 @@ def make_config(args) -> CaseConfig:
                       cell_nearest=int(nearest or 0),
                       wall_contact=getattr(args, "wall_contact", "surface"),
                       wall_spin=bool(getattr(args, "wall_spin", False)),
+                      particle_spin=bool(getattr(args, "particle_spin", False)),
                       seed=int(args.seed), device=args.device)
 
 
@@ -639,7 +645,8 @@ class CollidingStreams:
         self.solver = HelSolver(pool=self.pool, gas_solver=self.gas_solver, gas=self.gas,
                                 config=HelConfig(dt=config.dt, push=push, material=material, walls=True,
                                                  wall_contact=config.wall_contact, wall_spin=config.wall_spin,
-                                                 injectors=tuple(injectors), outlets=outlets),
+                                                 particle_spin=config.particle_spin, injectors=tuple(injectors),
+                                                 outlets=outlets),
                                 collision=self.collision)
 
     @property
@@ -945,6 +952,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="HEL parcels meet the walls as rough spheres that carry their spin (Walton's law, "
                              "beta = 0: a sphere rolling along a wall keeps its speed), as the dem's spheres do; "
                              "default: the spinless reflection with Table 1's e_t = 0.8")
+    parser.add_argument("--particle-spin", action="store_true",
+                        help="surrogate: particle-particle collisions at the contact point, the spins turned (with "
+                             "--wall-spin the parcels carry the spin they get rolling on the walls into their "
+                             "collisions, as the dem's spheres do)")
     parser.add_argument("--collision-events", metavar="PATH", default=None,
                         help="save every collision of every step to PATH (.npz: ids, normal approach speed, time, "
                              "stream tags, radii; dem contact onsets or the surrogate's resolved collisions) for "

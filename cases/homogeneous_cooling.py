@@ -174,6 +174,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--particles-per-parcel", default="1",
                         help="real particles per parcel: W for every species (divides N; default 1), or W1,W2 "
                              "per species of a mixture (W_k divides species k's particles)")
+    parser.add_argument("--particle-spin", action="store_true",
+                        help="surrogate (pairwise) only: collisions at the contact point, the spins turned "
+                             "(SurrogateCollision.particle_spin); with a frictional model the gas then heats up in "
+                             "rotation as the dem's does (rotational_temperature in the JSON)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the start (lattice jitter, velocities)")
     parser.add_argument("--out", required=True, help="output directory")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
@@ -302,6 +306,10 @@ def make_config(args) -> CoolingConfig:
         raise ConfigError(f"{args.out} is not an output directory of this case (no {SUMMARY}); --overwrite only "
                           "replaces those")
     detection = args.detection
+    particle_spin = bool(getattr(args, "particle_spin", False))
+    if particle_spin and name != "surrogate":
+        raise ConfigError(f"--particle-spin turns the surrogate's collisions at the contact point; --collisions {name} "
+                          "does not use it (the dem's spheres spin on their own)")
     if name == "surrogate" and detection is None and max(weights) > 1:
         detection = "cell"  # the strategy's own default for parcels heavier than one particle
     config = CoolingConfig(collisions=name, model=args.model, detection=detection, dt=float(args.dt), eps=eps,
@@ -309,7 +317,8 @@ def make_config(args) -> CoolingConfig:
                            diameter=d,
                            theta0=float(args.granular_temperature), end_time=float(args.end_time), steps=steps,
                            seed=int(args.seed), out=str(args.out), overwrite=bool(args.overwrite), device=args.device,
-                           box_length=L, material=material, material_source=source, model_meta=meta, species=species)
+                           box_length=L, material=material, material_source=source, model_meta=meta, species=species,
+                           particle_spin=particle_spin)
     check_search(config)
     return config
 
@@ -724,6 +733,8 @@ class SurrogateFlight(BallisticFlight):
             kwargs["detection"] = config.detection
         if config.detection == "cell":
             kwargs["seed"] = config.seed  # the collision cells' random numbers
+        if getattr(config, "particle_spin", False):
+            kwargs["particle_spin"] = True
         self.strategy = cls(**kwargs)
         self.detection = getattr(self.strategy, "detection", config.detection or "overlap")
         self._collide_takes_dt = _accepts(self.strategy.collide, "dt")
@@ -818,6 +829,8 @@ class HomogeneousCooling:
         self.steps_done = 0
         self.count_totals: dict[str, float] = {}
         self.collisions_per_step = np.zeros(config.steps, np.float64)
+        self.spin_square = np.zeros(config.steps + 1, np.float64)
+        """Per recorded step: the mean of I |omega|^2 / (3 m) over the parcels (weights), m^2/s^2."""
         self._record()
 
     def _record(self) -> None:
@@ -827,6 +840,12 @@ class HomogeneousCooling:
         velocity_moments(p.v, self._moment_weight, p.alive, self.moments, self.steps_done)
         for weight, moments in zip(self._species_weight, self.species_moments):
             velocity_moments(p.v, weight, p.alive, moments, self.steps_done)
+        if self.config.collisions in ("dem", "surrogate"):  # the others never turn a spin
+            w = p.omega.numpy().astype(np.float64)
+            r = p.radius.numpy().astype(np.float64)
+            weight = np.asarray(self._moment_weight.numpy(), np.float64)
+            self.spin_square[self.steps_done] = float(np.sum(weight * 0.4 * r**2 * (w**2).sum(axis=1)) /
+                                                      (3.0 * weight.sum()))
 
     def step(self) -> None:
         self.flight.step(self.particles, self.config.dt)
@@ -843,6 +862,11 @@ class HomogeneousCooling:
 
     def theta(self) -> np.ndarray:
         return theta_from_moments(self.moments.numpy()[: self.steps_done + 1])
+
+    def rotational_temperature(self) -> np.ndarray:
+        """(steps+1,) Theta_rot = I <|omega|^2> / (3 m) (mass-weighted), m^2/s^2: 0 throughout unless the collisions
+        turn the spins (``dem``, ``surrogate --particle-spin``)."""
+        return self.spin_square[: self.steps_done + 1].copy()
 
     def theta_species(self) -> np.ndarray:
         """(steps+1, 2) Theta of each species of a mixture about its own mean velocity, m^2/s^2."""
@@ -932,6 +956,9 @@ def analyse(case: HomogeneousCooling, wall_s: float, kernel_load_s: float) -> di
         "collisions_per_step_max": float(case.collisions_per_step[: case.steps_done].max(initial=0.0)),
         "wall_clock_s": wall_s, "wall_clock_per_step_s": wall_s / max(case.steps_done, 1),
         "kernel_load_s": kernel_load_s,
+        "rotational_temperature": case.rotational_temperature()[idx].tolist(),
+        "rotational_temperature_final": float(case.rotational_temperature()[-1]),
+        "particle_spin": bool(getattr(cfg, "particle_spin", False)),
         "momentum_drift": momentum_drift(case), "strategy_counts": counts, "strategy_flags": flags,
         "diagnostics": case.flight.diagnostics(case.particles),
         "seed": cfg.seed, "device": str(cfg.device), "notes": notes,

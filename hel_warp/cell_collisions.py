@@ -273,12 +273,12 @@ class CellCollisions:
         """A restored ``cell_last_partner`` waiting for the arrays to be allocated."""
 
     # ------------------------------------------------------------------ device arrays
-    def _allocate(self, particles, n_cells: int) -> None:
+    def _allocate(self, particles, n_cells: int, spin_form: bool = False) -> None:
         import warp as wp
 
         from kernels.cell_collide import N_COUNTS, CellArgs
 
-        key = (str(particles.device), particles.count, n_cells)
+        key = (str(particles.device), particles.count, n_cells, bool(spin_form))
         if self._key == key:
             return
         dev = particles.device
@@ -291,9 +291,11 @@ class CellCollisions:
         a.cell_end = wp.zeros(n_cells, dtype=wp.int32, device=dev)
         a.cell_sigma_g_max = wp.zeros(n_cells, dtype=wp.float32, device=dev)
         a.cell_candidates = wp.zeros(n_cells, dtype=wp.float32, device=dev)
-        a.features = wp.zeros((n_cells, 6), dtype=wp.float32, device=dev)
-        a.batch_features = wp.zeros((n_cells, 6), dtype=wp.float32, device=dev)
-        a.batch_out = wp.zeros((n_cells, 2), dtype=wp.float32, device=dev)
+        n_features, n_targets = (8, 5) if spin_form else (6, 2)
+        a.spin_form = 1 if spin_form else 0
+        a.features = wp.zeros((n_cells, n_features), dtype=wp.float32, device=dev)
+        a.batch_features = wp.zeros((n_cells, n_features), dtype=wp.float32, device=dev)
+        a.batch_out = wp.zeros((n_cells, n_targets), dtype=wp.float32, device=dev)
         a.batch_count = wp.zeros(1, dtype=wp.int32, device=dev)
         a.cell_rng = wp.zeros(n_cells, dtype=wp.uint32, device=dev)
         a.cell_remaining = wp.zeros(n_cells, dtype=wp.int32, device=dev)
@@ -303,6 +305,7 @@ class CellCollisions:
         a.pending_pair = wp.zeros(n_cells, dtype=wp.vec2i, device=dev)
         a.pending_normal = wp.zeros(n_cells, dtype=wp.vec3, device=dev)
         a.particle_deficit = wp.zeros(n, dtype=wp.float32, device=dev)
+        self._no_omega = wp.zeros(1, dtype=wp.vec3, device=dev)
         if self._last_partner is None or self._last_partner.shape[0] != n or str(self._last_partner.device) != str(dev):
             pending = self._pending_last_partner
             self._pending_last_partner = None
@@ -353,11 +356,13 @@ class CellCollisions:
 
     # ------------------------------------------------------------------ one step
     def collide(self, particles, dt: float, forest, domain, *, batch_forest=None, periodic_box=None, grid=None,
-                apply: bool = True, alive: np.ndarray | None = None) -> None:
+                apply: bool = True, alive: np.ndarray | None = None, particle_spin: bool = False,
+                spin_form: bool = False) -> None:
         """The step's collisions of ``particles`` (velocities in place); ``forest`` an explicit-layout ``Forest``,
         ``domain`` its ``ContactDomain``; ``batch_forest`` (perfect layout, optional): the accepted pairs predicted
         in batched rounds (faster, same pairs). ``apply=False``: selection only (counts and log; velocities
-        unchanged)."""
+        unchanged). ``particle_spin``: collisions at the contact point (``particles.omega`` read and turned);
+        ``spin_form``: the forest is a ``contact_spin`` model (8 features, 3 targets)."""
         import warp as wp
 
         from kernels.cell_collide import advance_paths, collide_cells, path_shifts, restore_energy, sort_by_cell
@@ -392,7 +397,7 @@ class CellCollisions:
                   f"{1e3 * float(np.max(edges)):.3g} mm (w sigma h / V > {SATURATION_WARN:g}): the pair collides with "
                   "itself and the momentum it exchanges saturates (too little, docs/FIGURES.md issue 12, eighth "
                   "session); use a lower weight or coarser collision cells", file=sys.stderr)
-        self._allocate(particles, n_cells)
+        self._allocate(particles, n_cells, spin_form)
         a = self._args
         cfg = self.config
         substeps = int(min(cfg.max_substeps, max(1, math.ceil(v_max * dt / (cfg.cfl * float(np.min(edges)))))))
@@ -401,6 +406,8 @@ class CellCollisions:
         a.particle_x, a.particle_radius = self._path, particles.radius
         a.particle_density, a.particle_weight = particles.density, particles.weight
         a.particle_alive, a.particle_stream = particles.alive, particles.stream
+        a.spin = 1 if particle_spin else 0
+        a.particle_omega = particles.omega if particle_spin else self._no_omega
         a.n_streams = self.n_streams
         a.origin = tuple(float(v) for v in origin)
         a.cell_size = tuple(float(v) for v in edges)

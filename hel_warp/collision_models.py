@@ -115,7 +115,8 @@ class SurrogateCollision:
     def __init__(self, *, model_dir: str, mode: str = "pairwise", detection: str | None = None,
                  periodic_box=None, n_streams: int = DEFAULT_STREAMS, batched: bool = True,
                  max_rounds: int = MAX_ROUNDS, ordering: str = "parallel", cell=None, seed: int = 0,
-                 wall_events: bool = True, kick_first: bool = True, collision_events: bool = False):
+                 wall_events: bool = True, kick_first: bool = True, collision_events: bool = False,
+                 particle_spin: bool = False):
         from hel_warp.forest import load_forest
 
         if mode not in ("pairwise", "paper"):
@@ -139,7 +140,7 @@ class SurrogateCollision:
         self.periodic_box = _periodic_box(periodic_box)
         self.flat = load_forest(model_dir)
         want = "contact" if mode == "pairwise" else "paper"
-        if self.flat.form != want:
+        if self.flat.form != want and not (want == "contact" and self.flat.form == "contact_spin"):
             raise ConfigError(f"the {mode!r} surrogate mode needs a {want!r}-form model, {model_dir!r} holds a "
                               f"{self.flat.form!r}-form one; train with `hel-warp train --form {want}`")
         self.model_dir = model_dir
@@ -175,6 +176,11 @@ class SurrogateCollision:
         relative motion of neighbours)."""
         self._kicked = False
         self._x_scratch = None
+        self.particle_spin = bool(particle_spin)
+        """Pairwise mode, swept and cell detection: the collisions act at the contact point (docs/TEAM-NOTES.md "Spin in
+        particle-particle collisions"): the model is asked at the contact points' relative velocity (translation
+        and spin, ``Particles.omega``) and its impulse turns the spins. Off: spinless collisions (the training
+        data's). A ``HelSolver`` whose ``HelConfig.particle_spin`` is set switches it on."""
         self.record_events = bool(collision_events)
         """Keep every collision the swept (or overlap) detection resolves in a step, for :meth:`collision_events`
         (one logging launch per round; off by default)."""
@@ -292,7 +298,9 @@ class SurrogateCollision:
         a.last_partner = zeros(n, wp.int32)
         a.event_i, a.event_j = zeros(n, wp.int32), zeros(n, wp.int32)
         a.event_time, a.event_normal = zeros(n, wp.float32), zeros(n, wp.vec3)
-        a.features, a.batch_out = zeros((n, 6), wp.float32), zeros((n, 2), wp.float32)
+        a.features = zeros((n, len(self.flat.features)), wp.float32)
+        a.batch_out = zeros((n, len(self.flat.targets)), wp.float32)
+        a.spin_form = 1 if self.flat.form == "contact_spin" else 0
         a.batch_count = self.batch_count
         a.max_rounds = self.max_rounds
         a.guard = zeros(len(GUARD_NAMES), wp.int32)
@@ -301,11 +309,13 @@ class SurrogateCollision:
         a.blocker, a.blocked_round = zeros(n, wp.int32), zeros(n, wp.int32)
         a.blocker_key = wp.full(n, 0, dtype=wp.int64, device=dev)
         a.blocked_key = wp.full(n, 0, dtype=wp.int64, device=dev)
-        if self.flat.form == "contact":
+        if self.flat.form in ("contact", "contact_spin"):
             a.domain = self.flat.domain_to_device(dev)
         from kernels.reflect import make_wall_params
         from kernels.sdf import SdfShapes
 
+        a.particle_omega = zeros(1, wp.vec3)  # set per call (collide) when particle_spin
+        a.spin = 0
         a.walls = 0
         a.shapes = SdfShapes()  # no walls: an empty union (replaced by set_walls' geometry)
         a.shapes.center = zeros(1, wp.vec3)
@@ -392,6 +402,8 @@ class SurrogateCollision:
         its packing stress, ``CellConfig.packing_stress``)."""
         solver.fields.parcel_a_coll.zero_()
         self._solver_grid = solver.grid  # the cell detection's collision cells
+        if getattr(getattr(solver, "config", None), "particle_spin", False):
+            self.particle_spin = True
         walls = getattr(getattr(solver, "config", None), "walls", False)
         if self._walls is None and walls and getattr(solver, "shapes", None) is not None:
             self.set_walls(solver.shapes, solver.wall_params)
@@ -477,6 +489,7 @@ class SurrogateCollision:
             self.detection = "cell" if bool((particles.weight.numpy()[alive] > 1.0).any()) else "swept"
         if self.detection == "cell":
             self.cells.collide(particles, dt, self.forest, self.swept.domain, batch_forest=self.batch_forest,
+                               particle_spin=self.particle_spin, spin_form=self.flat.form == "contact_spin",
                                periodic_box=self.periodic_box,
                                grid=None if self.periodic_box is not None else self._solver_grid, alive=alive)
             return
@@ -523,6 +536,9 @@ class SurrogateCollision:
         a.reach_cut = max(REACH_CUT_FACTOR * reach_mean if reach_mean > 0.0 else 0.0, REACH_CUT_FLOOR * r_max)
         a.bound_cut = max(BOUND_CUT_FACTOR * reach_mean if reach_mean > 0.0 else 0.0, REACH_CUT_FLOOR * r_max)
         self._shift_pending = sweep > 0.0
+        a.spin = 1 if self.particle_spin else 0
+        if self.particle_spin:
+            a.particle_omega = particles.omega
         log = self._log_events_start(particles)
         resolve_swept(a, self.forest, particles.v, self.events_found, self.event_rounds, self.round_cap_hit,
                       self.calls, self.collisions, self.detected, self.skipped, batch_forest=self.batch_forest,

@@ -240,8 +240,13 @@ class HelConfig:
     """Parcels meet the walls as rough solid spheres that carry their spin (``Particles.omega``; kernels/reflect.py
     ``reflect_spin``: the contact point's tangential velocity reversed by ``wall_spin_restitution``, Coulomb-capped),
     as the dem strategy's spheres do: one rolling along a wall keeps its speed. False: the spinless reflection with
-    ``material.wall_restitution_tangential`` (Table 1). The gas exerts no torque, and particle-particle collisions do
-    not change the spin (the surrogate's outcome acts on the centres)."""
+    ``material.wall_restitution_tangential`` (Table 1). The gas exerts no torque; particle-particle collisions turn
+    the spins only with ``particle_spin``."""
+    particle_spin: bool = False
+    """The surrogate's particle-particle collisions (pairwise mode, swept and cell detection) act at the contact point:
+    the model is asked at the contact points' relative velocity (translation and spin) and its impulse turns both
+    spins (``SurrogateCollision.particle_spin``; docs/TEAM-NOTES.md "Spin in particle-particle collisions"). Meant with
+    ``wall_spin``, where rolling parcels carry spin into their collisions; ignored by the other strategies."""
     wall_spin_restitution: float = 0.0
     """beta in [-1, 1] of ``wall_spin`` (0: a sticking impact leaves the sphere rolling; the Hertz-Mindlin wall of the
     dem strategy gives beta -0.58...+0.42 over 5-60 degrees of incidence, mean +0.04)."""

@@ -80,6 +80,8 @@ import warp as wp
 
 from kernels.collide import forest_target, stream_pair_index
 from kernels.forest import (GUARD_COULOMB, GUARD_ENERGY, GUARD_SEPARATION, ContactDomain, Forest, admissible_impulse,
+                            contact_point_velocity, contact_spin_impulse, spin_guard, turn_spins,
+                            write_contact_spin_features_in_domain,
                             contact_impulse, sphere_mass, write_contact_features_in_domain)
 
 COUNT_CANDIDATES, COUNT_ACCEPTED, COUNT_OVER_MAX, COUNT_CELLS = 0, 1, 2, 3
@@ -105,6 +107,12 @@ class CellArgs:
     """(N,) real particles per parcel."""
     particle_alive: wp.array(dtype=wp.int32)
     particle_stream: wp.array(dtype=wp.int32)
+    particle_omega: wp.array(dtype=wp.vec3)
+    """Spins, rad/s (read and updated when ``spin`` is 1)."""
+    spin: wp.int32
+    """1: collisions at the contact point (kernels/collide.py ``SweptArgs.spin``)."""
+    spin_form: wp.int32
+    """1: a ``contact_spin`` model (8 features, 3 targets; kernels/collide.py ``SweptArgs.spin_form``)."""
     n_streams: wp.int32
     origin: wp.vec3
     """Lower corner of the cell lattice, m."""
@@ -277,26 +285,72 @@ def partial_impulse_deficit(impulse_sq: float, mass: float, weight: float, w_min
 
 
 @wp.func
-def resolve_pair(args: CellArgs, i: int, j: int, n: wp.vec3, impulse_n: float, impulse_t: float,
-                 particle_v: wp.array(dtype=wp.vec3)):
+def pair_contact_velocities(args: CellArgs, i: int, j: int, n: wp.vec3, particle_v: wp.array(dtype=wp.vec3)):
+    """The velocities the model is asked at: the parcels' (spinless), or their contact points' (``args.spin``)."""
+    vi = particle_v[i]
+    vj = particle_v[j]
+    if args.spin != 0:
+        vi = contact_point_velocity(vi, args.particle_omega[i], args.particle_radius[i], n)
+        vj = contact_point_velocity(vj, args.particle_omega[j], args.particle_radius[j], -n)
+    return vi, vj
+
+
+@wp.func
+def write_pair_features(args: CellArgs, i: int, j: int, n: wp.vec3, particle_v: wp.array(dtype=wp.vec3), row: int,
+                        features: wp.array2d(dtype=wp.float32)) -> int:
+    """The model's features of the pair at the (contact points') velocities into ``features[row]``; 1 if clamped."""
+    ci, cj = pair_contact_velocities(args, i, j, n, particle_v)
+    di = 2.0 * args.particle_radius[i]
+    dj = 2.0 * args.particle_radius[j]
+    if args.spin_form != 0:
+        return write_contact_spin_features_in_domain(particle_v[i], particle_v[j], ci, cj, n, di, dj,
+                                                     args.particle_density[i], args.particle_density[j], args.domain,
+                                                     row, features)
+    return write_contact_features_in_domain(ci, cj, n, di, dj, args.particle_density[i], args.particle_density[j],
+                                            args.domain, row, features)
+
+
+@wp.func
+def resolve_pair(args: CellArgs, i: int, j: int, n: wp.vec3, impulse_n: float, impulse_t: float, impulse_b: float,
+                 moment_t: float, moment_b: float, particle_v: wp.array(dtype=wp.vec3)):
     """The forest's normalised impulse for parcels i, j along n (approaching) through the guard, applied as the
     weighted equal and opposite impulse into particle_v; returns the guard flags."""
     vi = particle_v[i]
     vj = particle_v[j]
-    g = vi - vj
-    cos_angle = wp.dot(g, n) / wp.length(g)
-    impulse_n, impulse_t, flags = admissible_impulse(cos_angle, impulse_n, impulse_t, args.domain.friction_bound,
-                                                     args.domain.separation_slack)
     ri = args.particle_radius[i]
     rj = args.particle_radius[j]
+    ci, cj = pair_contact_velocities(args, i, j, n, particle_v)
+    g = ci - cj
+    cos_angle = wp.dot(g, n) / wp.length(g)
+    flags = int(0)
     mi = sphere_mass(2.0 * ri, args.particle_density[i])
     mj = sphere_mass(2.0 * rj, args.particle_density[j])
-    J = contact_impulse(vi, vj, n, mi, mj, impulse_n, impulse_t)  # on j; i gets -J
+    J = wp.vec3(0.0)
+    if args.spin != 0 or args.spin_form != 0:
+        impulse_n, impulse_t, impulse_b, flags = spin_guard(cos_angle, impulse_n, impulse_t, impulse_b,
+                                                            args.domain.friction_bound, args.domain.separation_slack,
+                                                            args.spin)
+        J = contact_spin_impulse(vi, vj, ci, cj, n, mi, mj, impulse_n, impulse_t, impulse_b)  # on j; i gets -J
+    else:
+        impulse_n, impulse_t, flags = admissible_impulse(cos_angle, impulse_n, impulse_t, args.domain.friction_bound,
+                                                         args.domain.separation_slack)
+        J = contact_impulse(ci, cj, n, mi, mj, impulse_n, impulse_t)  # on j; i gets -J
     wi = args.particle_weight[i]
     wj = args.particle_weight[j]
     w_min = wp.min(wi, wj)
     particle_v[i] = vi - J * (w_min / (wi * mi))
     particle_v[j] = vj + J * (w_min / (wj * mj))
+    if args.spin != 0:
+        J_rot = J
+        if args.spin_form != 0:
+            J_rot = contact_spin_impulse(vi, vj, ci, cj, n, mi, mj, 0.0, moment_t, moment_b)
+        wi_new, wj_new, fell_back = turn_spins(vi, vj, particle_v[i], particle_v[j], args.particle_omega[i],
+                                               args.particle_omega[j], n, ri, rj, mi, mj, wi, wj, w_min / wi,
+                                               w_min / wj, J, J_rot)
+        args.particle_omega[i] = wi_new
+        args.particle_omega[j] = wj_new
+        if fell_back != 0:
+            flags = flags | GUARD_ENERGY
     # the heavier parcel's energy deficit against w_min real collisions (module docstring; none for equal weights)
     j2 = wp.dot(J, J)
     if wi > w_min:
@@ -506,21 +560,25 @@ def cell_select(
             continue
         if args.batched != 0:
             row = wp.atomic_add(args.batch_count, 0, 1)
-            if write_contact_features_in_domain(particle_v[i], particle_v[j], n, 2.0 * ri, 2.0 * rj,
-                                                args.particle_density[i], args.particle_density[j], args.domain,
-                                                row, args.batch_features) == 1:
+            if write_pair_features(args, i, j, n, particle_v, row, args.batch_features) == 1:
                 wp.atomic_add(args.counts, COUNT_CLAMPED, 1)
             args.pending_row[cell] = row
             args.pending_pair[cell] = wp.vec2i(i, j)
             args.pending_normal[cell] = n
             more[0] = 1
             break
-        if write_contact_features_in_domain(particle_v[i], particle_v[j], n, 2.0 * ri, 2.0 * rj,
-                                            args.particle_density[i], args.particle_density[j], args.domain, cell,
-                                            args.features) == 1:
+        if write_pair_features(args, i, j, n, particle_v, cell, args.features) == 1:
             wp.atomic_add(args.counts, COUNT_CLAMPED, 1)
+        impulse_b = float(0.0)
+        moment_t = float(0.0)
+        moment_b = float(0.0)
+        if args.spin_form != 0:
+            impulse_b = forest_target(forest, 2, args.features, cell)
+            if args.spin != 0:
+                moment_t = forest_target(forest, 3, args.features, cell)
+                moment_b = forest_target(forest, 4, args.features, cell)
         flags = resolve_pair(args, i, j, n, forest_target(forest, 0, args.features, cell),
-                             forest_target(forest, 1, args.features, cell), particle_v)
+                             forest_target(forest, 1, args.features, cell), impulse_b, moment_t, moment_b, particle_v)
         count_guard(args, flags)
     args.cell_remaining[cell] = remaining
     args.cell_rng[cell] = state
@@ -542,8 +600,15 @@ def cell_apply(
         return
     args = args_store[0]
     pair = args.pending_pair[cell]
+    impulse_b = float(0.0)
+    moment_t = float(0.0)
+    moment_b = float(0.0)
+    if args.spin_form != 0:
+        impulse_b = args.batch_out[row, 2]
+        moment_t = args.batch_out[row, 3]
+        moment_b = args.batch_out[row, 4]
     flags = resolve_pair(args, pair[0], pair[1], args.pending_normal[cell], args.batch_out[row, 0],
-                         args.batch_out[row, 1], particle_v)
+                         args.batch_out[row, 1], impulse_b, moment_t, moment_b, particle_v)
     count_guard(args, flags)
     args.pending_row[cell] = -1
 

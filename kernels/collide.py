@@ -33,6 +33,8 @@ from __future__ import annotations
 import warp as wp
 
 from kernels.forest import (COS_FEATURE, GUARD_COULOMB, GUARD_ENERGY, GUARD_SEPARATION, SCALE_NONE, ContactDomain, Forest,
+                            contact_point_velocity, contact_spin_impulse, spin_guard, turn_spins,
+                            write_contact_spin_features_in_domain,
                             admissible_impulse, contact_impulse, scale_factor, sphere_mass, walk_tree,
                             write_contact_features_in_domain)
 from kernels.cell_list import CellList, range_count, range_slots, range_slots_pair, search_box, search_box_pair
@@ -348,6 +350,14 @@ class SweptArgs:
     particle_weight: wp.array(dtype=wp.float32)
     particle_alive: wp.array(dtype=wp.int32)
     particle_stream: wp.array(dtype=wp.int32)
+    particle_omega: wp.array(dtype=wp.vec3)
+    """Spins, rad/s (read and updated by the collisions when ``spin`` is 1; the walls' own switch is ``wall.spin``)."""
+    spin_form: wp.int32
+    """1: a ``contact_spin`` model (8 features, 3 targets: kernels/forest.py ``write_contact_spin_features_in_domain``,
+    ``contact_spin_impulse``)."""
+    spin: wp.int32
+    """1: the particle-particle collisions act at the contact point (docs/TEAM-NOTES.md "Spin in particle-particle
+    collisions"): the model is asked at the contact points' relative velocity and the impulse turns the spins."""
     n_streams: wp.int32
     dt: wp.float32
     """The step, s."""
@@ -423,9 +433,9 @@ class SweptArgs:
     batch_count: wp.array(dtype=wp.int32)
     """(1,) events in this round."""
     features: wp.array2d(dtype=wp.float32)
-    """(rows, 6) contact features of the round's events."""
+    """(rows, 6) contact features of the round's events ((rows, 8): ``spin_form``)."""
     batch_out: wp.array2d(dtype=wp.float32)
-    """(rows, 2) impulse_n, impulse_t of the batch rows (batched evaluation)."""
+    """(rows, 2) impulse_n, impulse_t of the batch rows (batched evaluation); (rows, 3) with impulse_b: ``spin_form``."""
     batched: wp.int32
     domain: ContactDomain
     """The model's training domain (features clamped into it) and Coulomb bound (the admissibility guard)."""
@@ -978,9 +988,21 @@ def swept_select(
     args.event_j[row] = b
     args.event_time[row] = t
     args.event_normal[row] = n
-    clamped = write_contact_features_in_domain(particle_v[a], particle_v[b], n, 2.0 * args.particle_radius[a],
-                                               2.0 * args.particle_radius[b], args.particle_density[a],
-                                               args.particle_density[b], args.domain, row, args.features)
+    va = particle_v[a]
+    vb = particle_v[b]
+    if args.spin != 0:
+        va = contact_point_velocity(va, args.particle_omega[a], args.particle_radius[a], n)
+        vb = contact_point_velocity(vb, args.particle_omega[b], args.particle_radius[b], -n)
+    clamped = int(0)
+    if args.spin_form != 0:
+        clamped = write_contact_spin_features_in_domain(particle_v[a], particle_v[b], va, vb, n,
+                                                        2.0 * args.particle_radius[a], 2.0 * args.particle_radius[b],
+                                                        args.particle_density[a], args.particle_density[b],
+                                                        args.domain, row, args.features)
+    else:
+        clamped = write_contact_features_in_domain(va, vb, n, 2.0 * args.particle_radius[a],
+                                                   2.0 * args.particle_radius[b], args.particle_density[a],
+                                                   args.particle_density[b], args.domain, row, args.features)
     if clamped != 0:
         wp.atomic_add(args.guard, GUARD_CLAMPED, 1)
     events_found[0] = 1  # every writer stores the same value
@@ -1070,28 +1092,55 @@ def swept_resolve(
             wp.atomic_add(args.guard, GUARD_LATE, 1)
     impulse_n = float(0.0)
     impulse_t = float(0.0)
+    impulse_b = float(0.0)
+    moment_t = float(0.0)
+    moment_b = float(0.0)
     if args.batched != 0:
         impulse_n = args.batch_out[row, 0]
         impulse_t = args.batch_out[row, 1]
+        if args.spin_form != 0:
+            impulse_b = args.batch_out[row, 2]
+            moment_t = args.batch_out[row, 3]
+            moment_b = args.batch_out[row, 4]
     else:
         impulse_n = forest_target(forest, 0, args.features, row)
         impulse_t = forest_target(forest, 1, args.features, row)
+        if args.spin_form != 0:
+            impulse_b = forest_target(forest, 2, args.features, row)
+            if args.spin != 0:
+                moment_t = forest_target(forest, 3, args.features, row)
+                moment_b = forest_target(forest, 4, args.features, row)
     # admissibility: separating along n, Coulomb, no energy gain, whatever the trees say (kernels/forest.py)
-    g = vi - vj
+    ri = args.particle_radius[i]
+    rj = args.particle_radius[j]
+    ci = vi
+    cj = vj
+    if args.spin != 0:  # the contact points' velocities: the model was asked at them (swept_select)
+        ci = contact_point_velocity(vi, args.particle_omega[i], ri, n)
+        cj = contact_point_velocity(vj, args.particle_omega[j], rj, -n)
+    g = ci - cj
     cos_angle = wp.dot(g, n) / wp.length(g)
-    impulse_n, impulse_t, flags = admissible_impulse(cos_angle, impulse_n, impulse_t, args.domain.friction_bound,
-                                                     args.domain.separation_slack)
+    flags = int(0)
+    if args.spin != 0 or args.spin_form != 0:
+        impulse_n, impulse_t, impulse_b, flags = spin_guard(cos_angle, impulse_n, impulse_t, impulse_b,
+                                                            args.domain.friction_bound, args.domain.separation_slack,
+                                                            args.spin)
+    else:
+        impulse_n, impulse_t, flags = admissible_impulse(cos_angle, impulse_n, impulse_t, args.domain.friction_bound,
+                                                         args.domain.separation_slack)
     if (flags & GUARD_SEPARATION) != 0:
         wp.atomic_add(args.guard, 0, 1)
     if (flags & GUARD_COULOMB) != 0:
         wp.atomic_add(args.guard, 1, 1)
     if (flags & GUARD_ENERGY) != 0:
         wp.atomic_add(args.guard, 2, 1)
-    ri = args.particle_radius[i]
-    rj = args.particle_radius[j]
     mi = sphere_mass(2.0 * ri, args.particle_density[i])
     mj = sphere_mass(2.0 * rj, args.particle_density[j])
-    J = contact_impulse(vi, vj, n, mi, mj, impulse_n, impulse_t)  # on j; i gets -J
+    J = wp.vec3(0.0)
+    if args.spin != 0 or args.spin_form != 0:
+        J = contact_spin_impulse(vi, vj, ci, cj, n, mi, mj, impulse_n, impulse_t, impulse_b)  # on j; i gets -J
+    else:
+        J = contact_impulse(ci, cj, n, mi, mj, impulse_n, impulse_t)  # on j; i gets -J
     wi = args.particle_weight[i]
     wj = args.particle_weight[j]
     w_min = wp.min(wi, wj)
@@ -1099,6 +1148,16 @@ def swept_resolve(
     vj_new = vj + J * (w_min / (wj * mj))
     particle_v[i] = vi_new
     particle_v[j] = vj_new
+    if args.spin != 0:
+        J_rot = J
+        if args.spin_form != 0:
+            J_rot = contact_spin_impulse(vi, vj, ci, cj, n, mi, mj, 0.0, moment_t, moment_b)
+        wi_new, wj_new, fell_back = turn_spins(vi, vj, vi_new, vj_new, args.particle_omega[i], args.particle_omega[j],
+                                               n, ri, rj, mi, mj, wi, wj, w_min / wi, w_min / wj, J, J_rot)
+        args.particle_omega[i] = wi_new
+        args.particle_omega[j] = wj_new
+        if fell_back != 0:
+            wp.atomic_add(args.guard, 2, 1)
     this_round = args.round[0]
     follow_new_path(args, i, j, t, vi, vi_new, this_round)
     follow_new_path(args, j, i, t, vj, vj_new, this_round)
