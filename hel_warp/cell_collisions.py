@@ -305,6 +305,7 @@ class CellCollisions:
         a.pending_pair = wp.zeros(n_cells, dtype=wp.vec2i, device=dev)
         a.pending_normal = wp.zeros(n_cells, dtype=wp.vec3, device=dev)
         a.particle_deficit = wp.zeros(n, dtype=wp.float32, device=dev)
+        a.particle_spin_deficit = wp.zeros(n, dtype=wp.float32, device=dev)
         self._no_omega = wp.zeros(1, dtype=wp.vec3, device=dev)
         if self._last_partner is None or self._last_partner.shape[0] != n or str(self._last_partner.device) != str(dev):
             pending = self._pending_last_partner

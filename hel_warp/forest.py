@@ -434,13 +434,16 @@ class ForestPredictor:
         """``predict_pairs`` of spinning spheres (or of a ``contact_spin`` model): ``(v1', v2', omega1', omega2')``,
         the engine's path (kernels/forest.py ``contact_point_velocities_kernel``, the features of the model's form
         at the contact points, ``apply_admissible_contact_spin_kernel``: the impulse through the contact point).
-        ``guard=False`` (bare trees) is refused: this path is the engine's."""
+        Without spins (``omega1`` and ``omega2`` None: a contact_spin model in a spinless run) the engine's
+        translational guard and no spin change, as ``particle_spin=False`` does; ``guard=False``: the bare trees
+        (the contact form refuses it with spins: that path is the engine's)."""
         import warp as wp
 
         from kernels import forest as kf
 
         if self.flat.form not in CONTACT_FORMS or normal is None:
             raise ConfigError("spinning pairs need a contact-form model and the contact normal of each pair")
+        spinning = omega1 is not None or omega2 is not None
         if not guard and self.flat.form == "contact":
             raise ConfigError("the spin path is the engine's (guarded); predict spinless pairs for the bare trees")
         v1 = np.atleast_2d(np.asarray(v1, dtype=np.float32))
@@ -473,7 +476,7 @@ class ForestPredictor:
         outs = [wp.zeros(n_pairs, dtype=wp.vec3, device=dev) for _ in range(4)]
         wp.launch(kf.apply_admissible_contact_spin_kernel, dim=n_pairs,
                   inputs=[w_v1, w_v2, w_o1, w_o2, w_n, w_d1, w_d2, w_r1, w_r2, targets, float(self.flat.friction_bound),
-                          float(self.flat.separation_slack)],
+                          float(self.flat.separation_slack), int(spinning), int(guard)],
                   outputs=[*outs, guard_counts], device=dev)
         counts = guard_counts.numpy()
         self.last_counts = {"pairs": int(n_pairs), "clamped": int(clamped.numpy()[0]),

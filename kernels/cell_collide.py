@@ -80,7 +80,7 @@ import warp as wp
 
 from kernels.collide import forest_target, stream_pair_index
 from kernels.forest import (GUARD_COULOMB, GUARD_ENERGY, GUARD_SEPARATION, ContactDomain, Forest, admissible_impulse,
-                            contact_point_velocity, contact_spin_impulse, spin_guard, turn_spins,
+                            contact_point_velocity, contact_spin_impulse, spin_guard, spin_kick, turn_spins,
                             write_contact_spin_features_in_domain,
                             contact_impulse, sphere_mass, write_contact_features_in_domain)
 
@@ -181,6 +181,9 @@ class CellArgs:
     particle_deficit: wp.array(dtype=wp.float32)
     """(N,) energy the parcel's partial impulses lost this sub-step against w_min real collisions, J (0 for a
     parcel never the heavier of its pairs); restored and zeroed by ``cell_restore``."""
+    particle_spin_deficit: wp.array(dtype=wp.float32)
+    """(N,) the same for the spins (``spin``): the rotational energy the parcel's partial spin kicks lost against
+    w_min real collisions, J; restored as a random spin kick and zeroed by ``cell_restore``."""
     counts: wp.array(dtype=wp.int32)
     """(N_COUNTS,) integer counters of the step (slots above)."""
     calls: wp.array(dtype=wp.int32)
@@ -351,6 +354,16 @@ def resolve_pair(args: CellArgs, i: int, j: int, n: wp.vec3, impulse_n: float, i
         args.particle_omega[j] = wj_new
         if fell_back != 0:
             flags = flags | GUARD_ENERGY
+            J_rot = J
+        # the heavier parcel's spin spread: w_min (1 - w_min/w) I |d omega_1|^2 / 2 (d omega_1 of one real collision)
+        if wi > w_min:
+            ki = spin_kick(J_rot, n, ri, mi)
+            lost = w_min * (1.0 - w_min / wi) * 0.2 * mi * ri * ri * wp.dot(ki, ki)
+            args.particle_spin_deficit[i] = args.particle_spin_deficit[i] + lost
+        if wj > w_min:
+            kj = spin_kick(J_rot, n, rj, mj)
+            lost = w_min * (1.0 - w_min / wj) * 0.2 * mj * rj * rj * wp.dot(kj, kj)
+            args.particle_spin_deficit[j] = args.particle_spin_deficit[j] + lost
     # the heavier parcel's energy deficit against w_min real collisions (module docstring; none for equal weights)
     j2 = wp.dot(J, J)
     if wi > w_min:
@@ -758,6 +771,26 @@ def restore_class(args: CellArgs, lo: wp.vec3i, hi: wp.vec3i, weight: float, key
     return restored
 
 
+@wp.func
+def restore_spin(args: CellArgs, p: int, xi: wp.vec3):
+    """The parcel's lost spin spread put back: omega += s xi (``xi`` an isotropic random direction), with the s >= 0
+    that adds exactly its ``particle_spin_deficit`` D to its rotational energy, I_w (s omega.xi + s^2 |xi|^2 / 2) =
+    D (I_w = weight 2/5 m r^2; no partner needed: the collisions' moment impulses do not keep the spins' sum
+    either); the deficit zeroed."""
+    r = args.particle_radius[p]
+    inertia = wp.float64(args.particle_weight[p] * 0.4 * sphere_mass(2.0 * r, args.particle_density[p]) * r * r)
+    deficit = wp.float64(args.particle_spin_deficit[p])
+    args.particle_spin_deficit[p] = 0.0
+    x = as_vec3d(xi)
+    w = as_vec3d(args.particle_omega[p])
+    xx = wp.dot(x, x)
+    if xx > wp.float64(0.0) and inertia > wp.float64(0.0):
+        wx = wp.dot(w, x)
+        scale = (wp.sqrt(wx * wx + wp.float64(2.0) * deficit * xx / inertia) - wx) / xx
+        nw = w + scale * x
+        args.particle_omega[p] = wp.vec3(wp.float32(nw[0]), wp.float32(nw[1]), wp.float32(nw[2]))
+
+
 @wp.kernel
 def cell_restore(
     args: CellArgs,
@@ -785,6 +818,14 @@ def cell_restore(
                     wp.atomic_add(args.counts, COUNT_RESTORED, 1)
                 else:
                     wp.atomic_add(args.counts, COUNT_UNRESTORED, 1)
+    if args.spin != 0:
+        spin_state = wp.rand_init(args.seed + 7919, args.shape[0] * args.shape[1] * args.shape[2] + b)
+        for k in range(n_block):
+            cell = block_cell(args, lo, hi, k)
+            for s in range(args.cell_start[cell], args.cell_end[cell]):
+                p = args.cell_slot[s]
+                if args.particle_spin_deficit[p] > 0.0:
+                    restore_spin(args, p, wp.vec3(wp.randn(spin_state), wp.randn(spin_state), wp.randn(spin_state)))
 
 
 # ------------------------------------------------------------------------------------------ launch wrappers

@@ -467,28 +467,32 @@ def spin_kick(impulse: wp.vec3, n: wp.vec3, r: float, mass: float):
 
 
 @wp.func
-def spin_energy_guard(cos_angle: float, impulse_n: float, impulse_t: float):
-    """The total kinetic energy (translation and spin) never grows: returns ``(a, b, flag)``.
+def spin_energy_guard(cos_angle: float, impulse_n: float, impulse_t: float, impulse_b: float):
+    """The total kinetic energy (translation and spin) never grows: returns ``(a, b, c, flag)``.
 
-    An impulse ``J = m*|g_c| (a n + b t_hat)`` through the contact point (``g_c`` the contact points' relative
-    velocity, ``c = g_c.n/|g_c|``, ``s`` its sine) changes the pair's energy by ``m*|g_c|^2 ((a^2 + K b^2)/2 - a c -
-    b s)``, K = SPIN_ENERGY_FACTOR. Where that is positive, ``b`` is brought into the interval where it is not
-    (``a`` set to ``c`` first if no ``b`` would do), flag GUARD_ENERGY. Stricter than ``admissible_impulse``'s
-    translational bound ``|u| <= 1`` (K = 1), which it follows."""
-    c = wp.clamp(cos_angle, 0.0, 1.0)
-    s = wp.sqrt(wp.max(1.0 - c * c, 0.0))
+    An impulse ``J = m*|g_c| (a n + b t_hat + c b_hat)`` through the contact point (``g_c`` the contact points'
+    relative velocity, ``cl = g_c.n/|g_c|``, ``s`` its sine; g_c has no part along b_hat) changes the pair's energy
+    by ``m*|g_c|^2 ((a^2 + K (b^2 + c^2))/2 - a cl - b s)``, K = SPIN_ENERGY_FACTOR. Where that is positive the
+    outcome moves along the segment towards ``(cl, 0, 0)`` (the contact points stop along n and keep their slip:
+    energy change ``-cl^2/2 <= 0``, separating, inside every Coulomb cone) to where it is zero, flag GUARD_ENERGY.
+    The separation and Coulomb bounds are linear in ``(a, b, c)`` and hold at both ends of the segment, so a point
+    that met them before meets them after. Stricter than ``admissible_impulse``'s translational bound ``|u| <= 1``
+    (K = 1), which it follows."""
+    cl = wp.clamp(cos_angle, 0.0, 1.0)
+    s = wp.sqrt(wp.max(1.0 - cl * cl, 0.0))
     a = impulse_n
     b = impulse_t
+    c = impulse_b
     k = float(SPIN_ENERGY_FACTOR)
-    if a * a + k * b * b <= 2.0 * (a * c + b * s):
-        return a, b, int(0)
-    disc = s * s - k * (a * a - 2.0 * a * c)
-    if disc < 0.0:
-        a = c
-        disc = s * s + k * c * c
-    root = wp.sqrt(disc)
-    b = wp.clamp(b, (s - root) / k, (s + root) / k)
-    return a, b, int(GUARD_ENERGY)
+    if a * a + k * (b * b + c * c) <= 2.0 * (a * cl + b * s):
+        return a, b, c, int(0)
+    # (a, b, c)(m) = (cl, 0, 0) + m (a - cl, b, c): energy change -cl^2/2 + m^2 q/2 - m b s, q = (a-cl)^2 + K (b^2+c^2)
+    da = a - cl
+    q = da * da + k * (b * b + c * c)
+    m = float(0.0)
+    if q > 0.0:
+        m = wp.clamp((b * s + wp.sqrt(b * b * s * s + q * cl * cl)) / q, 0.0, 1.0)
+    return cl + m * da, m * b, m * c, int(GUARD_ENERGY)
 
 
 @wp.kernel
@@ -601,12 +605,28 @@ def contact_spin_impulse(v1: wp.vec3, v2: wp.vec3, c1: wp.vec3, c2: wp.vec3, n: 
 
 
 @wp.func
-def pair_kinetic_energy(v1: wp.vec3, v2: wp.vec3, w1: wp.vec3, w2: wp.vec3, r1: float, r2: float, m1: float,
-                        m2: float, weight1: float, weight2: float):
-    """Kinetic energy with rotation of two parcels (I = 2/5 m r^2 per particle, ``weight`` particles each), J."""
-    e1 = m1 * (wp.dot(v1, v1) + 0.4 * r1 * r1 * wp.dot(w1, w1))
-    e2 = m2 * (wp.dot(v2, v2) + 0.4 * r2 * r2 * wp.dot(w2, w2))
-    return 0.5 * (weight1 * e1 + weight2 * e2)
+def pair_energy_change(v1: wp.vec3, v2: wp.vec3, v1_new: wp.vec3, v2_new: wp.vec3, w1: wp.vec3, w2: wp.vec3,
+                       w1_new: wp.vec3, w2_new: wp.vec3, r1: float, r2: float, m1: float, m2: float, weight1: float,
+                       weight2: float):
+    """Change of the kinetic energy with rotation of two parcels (I = 2/5 m r^2 per particle, ``weight`` particles
+    each) and the energy before in their centre-of-mass frame, ``(dE, E_rel)``, J. Written from the increments in
+    that frame (``M (v - v_cm).dv + M |dv|^2 / 2``) so that its round-off scales with the collision's energy, not
+    with the mean flow's."""
+    M1 = weight1 * m1
+    M2 = weight2 * m2
+    v_cm = (M1 * v1 + M2 * v2) / (M1 + M2)
+    a1 = v1 - v_cm
+    a2 = v2 - v_cm
+    d1 = v1_new - v1
+    d2 = v2_new - v2
+    I1 = 0.4 * M1 * r1 * r1
+    I2 = 0.4 * M2 * r2 * r2
+    e1 = w1_new - w1
+    e2 = w2_new - w2
+    change = M1 * (wp.dot(a1, d1) + 0.5 * wp.dot(d1, d1)) + M2 * (wp.dot(a2, d2) + 0.5 * wp.dot(d2, d2))
+    change += I1 * (wp.dot(w1, e1) + 0.5 * wp.dot(e1, e1)) + I2 * (wp.dot(w2, e2) + 0.5 * wp.dot(e2, e2))
+    before = 0.5 * (M1 * wp.dot(a1, a1) + M2 * wp.dot(a2, a2) + I1 * wp.dot(w1, w1) + I2 * wp.dot(w2, w2))
+    return change, before
 
 
 @wp.func
@@ -616,14 +636,15 @@ def turn_spins(v1: wp.vec3, v2: wp.vec3, v1_new: wp.vec3, v2_new: wp.vec3, w1: w
     """The spins after a collision whose impulse ``impulse`` (on 2) moved the centres to ``v1_new, v2_new``:
     ``omega_k -= share_k r_k n x J_rot / I_k`` (``spin_kick``; ``share_k`` = w_min / weight_k) with the moment
     impulse ``impulse_rot`` of a contact_spin model (the spins' own target); where that would leave the pair with
-    more kinetic energy (translation and rotation) than before, the impulse's own tangential part (``J_rot = J``,
-    the rigid lever, which the spin guard bounded) instead. Returns ``(w1', w2', fell_back)``."""
-    before = pair_kinetic_energy(v1, v2, w1, w2, r1, r2, m1, m2, weight1, weight2)
+    more kinetic energy (translation and rotation, ``pair_energy_change``) than before, the impulse's own
+    tangential part (``J_rot = J``, the rigid lever, which the spin guard bounded) instead. Returns
+    ``(w1', w2', fell_back)``."""
     w1_new = w1 + spin_kick(impulse_rot, n, r1, m1) * share1
     w2_new = w2 + spin_kick(impulse_rot, n, r2, m2) * share2
-    after = pair_kinetic_energy(v1_new, v2_new, w1_new, w2_new, r1, r2, m1, m2, weight1, weight2)
+    change, before = pair_energy_change(v1, v2, v1_new, v2_new, w1, w2, w1_new, w2_new, r1, r2, m1, m2, weight1,
+                                        weight2)
     fell_back = int(0)
-    if not (after <= before * (1.0 + 1.0e-6)):
+    if not (change <= 1.0e-6 * before):
         w1_new = w1 + spin_kick(impulse, n, r1, m1) * share1
         w2_new = w2 + spin_kick(impulse, n, r2, m2) * share2
         fell_back = 1
@@ -635,8 +656,8 @@ def spin_guard(cos_angle: float, impulse_n: float, impulse_t: float, impulse_b: 
                separation_slack: float, rotation: int):
     """The admissibility guard of a contact_spin (or spinning contact) outcome ``(a, b, c)``: ``admissible_impulse``
     on ``(a, b)``, the Coulomb bound on ``|(b, c)| <= friction_bound a`` (both scaled), and with ``rotation`` (the
-    impulse turns the spins) the total-energy bound ``spin_energy_guard`` (``c`` dropped first where it fails:
-    ``c`` does no work, g_c has no part along b_hat). Returns ``(a, b, c, flags)``."""
+    impulse turns the spins) the total-energy bound ``spin_energy_guard`` (along the segment towards the outcome
+    that stops the contact points along n, which keeps the other two bounds). Returns ``(a, b, c, flags)``."""
     a, b, flags = admissible_impulse(cos_angle, impulse_n, impulse_t, friction_bound, separation_slack)
     c = impulse_b
     if not (c == c):
@@ -654,8 +675,7 @@ def spin_guard(cos_angle: float, impulse_n: float, impulse_t: float, impulse_b: 
         cl = wp.clamp(cos_angle, 0.0, 1.0)
         sn = wp.sqrt(wp.max(1.0 - cl * cl, 0.0))
         if a * a + k * (b * b + c * c) > 2.0 * (a * cl + b * sn):
-            c = 0.0
-            a, b, spin_flag = spin_energy_guard(cos_angle, a, b)
+            a, b, c, spin_flag = spin_energy_guard(cos_angle, a, b, c)
             flags = flags | GUARD_ENERGY | spin_flag
     return a, b, c, flags
 
@@ -695,13 +715,16 @@ def apply_admissible_contact_spin_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.arr
                                          d2: wp.array(dtype=wp.float32), rho1: wp.array(dtype=wp.float32),
                                          rho2: wp.array(dtype=wp.float32), targets: wp.array2d(dtype=wp.float32),
                                          friction_bound: wp.float32, separation_slack: wp.float32,
+                                         rotation: int, use_guard: int,
                                          # outputs
                                          v1_after: wp.array(dtype=wp.vec3), v2_after: wp.array(dtype=wp.vec3),
                                          omega1_after: wp.array(dtype=wp.vec3), omega2_after: wp.array(dtype=wp.vec3),
                                          guard_counts: wp.array(dtype=wp.int32)):
     """``apply_admissible_contact_kernel`` for spinning spheres: the targets are those of the contact points'
-    relative velocity g_c (features from ``contact_point_velocities_kernel``), the guard adds the total-energy
-    bound (``spin_energy_guard``), the impulse goes through the contact point (``spin_kick``)."""
+    relative velocity g_c (features from ``contact_point_velocities_kernel``); with ``rotation`` (the engine's
+    particle_spin) the guard adds the total-energy bound (``spin_energy_guard``) and the impulse turns the spins
+    through the contact point (``spin_kick``); without, the spins stay (a contact_spin model in a spinless run).
+    ``use_guard`` 0: the bare targets (measuring the raw model)."""
     i = wp.tid()
     r1 = 0.5 * d1[i]
     r2 = 0.5 * d2[i]
@@ -712,8 +735,12 @@ def apply_admissible_contact_spin_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.arr
     impulse_b = float(0.0)
     if targets.shape[1] > 2:
         impulse_b = targets[i, 2]
-    a, b, c, flags = spin_guard(cos_angle, targets[i, 0], targets[i, 1], impulse_b, friction_bound, separation_slack,
-                                1)
+    a = targets[i, 0]
+    b = targets[i, 1]
+    c = impulse_b
+    flags = int(0)
+    if use_guard != 0:
+        a, b, c, flags = spin_guard(cos_angle, a, b, c, friction_bound, separation_slack, rotation)
     m1 = sphere_mass(d1[i], rho1[i])
     m2 = sphere_mass(d2[i], rho2[i])
     J = contact_spin_impulse(v1[i], v2[i], c1, c2, n[i], m1, m2, a, b, c)
@@ -722,10 +749,14 @@ def apply_admissible_contact_spin_kernel(v1: wp.array(dtype=wp.vec3), v2: wp.arr
     J_rot = J
     if targets.shape[1] > 4:  # a contact_spin model's moment impulse
         J_rot = contact_spin_impulse(v1[i], v2[i], c1, c2, n[i], m1, m2, 0.0, targets[i, 3], targets[i, 4])
-    o1, o2, fell_back = turn_spins(v1[i], v2[i], u1, u2, omega1[i], omega2[i], n[i], r1, r2, m1, m2, 1.0, 1.0, 1.0,
-                                   1.0, J, J_rot)
-    if fell_back != 0:
-        flags = flags | GUARD_ENERGY
+    o1 = omega1[i]
+    o2 = omega2[i]
+    if rotation != 0:
+        fell_back = int(0)
+        o1, o2, fell_back = turn_spins(v1[i], v2[i], u1, u2, omega1[i], omega2[i], n[i], r1, r2, m1, m2, 1.0, 1.0,
+                                       1.0, 1.0, J, J_rot)
+        if fell_back != 0:
+            flags = flags | GUARD_ENERGY
     v1_after[i] = u1
     v2_after[i] = u2
     omega1_after[i] = o1
