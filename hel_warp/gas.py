@@ -91,6 +91,11 @@ class GasConfig:
     rounding itself), so a tighter tolerance (1e-8 before) buys digits the stored field cannot keep. On the rig it
     takes 6 / 6 / 6 IC(0)-PCG iterations where 1e-8 took 6 / 7 / 7."""
     viscous_max_iterations: int = 1000
+    viscous_preconditioner: str = "ic0"
+    """Preconditioner of the viscous CG on the 'native' solver: 'ic0' (incomplete Cholesky, factored every step,
+    two sequential substitutions per iteration) or 'jacobi' (the diagonal: no factorisation, one streaming pass per
+    iteration). The viscous systems I - dt nu_eff lap are dominated by their diagonals, so Jacobi needs few more
+    iterations than IC(0) to the same ``viscous_tolerance``. The 'warp' solver always takes Jacobi."""
     linear_solver: str = "auto"
     """'warp' (warp.optim.linear.cg, Jacobi preconditioner), 'native' (PCG with an IC(0)
     preconditioner and atomic reductions, kernels/gas.py; sequential substitutions, for the CPU),
@@ -122,6 +127,8 @@ class GasConfig:
                               f"(got {self.pressure_preconditioner_relaxation})")
         if self.pressure_preconditioner not in ("multigrid", "ic"):
             raise ConfigError(f"pressure_preconditioner must be 'multigrid' or 'ic' (got {self.pressure_preconditioner!r})")
+        if self.viscous_preconditioner not in ("ic0", "jacobi"):
+            raise ConfigError(f"viscous_preconditioner must be 'ic0' or 'jacobi' (got {self.viscous_preconditioner!r})")
         if self.linear_solver not in ("auto", "warp", "native"):
             raise ConfigError(f"linear_solver must be 'auto', 'warp' or 'native' (got {self.linear_solver!r})")
         for name in ("pressure_max_iterations", "viscous_max_iterations"):
@@ -318,7 +325,7 @@ class GasSolver:
         """d p / d x_axis of the new pressure at the solved faces (kernels/gas.py ``pressure_correct_one``), Pa/m."""
         self._cell_kappa = wp.zeros(grid.shape, dtype=float, device=dev)
         self._pcg_recorded = {}  # system -> the native PCG's recorded launches (_pcg_launches)
-        self._pcg_graphs = {}  # (system, rows) -> one captured PCG iteration (_pcg_iteration_graph)
+        self._pcg_graphs = {}  # (system, rows, preconditioner) -> one captured PCG iteration (_pcg_iteration_graph)
         self._ordered_slots = int(not any(bool(v) for v in grid.periodic))
         """1 when every compact system couples a row to lower rows only through slots -x, -y, -z (no axis
         periodic: no coupling wraps around), which ``ic0_step_apply_kernel`` then takes without index tests."""
@@ -418,11 +425,11 @@ class GasSolver:
         self._primed.add(gas)
 
     def _solve(self, system, what: str, tol: float, maxiter: int, atol_floor: float = 0.0,
-               relaxation: float = 0.0, multigrid: AggregationMultigrid | None = None) -> int:
+               relaxation: float = 0.0, multigrid: AggregationMultigrid | None = None, jacobi: bool = False) -> int:
         """CG (see ``GasConfig.linear_solver``) of the compact system the assembly kernels wrote (``_c_rhs``,
         ``_c_x`` as the first guess, ``_stencils[system]``; ``system``: a key of ``_systems``); the solution is
-        left in ``_c_x``. Preconditioner: ``multigrid`` if given, else (modified)
-        IC(0) on the native solver and Jacobi on warp's."""
+        left in ``_c_x``. Preconditioner: ``multigrid`` if given, else on the native solver Jacobi if ``jacobi``,
+        else (modified) IC(0); Jacobi on warp's."""
         rows, _ = self._systems[system]
         n = rows.shape[0]
         if n == 0:
@@ -433,7 +440,7 @@ class GasSolver:
             multigrid.setup(A)
         if self.linear_solver == "native":
             iterations, residual, atol = self._native_pcg(system, n, A, tol, maxiter, atol_floor, relaxation,
-                                                          multigrid)
+                                                          multigrid, jacobi)
         else:
             def matvec(xv, yv, zv, alpha, beta):
                 wp.launch(K.stencil_matvec_kernel, dim=n, inputs=[A, xv, yv, wp.float64(alpha), wp.float64(beta)],
@@ -496,24 +503,29 @@ class GasSolver:
             "shift": record(K.pcg_shift_kernel, 1, [], [s]),
             "ic0 factor": record(K.ic0_factor_kernel, 1, [A, n, wp.float64(relaxation)], [pivot, pivot_inverse]),
             "ic0 apply": record(K.ic0_apply_kernel, 1, [pivot_inverse, A, r, n], [z]),
+            "jacobi start": record(K.jacobi_start_kernel, n, [A.diag, r], [pivot_inverse, z]),
+            "step, jacobi, r.z new, r.r": record(K.jacobi_step_dot_kernel, dot_dim, [pivot_inverse, p, ap],
+                                                 [x, r, z, s]),
         }
         self._pcg_recorded[system] = launches
         return launches
 
     def _native_pcg(self, system, n: int, A: K.Stencil, tol: float, maxiter: int, atol_floor: float = 0.0,
-                    relaxation: float = 0.0, multigrid: AggregationMultigrid | None = None) -> tuple:
-        """CG on the compact system, preconditioned with ``multigrid`` (set up) or (modified, ``relaxation`` > 0)
-        IC(0) of the stencil (kernels/gas.py ``pcg_*``, ``ic0_*``); stops at ||r|| <= max(tol ||b||, atol_floor)
-        like warp's cg. Returns (iterations, ||r||, that bound)."""
+                    relaxation: float = 0.0, multigrid: AggregationMultigrid | None = None,
+                    jacobi: bool = False) -> tuple:
+        """CG on the compact system, preconditioned with ``multigrid`` (set up), the diagonal (``jacobi``) or
+        (modified, ``relaxation`` > 0) IC(0) of the stencil (kernels/gas.py ``pcg_*``, ``jacobi_*``, ``ic0_*``);
+        stops at ||r|| <= max(tol ||b||, atol_floor) like warp's cg. Returns (iterations, ||r||, that bound)."""
         run = {name: launch.launch for name, launch in self._pcg_launches(system, n, A, relaxation).items()}
         r, z, p = (v[:n] for v in self._pcg[:3])
         s = self._scalars
-        if multigrid is None:
-            run["ic0 factor"]()
-            precondition = run["ic0 apply"]
-        else:
+        if multigrid is not None:
             def precondition():
                 multigrid.apply(r, z)
+        elif jacobi:
+            precondition = "jacobi"
+        else:
+            precondition = None
 
         s.zero_()
         run["r = b - A x, b.b, r.r"]()
@@ -523,12 +535,18 @@ class GasSolver:
         iterations = 0
         if residual <= atol:
             return iterations, residual, atol
-        precondition()
+        if precondition is None:
+            run["ic0 factor"]()
+            run["ic0 apply"]()
+        elif precondition == "jacobi":
+            run["jacobi start"]()  # D^-1 kept for the iterations
+        else:
+            precondition()
         wp.copy(p, z)
         s.zero_()
         run["r.z new"]()  # the first iteration's shift moves it to (r.z)_old
         # captured, not run, the first time; IC(0) takes the step inside its forward substitution
-        iteration = self._pcg_iteration_graph(system, n, run, None if multigrid is None else precondition)
+        iteration = self._pcg_iteration_graph(system, n, run, precondition)
         while iterations < maxiter:
             wp.capture_launch(iteration)
             iterations += 1
@@ -543,20 +561,25 @@ class GasSolver:
         host's per-launch cost (~6 us each on the CPU). Scalars as ``kernels/gas.py`` "native PCG": the shift
         of (r.z)_new into (r.z)_old first, then the iteration, which ends with the residual check's r.r in
         scalars[3]. ``precondition`` None: IC(0), whose forward substitution takes the step x += alpha p,
-        r -= alpha Ap (``ic0_step_apply_kernel``); the matrix product and p.Ap in one pass."""
-        key = (system, n)
+        r -= alpha Ap (``ic0_step_apply_kernel``); "jacobi": the step, z = D^-1 r and both dot products in one pass
+        (``jacobi_step_dot_kernel``); else the V-cycle, a callable. The matrix product and p.Ap in one pass."""
+        kind = precondition if precondition in (None, "jacobi") else "multigrid"
+        key = (system, n, kind)
         graph = self._pcg_graphs.get(key)
         if graph is None:
             with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
                 run["shift"]()
                 run["ap, p.ap"]()
                 run["alpha"]()
-                if precondition is None:
-                    run["step, ic0 apply"]()
+                if precondition == "jacobi":
+                    run["step, jacobi, r.z new, r.r"]()
                 else:
-                    run["step"]()
-                    precondition()
-                run["r.z new, r.r"]()  # the residual check's r.r in the same pass, every iteration
+                    if precondition is None:
+                        run["step, ic0 apply"]()
+                    else:
+                        run["step"]()
+                        precondition()
+                    run["r.z new, r.r"]()  # the residual check's r.r in the same pass, every iteration
                 run["beta"]()
                 run["direction"]()
             graph = self._pcg_graphs[key] = capture.graph
@@ -599,7 +622,8 @@ class GasSolver:
                           dom.cell_fluid, gas.face_eps, gas.face_kappa_flat[axis], gas.cell_momentum_source,
                           gas.pressure_solution, self._velocity_tmp, self._c_rhs, self._c_x, self._stencils[axis]])
             self.last_iterations["viscous"][axis] = self._solve(
-                axis, f"viscous ({'xyz'[axis]})", c.viscous_tolerance, c.viscous_max_iterations)
+                axis, f"viscous ({'xyz'[axis]})", c.viscous_tolerance, c.viscous_max_iterations,
+                jacobi=c.viscous_preconditioner == "jacobi")
             self._launch(K.STORE_COMPONENT_KERNELS[axis], faces, [g, faces, face_row, self._c_x, gas.face_velocity])
 
     def project(self, gas: GasField, dt: float) -> None:

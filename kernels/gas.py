@@ -1607,7 +1607,8 @@ def mg_coarsest_kernel(
 # ----------------------------------------------------------------- native Jacobi-PCG (CPU path)
 # warp.optim.linear.cg reduces with tile kernels that cost ~0.1 s per dot product on the CPU at
 # 1e5 unknowns; this plain PCG (Hestenes & Stiefel 1952; Saad, *Iterative Methods*, alg. 9.1)
-# reduces with atomics instead, preconditioned with IC(0) (sequential, fine on the CPU). Scalars live in ``scalars``: 0 = r.z, 1 = p.Ap, 2 = new r.z, 3 = r.r, 4 = alpha, 5 = beta
+# reduces with atomics instead, preconditioned with IC(0) (sequential, fine on the CPU) or Jacobi (the diagonal: no
+# factorisation, one streaming pass per iteration with the step and both dot products). Scalars live in ``scalars``: 0 = r.z, 1 = p.Ap, 2 = new r.z, 3 = r.r, 4 = alpha, 5 = beta
 # (the two ratios computed once per iteration by one thread, not per row).
 
 
@@ -1913,6 +1914,91 @@ def ic0_step_apply_kernel(
                 if j > i:
                     acc = acc + A.coef[i, m] * z[j]
         z[i] = z[i] + acc * pivot_inverse[i]
+
+
+@wp.kernel
+def jacobi_start_kernel(
+    diag: wp.array(dtype=wp.float64),
+    r: wp.array(dtype=wp.float64),
+    # outputs
+    inverse_diag: wp.array(dtype=wp.float64),
+    z: wp.array(dtype=wp.float64),
+):
+    """The Jacobi preconditioner of the native PCG set up and applied once: inverse_diag = 1 / diag, z = D^-1 r
+    (per row; no factorisation)."""
+    i = wp.tid()
+    inverse = wp.float64(1.0) / diag[i]
+    inverse_diag[i] = inverse
+    z[i] = r[i] * inverse
+
+
+@wp.kernel
+def jacobi_step_dot_kernel(
+    inverse_diag: wp.array(dtype=wp.float64),
+    p: wp.array(dtype=wp.float64),
+    ap: wp.array(dtype=wp.float64),
+    # outputs
+    x: wp.array(dtype=wp.float64),
+    r: wp.array(dtype=wp.float64),
+    z: wp.array(dtype=wp.float64),
+    scalars: wp.array(dtype=wp.float64),
+):
+    """Jacobi-PCG's iteration after A p in one pass over the chunk [tid * DOT_CHUNK, ...) (launch
+    ceil(n / DOT_CHUNK) threads): the step x += alpha p, r -= alpha Ap (alpha = scalars[4], ``pcg_step_kernel``),
+    z = D^-1 r, and scalars[2] += r . z, scalars[3] += r . r (``pcg_dot_pair_kernel``'s chunks and partial sums):
+    the numbers of those three passes in one."""
+    t = wp.tid()
+    first = t * DOT_CHUNK
+    last = wp.min(first + DOT_CHUNK, p.shape[0])
+    alpha = scalars[4]
+    rz0 = wp.float64(0.0)
+    rz1 = wp.float64(0.0)
+    rz2 = wp.float64(0.0)
+    rz3 = wp.float64(0.0)
+    rr0 = wp.float64(0.0)
+    rr1 = wp.float64(0.0)
+    rr2 = wp.float64(0.0)
+    rr3 = wp.float64(0.0)
+    quads = first + (last - first) // 4 * 4
+    for i in range(first, quads, 4):
+        x[i] = x[i] + alpha * p[i]
+        x[i + 1] = x[i + 1] + alpha * p[i + 1]
+        x[i + 2] = x[i + 2] + alpha * p[i + 2]
+        x[i + 3] = x[i + 3] + alpha * p[i + 3]
+        r0 = r[i] - alpha * ap[i]
+        r1 = r[i + 1] - alpha * ap[i + 1]
+        r2 = r[i + 2] - alpha * ap[i + 2]
+        r3 = r[i + 3] - alpha * ap[i + 3]
+        r[i] = r0
+        r[i + 1] = r1
+        r[i + 2] = r2
+        r[i + 3] = r3
+        z0 = r0 * inverse_diag[i]
+        z1 = r1 * inverse_diag[i + 1]
+        z2 = r2 * inverse_diag[i + 2]
+        z3 = r3 * inverse_diag[i + 3]
+        z[i] = z0
+        z[i + 1] = z1
+        z[i + 2] = z2
+        z[i + 3] = z3
+        rz0 = rz0 + r0 * z0
+        rz1 = rz1 + r1 * z1
+        rz2 = rz2 + r2 * z2
+        rz3 = rz3 + r3 * z3
+        rr0 = rr0 + r0 * r0
+        rr1 = rr1 + r1 * r1
+        rr2 = rr2 + r2 * r2
+        rr3 = rr3 + r3 * r3
+    for i in range(quads, last):
+        x[i] = x[i] + alpha * p[i]
+        ri = r[i] - alpha * ap[i]
+        r[i] = ri
+        zi = ri * inverse_diag[i]
+        z[i] = zi
+        rz0 = rz0 + ri * zi
+        rr0 = rr0 + ri * ri
+    wp.atomic_add(scalars, 2, (rz0 + rz1) + (rz2 + rz3))
+    wp.atomic_add(scalars, 3, (rr0 + rr1) + (rr2 + rr3))
 
 
 @wp.kernel

@@ -300,6 +300,141 @@ def pcg_dot_pair_kernel(
     wp.atomic_add(scalars, slot_aa, sums[1])
 
 
+# ----------------------------------------------------------------- Jacobi preconditioner
+
+
+@wp.func_native("""
+    const double* __restrict__ dv = diag.data;
+    const double* __restrict__ rv = r.data;
+    double* __restrict__ inv = inverse_diag.data;
+    double* __restrict__ zv = z.data;
+    int n = r.shape[0];
+    for (int i = 0; i < n; ++i) {
+        double inverse = 1.0 / dv[i];
+        inv[i] = inverse;
+        zv[i] = rv[i] * inverse;
+    }
+""")
+def jacobi_start_rows(diag: wp.array(dtype=f64), r: wp.array(dtype=f64), inverse_diag: wp.array(dtype=f64),
+                      z: wp.array(dtype=f64)):
+    ...
+
+
+@wp.kernel
+def jacobi_start_kernel(
+    diag: wp.array(dtype=f64),
+    r: wp.array(dtype=f64),
+    # outputs
+    inverse_diag: wp.array(dtype=f64),
+    z: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``jacobi_start_kernel`` over every row (launch one thread)."""
+    jacobi_start_rows(diag, r, inverse_diag, z)
+
+
+@wp.func_native("""
+    const double* __restrict__ inv = inverse_diag.data;
+    const double* __restrict__ pv = p.data;
+    const double* __restrict__ apv = ap.data;
+    double* __restrict__ xv = x.data;
+    double* __restrict__ rv = r.data;
+    double* __restrict__ zv = z.data;
+    double alpha = scalars.data[4];
+    double rz0 = 0.0, rz1 = 0.0, rz2 = 0.0, rz3 = 0.0;
+    double rr0 = 0.0, rr1 = 0.0, rr2 = 0.0, rr3 = 0.0;
+    int quads = first + (last - first) / 4 * 4;
+    for (int i = first; i < quads; i += 4) {
+        double a0 = alpha * pv[i];
+        double a1 = alpha * pv[i + 1];
+        double a2 = alpha * pv[i + 2];
+        double a3 = alpha * pv[i + 3];
+        xv[i] = xv[i] + a0;
+        xv[i + 1] = xv[i + 1] + a1;
+        xv[i + 2] = xv[i + 2] + a2;
+        xv[i + 3] = xv[i + 3] + a3;
+        double b0 = alpha * apv[i];
+        double b1 = alpha * apv[i + 1];
+        double b2 = alpha * apv[i + 2];
+        double b3 = alpha * apv[i + 3];
+        double r0 = rv[i] - b0;
+        double r1 = rv[i + 1] - b1;
+        double r2 = rv[i + 2] - b2;
+        double r3 = rv[i + 3] - b3;
+        rv[i] = r0;
+        rv[i + 1] = r1;
+        rv[i + 2] = r2;
+        rv[i + 3] = r3;
+        double z0 = r0 * inv[i];
+        double z1 = r1 * inv[i + 1];
+        double z2 = r2 * inv[i + 2];
+        double z3 = r3 * inv[i + 3];
+        zv[i] = z0;
+        zv[i + 1] = z1;
+        zv[i + 2] = z2;
+        zv[i + 3] = z3;
+        double t0 = r0 * z0;
+        double t1 = r1 * z1;
+        double t2 = r2 * z2;
+        double t3 = r3 * z3;
+        rz0 = rz0 + t0;
+        rz1 = rz1 + t1;
+        rz2 = rz2 + t2;
+        rz3 = rz3 + t3;
+        double s0 = r0 * r0;
+        double s1 = r1 * r1;
+        double s2 = r2 * r2;
+        double s3 = r3 * r3;
+        rr0 = rr0 + s0;
+        rr1 = rr1 + s1;
+        rr2 = rr2 + s2;
+        rr3 = rr3 + s3;
+    }
+    for (int i = quads; i < last; ++i) {
+        double a = alpha * pv[i];
+        xv[i] = xv[i] + a;
+        double b = alpha * apv[i];
+        double ri = rv[i] - b;
+        rv[i] = ri;
+        double zi = ri * inv[i];
+        zv[i] = zi;
+        double t = ri * zi;
+        rz0 = rz0 + t;
+        double s = ri * ri;
+        rr0 = rr0 + s;
+    }
+    double x01 = rz0 + rz1;
+    double x23 = rz2 + rz3;
+    double y01 = rr0 + rr1;
+    double y23 = rr2 + rr3;
+    return wp::vec_t<2, double>(x01 + x23, y01 + y23);
+""")
+def jacobi_step_dot_chunk(inverse_diag: wp.array(dtype=f64), p: wp.array(dtype=f64), ap: wp.array(dtype=f64),
+                          scalars: wp.array(dtype=f64), x: wp.array(dtype=f64), r: wp.array(dtype=f64),
+                          z: wp.array(dtype=f64), first: int, last: int) -> wp.vec2d:
+    """The step, z = D^-1 r over rows [first, last) and the chunk's (r . z, r . r) (``jacobi_step_dot_kernel``)."""
+    ...
+
+
+@wp.kernel
+def jacobi_step_dot_kernel(
+    inverse_diag: wp.array(dtype=f64),
+    p: wp.array(dtype=f64),
+    ap: wp.array(dtype=f64),
+    # outputs
+    x: wp.array(dtype=f64),
+    r: wp.array(dtype=f64),
+    z: wp.array(dtype=f64),
+    scalars: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``jacobi_step_dot_kernel`` (one ``DOT_CHUNK`` per thread)."""
+    t = wp.tid()
+    first = t * K.DOT_CHUNK
+    last = wp.min(first + K.DOT_CHUNK, p.shape[0])
+    sums = jacobi_step_dot_chunk(inverse_diag, p, ap, scalars, x, r, z, first, last)
+    wp.atomic_add(scalars, 2, sums[0])
+    wp.atomic_add(scalars, 3, sums[1])
+
+
 # ----------------------------------------------------------------- incomplete Cholesky (one thread, as in kernels/gas.py)
 
 
@@ -1716,13 +1851,13 @@ def pressure_increment_kernel(
                              wp.min(cells.shape[0], (t + 1) * block))
 
 
-ONE_THREAD = frozenset({"pcg_step_kernel", "pcg_direction_kernel", "ic0_factor_kernel", "ic0_apply_kernel",
-                        "ic0_step_apply_kernel", "mg_smooth_kernel", "mg_smooth_from_zero_kernel",
+ONE_THREAD = frozenset({"pcg_step_kernel", "pcg_direction_kernel", "jacobi_start_kernel", "ic0_factor_kernel",
+                        "ic0_apply_kernel", "ic0_step_apply_kernel", "mg_smooth_kernel", "mg_smooth_from_zero_kernel",
                         "mg_residual_restrict_kernel", "mg_prolong_kernel", "mg_coarsen_kernel"})
 """The kernels here whose one thread runs every row (launch ``dim=1``); the others keep their Warp launch dims."""
 
-_NATIVE = ("pcg_matvec_dot_kernel", "pcg_residual_start_kernel", "pcg_dot_pair_kernel", "cell_projected_kernel",
-           "pressure_rhs_kernel", "smagorinsky_kernel",
+_NATIVE = ("pcg_matvec_dot_kernel", "pcg_residual_start_kernel", "pcg_dot_pair_kernel", "jacobi_step_dot_kernel",
+           "cell_projected_kernel", "pressure_rhs_kernel", "smagorinsky_kernel",
            "cell_state_kernel", "pressure_increment_kernel", *sorted(ONE_THREAD))
 
 

@@ -6,6 +6,7 @@ flow in a rectangular duct (White, *Viscous Fluid Flow*, 3rd ed., eq. 3-48); con
 mass (junction) and momentum (source impulse).
 """
 
+import dataclasses
 import math
 
 import numpy as np
@@ -653,6 +654,55 @@ def test_native_cpu_loops_equal_the_warp_kernels(periodic):
     both("mg_residual_restrict_kernel", coarse.n,
          [coarse.child_start, coarse.children, fine.parent, A, b, f64(z), fine.colour, fine.n_colours - 1], [np.zeros(coarse.n)])
     both("mg_prolong_kernel", n, [fine.parent, f64(rng.normal(size=coarse.n)), wp.float64(1.7)], [z])
+
+
+@pytest.mark.parametrize("case", ["inlet_outlet", "periodic"])
+def test_jacobi_viscous_preconditioner(case, monkeypatch):
+    """``viscous_preconditioner='jacobi'``: its native passes give the Warp kernels' numbers bit for bit (the step,
+    z = D^-1 r and the chunked r.z, r.r as ``pcg_dot_pair_kernel`` sums them), and every viscous solve of three steps
+    on the masked boxes meets ||b - A u|| <= viscous_tolerance ||b||, recomputed here in numpy from the compact
+    system (the true residual, not CG's recursive one)."""
+    A, n, rng = _stencil_system((9, 7, 6), (False, False, False), seed=6)
+    dots = (n + K.DOT_CHUNK - 1) // K.DOT_CHUNK
+    f64 = lambda a: wp.array(a, dtype=wp.float64)  # noqa: E731
+    r, p, ap = rng.normal(size=n), f64(rng.normal(size=n)), f64(rng.normal(size=n))
+    x0, scalars = rng.normal(size=n), np.array([0.3, 0.0, 0.0, 0.0, 0.37, 0.61])
+    results = []
+    for kernel, dim in ((K.jacobi_start_kernel, n), (K.jacobi_step_dot_kernel, dots)):
+        native = gas_cpu.for_device(kernel, dim, "cpu", [A])
+        assert native[0] is not kernel
+        for k, threads in ((kernel, dim), native):
+            if kernel is K.jacobi_start_kernel:
+                outs = [f64(np.zeros(n)), f64(np.full(n, np.nan))]
+                wp.launch(k, dim=threads, inputs=[A.diag, f64(r)], outputs=outs)
+            else:
+                outs = [f64(x0), f64(r), f64(np.full(n, np.nan)), f64(scalars)]
+                wp.launch(k, dim=threads, inputs=[f64(1.0 / A.diag.numpy()), p, ap], outputs=outs)
+            results.append([o.numpy() for o in outs])
+    for warp_out, native_out in ((results[0], results[1]), (results[2], results[3])):
+        for a, b in zip(warp_out, native_out):
+            assert np.array_equal(a, b)
+    z = results[0][1]
+    assert np.allclose(z, r / A.diag.numpy(), rtol=1e-15, atol=0.0)
+
+    domain, config = _masked_case(case, "native")
+    solver = GasSolver(domain, dataclasses.replace(config, viscous_preconditioner="jacobi"))
+    residuals = []
+    solve = solver._solve
+
+    def checked(system, what, tol, maxiter, *args, **kwargs):
+        iterations = solve(system, what, tol, maxiter, *args, **kwargs)
+        if system in (0, 1, 2):
+            m = solver._systems[system][0].shape[0]
+            S = solver._stencils[system]
+            d, c, nb = S.diag.numpy()[:m], S.coef.numpy()[:m], S.neighbour.numpy()[:m]
+            b, x = solver._c_rhs.numpy()[:m], solver._c_x.numpy()[:m]
+            residuals.append((np.linalg.norm(b - (d * x - (c * x[nb]).sum(axis=1))) / np.linalg.norm(b), tol))
+        return iterations
+
+    monkeypatch.setattr(solver, "_solve", checked)
+    _three_steps(solver, domain)
+    assert len(residuals) == 9 and all(relative <= tol for relative, tol in residuals), residuals
 
 
 def test_native_cpu_module_compiles_for_cuda(tmp_path):
