@@ -5,8 +5,9 @@ semi-Lagrangian advection, particle momentum source, backward-Euler viscous step
 molecular + Smagorinsky viscosity, and a pressure projection onto
 ``d(eps_f)/dt + div(eps_f u) = 0``; both linear systems are solved with
 ``warp.optim.linear.cg`` with a Jacobi preconditioner (7-point stencils assembled once per step,
-applied through ``LinearOperator``s) on CUDA, and on the CPU with a native IC(0)-preconditioned
-CG (``GasConfig.linear_solver``). On the CPU the step's hot loops (the linear solvers, the advection, the cell and
+applied through ``LinearOperator``s) on CUDA, and on the CPU with a native CG (``GasConfig.linear_solver``):
+the pressure preconditioned with an aggregation V-cycle, the viscous systems reduced to their black rows (red-black
+elimination) and preconditioned with the diagonal (``GasConfig.viscous_preconditioner``). On the CPU the step's hot loops (the linear solvers, the advection, the cell and
 face passes) run as native C++ loops over raw pointers (``kernels/gas_cpu.py``: the same numbers, ~2x faster on the
 colliding-streams rig).
 
@@ -91,18 +92,19 @@ class GasConfig:
     rounding itself), so a tighter tolerance (1e-8 before) buys digits the stored field cannot keep. On the rig it
     takes 6 / 6 / 6 IC(0)-PCG iterations where 1e-8 took 6 / 7 / 7."""
     viscous_max_iterations: int = 1000
-    viscous_preconditioner: str = "ic0"
-    """Preconditioner of the viscous CG on the 'native' solver: 'ic0' (incomplete Cholesky, factored every step,
-    two sequential substitutions per iteration), 'jacobi' (the diagonal: no factorisation, one streaming pass per
-    iteration) or 'red_black' (Jacobi-PCG on the red-black reduced system, kernels/gas.py "red-black reduced
-    system": the red rows eliminated, half the unknowns, about half Jacobi's iterations; a system with a coupling
-    between rows of one colour, a periodic axis with an odd count, takes 'ic0'). Every one stops at the same
+    viscous_preconditioner: str = "red_black"
+    """Preconditioner of the viscous CG on the 'native' solver: 'red_black' (Jacobi-PCG on the red-black reduced
+    system, kernels/gas.py "red-black reduced system": the red rows eliminated, half the unknowns, about half
+    Jacobi's iterations, no factorisation; a system with a coupling between rows of one colour, a periodic axis
+    with an odd count, takes 'ic0'), 'ic0' (incomplete Cholesky, factored every step, two sequential substitutions
+    per iteration) or 'jacobi' (the diagonal, one streaming pass per iteration). Every one stops at the same
     ``viscous_tolerance``. On the colliding-streams rig (off-diagonal sums 0.44 of the diagonal, median; 0.79 at
-    most) the three components take 6 / 6 / 6 iterations with 'ic0', 15 / 16 / 16 with 'jacobi', 8 / 8 / 8 with
-    'red_black'. The 'warp' solver always takes Jacobi."""
+    most) the three components take 8 / 8 / 8 iterations with 'red_black', 6 / 6 / 6 with 'ic0', 15 / 16 / 16
+    with 'jacobi', and the viscous step costs 0.75 of its 'ic0' time (0.92 with 'jacobi'; docs/FIGURES.md, issue
+    14, fourteenth session). The 'warp' solver always takes Jacobi."""
     linear_solver: str = "auto"
-    """'warp' (warp.optim.linear.cg, Jacobi preconditioner), 'native' (PCG with an IC(0)
-    preconditioner and atomic reductions, kernels/gas.py; sequential substitutions, for the CPU),
+    """'warp' (warp.optim.linear.cg, Jacobi preconditioner), 'native' (PCG with the preconditioners above and
+    atomic reductions, kernels/gas.py; sequential loops, for the CPU),
     or 'auto': warp on CUDA, native on the CPU, where warp's tile-based dot products cost ~0.1 s
     each at 1e5 unknowns."""
     check_finite: bool = True
