@@ -5,8 +5,9 @@ semi-Lagrangian advection, particle momentum source, backward-Euler viscous step
 molecular + Smagorinsky viscosity, and a pressure projection onto
 ``d(eps_f)/dt + div(eps_f u) = 0``; both linear systems are solved with
 ``warp.optim.linear.cg`` with a Jacobi preconditioner (7-point stencils assembled once per step,
-applied through ``LinearOperator``s) on CUDA, and on the CPU with a native IC(0)-preconditioned
-CG (``GasConfig.linear_solver``). On the CPU the step's hot loops (the linear solvers, the advection, the cell and
+applied through ``LinearOperator``s) on CUDA, and on the CPU with a native CG (``GasConfig.linear_solver``):
+the pressure preconditioned with an aggregation V-cycle, the viscous systems reduced to their black rows (red-black
+elimination) and preconditioned with the diagonal (``GasConfig.viscous_preconditioner``). On the CPU the step's hot loops (the linear solvers, the advection, the cell and
 face passes) run as native C++ loops over raw pointers (``kernels/gas_cpu.py``: the same numbers, ~2x faster on the
 colliding-streams rig).
 
@@ -91,9 +92,19 @@ class GasConfig:
     rounding itself), so a tighter tolerance (1e-8 before) buys digits the stored field cannot keep. On the rig it
     takes 6 / 6 / 6 IC(0)-PCG iterations where 1e-8 took 6 / 7 / 7."""
     viscous_max_iterations: int = 1000
+    viscous_preconditioner: str = "red_black"
+    """Preconditioner of the viscous CG on the 'native' solver: 'red_black' (Jacobi-PCG on the red-black reduced
+    system, kernels/gas.py "red-black reduced system": the red rows eliminated, half the unknowns, about half
+    Jacobi's iterations, no factorisation; a system with a coupling between rows of one colour, a periodic axis
+    with an odd count, takes 'ic0'), 'ic0' (incomplete Cholesky, factored every step, two sequential substitutions
+    per iteration) or 'jacobi' (the diagonal, one streaming pass per iteration). Every one stops at the same
+    ``viscous_tolerance``. On the colliding-streams rig (off-diagonal sums 0.44 of the diagonal, median; 0.79 at
+    most) the three components take 8 / 8 / 8 iterations with 'red_black', 6 / 6 / 6 with 'ic0', 15 / 16 / 16
+    with 'jacobi', and the viscous step costs 0.75 of its 'ic0' time (0.92 with 'jacobi'; docs/FIGURES.md, issue
+    14, fourteenth session). The 'warp' solver always takes Jacobi."""
     linear_solver: str = "auto"
-    """'warp' (warp.optim.linear.cg, Jacobi preconditioner), 'native' (PCG with an IC(0)
-    preconditioner and atomic reductions, kernels/gas.py; sequential substitutions, for the CPU),
+    """'warp' (warp.optim.linear.cg, Jacobi preconditioner), 'native' (PCG with the preconditioners above and
+    atomic reductions, kernels/gas.py; sequential loops, for the CPU),
     or 'auto': warp on CUDA, native on the CPU, where warp's tile-based dot products cost ~0.1 s
     each at 1e5 unknowns."""
     check_finite: bool = True
@@ -122,11 +133,29 @@ class GasConfig:
                               f"(got {self.pressure_preconditioner_relaxation})")
         if self.pressure_preconditioner not in ("multigrid", "ic"):
             raise ConfigError(f"pressure_preconditioner must be 'multigrid' or 'ic' (got {self.pressure_preconditioner!r})")
+        if self.viscous_preconditioner not in ("ic0", "jacobi", "red_black"):
+            raise ConfigError("viscous_preconditioner must be 'ic0', 'jacobi' or 'red_black' "
+                              f"(got {self.viscous_preconditioner!r})")
         if self.linear_solver not in ("auto", "warp", "native"):
             raise ConfigError(f"linear_solver must be 'auto', 'warp' or 'native' (got {self.linear_solver!r})")
         for name in ("pressure_max_iterations", "viscous_max_iterations"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"{name} must be >= 1 (got {getattr(self, name)})")
+
+
+@dataclass(frozen=True)
+class RedBlackSplit:
+    """A viscous system's rows by colour (kernels/gas.py "red-black reduced system"), fixed at set-up."""
+
+    black_rows: wp.array
+    """Compact rows of colour 0 (parity of the face's i + j + k), ascending; int32, (n_b,)."""
+    red_rows: wp.array
+    """Compact rows of colour 1, ascending; int32, (n_r,)."""
+    black_other: wp.array
+    """Per black row and slot, the index among ``red_rows`` of the slot's neighbour (0 where the slot is unused);
+    int32, (n_b, 6)."""
+    red_other: wp.array
+    """Per red row and slot, the index among ``black_rows`` of the slot's neighbour; int32, (n_r, 6)."""
 
 
 class GasField:
@@ -291,6 +320,9 @@ class GasSolver:
         """The compact matrix of each system (kernels/gas.py ``Stencil``): coefficients by the assembly kernels every
         step, neighbour rows once at set-up."""
         self._viscous_topology = [self._viscous_stencil_topology(axis) for axis in range(3)]
+        self._red_black = [self._red_black_split(axis) for axis in range(3)]
+        """Per viscous system its ``RedBlackSplit`` (kernels/gas.py "red-black reduced system"), or None where a
+        coupling joins two rows of one colour."""
         self._launch(K.pressure_neighbours_kernel, self._fluid_cells,
                      [self.grid_info, self._fluid_cells, self._systems["pressure"][1], domain.cell_fluid,
                       domain.face_type, self._stencils["pressure"]])
@@ -304,6 +336,7 @@ class GasSolver:
         self._c_active = wp.zeros(n_rows, dtype=wp.int32, device=dev)
         self._pcg = [wp.zeros(n_rows, dtype=wp.float64, device=dev) for _ in range(4)]  # r, z, p, Ap
         self._scalars = wp.zeros(6, dtype=wp.float64, device=dev)  # kernels/gas.py "native Jacobi-PCG"
+        self._rb = [wp.zeros(n_rows, dtype=wp.float64, device=dev) for _ in range(5)]  # x_b, t, b_r, D_r^-1, D_b^-1
         self._pivot = wp.zeros(n_rows, dtype=wp.float64, device=dev)
         self._pivot_inverse = wp.zeros(n_rows, dtype=wp.float64, device=dev)
         self._pressure_increment = wp.zeros(self._n_cells, dtype=wp.float64, device=dev)
@@ -318,7 +351,7 @@ class GasSolver:
         """d p / d x_axis of the new pressure at the solved faces (kernels/gas.py ``pressure_correct_one``), Pa/m."""
         self._cell_kappa = wp.zeros(grid.shape, dtype=float, device=dev)
         self._pcg_recorded = {}  # system -> the native PCG's recorded launches (_pcg_launches)
-        self._pcg_graphs = {}  # (system, rows) -> one captured PCG iteration (_pcg_iteration_graph)
+        self._pcg_graphs = {}  # (system, rows, preconditioner) -> one captured PCG iteration (_pcg_iteration_graph)
         self._ordered_slots = int(not any(bool(v) for v in grid.periodic))
         """1 when every compact system couples a row to lower rows only through slots -x, -y, -z (no axis
         periodic: no coupling wraps around), which ``ic0_step_apply_kernel`` then takes without index tests."""
@@ -391,6 +424,27 @@ class GasSolver:
                                                         dom.face_type, dom.face_bc, topology, self._stencils[axis]])
         return topology
 
+    def _red_black_split(self, axis: int):
+        """The red-black split of the viscous system of ``axis`` (colour: parity of the face's i + j + k), or None
+        if a coupled slot (its neighbour row not the row itself) joins two rows of one colour."""
+        rows = self._systems[axis][0].numpy()
+        n = rows.shape[0]
+        shape = list(self.domain.grid.shape)
+        shape[axis] += 1
+        colour = np.sum(np.unravel_index(rows, shape), axis=0) % 2
+        neighbour = self._stencils[axis].neighbour.numpy()[:n]
+        coupled = neighbour != np.arange(n)[:, None]
+        black, red = np.flatnonzero(colour == 0), np.flatnonzero(colour == 1)
+        if not black.size or not red.size or np.any(colour[neighbour][coupled] == np.broadcast_to(
+                colour[:, None], neighbour.shape)[coupled]):
+            return None
+        index = np.zeros(n, dtype=np.int32)
+        index[black], index[red] = np.arange(black.size), np.arange(red.size)
+        other = np.where(coupled, index[neighbour], 0).astype(np.int32)  # unused slot: coef 0, any index
+        as_array = lambda a: wp.array(np.ascontiguousarray(a), dtype=wp.int32, device=self.device)  # noqa: E731
+        return RedBlackSplit(black_rows=as_array(black), red_rows=as_array(red), black_other=as_array(other[black]),
+                             red_other=as_array(other[red]))
+
     def _new_stencil(self, n: int) -> K.Stencil:
         """An empty compact matrix of ``n`` rows (every slot unused: coefficient 0, pointing at its own row)."""
         neighbour = np.repeat(np.arange(n, dtype=np.int32)[:, None], 6, axis=1)
@@ -418,11 +472,12 @@ class GasSolver:
         self._primed.add(gas)
 
     def _solve(self, system, what: str, tol: float, maxiter: int, atol_floor: float = 0.0,
-               relaxation: float = 0.0, multigrid: AggregationMultigrid | None = None) -> int:
+               relaxation: float = 0.0, multigrid: AggregationMultigrid | None = None,
+               preconditioner: str = "ic0") -> int:
         """CG (see ``GasConfig.linear_solver``) of the compact system the assembly kernels wrote (``_c_rhs``,
         ``_c_x`` as the first guess, ``_stencils[system]``; ``system``: a key of ``_systems``); the solution is
-        left in ``_c_x``. Preconditioner: ``multigrid`` if given, else (modified)
-        IC(0) on the native solver and Jacobi on warp's."""
+        left in ``_c_x``. Preconditioner: ``multigrid`` if given, else on the native solver ``preconditioner``
+        (``GasConfig.viscous_preconditioner``; 'ic0' modified by ``relaxation`` > 0); Jacobi on warp's."""
         rows, _ = self._systems[system]
         n = rows.shape[0]
         if n == 0:
@@ -433,7 +488,7 @@ class GasSolver:
             multigrid.setup(A)
         if self.linear_solver == "native":
             iterations, residual, atol = self._native_pcg(system, n, A, tol, maxiter, atol_floor, relaxation,
-                                                          multigrid)
+                                                          multigrid, preconditioner)
         else:
             def matvec(xv, yv, zv, alpha, beta):
                 wp.launch(K.stencil_matvec_kernel, dim=n, inputs=[A, xv, yv, wp.float64(alpha), wp.float64(beta)],
@@ -496,24 +551,57 @@ class GasSolver:
             "shift": record(K.pcg_shift_kernel, 1, [], [s]),
             "ic0 factor": record(K.ic0_factor_kernel, 1, [A, n, wp.float64(relaxation)], [pivot, pivot_inverse]),
             "ic0 apply": record(K.ic0_apply_kernel, 1, [pivot_inverse, A, r, n], [z]),
+            "jacobi start": record(K.jacobi_start_kernel, n, [A.diag, r], [pivot_inverse, z]),
+            "step, jacobi, r.z new, r.r": record(K.jacobi_step_dot_kernel, dot_dim, [pivot_inverse, p, ap],
+                                                 [x, r, z, s]),
         }
+        split = self._red_black[system] if system in (0, 1, 2) else None
+        if split is not None:  # the reduced system's CG on the black rows (``_red_black_pcg``)
+            n_b, n_r = split.black_rows.shape[0], split.red_rows.shape[0]
+            x_b, inverse_b = self._rb[0][:n_b], self._rb[4][:n_b]
+            t, b_r, inverse_r = (v[:n_r] for v in self._rb[1:4])
+            r_b, z_b, p_b, ap_b = (v[:n_b] for v in self._pcg)
+            black_dim = (n_b + K.DOT_CHUNK - 1) // K.DOT_CHUNK
+            red = [A, split.red_rows, split.red_other, inverse_r, b_r]
+            launches.update({
+                "b.b": dot(rhs, rhs, 1),
+                "rb gather black": record(K.rb_gather_kernel, n_b, [split.black_rows, A.diag, x], [inverse_b, x_b]),
+                "rb gather red": record(K.rb_gather_kernel, n_r, [split.red_rows, A.diag, rhs], [inverse_r, b_r]),
+                "rb x_r": record(K.rb_red_kernel, n_r, [*red, wp.float64(1.0), x_b], [t]),
+                "rb residual, r.r": record(K.rb_black_residual_kernel, black_dim,
+                                           [A, split.black_rows, split.black_other, rhs, x_b, t], [r_b, s]),
+                "rb N p": record(K.rb_red_kernel, n_r, [*red, wp.float64(0.0), p_b], [t]),
+                "rb ap, p.ap": record(K.rb_black_matvec_dot_kernel, black_dim,
+                                      [A, split.black_rows, split.black_other, p_b, t], [ap_b, s]),
+                "rb step, jacobi, r.z new, r.r": record(K.jacobi_step_dot_kernel, black_dim, [inverse_b, p_b, ap_b],
+                                                        [x_b, r_b, z_b, s]),
+                "rb direction": record(K.pcg_direction_kernel, n_b, [z_b, s], [p_b]),
+                "rb scatter black": record(K.rb_scatter_kernel, n_b, [split.black_rows, x_b], [x]),
+                "rb scatter red": record(K.rb_scatter_kernel, n_r, [split.red_rows, t], [x]),
+            })
         self._pcg_recorded[system] = launches
         return launches
 
     def _native_pcg(self, system, n: int, A: K.Stencil, tol: float, maxiter: int, atol_floor: float = 0.0,
-                    relaxation: float = 0.0, multigrid: AggregationMultigrid | None = None) -> tuple:
-        """CG on the compact system, preconditioned with ``multigrid`` (set up) or (modified, ``relaxation`` > 0)
-        IC(0) of the stencil (kernels/gas.py ``pcg_*``, ``ic0_*``); stops at ||r|| <= max(tol ||b||, atol_floor)
-        like warp's cg. Returns (iterations, ||r||, that bound)."""
+                    relaxation: float = 0.0, multigrid: AggregationMultigrid | None = None,
+                    preconditioner: str = "ic0") -> tuple:
+        """CG on the compact system, preconditioned with ``multigrid`` (set up), else the diagonal ('jacobi') or
+        (modified, ``relaxation`` > 0) IC(0) of the stencil ('ic0') (kernels/gas.py ``pcg_*``, ``jacobi_*``,
+        ``ic0_*``), or on its red-black reduced system ('red_black', ``_red_black_pcg``); stops at ||r|| <= max(tol
+        ||b||, atol_floor) like warp's cg. Returns (iterations, ||r||, that bound)."""
         run = {name: launch.launch for name, launch in self._pcg_launches(system, n, A, relaxation).items()}
+        if multigrid is None and preconditioner == "red_black" and system in (0, 1, 2) and self._red_black[system]:
+            return self._red_black_pcg(system, n, run, tol, maxiter, atol_floor)
+        jacobi = multigrid is None and preconditioner == "jacobi"
         r, z, p = (v[:n] for v in self._pcg[:3])
         s = self._scalars
-        if multigrid is None:
-            run["ic0 factor"]()
-            precondition = run["ic0 apply"]
-        else:
+        if multigrid is not None:
             def precondition():
                 multigrid.apply(r, z)
+        elif jacobi:
+            precondition = "jacobi"
+        else:
+            precondition = None
 
         s.zero_()
         run["r = b - A x, b.b, r.r"]()
@@ -523,12 +611,18 @@ class GasSolver:
         iterations = 0
         if residual <= atol:
             return iterations, residual, atol
-        precondition()
+        if precondition is None:
+            run["ic0 factor"]()
+            run["ic0 apply"]()
+        elif precondition == "jacobi":
+            run["jacobi start"]()  # D^-1 kept for the iterations
+        else:
+            precondition()
         wp.copy(p, z)
         s.zero_()
         run["r.z new"]()  # the first iteration's shift moves it to (r.z)_old
         # captured, not run, the first time; IC(0) takes the step inside its forward substitution
-        iteration = self._pcg_iteration_graph(system, n, run, None if multigrid is None else precondition)
+        iteration = self._pcg_iteration_graph(system, n, run, precondition)
         while iterations < maxiter:
             wp.capture_launch(iteration)
             iterations += 1
@@ -537,26 +631,69 @@ class GasSolver:
                 break
         return iterations, residual, atol
 
+    def _red_black_pcg(self, system, n: int, run: dict, tol: float, maxiter: int, atol_floor: float) -> tuple:
+        """Jacobi-PCG on the red-black reduced system of ``system`` (kernels/gas.py "red-black reduced system"):
+        from the black rows of the guess, x_r = D_r^-1 (b_r + N_rb x_b) and the reduced residual, which is the
+        full residual (0 on the red rows), so the stop ||r|| <= max(tol ||b||, atol_floor) is ``_native_pcg``'s;
+        at the end x_r from the solved x_b, both scattered into ``_c_x``. Returns (iterations, ||r||, bound)."""
+        n_b = self._red_black[system].black_rows.shape[0]
+        z, p = self._pcg[1][:n_b], self._pcg[2][:n_b]
+        s = self._scalars
+        s.zero_()
+        for name in ("rb gather black", "rb gather red", "rb x_r", "rb residual, r.r", "b.b"):
+            run[name]()
+        host = s.numpy()
+        atol = max(tol * float(np.sqrt(host[1])), atol_floor)
+        residual = float(np.sqrt(host[3]))
+        iterations = 0
+        if residual > atol:
+            p.zero_()
+            s.zero_()  # alpha = 0: the pass only takes z = D_b^-1 r and r.z (x and r stay)
+            run["rb step, jacobi, r.z new, r.r"]()
+            wp.copy(p, z)
+            iteration = self._pcg_iteration_graph(system, n, run, "red_black")
+            while iterations < maxiter:
+                wp.capture_launch(iteration)
+                iterations += 1
+                residual = float(np.sqrt(s.numpy()[3]))
+                if not residual > atol:
+                    break
+            run["rb x_r"]()
+        run["rb scatter black"]()
+        run["rb scatter red"]()
+        return iterations, residual, atol
+
     def _pcg_iteration_graph(self, system, n: int, run: dict, precondition):
         """One PCG iteration of ``system`` as a captured graph (``wp.ScopedCapture``: a CUDA graph, or Warp's CPU
         replay), captured once and launched every iteration: its ~7 launches (~50 with the V-cycle) without the
         host's per-launch cost (~6 us each on the CPU). Scalars as ``kernels/gas.py`` "native PCG": the shift
         of (r.z)_new into (r.z)_old first, then the iteration, which ends with the residual check's r.r in
         scalars[3]. ``precondition`` None: IC(0), whose forward substitution takes the step x += alpha p,
-        r -= alpha Ap (``ic0_step_apply_kernel``); the matrix product and p.Ap in one pass."""
-        key = (system, n)
+        r -= alpha Ap (``ic0_step_apply_kernel``); "jacobi": the step, z = D^-1 r and both dot products in one pass
+        (``jacobi_step_dot_kernel``); else the V-cycle, a callable. The matrix product and p.Ap in one pass."""
+        kind = precondition if precondition in (None, "jacobi", "red_black") else "multigrid"
+        key = (system, n, kind)
         graph = self._pcg_graphs.get(key)
-        if graph is None:
+        if graph is None and kind == "red_black":  # the reduced system's CG (``_red_black_pcg``)
+            with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+                for name in ("shift", "rb N p", "rb ap, p.ap", "alpha", "rb step, jacobi, r.z new, r.r", "beta",
+                             "rb direction"):
+                    run[name]()
+            graph = self._pcg_graphs[key] = capture.graph
+        elif graph is None:
             with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
                 run["shift"]()
                 run["ap, p.ap"]()
                 run["alpha"]()
-                if precondition is None:
-                    run["step, ic0 apply"]()
+                if precondition == "jacobi":
+                    run["step, jacobi, r.z new, r.r"]()
                 else:
-                    run["step"]()
-                    precondition()
-                run["r.z new, r.r"]()  # the residual check's r.r in the same pass, every iteration
+                    if precondition is None:
+                        run["step, ic0 apply"]()
+                    else:
+                        run["step"]()
+                        precondition()
+                    run["r.z new, r.r"]()  # the residual check's r.r in the same pass, every iteration
                 run["beta"]()
                 run["direction"]()
             graph = self._pcg_graphs[key] = capture.graph
@@ -599,7 +736,8 @@ class GasSolver:
                           dom.cell_fluid, gas.face_eps, gas.face_kappa_flat[axis], gas.cell_momentum_source,
                           gas.pressure_solution, self._velocity_tmp, self._c_rhs, self._c_x, self._stencils[axis]])
             self.last_iterations["viscous"][axis] = self._solve(
-                axis, f"viscous ({'xyz'[axis]})", c.viscous_tolerance, c.viscous_max_iterations)
+                axis, f"viscous ({'xyz'[axis]})", c.viscous_tolerance, c.viscous_max_iterations,
+                preconditioner=c.viscous_preconditioner)
             self._launch(K.STORE_COMPONENT_KERNELS[axis], faces, [g, faces, face_row, self._c_x, gas.face_velocity])
 
     def project(self, gas: GasField, dt: float) -> None:

@@ -1607,7 +1607,8 @@ def mg_coarsest_kernel(
 # ----------------------------------------------------------------- native Jacobi-PCG (CPU path)
 # warp.optim.linear.cg reduces with tile kernels that cost ~0.1 s per dot product on the CPU at
 # 1e5 unknowns; this plain PCG (Hestenes & Stiefel 1952; Saad, *Iterative Methods*, alg. 9.1)
-# reduces with atomics instead, preconditioned with IC(0) (sequential, fine on the CPU). Scalars live in ``scalars``: 0 = r.z, 1 = p.Ap, 2 = new r.z, 3 = r.r, 4 = alpha, 5 = beta
+# reduces with atomics instead, preconditioned with IC(0) (sequential, fine on the CPU) or Jacobi (the diagonal: no
+# factorisation, one streaming pass per iteration with the step and both dot products). Scalars live in ``scalars``: 0 = r.z, 1 = p.Ap, 2 = new r.z, 3 = r.r, 4 = alpha, 5 = beta
 # (the two ratios computed once per iteration by one thread, not per row).
 
 
@@ -1913,6 +1914,251 @@ def ic0_step_apply_kernel(
                 if j > i:
                     acc = acc + A.coef[i, m] * z[j]
         z[i] = z[i] + acc * pivot_inverse[i]
+
+
+@wp.kernel
+def jacobi_start_kernel(
+    diag: wp.array(dtype=wp.float64),
+    r: wp.array(dtype=wp.float64),
+    # outputs
+    inverse_diag: wp.array(dtype=wp.float64),
+    z: wp.array(dtype=wp.float64),
+):
+    """The Jacobi preconditioner of the native PCG set up and applied once: inverse_diag = 1 / diag, z = D^-1 r
+    (per row; no factorisation)."""
+    i = wp.tid()
+    inverse = wp.float64(1.0) / diag[i]
+    inverse_diag[i] = inverse
+    z[i] = r[i] * inverse
+
+
+@wp.kernel
+def jacobi_step_dot_kernel(
+    inverse_diag: wp.array(dtype=wp.float64),
+    p: wp.array(dtype=wp.float64),
+    ap: wp.array(dtype=wp.float64),
+    # outputs
+    x: wp.array(dtype=wp.float64),
+    r: wp.array(dtype=wp.float64),
+    z: wp.array(dtype=wp.float64),
+    scalars: wp.array(dtype=wp.float64),
+):
+    """Jacobi-PCG's iteration after A p in one pass over the chunk [tid * DOT_CHUNK, ...) (launch
+    ceil(n / DOT_CHUNK) threads): the step x += alpha p, r -= alpha Ap (alpha = scalars[4], ``pcg_step_kernel``),
+    z = D^-1 r, and scalars[2] += r . z, scalars[3] += r . r (``pcg_dot_pair_kernel``'s chunks and partial sums):
+    the numbers of those three passes in one."""
+    t = wp.tid()
+    first = t * DOT_CHUNK
+    last = wp.min(first + DOT_CHUNK, p.shape[0])
+    alpha = scalars[4]
+    rz0 = wp.float64(0.0)
+    rz1 = wp.float64(0.0)
+    rz2 = wp.float64(0.0)
+    rz3 = wp.float64(0.0)
+    rr0 = wp.float64(0.0)
+    rr1 = wp.float64(0.0)
+    rr2 = wp.float64(0.0)
+    rr3 = wp.float64(0.0)
+    quads = first + (last - first) // 4 * 4
+    for i in range(first, quads, 4):
+        x[i] = x[i] + alpha * p[i]
+        x[i + 1] = x[i + 1] + alpha * p[i + 1]
+        x[i + 2] = x[i + 2] + alpha * p[i + 2]
+        x[i + 3] = x[i + 3] + alpha * p[i + 3]
+        r0 = r[i] - alpha * ap[i]
+        r1 = r[i + 1] - alpha * ap[i + 1]
+        r2 = r[i + 2] - alpha * ap[i + 2]
+        r3 = r[i + 3] - alpha * ap[i + 3]
+        r[i] = r0
+        r[i + 1] = r1
+        r[i + 2] = r2
+        r[i + 3] = r3
+        z0 = r0 * inverse_diag[i]
+        z1 = r1 * inverse_diag[i + 1]
+        z2 = r2 * inverse_diag[i + 2]
+        z3 = r3 * inverse_diag[i + 3]
+        z[i] = z0
+        z[i + 1] = z1
+        z[i + 2] = z2
+        z[i + 3] = z3
+        rz0 = rz0 + r0 * z0
+        rz1 = rz1 + r1 * z1
+        rz2 = rz2 + r2 * z2
+        rz3 = rz3 + r3 * z3
+        rr0 = rr0 + r0 * r0
+        rr1 = rr1 + r1 * r1
+        rr2 = rr2 + r2 * r2
+        rr3 = rr3 + r3 * r3
+    for i in range(quads, last):
+        x[i] = x[i] + alpha * p[i]
+        ri = r[i] - alpha * ap[i]
+        r[i] = ri
+        zi = ri * inverse_diag[i]
+        z[i] = zi
+        rz0 = rz0 + ri * zi
+        rr0 = rr0 + ri * ri
+    wp.atomic_add(scalars, 2, (rz0 + rz1) + (rz2 + rz3))
+    wp.atomic_add(scalars, 3, (rr0 + rr1) + (rr2 + rr3))
+
+
+# ----------------------------------------------------------------- red-black reduced system (native PCG option)
+# A 7-point system whose couplings all join rows of opposite colour (parity of i + j + k; true of a face grid unless a
+# periodic axis has an odd count) splits as [[D_b, -N_br], [-N_rb, D_r]] (black, red). Eliminating the red rows
+# leaves the Schur complement S = D_b - N_br D_r^-1 N_rb on the black rows (symmetric positive definite), right-hand
+# side b_S = b_b + N_br D_r^-1 b_r; x_r = D_r^-1 (b_r + N_rb x_b) after (the "red-black" or "cyclic" reduction,
+# Saad, *Iterative Methods*, 2nd ed., sec. 10.4 / 12.3). With x_r from that formula the red rows' residual is 0
+# and the black rows' residual is b_S - S x_b, so ||b - A x|| = ||b_S - S x_b||. D_b^-1 S has the eigenvalues
+# 1 - mu^2 (mu those of D^-1 N), far better conditioned than D^-1 A: CG on S with the preconditioner D_b^-1
+# takes about half the iterations of Jacobi-PCG on A, and an application of S costs one pass over A's rows (the
+# red half, then the black half). Colour arrays: ``rows`` the compact rows of a colour (ascending), ``other`` (per
+# row of a colour, 6 slots) the index of each slot's neighbour among the other colour's rows (0 for an unused slot:
+# coef 0 there).
+
+
+@wp.kernel
+def rb_gather_kernel(
+    rows: wp.array(dtype=wp.int32),
+    diag: wp.array(dtype=wp.float64),
+    values: wp.array(dtype=wp.float64),
+    # outputs
+    inverse_diag: wp.array(dtype=wp.float64),
+    colour_values: wp.array(dtype=wp.float64),
+):
+    """Per row k of a colour: inverse_diag[k] = 1 / diag[rows[k]], colour_values[k] = values[rows[k]] (the guess
+    of the black rows, the right-hand side of the red)."""
+    k = wp.tid()
+    row = rows[k]
+    inverse_diag[k] = wp.float64(1.0) / diag[row]
+    colour_values[k] = values[row]
+
+
+@wp.kernel
+def rb_scatter_kernel(
+    rows: wp.array(dtype=wp.int32),
+    colour_values: wp.array(dtype=wp.float64),
+    # outputs
+    values: wp.array(dtype=wp.float64),
+):
+    """values[rows[k]] = colour_values[k] (a colour's solution back into the compact system)."""
+    k = wp.tid()
+    values[rows[k]] = colour_values[k]
+
+
+@wp.kernel
+def rb_red_kernel(
+    A: Stencil,
+    red_rows: wp.array(dtype=wp.int32),
+    red_other: wp.array2d(dtype=wp.int32),
+    red_inverse_diag: wp.array(dtype=wp.float64),
+    red_rhs: wp.array(dtype=wp.float64),
+    rhs_weight: wp.float64,
+    black: wp.array(dtype=wp.float64),
+    # outputs
+    t: wp.array(dtype=wp.float64),
+):
+    """t = D_r^-1 (w b_r + N_rb black) per red row (w = ``rhs_weight``: 1 for x_r from x_b, 0 for the first half
+    of S p)."""
+    k = wp.tid()
+    row = red_rows[k]
+    acc = rhs_weight * red_rhs[k]
+    for m in range(6):
+        acc = acc + A.coef[row, m] * black[red_other[k, m]]
+    t[k] = acc * red_inverse_diag[k]
+
+
+@wp.func
+def rb_black_row(A: Stencil, black_rows: wp.array(dtype=wp.int32), black_other: wp.array2d(dtype=wp.int32),
+                 x: wp.array(dtype=wp.float64), t: wp.array(dtype=wp.float64), k: int):
+    """D_b x - N_br t at black row k (``stencil_row``'s order, the red values from ``t``)."""
+    row = black_rows[k]
+    ax = A.diag[row] * x[k]
+    for m in range(6):
+        ax = ax - A.coef[row, m] * t[black_other[k, m]]
+    return ax
+
+
+@wp.kernel
+def rb_black_matvec_dot_kernel(
+    A: Stencil,
+    black_rows: wp.array(dtype=wp.int32),
+    black_other: wp.array2d(dtype=wp.int32),
+    p: wp.array(dtype=wp.float64),
+    t: wp.array(dtype=wp.float64),
+    # outputs
+    ap: wp.array(dtype=wp.float64),
+    scalars: wp.array(dtype=wp.float64),
+):
+    """ap = S p = D_b p - N_br t (t = D_r^-1 N_rb p, ``rb_red_kernel``) and scalars[1] += p . ap over the chunk
+    [tid * DOT_CHUNK, ...) of the black rows (``pcg_matvec_dot_kernel``'s chunks and partial sums)."""
+    tid = wp.tid()
+    first = tid * DOT_CHUNK
+    last = wp.min(first + DOT_CHUNK, p.shape[0])
+    acc0 = wp.float64(0.0)
+    acc1 = wp.float64(0.0)
+    acc2 = wp.float64(0.0)
+    acc3 = wp.float64(0.0)
+    quads = first + (last - first) // 4 * 4
+    for i in range(first, quads, 4):
+        v0 = rb_black_row(A, black_rows, black_other, p, t, i)
+        v1 = rb_black_row(A, black_rows, black_other, p, t, i + 1)
+        v2 = rb_black_row(A, black_rows, black_other, p, t, i + 2)
+        v3 = rb_black_row(A, black_rows, black_other, p, t, i + 3)
+        ap[i] = v0
+        ap[i + 1] = v1
+        ap[i + 2] = v2
+        ap[i + 3] = v3
+        acc0 = acc0 + p[i] * v0
+        acc1 = acc1 + p[i + 1] * v1
+        acc2 = acc2 + p[i + 2] * v2
+        acc3 = acc3 + p[i + 3] * v3
+    for i in range(quads, last):
+        v = rb_black_row(A, black_rows, black_other, p, t, i)
+        ap[i] = v
+        acc0 = acc0 + p[i] * v
+    wp.atomic_add(scalars, 1, (acc0 + acc1) + (acc2 + acc3))
+
+
+@wp.kernel
+def rb_black_residual_kernel(
+    A: Stencil,
+    black_rows: wp.array(dtype=wp.int32),
+    black_other: wp.array2d(dtype=wp.int32),
+    rhs: wp.array(dtype=wp.float64),
+    x: wp.array(dtype=wp.float64),
+    t: wp.array(dtype=wp.float64),
+    # outputs
+    r: wp.array(dtype=wp.float64),
+    scalars: wp.array(dtype=wp.float64),
+):
+    """r = b_b - (D_b x - N_br t) with t = x_r = D_r^-1 (b_r + N_rb x) (``rb_red_kernel``, weight 1): the reduced
+    residual b_S - S x, which is the full system's residual on the black rows (0 on the red); scalars[3] += r . r
+    over the chunk [tid * DOT_CHUNK, ...) of the black rows (four partial sums)."""
+    tid = wp.tid()
+    first = tid * DOT_CHUNK
+    last = wp.min(first + DOT_CHUNK, x.shape[0])
+    acc0 = wp.float64(0.0)
+    acc1 = wp.float64(0.0)
+    acc2 = wp.float64(0.0)
+    acc3 = wp.float64(0.0)
+    quads = first + (last - first) // 4 * 4
+    for i in range(first, quads, 4):
+        r0 = rhs[black_rows[i]] - rb_black_row(A, black_rows, black_other, x, t, i)
+        r1 = rhs[black_rows[i + 1]] - rb_black_row(A, black_rows, black_other, x, t, i + 1)
+        r2 = rhs[black_rows[i + 2]] - rb_black_row(A, black_rows, black_other, x, t, i + 2)
+        r3 = rhs[black_rows[i + 3]] - rb_black_row(A, black_rows, black_other, x, t, i + 3)
+        r[i] = r0
+        r[i + 1] = r1
+        r[i + 2] = r2
+        r[i + 3] = r3
+        acc0 = acc0 + r0 * r0
+        acc1 = acc1 + r1 * r1
+        acc2 = acc2 + r2 * r2
+        acc3 = acc3 + r3 * r3
+    for i in range(quads, last):
+        ri = rhs[black_rows[i]] - rb_black_row(A, black_rows, black_other, x, t, i)
+        r[i] = ri
+        acc0 = acc0 + ri * ri
+    wp.atomic_add(scalars, 3, (acc0 + acc1) + (acc2 + acc3))
 
 
 @wp.kernel

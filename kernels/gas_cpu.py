@@ -300,6 +300,382 @@ def pcg_dot_pair_kernel(
     wp.atomic_add(scalars, slot_aa, sums[1])
 
 
+# ----------------------------------------------------------------- Jacobi preconditioner
+
+
+@wp.func_native("""
+    const double* __restrict__ dv = diag.data;
+    const double* __restrict__ rv = r.data;
+    double* __restrict__ inv = inverse_diag.data;
+    double* __restrict__ zv = z.data;
+    int n = r.shape[0];
+    for (int i = 0; i < n; ++i) {
+        double inverse = 1.0 / dv[i];
+        inv[i] = inverse;
+        zv[i] = rv[i] * inverse;
+    }
+""")
+def jacobi_start_rows(diag: wp.array(dtype=f64), r: wp.array(dtype=f64), inverse_diag: wp.array(dtype=f64),
+                      z: wp.array(dtype=f64)):
+    ...
+
+
+@wp.kernel
+def jacobi_start_kernel(
+    diag: wp.array(dtype=f64),
+    r: wp.array(dtype=f64),
+    # outputs
+    inverse_diag: wp.array(dtype=f64),
+    z: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``jacobi_start_kernel`` over every row (launch one thread)."""
+    jacobi_start_rows(diag, r, inverse_diag, z)
+
+
+@wp.func_native("""
+    const double* __restrict__ inv = inverse_diag.data;
+    const double* __restrict__ pv = p.data;
+    const double* __restrict__ apv = ap.data;
+    double* __restrict__ xv = x.data;
+    double* __restrict__ rv = r.data;
+    double* __restrict__ zv = z.data;
+    double alpha = scalars.data[4];
+    double rz0 = 0.0, rz1 = 0.0, rz2 = 0.0, rz3 = 0.0;
+    double rr0 = 0.0, rr1 = 0.0, rr2 = 0.0, rr3 = 0.0;
+    int quads = first + (last - first) / 4 * 4;
+    for (int i = first; i < quads; i += 4) {
+        double a0 = alpha * pv[i];
+        double a1 = alpha * pv[i + 1];
+        double a2 = alpha * pv[i + 2];
+        double a3 = alpha * pv[i + 3];
+        xv[i] = xv[i] + a0;
+        xv[i + 1] = xv[i + 1] + a1;
+        xv[i + 2] = xv[i + 2] + a2;
+        xv[i + 3] = xv[i + 3] + a3;
+        double b0 = alpha * apv[i];
+        double b1 = alpha * apv[i + 1];
+        double b2 = alpha * apv[i + 2];
+        double b3 = alpha * apv[i + 3];
+        double r0 = rv[i] - b0;
+        double r1 = rv[i + 1] - b1;
+        double r2 = rv[i + 2] - b2;
+        double r3 = rv[i + 3] - b3;
+        rv[i] = r0;
+        rv[i + 1] = r1;
+        rv[i + 2] = r2;
+        rv[i + 3] = r3;
+        double z0 = r0 * inv[i];
+        double z1 = r1 * inv[i + 1];
+        double z2 = r2 * inv[i + 2];
+        double z3 = r3 * inv[i + 3];
+        zv[i] = z0;
+        zv[i + 1] = z1;
+        zv[i + 2] = z2;
+        zv[i + 3] = z3;
+        double t0 = r0 * z0;
+        double t1 = r1 * z1;
+        double t2 = r2 * z2;
+        double t3 = r3 * z3;
+        rz0 = rz0 + t0;
+        rz1 = rz1 + t1;
+        rz2 = rz2 + t2;
+        rz3 = rz3 + t3;
+        double s0 = r0 * r0;
+        double s1 = r1 * r1;
+        double s2 = r2 * r2;
+        double s3 = r3 * r3;
+        rr0 = rr0 + s0;
+        rr1 = rr1 + s1;
+        rr2 = rr2 + s2;
+        rr3 = rr3 + s3;
+    }
+    for (int i = quads; i < last; ++i) {
+        double a = alpha * pv[i];
+        xv[i] = xv[i] + a;
+        double b = alpha * apv[i];
+        double ri = rv[i] - b;
+        rv[i] = ri;
+        double zi = ri * inv[i];
+        zv[i] = zi;
+        double t = ri * zi;
+        rz0 = rz0 + t;
+        double s = ri * ri;
+        rr0 = rr0 + s;
+    }
+    double x01 = rz0 + rz1;
+    double x23 = rz2 + rz3;
+    double y01 = rr0 + rr1;
+    double y23 = rr2 + rr3;
+    return wp::vec_t<2, double>(x01 + x23, y01 + y23);
+""")
+def jacobi_step_dot_chunk(inverse_diag: wp.array(dtype=f64), p: wp.array(dtype=f64), ap: wp.array(dtype=f64),
+                          scalars: wp.array(dtype=f64), x: wp.array(dtype=f64), r: wp.array(dtype=f64),
+                          z: wp.array(dtype=f64), first: int, last: int) -> wp.vec2d:
+    """The step, z = D^-1 r over rows [first, last) and the chunk's (r . z, r . r) (``jacobi_step_dot_kernel``)."""
+    ...
+
+
+@wp.kernel
+def jacobi_step_dot_kernel(
+    inverse_diag: wp.array(dtype=f64),
+    p: wp.array(dtype=f64),
+    ap: wp.array(dtype=f64),
+    # outputs
+    x: wp.array(dtype=f64),
+    r: wp.array(dtype=f64),
+    z: wp.array(dtype=f64),
+    scalars: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``jacobi_step_dot_kernel`` (one ``DOT_CHUNK`` per thread)."""
+    t = wp.tid()
+    first = t * K.DOT_CHUNK
+    last = wp.min(first + K.DOT_CHUNK, p.shape[0])
+    sums = jacobi_step_dot_chunk(inverse_diag, p, ap, scalars, x, r, z, first, last)
+    wp.atomic_add(scalars, 2, sums[0])
+    wp.atomic_add(scalars, 3, sums[1])
+
+
+# ----------------------------------------------------------------- red-black reduced system (kernels/gas.py ``rb_*``)
+
+
+@wp.func_native("""
+    const int* __restrict__ rw = rows.data;
+    const double* __restrict__ dv = diag.data;
+    const double* __restrict__ vv = values.data;
+    double* __restrict__ inv = inverse_diag.data;
+    double* __restrict__ cv = colour_values.data;
+    int n = rows.shape[0];
+    for (int k = 0; k < n; ++k) {
+        int row = rw[k];
+        inv[k] = 1.0 / dv[row];
+        cv[k] = vv[row];
+    }
+""")
+def rb_gather_rows(rows: wp.array(dtype=wp.int32), diag: wp.array(dtype=f64), values: wp.array(dtype=f64),
+                   inverse_diag: wp.array(dtype=f64), colour_values: wp.array(dtype=f64)):
+    ...
+
+
+@wp.kernel
+def rb_gather_kernel(
+    rows: wp.array(dtype=wp.int32),
+    diag: wp.array(dtype=f64),
+    values: wp.array(dtype=f64),
+    # outputs
+    inverse_diag: wp.array(dtype=f64),
+    colour_values: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``rb_gather_kernel`` over every row of the colour (launch one thread)."""
+    rb_gather_rows(rows, diag, values, inverse_diag, colour_values)
+
+
+@wp.func_native("""
+    const int* __restrict__ rw = rows.data;
+    const double* __restrict__ cv = colour_values.data;
+    double* __restrict__ vv = values.data;
+    int n = rows.shape[0];
+    for (int k = 0; k < n; ++k)
+        vv[rw[k]] = cv[k];
+""")
+def rb_scatter_rows(rows: wp.array(dtype=wp.int32), colour_values: wp.array(dtype=f64), values: wp.array(dtype=f64)):
+    ...
+
+
+@wp.kernel
+def rb_scatter_kernel(
+    rows: wp.array(dtype=wp.int32),
+    colour_values: wp.array(dtype=f64),
+    # outputs
+    values: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``rb_scatter_kernel`` over every row of the colour (launch one thread)."""
+    rb_scatter_rows(rows, colour_values, values)
+
+
+@wp.func_native("""
+    const double* __restrict__ c = coef.data;
+    const int* __restrict__ rw = red_rows.data;
+    const int* __restrict__ other = red_other.data;
+    const double* __restrict__ inv = red_inverse_diag.data;
+    const double* __restrict__ br = red_rhs.data;
+    const double* __restrict__ bv = black.data;
+    double* __restrict__ tv = t.data;
+    int n = red_rows.shape[0];
+    for (int k = 0; k < n; ++k) {
+        const double* ck = c + 6 * (size_t)rw[k];
+        const int* ok = other + 6 * (size_t)k;
+        double acc = rhs_weight * br[k];
+        for (int m = 0; m < 6; ++m) {
+            double u = ck[m] * bv[ok[m]];
+            acc = acc + u;
+        }
+        tv[k] = acc * inv[k];
+    }
+""")
+def rb_red_rows(coef: wp.array2d(dtype=f64), red_rows: wp.array(dtype=wp.int32), red_other: wp.array2d(dtype=wp.int32),
+                red_inverse_diag: wp.array(dtype=f64), red_rhs: wp.array(dtype=f64), rhs_weight: f64,
+                black: wp.array(dtype=f64), t: wp.array(dtype=f64)):
+    ...
+
+
+@wp.kernel
+def rb_red_kernel(
+    A: K.Stencil,
+    red_rows: wp.array(dtype=wp.int32),
+    red_other: wp.array2d(dtype=wp.int32),
+    red_inverse_diag: wp.array(dtype=f64),
+    red_rhs: wp.array(dtype=f64),
+    rhs_weight: f64,
+    black: wp.array(dtype=f64),
+    # outputs
+    t: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``rb_red_kernel`` over every red row (launch one thread)."""
+    rb_red_rows(A.coef, red_rows, red_other, red_inverse_diag, red_rhs, rhs_weight, black, t)
+
+
+# D_b x - N_br t at black row k (``rb_black_row``'s order)
+_BLACK_ROW = """
+    const double* __restrict__ d = diag.data;
+    const double* __restrict__ c = coef.data;
+    const int* __restrict__ rw = black_rows.data;
+    const int* __restrict__ other = black_other.data;
+    const double* __restrict__ tv = t.data;
+    auto black_row = [&](const double* __restrict__ xv, int k) {
+        int row = rw[k];
+        double ax = d[row] * xv[k];
+        const double* ck = c + 6 * (size_t)row;
+        const int* ok = other + 6 * (size_t)k;
+        for (int m = 0; m < 6; ++m) {
+            double u = ck[m] * tv[ok[m]];
+            ax = ax - u;
+        }
+        return ax;
+    };
+"""
+
+
+@wp.func_native(_BLACK_ROW + """
+    const double* __restrict__ pv = p.data;
+    double* __restrict__ y = ap.data;
+    double acc0 = 0.0, acc1 = 0.0, acc2 = 0.0, acc3 = 0.0;
+    int quads = first + (last - first) / 4 * 4;
+    for (int i = first; i < quads; i += 4) {
+        double v0 = black_row(pv, i);
+        double v1 = black_row(pv, i + 1);
+        double v2 = black_row(pv, i + 2);
+        double v3 = black_row(pv, i + 3);
+        y[i] = v0;
+        y[i + 1] = v1;
+        y[i + 2] = v2;
+        y[i + 3] = v3;
+        double t0 = pv[i] * v0;
+        double t1 = pv[i + 1] * v1;
+        double t2 = pv[i + 2] * v2;
+        double t3 = pv[i + 3] * v3;
+        acc0 = acc0 + t0;
+        acc1 = acc1 + t1;
+        acc2 = acc2 + t2;
+        acc3 = acc3 + t3;
+    }
+    for (int i = quads; i < last; ++i) {
+        double v = black_row(pv, i);
+        y[i] = v;
+        double u = pv[i] * v;
+        acc0 = acc0 + u;
+    }
+    double s01 = acc0 + acc1;
+    double s23 = acc2 + acc3;
+    return s01 + s23;
+""")
+def rb_black_matvec_dot_chunk(diag: wp.array(dtype=f64), coef: wp.array2d(dtype=f64),
+                              black_rows: wp.array(dtype=wp.int32), black_other: wp.array2d(dtype=wp.int32),
+                              p: wp.array(dtype=f64), t: wp.array(dtype=f64), ap: wp.array(dtype=f64), first: int,
+                              last: int) -> f64:
+    """ap = D_b p - N_br t over black rows [first, last) and the chunk's p . ap (``rb_black_matvec_dot_kernel``)."""
+    ...
+
+
+@wp.kernel
+def rb_black_matvec_dot_kernel(
+    A: K.Stencil,
+    black_rows: wp.array(dtype=wp.int32),
+    black_other: wp.array2d(dtype=wp.int32),
+    p: wp.array(dtype=f64),
+    t: wp.array(dtype=f64),
+    # outputs
+    ap: wp.array(dtype=f64),
+    scalars: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``rb_black_matvec_dot_kernel`` (one ``DOT_CHUNK`` per thread)."""
+    tid = wp.tid()
+    first = tid * K.DOT_CHUNK
+    last = wp.min(first + K.DOT_CHUNK, p.shape[0])
+    wp.atomic_add(scalars, 1, rb_black_matvec_dot_chunk(A.diag, A.coef, black_rows, black_other, p, t, ap, first, last))
+
+
+@wp.func_native(_BLACK_ROW + """
+    const double* __restrict__ b = rhs.data;
+    const double* __restrict__ xv = x.data;
+    double* __restrict__ rv = r.data;
+    double acc0 = 0.0, acc1 = 0.0, acc2 = 0.0, acc3 = 0.0;
+    int quads = first + (last - first) / 4 * 4;
+    for (int i = first; i < quads; i += 4) {
+        double r0 = b[rw[i]] - black_row(xv, i);
+        double r1 = b[rw[i + 1]] - black_row(xv, i + 1);
+        double r2 = b[rw[i + 2]] - black_row(xv, i + 2);
+        double r3 = b[rw[i + 3]] - black_row(xv, i + 3);
+        rv[i] = r0;
+        rv[i + 1] = r1;
+        rv[i + 2] = r2;
+        rv[i + 3] = r3;
+        double s0 = r0 * r0;
+        double s1 = r1 * r1;
+        double s2 = r2 * r2;
+        double s3 = r3 * r3;
+        acc0 = acc0 + s0;
+        acc1 = acc1 + s1;
+        acc2 = acc2 + s2;
+        acc3 = acc3 + s3;
+    }
+    for (int i = quads; i < last; ++i) {
+        double ri = b[rw[i]] - black_row(xv, i);
+        rv[i] = ri;
+        double s = ri * ri;
+        acc0 = acc0 + s;
+    }
+    double s01 = acc0 + acc1;
+    double s23 = acc2 + acc3;
+    return s01 + s23;
+""")
+def rb_black_residual_chunk(diag: wp.array(dtype=f64), coef: wp.array2d(dtype=f64),
+                            black_rows: wp.array(dtype=wp.int32), black_other: wp.array2d(dtype=wp.int32),
+                            rhs: wp.array(dtype=f64), x: wp.array(dtype=f64), t: wp.array(dtype=f64),
+                            r: wp.array(dtype=f64), first: int, last: int) -> f64:
+    """r = b_b - (D_b x - N_br t) over black rows [first, last) and the chunk's r . r (``rb_black_residual_kernel``)."""
+    ...
+
+
+@wp.kernel
+def rb_black_residual_kernel(
+    A: K.Stencil,
+    black_rows: wp.array(dtype=wp.int32),
+    black_other: wp.array2d(dtype=wp.int32),
+    rhs: wp.array(dtype=f64),
+    x: wp.array(dtype=f64),
+    t: wp.array(dtype=f64),
+    # outputs
+    r: wp.array(dtype=f64),
+    scalars: wp.array(dtype=f64),
+):
+    """``kernels/gas.py`` ``rb_black_residual_kernel`` (one ``DOT_CHUNK`` per thread)."""
+    tid = wp.tid()
+    first = tid * K.DOT_CHUNK
+    last = wp.min(first + K.DOT_CHUNK, x.shape[0])
+    wp.atomic_add(scalars, 3, rb_black_residual_chunk(A.diag, A.coef, black_rows, black_other, rhs, x, t, r, first,
+                                                      last))
+
+
 # ----------------------------------------------------------------- incomplete Cholesky (one thread, as in kernels/gas.py)
 
 
@@ -1716,13 +2092,15 @@ def pressure_increment_kernel(
                              wp.min(cells.shape[0], (t + 1) * block))
 
 
-ONE_THREAD = frozenset({"pcg_step_kernel", "pcg_direction_kernel", "ic0_factor_kernel", "ic0_apply_kernel",
-                        "ic0_step_apply_kernel", "mg_smooth_kernel", "mg_smooth_from_zero_kernel",
+ONE_THREAD = frozenset({"pcg_step_kernel", "pcg_direction_kernel", "jacobi_start_kernel", "rb_gather_kernel",
+                        "rb_scatter_kernel", "rb_red_kernel", "ic0_factor_kernel",
+                        "ic0_apply_kernel", "ic0_step_apply_kernel", "mg_smooth_kernel", "mg_smooth_from_zero_kernel",
                         "mg_residual_restrict_kernel", "mg_prolong_kernel", "mg_coarsen_kernel"})
 """The kernels here whose one thread runs every row (launch ``dim=1``); the others keep their Warp launch dims."""
 
-_NATIVE = ("pcg_matvec_dot_kernel", "pcg_residual_start_kernel", "pcg_dot_pair_kernel", "cell_projected_kernel",
-           "pressure_rhs_kernel", "smagorinsky_kernel",
+_NATIVE = ("pcg_matvec_dot_kernel", "pcg_residual_start_kernel", "pcg_dot_pair_kernel", "jacobi_step_dot_kernel",
+           "rb_black_matvec_dot_kernel", "rb_black_residual_kernel",
+           "cell_projected_kernel", "pressure_rhs_kernel", "smagorinsky_kernel",
            "cell_state_kernel", "pressure_increment_kernel", *sorted(ONE_THREAD))
 
 
