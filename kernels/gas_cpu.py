@@ -15,9 +15,10 @@ What is here, rig timings (best of 60-300 launches, Warp -> native):
   read from a register, 9.1 -> 4.8 ns per row for the step and both substitutions) and the V-cycle's passes
   (``mg_smooth_schedule_kernel``: a level's Gauss-Seidel half-sweeps in one launch);
 - the semi-Lagrangian advection (``ADVECT_KERNELS``, 8.0 -> 6.1 ms for the three axes as a loop over faces; then
-  in batches of ``ADVECT_LANES`` faces taken stage by stage, SIMD across the batch, ~1.8x less again, same bits);
+  in batches of ``BATCH_LANES`` faces taken stage by stage, SIMD across the batch, ~1.8x less again, same bits);
 - the cell and face passes: pressure right-hand side and matrix (4.7 -> 2.7 ms), the projection's cell pass
-  (2.3 -> 1.4), Smagorinsky (2.1 -> 1.7: nine divisions and a square root per cell), the viscous assembly with the
+  (2.3 -> 1.4), Smagorinsky (2.1 -> 1.7: nine divisions and a square root per cell; then ~1.5x less again with
+  the divisions and the root SIMD over batches of ``BATCH_LANES`` cells), the viscous assembly with the
   forces (``VISCOUS_RHS_KERNELS``, 4.5 -> 2.8 for three axes), face coefficients, pressure correction, cell state,
   viscous store and pressure increment.
 
@@ -1086,16 +1087,18 @@ def mg_coarsen_kernel(
 # ----------------------------------------------------------------- semi-Lagrangian advection (the face kernels' blocks)
 
 
-ADVECT_LANES = 32
-"""Solved faces per batch of the native advection: the back-trace runs stage by stage over a batch (positions, the
-face velocity, the midpoint's three trilinear samples, the departure sample), so the compiler makes the arithmetic
-SIMD and the faces' independent gather -> division -> floor -> gather chains overlap. Rig, in-process paired A/B of
-the three axes (warm caches, load ~4.5), speed against one face at a time: 8 lanes 0.95 (not vectorised as the
-wider batches are), 16 lanes 1.62, 32 lanes ~1.8, 64 lanes the same as 32 (scripts/ab_advect.py's kernel pairs)."""
+BATCH_LANES = 32
+"""Entries per batch of the native advection and Smagorinsky loops. The advection takes its solved faces a batch at a
+time through the back-trace's stages (positions, the face velocity, the midpoint's three trilinear samples, the
+departure sample), so the compiler makes the arithmetic SIMD and the faces' independent gather -> division -> floor
+-> gather chains overlap; rig, in-process paired A/B of the three axes (warm caches, load ~4.5), speed against one
+face at a time: 8 lanes 0.95 (not vectorised as the wider batches are), 16 lanes 1.62, 32 lanes ~1.8, 64 lanes the
+same as 32. Smagorinsky gathers each cell's neighbour differences, then divides, squares and takes the root over the
+batch: 1.5x against one cell at a time. The same operations per entry in the same order: the same bits."""
 
 
 @wp.func_native(r"""
-    constexpr int LANES = ADVECT_LANES;
+    constexpr int LANES = BATCH_LANES;
     const int shape[3] = {g.shape.c[0], g.shape.c[1], g.shape.c[2]};
     const int periodic[3] = {g.periodic.c[0], g.periodic.c[1], g.periodic.c[2]};
     const float origin[3] = {g.origin.c[0], g.origin.c[1], g.origin.c[2]};
@@ -1279,7 +1282,7 @@ wider batches are), 16 lanes 1.62, 32 lanes ~1.8, 64 lanes the same as 32 (scrip
     }
     if (count)
         run_batch(count);
-""".replace("ADVECT_LANES", str(ADVECT_LANES)))
+""".replace("BATCH_LANES", str(BATCH_LANES)))
 def advect_faces(g: K.GridInfo, axis: int, faces: wp.array(dtype=wp.vec3i), types: K.FaceInt, vel_old: K.FaceFloat,
                  dt: float, vel_new: K.FaceFloat, first: int, last: int):
     """``kernels/gas.py`` ``advect_one`` for the entries [first, last) of ``faces``."""
@@ -1531,7 +1534,8 @@ def pressure_rhs_kernel(
                        outlet_weight, rhs, A, active, fluid_sum, t * block, wp.min(cells.shape[0], (t + 1) * block))
 
 
-@wp.func_native(_GRID + """
+@wp.func_native(_GRID + r"""
+    constexpr int LANES = BATCH_LANES;
     const wp::vec_t<3, int>* __restrict__ list = cells.data;
     const int* __restrict__ fluid = cell_fluid.data;
     const wp::vec_t<3, float>* __restrict__ u = cell_velocity.data;
@@ -1539,58 +1543,74 @@ def pressure_rhs_kernel(
     float* __restrict__ nu_out = cell_nu_t.data;
     float* __restrict__ kappa_out = cell_kappa.data;
     const float h = g.spacing;
-    for (int index = first; index < last; ++index) {
-        int c[3] = {list[index].c[0], list[index].c[1], list[index].c[2]};
-        size_t cell = cell_at(c[0], c[1], c[2]);
-        float grad[3][3];
-        for (int d = 0; d < 3; ++d) {
-            // cell_value: the neighbour along d (wrapped on a periodic axis), the cell itself beyond a wall
-            int up[3] = {c[0], c[1], c[2]};
-            int down[3] = {c[0], c[1], c[2]};
-            up[d] = up[d] + 1;
-            down[d] = down[d] - 1;
-            int n = shape[d];
-            if (up[d] >= n) {
-                if (periodic[d] != 0)
-                    up[d] = (up[d] % n + n) % n;
-                else
-                    up[d] = c[d];
-            }
-            if (down[d] < 0) {
-                if (periodic[d] != 0)
-                    down[d] = (down[d] % n + n) % n;
-                else
-                    down[d] = c[d];
-            }
-            const wp::vec_t<3, float>& vu = u[cell_at(up[0], up[1], up[2])];
-            const wp::vec_t<3, float>& vd = u[cell_at(down[0], down[1], down[2])];
-            float two_h = 2.0f * h;
-            for (int a = 0; a < 3; ++a) {
-                float difference = vu.c[a] - vd.c[a];
-                grad[a][d] = difference / two_h;
-            }
-        }
-        float ss = 0.0f;
-        for (int a = 0; a < 3; ++a) {
+    const float two_h = 2.0f * h;
+    const float length = params.smagorinsky * h;
+    const float length2 = length * length;
+    // cells in batches of LANES: the neighbours' differences gathered per cell, then the gradient's divisions, the
+    // strain rate and its square root over the batch (SIMD); the same operations per cell in the same order
+    for (int base = first; base < last; base += LANES) {
+        int n = last - base < LANES ? last - base : LANES;
+        alignas(64) float diff[3][3][LANES];
+        alignas(64) size_t at_cell[LANES];
+        for (int l = 0; l < LANES; ++l) {
+            int index = base + (l < n ? l : n - 1);  // pad with the last cell (the same values written again)
+            int c[3] = {list[index].c[0], list[index].c[1], list[index].c[2]};
+            at_cell[l] = cell_at(c[0], c[1], c[2]);
             for (int d = 0; d < 3; ++d) {
-                float sum = grad[a][d] + grad[d][a];
-                float strain = 0.5f * sum;
-                float square = strain * strain;
-                ss = ss + square;
+                // cell_value: the neighbour along d (wrapped on a periodic axis), the cell itself beyond a wall
+                int up[3] = {c[0], c[1], c[2]};
+                int down[3] = {c[0], c[1], c[2]};
+                up[d] = up[d] + 1;
+                down[d] = down[d] - 1;
+                int nd = shape[d];
+                if (up[d] >= nd) {
+                    if (periodic[d] != 0)
+                        up[d] = (up[d] % nd + nd) % nd;
+                    else
+                        up[d] = c[d];
+                }
+                if (down[d] < 0) {
+                    if (periodic[d] != 0)
+                        down[d] = (down[d] % nd + nd) % nd;
+                    else
+                        down[d] = c[d];
+                }
+                const wp::vec_t<3, float>& vu = u[cell_at(up[0], up[1], up[2])];
+                const wp::vec_t<3, float>& vd = u[cell_at(down[0], down[1], down[2])];
+                for (int a = 0; a < 3; ++a)
+                    diff[a][d][l] = vu.c[a] - vd.c[a];
             }
         }
-        float length = params.smagorinsky * h;
-        float length2 = length * length;
-        float twice = 2.0f * ss;
-        float nu_t = length2 * wp::sqrt(twice);
-        if (fluid[cell] == 0)
-            nu_t = 0.0f;
-        nu_out[cell] = nu_t;
-        float turbulent = params.rho * nu_t;
-        float mu_eff = params.mu + turbulent;
-        kappa_out[cell] = eps[cell] * mu_eff;
+        alignas(64) float nu[LANES];
+        for (int l = 0; l < LANES; ++l) {
+            float grad[3][3];
+            for (int a = 0; a < 3; ++a)
+                for (int d = 0; d < 3; ++d)
+                    grad[a][d] = diff[a][d][l] / two_h;
+            float ss = 0.0f;
+            for (int a = 0; a < 3; ++a) {
+                for (int d = 0; d < 3; ++d) {
+                    float sum = grad[a][d] + grad[d][a];
+                    float strain = 0.5f * sum;
+                    float square = strain * strain;
+                    ss = ss + square;
+                }
+            }
+            float twice = 2.0f * ss;
+            nu[l] = length2 * wp::sqrt(twice);
+        }
+        for (int l = 0; l < LANES; ++l) {
+            size_t cell = at_cell[l];
+            float nu_t = nu[l];
+            if (fluid[cell] == 0)
+                nu_t = 0.0f;
+            nu_out[cell] = nu_t;
+            float turbulent = params.rho * nu_t;
+            float mu_eff = params.mu + turbulent;
+            kappa_out[cell] = eps[cell] * mu_eff;
+        }
     }
-""")
+""".replace("BATCH_LANES", str(BATCH_LANES)))
 def smagorinsky_cells(g: K.GridInfo, params: K.FlowParams, cells: wp.array(dtype=wp.vec3i),
                       cell_fluid: wp.array3d(dtype=wp.int32), cell_velocity: wp.array3d(dtype=wp.vec3),
                       cell_eps_f: wp.array3d(dtype=float), cell_nu_t: wp.array3d(dtype=float),
@@ -2158,10 +2178,6 @@ def for_device(kernel, dim: int, device, arguments) -> tuple:
         native = globals()[kernel.key]
     else:
         return kernel, dim
-    if native in ADVECT_KERNELS:  # its flat face indices are 32-bit
-        for array in (arguments[2].x, arguments[2].y, arguments[2].z):
-            if array.size >= 2**31:
-                raise ValueError(f"{kernel.key}: the native CPU loop needs face arrays of fewer than 2^31 entries")
     for value in arguments:
         if hasattr(value, "neighbour"):  # Stencil
             arrays = (value.diag, value.coef, value.neighbour)
@@ -2176,4 +2192,7 @@ def for_device(kernel, dim: int, device, arguments) -> tuple:
         for array in arrays:
             if isinstance(array, wp.array) and not array.is_contiguous:
                 raise ValueError(f"{kernel.key}: the native CPU loop needs contiguous arrays")
+            if native in ADVECT_KERNELS and isinstance(array, wp.array) and array.size >= 2**31:
+                raise ValueError(f"{kernel.key}: the native CPU loop's flat indices are 32-bit: fewer than 2^31 "
+                                 "entries per array")
     return native, 1 if kernel.key in ONE_THREAD else dim
