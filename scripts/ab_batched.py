@@ -1,11 +1,12 @@
-"""In-process paired A/B of the native CPU advection (``kernels/gas_cpu.py`` ``ADVECT_KERNELS``) of this tree
-against that of another revision, on the colliding-streams rig's grid (``bench_hel.warm_rig``): the other
-revision's ``kernels/gas_cpu.py`` (``git show REV:kernels/gas_cpu.py``) is loaded under another module name; the
-three advection launches alone (warm caches) and whole gas steps (one solver whose recorded launches are swapped
-between the two sets) are alternated in pairs from the same saved ``GasField``, process CPU time. The outputs of
-both are compared bit for bit (the advected faces, and every face velocity and the cell pressure after a step).
+"""In-process paired A/B of the batched native CPU loops (``kernels/gas_cpu.py`` ``ADVECT_KERNELS`` and
+``smagorinsky_kernel``, ``BATCH_LANES``) of this tree against those of another revision, on the colliding-streams
+rig's grid (``bench_hel.warm_rig``): the other revision's ``kernels/gas_cpu.py`` (``git show REV:kernels/gas_cpu.py``)
+is loaded under another module name; the three advection launches alone, the Smagorinsky launch alone and whole gas
+steps (one solver whose recorded launches are swapped between the two sets; every other loop is the same code) are
+alternated in pairs from the same saved ``GasField``, process CPU time. The outputs are compared bit for bit (the
+advected faces, nu_t and kappa, and every face velocity and the cell pressure after a step).
 
-    python scripts/ab_advect.py [pairs] [REV]     # defaults: 100 main
+    python scripts/ab_batched.py [pairs] [REV]     # defaults: 100 main
 """
 import importlib.util
 import os
@@ -36,7 +37,8 @@ spec = importlib.util.spec_from_file_location("gas_cpu_before", file.name)
 before = importlib.util.module_from_spec(spec)
 sys.modules["gas_cpu_before"] = before
 spec.loader.exec_module(before)
-variants = {"before": before.ADVECT_KERNELS, "after": gas_cpu.ADVECT_KERNELS}
+SWAPPED = ("ADVECT_KERNELS", "smagorinsky_kernel")
+variants = {"before": {k: getattr(before, k) for k in SWAPPED}, "after": {k: getattr(gas_cpu, k) for k in SWAPPED}}
 
 device = wp.get_device("cpu")
 rig = bench_hel.warm_rig(device)
@@ -59,7 +61,7 @@ def restore():
 
 
 # the three advection launches of each, into outputs of their own
-outputs, kernel_launches = {}, {}
+outputs, kernel_launches, smagorinsky_out = {}, {}, {}
 for name, kernels in variants.items():
     out = K.FaceFloat()
     out.x, out.y, out.z = (wp.zeros_like(a) for a in (gas.face_velocity.x, gas.face_velocity.y, gas.face_velocity.z))
@@ -68,19 +70,29 @@ for name, kernels in variants.items():
         faces = solver._solved_faces[axis]
         dim = (faces.shape[0] + K.CPU_BLOCK - 1) // K.CPU_BLOCK
         kernel_launches[name, axis] = wp.launch(
-            kernels[axis], dim=dim, inputs=[K.CPU_BLOCK, solver.grid_info, faces, solver.domain.face_type,
+            kernels["ADVECT_KERNELS"][axis], dim=dim, inputs=[K.CPU_BLOCK, solver.grid_info, faces, solver.domain.face_type,
                                             gas.face_velocity, float(dt), out], device=device, record_cmd=True)
+    cells = solver._fluid_cells
+    smagorinsky_out[name] = [wp.zeros_like(gas.cell_nu_t), wp.zeros_like(solver._cell_kappa)]
+    kernel_launches[name, "smagorinsky"] = wp.launch(
+        kernels["smagorinsky_kernel"], dim=(cells.shape[0] + K.CPU_BLOCK - 1) // K.CPU_BLOCK,
+        inputs=[K.CPU_BLOCK, solver.grid_info, solver._params(1.0), cells, solver.domain.cell_fluid, gas.cell_velocity,
+                gas.cell_eps_f, *smagorinsky_out[name]], device=device, record_cmd=True)
 for launch in kernel_launches.values():
     launch.launch()
 for c in "xyz":
     a, b = (getattr(outputs[k], c).numpy() for k in variants)
     print(f"advected {c} faces: {'bit for bit equal' if np.array_equal(a.view(np.uint32), b.view(np.uint32)) else 'DIFFER'}")
+for i, what in enumerate(("nu_t", "kappa")):
+    a, b = (smagorinsky_out[k][i].numpy() for k in variants)
+    print(f"Smagorinsky {what}: {'bit for bit equal' if np.array_equal(a.view(np.uint32), b.view(np.uint32)) else 'DIFFER'}")
 
 # whole steps: the solver's recorded launches recorded once per variant (gas_cpu.for_device picks the native kernel)
 recorded = {}
 answers = {}
 for name, kernels in variants.items():
-    gas_cpu.ADVECT_KERNELS = kernels
+    for k, v in kernels.items():
+        setattr(gas_cpu, k, v)
     solver._recorded_launches = {}
     for _ in range(2):
         restore()
@@ -88,7 +100,8 @@ for name, kernels in variants.items():
     recorded[name] = solver._recorded_launches
     answers[name] = [np.array(a, copy=True) for a in gas.face_arrays()] + [gas.cell_pressure.numpy().copy()]
     print(name, "iterations", solver.last_iterations)
-gas_cpu.ADVECT_KERNELS = variants["after"]
+for k, v in variants["after"].items():
+    setattr(gas_cpu, k, v)
 same = all(np.array_equal(a.view(np.uint32), b.view(np.uint32)) for a, b in zip(answers["before"], answers["after"]))
 print("one step from the same state:", "every face velocity and the cell pressure bit for bit equal" if same else
       f"DIFFER: max |du| {max(np.abs(a - b).max() for a, b in zip(answers['before'], answers['after']))}")
@@ -96,10 +109,10 @@ print("one step from the same state:", "every face velocity and the cell pressur
 
 def run(name, part):
     restore()
-    if part == "advection":
+    if part in ("advection", "smagorinsky"):
         start = time.process_time()
-        for axis in range(3):
-            kernel_launches[name, axis].launch()
+        for key in (0, 1, 2) if part == "advection" else ("smagorinsky",):
+            kernel_launches[name, key].launch()
         return time.process_time() - start
     solver._recorded_launches = recorded[name]
     start = time.process_time()
@@ -107,7 +120,7 @@ def run(name, part):
     return time.process_time() - start
 
 
-for part in ("advection", "step"):
+for part in ("advection", "smagorinsky", "step"):
     times = {k: [] for k in variants}
     ratios = []
     for i in range(pairs):
