@@ -28,7 +28,8 @@ def add_parser(subparsers):
     p.add_argument("--timeout", type=finite_float, default=None, help="search budget in seconds (all targets)")
     p.add_argument("--seed", type=int, default=0, help="seed of the split, sampler and XGBoost (default 0)")
     p.add_argument("--nthread", type=int, default=1, help="XGBoost threads per trial (default 1)")
-    p.add_argument("--jobs", type=int, default=2, help="trials run side by side (default 2)")
+    p.add_argument("--jobs", type=int, default=2, help="trials run side by side (default 2; the order in which they finish steers the sampler, so "
+                        "only --jobs 1 gives the same model for a seed every time)")
     p.add_argument("--search-space", default=None, metavar="JSON",
                    help='overrides of the tuned ranges, e.g. \'{"n_estimators": [800, 3000], "max_depth": [8, 12]}\'')
     p.add_argument("--no-target-scale", action="store_true",
