@@ -45,19 +45,7 @@ rig = bench_hel.warm_rig(device)
 solver, gas, dt = rig.solver.gas_solver, rig.solver.gas, rig.solver.config.dt
 solver.step(gas, dt)
 fluid = int(solver.domain.cell_fluid.numpy().sum())
-arrays = {}
-for name, value in vars(gas).items():
-    if isinstance(value, wp.array):
-        arrays[name] = value
-    elif hasattr(value, "x") and isinstance(getattr(value, "x"), wp.array):
-        for c in "xyz":
-            arrays[f"{name}.{c}"] = getattr(value, c)
-saved = {k: wp.clone(a) for k, a in arrays.items()}
-
-
-def restore():
-    for k, a in arrays.items():
-        wp.copy(a, saved[k])
+arrays, restore = bench_hel.gas_snapshot(gas)
 
 
 # the three advection launches of each, into outputs of their own

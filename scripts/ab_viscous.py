@@ -27,18 +27,7 @@ solver.step(gas, dt)
 fluid = int(solver.domain.cell_fluid.numpy().sum())
 configs = {k: dataclasses.replace(solver.config, viscous_preconditioner=k) for k in (A_KIND, B_KIND)}
 
-arrays = {}
-for name, v in vars(gas).items():
-    if isinstance(v, wp.array):
-        arrays[name] = v
-    elif hasattr(v, "x") and isinstance(getattr(v, "x"), wp.array):
-        for c in "xyz":
-            arrays[f"{name}.{c}"] = getattr(v, c)
-saved = {k: wp.clone(a) for k, a in arrays.items()}
-
-def restore():
-    for k, a in arrays.items():
-        wp.copy(a, saved[k])
+arrays, restore = bench_hel.gas_snapshot(gas)
 
 # residual check on every viscous solve: true ||b - A u|| / ||b|| in numpy from the compact system
 checks = {k: [] for k in configs}

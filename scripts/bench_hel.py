@@ -97,6 +97,27 @@ def bench_gas(n_side: int, repeats: int, device, seed: int = 0) -> dict:
             "pressure_cg_iterations": int(statistics.median(iterations))}
 
 
+def gas_snapshot(gas):
+    """Every array of ``gas`` (a ``GasField``; the x/y/z arrays of its face fields by ``name.x`` ...) and a function
+    that copies the values they hold now back into them: the same state before every timed call of an A/B."""
+    import warp as wp
+
+    arrays = {}
+    for name, value in vars(gas).items():
+        if isinstance(value, wp.array):
+            arrays[name] = value
+        elif hasattr(value, "x") and isinstance(getattr(value, "x"), wp.array):
+            for c in "xyz":
+                arrays[f"{name}.{c}"] = getattr(value, c)
+    saved = {k: wp.clone(a) for k, a in arrays.items()}
+
+    def restore():
+        for k, a in arrays.items():
+            wp.copy(a, saved[k])
+
+    return arrays, restore
+
+
 def warm_rig(device):
     """The colliding-streams rig (315 um, 1e-3 s, no collisions) after its gas warm-up: the grid and flow whose gas
     step the rig timings and the gas profile measure."""
