@@ -169,14 +169,22 @@ def main(argv=None) -> int:
             parser.error(f"--weights must be >= 1 (got {args.weights})")
         models = list(models) + [run_label("surrogate", w) for w in args.weights]
 
+    for flag, path in (("--model", args.model), ("--paper-model", args.paper_model)):
+        if path and not os.path.isfile(os.path.join(path, "metadata.json")):
+            parser.error(f"{flag} {path}: no metadata.json there; give a directory written by `hel-warp train`")
+    from hel_warp.errors import HelWarpError
     from hel_warp.forest import quiet_warp
     from hel_warp.commands._common import load_case_module
 
     quiet_warp()
     case = load_case_module("colliding_streams")
     small = argparse.Namespace(**{**vars(args), "cells": 5000, "max_particles": 40, "end_time": 2 * args.dt})
-    time_models(case, models, small)  # load every kernel module once, untimed: no model pays the first launch
-    rows = time_models(case, models, args)
+    try:
+        time_models(case, models, small)  # load every kernel module once, untimed: no model pays the first launch
+        rows = time_models(case, models, args)
+    except HelWarpError as exc:
+        print(f"bench_rig: error: {exc}", file=sys.stderr)
+        return 2
     ratios = {}
     pairs = {"helscm_over_hel": ("surrogate", "ktgf"), "dem_over_helscm": ("dem", "surrogate"),
              "helscm_paper_over_hel": ("surrogate-paper", "ktgf")}

@@ -373,3 +373,19 @@ def test_collision_events_script_counts_repeats_and_size_classes():
     assert res["streams 0-1"]["count"] == 3 and res["streams 0-1"]["repeat_share"] == pytest.approx(2 / 3)
     assert res["cross small-large"]["count"] == 3 and res["cross large-large"]["count"] == 0
     assert res["all"]["share_below_0.05"] == pytest.approx(0.25)
+
+
+def test_bench_rig_refuses_a_missing_model_and_a_model_of_another_size_in_one_line(tmp_path, capsys):
+    """scripts/bench_rig.py: a --model that is no trained directory is refused at the door, and a model the rig's
+    own check refuses (another mean diameter, without --force-model) ends with one line and exit 2, no traceback."""
+    bench = load_file("bench_rig_errors", "scripts/bench_rig.py")
+    with pytest.raises(SystemExit) as exit_info:
+        bench.main(["--models", "surrogate", "--model", str(tmp_path / "none")])
+    assert exit_info.value.code == 2 and "metadata.json" in capsys.readouterr().err
+    model = tmp_path / "model"
+    model.mkdir()
+    (model / "metadata.json").write_text(json.dumps({"form": "contact"}))
+    code = bench.main(["--models", "surrogate", "--model", str(model), "--cells", "5000", "--max-particles", "10",
+                       "--end-time", "0.002"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("bench_rig: error:") and "Traceback" not in err
