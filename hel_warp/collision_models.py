@@ -18,6 +18,8 @@ Names for the run side: ``hel_warp.hel.collision_model(name, ...)`` resolves ``s
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from hel_warp.errors import ConfigError
@@ -49,8 +51,16 @@ mean reach, as R_cut (the events do not depend on it)."""
 REACH_CUT_FLOOR = 0.5
 """R_cut is at least this fraction of r_max (overlap detection: reaches of zero, but end-of-contact turns grow some)."""
 MAX_ROUNDS = 4096
-"""Rounds of events per step before the resolution stops and says so (``round_cap_hit``): an inelastic collapse
-(infinitely many collisions in finite time, McNamara & Young 1994) would otherwise never end."""
+"""Rounds of events per window of a step before the resolution stops and says so (``round_cap_hit``): an inelastic
+collapse (infinitely many collisions in finite time, McNamara & Young 1994) would otherwise never end."""
+WINDOW_REACH = 0.4
+"""``windows="auto"``: a step is resolved in windows of a mean reach (|v - u_f| times half the window) of about this
+many particle radii (r_max). The step's paths and events do not depend on it; the searches do: a search's ball has a
+radius of r_i + r_max + its path bound + the cut (4 mean reaches), so at dt = 1e-3 s on the colliding-streams rig,
+where the mean reach is ~7 radii, one window searched ~2,000 parcels per dirty parcel against tens in windows of a
+radius's reach."""
+MAX_WINDOWS = 32
+"""``windows="auto"``: at most this many windows per step (each window's first round searches every parcel)."""
 
 
 class SurrogateCollision:
@@ -103,7 +113,7 @@ class SurrogateCollision:
     resolved: sum of min(w_i, w_j); paper: the overlapping pairs that fed the model), ``surrogate_calls`` (pairs
     resolved), ``detected_pairs`` (pairs overlapping at the step's start, i.e. at the end of the previous step),
     ``separating_skipped`` (of those, the ones already separating), ``rounds`` (rounds that resolved
-    collisions; paper: 0), ``round_cap_hit`` (1 when ``max_rounds`` stopped the resolution), ``guard_separation``, ``guard_coulomb``,
+    collisions; paper: 0), ``windows`` (swept: the windows the step was resolved in, ``windows``), ``round_cap_hit`` (1 when ``max_rounds`` stopped the resolution), ``guard_separation``, ``guard_coulomb``,
     ``guard_energy`` (outcomes the admissibility guard corrected: kernels/forest.py ``admissible_impulse``),
     ``guard_domain_clamped`` (pairs whose features were clamped into the model's training domain),
     ``guard_late_overlap`` (swept: events whose pair was already overlapping at its time t > 0 - met unseen, e.g.
@@ -116,7 +126,7 @@ class SurrogateCollision:
                  periodic_box=None, n_streams: int = DEFAULT_STREAMS, batched: bool = True,
                  max_rounds: int = MAX_ROUNDS, ordering: str = "parallel", cell=None, seed: int = 0,
                  wall_events: bool = True, kick_first: bool = True, collision_events: bool = False,
-                 particle_spin: bool = False):
+                 particle_spin: bool = False, windows="auto"):
         from hel_warp.forest import load_forest
 
         if mode not in ("pairwise", "paper"):
@@ -129,6 +139,14 @@ class SurrogateCollision:
             raise ConfigError(f"max_rounds must be a positive integer (got {max_rounds!r})")
         if ordering not in ("parallel", "sequential"):
             raise ConfigError(f"ordering must be 'parallel' or 'sequential' (got {ordering!r})")
+        if windows != "auto" and not (isinstance(windows, (int, np.integer)) and not isinstance(windows, bool)
+                                      and 1 <= windows <= 4096):
+            raise ConfigError(f"windows must be 'auto' or an integer 1-4096 (got {windows!r})")
+        self.windows = windows if windows == "auto" else int(windows)
+        """Swept detection: the step is resolved in this many windows of equal length, one after the other, each
+        with its own searches (``auto``: ``WINDOW_REACH``). The events and outcomes do not depend on it (the same
+        paths, times and impulses); the cost does."""
+        self._windows = 1
         self.ordering = ordering
         """``parallel``: every causally safe event of a round at once; ``sequential``: one event per round, the
         globally earliest (strict event-driven order, slow: the tests' reference)."""
@@ -285,6 +303,9 @@ class SurrogateCollision:
         a.cells.slot_position = zeros(n, wp.vec3)
         self._cell_capacity = 0
         a.hash_point, a.base, a.shift = zeros(n, wp.vec3), zeros(n, wp.vec3), zeros(n, wp.vec3)
+        a.anchor = a.hash_point
+        self._anchor = zeros(n, wp.vec3)
+        """The windows' anchors (kernels/collide.py ``SweptArgs.anchor``) when a step is resolved in several."""
         a.t_last, a.reach, a.reach_max = zeros(n, wp.float32), zeros(n, wp.float32), zeros(1, wp.float32)
         a.path_bound = zeros(n, wp.float32)
         a.large_index, a.large_count = zeros(n, wp.int32), zeros(1, wp.int32)
@@ -504,7 +525,7 @@ class SurrogateCollision:
     def _collide_pairwise(self, particles, r_max: float, sweep: float, alive: np.ndarray) -> None:
         import warp as wp
 
-        from kernels.collide import launch_swept_start, resolve_swept
+        from kernels.collide import launch_swept_start, launch_swept_window, resolve_swept
 
         a = self.swept
         a.particle_x, a.particle_radius = particles.x, particles.radius
@@ -530,23 +551,49 @@ class SurrogateCollision:
             raise ConfigError(f"the periodic box {box} is too small for the collision search of this step "
                               f"({2.0 * (r_max + reach_max):.3g} m must stay below half the box side): enlarge the "
                               "box (more particles) or shorten dt")
-        # cells of a typical search; the rounds search the cells out to partners of reach <= R_cut (the few above
-        # it are listed), so one collision that raises a reach far above the rest does not widen every search
-        self._cell_list(a.hash_point, alive, CELL_FACTOR * (r_max + reach_mean))
-        a.reach_cut = max(REACH_CUT_FACTOR * reach_mean if reach_mean > 0.0 else 0.0, REACH_CUT_FLOOR * r_max)
-        a.bound_cut = max(BOUND_CUT_FACTOR * reach_mean if reach_mean > 0.0 else 0.0, REACH_CUT_FLOOR * r_max)
+        windows = self._window_count(reach_mean, r_max) if sweep > 0.0 else 1
+        self._windows = windows
         self._shift_pending = sweep > 0.0
         a.spin = 1 if self.particle_spin else 0
         if self.particle_spin:
             a.particle_omega = particles.omega
         log = self._log_events_start(particles)
-        resolve_swept(a, self.forest, particles.v, self.events_found, self.event_rounds, self.round_cap_hit,
-                      self.calls, self.collisions, self.detected, self.skipped, batch_forest=self.batch_forest,
-                      args_store=self._swept_store, particle_omega=particles.omega, event_log=log)
+        a.t_start, a.t_end, a.first_round = 0.0, sweep, 0
+        a.anchor = a.hash_point  # one window: the searches' point is the hash point
+        for k in range(windows):
+            if windows > 1:
+                # the window [t_start, t_end]: anchors at its middle, reaches over it, every parcel searched again
+                a.t_start = 0.0 if k == 0 else sweep * k / windows
+                a.t_end = sweep if k == windows - 1 else sweep * (k + 1) / windows
+                a.first_round = 0 if k == 0 else int(a.round.numpy()[0])
+                a.anchor = self._anchor
+                a.reach_max.zero_()
+                self.reach_sum.zero_()
+                launch_swept_window(a, particles.v, a.reach_max, self.reach_sum)
+                reach_mean = float(self.reach_sum.numpy()[0]) / max(1, int(np.count_nonzero(alive)))
+            a.max_rounds = a.first_round + self.max_rounds
+            # cells of a typical search; the rounds search the cells out to partners of reach <= R_cut (the few
+            # above it are listed), so one collision that raises a reach far above the rest does not widen every
+            # search
+            self._cell_list(a.anchor, alive, CELL_FACTOR * (r_max + reach_mean))
+            a.reach_cut = max(REACH_CUT_FACTOR * reach_mean if reach_mean > 0.0 else 0.0, REACH_CUT_FLOOR * r_max)
+            a.bound_cut = max(BOUND_CUT_FACTOR * reach_mean if reach_mean > 0.0 else 0.0, REACH_CUT_FLOOR * r_max)
+            resolve_swept(a, self.forest, particles.v, self.events_found, self.event_rounds, self.round_cap_hit,
+                          self.calls, self.collisions, self.detected, self.skipped, batch_forest=self.batch_forest,
+                          args_store=self._swept_store, particle_omega=particles.omega, event_log=log)
         if log is not None:
             self._log_events_end(particles)
         if sweep > 0.0:
             wp.copy(self.v_swept, particles.v)
+
+    def _window_count(self, reach_mean: float, r_max: float) -> int:
+        """Windows of the step (``windows``): ``auto`` cuts the step so that the mean reach of a window is about
+        ``WINDOW_REACH`` particle radii (the searches' balls shrink with it), at most ``MAX_WINDOWS``."""
+        if self.windows != "auto":
+            return int(self.windows)
+        if not reach_mean > 0.0 or not r_max > 0.0:
+            return 1
+        return int(min(MAX_WINDOWS, max(1, math.ceil(reach_mean / (WINDOW_REACH * r_max)))))
 
     def correct_positions(self, particles) -> None:
         """Add the in-step position corrections of the last swept or cell :meth:`collide` (once; a no-op otherwise)."""
@@ -613,6 +660,7 @@ class SurrogateCollision:
             self._counts = {"collisions": int(collisions.sum()), "surrogate_calls": int(calls.sum()),
                             "detected_pairs": int(detected.sum()), "separating_skipped": skipped,
                             "rounds": rounds, "round_cap_hit": cap, "wall_events": wall_events,
+                            "windows": self._windows if self.detection == "swept" else 1,
                             **{f"guard_{name}": int(k) for name, k in zip(GUARD_NAMES, guard)},
                             **pair_counts("collisions", collisions), **pair_counts("surrogate_calls", calls),
                             **pair_counts("detected_pairs", detected)}

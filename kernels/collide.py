@@ -343,7 +343,7 @@ class SweptArgs:
     """Per-step state of the swept detection (one entry per parcel slot unless said otherwise)."""
 
     cells: CellList
-    """The live parcels' ``hash_point`` sorted by cell (kernels/cell_list.py): the searches' candidates."""
+    """The live parcels' ``anchor`` sorted by cell (kernels/cell_list.py): the searches' candidates."""
     particle_x: wp.array(dtype=wp.vec3)
     particle_radius: wp.array(dtype=wp.float32)
     particle_density: wp.array(dtype=wp.float32)
@@ -361,6 +361,17 @@ class SweptArgs:
     n_streams: wp.int32
     dt: wp.float32
     """The step, s."""
+    t_start: wp.float32
+    """Start of the present window of the step, s (0 when the step is one window): the step's collisions are resolved
+    window after window (``SurrogateCollision`` ``windows``), each with its own searches; a window's events are all
+    resolved before the next one's are searched. The paths, event times and outcomes do not depend on the windows."""
+    t_end: wp.float32
+    """End of the present window, s (``dt`` for the last one): events later than it wait for the next window."""
+    first_round: wp.int32
+    """The round in which the present window started: its full search (every parcel's pairs, ``swept_find``)."""
+    anchor: wp.array(dtype=wp.vec3)
+    """The searches' point of each parcel in the present window: its path's position at the window's middle, the
+    cell list's point (the ``hash_point`` array itself when the step is one window), m."""
     max_radius: wp.float32
     periodic: wp.int32
     """1: triply periodic box [0, box) (minimum image), 0: open space."""
@@ -377,11 +388,13 @@ class SweptArgs:
     """u_f, the mean parcel velocity of the step: reaches are measured in the frame moving with it (Galilean: a
     stream of fast parcels that move together has short reaches), m/s."""
     reach: wp.array(dtype=wp.float32)
-    """Bound on |o(t)| over [t_last, dt], o(t) = position - m - u_f (t - dt/2) (the path relative to the hash point
-    in the moving frame; the u_f terms cancel in a pair's separation), m."""
+    """Bound on |o(t)| over [max(t_last, t_start), t_end], o(t) = position - a - u_f (t - t_mid) (a = ``anchor``,
+    t_mid the window's middle: the path relative to the anchor in the moving frame; the u_f terms cancel in a pair's
+    separation), m."""
     path_bound: wp.array(dtype=wp.float32)
-    """max |o(t)| over [t_last, dt] of the present path, max(|o(t_last)|, |o(dt)|) as the path is straight (<= reach,
-    which adds the path's length to |o(t_last)|; much less after a turn): the event searches' pair test, m."""
+    """max |o(t)| over [max(t_last, t_start), t_end] of the present path, max(|o(t_last)|, |o(t_end)|) as the path is
+    straight (<= reach, which adds the path's length to |o(t_last)|; much less after a turn): the event searches' pair
+    test, m."""
     reach_max: wp.array(dtype=wp.float32)
     """(1,) max of ``reach`` (atomic_max; it caps the searches' R_cut), m."""
     reach_cut: wp.float32
@@ -393,7 +406,7 @@ class SweptArgs:
     large_count: wp.array(dtype=wp.int32)
     """(1,) parcels listed in ``large_index`` (zeroed before each round's ``swept_reset``)."""
     large_point: wp.array(dtype=wp.vec3)
-    """(n,) ``hash_point`` of each ``large_index`` entry (read in order: the list's distance test without a gather), m."""
+    """(n,) ``anchor`` of each ``large_index`` entry (read in order: the list's distance test without a gather), m."""
     bound_cut: wp.float32
     """The event searches' cut: the cell-list part of a search reaches the partners of ``path_bound`` <= bound_cut,
     the larger are listed (``bound_index``); ``path_bound`` <= ``reach``, so far fewer than ``large_index`` holds, m."""
@@ -520,7 +533,7 @@ a real approach that slow has its first touch at b/(r_i + r_j) > 1 - 5e-11."""
 
 @wp.func
 def first_touch(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: int, b: int):
-    """Earliest time in [t_lo, dt] at which the pair (a < b) touches while approaching, -1 if none.
+    """Earliest time in [t_lo, t_end] at which the pair (a < b) touches while approaching, -1 if none.
 
     |s0 + g tau| = R with s0 = s(t_lo), g = v_b - v_a, R = r_a + r_b: tau = c / (-s0.g + sqrt((s0.g)^2 - |g|^2 c)),
     c = |s0|^2 - R^2 (the root of PHYSICS-NOTES in its cancellation-free form); an overlapping approaching pair
@@ -545,8 +558,8 @@ def first_touch(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: int, b:
     if disc < 0.0:
         return -1.0
     t = t_lo + c / (-sg + wp.sqrt(disc))
-    if t > args.dt:
-        return -1.0
+    if t > args.t_end:
+        return -1.0  # after the window: the next window's searches find it
     return t
 
 
@@ -572,8 +585,9 @@ def wall_distance(args: SweptArgs, i: int, x: wp.vec3):
 
 @wp.func
 def wall_touch(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), i: int):
-    """Earliest time in [t_last, dt] at which parcel i's centre crosses the wall moving out of the fluid, -1 if its
-    path ends inside (MP-PIC parcels meet walls as points, kernels/reflect.py; with ``WallParams.surface`` the
+    """Earliest time in [t_last, t_end] at which parcel i's centre crosses the wall moving out of the fluid, -1 if its
+    path ends inside at the step's end or crosses after t_end (the crossing is bracketed on the whole step's path,
+    so its time does not depend on the windows) (MP-PIC parcels meet walls as points, kernels/reflect.py; with ``WallParams.surface`` the
     wall acts a particle radius from the centre, ``wall_distance``). A path that starts on or outside
     the wall and moves out crosses at once (t_last); one that starts there moving in (after a wall event) is
     followed to its first inside point. The crossing of a path that ends outside is bracketed by bisection on the
@@ -591,7 +605,7 @@ def wall_touch(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), i: int):
     hi = args.dt
     if wall_distance(args, i, x_lo) >= 0.0:
         if wp.dot(v, sdf_union_normal(args.shapes, x_lo)) > 0.0:
-            return t_lo
+            return t_lo  # t_lo <= t_start <= t_end: in the window
         # on the wall moving in (the point of its last wall event, just outside, or float32 round-off of the new
         # path): the path re-enters at once; an inside point, then the next crossing
         found = int(0)
@@ -611,6 +625,8 @@ def wall_touch(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), i: int):
             lo = mid
     if wp.dot(v, sdf_union_normal(args.shapes, path_position(args, particle_v, i, hi))) <= 0.0:
         return -1.0
+    if hi > args.t_end:
+        return -1.0  # after the window: the next window's search finds it
     return hi
 
 
@@ -657,6 +673,51 @@ def swept_start(
     wp.atomic_add(reach_sum, 0, r)
 
 
+@wp.kernel
+def swept_window(
+    args: SweptArgs,
+    particle_v: wp.array(dtype=wp.vec3),
+    # outputs (the per-parcel arrays of args)
+    reach_max: wp.array(dtype=wp.float32),
+    reach_sum: wp.array(dtype=wp.float32),
+):
+    """Start of a window [t_start, t_end] of a step resolved in several (after ``swept_start``, and after the previous
+    window's rounds): every live parcel's anchor (its path's position at the window's middle), reach and path bound
+    over the window, keys and lists cleared, dirty (the window's full search). Paths (hash point, base), shifts and
+    last-event times carry over: an event's time and outcome do not depend on the windows."""
+    i = wp.tid()
+    args.event_key[i] = EVENT_NONE
+    args.second_key[i] = EVENT_NONE
+    args.second_ok[i] = 1
+    args.blocker[i] = -1
+    args.listed[i] = 0
+    if args.particle_alive[i] == 0:
+        args.dirty[i] = 0
+        args.reach[i] = 0.0
+        args.path_bound[i] = 0.0
+        args.anchor[i] = args.particle_x[i]
+        return
+    t_mid = 0.5 * (args.t_start + args.t_end)
+    v = particle_v[i]
+    m = path_position(args, particle_v, i, t_mid)
+    if args.periodic != 0:
+        box = args.box
+        m = wp.vec3(m[0] - box[0] * wp.floor(m[0] / box[0]), m[1] - box[1] * wp.floor(m[1] / box[1]),
+                    m[2] - box[2] * wp.floor(m[2] / box[2]))
+    args.anchor[i] = m
+    # o(t) = offset + v t - u_f (t - t_mid) is straight over the window (t_last <= t_start): |o| is largest at an end
+    offset = minimum_image(args.hash_point[i] - m, args.periodic, args.box) + args.base[i]
+    u_f = args.frame_velocity
+    o_start = wp.length(offset + v * args.t_start - u_f * (args.t_start - t_mid))
+    o_end = wp.length(offset + v * args.t_end - u_f * (args.t_end - t_mid))
+    r = wp.max(o_start, o_end)
+    args.reach[i] = r
+    args.path_bound[i] = r
+    args.dirty[i] = 1
+    wp.atomic_max(reach_max, 0, r)
+    wp.atomic_add(reach_sum, 0, r)
+
+
 LISTED_LARGE = wp.constant(1)
 """Bit of ``SweptArgs.listed``: the parcel is in ``large_index``."""
 LISTED_BOUND = wp.constant(2)
@@ -672,7 +733,7 @@ def list_far_reaching(args: SweptArgs, i: int):
         if args.reach[i] > args.reach_cut and (listed & LISTED_LARGE) == 0:
             slot = wp.atomic_add(args.large_count, 0, 1)
             args.large_index[slot] = i
-            args.large_point[slot] = args.hash_point[i]
+            args.large_point[slot] = args.anchor[i]
             listed = listed | LISTED_LARGE
         if args.path_bound[i] > args.bound_cut and (listed & LISTED_BOUND) == 0:
             args.bound_index[wp.atomic_add(args.bound_count, 0, 1)] = i
@@ -744,15 +805,17 @@ def swept_find(
     args = args_store[0]
     ri = args.particle_radius[i]
     reach_i = args.reach[i]
-    mi = args.hash_point[i]
+    mi = args.anchor[i]
     extent_i = ri + args.path_bound[i]
     # the parcel's own wall crossing (wall events): an event whose partner is the parcel itself
     t_wall = wall_touch(args, particle_v, i)
     if t_wall >= 0.0:
         offer_event(args, i, event_key(t_wall, args.dt, i))
-    if args.round[0] == 0:
-        # every parcel queries: a pair is tested by the parcel of the larger reach (then the lower index), whose
-        # search out to r_i + r_max + 2 reach_i finds it
+    if args.round[0] == args.first_round:
+        # every parcel queries (the window's first round): a pair is tested by the parcel of the larger reach (then
+        # the lower index), whose search out to r_i + r_max + 2 reach_i finds it; the step's first round counts the
+        # start overlaps
+        first = args.round[0] == 0
         radius0 = (ri + args.max_radius + 2.0 * reach_i) * NEAR_MARGIN
         lo, hi = search_box(args.cells, mi, radius0)
         for k_range in range(range_count(args.cells, lo, hi)):
@@ -763,7 +826,7 @@ def swept_find(
                     if paths_near(args, mi, extent_i, j, args.cells.slot_position[slot]):
                         reach_j = args.reach[j]
                         if reach_i > reach_j or (reach_i == reach_j and i < j):
-                            offer_pair(args, particle_v, i, j, True, detected, skipped)
+                            offer_pair(args, particle_v, i, j, first, detected, skipped)
         return
     # later rounds only dirty parcels query, and must reach every partner: those of path_bound <= bound_cut in the
     # grid (path_bound <= reach <= reach_max), the others in their list; a pair of two dirty parcels is tested by the
@@ -782,7 +845,7 @@ def swept_find(
     for slot in range(args.bound_count[0]):
         j = args.bound_index[slot]
         if j != i and args.path_bound[j] > cut:  # below the cut: found in the grid
-            if paths_near(args, mi, extent_i, j, args.hash_point[j]):
+            if paths_near(args, mi, extent_i, j, args.anchor[j]):
                 if j > i or args.dirty[j] == 0:
                     offer_pair(args, particle_v, i, j, False, detected, skipped)
 
@@ -795,16 +858,16 @@ def may_arrive_first(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: in
     if key_k == EVENT_NONE or (key_k >> wp.int64(32)) >= q:
         return False
     ra = args.particle_radius[a]
-    ma = args.hash_point[a]
-    d = minimum_image(args.hash_point[k] - ma, args.periodic, args.box)
+    d = minimum_image(args.anchor[k] - args.anchor[a], args.periodic, args.box)
     near = (ra + args.particle_radius[k] + args.reach[a] + args.reach[k]) * NEAR_MARGIN
     if wp.dot(d, d) > near * near:
         return False
-    u_f = args.frame_velocity
+    d = minimum_image(args.hash_point[k] - args.hash_point[a], args.periodic, args.box)  # the paths' own frame
     va = particle_v[a]
     t_k = float(key_k >> wp.int64(32)) / EVENT_TIME_SCALE * args.dt
     t1 = wp.max(t_k, args.t_last[a])
     vk = particle_v[k]
+    u_f = args.frame_velocity
     xk = d + args.base[k] + vk * t_k
     xa = args.base[a] + va * t1
     gap = wp.length(xk - xa) - ra - args.particle_radius[k]
@@ -830,7 +893,7 @@ def earlier_neighbour_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3)
     (``guard_late_overlap``, resolved at once); none was found in the tests against the strict event order."""
     cut = args.reach_cut
     radius = (args.particle_radius[a] + args.max_radius + args.reach[a] + wp.min(cut, args.reach_max[0])) * NEAR_MARGIN
-    ma = args.hash_point[a]
+    ma = args.anchor[a]
     lo, hi = search_box(args.cells, ma, radius)
     for k_range in range(range_count(args.cells, lo, hi)):
         begin, end = range_slots(args.cells, lo, hi, k_range, ma, radius)
@@ -842,7 +905,6 @@ def earlier_neighbour_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3)
                     if args.reach[k] <= cut:
                         return k
     found = int(-1)
-    ma = args.hash_point[a]
     far = (args.particle_radius[a] + args.max_radius + args.reach[a] + args.reach_max[0]) * NEAR_MARGIN
     for slot in range(args.large_count[0]):
         # may_arrive_first's distance test with the largest r_k and reach_k first: most of the list is far away
@@ -942,8 +1004,8 @@ def swept_select(
     far = wp.min(cut, args.reach_max[0])
     radius_a = (args.particle_radius[a] + args.max_radius + args.reach[a] + far) * NEAR_MARGIN
     radius_b = (args.particle_radius[b] + args.max_radius + args.reach[b] + far) * NEAR_MARGIN
-    ma = args.hash_point[a]
-    mb = ma + minimum_image(args.hash_point[b] - ma, args.periodic, args.box)
+    ma = args.anchor[a]
+    mb = ma + minimum_image(args.anchor[b] - ma, args.periodic, args.box)
     sides = 1 + int(b != a)  # a loop over a and b, not two inlined copies of may_arrive_first
     k = int(-1)
     lo, hi = search_box_pair(args.cells, ma, radius_a, mb, radius_b)
@@ -1020,11 +1082,14 @@ def follow_new_path(args: SweptArgs, i: int, partner: int, t: float, v_old: wp.v
     args.stamp[i] = this_round
     args.last_partner[i] = partner
     u_f = args.frame_velocity
-    o_t = wp.length(base + v_new * t - u_f * (t - 0.5 * args.dt))
-    r = o_t + wp.length(v_new - u_f) * (args.dt - t)
+    # the path relative to the window's anchor (the same point when the step is one window: offset 0)
+    offset = minimum_image(args.hash_point[i] - args.anchor[i], args.periodic, args.box) + base
+    t_mid = 0.5 * (args.t_start + args.t_end)
+    o_t = wp.length(offset + v_new * t - u_f * (t - t_mid))
+    r = o_t + wp.length(v_new - u_f) * (args.t_end - t)
     args.reach[i] = r
     wp.atomic_max(args.reach_max, 0, r)
-    args.path_bound[i] = wp.max(o_t, wp.length(base + v_new * args.dt - u_f * (0.5 * args.dt)))  # o(t), o(dt)
+    args.path_bound[i] = wp.max(o_t, wp.length(offset + v_new * args.t_end - u_f * (args.t_end - t_mid)))  # o(t), o(t_end)
 
 
 @wp.func
@@ -1375,13 +1440,19 @@ def launch_swept_start(args: SweptArgs, particle_v, reach_max, reach_sum) -> Non
               outputs=[reach_max, reach_sum])
 
 
+def launch_swept_window(args: SweptArgs, particle_v, reach_max, reach_sum) -> None:
+    """A window's start (``swept_window``); ``reach_max`` / ``reach_sum`` (zeroed by the caller) as ``swept_start``."""
+    wp.launch(swept_window, dim=particle_v.shape[0], device=particle_v.device, inputs=[args, particle_v],
+              outputs=[reach_max, reach_sum])
+
+
 def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, event_rounds, round_cap_hit, calls,
                   collisions, detected, skipped, batch_forest: Forest | None = None, args_store=None,
                   particle_omega=None, event_log=None) -> None:
     """Rounds of mutually earliest events until none is left (``wp.capture_while``: a while node where the call is
     captured into a graph - tests/test_device_paths.py does, on the CPU; the engine calls it uncaptured, a host loop
     with one device read per round) or
-    ``args.max_rounds`` is reached (then ``round_cap_hit`` is set). ``args.cells`` must hold ``args.hash_point``;
+    ``args.max_rounds`` is reached (then ``round_cap_hit`` is set). ``args.cells`` must hold ``args.anchor``;
     ``args.reach_cut`` >= 0 splits the searches between the grid and the list of large parcels (the events do not
     depend on it).
     Round 0 also counts the pairs overlapping at the start into ``detected`` (per stream pair) and ``skipped``.

@@ -109,6 +109,7 @@ def profile(args) -> None:
     rig = build_rig(args.model, args.dt, args.dt, args.diameter)
     rig.solver.step()  # the strategy takes the rig's walls; every kernel compiled
     strategy = rig.solver.collision
+    strategy.windows = args.windows if args.windows == "auto" else int(args.windows)
     particles = rig.pool.particles
     seconds, counts = collections.defaultdict(float), collections.defaultdict(int)
     launch = wp.launch
@@ -129,7 +130,8 @@ def profile(args) -> None:
         total = time.perf_counter() - start
         out = outputs(strategy, particles)
         rounds = max(1, int(out["rounds"][0]))
-        print(f"{path}: collide {total:.3f} s, {rounds} rounds, {int(out['calls'].sum())} collisions, "
+        print(f"{path}: collide {total:.3f} s, {strategy.counts()['windows']} windows, {rounds} rounds, "
+              f"{int(out['calls'].sum())} collisions, "
               f"{1e3 * total / rounds:.2f} ms per round; mean per round (round 0 included): "
               + ", ".join(f"{value / rounds:.0f} {key}" for key, value in counts.items()))
         for name, value in sorted(seconds.items(), key=lambda kv: -kv[1]):
@@ -166,6 +168,7 @@ def main(argv=None) -> int:
     cap.add_argument("--end-time", type=float, default=0.014, help="simulated time after the release, s")
     prof = sub.choices["profile"]
     prof.add_argument("states", nargs="+", help="saved states (capture's sNNN.npz)")
+    prof.add_argument("--windows", default="auto", help="windows per step of the swept detection (auto or N)")
     prof.add_argument("--save-outputs", default=None, help="write each state's collide outputs here (compare)")
     cmp_ = sub.add_parser("compare")
     cmp_.add_argument("a")

@@ -284,10 +284,12 @@ def test_a_reach_grown_past_the_cut_is_still_searched(hard_sphere_model, monkeyp
     assert np.array_equal(v_cut, v_seq) and np.array_equal(t_cut, t_seq) and c_seq["collisions"] == 3
 
 
-def test_searches_with_a_reach_cut_equal_the_search_to_the_maximum_reach(trained_models, monkeypatch):
+@pytest.mark.parametrize("windows", [1, 3])
+def test_searches_with_a_reach_cut_equal_the_search_to_the_maximum_reach(trained_models, monkeypatch, windows):
     # A dense periodic gas (eps = 0.05, chains of collisions in the step) with the cut at the mean reach (a large
     # share of the parcels listed, more after each round's collisions) against the cut at infinity (every search
-    # out to the global maximum reach, the list empty): the same events in the same rounds, bit for bit.
+    # out to the global maximum reach, the list empty): the same events in the same rounds, bit for bit, in one
+    # window and in three.
     import hel_warp.collision_models as cm
 
     x, v, side = periodic_gas(1000, 0.05)
@@ -295,16 +297,49 @@ def test_searches_with_a_reach_cut_equal_the_search_to_the_maximum_reach(trained
     for factor in (1.0, np.inf):
         monkeypatch.setattr(cm, "REACH_CUT_FACTOR", factor)
         p = make_particles(x, v)
-        strategy = cm.SurrogateCollision(model_dir=trained_models["contact"], periodic_box=(side,) * 3)
+        strategy = cm.SurrogateCollision(model_dir=trained_models["contact"], periodic_box=(side,) * 3,
+                                         windows=windows)
         strategy.collide(p, 2e-4)
         a = strategy.swept
         listed = int(a.large_count.numpy()[0])
         outcomes.append((p.v.numpy().copy(), a.t_last.numpy().copy(), a.shift.numpy().copy(), strategy.counts()))
         if np.isfinite(factor):
-            started_large = int(np.count_nonzero(np.linalg.norm(v - v.mean(axis=0), axis=1) * 1e-4 > a.reach_cut))
-            assert listed > started_large > 100  # listed from the start, and more after collisions
+            # the last window's list: its reaches are |v - u_f| times half the window at its start
+            started_large = int(np.count_nonzero(np.linalg.norm(v - v.mean(axis=0), axis=1) * 1e-4 / windows
+                                                 > a.reach_cut))
+            assert listed > 100 and (windows > 1 or listed > started_large > 100)  # more after collisions
         else:
             assert listed == 0
     (v_cut, t_cut, s_cut, c_cut), (v_max, t_max, s_max, c_max) = outcomes
     assert c_cut == c_max and c_cut["collisions"] > 100 and c_cut["rounds"] > 3
     assert np.array_equal(v_cut, v_max) and np.array_equal(t_cut, t_max) and np.array_equal(s_cut, s_max)
+
+
+def test_windows_change_the_searches_not_the_events(trained_models):
+    # A dense periodic gas (eps = 0.05) over a step in which each sphere meets ~1 partner and moves ~4 radii
+    # (reach ~2 radii): resolved in 1, 2 and 7 windows (``windows``) and in the automatic count. The strict event
+    # order (one event per round, the globally earliest) is the reference: the windows give it bit for bit, as
+    # the window only bounds the searches (the paths, event times and outcomes are those of the whole step); the
+    # parallel rounds in windows give it too.
+    from hel_warp.collision_models import SurrogateCollision
+
+    x, v, side = periodic_gas(2000, 0.05, seed=4)
+    results = {}
+    for ordering, windows in (("sequential", 1), ("sequential", 2), ("sequential", 7), ("parallel", 7),
+                              ("parallel", "auto")):
+        p = make_particles(x, v)
+        strategy = SurrogateCollision(model_dir=trained_models["contact"], periodic_box=(side,) * 3,
+                                      ordering=ordering, max_rounds=100000, windows=windows)
+        p0 = momentum(p)
+        strategy.collide(p, 4e-4)
+        c = strategy.counts()
+        assert c["windows"] == (windows if windows != "auto" else c["windows"]) and c["windows"] >= 1
+        results[(ordering, windows)] = (p.v.numpy().copy(), strategy.swept.t_last.numpy().copy(),
+                                        strategy.swept.shift.numpy().copy(), c)
+        assert np.abs(momentum(p) - p0).max() <= 1e-6 * float(np.sum(p.mass_numpy()[:, None] * np.abs(v)))
+    v_ref, t_ref, s_ref, c_ref = results[("sequential", 1)]
+    assert c_ref["collisions"] > 500 and c_ref["guard_late_overlap"] == 0
+    assert results[("parallel", "auto")][3]["windows"] > 2
+    for key, (v_k, t_k, s_k, c_k) in results.items():
+        assert c_k["collisions"] == c_ref["collisions"], key
+        assert np.array_equal(v_k, v_ref) and np.array_equal(t_k, t_ref) and np.array_equal(s_k, s_ref), key

@@ -89,7 +89,8 @@ def test_oblique_wall_bounce_keeps_the_tangential_speed_times_e_t_and_the_path_c
 
 def test_wall_events_in_time_order_with_collisions_match_the_sequential_reference(hard_sphere_model):
     # a gas of parcels in a small closed box, fast enough for several wall hits and collisions per parcel and step:
-    # the parallel rounds give the strict event order's result (one event per round, the globally earliest)
+    # the parallel rounds give the strict event order's result (one event per round, the globally earliest), and
+    # the strict order gives the same in the step's windows as in one
     from hel_warp.collision_models import SurrogateCollision
 
     rng = np.random.default_rng(3)
@@ -104,9 +105,10 @@ def test_wall_events_in_time_order_with_collisions_match_the_sequential_referenc
     shapes = Geometry(shapes=(Box(lo=(0.0, 0.0, 0.0), hi=(side, side, side)),)).shapes_struct(None)
     params = make_wall_params(restitution_normal=E_WALL, restitution_tangential=E_WALL)
     out = {}
-    for ordering in ("parallel", "sequential"):
+    for ordering, windows in (("parallel", "auto"), ("sequential", "auto"), ("sequential", 1)):
         p = make_particles(x, v)
-        strategy = SurrogateCollision(model_dir=hard_sphere_model, ordering=ordering, wall_events=True)
+        strategy = SurrogateCollision(model_dir=hard_sphere_model, ordering=ordering, wall_events=True,
+                                      windows=windows)
         strategy.set_walls(shapes, params)
         hits = collisions = 0
         for _ in range(3):
@@ -114,8 +116,13 @@ def test_wall_events_in_time_order_with_collisions_match_the_sequential_referenc
             c = strategy.counts()
             hits += c["wall_events"]
             collisions += c["collisions"]
-        out[ordering] = (p.x.numpy(), p.v.numpy(), hits, collisions)
-    (xp, vp, hp, cp), (xs, vs, hs, cs) = out["parallel"], out["sequential"]
+        if windows == "auto":
+            assert c["windows"] > 4  # reaches of ~5 radii per step: the step resolved in windows
+        out[(ordering, windows)] = (p.x.numpy(), p.v.numpy(), hits, collisions)
+    (xp, vp, hp, cp), (xs, vs, hs, cs) = out[("parallel", "auto")], out[("sequential", "auto")]
+    # the windows change the searches only: the strict order gives the same wall events and collisions with one
+    (x1, v1, h1, c1) = out[("sequential", 1)]
+    assert (h1, c1) == (hs, cs) and np.array_equal(v1, vs) and np.array_equal(x1, xs)
     assert hp > 5 and cp > 5, (hp, cp)
     assert (hp, cp) == (hs, cs)
     np.testing.assert_allclose(vp, vs, rtol=1e-4, atol=1e-5)
