@@ -54,11 +54,16 @@ MAX_ROUNDS = 4096
 """Rounds of events per window of a step before the resolution stops and says so (``round_cap_hit``): an inelastic
 collapse (infinitely many collisions in finite time, McNamara & Young 1994) would otherwise never end."""
 WINDOW_REACH = 0.4
-"""``windows="auto"``: a step is resolved in windows of a mean reach (|v - u_f| times half the window) of about this
-many particle radii (r_max). The step's paths and events do not depend on it; the searches do: a search's ball has a
-radius of r_i + r_max + its path bound + the cut (4 mean reaches), so at dt = 1e-3 s on the colliding-streams rig,
-where the mean reach is ~7 radii, one window searched ~2,000 parcels per dirty parcel against tens in windows of a
-radius's reach."""
+"""``windows="auto"``: a step that needs windows (``WINDOW_ROUNDS``) is resolved in windows of a mean reach (|v - u_f|
+times half the window) of about this many particle radii (r_max). The step's paths and events do not depend on it;
+the searches do: a search's ball has a radius of r_i + r_max + its path bound + the cut (4 mean reaches), so at
+dt = 1e-3 s on the colliding-streams rig, where the mean reach is ~7 radii, one window searched ~2,000 parcels per
+dirty parcel against tens in windows of 0.4 radii's reach (docs/FIGURES.md, issue 14, fifteenth session)."""
+WINDOW_ROUNDS = 30
+"""``windows="auto"``: the step is cut into windows when the previous step needed at least this many rounds of
+events beyond one per window (chains of collisions: the rounds' searches are then the cost); with fewer, each
+window's full search costs more than it saves (a dilute cooling box at 1e-3 s: 9 rounds, 0.46 s in one window,
+0.79 s in 13)."""
 MAX_WINDOWS = 32
 """``windows="auto"``: at most this many windows per step (each window's first round searches every parcel)."""
 
@@ -147,6 +152,8 @@ class SurrogateCollision:
         with its own searches (``auto``: ``WINDOW_REACH``). The events and outcomes do not depend on it (the same
         paths, times and impulses); the cost does."""
         self._windows = 1
+        self._rounds_last = 0
+        """Rounds of events of the last swept step beyond one per window (``windows="auto"``; in :meth:`state`)."""
         self.ordering = ordering
         """``parallel``: every causally safe event of a round at once; ``sequential``: one event per round, the
         globally earliest (strict event-driven order, slow: the tests' reference)."""
@@ -584,14 +591,16 @@ class SurrogateCollision:
         if log is not None:
             self._log_events_end(particles)
         if sweep > 0.0:
+            self._rounds_last = max(0, int(self.event_rounds.numpy()[0]) - windows)
             wp.copy(self.v_swept, particles.v)
 
     def _window_count(self, reach_mean: float, r_max: float) -> int:
-        """Windows of the step (``windows``): ``auto`` cuts the step so that the mean reach of a window is about
-        ``WINDOW_REACH`` particle radii (the searches' balls shrink with it), at most ``MAX_WINDOWS``."""
+        """Windows of the step (``windows``): ``auto`` cuts a step after one of many rounds (``WINDOW_ROUNDS``) so
+        that the mean reach of a window is about ``WINDOW_REACH`` particle radii (the searches' balls shrink with
+        it), at most ``MAX_WINDOWS``."""
         if self.windows != "auto":
             return int(self.windows)
-        if not reach_mean > 0.0 or not r_max > 0.0:
+        if self._rounds_last < WINDOW_ROUNDS or not reach_mean > 0.0 or not r_max > 0.0:
             return 1
         return int(min(MAX_WINDOWS, max(1, math.ceil(reach_mean / (WINDOW_REACH * r_max)))))
 
@@ -631,11 +640,14 @@ class SurrogateCollision:
         wp.copy(self.collisions, self.calls)
 
     def state(self) -> dict:
-        """Checkpoint entries: the cell detection's random state (seed, steps taken)."""
-        return self.cells.state()
+        """Checkpoint entries: the cell detection's random state (seed, steps taken) and the swept detection's last
+        rounds (``swept_rounds``: they choose the next step's windows, ``windows="auto"``)."""
+        return {**self.cells.state(), "swept_rounds": np.array(self._rounds_last, np.int64)}
 
     def set_state(self, state: dict) -> None:
         self.cells.set_state(state)
+        if "swept_rounds" in state:
+            self._rounds_last = int(np.asarray(state["swept_rounds"]))
 
     def counts(self) -> dict:
         """Counts of the last :meth:`collide` (host read): totals and per stream pair (see the class)."""

@@ -1,0 +1,105 @@
+"""The swept detection's windows (hel_warp/collision_models.py ``windows``, kernels/collide.py ``swept_window``).
+
+A step may be resolved in windows, one after the other, each with searches of the window's reach; the paths, event
+times and outcomes are those of the whole step. References (CONVENTIONS rule 9): the strict event order in one window
+(tests/test_swept.py ``test_windows_change_the_searches_not_the_events``, tests/test_swept_walls.py with walls); here
+the automatic choice of the window count against its rule, the checkpoint round trip of what drives it, and a HEL run
+(gas, walls, injection) that switches to windows restarting bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tests.test_collision_models import D, make_particles
+from tests.test_run_io import Interrupt, stop_at
+from tests.test_swept import periodic_gas, write_constant_contact_forest
+
+
+@pytest.fixture(scope="module")
+def constant_model(tmp_path_factory):
+    return write_constant_contact_forest(tmp_path_factory.mktemp("constant_model"))
+
+
+def test_auto_windows_follow_the_last_step_rounds_and_the_reach(constant_model):
+    # One window while the last step needed few rounds (a dilute gas: each window's full search would cost more
+    # than it saves); after a step of many rounds, windows of a mean reach of WINDOW_REACH radii: ceil(reach_mean /
+    # (WINDOW_REACH r_max)), capped at MAX_WINDOWS. The count survives the checkpoint (state / set_state).
+    import hel_warp.collision_models as cm
+
+    x, v, side = periodic_gas(1000, 0.01, seed=2)
+    dt = 1e-3
+    strategy = cm.SurrogateCollision(model_dir=constant_model, periodic_box=(side,) * 3)
+    p = make_particles(x, v)
+    strategy.collide(p, dt)
+    assert strategy.counts()["windows"] == 1  # no history: one window
+    rounds = strategy.counts()["rounds"]
+    assert int(strategy.state()["swept_rounds"]) == max(0, rounds - 1) < cm.WINDOW_ROUNDS
+    reach_mean = float(np.mean(np.linalg.norm(v - v.mean(axis=0), axis=1))) * dt / 2.0
+    expected = min(cm.MAX_WINDOWS, math.ceil(reach_mean / (cm.WINDOW_REACH * 0.5 * D)))
+    assert expected > 2
+    fresh = cm.SurrogateCollision(model_dir=constant_model, periodic_box=(side,) * 3)
+    fresh.set_state({**strategy.state(), "swept_rounds": np.array(cm.WINDOW_ROUNDS, np.int64)})
+    p = make_particles(x, v)
+    fresh.collide(p, dt)
+    assert fresh.counts()["windows"] == expected
+    with pytest.raises(Exception, match="windows must be"):
+        cm.SurrogateCollision(model_dir=constant_model, windows=0)
+
+
+def test_hel_run_that_switches_to_windows_restarts_bitwise(constant_model, tmp_path, monkeypatch):
+    """A HEL run (gas, walls, injection) of single-particle parcels under the swept detection, the window rule made to
+    switch on after any step with a round (``WINDOW_ROUNDS`` = 1): 2N steps in one go == N steps, an interruption,
+    a restart from the checkpoint at N (the last step's rounds are in it), N more."""
+    import hel_warp.collision_models as cm
+    from hel_warp.coupling import PushConfig
+    from hel_warp.gas import GasConfig, GasField, GasSolver
+    from hel_warp.grid import Box, Geometry, Grid
+    from hel_warp.hel import HelConfig, HelSolver, ScheduledInjection, collision_model
+    from hel_warp.parcels import ParcelPool, VolumeInjection
+    from hel_warp.run import Run, RunConfig
+
+    monkeypatch.setattr(cm, "WINDOW_ROUNDS", 1)
+    dt, n = 1e-3, 4
+    windows = []
+
+    def build():
+        grid = Grid(spacing=1e-3, shape=(6, 6, 6))
+        domain = Geometry(shapes=(Box(lo=(0, 0, 0), hi=(0.006, 0.006, 0.006)),)).build(grid)
+        push = PushConfig(drag="gidaspow")
+        gas_solver = GasSolver(domain, GasConfig(density=push.fluid_density, viscosity=push.fluid_viscosity))
+        injection = VolumeInjection(box_lo=(0.001, 0.001, 0.001), box_hi=(0.004, 0.004, 0.004), diameter_mean=D,
+                                    count=600, speed=1.5, direction=(1.0, 0.3, -1.0), seed=5)
+        config = HelConfig(dt=dt, push=push, injectors=(ScheduledInjection(injection=injection, t_end=0.002),))
+        strategy = collision_model("surrogate", model_dir=constant_model)
+        counts = strategy.counts
+
+        def logged_counts():
+            c = counts()
+            windows.append(c.get("windows", 1))
+            return c
+
+        strategy.counts = logged_counts
+        return HelSolver(pool=ParcelPool.empty(1200), gas_solver=gas_solver, gas=GasField(domain), config=config,
+                         collision=strategy)
+
+    def run_config(out, checkpoint_every=None):
+        return RunConfig(out_dir=str(out), end_time=2 * n * dt, output_interval=2 * dt,
+                         checkpoint_interval=None if checkpoint_every is None else checkpoint_every * dt, vtk=False)
+
+    straight = build()
+    Run(straight, run_config(tmp_path / "a")).run()
+    assert straight.collision.detection == "swept"
+    assert max(windows) > 1  # the run switched to windows
+    first = build()
+    with pytest.raises(Interrupt):
+        Run(first, run_config(tmp_path / "b", checkpoint_every=n)).run(progress=stop_at(n + 2))
+    resumed = build()
+    Run(resumed, run_config(tmp_path / "b", checkpoint_every=n), restart=True).run()
+    a, b = straight.state(), resumed.state()
+    assert a.keys() == b.keys() and "collision/swept_rounds" in a
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
