@@ -369,42 +369,58 @@ def test_rounds_cap_finishes_inline_with_the_same_result(constant_model, device)
     assert np.array_equal(out[0][0], out[1][0])
 
 
-def test_hel_run_with_cell_collisions_restarts_bitwise(constant_model, tmp_path):
-    """A HEL run (gas, walls, injection) of parcels of 8 particles under the cell detection (the grid cells): 2N steps
-    in one go == N steps, an interruption, a restart from the checkpoint at N (the random state is in it), N more."""
+def small_walled_hel(strategy, injection, capacity: int, dt: float = 1e-3):
+    """A HEL solver in a closed 6 mm box (6^3 cells, gas, walls) with ``injection`` released over the first 2 ms: the
+    restart tests' run."""
     from hel_warp.coupling import PushConfig
     from hel_warp.gas import GasConfig, GasField, GasSolver
     from hel_warp.grid import Box, Geometry, Grid
-    from hel_warp.hel import HelConfig, HelSolver, ScheduledInjection, collision_model
-    from hel_warp.parcels import ParcelPool, VolumeInjection
+    from hel_warp.hel import HelConfig, HelSolver, ScheduledInjection
+    from hel_warp.parcels import ParcelPool
+
+    grid = Grid(spacing=1e-3, shape=(6, 6, 6))
+    domain = Geometry(shapes=(Box(lo=(0, 0, 0), hi=(0.006, 0.006, 0.006)),)).build(grid)
+    push = PushConfig(drag="gidaspow")
+    gas_solver = GasSolver(domain, GasConfig(density=push.fluid_density, viscosity=push.fluid_viscosity))
+    config = HelConfig(dt=dt, push=push, injectors=(ScheduledInjection(injection=injection, t_end=0.002),))
+    return HelSolver(pool=ParcelPool.empty(capacity), gas_solver=gas_solver, gas=GasField(domain), config=config,
+                     collision=strategy)
+
+
+def run_straight_and_restarted(build, out, dt: float, n: int):
+    """``build()`` run 2n steps in one go, and again as n steps, an interruption, a restart from the checkpoint at n
+    and n more: the two solvers."""
     from hel_warp.run import Run, RunConfig
+
+    def run_config(path, checkpoint_every=None):
+        return RunConfig(out_dir=str(path), end_time=2 * n * dt, output_interval=2 * dt,
+                         checkpoint_interval=None if checkpoint_every is None else checkpoint_every * dt, vtk=False)
+
+    straight = build()
+    Run(straight, run_config(out / "a")).run()
+    first = build()
+    with pytest.raises(Interrupt):
+        Run(first, run_config(out / "b", checkpoint_every=n)).run(progress=stop_at(n + 2))
+    resumed = build()
+    Run(resumed, run_config(out / "b", checkpoint_every=n), restart=True).run()
+    return straight, resumed
+
+
+def test_hel_run_with_cell_collisions_restarts_bitwise(constant_model, tmp_path):
+    """A HEL run (gas, walls, injection) of parcels of 8 particles under the cell detection (the grid cells): 2N steps
+    in one go == N steps, an interruption, a restart from the checkpoint at N (the random state is in it), N more."""
+    from hel_warp.hel import collision_model
+    from hel_warp.parcels import VolumeInjection
 
     dt, n = 1e-3, 4
 
     def build():
-        grid = Grid(spacing=1e-3, shape=(6, 6, 6))
-        domain = Geometry(shapes=(Box(lo=(0, 0, 0), hi=(0.006, 0.006, 0.006)),)).build(grid)
-        push = PushConfig(drag="gidaspow")
-        gas_solver = GasSolver(domain, GasConfig(density=push.fluid_density, viscosity=push.fluid_viscosity))
         injection = VolumeInjection(box_lo=(0.001, 0.001, 0.001), box_hi=(0.004, 0.004, 0.004), diameter_mean=D,
                                     count=400, speed=1.0, direction=(1.0, 0.3, -1.0), weight=8.0, seed=5)
-        config = HelConfig(dt=dt, push=push, injectors=(ScheduledInjection(injection=injection, t_end=0.002),))
-        strategy = collision_model("surrogate", model_dir=constant_model, seed=4)
-        return HelSolver(pool=ParcelPool.empty(400), gas_solver=gas_solver, gas=GasField(domain), config=config,
-                         collision=strategy)
+        return small_walled_hel(collision_model("surrogate", model_dir=constant_model, seed=4), injection, 400, dt)
 
-    def run_config(out, checkpoint_every=None):
-        return RunConfig(out_dir=str(out), end_time=2 * n * dt, output_interval=2 * dt,
-                         checkpoint_interval=None if checkpoint_every is None else checkpoint_every * dt, vtk=False)
-
-    straight = build()
-    Run(straight, run_config(tmp_path / "a")).run()
+    straight, resumed = run_straight_and_restarted(build, tmp_path, dt, n)
     assert straight.collision.detection == "cell"
-    first = build()
-    with pytest.raises(Interrupt):
-        Run(first, run_config(tmp_path / "b", checkpoint_every=n)).run(progress=stop_at(n + 2))
-    resumed = build()
-    Run(resumed, run_config(tmp_path / "b", checkpoint_every=n), restart=True).run()
     a, b = straight.state(), resumed.state()
     assert a.keys() == b.keys() and "collision/cell_steps" in a
     assert int(a["collision/cell_steps"]) >= n  # steps with live parcels (the first injects them)

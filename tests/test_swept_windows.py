@@ -14,8 +14,8 @@ import math
 import numpy as np
 import pytest
 
+from tests.test_cell_collisions import run_straight_and_restarted, small_walled_hel
 from tests.test_collision_models import D, make_particles
-from tests.test_run_io import Interrupt, stop_at
 from tests.test_swept import periodic_gas, write_constant_contact_forest
 
 
@@ -55,25 +55,14 @@ def test_hel_run_that_switches_to_windows_restarts_bitwise(constant_model, tmp_p
     switch on after any step with a round (``WINDOW_ROUNDS`` = 1): 2N steps in one go == N steps, an interruption,
     a restart from the checkpoint at N (the last step's rounds are in it), N more."""
     import hel_warp.collision_models as cm
-    from hel_warp.coupling import PushConfig
-    from hel_warp.gas import GasConfig, GasField, GasSolver
-    from hel_warp.grid import Box, Geometry, Grid
-    from hel_warp.hel import HelConfig, HelSolver, ScheduledInjection, collision_model
-    from hel_warp.parcels import ParcelPool, VolumeInjection
-    from hel_warp.run import Run, RunConfig
+    from hel_warp.hel import collision_model
+    from hel_warp.parcels import VolumeInjection
 
     monkeypatch.setattr(cm, "WINDOW_ROUNDS", 1)
     dt, n = 1e-3, 4
     windows = []
 
     def build():
-        grid = Grid(spacing=1e-3, shape=(6, 6, 6))
-        domain = Geometry(shapes=(Box(lo=(0, 0, 0), hi=(0.006, 0.006, 0.006)),)).build(grid)
-        push = PushConfig(drag="gidaspow")
-        gas_solver = GasSolver(domain, GasConfig(density=push.fluid_density, viscosity=push.fluid_viscosity))
-        injection = VolumeInjection(box_lo=(0.001, 0.001, 0.001), box_hi=(0.004, 0.004, 0.004), diameter_mean=D,
-                                    count=600, speed=1.5, direction=(1.0, 0.3, -1.0), seed=5)
-        config = HelConfig(dt=dt, push=push, injectors=(ScheduledInjection(injection=injection, t_end=0.002),))
         strategy = collision_model("surrogate", model_dir=constant_model)
         counts = strategy.counts
 
@@ -83,22 +72,13 @@ def test_hel_run_that_switches_to_windows_restarts_bitwise(constant_model, tmp_p
             return c
 
         strategy.counts = logged_counts
-        return HelSolver(pool=ParcelPool.empty(1200), gas_solver=gas_solver, gas=GasField(domain), config=config,
-                         collision=strategy)
+        injection = VolumeInjection(box_lo=(0.001, 0.001, 0.001), box_hi=(0.004, 0.004, 0.004), diameter_mean=D,
+                                    count=600, speed=1.5, direction=(1.0, 0.3, -1.0), seed=5)
+        return small_walled_hel(strategy, injection, 1200, dt)
 
-    def run_config(out, checkpoint_every=None):
-        return RunConfig(out_dir=str(out), end_time=2 * n * dt, output_interval=2 * dt,
-                         checkpoint_interval=None if checkpoint_every is None else checkpoint_every * dt, vtk=False)
-
-    straight = build()
-    Run(straight, run_config(tmp_path / "a")).run()
+    straight, resumed = run_straight_and_restarted(build, tmp_path, dt, n)
     assert straight.collision.detection == "swept"
     assert max(windows) > 1  # the run switched to windows
-    first = build()
-    with pytest.raises(Interrupt):
-        Run(first, run_config(tmp_path / "b", checkpoint_every=n)).run(progress=stop_at(n + 2))
-    resumed = build()
-    Run(resumed, run_config(tmp_path / "b", checkpoint_every=n), restart=True).run()
     a, b = straight.state(), resumed.state()
     assert a.keys() == b.keys() and "collision/swept_rounds" in a
     for key in a:
