@@ -27,7 +27,7 @@ round-off.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -154,6 +154,8 @@ class CouplingFields:
         drag_coeff: weight m_p F_D, kg/s, float64.
         rate: F_D (1/s); exchange: D = weight m_p dt F_D / (1 + dt F_D) (kg); u_eq: the implicit
         exchange velocity at the parcel; x_start: position before the push (the exchange's stencils).
+    Scratch of one push, not in checkpoints (``checkpoint=False`` in the field's metadata):
+        exchange_divisor: A_c where the exchange's correction takes the mismatch back, +inf elsewhere (kg).
     """
 
     cell_solid_volume: object
@@ -184,6 +186,7 @@ class CouplingFields:
     parcel_exchange: object
     parcel_u_eq: object
     parcel_x_start: object
+    cell_exchange_divisor: object = field(default=None, metadata={"checkpoint": False})
 
     @classmethod
     def allocate(cls, grid: GridSpec, capacity: int, *, device=None) -> "CouplingFields":
@@ -209,7 +212,7 @@ class CouplingFields:
             parcel_drag_coeff=parcels(wp.float64), cell_exchange_coeff=cells(wp.float64),
             cell_exchange_momentum=cells(wp.vec3d), cell_u_eq=cells(wp.vec3), cell_gas_impulse=cells(wp.vec3d),
             cell_mismatch=cells(wp.vec3d), parcel_rate=parcels(wp.float32), parcel_exchange=parcels(wp.float64),
-            parcel_u_eq=parcels(wp.vec3), parcel_x_start=parcels(wp.vec3))
+            parcel_u_eq=parcels(wp.vec3), parcel_x_start=parcels(wp.vec3), cell_exchange_divisor=cells(wp.float64))
 
 
 def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields, cell_fluid=None, *, stencil=None) -> None:
@@ -312,12 +315,13 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
                          stencil=stencil)
         exchange_cells(float(gas_density) * grid.cell_volume, eps_f_min, cell_fluid, f.cell_eps_s, cell_velocity,
                        f.cell_exchange_coeff, f.cell_exchange_momentum, cell_u_eq=f.cell_u_eq,
-                       cell_gas_impulse=f.cell_gas_impulse, cell_mismatch=f.cell_mismatch)
+                       cell_gas_impulse=f.cell_gas_impulse, cell_mismatch=f.cell_mismatch,
+                       cell_exchange_divisor=f.cell_exchange_divisor)
         interpolate_vec3_parcels(g, f.parcel_x_start, p.weight, f.cell_u_eq, f.parcel_u_eq, stencil=stencil)
         slip_against = f.parcel_u_eq
     push_at_rate(push_params, start, f.parcel_u_eq, f.parcel_rate, f.parcel_grad_p, f.parcel_a_coll,
                  f.parcel_drag_impulse, f.parcel_drag_coeff, particle_x_out=x_out, particle_v_out=v_out)
-    exchange_correct(g, push_params.dt, cell_fluid, f.cell_exchange_coeff, f.cell_mismatch, start, f.parcel_exchange,
+    exchange_correct(g, push_params.dt, f.cell_exchange_divisor, f.cell_mismatch, start, f.parcel_exchange,
                      f.parcel_drag_impulse, particle_x_out=x_out, particle_v_out=v_out, stencil=stencil)
 
 

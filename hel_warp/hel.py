@@ -634,7 +634,8 @@ class HelSolver:
         out["pool/used"] = np.array(self.pool.used, np.int64)
         out["pool/removed"] = self.pool._removed_counter.numpy().copy()
         for f in dataclasses.fields(self.fields):
-            out[f"coupling/{f.name}"] = getattr(self.fields, f.name).numpy().copy()
+            if f.metadata.get("checkpoint", True):
+                out[f"coupling/{f.name}"] = getattr(self.fields, f.name).numpy().copy()
         for name, array in self._gas_arrays().items():
             out[f"gas/{name}"] = array.numpy().copy()
         out["gas/_started"] = np.array(bool(getattr(self.gas, "_started", True)))
@@ -666,7 +667,8 @@ class HelSolver:
         self.pool.used = int(state["pool/used"])
         put(self.pool._removed_counter, "pool/removed")
         for f in dataclasses.fields(self.fields):
-            put(getattr(self.fields, f.name), f"coupling/{f.name}")
+            if f.metadata.get("checkpoint", True):
+                put(getattr(self.fields, f.name), f"coupling/{f.name}")
         for name, array in self._gas_arrays().items():
             put(array, f"gas/{name}")
         if hasattr(self.gas, "_started"):

@@ -31,6 +31,8 @@ from kernels.interp import (CellGrid, ParcelArrays, ParcelStencil, cell_offset, 
 from kernels.push import PushParams, body_acceleration, parcel_drag_rate, parcel_mass
 
 SPHERE_VOLUME_FACTOR = wp.constant(wp.float64(4.0 * math.pi / 3.0))  # float64 (wp.pi is float32)
+NO_EXCHANGE = wp.constant(wp.float64(math.inf))
+"""``cell_exchange_divisor`` of a cell the correction leaves out (outside the fluid, or A_c = 0): w / inf = 0."""
 
 if hasattr(wp.config, "DeterministicMode"):
     wp.set_module_options({"deterministic": wp.config.DeterministicMode.RUN_TO_RUN})
@@ -138,6 +140,11 @@ def to_float32_kernel(
 # sum_i (J_i + dJ_i) = -sum_c G_c exactly (float64): the exchange conserves momentum, and neither
 # phase overshoots the common velocity. Cells outside the fluid keep the explicit hand-back (their
 # impulses go to the walls in the gas step, as before).
+#
+# The correction reads A_c through ``cell_exchange_divisor`` (A_c, or +inf for a cell it leaves out) so that its
+# corner loop has no branch and no fluid-mask read (~2x faster on the CPU, issue 14): an excluded cell adds
+# (w / inf) delta_c = +-0, which leaves the sum as it is (it starts at +0 and a sum is -0 only when both terms
+# are), the same bits as skipping it while delta_c is finite.
 
 
 @wp.kernel
@@ -202,8 +209,10 @@ def exchange_cells_kernel(
     cell_u_eq: wp.array3d(dtype=wp.vec3),
     cell_gas_impulse: wp.array3d(dtype=wp.vec3d),
     cell_mismatch: wp.array3d(dtype=wp.vec3d),
+    cell_exchange_divisor: wp.array3d(dtype=wp.float64),
 ):
-    """u_eq_c and G_c (``gas_mass_full`` = rho_f V_c, the gas mass of a particle-free cell); mismatch = G_c."""
+    """u_eq_c and G_c (``gas_mass_full`` = rho_f V_c, the gas mass of a particle-free cell); mismatch = G_c;
+    the correction's divisor A_c (``NO_EXCHANGE`` where the cell is left out)."""
     i, j, k = wp.tid()
     u = cell_velocity[i, j, k]
     a = cell_exchange_coeff[i, j, k]
@@ -212,7 +221,9 @@ def exchange_cells_kernel(
         cell_u_eq[i, j, k] = u
         cell_gas_impulse[i, j, k] = zero
         cell_mismatch[i, j, k] = zero
+        cell_exchange_divisor[i, j, k] = NO_EXCHANGE
         return
+    cell_exchange_divisor[i, j, k] = a
     eps_f = wp.max(1.0 - cell_eps_s[i, j, k], eps_f_min)
     m = gas_mass_full * wp.float64(eps_f)
     ud = wp.vec3d(wp.float64(u[0]), wp.float64(u[1]), wp.float64(u[2]))
@@ -254,8 +265,7 @@ def exchange_correct_kernel(
     grid: CellGrid,
     stencil: ParcelStencil,
     dt: float,
-    cell_fluid: wp.array(dtype=wp.int32),
-    cell_exchange_coeff: wp.array(dtype=wp.float64),
+    cell_exchange_divisor: wp.array(dtype=wp.float64),
     cell_mismatch: wp.array(dtype=wp.vec3d),
     parcels: ParcelArrays,
     parcel_exchange: wp.array(dtype=wp.float64),
@@ -264,8 +274,8 @@ def exchange_correct_kernel(
     particle_v_out: wp.array(dtype=wp.vec3),
     parcel_drag_impulse: wp.array(dtype=wp.vec3d),
 ):
-    """dJ_i = -D_i sum_c w_ic delta_c / A_c over fluid cells with A_c > 0; v and x (= x + dt v) follow (cell
-    arrays flat)."""
+    """dJ_i = -D_i sum_c w_ic delta_c / A_c over fluid cells with A_c > 0 (``cell_exchange_divisor``: A_c, inf for
+    the others); v and x (= x + dt v) follow (cell arrays flat)."""
     tid = wp.tid()
     if parcels.alive[tid] == 0:
         return
@@ -275,17 +285,13 @@ def exchange_correct_kernel(
     if stencil_holds(stencil, tid, x, spread_half_width(grid, weight)):
         for corner in range(8):
             c = stencil.cell[tid, corner]
-            a = cell_exchange_coeff[c]
-            if cell_fluid[c] != 0 and a > wp.float64(0.0):
-                corr = corr + (stencil.weight[tid, corner] / a) * cell_mismatch[c]
+            corr = corr + (stencil.weight[tid, corner] / cell_exchange_divisor[c]) * cell_mismatch[c]
     else:
         base, frac, kw, norm = parcel_stencil(grid, x, weight)
         for corner in range(8 * kw * kw * kw):
             idx, w = parcel_cell(grid, base, frac, kw, norm, corner)
             c = cell_offset(grid, idx)
-            a = cell_exchange_coeff[c]
-            if cell_fluid[c] != 0 and a > wp.float64(0.0):
-                corr = corr + (w / a) * cell_mismatch[c]
+            corr = corr + (w / cell_exchange_divisor[c]) * cell_mismatch[c]
     dj = -parcel_exchange[tid] * corr
     parcel_drag_impulse[tid] = parcel_drag_impulse[tid] + dj
     dv64 = dj / parcel_mass(parcels.weight[tid], parcels.density[tid], 2.0 * parcels.radius[tid])
@@ -339,25 +345,28 @@ def exchange_deposit(grid: CellGrid, params, parcels: ParcelArrays, parcel_u_f, 
 
 
 def exchange_cells(gas_mass_full: float, eps_f_min: float, cell_fluid, cell_eps_s, cell_velocity,
-                   cell_exchange_coeff, cell_exchange_momentum, *, cell_u_eq, cell_gas_impulse, cell_mismatch):
-    """u_eq, the gas impulse G and the mismatch's start value G per cell (implicit exchange, step 2)."""
+                   cell_exchange_coeff, cell_exchange_momentum, *, cell_u_eq, cell_gas_impulse, cell_mismatch,
+                   cell_exchange_divisor):
+    """u_eq, the gas impulse G and the mismatch's start value G per cell (implicit exchange, step 2), and the
+    divisor the correction reads (A, or inf where a cell is left out: outside the fluid or A = 0)."""
     wp.launch(exchange_cells_kernel, dim=cell_eps_s.shape, device=cell_eps_s.device,
               inputs=[wp.float64(gas_mass_full), float(eps_f_min), cell_fluid, cell_eps_s, cell_velocity,
                       cell_exchange_coeff, cell_exchange_momentum],
-              outputs=[cell_u_eq, cell_gas_impulse, cell_mismatch])
+              outputs=[cell_u_eq, cell_gas_impulse, cell_mismatch, cell_exchange_divisor])
 
 
-def exchange_correct(grid: CellGrid, dt: float, cell_fluid, cell_exchange_coeff, cell_mismatch,
+def exchange_correct(grid: CellGrid, dt: float, cell_exchange_divisor, cell_mismatch,
                      parcels: ParcelArrays, parcel_exchange, parcel_drag_impulse, *, particle_x_out, particle_v_out,
                      stencil: ParcelStencil | None = None):
     """Deposit the push's impulses into the mismatch and take it back from the parcels (steps 4-5);
-    ``parcels.x``: the positions before the push (``stencil``: as :func:`deposit`)."""
+    ``cell_exchange_divisor``: :func:`exchange_cells`'s; ``parcels.x``: the positions before the push
+    (``stencil``: as :func:`deposit`)."""
     n = parcels.x.shape[0]
     stencil = stencil_or_empty(stencil, parcels.x)
     mismatch = flat_cells(cell_mismatch)
     wp.launch(impulse_deposit_kernel, dim=n, device=parcels.x.device,
               inputs=[grid, stencil, parcels, parcel_drag_impulse], outputs=[mismatch])
     wp.launch(exchange_correct_kernel, dim=n, device=parcels.x.device,
-              inputs=[grid, stencil, float(dt), flat_cells(cell_fluid), flat_cells(cell_exchange_coeff), mismatch,
-                      parcels, parcel_exchange],
+              inputs=[grid, stencil, float(dt), flat_cells(cell_exchange_divisor), mismatch, parcels,
+                      parcel_exchange],
               outputs=[particle_x_out, particle_v_out, parcel_drag_impulse])
