@@ -233,12 +233,40 @@ def stencil_holds(stencil: ParcelStencil, tid: int, x: wp.vec3, k: int):
 
 @wp.func
 def store_stencil(grid: CellGrid, stencil: ParcelStencil, tid: int, x: wp.vec3):
-    """Compute x's trilinear stencil into row ``tid`` of the cache."""
+    """Compute x's trilinear stencil into row ``tid`` of the cache: corner n is ``cic_corner``'s (the same cell and
+    the same product (w_x w_y) w_z, bit for bit), with the per-axis indices and the four w_x w_y products formed
+    once instead of per corner (~30 instead of ~42 ns per parcel on the CPU, issue 14)."""
     base, frac = cic_stencil(grid, x)
-    for n in range(8):
-        idx, w = cic_corner(grid, base, frac, n)
-        stencil.cell[tid, n] = cell_offset(grid, idx)
-        stencil.weight[tid, n] = w
+    one = wp.float64(1.0)
+    ny = grid.shape[1]
+    nz = grid.shape[2]
+    i0 = cic_index(base[0], grid.shape[0], grid.periodic[0]) * ny
+    i1 = cic_index(base[0] + 1, grid.shape[0], grid.periodic[0]) * ny
+    j0 = cic_index(base[1], ny, grid.periodic[1])
+    j1 = cic_index(base[1] + 1, ny, grid.periodic[1])
+    k0 = cic_index(base[2], nz, grid.periodic[2])
+    k1 = cic_index(base[2] + 1, nz, grid.periodic[2])
+    stencil.cell[tid, 0] = (i0 + j0) * nz + k0
+    stencil.cell[tid, 1] = (i1 + j0) * nz + k0
+    stencil.cell[tid, 2] = (i0 + j1) * nz + k0
+    stencil.cell[tid, 3] = (i1 + j1) * nz + k0
+    stencil.cell[tid, 4] = (i0 + j0) * nz + k1
+    stencil.cell[tid, 5] = (i1 + j0) * nz + k1
+    stencil.cell[tid, 6] = (i0 + j1) * nz + k1
+    stencil.cell[tid, 7] = (i1 + j1) * nz + k1
+    w00 = (one - frac[0]) * (one - frac[1])
+    w10 = frac[0] * (one - frac[1])
+    w01 = (one - frac[0]) * frac[1]
+    w11 = frac[0] * frac[1]
+    wz0 = one - frac[2]
+    stencil.weight[tid, 0] = w00 * wz0
+    stencil.weight[tid, 1] = w10 * wz0
+    stencil.weight[tid, 2] = w01 * wz0
+    stencil.weight[tid, 3] = w11 * wz0
+    stencil.weight[tid, 4] = w00 * frac[2]
+    stencil.weight[tid, 5] = w10 * frac[2]
+    stencil.weight[tid, 6] = w01 * frac[2]
+    stencil.weight[tid, 7] = w11 * frac[2]
     stencil.x[tid] = x
 
 
