@@ -155,7 +155,8 @@ class CouplingFields:
         rate: F_D (1/s); exchange: D = weight m_p dt F_D / (1 + dt F_D) (kg); u_eq: the implicit
         exchange velocity at the parcel; x_start: position before the push (the exchange's stencils).
     Scratch of one push, not in checkpoints (``checkpoint=False`` in the field's metadata):
-        exchange_divisor: A_c where the exchange's correction takes the mismatch back, +inf elsewhere (kg).
+        exchange_divisor: A_c where the exchange's correction takes the mismatch back, +inf elsewhere (kg);
+        exchange_sums: (A_c, B_c) as the exchange's deposit accumulates them, vec4d (kg, kg m/s).
     """
 
     cell_solid_volume: object
@@ -187,6 +188,7 @@ class CouplingFields:
     parcel_u_eq: object
     parcel_x_start: object
     cell_exchange_divisor: object = field(default=None, metadata={"checkpoint": False})
+    cell_exchange_sums: object = field(default=None, metadata={"checkpoint": False})
 
     @classmethod
     def allocate(cls, grid: GridSpec, capacity: int, *, device=None) -> "CouplingFields":
@@ -212,7 +214,8 @@ class CouplingFields:
             parcel_drag_coeff=parcels(wp.float64), cell_exchange_coeff=cells(wp.float64),
             cell_exchange_momentum=cells(wp.vec3d), cell_u_eq=cells(wp.vec3), cell_gas_impulse=cells(wp.vec3d),
             cell_mismatch=cells(wp.vec3d), parcel_rate=parcels(wp.float32), parcel_exchange=parcels(wp.float64),
-            parcel_u_eq=parcels(wp.vec3), parcel_x_start=parcels(wp.vec3), cell_exchange_divisor=cells(wp.float64))
+            parcel_u_eq=parcels(wp.vec3), parcel_x_start=parcels(wp.vec3), cell_exchange_divisor=cells(wp.float64),
+            cell_exchange_sums=cells(wp.vec4d))
 
 
 def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields, cell_fluid=None, *, stencil=None) -> None:
@@ -311,10 +314,10 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
     for _ in range(EXCHANGE_PASSES):
         exchange_deposit(g, push_params, start, slip_against, f.parcel_eps_s, f.parcel_grad_p, f.parcel_a_coll,
                          parcel_rate=f.parcel_rate, parcel_exchange=f.parcel_exchange,
-                         cell_exchange_coeff=f.cell_exchange_coeff, cell_exchange_momentum=f.cell_exchange_momentum,
-                         stencil=stencil)
+                         cell_exchange_sums=f.cell_exchange_sums, stencil=stencil)
         exchange_cells(float(gas_density) * grid.cell_volume, eps_f_min, cell_fluid, f.cell_eps_s, cell_velocity,
-                       f.cell_exchange_coeff, f.cell_exchange_momentum, cell_u_eq=f.cell_u_eq,
+                       f.cell_exchange_sums, cell_exchange_coeff=f.cell_exchange_coeff,
+                       cell_exchange_momentum=f.cell_exchange_momentum, cell_u_eq=f.cell_u_eq,
                        cell_gas_impulse=f.cell_gas_impulse, cell_mismatch=f.cell_mismatch,
                        cell_exchange_divisor=f.cell_exchange_divisor)
         interpolate_vec3_parcels(g, f.parcel_x_start, p.weight, f.cell_u_eq, f.parcel_u_eq, stencil=stencil)
