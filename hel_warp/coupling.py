@@ -156,7 +156,8 @@ class CouplingFields:
         exchange velocity at the parcel; x_start: position before the push (the exchange's stencils).
     Scratch of one push, not in checkpoints (``checkpoint=False`` in the field's metadata):
         exchange_divisor: A_c where the exchange's correction takes the mismatch back, +inf elsewhere (kg);
-        exchange_sums: (A_c, B_c) as the exchange's deposit accumulates them, vec4d (kg, kg m/s).
+        exchange_sums: (A_c, B_c) as the exchange's deposit accumulates them, vec4d (kg, kg m/s);
+        deposit_sums: the five sums above as the deposit accumulates them (``kernels.deposit.vec9d``).
     """
 
     cell_solid_volume: object
@@ -189,10 +190,13 @@ class CouplingFields:
     parcel_x_start: object
     cell_exchange_divisor: object = field(default=None, metadata={"checkpoint": False})
     cell_exchange_sums: object = field(default=None, metadata={"checkpoint": False})
+    cell_deposit_sums: object = field(default=None, metadata={"checkpoint": False})
 
     @classmethod
     def allocate(cls, grid: GridSpec, capacity: int, *, device=None) -> "CouplingFields":
         import warp as wp
+
+        from kernels.deposit import vec9d
 
         shape = tuple(int(n) for n in grid.shape)
 
@@ -215,7 +219,7 @@ class CouplingFields:
             cell_exchange_momentum=cells(wp.vec3d), cell_u_eq=cells(wp.vec3), cell_gas_impulse=cells(wp.vec3d),
             cell_mismatch=cells(wp.vec3d), parcel_rate=parcels(wp.float32), parcel_exchange=parcels(wp.float64),
             parcel_u_eq=parcels(wp.vec3), parcel_x_start=parcels(wp.vec3), cell_exchange_divisor=cells(wp.float64),
-            cell_exchange_sums=cells(wp.vec4d))
+            cell_exchange_sums=cells(wp.vec4d), cell_deposit_sums=cells(vec9d))
 
 
 def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields, cell_fluid=None, *, stencil=None) -> None:
@@ -226,10 +230,10 @@ def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields, cell_flui
     from kernels.interp import parcel_arrays
 
     deposit(grid.cell_grid(cell_fluid), parcel_arrays(particles), fields.parcel_drag_impulse, fields.parcel_drag_coeff,
-            cell_solid_volume=fields.cell_solid_volume,
-            cell_momentum_source=fields.cell_momentum_source, cell_drag_coeff=fields.cell_drag_coeff,
-            cell_solid_mass=fields.cell_solid_mass, cell_solid_momentum=fields.cell_solid_momentum, stencil=stencil)
-    finish_cells(grid.cell_volume, fields.cell_solid_volume, fields.cell_solid_mass, fields.cell_solid_momentum,
+            cell_sums=fields.cell_deposit_sums, stencil=stencil)
+    finish_cells(grid.cell_volume, fields.cell_deposit_sums, cell_solid_volume=fields.cell_solid_volume,
+                 cell_momentum_source=fields.cell_momentum_source, cell_drag_coeff=fields.cell_drag_coeff,
+                 cell_solid_mass=fields.cell_solid_mass, cell_solid_momentum=fields.cell_solid_momentum,
                  cell_eps_s=fields.cell_eps_s, cell_solid_velocity=fields.cell_solid_velocity)
 
 
