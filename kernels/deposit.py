@@ -80,33 +80,34 @@ def deposit_kernel(
 @wp.kernel
 def finish_cells_kernel(
     cell_volume: wp.float64,
-    cell_sums: wp.array3d(dtype=vec9d),
+    cell_sums: wp.array(dtype=vec9d),
     # outputs
-    cell_solid_volume: wp.array3d(dtype=wp.float64),
-    cell_momentum_source: wp.array3d(dtype=wp.vec3d),
-    cell_drag_coeff: wp.array3d(dtype=wp.float64),
-    cell_solid_mass: wp.array3d(dtype=wp.float64),
-    cell_solid_momentum: wp.array3d(dtype=wp.vec3d),
-    cell_eps_s: wp.array3d(dtype=float),
-    cell_solid_velocity: wp.array3d(dtype=wp.vec3),
+    cell_solid_volume: wp.array(dtype=wp.float64),
+    cell_momentum_source: wp.array(dtype=wp.vec3d),
+    cell_drag_coeff: wp.array(dtype=wp.float64),
+    cell_solid_mass: wp.array(dtype=wp.float64),
+    cell_solid_momentum: wp.array(dtype=wp.vec3d),
+    cell_eps_s: wp.array(dtype=float),
+    cell_solid_velocity: wp.array(dtype=wp.vec3),
 ):
-    """The five sums out of the deposit's record; eps_s = V_s / V_cell and the mass-averaged solids velocity."""
-    i, j, k = wp.tid()
-    sums = cell_sums[i, j, k]
+    """The five sums out of the deposit's record; eps_s = V_s / V_cell and the mass-averaged solids velocity (cell
+    arrays flat)."""
+    c = wp.tid()
+    sums = cell_sums[c]
     volume = sums[0]
     mass = sums[5]
     momentum = wp.vec3d(sums[6], sums[7], sums[8])
-    cell_solid_volume[i, j, k] = volume
-    cell_momentum_source[i, j, k] = wp.vec3d(sums[1], sums[2], sums[3])
-    cell_drag_coeff[i, j, k] = sums[4]
-    cell_solid_mass[i, j, k] = mass
-    cell_solid_momentum[i, j, k] = momentum
-    cell_eps_s[i, j, k] = float(volume / cell_volume)
+    cell_solid_volume[c] = volume
+    cell_momentum_source[c] = wp.vec3d(sums[1], sums[2], sums[3])
+    cell_drag_coeff[c] = sums[4]
+    cell_solid_mass[c] = mass
+    cell_solid_momentum[c] = momentum
+    cell_eps_s[c] = float(volume / cell_volume)
     u = wp.vec3(0.0, 0.0, 0.0)
     if mass > wp.float64(0.0):
         p = momentum / mass
         u = wp.vec3(float(p[0]), float(p[1]), float(p[2]))
-    cell_solid_velocity[i, j, k] = u
+    cell_solid_velocity[c] = u
 
 
 @wp.kernel
@@ -195,43 +196,44 @@ def exchange_deposit_kernel(
 def exchange_cells_kernel(
     gas_mass_full: wp.float64,
     eps_f_min: float,
-    cell_fluid: wp.array3d(dtype=wp.int32),
-    cell_eps_s: wp.array3d(dtype=float),
-    cell_velocity: wp.array3d(dtype=wp.vec3),
-    cell_exchange_sums: wp.array3d(dtype=wp.vec4d),
+    cell_fluid: wp.array(dtype=wp.int32),
+    cell_eps_s: wp.array(dtype=float),
+    cell_velocity: wp.array(dtype=wp.vec3),
+    cell_exchange_sums: wp.array(dtype=wp.vec4d),
     # outputs
-    cell_exchange_coeff: wp.array3d(dtype=wp.float64),
-    cell_exchange_momentum: wp.array3d(dtype=wp.vec3d),
-    cell_u_eq: wp.array3d(dtype=wp.vec3),
-    cell_gas_impulse: wp.array3d(dtype=wp.vec3d),
-    cell_mismatch: wp.array3d(dtype=wp.vec3d),
-    cell_exchange_divisor: wp.array3d(dtype=wp.float64),
+    cell_exchange_coeff: wp.array(dtype=wp.float64),
+    cell_exchange_momentum: wp.array(dtype=wp.vec3d),
+    cell_u_eq: wp.array(dtype=wp.vec3),
+    cell_gas_impulse: wp.array(dtype=wp.vec3d),
+    cell_mismatch: wp.array(dtype=wp.vec3d),
+    cell_exchange_divisor: wp.array(dtype=wp.float64),
 ):
     """A_c and B_c from the deposit's sums; u_eq_c and G_c (``gas_mass_full`` = rho_f V_c, the gas mass of a
-    particle-free cell); mismatch = G_c; the correction's divisor A_c (``NO_EXCHANGE`` where the cell is left out)."""
-    i, j, k = wp.tid()
-    u = cell_velocity[i, j, k]
-    sums = cell_exchange_sums[i, j, k]
+    particle-free cell); mismatch = G_c; the correction's divisor A_c (``NO_EXCHANGE`` where the cell is left out).
+    Cell arrays flat (``flat_cells``: one index instead of three per access)."""
+    c = wp.tid()
+    u = cell_velocity[c]
+    sums = cell_exchange_sums[c]
     a = sums[0]
     b = wp.vec3d(sums[1], sums[2], sums[3])
-    cell_exchange_coeff[i, j, k] = a
-    cell_exchange_momentum[i, j, k] = b
+    cell_exchange_coeff[c] = a
+    cell_exchange_momentum[c] = b
     zero = wp.vec3d(0.0, 0.0, 0.0)
-    if cell_fluid[i, j, k] == 0 or a <= wp.float64(0.0):
-        cell_u_eq[i, j, k] = u
-        cell_gas_impulse[i, j, k] = zero
-        cell_mismatch[i, j, k] = zero
-        cell_exchange_divisor[i, j, k] = NO_EXCHANGE
+    if cell_fluid[c] == 0 or a <= wp.float64(0.0):
+        cell_u_eq[c] = u
+        cell_gas_impulse[c] = zero
+        cell_mismatch[c] = zero
+        cell_exchange_divisor[c] = NO_EXCHANGE
         return
-    cell_exchange_divisor[i, j, k] = a
-    eps_f = wp.max(1.0 - cell_eps_s[i, j, k], eps_f_min)
+    cell_exchange_divisor[c] = a
+    eps_f = wp.max(1.0 - cell_eps_s[c], eps_f_min)
     m = gas_mass_full * wp.float64(eps_f)
     ud = wp.vec3d(wp.float64(u[0]), wp.float64(u[1]), wp.float64(u[2]))
     u_eq = (m * ud + b) / (m + a)
     g = m * (u_eq - ud)
-    cell_u_eq[i, j, k] = wp.vec3(float(u_eq[0]), float(u_eq[1]), float(u_eq[2]))
-    cell_gas_impulse[i, j, k] = g
-    cell_mismatch[i, j, k] = g
+    cell_u_eq[c] = wp.vec3(float(u_eq[0]), float(u_eq[1]), float(u_eq[2]))
+    cell_gas_impulse[c] = g
+    cell_mismatch[c] = g
 
 
 @wp.kernel
@@ -319,10 +321,10 @@ def finish_cells(cell_volume: float, cell_sums, *, cell_solid_volume, cell_momen
                  cell_solid_mass, cell_solid_momentum, cell_eps_s, cell_solid_velocity):
     """The five sums out of :func:`deposit`'s record, the solid volume fraction and the mass-averaged solids
     velocity."""
-    wp.launch(finish_cells_kernel, dim=cell_eps_s.shape, device=cell_eps_s.device,
-              inputs=[wp.float64(cell_volume), cell_sums],
-              outputs=[cell_solid_volume, cell_momentum_source, cell_drag_coeff, cell_solid_mass, cell_solid_momentum,
-                       cell_eps_s, cell_solid_velocity])
+    wp.launch(finish_cells_kernel, dim=cell_eps_s.size, device=cell_eps_s.device,
+              inputs=[wp.float64(cell_volume), flat_cells(cell_sums)],
+              outputs=[flat_cells(a) for a in (cell_solid_volume, cell_momentum_source, cell_drag_coeff, cell_solid_mass,
+                                               cell_solid_momentum, cell_eps_s, cell_solid_velocity)])
 
 
 def to_float32(cell_momentum_source, cell_drag_coeff, *, cell_momentum_source_f32, cell_drag_coeff_f32):
@@ -351,11 +353,11 @@ def exchange_cells(gas_mass_full: float, eps_f_min: float, cell_fluid, cell_eps_
     """A and B from :func:`exchange_deposit`'s sums, u_eq, the gas impulse G and the mismatch's start value G per
     cell (implicit exchange, step 2), and the divisor the correction reads (A, or inf where a cell is left out:
     outside the fluid or A = 0)."""
-    wp.launch(exchange_cells_kernel, dim=cell_eps_s.shape, device=cell_eps_s.device,
-              inputs=[wp.float64(gas_mass_full), float(eps_f_min), cell_fluid, cell_eps_s, cell_velocity,
-                      cell_exchange_sums],
-              outputs=[cell_exchange_coeff, cell_exchange_momentum, cell_u_eq, cell_gas_impulse, cell_mismatch,
-                       cell_exchange_divisor])
+    wp.launch(exchange_cells_kernel, dim=cell_eps_s.size, device=cell_eps_s.device,
+              inputs=[wp.float64(gas_mass_full), float(eps_f_min)]
+              + [flat_cells(a) for a in (cell_fluid, cell_eps_s, cell_velocity, cell_exchange_sums)],
+              outputs=[flat_cells(a) for a in (cell_exchange_coeff, cell_exchange_momentum, cell_u_eq, cell_gas_impulse,
+                                               cell_mismatch, cell_exchange_divisor)])
 
 
 def exchange_correct(grid: CellGrid, dt: float, cell_exchange_divisor, cell_mismatch,
