@@ -112,16 +112,16 @@ def finish_cells_kernel(
 
 @wp.kernel
 def to_float32_kernel(
-    cell_momentum_source: wp.array3d(dtype=wp.vec3d),
-    cell_drag_coeff: wp.array3d(dtype=wp.float64),
+    cell_momentum_source: wp.array(dtype=wp.vec3d),
+    cell_drag_coeff: wp.array(dtype=wp.float64),
     # outputs
-    cell_momentum_source_f32: wp.array3d(dtype=wp.vec3),
-    cell_drag_coeff_f32: wp.array3d(dtype=float),
+    cell_momentum_source_f32: wp.array(dtype=wp.vec3),
+    cell_drag_coeff_f32: wp.array(dtype=float),
 ):
-    i, j, k = wp.tid()
-    s = cell_momentum_source[i, j, k]
-    cell_momentum_source_f32[i, j, k] = wp.vec3(float(s[0]), float(s[1]), float(s[2]))
-    cell_drag_coeff_f32[i, j, k] = float(cell_drag_coeff[i, j, k])
+    c = wp.tid()
+    s = cell_momentum_source[c]
+    cell_momentum_source_f32[c] = wp.vec3(float(s[0]), float(s[1]), float(s[2]))
+    cell_drag_coeff_f32[c] = float(cell_drag_coeff[c])
 
 
 # ---------------------------------------------------------------- implicit momentum exchange
@@ -329,9 +329,9 @@ def finish_cells(cell_volume: float, cell_sums, *, cell_solid_volume, cell_momen
 
 def to_float32(cell_momentum_source, cell_drag_coeff, *, cell_momentum_source_f32, cell_drag_coeff_f32):
     """Copy the float64 sums into float32 cell arrays (the gas solver's inputs)."""
-    wp.launch(to_float32_kernel, dim=cell_drag_coeff.shape, device=cell_drag_coeff.device,
-              inputs=[cell_momentum_source, cell_drag_coeff],
-              outputs=[cell_momentum_source_f32, cell_drag_coeff_f32])
+    wp.launch(to_float32_kernel, dim=cell_drag_coeff.size, device=cell_drag_coeff.device,
+              inputs=[flat_cells(cell_momentum_source), flat_cells(cell_drag_coeff)],
+              outputs=[flat_cells(cell_momentum_source_f32), flat_cells(cell_drag_coeff_f32)])
 
 
 def exchange_deposit(grid: CellGrid, params, parcels: ParcelArrays, parcel_u_f, parcel_eps_s, parcel_grad_p,
