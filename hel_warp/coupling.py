@@ -167,7 +167,9 @@ class CouplingFields:
     Scratch of one push, not in checkpoints (``checkpoint=False`` in the field's metadata):
         exchange_divisor: A_c where the exchange's correction takes the mismatch back, +inf elsewhere (kg);
         exchange_sums: (A_c, B_c) as the exchange's deposit accumulates them, vec4d (kg, kg m/s);
-        deposit_sums: the five sums above as the deposit accumulates them (``kernels.deposit.vec9d``).
+        deposit_sums: the five sums above as the deposit accumulates them (``kernels.deposit.vec9d``);
+        gas_record: the gas velocity, grad p' and eps_s the interpolation reads, side by side
+        (``kernels.interp.gas_record``).
     """
 
     cell_solid_volume: object
@@ -201,12 +203,14 @@ class CouplingFields:
     cell_exchange_divisor: object = field(default=None, metadata={"checkpoint": False})
     cell_exchange_sums: object = field(default=None, metadata={"checkpoint": False})
     cell_deposit_sums: object = field(default=None, metadata={"checkpoint": False})
+    cell_gas_record: object = field(default=None, metadata={"checkpoint": False})
 
     @classmethod
     def allocate(cls, grid: GridSpec, capacity: int, *, device=None) -> "CouplingFields":
         import warp as wp
 
         from kernels.deposit import vec9d
+        from kernels.interp import gas_record
 
         shape = tuple(int(n) for n in grid.shape)
 
@@ -229,7 +233,7 @@ class CouplingFields:
             cell_exchange_momentum=cells(wp.vec3d), cell_u_eq=cells(wp.vec3), cell_gas_impulse=cells(wp.vec3d),
             cell_mismatch=cells(wp.vec3d), parcel_rate=parcels(wp.float32), parcel_exchange=parcels(wp.float64),
             parcel_u_eq=parcels(wp.vec3), parcel_x_start=parcels(wp.vec3), cell_exchange_divisor=cells(wp.float64),
-            cell_exchange_sums=cells(wp.vec4d), cell_deposit_sums=cells(vec9d))
+            cell_exchange_sums=cells(wp.vec4d), cell_deposit_sums=cells(vec9d), cell_gas_record=cells(gas_record))
 
 
 def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields, cell_fluid=None, *, stencil=None) -> None:
@@ -254,8 +258,8 @@ def interpolate_gas(grid: GridSpec, particles, cell_velocity, cell_grad_p, field
     from kernels.interp import interpolate_gas_parcels
 
     interpolate_gas_parcels(grid.cell_grid(cell_fluid), particles.x, particles.weight, cell_velocity, cell_grad_p,
-                            fields.cell_eps_s, parcel_u_f=fields.parcel_u_f, parcel_grad_p=fields.parcel_grad_p,
-                            parcel_eps_s=fields.parcel_eps_s, stencil=stencil)
+                            fields.cell_eps_s, cell_gas=fields.cell_gas_record, parcel_u_f=fields.parcel_u_f,
+                            parcel_grad_p=fields.parcel_grad_p, parcel_eps_s=fields.parcel_eps_s, stencil=stencil)
 
 
 def ktgf_collision(grid: GridSpec, particles, fields: CouplingFields, params, *, dt: float | None = None) -> None:

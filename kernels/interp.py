@@ -360,22 +360,48 @@ def interp_scalar_parcels_kernel(
     parcel_value[tid] = float(acc)
 
 
+gas_record = wp.types.vector(length=8, dtype=wp.float32)
+"""One cell's fields of the HEL step's interpolation side by side: gas velocity (3), grad p' (3), eps_s, unused."""
+
+
+@wp.kernel
+def gas_record_kernel(
+    cell_velocity: wp.array(dtype=wp.vec3),
+    cell_grad_p: wp.array(dtype=wp.vec3),
+    cell_eps_s: wp.array(dtype=float),
+    # outputs
+    cell_gas: wp.array(dtype=gas_record),
+):
+    """The three cell fields into one record per cell (flat)."""
+    c = wp.tid()
+    u = cell_velocity[c]
+    g = cell_grad_p[c]
+    cell_gas[c] = gas_record(u[0], u[1], u[2], g[0], g[1], g[2], cell_eps_s[c], 0.0)
+
+
+@wp.func
+def add_gas_record(w: wp.float64, r: gas_record, u: wp.vec3d, g: wp.vec3d, e: wp.float64):
+    """u, g, e plus w times the record's three fields (float64)."""
+    u_new = u + w * wp.vec3d(wp.float64(r[0]), wp.float64(r[1]), wp.float64(r[2]))
+    g_new = g + w * wp.vec3d(wp.float64(r[3]), wp.float64(r[4]), wp.float64(r[5]))
+    return u_new, g_new, e + w * wp.float64(r[6])
+
+
 @wp.kernel
 def interp_gas_kernel(
     grid: CellGrid,
     stencil: ParcelStencil,
     particle_x: wp.array(dtype=wp.vec3),
     particle_weight: wp.array(dtype=float),
-    cell_velocity: wp.array(dtype=wp.vec3),
-    cell_grad_p: wp.array(dtype=wp.vec3),
-    cell_eps_s: wp.array(dtype=float),
+    cell_gas: wp.array(dtype=gas_record),
     # outputs
     parcel_u_f: wp.array(dtype=wp.vec3),
     parcel_grad_p: wp.array(dtype=wp.vec3),
     parcel_eps_s: wp.array(dtype=float),
 ):
-    """The three fields of the HEL step's interpolation in one pass over the stencil (each summed as
-    ``interp_vec3_parcels_kernel`` / ``interp_scalar_parcels_kernel`` sum it: the same bits); cell fields flat."""
+    """The three fields of the HEL step's interpolation in one pass over the stencil, from the cells' records
+    (``gas_record_kernel``; each field summed as ``interp_vec3_parcels_kernel`` / ``interp_scalar_parcels_kernel``
+    sum it: the same bits); cell records flat."""
     tid = wp.tid()
     weight = float(1.0)
     if particle_weight.shape[0] > 0:  # no weights: trilinear
@@ -386,19 +412,12 @@ def interp_gas_kernel(
     e = wp.float64(0.0)
     if stencil_holds(stencil, tid, x, spread_half_width(grid, weight)):
         for n in range(8):
-            c = stencil.cell[tid, n]
-            w = stencil.weight[tid, n]
-            u = u + w * vec3_to_64(cell_velocity[c])
-            g = g + w * vec3_to_64(cell_grad_p[c])
-            e = e + w * wp.float64(cell_eps_s[c])
+            u, g, e = add_gas_record(stencil.weight[tid, n], cell_gas[stencil.cell[tid, n]], u, g, e)
     else:
         base, frac, k, norm = parcel_stencil(grid, x, weight)
         for n in range(8 * k * k * k):
             idx, w = parcel_cell(grid, base, frac, k, norm, n)
-            c = cell_offset(grid, idx)
-            u = u + w * vec3_to_64(cell_velocity[c])
-            g = g + w * vec3_to_64(cell_grad_p[c])
-            e = e + w * wp.float64(cell_eps_s[c])
+            u, g, e = add_gas_record(w, cell_gas[cell_offset(grid, idx)], u, g, e)
     parcel_u_f[tid] = vec3_from_64(u)
     parcel_grad_p[tid] = vec3_from_64(g)
     parcel_eps_s[tid] = float(e)
@@ -590,13 +609,17 @@ def interpolate_scalar_parcels(grid: CellGrid, particle_x, particle_weight, cell
 
 
 def interpolate_gas_parcels(grid: CellGrid, particle_x, particle_weight, cell_velocity, cell_grad_p, cell_eps_s, *,
-                            parcel_u_f, parcel_grad_p, parcel_eps_s, stencil: ParcelStencil | None = None):
+                            cell_gas, parcel_u_f, parcel_grad_p, parcel_eps_s, stencil: ParcelStencil | None = None):
     """Gas velocity, grad p' and eps_s at each parcel in one pass (the values of three
-    :func:`interpolate_vec3_parcels` / :func:`interpolate_scalar_parcels` calls, bit for bit)."""
+    :func:`interpolate_vec3_parcels` / :func:`interpolate_scalar_parcels` calls, bit for bit). ``cell_gas``: an
+    (nx, ny, nz) ``gas_record`` scratch array the three cell fields are first copied into, so that a corner is one
+    32-byte read instead of three (~37 instead of ~51 ns per parcel on the CPU, the copy included)."""
+    gas = flat_cells(cell_gas)
+    wp.launch(gas_record_kernel, dim=cell_gas.size, device=particle_x.device,
+              inputs=[flat_cells(cell_velocity), flat_cells(cell_grad_p), flat_cells(cell_eps_s)], outputs=[gas])
     wp.launch(interp_gas_kernel, dim=particle_x.shape[0], device=particle_x.device,
               inputs=[grid, stencil_or_empty(stencil, particle_x), particle_x,
-                      _weights_or_none(particle_weight, particle_x), flat_cells(cell_velocity), flat_cells(cell_grad_p),
-                      flat_cells(cell_eps_s)],
+                      _weights_or_none(particle_weight, particle_x), gas],
               outputs=[parcel_u_f, parcel_grad_p, parcel_eps_s])
 
 
