@@ -170,6 +170,8 @@ class CouplingFields:
         deposit_sums: the five sums above as the deposit accumulates them (``kernels.deposit.vec9d``);
         gas_record: the gas velocity, grad p' and eps_s the interpolation reads, side by side
         (``kernels.interp.gas_record``).
+    Not a field: ``launches``, the coupling kernels' recorded launches (``kernels.launches.LaunchCache``: a launch
+    replayed costs ~7 instead of ~25 us; it holds the arrays it was given, as these fields do).
     """
 
     cell_solid_volume: object
@@ -210,6 +212,7 @@ class CouplingFields:
         import warp as wp
 
         from kernels.deposit import vec9d
+        from kernels.launches import LaunchCache
         from kernels.interp import gas_record
 
         shape = tuple(int(n) for n in grid.shape)
@@ -220,7 +223,7 @@ class CouplingFields:
         def parcels(dtype):
             return wp.zeros(int(capacity), dtype=dtype, device=device)
 
-        return cls(
+        fields = cls(
             cell_solid_volume=cells(wp.float64), cell_momentum_source=cells(wp.vec3d),
             cell_drag_coeff=cells(wp.float64), cell_solid_mass=cells(wp.float64),
             cell_solid_momentum=cells(wp.vec3d), cell_eps_s=cells(wp.float32),
@@ -234,6 +237,8 @@ class CouplingFields:
             cell_mismatch=cells(wp.vec3d), parcel_rate=parcels(wp.float32), parcel_exchange=parcels(wp.float64),
             parcel_u_eq=parcels(wp.vec3), parcel_x_start=parcels(wp.vec3), cell_exchange_divisor=cells(wp.float64),
             cell_exchange_sums=cells(wp.vec4d), cell_deposit_sums=cells(vec9d), cell_gas_record=cells(gas_record))
+        fields.launches = LaunchCache()
+        return fields
 
 
 def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields, cell_fluid=None, *, stencil=None) -> None:
@@ -244,11 +249,12 @@ def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields, cell_flui
     from kernels.interp import parcel_arrays
 
     deposit(grid.cell_grid(cell_fluid), parcel_arrays(particles), fields.parcel_drag_impulse, fields.parcel_drag_coeff,
-            cell_sums=fields.cell_deposit_sums, stencil=stencil)
+            cell_sums=fields.cell_deposit_sums, stencil=stencil, launches=fields.launches)
     finish_cells(grid.cell_volume, fields.cell_deposit_sums, cell_solid_volume=fields.cell_solid_volume,
                  cell_momentum_source=fields.cell_momentum_source, cell_drag_coeff=fields.cell_drag_coeff,
                  cell_solid_mass=fields.cell_solid_mass, cell_solid_momentum=fields.cell_solid_momentum,
-                 cell_eps_s=fields.cell_eps_s, cell_solid_velocity=fields.cell_solid_velocity)
+                 cell_eps_s=fields.cell_eps_s, cell_solid_velocity=fields.cell_solid_velocity,
+                 launches=fields.launches)
 
 
 def interpolate_gas(grid: GridSpec, particles, cell_velocity, cell_grad_p, fields: CouplingFields,
@@ -259,7 +265,8 @@ def interpolate_gas(grid: GridSpec, particles, cell_velocity, cell_grad_p, field
 
     interpolate_gas_parcels(grid.cell_grid(cell_fluid), particles.x, particles.weight, cell_velocity, cell_grad_p,
                             fields.cell_eps_s, cell_gas=fields.cell_gas_record, parcel_u_f=fields.parcel_u_f,
-                            parcel_grad_p=fields.parcel_grad_p, parcel_eps_s=fields.parcel_eps_s, stencil=stencil)
+                            parcel_grad_p=fields.parcel_grad_p, parcel_eps_s=fields.parcel_eps_s, stencil=stencil,
+                            launches=fields.launches)
 
 
 def ktgf_collision(grid: GridSpec, particles, fields: CouplingFields, params, *, dt: float | None = None) -> None:
@@ -327,23 +334,26 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
     wp.copy(f.parcel_x_start, p.x)
     start = parcel_arrays(p, x=f.parcel_x_start)  # the parcels as they were before the push
     if stencil is not None:
-        fill_stencil(g, f.parcel_x_start, p.weight, stencil, only_stale=True)
+        fill_stencil(g, f.parcel_x_start, p.weight, stencil, only_stale=True, launches=f.launches)
     slip_against = f.parcel_u_f
     for _ in range(EXCHANGE_PASSES):
         exchange_deposit(g, push_params, start, slip_against, f.parcel_eps_s, f.parcel_grad_p, f.parcel_a_coll,
                          parcel_rate=f.parcel_rate, parcel_exchange=f.parcel_exchange,
-                         cell_exchange_sums=f.cell_exchange_sums, stencil=stencil)
+                         cell_exchange_sums=f.cell_exchange_sums, stencil=stencil, launches=f.launches)
         exchange_cells(float(gas_density) * grid.cell_volume, eps_f_min, cell_fluid, f.cell_eps_s, cell_velocity,
                        f.cell_exchange_sums, cell_exchange_coeff=f.cell_exchange_coeff,
                        cell_exchange_momentum=f.cell_exchange_momentum, cell_u_eq=f.cell_u_eq,
                        cell_gas_impulse=f.cell_gas_impulse, cell_mismatch=f.cell_mismatch,
-                       cell_exchange_divisor=f.cell_exchange_divisor)
-        interpolate_vec3_parcels(g, f.parcel_x_start, p.weight, f.cell_u_eq, f.parcel_u_eq, stencil=stencil)
+                       cell_exchange_divisor=f.cell_exchange_divisor, launches=f.launches)
+        interpolate_vec3_parcels(g, f.parcel_x_start, p.weight, f.cell_u_eq, f.parcel_u_eq, stencil=stencil,
+                                 launches=f.launches)
         slip_against = f.parcel_u_eq
     push_at_rate(push_params, start, f.parcel_u_eq, f.parcel_rate, f.parcel_grad_p, f.parcel_a_coll,
-                 f.parcel_drag_impulse, f.parcel_drag_coeff, particle_x_out=x_out, particle_v_out=v_out)
+                 f.parcel_drag_impulse, f.parcel_drag_coeff, particle_x_out=x_out, particle_v_out=v_out,
+                 launches=f.launches)
     exchange_correct(g, push_params.dt, f.cell_exchange_divisor, f.cell_mismatch, start, f.parcel_exchange,
-                     f.parcel_drag_impulse, particle_x_out=x_out, particle_v_out=v_out, stencil=stencil)
+                     f.parcel_drag_impulse, particle_x_out=x_out, particle_v_out=v_out, stencil=stencil,
+                     launches=f.launches)
 
 
 def single_particle_response(*, diameter: float, density: float, config: PushConfig, dt: float,

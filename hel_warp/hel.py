@@ -375,7 +375,7 @@ class HelSolver:
         wp.copy(self.gas.cell_eps_s, self.fields.cell_eps_s)
         to_float32(self.fields.cell_momentum_source, self.fields.cell_drag_coeff,
                    cell_momentum_source_f32=self.gas.cell_momentum_source,
-                   cell_drag_coeff_f32=self.gas.cell_drag_coeff)
+                   cell_drag_coeff_f32=self.gas.cell_drag_coeff, launches=self.fields.launches)
 
     def gas_step(self) -> None:
         """2. eps_f-weighted Navier-Stokes step with the particle momentum source (engineer F)."""

@@ -26,6 +26,7 @@ import math
 
 import warp as wp
 
+from kernels.launches import LaunchCache, launch
 from kernels.interp import (CellGrid, ParcelArrays, ParcelStencil, cell_offset, flat_cells, parcel_cell,
                             parcel_stencil, spread_half_width, stencil_holds, stencil_or_empty, store_stencil)
 from kernels.push import PushParams, body_acceleration, parcel_drag_rate, parcel_mass
@@ -305,73 +306,75 @@ def exchange_correct_kernel(
 # ---------------------------------------------------------------- launch wrappers
 
 def deposit(grid: CellGrid, parcels: ParcelArrays, parcel_drag_impulse, parcel_drag_coeff, *, cell_sums,
-            stencil: ParcelStencil | None = None):
+            stencil: ParcelStencil | None = None, launches: LaunchCache | None = None):
     """Zero the (nx, ny, nz) ``vec9d`` record ``cell_sums`` and deposit every live parcel into it (``parcels``: see
     ``kernels.interp.parcel_arrays``; :func:`finish_cells` unpacks it: one accumulation of nine float64 per corner
     instead of five arrays, ~10-20 ns per parcel less on the CPU); ``stencil``: a ``ParcelStencil`` filled here
     with every trilinear parcel's row at ``parcels.x`` (the deposit is the step's first pass at new positions),
     None: no cache."""
     cell_sums.zero_()
-    wp.launch(deposit_kernel, dim=parcels.x.shape[0], device=parcels.x.device,
-              inputs=[grid, stencil_or_empty(stencil, parcels.x), parcels, parcel_drag_impulse, parcel_drag_coeff],
-              outputs=[flat_cells(cell_sums)])
+    launch(deposit_kernel, dim=parcels.x.shape[0], device=parcels.x.device,
+           inputs=[grid, stencil_or_empty(stencil, parcels.x), parcels, parcel_drag_impulse, parcel_drag_coeff],
+           outputs=[flat_cells(cell_sums)], cache=launches)
 
 
 def finish_cells(cell_volume: float, cell_sums, *, cell_solid_volume, cell_momentum_source, cell_drag_coeff,
-                 cell_solid_mass, cell_solid_momentum, cell_eps_s, cell_solid_velocity):
+                 cell_solid_mass, cell_solid_momentum, cell_eps_s, cell_solid_velocity,
+                 launches: LaunchCache | None = None):
     """The five sums out of :func:`deposit`'s record, the solid volume fraction and the mass-averaged solids
     velocity."""
-    wp.launch(finish_cells_kernel, dim=cell_eps_s.size, device=cell_eps_s.device,
-              inputs=[wp.float64(cell_volume), flat_cells(cell_sums)],
-              outputs=[flat_cells(a) for a in (cell_solid_volume, cell_momentum_source, cell_drag_coeff, cell_solid_mass,
-                                               cell_solid_momentum, cell_eps_s, cell_solid_velocity)])
+    launch(finish_cells_kernel, dim=cell_eps_s.size, device=cell_eps_s.device,
+           inputs=[wp.float64(cell_volume), flat_cells(cell_sums)],
+           outputs=[flat_cells(a) for a in (cell_solid_volume, cell_momentum_source, cell_drag_coeff, cell_solid_mass,
+                                            cell_solid_momentum, cell_eps_s, cell_solid_velocity)], cache=launches)
 
 
-def to_float32(cell_momentum_source, cell_drag_coeff, *, cell_momentum_source_f32, cell_drag_coeff_f32):
+def to_float32(cell_momentum_source, cell_drag_coeff, *, cell_momentum_source_f32, cell_drag_coeff_f32,
+               launches: LaunchCache | None = None):
     """Copy the float64 sums into float32 cell arrays (the gas solver's inputs)."""
-    wp.launch(to_float32_kernel, dim=cell_drag_coeff.size, device=cell_drag_coeff.device,
-              inputs=[flat_cells(cell_momentum_source), flat_cells(cell_drag_coeff)],
-              outputs=[flat_cells(cell_momentum_source_f32), flat_cells(cell_drag_coeff_f32)])
+    launch(to_float32_kernel, dim=cell_drag_coeff.size, device=cell_drag_coeff.device,
+           inputs=[flat_cells(cell_momentum_source), flat_cells(cell_drag_coeff)],
+           outputs=[flat_cells(cell_momentum_source_f32), flat_cells(cell_drag_coeff_f32)], cache=launches)
 
 
 def exchange_deposit(grid: CellGrid, params, parcels: ParcelArrays, parcel_u_f, parcel_eps_s, parcel_grad_p,
                      parcel_a_coll, *, parcel_rate, parcel_exchange, cell_exchange_sums,
-                     stencil: ParcelStencil | None = None):
+                     stencil: ParcelStencil | None = None, launches: LaunchCache | None = None):
     """Zero (A, B) and deposit (D_i, D_i v*_i) into one vec4d per cell (implicit exchange, step 1: one
     accumulation of four float64 per corner, ~10 ns per parcel less than into separate A and B arrays on the CPU;
     ``stencil``: as :func:`deposit`)."""
     cell_exchange_sums.zero_()
-    wp.launch(exchange_deposit_kernel, dim=parcels.x.shape[0], device=parcels.x.device,
-              inputs=[grid, stencil_or_empty(stencil, parcels.x), params, parcels, parcel_u_f, parcel_eps_s,
-                      parcel_grad_p, parcel_a_coll],
-              outputs=[parcel_rate, parcel_exchange, flat_cells(cell_exchange_sums)])
+    launch(exchange_deposit_kernel, dim=parcels.x.shape[0], device=parcels.x.device,
+           inputs=[grid, stencil_or_empty(stencil, parcels.x), params, parcels, parcel_u_f, parcel_eps_s,
+                   parcel_grad_p, parcel_a_coll],
+           outputs=[parcel_rate, parcel_exchange, flat_cells(cell_exchange_sums)], cache=launches)
 
 
 def exchange_cells(gas_mass_full: float, eps_f_min: float, cell_fluid, cell_eps_s, cell_velocity,
                    cell_exchange_sums, *, cell_exchange_coeff, cell_exchange_momentum, cell_u_eq, cell_gas_impulse,
-                   cell_mismatch, cell_exchange_divisor):
+                   cell_mismatch, cell_exchange_divisor, launches: LaunchCache | None = None):
     """A and B from :func:`exchange_deposit`'s sums, u_eq, the gas impulse G and the mismatch's start value G per
     cell (implicit exchange, step 2), and the divisor the correction reads (A, or inf where a cell is left out:
     outside the fluid or A = 0)."""
-    wp.launch(exchange_cells_kernel, dim=cell_eps_s.size, device=cell_eps_s.device,
-              inputs=[wp.float64(gas_mass_full), float(eps_f_min)]
-              + [flat_cells(a) for a in (cell_fluid, cell_eps_s, cell_velocity, cell_exchange_sums)],
-              outputs=[flat_cells(a) for a in (cell_exchange_coeff, cell_exchange_momentum, cell_u_eq, cell_gas_impulse,
-                                               cell_mismatch, cell_exchange_divisor)])
+    launch(exchange_cells_kernel, dim=cell_eps_s.size, device=cell_eps_s.device,
+           inputs=[wp.float64(gas_mass_full), float(eps_f_min)]
+           + [flat_cells(a) for a in (cell_fluid, cell_eps_s, cell_velocity, cell_exchange_sums)],
+           outputs=[flat_cells(a) for a in (cell_exchange_coeff, cell_exchange_momentum, cell_u_eq, cell_gas_impulse,
+                                            cell_mismatch, cell_exchange_divisor)], cache=launches)
 
 
 def exchange_correct(grid: CellGrid, dt: float, cell_exchange_divisor, cell_mismatch,
                      parcels: ParcelArrays, parcel_exchange, parcel_drag_impulse, *, particle_x_out, particle_v_out,
-                     stencil: ParcelStencil | None = None):
+                     stencil: ParcelStencil | None = None, launches: LaunchCache | None = None):
     """Deposit the push's impulses into the mismatch and take it back from the parcels (steps 4-5);
     ``cell_exchange_divisor``: :func:`exchange_cells`'s; ``parcels.x``: the positions before the push
     (``stencil``: as :func:`deposit`)."""
     n = parcels.x.shape[0]
     stencil = stencil_or_empty(stencil, parcels.x)
     mismatch = flat_cells(cell_mismatch)
-    wp.launch(impulse_deposit_kernel, dim=n, device=parcels.x.device,
-              inputs=[grid, stencil, parcels, parcel_drag_impulse], outputs=[mismatch])
-    wp.launch(exchange_correct_kernel, dim=n, device=parcels.x.device,
-              inputs=[grid, stencil, float(dt), flat_cells(cell_exchange_divisor), mismatch, parcels,
-                      parcel_exchange],
-              outputs=[particle_x_out, particle_v_out, parcel_drag_impulse])
+    launch(impulse_deposit_kernel, dim=n, device=parcels.x.device,
+           inputs=[grid, stencil, parcels, parcel_drag_impulse], outputs=[mismatch], cache=launches)
+    launch(exchange_correct_kernel, dim=n, device=parcels.x.device,
+           inputs=[grid, stencil, float(dt), flat_cells(cell_exchange_divisor), mismatch, parcels,
+                   parcel_exchange],
+           outputs=[particle_x_out, particle_v_out, parcel_drag_impulse], cache=launches)

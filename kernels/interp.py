@@ -34,6 +34,8 @@ import weakref
 
 import warp as wp
 
+from kernels.launches import LaunchCache, launch
+
 
 @wp.struct
 class CellGrid:
@@ -561,12 +563,12 @@ def stencil_or_empty(stencil, particle_x) -> ParcelStencil:
 
 
 def fill_stencil(grid: CellGrid, particle_x, particle_weight, stencil: ParcelStencil, *,
-                 only_stale: bool = False) -> None:
+                 only_stale: bool = False, launches: LaunchCache | None = None) -> None:
     """The cache's rows at ``particle_x`` for the trilinear parcels (``particle_weight`` None: all); with
     ``only_stale`` only the rows computed at another position (a read-only pass when nothing moved)."""
-    wp.launch(fill_stencil_kernel, dim=particle_x.shape[0], device=particle_x.device,
-              inputs=[grid, particle_x, _weights_or_none(particle_weight, particle_x), int(bool(only_stale))],
-              outputs=[stencil])
+    launch(fill_stencil_kernel, dim=particle_x.shape[0], device=particle_x.device,
+           inputs=[grid, particle_x, _weights_or_none(particle_weight, particle_x), int(bool(only_stale))],
+           outputs=[stencil], cache=launches)
 
 
 def _no_mask():
@@ -588,14 +590,14 @@ def _weights_or_none(particle_weight, particle_x):
 
 
 def interpolate_vec3_parcels(grid: CellGrid, particle_x, particle_weight, cell_field, parcel_value, *,
-                             stencil: ParcelStencil | None = None):
+                             stencil: ParcelStencil | None = None, launches: LaunchCache | None = None):
     """A vec3 cell field at each parcel with the parcel's stencil (``parcel_stencil``: trilinear at weight 1,
     without ``grid.spread`` or with ``particle_weight`` None), into ``parcel_value``; ``stencil``: the cache of
     the rows it holds at ``particle_x`` (None: all computed)."""
-    wp.launch(interp_vec3_parcels_kernel, dim=particle_x.shape[0], device=particle_x.device,
-              inputs=[grid, stencil_or_empty(stencil, particle_x), particle_x,
-                      _weights_or_none(particle_weight, particle_x), flat_cells(cell_field)],
-              outputs=[parcel_value])
+    launch(interp_vec3_parcels_kernel, dim=particle_x.shape[0], device=particle_x.device,
+           inputs=[grid, stencil_or_empty(stencil, particle_x), particle_x,
+                   _weights_or_none(particle_weight, particle_x), flat_cells(cell_field)],
+           outputs=[parcel_value], cache=launches)
 
 
 def interpolate_scalar_parcels(grid: CellGrid, particle_x, particle_weight, cell_field, parcel_value, *,
@@ -609,18 +611,20 @@ def interpolate_scalar_parcels(grid: CellGrid, particle_x, particle_weight, cell
 
 
 def interpolate_gas_parcels(grid: CellGrid, particle_x, particle_weight, cell_velocity, cell_grad_p, cell_eps_s, *,
-                            cell_gas, parcel_u_f, parcel_grad_p, parcel_eps_s, stencil: ParcelStencil | None = None):
+                            cell_gas, parcel_u_f, parcel_grad_p, parcel_eps_s, stencil: ParcelStencil | None = None,
+                            launches: LaunchCache | None = None):
     """Gas velocity, grad p' and eps_s at each parcel in one pass (the values of three
     :func:`interpolate_vec3_parcels` / :func:`interpolate_scalar_parcels` calls, bit for bit). ``cell_gas``: an
     (nx, ny, nz) ``gas_record`` scratch array the three cell fields are first copied into, so that a corner is one
     32-byte read instead of three (~37 instead of ~51 ns per parcel on the CPU, the copy included)."""
     gas = flat_cells(cell_gas)
-    wp.launch(gas_record_kernel, dim=cell_gas.size, device=particle_x.device,
-              inputs=[flat_cells(cell_velocity), flat_cells(cell_grad_p), flat_cells(cell_eps_s)], outputs=[gas])
-    wp.launch(interp_gas_kernel, dim=particle_x.shape[0], device=particle_x.device,
-              inputs=[grid, stencil_or_empty(stencil, particle_x), particle_x,
-                      _weights_or_none(particle_weight, particle_x), gas],
-              outputs=[parcel_u_f, parcel_grad_p, parcel_eps_s])
+    launch(gas_record_kernel, dim=cell_gas.size, device=particle_x.device,
+           inputs=[flat_cells(cell_velocity), flat_cells(cell_grad_p), flat_cells(cell_eps_s)], outputs=[gas],
+           cache=launches)
+    launch(interp_gas_kernel, dim=particle_x.shape[0], device=particle_x.device,
+           inputs=[grid, stencil_or_empty(stencil, particle_x), particle_x,
+                   _weights_or_none(particle_weight, particle_x), gas],
+           outputs=[parcel_u_f, parcel_grad_p, parcel_eps_s], cache=launches)
 
 
 def interpolate_scalar(grid: CellGrid, particle_x, cell_field, parcel_value):

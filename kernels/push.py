@@ -32,6 +32,7 @@ import math
 import warp as wp
 
 from kernels.interp import ParcelArrays
+from kernels.launches import LaunchCache, launch
 
 PI_OVER_SIX = wp.constant(wp.float64(math.pi / 6.0))  # float64 (wp.pi is float32)
 
@@ -256,11 +257,12 @@ def push(params: PushParams, parcels: ParcelArrays, parcel_u_f, parcel_grad_p, p
 
 
 def push_at_rate(params: PushParams, parcels: ParcelArrays, parcel_u_target, parcel_rate, parcel_grad_p,
-                 parcel_a_coll, parcel_drag_impulse, parcel_drag_coeff, *, particle_x_out, particle_v_out):
+                 parcel_a_coll, parcel_drag_impulse, parcel_drag_coeff, *, particle_x_out, particle_v_out,
+                 launches: LaunchCache | None = None):
     """:func:`push` with the drag rate given per parcel and drag towards ``parcel_u_target``."""
-    wp.launch(push_at_rate_kernel, dim=parcels.x.shape[0], device=parcels.x.device,
-              inputs=[params, parcels, parcel_u_target, parcel_rate, parcel_grad_p, parcel_a_coll],
-              outputs=[particle_x_out, particle_v_out, parcel_drag_impulse, parcel_drag_coeff])
+    launch(push_at_rate_kernel, dim=parcels.x.shape[0], device=parcels.x.device,
+           inputs=[params, parcels, parcel_u_target, parcel_rate, parcel_grad_p, parcel_a_coll],
+           outputs=[particle_x_out, particle_v_out, parcel_drag_impulse, parcel_drag_coeff], cache=launches)
 
 
 def eval_drag_rate(law: int, eps_s, slip, diameter, rho_p, rho_f: float, mu_f: float, rate,
