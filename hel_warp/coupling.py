@@ -169,7 +169,8 @@ class CouplingFields:
         exchange_sums: (A_c, B_c) as the exchange's deposit accumulates them, vec4d (kg, kg m/s);
         deposit_sums: the five sums above as the deposit accumulates them (``kernels.deposit.vec9d``);
         gas_record: the gas velocity, grad p' and eps_s the interpolation reads, side by side
-        (``kernels.interp.gas_record``).
+        (``kernels.interp.gas_record``);
+        parcel_voidage: the drag law's slip-free factor for the exchange's passes (``kernels.push.drag_voidage``).
     Not a field: ``launches``, the coupling kernels' recorded launches (``kernels.launches.LaunchCache``: a launch
     replayed costs ~7 instead of ~25 us; it holds the arrays it was given, as these fields do).
     """
@@ -206,6 +207,7 @@ class CouplingFields:
     cell_exchange_sums: object = field(default=None, metadata={"checkpoint": False})
     cell_deposit_sums: object = field(default=None, metadata={"checkpoint": False})
     cell_gas_record: object = field(default=None, metadata={"checkpoint": False})
+    parcel_voidage: object = field(default=None, metadata={"checkpoint": False})
 
     @classmethod
     def allocate(cls, grid: GridSpec, capacity: int, *, device=None) -> "CouplingFields":
@@ -236,7 +238,8 @@ class CouplingFields:
             cell_exchange_momentum=cells(wp.vec3d), cell_u_eq=cells(wp.vec3), cell_gas_impulse=cells(wp.vec3d),
             cell_mismatch=cells(wp.vec3d), parcel_rate=parcels(wp.float32), parcel_exchange=parcels(wp.float64),
             parcel_u_eq=parcels(wp.vec3), parcel_x_start=parcels(wp.vec3), cell_exchange_divisor=cells(wp.float64),
-            cell_exchange_sums=cells(wp.vec4d), cell_deposit_sums=cells(vec9d), cell_gas_record=cells(gas_record))
+            cell_exchange_sums=cells(wp.vec4d), cell_deposit_sums=cells(vec9d), cell_gas_record=cells(gas_record),
+            parcel_voidage=parcels(wp.float32))
         fields.launches = LaunchCache()
         return fields
 
@@ -322,7 +325,7 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
     """
     import warp as wp
 
-    from kernels.deposit import exchange_cells, exchange_correct, exchange_deposit
+    from kernels.deposit import exchange_cells, exchange_correct, exchange_deposit, exchange_voidage
     from kernels.interp import fill_stencil, interpolate_vec3_parcels, parcel_arrays
     from kernels.push import push_at_rate
 
@@ -335,10 +338,11 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
     start = parcel_arrays(p, x=f.parcel_x_start)  # the parcels as they were before the push
     if stencil is not None:
         fill_stencil(g, f.parcel_x_start, p.weight, stencil, only_stale=True, launches=f.launches)
+    exchange_voidage(push_params, start, f.parcel_eps_s, parcel_voidage=f.parcel_voidage, launches=f.launches)
     slip_against = f.parcel_u_f
     for _ in range(EXCHANGE_PASSES):
-        exchange_deposit(g, push_params, start, slip_against, f.parcel_eps_s, f.parcel_grad_p, f.parcel_a_coll,
-                         parcel_rate=f.parcel_rate, parcel_exchange=f.parcel_exchange,
+        exchange_deposit(g, push_params, start, slip_against, f.parcel_eps_s, f.parcel_voidage, f.parcel_grad_p,
+                         f.parcel_a_coll, parcel_rate=f.parcel_rate, parcel_exchange=f.parcel_exchange,
                          cell_exchange_sums=f.cell_exchange_sums, stencil=stencil, launches=f.launches)
         exchange_cells(float(gas_density) * grid.cell_volume, eps_f_min, cell_fluid, f.cell_eps_s, cell_velocity,
                        f.cell_exchange_sums, cell_exchange_coeff=f.cell_exchange_coeff,

@@ -29,7 +29,8 @@ import warp as wp
 from kernels.launches import LaunchCache, launch
 from kernels.interp import (CellGrid, ParcelArrays, ParcelStencil, cell_offset, flat_cells, parcel_cell,
                             parcel_stencil, spread_half_width, stencil_holds, stencil_or_empty, store_stencil)
-from kernels.push import PushParams, body_acceleration, parcel_drag_rate, parcel_mass
+from kernels.push import PushParams, body_acceleration, parcel_drag_rate_at, parcel_mass
+from kernels.push import parcel_voidage as parcel_voidage_of
 
 SPHERE_VOLUME_FACTOR = wp.constant(wp.float64(4.0 * math.pi / 3.0))  # float64 (wp.pi is float32)
 vec9d = wp.types.vector(length=9, dtype=wp.float64)
@@ -151,35 +152,64 @@ def to_float32_kernel(
 
 
 @wp.kernel
-def exchange_deposit_kernel(
-    grid: CellGrid,
-    stencil: ParcelStencil,
+def exchange_voidage_kernel(
+    params: PushParams,
+    parcels: ParcelArrays,
+    parcel_eps_s: wp.array(dtype=float),
+    # outputs
+    parcel_voidage: wp.array(dtype=float),
+):
+    """The drag law's slip-free factor per parcel (``kernels.push.parcel_voidage``), once for the exchange's
+    passes (eps_s and d do not change between them)."""
+    tid = wp.tid()
+    parcel_voidage[tid] = parcel_voidage_of(params, parcel_eps_s[tid], 2.0 * parcels.radius[tid])
+
+
+@wp.kernel
+def exchange_rate_kernel(
     params: PushParams,
     parcels: ParcelArrays,
     parcel_u_f: wp.array(dtype=wp.vec3),
     parcel_eps_s: wp.array(dtype=float),
-    parcel_grad_p: wp.array(dtype=wp.vec3),
-    parcel_a_coll: wp.array(dtype=wp.vec3),
-    # outputs (cell array flat, accumulated into; zero it first)
+    parcel_voidage: wp.array(dtype=float),
+    # outputs
     parcel_rate: wp.array(dtype=float),
     parcel_exchange: wp.array(dtype=wp.float64),
-    cell_exchange_sums: wp.array(dtype=wp.vec4d),
 ):
-    """F_D at the interpolated gas velocity, D_i, and (A_c, B_c) (see above) as one vec4d per cell."""
+    """F_D at the slip against ``parcel_u_f`` and D_i (see above)."""
     tid = wp.tid()
     if parcels.alive[tid] == 0:
         parcel_rate[tid] = 0.0
         parcel_exchange[tid] = wp.float64(0.0)
         return
-    v = parcels.v[tid]
     rho_p = parcels.density[tid]
     diameter = 2.0 * parcels.radius[tid]
-    f_d = parcel_drag_rate(params, parcel_u_f[tid], v, parcel_eps_s[tid], diameter, rho_p)
+    f_d = parcel_drag_rate_at(params, parcel_u_f[tid], parcels.v[tid], parcel_eps_s[tid], parcel_voidage[tid],
+                              diameter, rho_p)
     parcel_rate[tid] = f_d
     fdt = wp.float64(params.dt) * wp.float64(f_d)
-    d = parcel_mass(parcels.weight[tid], rho_p, diameter) * fdt / (wp.float64(1.0) + fdt)
-    parcel_exchange[tid] = d
-    v_star = v + params.dt * body_acceleration(params, rho_p, parcel_grad_p[tid], parcel_a_coll[tid])
+    parcel_exchange[tid] = parcel_mass(parcels.weight[tid], rho_p, diameter) * fdt / (wp.float64(1.0) + fdt)
+
+
+@wp.kernel
+def exchange_deposit_kernel(
+    grid: CellGrid,
+    stencil: ParcelStencil,
+    params: PushParams,
+    parcels: ParcelArrays,
+    parcel_grad_p: wp.array(dtype=wp.vec3),
+    parcel_a_coll: wp.array(dtype=wp.vec3),
+    parcel_exchange: wp.array(dtype=wp.float64),
+    # outputs (cell array flat, accumulated into; zero it first)
+    cell_exchange_sums: wp.array(dtype=wp.vec4d),
+):
+    """(A_c, B_c) (see above) as one vec4d per cell, from ``exchange_rate_kernel``'s D_i."""
+    tid = wp.tid()
+    if parcels.alive[tid] == 0:
+        return
+    d = parcel_exchange[tid]
+    v_star = parcels.v[tid] + params.dt * body_acceleration(params, parcels.density[tid], parcel_grad_p[tid],
+                                                            parcel_a_coll[tid])
     dv = wp.vec4d(d, d * wp.float64(v_star[0]), d * wp.float64(v_star[1]), d * wp.float64(v_star[2]))
     x = parcels.x[tid]
     weight = parcels.weight[tid]
@@ -337,17 +367,29 @@ def to_float32(cell_momentum_source, cell_drag_coeff, *, cell_momentum_source_f3
            outputs=[flat_cells(cell_momentum_source_f32), flat_cells(cell_drag_coeff_f32)], cache=launches)
 
 
-def exchange_deposit(grid: CellGrid, params, parcels: ParcelArrays, parcel_u_f, parcel_eps_s, parcel_grad_p,
-                     parcel_a_coll, *, parcel_rate, parcel_exchange, cell_exchange_sums,
+def exchange_voidage(params, parcels: ParcelArrays, parcel_eps_s, *, parcel_voidage,
+                     launches: LaunchCache | None = None):
+    """The drag law's slip-free factor per parcel, for the exchange's passes (implicit exchange, step 0)."""
+    launch(exchange_voidage_kernel, dim=parcels.x.shape[0], device=parcels.x.device,
+           inputs=[params, parcels, parcel_eps_s], outputs=[parcel_voidage], cache=launches)
+
+
+def exchange_deposit(grid: CellGrid, params, parcels: ParcelArrays, parcel_u_f, parcel_eps_s, parcel_voidage,
+                     parcel_grad_p, parcel_a_coll, *, parcel_rate, parcel_exchange, cell_exchange_sums,
                      stencil: ParcelStencil | None = None, launches: LaunchCache | None = None):
-    """Zero (A, B) and deposit (D_i, D_i v*_i) into one vec4d per cell (implicit exchange, step 1: one
-    accumulation of four float64 per corner, ~10 ns per parcel less than into separate A and B arrays on the CPU;
-    ``stencil``: as :func:`deposit`)."""
+    """F_D and D_i (``parcel_voidage``: :func:`exchange_voidage`'s), then zero (A, B) and deposit (D_i, D_i v*_i)
+    into one vec4d per cell (implicit exchange, step 1; ``stencil``: as :func:`deposit`). Two parcel passes: the
+    drag law alone is short enough for the CPU to overlap parcels, and a vec4d is one accumulation of four float64
+    per corner (~30 ns per parcel and pass less than the fused pass into two arrays)."""
+    n = parcels.x.shape[0]
+    launch(exchange_rate_kernel, dim=n, device=parcels.x.device,
+           inputs=[params, parcels, parcel_u_f, parcel_eps_s, parcel_voidage], outputs=[parcel_rate, parcel_exchange],
+           cache=launches)
     cell_exchange_sums.zero_()
-    launch(exchange_deposit_kernel, dim=parcels.x.shape[0], device=parcels.x.device,
-           inputs=[grid, stencil_or_empty(stencil, parcels.x), params, parcels, parcel_u_f, parcel_eps_s,
-                   parcel_grad_p, parcel_a_coll],
-           outputs=[parcel_rate, parcel_exchange, flat_cells(cell_exchange_sums)], cache=launches)
+    launch(exchange_deposit_kernel, dim=n, device=parcels.x.device,
+           inputs=[grid, stencil_or_empty(stencil, parcels.x), params, parcels, parcel_grad_p, parcel_a_coll,
+                   parcel_exchange],
+           outputs=[flat_cells(cell_exchange_sums)], cache=launches)
 
 
 def exchange_cells(gas_mass_full: float, eps_f_min: float, cell_fluid, cell_eps_s, cell_velocity,
