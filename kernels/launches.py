@@ -13,7 +13,9 @@ recorded launch per kernel, launch size, device and argument set:
 
 A replayed launch passes the kernel exactly the values a fresh ``wp.launch`` would, so results do not change.
 The cache holds its arguments alive: keep one per owner of the arrays (``CouplingFields.launches``); it is cleared
-when it holds ``max_entries`` launches.
+when it holds ``max_entries`` launches. CPU only: on a CUDA device, or during a graph capture, it calls
+``wp.launch`` as before (a GPU queues launches asynchronously and captured graphs replay them anyway; the GPU path
+stays the one that was tested there).
 """
 
 from __future__ import annotations
@@ -46,6 +48,9 @@ class LaunchCache:
 
     def launch(self, kernel, *, dim, inputs, outputs, device) -> None:
         device = wp.get_device(device)
+        if device.is_cuda or device.is_capturing:
+            wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device)
+            return
         args = (*inputs, *outputs)
         key = (kernel, tuple(dim) if isinstance(dim, (tuple, list)) else int(dim), device.alias,
                tuple(_arg_key(a) for a in args))
