@@ -375,7 +375,7 @@ class HelSolver:
         wp.copy(self.gas.cell_eps_s, self.fields.cell_eps_s)
         to_float32(self.fields.cell_momentum_source, self.fields.cell_drag_coeff,
                    cell_momentum_source_f32=self.gas.cell_momentum_source,
-                   cell_drag_coeff_f32=self.gas.cell_drag_coeff)
+                   cell_drag_coeff_f32=self.gas.cell_drag_coeff, launches=self.fields.launches)
 
     def gas_step(self) -> None:
         """2. eps_f-weighted Navier-Stokes step with the particle momentum source (engineer F)."""
@@ -634,7 +634,8 @@ class HelSolver:
         out["pool/used"] = np.array(self.pool.used, np.int64)
         out["pool/removed"] = self.pool._removed_counter.numpy().copy()
         for f in dataclasses.fields(self.fields):
-            out[f"coupling/{f.name}"] = getattr(self.fields, f.name).numpy().copy()
+            if f.metadata.get("checkpoint", True):
+                out[f"coupling/{f.name}"] = getattr(self.fields, f.name).numpy().copy()
         for name, array in self._gas_arrays().items():
             out[f"gas/{name}"] = array.numpy().copy()
         out["gas/_started"] = np.array(bool(getattr(self.gas, "_started", True)))
@@ -666,7 +667,8 @@ class HelSolver:
         self.pool.used = int(state["pool/used"])
         put(self.pool._removed_counter, "pool/removed")
         for f in dataclasses.fields(self.fields):
-            put(getattr(self.fields, f.name), f"coupling/{f.name}")
+            if f.metadata.get("checkpoint", True):
+                put(getattr(self.fields, f.name), f"coupling/{f.name}")
         for name, array in self._gas_arrays().items():
             put(array, f"gas/{name}")
         if hasattr(self.gas, "_started"):

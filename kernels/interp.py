@@ -34,6 +34,8 @@ import weakref
 
 import warp as wp
 
+from kernels.launches import LaunchCache, launch
+
 
 @wp.struct
 class CellGrid:
@@ -233,12 +235,40 @@ def stencil_holds(stencil: ParcelStencil, tid: int, x: wp.vec3, k: int):
 
 @wp.func
 def store_stencil(grid: CellGrid, stencil: ParcelStencil, tid: int, x: wp.vec3):
-    """Compute x's trilinear stencil into row ``tid`` of the cache."""
+    """Compute x's trilinear stencil into row ``tid`` of the cache: corner n is ``cic_corner``'s (the same cell and
+    the same product (w_x w_y) w_z, bit for bit), with the per-axis indices and the four w_x w_y products formed
+    once instead of per corner (~30 instead of ~42 ns per parcel on the CPU, issue 14)."""
     base, frac = cic_stencil(grid, x)
-    for n in range(8):
-        idx, w = cic_corner(grid, base, frac, n)
-        stencil.cell[tid, n] = cell_offset(grid, idx)
-        stencil.weight[tid, n] = w
+    one = wp.float64(1.0)
+    ny = grid.shape[1]
+    nz = grid.shape[2]
+    i0 = cic_index(base[0], grid.shape[0], grid.periodic[0]) * ny
+    i1 = cic_index(base[0] + 1, grid.shape[0], grid.periodic[0]) * ny
+    j0 = cic_index(base[1], ny, grid.periodic[1])
+    j1 = cic_index(base[1] + 1, ny, grid.periodic[1])
+    k0 = cic_index(base[2], nz, grid.periodic[2])
+    k1 = cic_index(base[2] + 1, nz, grid.periodic[2])
+    stencil.cell[tid, 0] = (i0 + j0) * nz + k0
+    stencil.cell[tid, 1] = (i1 + j0) * nz + k0
+    stencil.cell[tid, 2] = (i0 + j1) * nz + k0
+    stencil.cell[tid, 3] = (i1 + j1) * nz + k0
+    stencil.cell[tid, 4] = (i0 + j0) * nz + k1
+    stencil.cell[tid, 5] = (i1 + j0) * nz + k1
+    stencil.cell[tid, 6] = (i0 + j1) * nz + k1
+    stencil.cell[tid, 7] = (i1 + j1) * nz + k1
+    w00 = (one - frac[0]) * (one - frac[1])
+    w10 = frac[0] * (one - frac[1])
+    w01 = (one - frac[0]) * frac[1]
+    w11 = frac[0] * frac[1]
+    wz0 = one - frac[2]
+    stencil.weight[tid, 0] = w00 * wz0
+    stencil.weight[tid, 1] = w10 * wz0
+    stencil.weight[tid, 2] = w01 * wz0
+    stencil.weight[tid, 3] = w11 * wz0
+    stencil.weight[tid, 4] = w00 * frac[2]
+    stencil.weight[tid, 5] = w10 * frac[2]
+    stencil.weight[tid, 6] = w01 * frac[2]
+    stencil.weight[tid, 7] = w11 * frac[2]
     stencil.x[tid] = x
 
 
@@ -332,22 +362,48 @@ def interp_scalar_parcels_kernel(
     parcel_value[tid] = float(acc)
 
 
+gas_record = wp.types.vector(length=8, dtype=wp.float32)
+"""One cell's fields of the HEL step's interpolation side by side: gas velocity (3), grad p' (3), eps_s, unused."""
+
+
+@wp.kernel
+def gas_record_kernel(
+    cell_velocity: wp.array(dtype=wp.vec3),
+    cell_grad_p: wp.array(dtype=wp.vec3),
+    cell_eps_s: wp.array(dtype=float),
+    # outputs
+    cell_gas: wp.array(dtype=gas_record),
+):
+    """The three cell fields into one record per cell (flat)."""
+    c = wp.tid()
+    u = cell_velocity[c]
+    g = cell_grad_p[c]
+    cell_gas[c] = gas_record(u[0], u[1], u[2], g[0], g[1], g[2], cell_eps_s[c], 0.0)
+
+
+@wp.func
+def add_gas_record(w: wp.float64, r: gas_record, u: wp.vec3d, g: wp.vec3d, e: wp.float64):
+    """u, g, e plus w times the record's three fields (float64)."""
+    u_new = u + w * wp.vec3d(wp.float64(r[0]), wp.float64(r[1]), wp.float64(r[2]))
+    g_new = g + w * wp.vec3d(wp.float64(r[3]), wp.float64(r[4]), wp.float64(r[5]))
+    return u_new, g_new, e + w * wp.float64(r[6])
+
+
 @wp.kernel
 def interp_gas_kernel(
     grid: CellGrid,
     stencil: ParcelStencil,
     particle_x: wp.array(dtype=wp.vec3),
     particle_weight: wp.array(dtype=float),
-    cell_velocity: wp.array(dtype=wp.vec3),
-    cell_grad_p: wp.array(dtype=wp.vec3),
-    cell_eps_s: wp.array(dtype=float),
+    cell_gas: wp.array(dtype=gas_record),
     # outputs
     parcel_u_f: wp.array(dtype=wp.vec3),
     parcel_grad_p: wp.array(dtype=wp.vec3),
     parcel_eps_s: wp.array(dtype=float),
 ):
-    """The three fields of the HEL step's interpolation in one pass over the stencil (each summed as
-    ``interp_vec3_parcels_kernel`` / ``interp_scalar_parcels_kernel`` sum it: the same bits); cell fields flat."""
+    """The three fields of the HEL step's interpolation in one pass over the stencil, from the cells' records
+    (``gas_record_kernel``; each field summed as ``interp_vec3_parcels_kernel`` / ``interp_scalar_parcels_kernel``
+    sum it: the same bits); cell records flat."""
     tid = wp.tid()
     weight = float(1.0)
     if particle_weight.shape[0] > 0:  # no weights: trilinear
@@ -358,19 +414,12 @@ def interp_gas_kernel(
     e = wp.float64(0.0)
     if stencil_holds(stencil, tid, x, spread_half_width(grid, weight)):
         for n in range(8):
-            c = stencil.cell[tid, n]
-            w = stencil.weight[tid, n]
-            u = u + w * vec3_to_64(cell_velocity[c])
-            g = g + w * vec3_to_64(cell_grad_p[c])
-            e = e + w * wp.float64(cell_eps_s[c])
+            u, g, e = add_gas_record(stencil.weight[tid, n], cell_gas[stencil.cell[tid, n]], u, g, e)
     else:
         base, frac, k, norm = parcel_stencil(grid, x, weight)
         for n in range(8 * k * k * k):
             idx, w = parcel_cell(grid, base, frac, k, norm, n)
-            c = cell_offset(grid, idx)
-            u = u + w * vec3_to_64(cell_velocity[c])
-            g = g + w * vec3_to_64(cell_grad_p[c])
-            e = e + w * wp.float64(cell_eps_s[c])
+            u, g, e = add_gas_record(w, cell_gas[cell_offset(grid, idx)], u, g, e)
     parcel_u_f[tid] = vec3_from_64(u)
     parcel_grad_p[tid] = vec3_from_64(g)
     parcel_eps_s[tid] = float(e)
@@ -514,12 +563,12 @@ def stencil_or_empty(stencil, particle_x) -> ParcelStencil:
 
 
 def fill_stencil(grid: CellGrid, particle_x, particle_weight, stencil: ParcelStencil, *,
-                 only_stale: bool = False) -> None:
+                 only_stale: bool = False, launches: LaunchCache | None = None) -> None:
     """The cache's rows at ``particle_x`` for the trilinear parcels (``particle_weight`` None: all); with
     ``only_stale`` only the rows computed at another position (a read-only pass when nothing moved)."""
-    wp.launch(fill_stencil_kernel, dim=particle_x.shape[0], device=particle_x.device,
-              inputs=[grid, particle_x, _weights_or_none(particle_weight, particle_x), int(bool(only_stale))],
-              outputs=[stencil])
+    launch(fill_stencil_kernel, dim=particle_x.shape[0], device=particle_x.device,
+           inputs=[grid, particle_x, _weights_or_none(particle_weight, particle_x), int(bool(only_stale))],
+           outputs=[stencil], cache=launches)
 
 
 def _no_mask():
@@ -541,14 +590,14 @@ def _weights_or_none(particle_weight, particle_x):
 
 
 def interpolate_vec3_parcels(grid: CellGrid, particle_x, particle_weight, cell_field, parcel_value, *,
-                             stencil: ParcelStencil | None = None):
+                             stencil: ParcelStencil | None = None, launches: LaunchCache | None = None):
     """A vec3 cell field at each parcel with the parcel's stencil (``parcel_stencil``: trilinear at weight 1,
     without ``grid.spread`` or with ``particle_weight`` None), into ``parcel_value``; ``stencil``: the cache of
     the rows it holds at ``particle_x`` (None: all computed)."""
-    wp.launch(interp_vec3_parcels_kernel, dim=particle_x.shape[0], device=particle_x.device,
-              inputs=[grid, stencil_or_empty(stencil, particle_x), particle_x,
-                      _weights_or_none(particle_weight, particle_x), flat_cells(cell_field)],
-              outputs=[parcel_value])
+    launch(interp_vec3_parcels_kernel, dim=particle_x.shape[0], device=particle_x.device,
+           inputs=[grid, stencil_or_empty(stencil, particle_x), particle_x,
+                   _weights_or_none(particle_weight, particle_x), flat_cells(cell_field)],
+           outputs=[parcel_value], cache=launches)
 
 
 def interpolate_scalar_parcels(grid: CellGrid, particle_x, particle_weight, cell_field, parcel_value, *,
@@ -562,14 +611,20 @@ def interpolate_scalar_parcels(grid: CellGrid, particle_x, particle_weight, cell
 
 
 def interpolate_gas_parcels(grid: CellGrid, particle_x, particle_weight, cell_velocity, cell_grad_p, cell_eps_s, *,
-                            parcel_u_f, parcel_grad_p, parcel_eps_s, stencil: ParcelStencil | None = None):
+                            cell_gas, parcel_u_f, parcel_grad_p, parcel_eps_s, stencil: ParcelStencil | None = None,
+                            launches: LaunchCache | None = None):
     """Gas velocity, grad p' and eps_s at each parcel in one pass (the values of three
-    :func:`interpolate_vec3_parcels` / :func:`interpolate_scalar_parcels` calls, bit for bit)."""
-    wp.launch(interp_gas_kernel, dim=particle_x.shape[0], device=particle_x.device,
-              inputs=[grid, stencil_or_empty(stencil, particle_x), particle_x,
-                      _weights_or_none(particle_weight, particle_x), flat_cells(cell_velocity), flat_cells(cell_grad_p),
-                      flat_cells(cell_eps_s)],
-              outputs=[parcel_u_f, parcel_grad_p, parcel_eps_s])
+    :func:`interpolate_vec3_parcels` / :func:`interpolate_scalar_parcels` calls, bit for bit). ``cell_gas``: an
+    (nx, ny, nz) ``gas_record`` scratch array the three cell fields are first copied into, so that a corner is one
+    32-byte read instead of three (~37 instead of ~51 ns per parcel on the CPU, the copy included)."""
+    gas = flat_cells(cell_gas)
+    launch(gas_record_kernel, dim=cell_gas.size, device=particle_x.device,
+           inputs=[flat_cells(cell_velocity), flat_cells(cell_grad_p), flat_cells(cell_eps_s)], outputs=[gas],
+           cache=launches)
+    launch(interp_gas_kernel, dim=particle_x.shape[0], device=particle_x.device,
+           inputs=[grid, stencil_or_empty(stencil, particle_x), particle_x,
+                   _weights_or_none(particle_weight, particle_x), gas],
+           outputs=[parcel_u_f, parcel_grad_p, parcel_eps_s], cache=launches)
 
 
 def interpolate_scalar(grid: CellGrid, particle_x, cell_field, parcel_value):

@@ -32,6 +32,7 @@ import math
 import warp as wp
 
 from kernels.interp import ParcelArrays
+from kernels.launches import LaunchCache, launch
 
 PI_OVER_SIX = wp.constant(wp.float64(math.pi / 6.0))  # float64 (wp.pi is float32)
 
@@ -60,36 +61,62 @@ def drag_rate_schiller_naumann(slip: float, diameter: float, rho_p: float, rho_f
 
 
 @wp.func
-def drag_rate_wen_yu(eps_f: float, slip: float, diameter: float, rho_p: float, rho_f: float, mu_f: float):
-    """beta/(eps_s rho_p) of Wen & Yu (1966): 3/4 Cd(Re_e) Re_e mu eps_f^-2.65 / (rho_p d^2), Re_e = eps_f Re.
+def drag_rate_wen_yu(eps_f: float, voidage: float, slip: float, diameter: float, rho_p: float, rho_f: float,
+                     mu_f: float):
+    """beta/(eps_s rho_p) of Wen & Yu (1966): 3/4 Cd(Re_e) Re_e mu eps_f^-2.65 / (rho_p d^2), Re_e = eps_f Re;
+    ``voidage`` = eps_f^-2.65 (``drag_voidage``).
 
     From beta = 3/4 Cd eps_s eps_f rho_f |du| eps_f^-2.65 / d with Cd |du| = (Cd Re_e) mu / (eps_f rho_f d).
     """
     re_e = eps_f * rho_f * slip * diameter / mu_f
-    return 0.75 * cd_times_re(re_e) * mu_f * wp.pow(eps_f, -2.65) / (rho_p * diameter * diameter)
+    return 0.75 * cd_times_re(re_e) * mu_f * voidage / (rho_p * diameter * diameter)
 
 
 @wp.func
-def drag_rate_ergun(eps_s: float, eps_f: float, slip: float, diameter: float, rho_p: float, rho_f: float,
-                    mu_f: float):
-    """beta/(eps_s rho_p) of Ergun (1952): [150 eps_s mu / (eps_f d^2) + 1.75 rho_f |du| / d] / rho_p."""
-    return (150.0 * eps_s * mu_f / (eps_f * diameter * diameter) + 1.75 * rho_f * slip / diameter) / rho_p
+def drag_rate_ergun(viscous: float, slip: float, diameter: float, rho_p: float, rho_f: float):
+    """beta/(eps_s rho_p) of Ergun (1952): [150 eps_s mu / (eps_f d^2) + 1.75 rho_f |du| / d] / rho_p;
+    ``viscous`` = 150 eps_s mu / (eps_f d^2) (``drag_voidage``)."""
+    return (viscous + 1.75 * rho_f * slip / diameter) / rho_p
+
+
+@wp.func
+def drag_uses_ergun(law: int, eps_f: float, gidaspow_switch: float):
+    """True where the law is Ergun's: ``ergun``, or ``gidaspow`` at eps_f <= gidaspow_switch."""
+    return law == DRAG_ERGUN or (law == DRAG_GIDASPOW and eps_f <= gidaspow_switch)
+
+
+@wp.func
+def drag_voidage(law: int, eps_s: float, diameter: float, mu_f: float, gidaspow_switch: float):
+    """The law's factor that does not depend on the slip: Wen-Yu's eps_f^-2.65, Ergun's viscous term
+    150 eps_s mu / (eps_f d^2), 0 for Schiller-Naumann. :func:`drag_rate` is :func:`drag_rate_at` with it (bit for
+    bit, by construction); a caller whose eps_s and d stay fixed over several slips (the implicit exchange's
+    passes) computes it once."""
+    eps_f = 1.0 - eps_s
+    if law == DRAG_SCHILLER_NAUMANN:
+        return 0.0
+    if drag_uses_ergun(law, eps_f, gidaspow_switch):
+        return 150.0 * eps_s * mu_f / (eps_f * diameter * diameter)
+    return wp.pow(eps_f, -2.65)
+
+
+@wp.func
+def drag_rate_at(law: int, eps_s: float, voidage: float, slip: float, diameter: float, rho_p: float, rho_f: float,
+                 mu_f: float, gidaspow_switch: float):
+    """:func:`drag_rate` with the law's slip-free factor given (``voidage``, :func:`drag_voidage` at eps_s and d)."""
+    eps_f = 1.0 - eps_s
+    if law == DRAG_SCHILLER_NAUMANN:
+        return drag_rate_schiller_naumann(slip, diameter, rho_p, rho_f, mu_f)
+    if drag_uses_ergun(law, eps_f, gidaspow_switch):
+        return drag_rate_ergun(voidage, slip, diameter, rho_p, rho_f)
+    return drag_rate_wen_yu(eps_f, voidage, slip, diameter, rho_p, rho_f, mu_f)
 
 
 @wp.func
 def drag_rate(law: int, eps_s: float, slip: float, diameter: float, rho_p: float, rho_f: float, mu_f: float,
               gidaspow_switch: float):
     """Per-particle drag relaxation rate F_D (1/s) of the chosen law; Gidaspow switches at eps_f = gidaspow_switch."""
-    eps_f = 1.0 - eps_s
-    if law == DRAG_SCHILLER_NAUMANN:
-        return drag_rate_schiller_naumann(slip, diameter, rho_p, rho_f, mu_f)
-    if law == DRAG_WEN_YU:
-        return drag_rate_wen_yu(eps_f, slip, diameter, rho_p, rho_f, mu_f)
-    if law == DRAG_ERGUN:
-        return drag_rate_ergun(eps_s, eps_f, slip, diameter, rho_p, rho_f, mu_f)
-    if eps_f <= gidaspow_switch:
-        return drag_rate_ergun(eps_s, eps_f, slip, diameter, rho_p, rho_f, mu_f)
-    return drag_rate_wen_yu(eps_f, slip, diameter, rho_p, rho_f, mu_f)
+    return drag_rate_at(law, eps_s, drag_voidage(law, eps_s, diameter, mu_f, gidaspow_switch), slip, diameter, rho_p,
+                        rho_f, mu_f, gidaspow_switch)
 
 
 @wp.struct
@@ -119,6 +146,22 @@ def parcel_drag_rate(params: PushParams, u_f: wp.vec3, v: wp.vec3, eps_s: float,
     eps = wp.clamp(eps_s, 0.0, params.eps_s_max)
     return drag_rate(params.drag_law, eps, wp.length(u_f - v), diameter, rho_p, params.fluid_density,
                      params.fluid_viscosity, params.gidaspow_switch)
+
+
+@wp.func
+def parcel_voidage(params: PushParams, eps_s: float, diameter: float):
+    """The configured law's slip-free factor (:func:`drag_voidage`) at the clipped eps_s."""
+    eps = wp.clamp(eps_s, 0.0, params.eps_s_max)
+    return drag_voidage(params.drag_law, eps, diameter, params.fluid_viscosity, params.gidaspow_switch)
+
+
+@wp.func
+def parcel_drag_rate_at(params: PushParams, u_f: wp.vec3, v: wp.vec3, eps_s: float, voidage: float, diameter: float,
+                        rho_p: float):
+    """:func:`parcel_drag_rate` with the law's slip-free factor given (:func:`parcel_voidage`), bit for bit."""
+    eps = wp.clamp(eps_s, 0.0, params.eps_s_max)
+    return drag_rate_at(params.drag_law, eps, voidage, wp.length(u_f - v), diameter, rho_p, params.fluid_density,
+                        params.fluid_viscosity, params.gidaspow_switch)
 
 
 @wp.func
@@ -256,11 +299,12 @@ def push(params: PushParams, parcels: ParcelArrays, parcel_u_f, parcel_grad_p, p
 
 
 def push_at_rate(params: PushParams, parcels: ParcelArrays, parcel_u_target, parcel_rate, parcel_grad_p,
-                 parcel_a_coll, parcel_drag_impulse, parcel_drag_coeff, *, particle_x_out, particle_v_out):
+                 parcel_a_coll, parcel_drag_impulse, parcel_drag_coeff, *, particle_x_out, particle_v_out,
+                 launches: LaunchCache | None = None):
     """:func:`push` with the drag rate given per parcel and drag towards ``parcel_u_target``."""
-    wp.launch(push_at_rate_kernel, dim=parcels.x.shape[0], device=parcels.x.device,
-              inputs=[params, parcels, parcel_u_target, parcel_rate, parcel_grad_p, parcel_a_coll],
-              outputs=[particle_x_out, particle_v_out, parcel_drag_impulse, parcel_drag_coeff])
+    launch(push_at_rate_kernel, dim=parcels.x.shape[0], device=parcels.x.device,
+           inputs=[params, parcels, parcel_u_target, parcel_rate, parcel_grad_p, parcel_a_coll],
+           outputs=[particle_x_out, particle_v_out, parcel_drag_impulse, parcel_drag_coeff], cache=launches)
 
 
 def eval_drag_rate(law: int, eps_s, slip, diameter, rho_p, rho_f: float, mu_f: float, rate,
