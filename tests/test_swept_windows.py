@@ -27,7 +27,8 @@ def constant_model(tmp_path_factory):
 def test_auto_windows_follow_the_last_step_rounds_and_the_reach(constant_model):
     # One window while the last step needed few rounds (a dilute gas: each window's full search would cost more
     # than it saves); after a step of many rounds, windows of a mean reach of WINDOW_REACH radii: ceil(reach_mean /
-    # (WINDOW_REACH r_max)), capped at MAX_WINDOWS. The count survives the checkpoint (state / set_state).
+    # (WINDOW_REACH r_max)), capped at ceil(WINDOWS_PER_ROOT_ROUND sqrt(rounds)) and MAX_WINDOWS. The rounds survive
+    # the checkpoint (state / set_state).
     import hel_warp.collision_models as cm
 
     x, v, side = periodic_gas(1000, 0.01, seed=2)
@@ -39,13 +40,15 @@ def test_auto_windows_follow_the_last_step_rounds_and_the_reach(constant_model):
     rounds = strategy.counts()["rounds"]
     assert int(strategy.state()["swept_rounds"]) == max(0, rounds - 1) < cm.WINDOW_ROUNDS
     reach_mean = float(np.mean(np.linalg.norm(v - v.mean(axis=0), axis=1))) * dt / 2.0
-    expected = min(cm.MAX_WINDOWS, math.ceil(reach_mean / (cm.WINDOW_REACH * 0.5 * D)))
-    assert expected > 2
-    fresh = cm.SurrogateCollision(model_dir=constant_model, periodic_box=(side,) * 3)
-    fresh.set_state({**strategy.state(), "swept_rounds": np.array(cm.WINDOW_ROUNDS, np.int64)})
-    p = make_particles(x, v)
-    fresh.collide(p, dt)
-    assert fresh.counts()["windows"] == expected
+    by_reach = math.ceil(reach_mean / (cm.WINDOW_REACH * 0.5 * D))
+    assert by_reach > 6
+    for last in (cm.WINDOW_ROUNDS, 10_000):  # few windows after a step of 30 rounds, the reach's after 10,000
+        expected = min(cm.MAX_WINDOWS, by_reach, math.ceil(cm.WINDOWS_PER_ROOT_ROUND * math.sqrt(last)))
+        fresh = cm.SurrogateCollision(model_dir=constant_model, periodic_box=(side,) * 3)
+        fresh.set_state({**strategy.state(), "swept_rounds": np.array(last, np.int64)})
+        p = make_particles(x, v)
+        fresh.collide(p, dt)
+        assert fresh.counts()["windows"] == expected > 1
     with pytest.raises(Exception, match="windows must be"):
         cm.SurrogateCollision(model_dir=constant_model, windows=0)
 
