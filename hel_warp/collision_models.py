@@ -27,6 +27,8 @@ from hel_warp.cfd_dem import DemCollision
 from hel_warp.pairs import DEFAULT_STREAMS, pair_counts
 
 
+ORDERINGS = ("auto", "parallel", "sequential", "serial")
+"""``SurrogateCollision(ordering=...)`` of the swept detection's events."""
 DETECTIONS = ("swept", "overlap", "cell")
 """Pair detection of the ``pairwise`` surrogate: ``swept`` (continuous; the default for parcels of weight 1),
 ``overlap`` (the paper's test) or ``cell`` (stochastic per collision cell, ``hel_warp/cell_collisions.py``; the
@@ -64,6 +66,10 @@ WINDOW_ROUNDS = 30
 events beyond one per window (chains of collisions: the rounds' searches are then the cost); with fewer, each
 window's full search costs more than it saves (a dilute cooling box at 1e-3 s: 9 rounds, 0.46 s in one window,
 0.79 s in 13)."""
+WINDOWS_SERIAL = 1.3
+"""``windows="auto"`` with the serial queue: ceil(WINDOWS_SERIAL (mean reach / r_max) sqrt(events per parcel of the
+last step)) windows. Measured fastest: a cooling box at 1e-3 s (0.18 events per parcel, reach 5 r) in 2-4, the rig
+after its pile (0.44, 8.4 r) in 8, in the pile (7.8, 5.6 r) in 16 (docs/FIGURES.md, fifteenth session)."""
 MAX_WINDOWS = 32
 """``windows="auto"``: at most this many windows per step (each window's first round searches every parcel)."""
 WINDOWS_PER_ROOT_ROUND = 0.8
@@ -133,7 +139,7 @@ class SurrogateCollision:
 
     def __init__(self, *, model_dir: str, mode: str = "pairwise", detection: str | None = None,
                  periodic_box=None, n_streams: int = DEFAULT_STREAMS, batched: bool = True,
-                 max_rounds: int = MAX_ROUNDS, ordering: str = "parallel", cell=None, seed: int = 0,
+                 max_rounds: int = MAX_ROUNDS, ordering: str = "auto", cell=None, seed: int = 0,
                  wall_events: bool = True, kick_first: bool = True, collision_events: bool = False,
                  particle_spin: bool = False, windows="auto"):
         from hel_warp.forest import load_forest
@@ -146,8 +152,8 @@ class SurrogateCollision:
             raise ConfigError(f"n_streams must be a positive integer (got {n_streams!r})")
         if int(max_rounds) != max_rounds or max_rounds < 1:
             raise ConfigError(f"max_rounds must be a positive integer (got {max_rounds!r})")
-        if ordering not in ("parallel", "sequential"):
-            raise ConfigError(f"ordering must be 'parallel' or 'sequential' (got {ordering!r})")
+        if ordering not in ORDERINGS:
+            raise ConfigError(f"ordering must be one of {', '.join(ORDERINGS)} (got {ordering!r})")
         if windows != "auto" and not (isinstance(windows, (int, np.integer)) and not isinstance(windows, bool)
                                       and 1 <= windows <= 4096):
             raise ConfigError(f"windows must be 'auto' or an integer 1-4096 (got {windows!r})")
@@ -159,8 +165,11 @@ class SurrogateCollision:
         self._rounds_last = 0
         """Rounds of events of the last swept step beyond one per window (``windows="auto"``; in :meth:`state`)."""
         self.ordering = ordering
-        """``parallel``: every causally safe event of a round at once; ``sequential``: one event per round, the
-        globally earliest (strict event-driven order, slow: the tests' reference)."""
+        """Swept detection: ``parallel``: rounds, every causally safe event of a round at once; ``sequential``: one
+        event per round, the globally earliest (strict event-driven order, slow: the tests' reference); ``serial``:
+        the strict order on one thread from an event queue (``kernels/collide.py`` ``swept_queue``: the same bits as
+        ``sequential``, at a cost per event); ``auto`` (default): ``serial`` on the CPU (its kernels run on one
+        thread anyway), ``parallel`` on CUDA and when the events are logged (``collision_events``)."""
         self.mode = mode
         self.auto_detection = detection is None and mode == "pairwise"
         """``detection=None``: ``cell`` at a step where a live parcel's weight exceeds 1, else ``swept``."""
@@ -337,6 +346,9 @@ class SurrogateCollision:
         a.max_rounds = self.max_rounds
         a.guard = zeros(len(GUARD_NAMES), wp.int32)
         a.sequential = 1 if self.ordering == "sequential" else 0
+        self._queue = (wp.zeros(4 * n + 64, dtype=wp.int64, device=dev), zeros(1, wp.int32), zeros(n, wp.int32),
+                       zeros(1, wp.int32))
+        """The serial resolution's event queue (heap, size) and waiting stack (``ordering`` serial)."""
         a.global_key = wp.full(1, 0, dtype=wp.int64, device=dev)
         a.blocker, a.blocked_round = zeros(n, wp.int32), zeros(n, wp.int32)
         a.blocker_key = wp.full(n, 0, dtype=wp.int64, device=dev)
@@ -562,13 +574,14 @@ class SurrogateCollision:
             raise ConfigError(f"the periodic box {box} is too small for the collision search of this step "
                               f"({2.0 * (r_max + reach_max):.3g} m must stay below half the box side): enlarge the "
                               "box (more particles) or shorten dt")
-        windows = self._window_count(reach_mean, r_max) if sweep > 0.0 else 1
+        log = self._log_events_start(particles)
+        serial = self._serial(particles, log)
+        windows = self._window_count(reach_mean, r_max, serial, int(np.count_nonzero(alive))) if sweep > 0.0 else 1
         self._windows = windows
         self._shift_pending = sweep > 0.0
         a.spin = 1 if self.particle_spin else 0
         if self.particle_spin:
             a.particle_omega = particles.omega
-        log = self._log_events_start(particles)
         a.t_start, a.t_end, a.first_round = 0.0, sweep, 0
         a.anchor = a.hash_point  # one window: the searches' point is the hash point
         for k in range(windows):
@@ -591,20 +604,37 @@ class SurrogateCollision:
             a.bound_cut = max(BOUND_CUT_FACTOR * reach_mean if reach_mean > 0.0 else 0.0, REACH_CUT_FLOOR * r_max)
             resolve_swept(a, self.forest, particles.v, self.events_found, self.event_rounds, self.round_cap_hit,
                           self.calls, self.collisions, self.detected, self.skipped, batch_forest=self.batch_forest,
-                          args_store=self._swept_store, particle_omega=particles.omega, event_log=log)
+                          args_store=self._swept_store, particle_omega=particles.omega, event_log=log,
+                          queue=self._queue if serial else None)
         if log is not None:
             self._log_events_end(particles)
         if sweep > 0.0:
             self._rounds_last = max(0, int(self.event_rounds.numpy()[0]) - windows)
             wp.copy(self.v_swept, particles.v)
 
-    def _window_count(self, reach_mean: float, r_max: float) -> int:
+    def _serial(self, particles, log) -> bool:
+        """Whether this step's swept events are resolved from the serial queue (``ordering``)."""
+        if self.ordering == "serial":
+            return True
+        if self.ordering != "auto" or log is not None:
+            return False
+        device = particles.v.device
+        return device.is_cpu and not device.is_capturing
+
+    def _window_count(self, reach_mean: float, r_max: float, serial: bool = False, alive: int = 1) -> int:
         """Windows of the step (``windows``): ``auto`` cuts a step after one of many rounds (``WINDOW_ROUNDS``) so
         that the mean reach of a window is about ``WINDOW_REACH`` particle radii (the searches' balls shrink with
         it), at most ``WINDOWS_PER_ROOT_ROUND`` sqrt(rounds) and ``MAX_WINDOWS``."""
         if self.windows != "auto":
             return int(self.windows)
-        if self._rounds_last < WINDOW_ROUNDS or not reach_mean > 0.0 or not r_max > 0.0:
+        if not reach_mean > 0.0 or not r_max > 0.0:
+            return 1
+        if serial:
+            # the serial queue: a window's full search costs ~N searches, an event a few; the last step's events
+            # per parcel (its "rounds" are its events) set how far the balls should shrink
+            per_parcel = self._rounds_last / max(1, alive)
+            return int(min(MAX_WINDOWS, max(1, math.ceil(WINDOWS_SERIAL * reach_mean / r_max * math.sqrt(per_parcel)))))
+        if self._rounds_last < WINDOW_ROUNDS:
             return 1
         by_rounds = math.ceil(WINDOWS_PER_ROOT_ROUND * math.sqrt(self._rounds_last))
         return int(min(MAX_WINDOWS, by_rounds, max(1, math.ceil(reach_mean / (WINDOW_REACH * r_max)))))

@@ -722,6 +722,8 @@ LISTED_LARGE = wp.constant(1)
 """Bit of ``SweptArgs.listed``: the parcel is in ``large_index``."""
 LISTED_BOUND = wp.constant(2)
 """Bit of ``SweptArgs.listed``: the parcel is in ``bound_index``."""
+LISTED_WAITING = wp.constant(4)
+"""Bit of ``SweptArgs.listed`` (serial queue): the parcel waits on the stack to be searched anew."""
 
 
 @wp.func
@@ -965,6 +967,33 @@ def select_wall_event(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: i
     events_found[0] = 1
 
 
+@wp.func
+def write_event_row(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), row: int, a: int, b: int, t: float,
+                    n: wp.vec3):
+    """Event row ``row``: the pair (a < b), its time, contact normal n and contact features (model's domain)."""
+    args.event_i[row] = a
+    args.event_j[row] = b
+    args.event_time[row] = t
+    args.event_normal[row] = n
+    va = particle_v[a]
+    vb = particle_v[b]
+    if args.spin != 0:
+        va = contact_point_velocity(va, args.particle_omega[a], args.particle_radius[a], n)
+        vb = contact_point_velocity(vb, args.particle_omega[b], args.particle_radius[b], -n)
+    clamped = int(0)
+    if args.spin_form != 0:
+        clamped = write_contact_spin_features_in_domain(particle_v[a], particle_v[b], va, vb, n,
+                                                        2.0 * args.particle_radius[a], 2.0 * args.particle_radius[b],
+                                                        args.particle_density[a], args.particle_density[b],
+                                                        args.domain, row, args.features)
+    else:
+        clamped = write_contact_features_in_domain(va, vb, n, 2.0 * args.particle_radius[a],
+                                                   2.0 * args.particle_radius[b], args.particle_density[a],
+                                                   args.particle_density[b], args.domain, row, args.features)
+    if clamped != 0:
+        wp.atomic_add(args.guard, GUARD_CLAMPED, 1)
+
+
 @wp.kernel
 def swept_select(
     args_store: wp.array(dtype=SweptArgs),
@@ -1044,29 +1073,8 @@ def swept_select(
     dist = wp.length(s)
     if dist <= 0.0:
         return
-    n = s / dist
     row = wp.atomic_add(args.batch_count, 0, 1)
-    args.event_i[row] = a
-    args.event_j[row] = b
-    args.event_time[row] = t
-    args.event_normal[row] = n
-    va = particle_v[a]
-    vb = particle_v[b]
-    if args.spin != 0:
-        va = contact_point_velocity(va, args.particle_omega[a], args.particle_radius[a], n)
-        vb = contact_point_velocity(vb, args.particle_omega[b], args.particle_radius[b], -n)
-    clamped = int(0)
-    if args.spin_form != 0:
-        clamped = write_contact_spin_features_in_domain(particle_v[a], particle_v[b], va, vb, n,
-                                                        2.0 * args.particle_radius[a], 2.0 * args.particle_radius[b],
-                                                        args.particle_density[a], args.particle_density[b],
-                                                        args.domain, row, args.features)
-    else:
-        clamped = write_contact_features_in_domain(va, vb, n, 2.0 * args.particle_radius[a],
-                                                   2.0 * args.particle_radius[b], args.particle_density[a],
-                                                   args.particle_density[b], args.domain, row, args.features)
-    if clamped != 0:
-        wp.atomic_add(args.guard, GUARD_CLAMPED, 1)
+    write_event_row(args, particle_v, row, a, b, t, s / dist)
     events_found[0] = 1  # every writer stores the same value
 
 
@@ -1126,22 +1134,11 @@ def end_of_contact_normal(args: SweptArgs, i: int, j: int, t: float, n: wp.vec3,
     wp.atomic_add(args.guard, GUARD_TURNED, 1)
 
 
-@wp.kernel
-def swept_resolve(
-    args_store: wp.array(dtype=SweptArgs),
-    batch_count: wp.array(dtype=wp.int32),
-    forest: Forest,
-    # outputs
-    particle_v: wp.array(dtype=wp.vec3),
-    calls: wp.array(dtype=wp.int32),
-    collisions: wp.array(dtype=wp.int32),
-):
-    """The round's events: surrogate impulse, equal and opposite (weights as the pairwise rule), new paths.
-    ``batch_count``: ``args.batch_count``."""
-    row = wp.tid()
-    if row >= batch_count[0]:
-        return
-    args = args_store[0]
+@wp.func
+def resolve_event_row(args: SweptArgs, forest: Forest, particle_v: wp.array(dtype=wp.vec3),
+                      calls: wp.array(dtype=wp.int32), collisions: wp.array(dtype=wp.int32), row: int):
+    """Event row ``row`` (``write_event_row``): surrogate impulse, equal and opposite (weights as the pairwise
+    rule), new paths."""
     i = args.event_i[row]
     j = args.event_j[row]
     t = args.event_time[row]
@@ -1233,6 +1230,24 @@ def swept_resolve(
 
 
 @wp.kernel
+def swept_resolve(
+    args_store: wp.array(dtype=SweptArgs),
+    batch_count: wp.array(dtype=wp.int32),
+    forest: Forest,
+    # outputs
+    particle_v: wp.array(dtype=wp.vec3),
+    calls: wp.array(dtype=wp.int32),
+    collisions: wp.array(dtype=wp.int32),
+):
+    """The round's events: surrogate impulse, equal and opposite (weights as the pairwise rule), new paths.
+    ``batch_count``: ``args.batch_count``."""
+    row = wp.tid()
+    if row >= batch_count[0]:
+        return
+    resolve_event_row(args_store[0], forest, particle_v, calls, collisions, row)
+
+
+@wp.kernel
 def swept_log_events(
     args_store: wp.array(dtype=SweptArgs),
     batch_count: wp.array(dtype=wp.int32),
@@ -1262,21 +1277,10 @@ def swept_log_events(
         log_float[k, 1] = args.event_time[row]
 
 
-@wp.kernel
-def swept_resolve_walls(
-    args_store: wp.array(dtype=SweptArgs),
-    wall_count: wp.array(dtype=wp.int32),
-    # outputs
-    particle_v: wp.array(dtype=wp.vec3),
-    particle_omega: wp.array(dtype=wp.vec3),
-):
-    """The round's wall events: the parcel reflected at its crossing (e_n, e_t, Coulomb cap as the push's
-    reflection, or the rough-sphere law with spin of ``args.wall.spin``: kernels/reflect.py ``wall_impact``), its new
-    path from there. ``wall_count``: ``args.wall_count``; ``particle_omega``: updated with ``args.wall.spin``."""
-    row = wp.tid()
-    if row >= wall_count[0]:
-        return
-    args = args_store[0]
+@wp.func
+def resolve_wall_row(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), particle_omega: wp.array(dtype=wp.vec3),
+                     row: int):
+    """Wall event row ``row``: the parcel reflected at its crossing, its new path from there."""
     i = args.wall_i[row]
     t = args.wall_time[row]
     v = particle_v[i]
@@ -1292,6 +1296,23 @@ def swept_resolve_walls(
         particle_omega[i] = omega_new
     follow_new_path(args, i, i, t, v, v_new, args.round[0])
     wp.atomic_add(args.wall_hits, 0, 1)
+
+
+@wp.kernel
+def swept_resolve_walls(
+    args_store: wp.array(dtype=SweptArgs),
+    wall_count: wp.array(dtype=wp.int32),
+    # outputs
+    particle_v: wp.array(dtype=wp.vec3),
+    particle_omega: wp.array(dtype=wp.vec3),
+):
+    """The round's wall events: the parcel reflected at its crossing (e_n, e_t, Coulomb cap as the push's
+    reflection, or the rough-sphere law with spin of ``args.wall.spin``: kernels/reflect.py ``wall_impact``), its new
+    path from there. ``wall_count``: ``args.wall_count``; ``particle_omega``: updated with ``args.wall.spin``."""
+    row = wp.tid()
+    if row >= wall_count[0]:
+        return
+    resolve_wall_row(args_store[0], particle_v, particle_omega, row)
 
 
 @wp.kernel
@@ -1347,6 +1368,251 @@ def swept_mark_dirty(
         args.second_ok[i] = 1
     if stamped:
         list_far_reaching(args, i)  # its collision or wall event changed its reach and path bound
+
+
+# ------------------------------------------------------------------ serial event queue (the CPU's resolution)
+OWNER_MASK = wp.constant(wp.int64(4294967295))
+
+
+@wp.func
+def heap_push(heap: wp.array(dtype=wp.int64), heap_size: wp.array(dtype=wp.int32), entry: wp.int64):
+    """Binary min-heap of int64 entries: insert (sift up). The caller keeps the size below the capacity."""
+    k = heap_size[0]
+    heap_size[0] = k + 1
+    while k > 0:
+        parent = (k - 1) / 2
+        if heap[parent] <= entry:
+            break
+        heap[k] = heap[parent]
+        k = parent
+    heap[k] = entry
+
+
+@wp.func
+def heap_pop(heap: wp.array(dtype=wp.int64), heap_size: wp.array(dtype=wp.int32)):
+    """Remove and return the smallest entry (sift down); the heap must not be empty."""
+    top = heap[0]
+    n = heap_size[0] - 1
+    heap_size[0] = n
+    if n > 0:
+        last = heap[n]
+        k = int(0)
+        while 2 * k + 1 < n:
+            c = 2 * k + 1
+            if c + 1 < n and heap[c + 1] < heap[c]:
+                c = c + 1
+            if last <= heap[c]:
+                break
+            heap[k] = heap[c]
+            k = c
+        heap[k] = last
+    return top
+
+
+@wp.func
+def queue_entry(key: wp.int64, owner: int):
+    """Heap entry of parcel ``owner``'s event key: its time bits, then the owner (``event_key`` holds the partner)."""
+    return ((key >> wp.int64(32)) << wp.int64(32)) | wp.int64(owner)
+
+
+@wp.func
+def heap_rebuild(args: SweptArgs, heap: wp.array(dtype=wp.int64), heap_size: wp.array(dtype=wp.int32)):
+    """The queue anew from the parcels' keys (one entry each), dropping the stale entries."""
+    heap_size[0] = 0
+    for i in range(args.event_key.shape[0]):
+        key = args.event_key[i]
+        if key != EVENT_NONE:
+            heap_push(heap, heap_size, queue_entry(key, i))
+
+
+@wp.func
+def queue_offer(args: SweptArgs, heap: wp.array(dtype=wp.int64), heap_size: wp.array(dtype=wp.int32), i: int,
+                key: wp.int64):
+    """Offer an event to parcel i: its key becomes the smaller, queued when it changed, and ``second_key`` the second
+    smallest (the serial ``offer_event``; a stale entry is skipped when popped)."""
+    old = args.event_key[i]
+    args.second_key[i] = wp.min(args.second_key[i], wp.max(old, key))
+    if key < old:
+        args.event_key[i] = key
+        if heap_size[0] < heap.shape[0]:
+            heap_push(heap, heap_size, queue_entry(key, i))
+        else:
+            heap_rebuild(args, heap, heap_size)  # full of stale entries: one per live key again (capacity > n)
+
+
+@wp.func
+def queue_predict(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), heap: wp.array(dtype=wp.int64),
+                  heap_size: wp.array(dtype=wp.int32), i: int):
+    """Parcel i's events searched anew (its key cleared first): its wall crossing and every pair it may meet (the
+    cell list out to partners of path bound <= bound_cut, the rest listed), offered to both parcels."""
+    args.event_key[i] = EVENT_NONE
+    args.second_key[i] = EVENT_NONE
+    args.second_ok[i] = 1  # a full search: its second is exact
+    if args.particle_alive[i] == 0:
+        return
+    t_wall = wall_touch(args, particle_v, i)
+    if t_wall >= 0.0:
+        queue_offer(args, heap, heap_size, i, event_key(t_wall, args.dt, i))
+    ri = args.particle_radius[i]
+    mi = args.anchor[i]
+    extent_i = ri + args.path_bound[i]
+    cut = args.bound_cut
+    radius = (ri + args.max_radius + args.path_bound[i] + wp.min(cut, args.reach_max[0])) * NEAR_MARGIN
+    lo, hi = search_box(args.cells, mi, radius)
+    for k_range in range(range_count(args.cells, lo, hi)):
+        begin, end = range_slots(args.cells, lo, hi, k_range, mi, radius)
+        for slot in range(begin, end):
+            j = args.cells.slot_point[slot]
+            if j != i and args.path_bound[j] <= cut:
+                if paths_near(args, mi, extent_i, j, args.cells.slot_position[slot]):
+                    queue_pair(args, particle_v, heap, heap_size, i, j)
+    for slot in range(args.bound_count[0]):
+        j = args.bound_index[slot]
+        if j != i and args.path_bound[j] > cut:
+            if paths_near(args, mi, extent_i, j, args.anchor[j]):
+                queue_pair(args, particle_v, heap, heap_size, i, j)
+
+
+@wp.func
+def queue_pair(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), heap: wp.array(dtype=wp.int64),
+               heap_size: wp.array(dtype=wp.int32), i: int, j: int):
+    """The pair's first touch, if any, offered to both parcels (``offer_pair``)."""
+    t = first_touch(args, particle_v, wp.min(i, j), wp.max(i, j))
+    if t >= 0.0:
+        queue_offer(args, heap, heap_size, i, event_key(t, args.dt, j))
+        queue_offer(args, heap, heap_size, j, event_key(t, args.dt, i))
+
+
+@wp.func
+def queue_mark_waiting(args: SweptArgs, heap: wp.array(dtype=wp.int64), heap_size: wp.array(dtype=wp.int32), x: int,
+                       y: int, stack: wp.array(dtype=wp.int32), stack_size: wp.array(dtype=wp.int32)):
+    """Before the paths of x and y (the event's parcels; y = x for a wall event) change: every parcel whose pending
+    event is with x (found within x's present search: that event's paths met within their bounds) takes its exact
+    second event instead when that is with neither (queued; as ``swept_mark_dirty``), else it is put on ``stack`` to
+    be searched anew (``listed`` bit 4 marks it once); a parcel whose second event is with x loses its exactness."""
+    mx = args.anchor[x]
+    extent_x = args.particle_radius[x] + args.path_bound[x]
+    cut = args.bound_cut
+    radius = (args.particle_radius[x] + args.max_radius + args.path_bound[x] + wp.min(cut, args.reach_max[0])) * NEAR_MARGIN
+    lo, hi = search_box(args.cells, mx, radius)
+    for k_range in range(range_count(args.cells, lo, hi)):
+        begin, end = range_slots(args.cells, lo, hi, k_range, mx, radius)
+        for slot in range(begin, end):
+            c = args.cells.slot_point[slot]
+            queue_mark_one(args, heap, heap_size, x, y, c, stack, stack_size)
+    for slot in range(args.bound_count[0]):
+        queue_mark_one(args, heap, heap_size, x, y, args.bound_index[slot], stack, stack_size)
+
+
+@wp.func
+def queue_mark_one(args: SweptArgs, heap: wp.array(dtype=wp.int64), heap_size: wp.array(dtype=wp.int32), x: int,
+                   y: int, c: int, stack: wp.array(dtype=wp.int32), stack_size: wp.array(dtype=wp.int32)):
+    if c == x or c == y or (args.listed[c] & LISTED_WAITING) != 0:
+        return
+    second = args.second_key[c]
+    if second != EVENT_NONE:
+        partner2 = event_partner(second)
+        if partner2 == x or partner2 == y:
+            args.second_ok[c] = 0
+    key = args.event_key[c]
+    if key == EVENT_NONE or event_partner(key) != x:
+        return
+    if args.second_ok[c] != 0:
+        # the exact second takes the first's place (a full search would find it); no third is known
+        args.event_key[c] = second
+        args.second_key[c] = EVENT_NONE
+        if second != EVENT_NONE:
+            args.second_ok[c] = 0
+            if heap_size[0] < heap.shape[0]:
+                heap_push(heap, heap_size, queue_entry(second, c))
+            else:
+                heap_rebuild(args, heap, heap_size)
+        return
+    args.listed[c] = args.listed[c] | LISTED_WAITING
+    stack[stack_size[0]] = c
+    stack_size[0] = stack_size[0] + 1
+
+
+@wp.func
+def queue_repredict_stack(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), heap: wp.array(dtype=wp.int64),
+                          heap_size: wp.array(dtype=wp.int32), stack: wp.array(dtype=wp.int32),
+                          stack_size: wp.array(dtype=wp.int32)):
+    for k in range(stack_size[0]):
+        c = stack[k]
+        args.listed[c] = args.listed[c] & ~LISTED_WAITING
+        queue_predict(args, particle_v, heap, heap_size, c)
+    stack_size[0] = 0
+
+
+@wp.kernel
+def swept_queue(
+    args_store: wp.array(dtype=SweptArgs),
+    forest: Forest,
+    heap: wp.array(dtype=wp.int64),
+    heap_size: wp.array(dtype=wp.int32),
+    stack: wp.array(dtype=wp.int32),
+    stack_size: wp.array(dtype=wp.int32),
+    # outputs
+    particle_v: wp.array(dtype=wp.vec3),
+    particle_omega: wp.array(dtype=wp.vec3),
+    calls: wp.array(dtype=wp.int32),
+    collisions: wp.array(dtype=wp.int32),
+    event_count: wp.array(dtype=wp.int32),
+):
+    """The window's events one by one in time order (one thread: the CPU's serial resolution; the keys are those of
+    the window's full search, ``swept_find`` in its first round). The earliest queued entry is popped; an entry
+    whose parcel's key changed since is stale and skipped; a pair event is resolved when both keys name each other
+    (the strict order's mutually earliest pair), a wall event when the crossing is still there. Before a parcel's
+    path changes, the parcels whose event was with it are put aside; after it, the parcel, its partner and those are
+    searched anew (their events offered to both sides and queued). The same events, in the same order, with the same
+    functions as ``ordering="sequential"``'s rounds: the same bits, at a cost per event instead of per round."""
+    args = args_store[0]
+    stack_size[0] = 0
+    heap_rebuild(args, heap, heap_size)
+    events = int(0)
+    while heap_size[0] > 0:
+        entry = heap_pop(heap, heap_size)
+        a = int(entry & OWNER_MASK)
+        key_a = args.event_key[a]
+        if key_a == EVENT_NONE or (key_a >> wp.int64(32)) != (entry >> wp.int64(32)):
+            continue  # stale: the parcel's event changed since it was queued
+        b = event_partner(key_a)
+        if b == a:
+            t_wall = wall_touch(args, particle_v, a)
+            if t_wall < 0.0:
+                queue_predict(args, particle_v, heap, heap_size, a)
+                continue
+            args.wall_i[0] = a
+            args.wall_time[0] = t_wall
+            resolve_wall_row(args, particle_v, particle_omega, 0)
+            list_far_reaching(args, a)
+            queue_predict(args, particle_v, heap, heap_size, a)
+            events = events + 1
+            continue
+        if args.event_key[b] != queue_entry(key_a, a):
+            queue_predict(args, particle_v, heap, heap_size, a)  # not mutual: searched anew
+            continue
+        i = wp.min(a, b)
+        j = wp.max(a, b)
+        t = first_touch(args, particle_v, i, j)
+        if t < 0.0:
+            queue_predict(args, particle_v, heap, heap_size, i)
+            queue_predict(args, particle_v, heap, heap_size, j)
+            continue
+        s = relative_position(args, particle_v, i, j, t)
+        dist = wp.length(s)
+        if dist <= 0.0:
+            queue_predict(args, particle_v, heap, heap_size, i)
+            queue_predict(args, particle_v, heap, heap_size, j)
+            continue
+        write_event_row(args, particle_v, 0, i, j, t, s / dist)
+        resolve_event_row(args, forest, particle_v, calls, collisions, 0)
+        list_far_reaching(args, i)
+        list_far_reaching(args, j)
+        queue_predict(args, particle_v, heap, heap_size, i)
+        queue_predict(args, particle_v, heap, heap_size, j)
+        events = events + 1
+    event_count[0] = event_count[0] + events
 
 
 @wp.kernel
@@ -1448,7 +1714,7 @@ def launch_swept_window(args: SweptArgs, particle_v, reach_max, reach_sum) -> No
 
 def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, event_rounds, round_cap_hit, calls,
                   collisions, detected, skipped, batch_forest: Forest | None = None, args_store=None,
-                  particle_omega=None, event_log=None) -> None:
+                  particle_omega=None, event_log=None, queue=None) -> None:
     """Rounds of mutually earliest events until none is left (``wp.capture_while``: a while node where the call is
     captured into a graph - tests/test_device_paths.py does, on the CPU; the engine calls it uncaptured, a host loop
     with one device read per round) or
@@ -1462,6 +1728,11 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
     ``event_log``: None, or ``(count, log_int, log_float)`` that ``swept_log_events`` fills with every event resolved
     (``count`` zeroed by the caller).
 
+    ``queue=(heap, heap_size, stack, stack_size)`` (int64 heap of more than n entries, int32 stack of n): the serial
+    resolution instead of the rounds: the window's full search (``swept_find``), then ``swept_queue`` on one thread,
+    the events one by one in time order (``event_rounds`` counts them: each is a round of the strict order). The
+    strict order's result bit for bit, at a cost per event: the CPU's resolution (a GPU runs the rounds).
+
     Every launch of a round is recorded once per call (``record_cmd``: the arguments, ``args`` included, are
     packed once, as they stay the same over the step) and replayed each round: on the CPU packing the
     ``SweptArgs`` struct cost ~40-80 us per launch, i.e. ~0.3 ms per round of the rig's 100-200 rounds per step.
@@ -1470,7 +1741,7 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
     thread (~10 ns for ``SweptArgs``), and most threads of a round have nothing to do."""
     device = particle_v.device
     n = particle_v.shape[0]
-    args.batched = 0 if batch_forest is None else 1
+    args.batched = 0 if batch_forest is None or queue is not None else 1
     if args_store is None:
         args_store = wp.empty(1, dtype=SweptArgs, device=device)
     wp.launch(store_swept_args, dim=1, device=device, inputs=[args], outputs=[args_store])
@@ -1522,6 +1793,12 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
     args.batch_count.zero_()
     args.wall_count.zero_()
     wp.launch(swept_reset, dim=n, device=device, inputs=[args])  # round 0's lists; later rounds' in mark_dirty
+    if queue is not None:
+        find.launch()  # the window's full search: every parcel's earliest event
+        heap, heap_size, stack, stack_size = queue
+        wp.launch(swept_queue, dim=1, device=device, inputs=[args_store, forest, heap, heap_size, stack, stack_size],
+                  outputs=[particle_v, particle_omega, calls, collisions, event_rounds])
+        return
     events_found.fill_(1)
     wp.capture_while(events_found, one_round)
 

@@ -306,7 +306,8 @@ def test_swept_rounds_captured_as_a_graph_loop_equal_the_eager_rounds(device, tr
     for resolve in (eager_resolve, captured_resolve):
         monkeypatch.setattr(kc, "resolve_swept", resolve)
         p = Particles.from_numpy(x, 0.5 * D, v=v, density=RHO, check_overlap=False, device=device)
-        strategy = SurrogateCollision(model_dir=trained_models["contact"], periodic_box=(side,) * 3, batched=batched)
+        strategy = SurrogateCollision(model_dir=trained_models["contact"], periodic_box=(side,) * 3, batched=batched,
+                                      ordering="parallel")  # the rounds (a GPU's resolution), not the CPU's queue
         strategy.collide(p, 2e-4)
         assert (strategy.batch_forest is not None) == batched
         results.append((p.v.numpy().copy(), strategy.swept.t_last.numpy().copy(), strategy.counts()))
@@ -454,7 +455,7 @@ def test_swept_hel_steps_kick_first_with_wall_events_captured_equal_the_eager_st
     with wp.ScopedDevice(device):
         for resolve in (eager_resolve, captured_resolve):
             monkeypatch.setattr(kc, "resolve_swept", resolve)
-            strategy = SurrogateCollision(model_dir=trained_models["contact"], detection="swept")
+            strategy = SurrogateCollision(model_dir=trained_models["contact"], detection="swept", ordering="parallel")
             assert strategy.kick_first and strategy.wall_events
             solver = make_solver(x=x, v=v, radius=radius, density=RHO, collision=strategy, wall_contact=wall_contact)
             assert solver.wall_params.surface == (wall_contact == "surface")

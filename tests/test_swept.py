@@ -320,13 +320,14 @@ def test_windows_change_the_searches_not_the_events(trained_models):
     # (reach ~2 radii): resolved in 1, 2 and 7 windows (``windows``) and in the automatic count. The strict event
     # order (one event per round, the globally earliest) is the reference: the windows give it bit for bit, as
     # the window only bounds the searches (the paths, event times and outcomes are those of the whole step); the
-    # parallel rounds in windows give it too.
+    # parallel rounds in windows give it too, and so does the serial queue (``ordering="serial"``, the CPU's
+    # default), in one window and in seven.
     from hel_warp.collision_models import SurrogateCollision
 
     x, v, side = periodic_gas(2000, 0.05, seed=4)
     results = {}
     for ordering, windows in (("sequential", 1), ("sequential", 2), ("sequential", 7), ("parallel", 7),
-                              ("parallel", "auto")):
+                              ("parallel", "auto"), ("serial", 1), ("serial", 7), ("auto", "auto")):
         p = make_particles(x, v)
         strategy = SurrogateCollision(model_dir=trained_models["contact"], periodic_box=(side,) * 3,
                                       ordering=ordering, max_rounds=100000, windows=windows)

@@ -105,7 +105,7 @@ def test_wall_events_in_time_order_with_collisions_match_the_sequential_referenc
     shapes = Geometry(shapes=(Box(lo=(0.0, 0.0, 0.0), hi=(side, side, side)),)).shapes_struct(None)
     params = make_wall_params(restitution_normal=E_WALL, restitution_tangential=E_WALL)
     out = {}
-    for ordering, windows in (("parallel", 6), ("sequential", 6), ("sequential", 1)):
+    for ordering, windows in (("parallel", 6), ("sequential", 6), ("sequential", 1), ("serial", 6), ("serial", 1)):
         p = make_particles(x, v)
         strategy = SurrogateCollision(model_dir=hard_sphere_model, ordering=ordering, wall_events=True,
                                       windows=windows)
@@ -120,8 +120,9 @@ def test_wall_events_in_time_order_with_collisions_match_the_sequential_referenc
         out[(ordering, windows)] = (p.x.numpy(), p.v.numpy(), hits, collisions)
     (xp, vp, hp, cp), (xs, vs, hs, cs) = out[("parallel", 6)], out[("sequential", 6)]
     # the windows change the searches only: the strict order gives the same wall events and collisions with one
-    (x1, v1, h1, c1) = out[("sequential", 1)]
-    assert (h1, c1) == (hs, cs) and np.array_equal(v1, vs) and np.array_equal(x1, xs)
+    for key in (("sequential", 1), ("serial", 6), ("serial", 1)):  # the serial queue: the strict order's bits
+        (x1, v1, h1, c1) = out[key]
+        assert (h1, c1) == (hs, cs) and np.array_equal(v1, vs) and np.array_equal(x1, xs), key
     assert hp > 5 and cp > 5, (hp, cp)
     assert (hp, cp) == (hs, cs)
     np.testing.assert_allclose(vp, vs, rtol=1e-4, atol=1e-5)

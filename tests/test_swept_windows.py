@@ -33,7 +33,7 @@ def test_auto_windows_follow_the_last_step_rounds_and_the_reach(constant_model):
 
     x, v, side = periodic_gas(1000, 0.01, seed=2)
     dt = 1e-3
-    strategy = cm.SurrogateCollision(model_dir=constant_model, periodic_box=(side,) * 3)
+    strategy = cm.SurrogateCollision(model_dir=constant_model, periodic_box=(side,) * 3, ordering="parallel")
     p = make_particles(x, v)
     strategy.collide(p, dt)
     assert strategy.counts()["windows"] == 1  # no history: one window
@@ -44,11 +44,23 @@ def test_auto_windows_follow_the_last_step_rounds_and_the_reach(constant_model):
     assert by_reach > 6
     for last in (cm.WINDOW_ROUNDS, 10_000):  # few windows after a step of 30 rounds, the reach's after 10,000
         expected = min(cm.MAX_WINDOWS, by_reach, math.ceil(cm.WINDOWS_PER_ROOT_ROUND * math.sqrt(last)))
-        fresh = cm.SurrogateCollision(model_dir=constant_model, periodic_box=(side,) * 3)
+        fresh = cm.SurrogateCollision(model_dir=constant_model, periodic_box=(side,) * 3, ordering="parallel")
         fresh.set_state({**strategy.state(), "swept_rounds": np.array(last, np.int64)})
         p = make_particles(x, v)
         fresh.collide(p, dt)
         assert fresh.counts()["windows"] == expected > 1
+    # the serial queue (the CPU's default): its rounds are its events; ceil(WINDOWS_SERIAL reach / r_max
+    # sqrt(events per parcel)) windows
+    for last in (0, 50, 5_000):
+        serial = cm.SurrogateCollision(model_dir=constant_model, periodic_box=(side,) * 3, ordering="serial")
+        serial.set_state({"swept_rounds": np.array(last, np.int64)})
+        p = make_particles(x, v)
+        serial.collide(p, dt)
+        expected = min(cm.MAX_WINDOWS, max(1, math.ceil(cm.WINDOWS_SERIAL * reach_mean / (0.5 * D)
+                                                        * math.sqrt(last / len(x)))))
+        assert serial.counts()["windows"] == expected, last
+        assert int(serial.state()["swept_rounds"]) == serial.counts()["rounds"] - expected  # its events
+    assert expected > 4
     with pytest.raises(Exception, match="windows must be"):
         cm.SurrogateCollision(model_dir=constant_model, windows=0)
 
