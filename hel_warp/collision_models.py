@@ -346,9 +346,9 @@ class SurrogateCollision:
         a.max_rounds = self.max_rounds
         a.guard = zeros(len(GUARD_NAMES), wp.int32)
         a.sequential = 1 if self.ordering == "sequential" else 0
-        self._queue = (wp.zeros(4 * n + 64, dtype=wp.int64, device=dev), zeros(1, wp.int32), zeros(n, wp.int32),
+        self._queue = (wp.zeros(4 * n + 64, dtype=wp.int64, device=dev), zeros(4 * n + 64, wp.int32),
                        zeros(1, wp.int32))
-        """The serial resolution's event queue (heap, size) and waiting stack (``ordering`` serial)."""
+        """The serial resolution's event queue: heap keys, owners and size (``ordering`` serial)."""
         a.global_key = wp.full(1, 0, dtype=wp.int64, device=dev)
         a.blocker, a.blocked_round = zeros(n, wp.int32), zeros(n, wp.int32)
         a.blocker_key = wp.full(n, 0, dtype=wp.int64, device=dev)

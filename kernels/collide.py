@@ -722,8 +722,7 @@ LISTED_LARGE = wp.constant(1)
 """Bit of ``SweptArgs.listed``: the parcel is in ``large_index``."""
 LISTED_BOUND = wp.constant(2)
 """Bit of ``SweptArgs.listed``: the parcel is in ``bound_index``."""
-LISTED_WAITING = wp.constant(4)
-"""Bit of ``SweptArgs.listed`` (serial queue): the parcel waits on the stack to be searched anew."""
+
 
 
 @wp.func
@@ -1371,88 +1370,100 @@ def swept_mark_dirty(
 
 
 # ------------------------------------------------------------------ serial event queue (the CPU's resolution)
-OWNER_MASK = wp.constant(wp.int64(4294967295))
+@wp.func
+def heap_less(key_a: wp.int64, owner_a: int, key_b: wp.int64, owner_b: int):
+    return key_a < key_b or (key_a == key_b and owner_a < owner_b)
 
 
 @wp.func
-def heap_push(heap: wp.array(dtype=wp.int64), heap_size: wp.array(dtype=wp.int32), entry: wp.int64):
-    """Binary min-heap of int64 entries: insert (sift up). The caller keeps the size below the capacity."""
+def heap_push(heap_key: wp.array(dtype=wp.int64), heap_owner: wp.array(dtype=wp.int32),
+              heap_size: wp.array(dtype=wp.int32), key: wp.int64, owner: int):
+    """Binary min-heap of (event key, owner) entries, ordered by key then owner: insert (sift up). The caller keeps
+    the size below the capacity."""
     k = heap_size[0]
     heap_size[0] = k + 1
     while k > 0:
         parent = (k - 1) / 2
-        if heap[parent] <= entry:
+        if not heap_less(key, owner, heap_key[parent], heap_owner[parent]):
             break
-        heap[k] = heap[parent]
+        heap_key[k] = heap_key[parent]
+        heap_owner[k] = heap_owner[parent]
         k = parent
-    heap[k] = entry
+    heap_key[k] = key
+    heap_owner[k] = owner
 
 
 @wp.func
-def heap_pop(heap: wp.array(dtype=wp.int64), heap_size: wp.array(dtype=wp.int32)):
-    """Remove and return the smallest entry (sift down); the heap must not be empty."""
-    top = heap[0]
+def heap_pop(heap_key: wp.array(dtype=wp.int64), heap_owner: wp.array(dtype=wp.int32),
+             heap_size: wp.array(dtype=wp.int32)):
+    """Remove the smallest entry (sift down) and return its owner (its key: ``heap_key[0]`` before the call); the
+    heap must not be empty."""
+    top = heap_owner[0]
     n = heap_size[0] - 1
     heap_size[0] = n
     if n > 0:
-        last = heap[n]
+        last_key = heap_key[n]
+        last_owner = heap_owner[n]
         k = int(0)
         while 2 * k + 1 < n:
             c = 2 * k + 1
-            if c + 1 < n and heap[c + 1] < heap[c]:
+            if c + 1 < n and heap_less(heap_key[c + 1], heap_owner[c + 1], heap_key[c], heap_owner[c]):
                 c = c + 1
-            if last <= heap[c]:
+            if not heap_less(heap_key[c], heap_owner[c], last_key, last_owner):
                 break
-            heap[k] = heap[c]
+            heap_key[k] = heap_key[c]
+            heap_owner[k] = heap_owner[c]
             k = c
-        heap[k] = last
+        heap_key[k] = last_key
+        heap_owner[k] = last_owner
     return top
 
 
 @wp.func
-def queue_entry(key: wp.int64, owner: int):
-    """Heap entry of parcel ``owner``'s event key: its time bits, then the owner (``event_key`` holds the partner)."""
-    return ((key >> wp.int64(32)) << wp.int64(32)) | wp.int64(owner)
-
-
-@wp.func
-def heap_rebuild(args: SweptArgs, heap: wp.array(dtype=wp.int64), heap_size: wp.array(dtype=wp.int32)):
+def heap_rebuild(args: SweptArgs, heap_key: wp.array(dtype=wp.int64), heap_owner: wp.array(dtype=wp.int32),
+                 heap_size: wp.array(dtype=wp.int32)):
     """The queue anew from the parcels' keys (one entry each), dropping the stale entries."""
     heap_size[0] = 0
     for i in range(args.event_key.shape[0]):
         key = args.event_key[i]
         if key != EVENT_NONE:
-            heap_push(heap, heap_size, queue_entry(key, i))
+            heap_push(heap_key, heap_owner, heap_size, key, i)
 
 
 @wp.func
-def queue_offer(args: SweptArgs, heap: wp.array(dtype=wp.int64), heap_size: wp.array(dtype=wp.int32), i: int,
-                key: wp.int64):
-    """Offer an event to parcel i: its key becomes the smaller, queued when it changed, and ``second_key`` the second
-    smallest (the serial ``offer_event``; a stale entry is skipped when popped)."""
-    old = args.event_key[i]
-    args.second_key[i] = wp.min(args.second_key[i], wp.max(old, key))
-    if key < old:
+def queue_offer(args: SweptArgs, heap_key: wp.array(dtype=wp.int64), heap_owner: wp.array(dtype=wp.int32),
+                heap_size: wp.array(dtype=wp.int32), i: int, key: wp.int64):
+    """Offer an event to parcel i: its key becomes the smaller, queued when it changed (the serial ``offer_event``;
+    a stale entry is skipped when popped)."""
+    if key < args.event_key[i]:
         args.event_key[i] = key
-        if heap_size[0] < heap.shape[0]:
-            heap_push(heap, heap_size, queue_entry(key, i))
+        if heap_size[0] < heap_key.shape[0]:
+            heap_push(heap_key, heap_owner, heap_size, key, i)
         else:
-            heap_rebuild(args, heap, heap_size)  # full of stale entries: one per live key again (capacity > n)
+            heap_rebuild(args, heap_key, heap_owner, heap_size)  # full of stale entries (capacity > n)
 
 
 @wp.func
-def queue_predict(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), heap: wp.array(dtype=wp.int64),
-                  heap_size: wp.array(dtype=wp.int32), i: int):
+def queue_pair(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), heap_key: wp.array(dtype=wp.int64),
+               heap_owner: wp.array(dtype=wp.int32), heap_size: wp.array(dtype=wp.int32), i: int, j: int):
+    """The pair's first touch, if any, offered to both parcels (``offer_pair``)."""
+    t = first_touch(args, particle_v, wp.min(i, j), wp.max(i, j))
+    if t >= 0.0:
+        queue_offer(args, heap_key, heap_owner, heap_size, i, event_key(t, args.dt, j))
+        queue_offer(args, heap_key, heap_owner, heap_size, j, event_key(t, args.dt, i))
+
+
+@wp.func
+def queue_predict(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), heap_key: wp.array(dtype=wp.int64),
+                  heap_owner: wp.array(dtype=wp.int32), heap_size: wp.array(dtype=wp.int32), i: int):
     """Parcel i's events searched anew (its key cleared first): its wall crossing and every pair it may meet (the
     cell list out to partners of path bound <= bound_cut, the rest listed), offered to both parcels."""
     args.event_key[i] = EVENT_NONE
-    args.second_key[i] = EVENT_NONE
-    args.second_ok[i] = 1  # a full search: its second is exact
     if args.particle_alive[i] == 0:
         return
     t_wall = wall_touch(args, particle_v, i)
     if t_wall >= 0.0:
-        queue_offer(args, heap, heap_size, i, event_key(t_wall, args.dt, i))
+        queue_offer(args, heap_key, heap_owner, heap_size, i, event_key(t_wall, args.dt, i))
     ri = args.particle_radius[i]
     mi = args.anchor[i]
     extent_i = ri + args.path_bound[i]
@@ -1465,154 +1476,110 @@ def queue_predict(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), heap: wp
             j = args.cells.slot_point[slot]
             if j != i and args.path_bound[j] <= cut:
                 if paths_near(args, mi, extent_i, j, args.cells.slot_position[slot]):
-                    queue_pair(args, particle_v, heap, heap_size, i, j)
+                    queue_pair(args, particle_v, heap_key, heap_owner, heap_size, i, j)
     for slot in range(args.bound_count[0]):
         j = args.bound_index[slot]
         if j != i and args.path_bound[j] > cut:
             if paths_near(args, mi, extent_i, j, args.anchor[j]):
-                queue_pair(args, particle_v, heap, heap_size, i, j)
-
-
-@wp.func
-def queue_pair(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), heap: wp.array(dtype=wp.int64),
-               heap_size: wp.array(dtype=wp.int32), i: int, j: int):
-    """The pair's first touch, if any, offered to both parcels (``offer_pair``)."""
-    t = first_touch(args, particle_v, wp.min(i, j), wp.max(i, j))
-    if t >= 0.0:
-        queue_offer(args, heap, heap_size, i, event_key(t, args.dt, j))
-        queue_offer(args, heap, heap_size, j, event_key(t, args.dt, i))
-
-
-@wp.func
-def queue_mark_waiting(args: SweptArgs, heap: wp.array(dtype=wp.int64), heap_size: wp.array(dtype=wp.int32), x: int,
-                       y: int, stack: wp.array(dtype=wp.int32), stack_size: wp.array(dtype=wp.int32)):
-    """Before the paths of x and y (the event's parcels; y = x for a wall event) change: every parcel whose pending
-    event is with x (found within x's present search: that event's paths met within their bounds) takes its exact
-    second event instead when that is with neither (queued; as ``swept_mark_dirty``), else it is put on ``stack`` to
-    be searched anew (``listed`` bit 4 marks it once); a parcel whose second event is with x loses its exactness."""
-    mx = args.anchor[x]
-    extent_x = args.particle_radius[x] + args.path_bound[x]
-    cut = args.bound_cut
-    radius = (args.particle_radius[x] + args.max_radius + args.path_bound[x] + wp.min(cut, args.reach_max[0])) * NEAR_MARGIN
-    lo, hi = search_box(args.cells, mx, radius)
-    for k_range in range(range_count(args.cells, lo, hi)):
-        begin, end = range_slots(args.cells, lo, hi, k_range, mx, radius)
-        for slot in range(begin, end):
-            c = args.cells.slot_point[slot]
-            queue_mark_one(args, heap, heap_size, x, y, c, stack, stack_size)
-    for slot in range(args.bound_count[0]):
-        queue_mark_one(args, heap, heap_size, x, y, args.bound_index[slot], stack, stack_size)
-
-
-@wp.func
-def queue_mark_one(args: SweptArgs, heap: wp.array(dtype=wp.int64), heap_size: wp.array(dtype=wp.int32), x: int,
-                   y: int, c: int, stack: wp.array(dtype=wp.int32), stack_size: wp.array(dtype=wp.int32)):
-    if c == x or c == y or (args.listed[c] & LISTED_WAITING) != 0:
-        return
-    second = args.second_key[c]
-    if second != EVENT_NONE:
-        partner2 = event_partner(second)
-        if partner2 == x or partner2 == y:
-            args.second_ok[c] = 0
-    key = args.event_key[c]
-    if key == EVENT_NONE or event_partner(key) != x:
-        return
-    if args.second_ok[c] != 0:
-        # the exact second takes the first's place (a full search would find it); no third is known
-        args.event_key[c] = second
-        args.second_key[c] = EVENT_NONE
-        if second != EVENT_NONE:
-            args.second_ok[c] = 0
-            if heap_size[0] < heap.shape[0]:
-                heap_push(heap, heap_size, queue_entry(second, c))
-            else:
-                heap_rebuild(args, heap, heap_size)
-        return
-    args.listed[c] = args.listed[c] | LISTED_WAITING
-    stack[stack_size[0]] = c
-    stack_size[0] = stack_size[0] + 1
-
-
-@wp.func
-def queue_repredict_stack(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), heap: wp.array(dtype=wp.int64),
-                          heap_size: wp.array(dtype=wp.int32), stack: wp.array(dtype=wp.int32),
-                          stack_size: wp.array(dtype=wp.int32)):
-    for k in range(stack_size[0]):
-        c = stack[k]
-        args.listed[c] = args.listed[c] & ~LISTED_WAITING
-        queue_predict(args, particle_v, heap, heap_size, c)
-    stack_size[0] = 0
+                queue_pair(args, particle_v, heap_key, heap_owner, heap_size, i, j)
 
 
 @wp.kernel
 def swept_queue(
     args_store: wp.array(dtype=SweptArgs),
     forest: Forest,
-    heap: wp.array(dtype=wp.int64),
+    heap_key: wp.array(dtype=wp.int64),
+    heap_owner: wp.array(dtype=wp.int32),
     heap_size: wp.array(dtype=wp.int32),
-    stack: wp.array(dtype=wp.int32),
-    stack_size: wp.array(dtype=wp.int32),
+    max_pops: int,
     # outputs
     particle_v: wp.array(dtype=wp.vec3),
     particle_omega: wp.array(dtype=wp.vec3),
     calls: wp.array(dtype=wp.int32),
     collisions: wp.array(dtype=wp.int32),
     event_count: wp.array(dtype=wp.int32),
+    cap_hit: wp.array(dtype=wp.int32),
 ):
     """The window's events one by one in time order (one thread: the CPU's serial resolution; the keys are those of
-    the window's full search, ``swept_find`` in its first round). The earliest queued entry is popped; an entry
-    whose parcel's key changed since is stale and skipped; a pair event is resolved when both keys name each other
-    (the strict order's mutually earliest pair), a wall event when the crossing is still there. Before a parcel's
-    path changes, the parcels whose event was with it are put aside; after it, the parcel, its partner and those are
-    searched anew (their events offered to both sides and queued). The same events, in the same order, with the same
-    functions as ``ordering="sequential"``'s rounds: the same bits, at a cost per event instead of per round."""
+    the window's full search, ``swept_find`` in its first round). The queue holds (key, owner) entries ordered as
+    the strict order's global minimum: the smallest key K = (time bits, p) names the event of p with the partner
+    p's own key names (``ordering="sequential"``'s pair: the holder of K and p); an entry whose owner's key changed
+    since is stale and skipped; a wall event is resolved when its crossing is still there. After an event both
+    parcels are searched anew (their events offered to both sides and queued). A parcel whose partner moved keeps
+    its stale key until it is popped and searched anew: every event earlier than the stale key is still offered to
+    it, so none is missed or resolved out of order; where the keys do not agree (a stale one among them) the parcels
+    involved are searched anew. ``max_pops``: a bound on the entries popped (an inelastic collapse), ``cap_hit`` set
+    when it stops the window."""
     args = args_store[0]
-    stack_size[0] = 0
-    heap_rebuild(args, heap, heap_size)
+    heap_rebuild(args, heap_key, heap_owner, heap_size)
     events = int(0)
+    pops = int(0)
     while heap_size[0] > 0:
-        entry = heap_pop(heap, heap_size)
-        a = int(entry & OWNER_MASK)
-        key_a = args.event_key[a]
-        if key_a == EVENT_NONE or (key_a >> wp.int64(32)) != (entry >> wp.int64(32)):
+        if pops >= max_pops:
+            cap_hit[0] = 1
+            break
+        pops = pops + 1
+        key = heap_key[0]
+        x = heap_pop(heap_key, heap_owner, heap_size)
+        if args.event_key[x] != key:
             continue  # stale: the parcel's event changed since it was queued
-        b = event_partner(key_a)
-        if b == a:
-            t_wall = wall_touch(args, particle_v, a)
+        p = event_partner(key)
+        if p == x:
+            t_wall = wall_touch(args, particle_v, x)
             if t_wall < 0.0:
-                queue_predict(args, particle_v, heap, heap_size, a)
+                queue_predict(args, particle_v, heap_key, heap_owner, heap_size, x)
                 continue
-            args.wall_i[0] = a
+            args.wall_i[0] = x
             args.wall_time[0] = t_wall
             resolve_wall_row(args, particle_v, particle_omega, 0)
-            list_far_reaching(args, a)
-            queue_predict(args, particle_v, heap, heap_size, a)
+            list_far_reaching(args, x)
+            queue_predict(args, particle_v, heap_key, heap_owner, heap_size, x)
             events = events + 1
             continue
-        if args.event_key[b] != queue_entry(key_a, a):
-            queue_predict(args, particle_v, heap, heap_size, a)  # not mutual: searched anew
+        key_p = args.event_key[p]
+        b = int(-1)
+        if key_p != EVENT_NONE:
+            b = event_partner(key_p)
+        q_bits = (key >> wp.int64(32)) << wp.int64(32)
+        if b < 0 or b == p or key_p != (q_bits | wp.int64(b)) or args.event_key[b] != (q_bits | wp.int64(p)):
+            # the keys do not agree (a stale key among them): the parcels involved are searched anew
+            queue_predict(args, particle_v, heap_key, heap_owner, heap_size, x)
+            queue_predict(args, particle_v, heap_key, heap_owner, heap_size, p)
+            if b >= 0 and b != p and b != x:
+                queue_predict(args, particle_v, heap_key, heap_owner, heap_size, b)
             continue
-        i = wp.min(a, b)
-        j = wp.max(a, b)
+        i = wp.min(p, b)
+        j = wp.max(p, b)
         t = first_touch(args, particle_v, i, j)
-        if t < 0.0:
-            queue_predict(args, particle_v, heap, heap_size, i)
-            queue_predict(args, particle_v, heap, heap_size, j)
-            continue
-        s = relative_position(args, particle_v, i, j, t)
-        dist = wp.length(s)
+        dist = float(0.0)
+        s = wp.vec3(0.0)
+        if t >= 0.0:
+            s = relative_position(args, particle_v, i, j, t)
+            dist = wp.length(s)
         if dist <= 0.0:
-            queue_predict(args, particle_v, heap, heap_size, i)
-            queue_predict(args, particle_v, heap, heap_size, j)
+            queue_predict(args, particle_v, heap_key, heap_owner, heap_size, i)
+            queue_predict(args, particle_v, heap_key, heap_owner, heap_size, j)
             continue
         write_event_row(args, particle_v, 0, i, j, t, s / dist)
         resolve_event_row(args, forest, particle_v, calls, collisions, 0)
         list_far_reaching(args, i)
         list_far_reaching(args, j)
-        queue_predict(args, particle_v, heap, heap_size, i)
-        queue_predict(args, particle_v, heap, heap_size, j)
+        queue_predict(args, particle_v, heap_key, heap_owner, heap_size, i)
+        queue_predict(args, particle_v, heap_key, heap_owner, heap_size, j)
+        if x != i and x != j:  # the holder of K whose entry was taken: queued again (stale now: searched anew)
+            if heap_size[0] < heap_key.shape[0]:
+                heap_push(heap_key, heap_owner, heap_size, args.event_key[x], x)
+            else:
+                heap_rebuild(args, heap_key, heap_owner, heap_size)
         events = events + 1
     event_count[0] = event_count[0] + events
+
+
+@wp.kernel
+def swept_bump_round(round_now: wp.array(dtype=wp.int32)):
+    """round += 1 (the serial queue: its window's full search was a round; the step's start-overlap census is
+    round 0's only)."""
+    round_now[0] = round_now[0] + 1
 
 
 @wp.kernel
@@ -1728,7 +1695,8 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
     ``event_log``: None, or ``(count, log_int, log_float)`` that ``swept_log_events`` fills with every event resolved
     (``count`` zeroed by the caller).
 
-    ``queue=(heap, heap_size, stack, stack_size)`` (int64 heap of more than n entries, int32 stack of n): the serial
+    ``queue=(heap_key, heap_owner, heap_size)`` (int64 keys and int32 owners of a heap of more than n entries, its
+    size): the serial
     resolution instead of the rounds: the window's full search (``swept_find``), then ``swept_queue`` on one thread,
     the events one by one in time order (``event_rounds`` counts them: each is a round of the strict order). The
     strict order's result bit for bit, at a cost per event: the CPU's resolution (a GPU runs the rounds).
@@ -1795,9 +1763,12 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
     wp.launch(swept_reset, dim=n, device=device, inputs=[args])  # round 0's lists; later rounds' in mark_dirty
     if queue is not None:
         find.launch()  # the window's full search: every parcel's earliest event
-        heap, heap_size, stack, stack_size = queue
-        wp.launch(swept_queue, dim=1, device=device, inputs=[args_store, forest, heap, heap_size, stack, stack_size],
-                  outputs=[particle_v, particle_omega, calls, collisions, event_rounds])
+        wp.launch(swept_bump_round, dim=1, device=device, inputs=[args.round])  # the next window's is not round 0
+        heap_key, heap_owner, heap_size = queue
+        max_pops = max(64 * n, 1_000_000)  # an inelastic collapse would pop for ever
+        wp.launch(swept_queue, dim=1, device=device,
+                  inputs=[args_store, forest, heap_key, heap_owner, heap_size, max_pops],
+                  outputs=[particle_v, particle_omega, calls, collisions, event_rounds, round_cap_hit])
         return
     events_found.fill_(1)
     wp.capture_while(events_found, one_round)
