@@ -1508,6 +1508,29 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
         args_store = wp.empty(1, dtype=SweptArgs, device=device)
     wp.launch(store_swept_args, dim=1, device=device, inputs=[args], outputs=[args_store])
 
+    if particle_omega is None:
+        if args.walls != 0 and args.wall.spin != 0:
+            raise ValueError("wall spin (args.wall.spin) needs particle_omega")
+        particle_omega = wp.zeros(1, dtype=wp.vec3, device=device)
+    args.large_count.zero_()
+    args.bound_count.zero_()
+    args.batch_count.zero_()
+    args.wall_count.zero_()
+    wp.launch(swept_reset, dim=n, device=device, inputs=[args])  # round 0's lists; later rounds' in mark_dirty
+    if queue is not None:
+        from kernels.swept_queue import swept_queue  # its own module: a CUDA device never compiles it
+
+        # the window's full search (every parcel's earliest event), then the events one by one
+        wp.launch(swept_find, dim=n, device=device, inputs=[args_store, args.dirty, particle_v],
+                  outputs=[detected, skipped])
+        wp.launch(swept_bump_round, dim=1, device=device, inputs=[args.round])  # the next window's is not round 0
+        heap_key, heap_owner, heap_size = queue
+        max_pops = max(64 * n, 1_000_000)  # an inelastic collapse would pop for ever
+        wp.launch(swept_queue, dim=1, device=device,
+                  inputs=[args_store, forest, heap_key, heap_owner, heap_size, max_pops],
+                  outputs=[particle_v, particle_omega, calls, collisions, event_rounds, round_cap_hit])
+        return
+
     def record(kernel, dim, inputs, outputs=()):
         return wp.launch(kernel, dim=dim, device=device, inputs=inputs, outputs=list(outputs), record_cmd=True)
 
@@ -1524,10 +1547,6 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
            if event_log is not None else None)
     resolve = record(swept_resolve, n // 2 + 1, [args_store, args.batch_count, forest],
                      [particle_v, calls, collisions])  # pairs: <= n/2 rows
-    if particle_omega is None:
-        if args.walls != 0 and args.wall.spin != 0:
-            raise ValueError("wall spin (args.wall.spin) needs particle_omega")
-        particle_omega = wp.zeros(1, dtype=wp.vec3, device=device)
     walls = (record(swept_resolve_walls, n, [args_store, args.wall_count], [particle_v, particle_omega])
              if args.walls != 0 else None)
     mark_dirty = record(swept_mark_dirty, n, [args_store, args.round, args.stamp, args.event_key], [args.dirty])
@@ -1550,22 +1569,6 @@ def resolve_swept(args: SweptArgs, forest: Forest, particle_v, events_found, eve
         mark_dirty.launch()
         next_round.launch()
 
-    args.large_count.zero_()
-    args.bound_count.zero_()
-    args.batch_count.zero_()
-    args.wall_count.zero_()
-    wp.launch(swept_reset, dim=n, device=device, inputs=[args])  # round 0's lists; later rounds' in mark_dirty
-    if queue is not None:
-        find.launch()  # the window's full search: every parcel's earliest event
-        wp.launch(swept_bump_round, dim=1, device=device, inputs=[args.round])  # the next window's is not round 0
-        from kernels.swept_queue import swept_queue  # its own module: a CUDA device never compiles it
-
-        heap_key, heap_owner, heap_size = queue
-        max_pops = max(64 * n, 1_000_000)  # an inelastic collapse would pop for ever
-        wp.launch(swept_queue, dim=1, device=device,
-                  inputs=[args_store, forest, heap_key, heap_owner, heap_size, max_pops],
-                  outputs=[particle_v, particle_omega, calls, collisions, event_rounds, round_cap_hit])
-        return
     events_found.fill_(1)
     wp.capture_while(events_found, one_round)
 
