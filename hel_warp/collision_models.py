@@ -327,7 +327,7 @@ class SurrogateCollision:
         self._anchor = zeros(n, wp.vec3)
         """The windows' anchors (kernels/collide.py ``SweptArgs.anchor``) when a step is resolved in several."""
         a.t_last, a.reach, a.reach_max = zeros(n, wp.float32), zeros(n, wp.float32), zeros(1, wp.float32)
-        a.path_bound = zeros(n, wp.float32)
+        a.path_bound, a.wall_cache = zeros(n, wp.float32), zeros(n, wp.float32)
         a.large_index, a.large_count = zeros(n, wp.int32), zeros(1, wp.int32)
         a.bound_index, a.bound_count = zeros(n, wp.int32), zeros(1, wp.int32)
         a.listed = zeros(n, wp.int32)

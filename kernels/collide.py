@@ -39,7 +39,7 @@ from kernels.forest import (COS_FEATURE, GUARD_COULOMB, GUARD_ENERGY, GUARD_SEPA
                             write_contact_features_in_domain)
 from kernels.cell_list import CellList, range_count, range_slots, range_slots_pair, search_box, search_box_pair
 from kernels.reflect import WallParams, wall_impact
-from kernels.sdf import SdfShapes, sdf_union, sdf_union_normal
+from kernels.sdf import SdfShapes, sdf_oriented_box, sdf_union, sdf_union_normal
 
 PAIR_PENDING = wp.constant(0)
 """``pair_state`` of a detected pair (the overlap pair list of ``hel_warp.pairs.PairDetector``)."""
@@ -380,6 +380,9 @@ class SweptArgs:
     """m = x0 + v0 dt/2 (wrapped into the box when periodic), m."""
     base: wp.array(dtype=wp.vec3)
     """Position relative to m is base + v t on [t_last, dt], m."""
+    wall_cache: wp.array(dtype=wp.float32)
+    """The wall crossing of the parcel's present path over the whole step (``wall_touch`` before its window test:
+    the time, or -1 for none), WALL_UNKNOWN until computed; cleared when the path changes (``follow_new_path``), s."""
     shift: wp.array(dtype=wp.vec3)
     """End-of-step position correction sum((v_old - v_new) tau), m."""
     t_last: wp.array(dtype=wp.float32)
@@ -563,6 +566,11 @@ def first_touch(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: int, b:
     return t
 
 
+WALL_CULL_EPS = wp.constant(1.0e-5)
+"""Relative float32 margin of the bisection's shape culling in ``wall_touch``: a shape that close to the bound is
+kept, so the culled union never decides a sign the full one would decide otherwise."""
+WALL_UNKNOWN = wp.constant(-2.0)
+"""``SweptArgs.wall_cache`` of a path whose crossing is not computed yet."""
 WALL_BISECTIONS = wp.constant(30)
 """Bisection steps of a wall crossing time (dt / 2^30, below float32's resolution of the step)."""
 
@@ -584,17 +592,55 @@ def wall_distance(args: SweptArgs, i: int, x: wp.vec3):
 
 
 @wp.func
-def wall_touch(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), i: int):
-    """Earliest time in [t_last, t_end] at which parcel i's centre crosses the wall moving out of the fluid, -1 if its
-    path ends inside at the step's end or crosses after t_end (the crossing is bracketed on the whole step's path,
-    so its time does not depend on the windows) (MP-PIC parcels meet walls as points, kernels/reflect.py; with ``WallParams.surface`` the
+def shapes_near_segment(shapes: SdfShapes, x_a: wp.vec3, x_b: wp.vec3, extra: float):
+    """Bit mask of the shapes that may hold a point of the segment [x_a, x_b] within the wall's reach (``extra``: the
+    radius added when the wall meets the parcel's surface), -1 (all) beyond 30 shapes. A box whose distance at the
+    ends exceeds the half length, d_s(a) + d_s(b) > |b - a| (d_s is 1-Lipschitz), is beyond the wall all along the
+    segment, so the minimum over the others has the sign of the full union's (``WALL_CULL_EPS``: float32 margin)."""
+    if shapes.count > 30:
+        return -1
+    half_length = 0.5 * wp.length(x_b - x_a)
+    margin = WALL_CULL_EPS * (wp.length(x_a) + wp.length(x_b) + half_length + extra)
+    mask = int(0)
+    for s in range(shapes.count):
+        d_a = sdf_oriented_box(x_a, shapes.center[s], shapes.rotation[s], shapes.half_extent[s])
+        d_b = sdf_oriented_box(x_b, shapes.center[s], shapes.rotation[s], shapes.half_extent[s])
+        if 0.5 * (d_a + d_b) - half_length + extra <= margin:
+            mask = mask | (1 << s)
+    return mask
+
+
+@wp.func
+def bisect_crossing(shapes: SdfShapes, start: wp.vec3, v: wp.vec3, extra: float, lo: float, hi: float, mask: int):
+    """The wall crossing of the path start + v t bracketed in [lo, hi] (inside at lo, beyond the wall at hi) by
+    WALL_BISECTIONS halvings on the sign of the distance over the shapes of ``mask`` (``shapes_near_segment``; -1:
+    all); stops early when float32 holds no time between lo and hi (the rest would change nothing). Returns hi."""
+    for _ in range(WALL_BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        if mid == lo or mid == hi:
+            break
+        x = start + v * mid
+        d = float(1.0e30)
+        for s in range(shapes.count):
+            if mask == -1 or (mask & (1 << s)) != 0:
+                d = wp.min(d, sdf_oriented_box(x, shapes.center[s], shapes.rotation[s], shapes.half_extent[s]))
+        if d + extra > 0.0:
+            hi = mid
+        else:
+            lo = mid
+    return hi
+
+
+@wp.func
+def path_wall_crossing(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), i: int):
+    """Earliest time in [t_last, dt] at which parcel i's centre crosses the wall moving out of the fluid, -1 if its
+    path ends inside at the step's end (the crossing is bracketed on the whole step's path, so its time does not
+    depend on the windows) (MP-PIC parcels meet walls as points, kernels/reflect.py; with ``WallParams.surface`` the
     wall acts a particle radius from the centre, ``wall_distance``). A path that starts on or outside
     the wall and moves out crosses at once (t_last); one that starts there moving in (after a wall event) is
     followed to its first inside point. The crossing of a path that ends outside is bracketed by bisection on the
     signed distance (the point just outside is returned: its normal is the wall's; two walls met within a step,
     at a corner, are two events)."""
-    if args.walls == 0 or args.dt <= 0.0:
-        return -1.0
     t_lo = args.t_last[i]
     d_hi = wall_distance(args, i, path_position(args, particle_v, i, args.dt))
     if d_hi <= 0.0:
@@ -617,17 +663,30 @@ def wall_touch(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), i: int):
                     found = 1
         if found == 0:
             return -1.0
-    for _ in range(WALL_BISECTIONS):
-        mid = 0.5 * (lo + hi)
-        if wall_distance(args, i, path_position(args, particle_v, i, mid)) > 0.0:
-            hi = mid
-        else:
-            lo = mid
+    extra = float(0.0)
+    if args.wall.surface != 0:
+        extra = args.particle_radius[i]
+    start = args.hash_point[i] + args.base[i]  # path_position's first sum: the same float32 positions
+    mask = shapes_near_segment(args.shapes, start + v * lo, start + v * hi, extra)
+    hi = bisect_crossing(args.shapes, start, v, extra, lo, hi, mask)
     if wp.dot(v, sdf_union_normal(args.shapes, path_position(args, particle_v, i, hi))) <= 0.0:
         return -1.0
-    if hi > args.t_end:
-        return -1.0  # after the window: the next window's search finds it
     return hi
+
+
+@wp.func
+def wall_touch(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), i: int):
+    """Parcel i's wall crossing in the window: ``path_wall_crossing`` of its present path (``SweptArgs.wall_cache``:
+    computed once per path, as a path's crossing does not depend on the window), -1 when it is after ``t_end``."""
+    if args.walls == 0 or args.dt <= 0.0:
+        return -1.0
+    t = args.wall_cache[i]
+    if t == WALL_UNKNOWN:
+        t = path_wall_crossing(args, particle_v, i)
+        args.wall_cache[i] = t
+    if t > args.t_end:
+        return -1.0  # after the window: the next window's search finds it
+    return t
 
 
 @wp.kernel
@@ -645,6 +704,7 @@ def swept_start(
     args.second_ok[i] = 1  # round 0 offers every pair to both parcels
     args.shift[i] = wp.vec3(0.0)
     args.t_last[i] = 0.0
+    args.wall_cache[i] = WALL_UNKNOWN
     args.stamp[i] = -1
     args.last_partner[i] = -1
     args.blocker[i] = -1
@@ -1086,6 +1146,7 @@ def follow_new_path(args: SweptArgs, i: int, partner: int, t: float, v_old: wp.v
     args.base[i] = base
     args.shift[i] = args.shift[i] + dv
     args.t_last[i] = t
+    args.wall_cache[i] = WALL_UNKNOWN
     args.stamp[i] = this_round
     args.last_partner[i] = partner
     u_f = args.frame_velocity

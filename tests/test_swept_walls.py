@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from kernels.sdf import SdfShapes as kf_SdfShapes
 from tests.test_collision_models import D, make_particles
 from tests.test_swept import E, hard_sphere_model  # noqa: F401  (fixture)
 
@@ -128,3 +129,56 @@ def test_wall_events_in_time_order_with_collisions_match_the_sequential_referenc
     np.testing.assert_allclose(vp, vs, rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(xp, xs, rtol=0, atol=1e-7)
     assert (xp >= 0.0).all() and (xp <= side).all()
+
+
+def test_the_bisection_over_the_shapes_near_the_path_matches_the_whole_union():
+    # wall_touch brackets a crossing by bisection over only the shapes that may hold a point of the path's segment
+    # (kernels/collide.py shapes_near_segment): on the rig's five boxes (two of them rotated), random paths from the
+    # fluid to beyond the wall must give the whole union's crossing bit for bit, and that crossing must lie on the
+    # wall by an independent float64 distance of the boxes
+    import warp as wp
+
+    from cases.colliding_streams import RigDimensions, build_geometry
+    from kernels.collide import bisect_crossing, shapes_near_segment
+
+    @wp.kernel
+    def crossings(shapes: kf_SdfShapes, start: wp.array(dtype=wp.vec3), end: wp.array(dtype=wp.vec3), extra: float,
+                  culled: wp.array(dtype=float), full: wp.array(dtype=float), mask_out: wp.array(dtype=int)):
+        k = wp.tid()
+        v = end[k] - start[k]
+        mask = shapes_near_segment(shapes, start[k], end[k], extra)
+        mask_out[k] = mask
+        culled[k] = bisect_crossing(shapes, start[k], v, extra, 0.0, 1.0, mask)
+        full[k] = bisect_crossing(shapes, start[k], v, extra, 0.0, 1.0, -1)
+
+    _, geometry, _ = build_geometry(RigDimensions())
+    shapes = geometry.shapes_struct(None)
+    oriented = [s.oriented() for s in geometry.shapes]
+
+    def sdf64(p):
+        d = np.full(len(p), np.inf)
+        for centre, rotation, half, _ in oriented:
+            q = np.abs((np.asarray(p) - centre) @ np.asarray(rotation).T) - half
+            d = np.minimum(d, np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0))
+        return d
+
+    rng = np.random.default_rng(11)
+    lo = np.min([c - np.abs(r).T @ h for c, r, h, _ in oriented], axis=0)
+    hi = np.max([c + np.abs(r).T @ h for c, r, h, _ in oriented], axis=0)
+    for extra in (0.0, 157.5e-6):  # centre walls, and walls that meet the parcel's surface
+        a = rng.uniform(lo, hi, (60_000, 3))
+        a = a[sdf64(a) + extra < -1e-5]
+        b = a + rng.normal(0.0, 2e-3, a.shape)
+        keep = sdf64(b) + extra > 1e-5
+        a, b = a[keep].astype(np.float32), b[keep].astype(np.float32)
+        assert len(a) > 1000
+        culled, full = wp.zeros(len(a), dtype=float), wp.zeros(len(a), dtype=float)
+        masks = wp.zeros(len(a), dtype=int)
+        wp.launch(crossings, dim=len(a), inputs=[shapes, wp.array(a, dtype=wp.vec3), wp.array(b, dtype=wp.vec3),
+                                                 extra, culled, full, masks])
+        t_c, t_f, m = culled.numpy(), full.numpy(), masks.numpy()
+        assert np.array_equal(t_c, t_f)
+        bits = np.array([bin(int(x) & 0x7FFFFFFF).count("1") for x in m])
+        assert (bits >= 1).all() and np.mean(bits < shapes.count) > 0.9  # most segments bisect over fewer shapes
+        x = a.astype(np.float64) + (b.astype(np.float64) - a) * t_c.astype(np.float64)[:, None]
+        np.testing.assert_allclose(sdf64(x) + extra, 0.0, atol=2e-6)
