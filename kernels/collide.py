@@ -35,7 +35,7 @@ import warp as wp
 from kernels.forest import (COS_FEATURE, GUARD_COULOMB, GUARD_ENERGY, GUARD_SEPARATION, SCALE_NONE, ContactDomain, Forest,
                             contact_point_velocity, contact_spin_impulse, spin_guard, turn_spins,
                             write_contact_spin_features_in_domain,
-                            admissible_impulse, contact_impulse, scale_factor, sphere_mass, walk_tree,
+                            admissible_impulse, contact_impulse, scale_factor, sphere_mass, tree_sum,
                             write_contact_features_in_domain)
 from kernels.cell_list import CellList, range_count, range_slots, range_slots_pair, search_box, search_box_pair
 from kernels.reflect import WallParams, wall_impact
@@ -66,9 +66,8 @@ def minimum_image(d: wp.vec3, periodic: wp.int32, box: wp.vec3):
 def forest_target(forest: Forest, target: wp.int32, features: wp.array2d(dtype=wp.float32), row: wp.int32):
     """Prediction of one target for one feature row: base_score + sum of the target's tree leaves, times the
     target's scale (kernels/forest.py ``scale_factor``)."""
-    acc = forest.base_score[target]
-    for k in range(forest.tree_start[target], forest.tree_start[target + 1]):
-        acc = acc + walk_tree(forest, forest.tree_root[k], features, row)
+    acc = tree_sum(forest, forest.tree_start[target], forest.tree_start[target + 1], features, row,
+                   forest.base_score[target])
     code = forest.target_scale[target]
     if code != SCALE_NONE:
         acc = acc * scale_factor(code, features[row, COS_FEATURE])

@@ -97,6 +97,43 @@ def walk_tree(forest: Forest, root: wp.int32, features: wp.array2d(dtype=wp.floa
     return node.value
 
 
+TREE_GROUP = 8
+"""Trees one row walks side by side in ``tree_sum`` (independent load chains: a single row's walk is bound by the
+latency of its node loads, not by their number)."""
+TreeGroup = wp.types.vector(length=TREE_GROUP, dtype=wp.int32)
+
+
+@wp.func
+def tree_sum(forest: Forest, first: wp.int32, last: wp.int32, features: wp.array2d(dtype=wp.float32),
+             row: wp.int32, acc: wp.float32):
+    """acc + the leaves of trees first .. last - 1 for one row, added in tree order (``walk_tree`` one by one gives
+    the same float32 sum), EXPLICIT layout. Groups of TREE_GROUP trees are walked level by level side by side and
+    branch-free (a tree at its leaf stays there) until all of the group are at their leaves; the trees after the
+    last full group one by one."""
+    k = first
+    while k + TREE_GROUP <= last:
+        node_index = TreeGroup()
+        for g in range(TREE_GROUP):
+            node_index[g] = forest.tree_root[k + g]
+        active = int(1)
+        while active != 0:
+            active = 0
+            for g in range(TREE_GROUP):
+                node = forest.nodes[node_index[g]]
+                split = node.meta >= 0
+                x = features[row, wp.where(split, (node.meta >> 1) & 15, 0)]
+                go_right = wp.where(x >= node.value, 1, 0)
+                go_right = wp.where(x != x, 1 - (node.meta & 1), go_right)  # NaN: the default side
+                node_index[g] = wp.where(split, (node.meta >> 5) + go_right, node_index[g])
+                active = active | wp.where(split, 1, 0)
+        for g in range(TREE_GROUP):
+            acc = acc + forest.nodes[node_index[g]].value
+        k = k + TREE_GROUP
+    for t in range(k, last):
+        acc = acc + walk_tree(forest, forest.tree_root[t], features, row)
+    return acc
+
+
 SCALE_NONE = wp.constant(0)
 """Target scale codes (file names in surrogate/flatten.py TARGET_SCALES): the prediction is the tree sum."""
 SCALE_COS = wp.constant(1)

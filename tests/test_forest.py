@@ -244,3 +244,37 @@ def test_forest_file_errors(tmp_path):
     path.write_text(json.dumps(bad))
     with pytest.raises(ConfigError, match="domain"):
         load_forest(str(path))
+
+
+@pytest.mark.parametrize("n_trees", [5, 8, 21])
+def test_tree_sum_walks_groups_of_trees_as_one_by_one(n_trees):
+    """``tree_sum`` (the engine's single-row forest: groups of TREE_GROUP trees walked side by side, the rest one by
+    one) gives XGBoost's prediction, and the float32 sum of ``walk_tree`` tree by tree bit for bit; tree counts
+    below, at and above a group, rows with NaN features (the default side)."""
+    import warp as wp
+
+    from kernels.forest import tree_sum, walk_tree
+
+    @wp.kernel
+    def both(forest: kf_Forest, features: wp.array2d(dtype=wp.float32), grouped: wp.array2d(dtype=wp.float32),
+             single: wp.array2d(dtype=wp.float32)):
+        row = wp.tid()
+        for t in range(forest.tree_start.shape[0] - 1):
+            first = forest.tree_start[t]
+            last = forest.tree_start[t + 1]
+            grouped[row, t] = tree_sum(forest, first, last, features, row, forest.base_score[t])
+            acc = forest.base_score[t]
+            for k in range(first, last):
+                acc = acc + walk_tree(forest, forest.tree_root[k], features, row)
+            single[row, t] = acc
+
+    data = synthetic_collisions(800, seed=4)
+    rows, cols, raw, mean, std, boosters, doc = _fit_forest("contact", data, (6, 3), nan_fraction=0.05,
+                                                            n_estimators=n_trees)
+    x = wp.array(_full_features(rows, cols, raw), dtype=wp.float32)
+    grouped, single = (wp.zeros((x.shape[0], 2), dtype=wp.float32) for _ in range(2))
+    wp.launch(both, dim=x.shape[0], inputs=[_flat(doc, "contact").to_device(None), x], outputs=[grouped, single])
+    np.testing.assert_array_equal(grouped.numpy(), single.numpy())
+    for k, booster in enumerate(boosters.values()):
+        reference = booster.predict(xgb.DMatrix(standardize(raw, mean, std)))
+        np.testing.assert_allclose(grouped.numpy()[:, k], reference, rtol=1e-5, atol=1e-5)
