@@ -70,6 +70,10 @@ WINDOWS_SERIAL = 1.3
 """``windows="auto"`` with the serial queue: ceil(WINDOWS_SERIAL (mean reach / r_max) sqrt(events per parcel of the
 last step)) windows. Measured fastest: a cooling box at 1e-3 s (0.18 events per parcel, reach 5 r) in 2-4, the rig
 after its pile (0.44, 8.4 r) in 8, in the pile (7.8, 5.6 r) in 16 (docs/FIGURES.md, fifteenth session)."""
+SERIAL_GROWTH = 4.0
+"""``windows="auto"`` with the serial queue: the first window's forecast of the step's events per parcel is the last
+step's times its growth over the step before, at most this factor (the colliding-streams rig's pile grows 3-4x per
+step at dt = 1e-3 s while it forms); the later windows follow the events of the step so far."""
 MAX_WINDOWS = 32
 """``windows="auto"``: at most this many windows per step (each window's first round searches every parcel)."""
 WINDOWS_PER_ROOT_ROUND = 0.8
@@ -164,6 +168,13 @@ class SurrogateCollision:
         self._windows = 1
         self._rounds_last = 0
         """Rounds of events of the last swept step beyond one per window (``windows="auto"``; in :meth:`state`)."""
+        self._rounds_prev = 0
+        """``_rounds_last`` of the step before (the serial queue's forecast of a growing pile; in :meth:`state`)."""
+        self.window_bounds = [0.0, 0.0]
+        """Swept detection: the last step's window boundaries, s (from 0 to dt)."""
+        self.window_events = []
+        """Serial queue with ``windows="auto"``: the step's events before each window after the first (what chose its
+        length)."""
         self.ordering = ordering
         """Swept detection: ``parallel``: rounds, every causally safe event of a round at once; ``sequential``: one
         event per round, the globally earliest (strict event-driven order, slow: the tests' reference); ``serial``:
@@ -576,19 +587,37 @@ class SurrogateCollision:
                               "box (more particles) or shorten dt")
         log = self._log_events_start(particles)
         serial = self._serial(particles, log)
-        windows = self._window_count(reach_mean, r_max, serial, int(np.count_nonzero(alive))) if sweep > 0.0 else 1
-        self._windows = windows
+        n_alive = int(np.count_nonzero(alive))
+        windows = self._window_count(reach_mean, r_max, serial, n_alive) if sweep > 0.0 else 1
+        # the serial queue's events do not depend on the windows: with "auto" each window's length is chosen
+        # after the one before, from the events per parcel this step has had so far (a pile that grows within the
+        # step gets shorter windows at once); the parallel rounds keep equal windows (their bits depend on them)
+        adaptive = serial and self.windows == "auto" and sweep > 0.0
+        reach_step = reach_mean  # the step's mean reach (the windows' own replace reach_mean below)
         self._shift_pending = sweep > 0.0
         a.spin = 1 if self.particle_spin else 0
         if self.particle_spin:
             a.particle_omega = particles.omega
         a.t_start, a.t_end, a.first_round = 0.0, sweep, 0
         a.anchor = a.hash_point  # one window: the searches' point is the hash point
-        for k in range(windows):
-            if windows > 1:
+        bounds = [sweep * k / windows for k in range(windows)] + [sweep]
+        self.window_events = []
+        k = 0
+        while k < len(bounds) - 1:
+            if adaptive and k > 0:
+                done = bounds[k] / sweep
+                events = int(self.event_rounds.numpy()[0])
+                self.window_events.append(events)
+                # the events per parcel of the step so far, extrapolated; never below the forecast (a pile that
+                # forms late in the step)
+                per_parcel = max(events / max(1, n_alive) / done, self._serial_forecast(n_alive))
+                left = max(1, round(self._serial_windows(reach_step, r_max, per_parcel) * (1.0 - done)))
+                bounds = bounds[:k + 1] + [bounds[k] + (sweep - bounds[k]) * (m + 1) / left for m in range(left)]
+                bounds[-1] = sweep
+            if len(bounds) > 2:
                 # the window [t_start, t_end]: anchors at its middle, reaches over it, every parcel searched again
-                a.t_start = 0.0 if k == 0 else sweep * k / windows
-                a.t_end = sweep if k == windows - 1 else sweep * (k + 1) / windows
+                a.t_start = bounds[k]
+                a.t_end = bounds[k + 1]
                 a.first_round = 0 if k == 0 else int(a.round.numpy()[0])
                 a.anchor = self._anchor
                 a.reach_max.zero_()
@@ -606,9 +635,14 @@ class SurrogateCollision:
                           self.calls, self.collisions, self.detected, self.skipped, batch_forest=self.batch_forest,
                           args_store=self._swept_store, particle_omega=particles.omega, event_log=log,
                           queue=self._queue if serial else None)
+            k += 1
+        windows = len(bounds) - 1
+        self._windows = windows
+        self.window_bounds = bounds
         if log is not None:
             self._log_events_end(particles)
         if sweep > 0.0:
+            self._rounds_prev = self._rounds_last
             self._rounds_last = max(0, int(self.event_rounds.numpy()[0]) - windows)
             wp.copy(self.v_swept, particles.v)
 
@@ -631,13 +665,26 @@ class SurrogateCollision:
             return 1
         if serial:
             # the serial queue: a window's full search costs ~N searches, an event a few; the last step's events
-            # per parcel (its "rounds" are its events) set how far the balls should shrink
-            per_parcel = self._rounds_last / max(1, alive)
-            return int(min(MAX_WINDOWS, max(1, math.ceil(WINDOWS_SERIAL * reach_mean / r_max * math.sqrt(per_parcel)))))
+            # per parcel (its "rounds" are its events), grown as from the step before (a pile forming: up to
+            # SERIAL_GROWTH times), set how far the balls should shrink
+            return self._serial_windows(reach_mean, r_max, self._serial_forecast(alive))
         if self._rounds_last < WINDOW_ROUNDS:
             return 1
         by_rounds = math.ceil(WINDOWS_PER_ROOT_ROUND * math.sqrt(self._rounds_last))
         return int(min(MAX_WINDOWS, by_rounds, max(1, math.ceil(reach_mean / (WINDOW_REACH * r_max)))))
+
+    def _serial_forecast(self, alive: int) -> float:
+        """The serial queue's forecast of this step's events per live parcel: the last step's, grown as from the
+        step before (at most ``SERIAL_GROWTH`` times)."""
+        per_parcel = self._rounds_last / max(1, alive)
+        if self._rounds_prev > 0:
+            per_parcel *= min(SERIAL_GROWTH, max(1.0, self._rounds_last / self._rounds_prev))
+        return per_parcel
+
+    @staticmethod
+    def _serial_windows(reach_mean: float, r_max: float, per_parcel: float) -> int:
+        """The serial queue's windows per step for ``per_parcel`` events per live parcel and step (``WINDOWS_SERIAL``)."""
+        return int(min(MAX_WINDOWS, max(1, math.ceil(WINDOWS_SERIAL * reach_mean / r_max * math.sqrt(per_parcel)))))
 
     def correct_positions(self, particles) -> None:
         """Add the in-step position corrections of the last swept or cell :meth:`collide` (once; a no-op otherwise)."""
@@ -677,12 +724,15 @@ class SurrogateCollision:
     def state(self) -> dict:
         """Checkpoint entries: the cell detection's random state (seed, steps taken) and the swept detection's last
         rounds (``swept_rounds``: they choose the next step's windows, ``windows="auto"``)."""
-        return {**self.cells.state(), "swept_rounds": np.array(self._rounds_last, np.int64)}
+        return {**self.cells.state(), "swept_rounds": np.array(self._rounds_last, np.int64),
+                "swept_rounds_prev": np.array(self._rounds_prev, np.int64)}
 
     def set_state(self, state: dict) -> None:
         self.cells.set_state(state)
         if "swept_rounds" in state:
             self._rounds_last = int(np.asarray(state["swept_rounds"]))
+        if "swept_rounds_prev" in state:
+            self._rounds_prev = int(np.asarray(state["swept_rounds_prev"]))
 
     def counts(self) -> dict:
         """Counts of the last :meth:`collide` (host read): totals and per stream pair (see the class)."""

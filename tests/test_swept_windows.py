@@ -49,18 +49,33 @@ def test_auto_windows_follow_the_last_step_rounds_and_the_reach(constant_model):
         p = make_particles(x, v)
         fresh.collide(p, dt)
         assert fresh.counts()["windows"] == expected > 1
-    # the serial queue (the CPU's default): its rounds are its events; ceil(WINDOWS_SERIAL reach / r_max
-    # sqrt(events per parcel)) windows
-    for last in (0, 50, 5_000):
+    # the serial queue (the CPU's default): its rounds are its events. ceil(WINDOWS_SERIAL reach / r_max
+    # sqrt(events per parcel)) windows: the first as many for the forecast (the last step's events, grown as from
+    # the step before, at most SERIAL_GROWTH times), each later one cut from the rest of the step by the rule for
+    # the events so far (extrapolated to the step, never below the forecast)
+    def rule(per_parcel):
+        return min(cm.MAX_WINDOWS, max(1, math.ceil(cm.WINDOWS_SERIAL * reach_mean / (0.5 * D)
+                                                    * math.sqrt(per_parcel))))
+
+    for last, prev in ((0, 0), (50, 0), (5_000, 0), (500, 100), (5_000, 4_000)):
         serial = cm.SurrogateCollision(model_dir=constant_model, periodic_box=(side,) * 3, ordering="serial")
-        serial.set_state({"swept_rounds": np.array(last, np.int64)})
+        serial.set_state({"swept_rounds": np.array(last, np.int64), "swept_rounds_prev": np.array(prev, np.int64)})
         p = make_particles(x, v)
         serial.collide(p, dt)
-        expected = min(cm.MAX_WINDOWS, max(1, math.ceil(cm.WINDOWS_SERIAL * reach_mean / (0.5 * D)
-                                                        * math.sqrt(last / len(x)))))
-        assert serial.counts()["windows"] == expected, last
-        assert int(serial.state()["swept_rounds"]) == serial.counts()["rounds"] - expected  # its events
-    assert expected > 4
+        forecast = last / len(x) * (min(cm.SERIAL_GROWTH, max(1.0, last / prev)) if prev else 1.0)
+        bounds = serial.window_bounds
+        first = rule(forecast)
+        np.testing.assert_allclose(bounds[1], dt / first, rtol=1e-12)
+        for k, events in enumerate(serial.window_events, start=1):
+            done = bounds[k] / dt
+            left = max(1, round(rule(max(events / len(x) / done, forecast)) * (1.0 - done)))
+            np.testing.assert_allclose(bounds[k + 1] - bounds[k], (dt - bounds[k]) / left, rtol=1e-9)
+        assert bounds[-1] == dt and len(serial.window_events) == len(bounds) - 2
+        windows = serial.counts()["windows"]
+        assert windows == len(bounds) - 1
+        assert int(serial.state()["swept_rounds"]) == serial.counts()["rounds"] - windows  # its events
+        assert int(serial.state()["swept_rounds_prev"]) == last
+    assert first > 4 and windows > 4
     with pytest.raises(Exception, match="windows must be"):
         cm.SurrogateCollision(model_dir=constant_model, windows=0)
 
