@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from kernels.cell_list import range_count, range_slots, search_box
+from kernels.cell_list import range_count, range_slots, range_slots_pair, search_box, search_box_pair
 from kernels.collide import (
     EVENT_NONE,
     NEAR_MARGIN,
@@ -142,6 +142,49 @@ def queue_predict(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), heap_key
                 queue_pair(args, particle_v, heap_key, heap_owner, heap_size, i, j)
 
 
+@wp.func
+def queue_predict_two(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), heap_key: wp.array(dtype=wp.int64),
+                      heap_owner: wp.array(dtype=wp.int32), heap_size: wp.array(dtype=wp.int32), i: int, j: int):
+    """``queue_predict`` of i and of j (the two parcels of an event, i != j, both live) in one walk of the union of
+    their balls: a candidate near both is read once. The same offers, so the same keys (a key is the smallest
+    offer, whatever their order) and the same queued events as the two searches one after the other."""
+    args.event_key[i] = EVENT_NONE
+    args.event_key[j] = EVENT_NONE
+    t_wall = wall_touch(args, particle_v, i)
+    if t_wall >= 0.0:
+        queue_offer(args, heap_key, heap_owner, heap_size, i, event_key(t_wall, args.dt, i))
+    t_wall = wall_touch(args, particle_v, j)
+    if t_wall >= 0.0:
+        queue_offer(args, heap_key, heap_owner, heap_size, j, event_key(t_wall, args.dt, j))
+    cut = args.bound_cut
+    partner_bound = args.max_radius + wp.min(cut, args.reach_max[0])
+    mi = args.anchor[i]
+    extent_i = args.particle_radius[i] + args.path_bound[i]
+    radius_i = (extent_i + partner_bound) * NEAR_MARGIN
+    mj = args.anchor[j]
+    extent_j = args.particle_radius[j] + args.path_bound[j]
+    radius_j = (extent_j + partner_bound) * NEAR_MARGIN
+    lo, hi = search_box_pair(args.cells, mi, radius_i, mj, radius_j)
+    for k_range in range(range_count(args.cells, lo, hi)):
+        begin, end = range_slots_pair(args.cells, lo, hi, k_range, mi, radius_i, mj, radius_j)
+        for slot in range(begin, end):
+            c = args.cells.slot_point[slot]
+            if args.path_bound[c] <= cut:
+                m_c = args.cells.slot_position[slot]
+                if c != i and paths_near(args, mi, extent_i, c, m_c):
+                    queue_pair(args, particle_v, heap_key, heap_owner, heap_size, i, c)
+                if c != j and paths_near(args, mj, extent_j, c, m_c):
+                    queue_pair(args, particle_v, heap_key, heap_owner, heap_size, j, c)
+    for slot in range(args.bound_count[0]):
+        c = args.bound_index[slot]
+        if args.path_bound[c] > cut:
+            m_c = args.anchor[c]
+            if c != i and paths_near(args, mi, extent_i, c, m_c):
+                queue_pair(args, particle_v, heap_key, heap_owner, heap_size, i, c)
+            if c != j and paths_near(args, mj, extent_j, c, m_c):
+                queue_pair(args, particle_v, heap_key, heap_owner, heap_size, j, c)
+
+
 @wp.kernel
 def swept_queue(
     args_store: wp.array(dtype=SweptArgs),
@@ -222,8 +265,7 @@ def swept_queue(
         resolve_event_row(args, forest, particle_v, calls, collisions, 0)
         list_far_reaching(args, i)
         list_far_reaching(args, j)
-        queue_predict(args, particle_v, heap_key, heap_owner, heap_size, i)
-        queue_predict(args, particle_v, heap_key, heap_owner, heap_size, j)
+        queue_predict_two(args, particle_v, heap_key, heap_owner, heap_size, i, j)
         if x != i and x != j:  # the holder of K whose entry was taken: queued again (stale now: searched anew)
             if heap_size[0] < heap_key.shape[0]:
                 heap_push(heap_key, heap_owner, heap_size, args.event_key[x], x)
