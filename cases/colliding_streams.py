@@ -523,13 +523,15 @@ def mixture_release(args, diameter: float, std: float, known: float | None, weig
             "diameter2_std": float(std2), "mass_fraction2": float(f2), "mass_flow": flow}
 
 
-def check_model(model_dir: str, diameter: float, density: float, force: bool, diameters=None) -> dict:
+def check_model(model_dir: str, diameter: float, density: float, force: bool, diameters=None,
+                force_flag: str = "--force") -> dict:
     """Refuse a surrogate trained for another particle size or material (metadata ``defaults``: mean d1, rho1).
 
     Sizes within 10 % (the paper's size distributions are +-3 sigma = +-8 % at 315 um) and densities within
     1 % pass; anything else, or a model whose metadata does not say, needs ``--force``. A mixture
     (``diameters``) needs a model whose training domain holds every size and size ratio
-    (``hel_warp.mixture.model_domain_problem``) instead of the 10 % rule. Returns the metadata.
+    (``hel_warp.mixture.model_domain_problem``) instead of the 10 % rule. Returns the metadata. ``force_flag``: the
+    option the error names (the caller's).
     """
     from hel_warp.errors import ConfigError
 
@@ -559,7 +561,7 @@ def check_model(model_dir: str, diameter: float, density: float, force: bool, di
             problems.append(f"it was trained for density {rho_model:g} kg/m^3, the run has {density:g} kg/m^3")
     if problems and not force:
         raise ConfigError(f"model {model_dir}: {'; '.join(problems)}; train a model for this particle or pass "
-                          "--force to use it anyway")
+                          f"{force_flag} to use it anyway")
     return meta
 
 

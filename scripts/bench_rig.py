@@ -64,7 +64,8 @@ def build_model(case, label: str, args):
                             no_particle_contacts=False)
     config = case.make_config(ns)
     if name.startswith("surrogate"):
-        case.check_model(config.model, config.diameter, config.density, args.force_model)
+        case.check_model(config.model, config.diameter, config.density, args.force_model,
+                         force_flag="--force-model")
     rig = case.CollidingStreams(config)
     rig.warm_up()
     rig.solver.time_sub_steps = True  # per-phase wall clock (HelSolver.timings)

@@ -179,8 +179,10 @@ def test_model_for_another_particle_refused(cs, tmp_path, capsys):
     (model / "metadata.json").write_text(json.dumps({"format": "hel_warp.surrogate",
                                                      "defaults": {"d1": 475e-6, "d2": 475e-6, "rho1": 1000.0,
                                                                   "rho2": 1000.0}}))
-    with pytest.raises(ConfigError, match="475 um"):
+    with pytest.raises(ConfigError, match="475 um.*pass --force to"):
         cs.check_model(str(model), 315e-6, 1000.0, force=False)
+    with pytest.raises(ConfigError, match="pass --force-model to"):  # the option of the caller (scripts/bench_rig.py)
+        cs.check_model(str(model), 315e-6, 1000.0, force=False, force_flag="--force-model")
     assert cs.check_model(str(model), 315e-6, 1000.0, force=True)["defaults"]["d1"] == 475e-6
     cs.check_model(str(model), 475e-6, 1000.0, force=False)  # the right particle passes
     with pytest.raises(ConfigError, match="density"):
