@@ -244,6 +244,11 @@ def swept_queue(
         q_bits = (key >> wp.int64(32)) << wp.int64(32)
         if b < 0 or b == p or key_p != (q_bits | wp.int64(b)) or args.event_key[b] != (q_bits | wp.int64(p)):
             # the keys do not agree (a stale key among them): the parcels involved are searched anew
+            if (key_p >> wp.int64(32)) > (key >> wp.int64(32)):
+                # p's key, a lower bound of p's next event (a new event is offered to both sides), is later: the
+                # event x's key names is gone, x's key alone is stale
+                queue_predict(args, particle_v, heap_key, heap_owner, heap_size, x)
+                continue
             queue_predict(args, particle_v, heap_key, heap_owner, heap_size, x)
             queue_predict(args, particle_v, heap_key, heap_owner, heap_size, p)
             if b >= 0 and b != p and b != x:
