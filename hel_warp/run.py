@@ -113,9 +113,27 @@ def check_device(name: str) -> str:
     return name
 
 
+CPU_ONLY_MODULES = ("kernels.swept_queue",)
+"""Warp modules only a CPU device launches (the swept detection's serial queue; a CUDA device resolves in rounds):
+``load_kernels`` neither imports nor builds them for CUDA, where NVRTC took over ten minutes on the queue."""
+
+
+def kernel_modules(device) -> list:
+    """The Warp modules ``load_kernels`` builds for ``device`` (a ``wp.Device``): every imported one with Warp code,
+    less ``CPU_ONLY_MODULES`` on CUDA."""
+    import warp as wp
+
+    registry = getattr(getattr(wp, "_src", None), "context", None)
+    modules = getattr(registry, "user_modules", None)
+    if modules is None:  # another Warp layout: every module (force_load's default)
+        return None
+    return [m for name, m in modules.items() if not (device.is_cuda and name in CPU_ONLY_MODULES)]
+
+
 def load_kernels(device) -> float:
     """Compile (or load from Warp's kernel cache) every Warp module of ``kernels/`` and any other imported module
-    with Warp code, on ``device``; returns the seconds it took.
+    with Warp code, on ``device`` (None: every device), less ``CPU_ONLY_MODULES`` on CUDA; returns the seconds it
+    took.
 
     Warp compiles a module at its first launch, so without this the first steps of a run on a cold cache carry
     the compilation (on a fresh machine the first model run looked 3x slower than the next); ``Run.run`` calls it
@@ -128,9 +146,14 @@ def load_kernels(device) -> float:
     import kernels
 
     start = _time.perf_counter()
+    devices = wp.get_devices() if device is None else [wp.get_device(device)]
+    any_cpu = any(not d.is_cuda for d in devices)
     for info in pkgutil.iter_modules(kernels.__path__):
-        importlib.import_module(f"kernels.{info.name}")
-    wp.force_load(device=device)
+        name = f"kernels.{info.name}"
+        if any_cpu or name not in CPU_ONLY_MODULES:
+            importlib.import_module(name)
+    for d in devices:
+        wp.force_load(device=d, modules=kernel_modules(d))
     return _time.perf_counter() - start
 
 

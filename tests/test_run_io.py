@@ -322,3 +322,19 @@ def test_kernel_compilation_is_timed_apart_from_the_steps(tmp_path):
     assert root.attrs["kernel_load_s"] == pytest.approx(runner.kernel_load_s)
     # the compilation landed in kernel_load_s, not in the first step's collide timing
     assert collide[0] < 0.2 * runner.kernel_load_s, (collide, runner.kernel_load_s)
+
+
+def test_load_kernels_keeps_cpu_only_modules_off_cuda():
+    """``load_kernels`` builds every kernels/ module for the CPU, the serial queue included, but hands a CUDA device
+    every module except ``CPU_ONLY_MODULES`` (NVRTC took over ten minutes on the queue; CUDA resolves in rounds)."""
+    import types
+
+    import warp as wp
+
+    from hel_warp.run import CPU_ONLY_MODULES, kernel_modules, load_kernels
+
+    load_kernels("cpu")
+    cpu_names = {m.name for m in kernel_modules(wp.get_device("cpu"))}
+    assert set(CPU_ONLY_MODULES) <= cpu_names and "kernels.collide" in cpu_names
+    cuda_names = {m.name for m in kernel_modules(types.SimpleNamespace(is_cuda=True))}
+    assert cuda_names == cpu_names - set(CPU_ONLY_MODULES)
