@@ -163,8 +163,9 @@ class SurrogateCollision:
             raise ConfigError(f"windows must be 'auto' or an integer 1-4096 (got {windows!r})")
         self.windows = windows if windows == "auto" else int(windows)
         """Swept detection: the step is resolved in this many windows of equal length, one after the other, each
-        with its own searches (``auto``: ``WINDOW_REACH``). The events and outcomes do not depend on it (the same
-        paths, times and impulses); the cost does."""
+        with its own searches (``auto``: ``WINDOW_REACH`` for the parallel rounds; for the serial queue windows cut
+        one at a time, ``WINDOWS_SERIAL`` and ``SERIAL_GROWTH``). The events and outcomes do not depend on it (the
+        same paths, times and impulses); the cost does."""
         self._windows = 1
         self._rounds_last = 0
         """Rounds of events of the last swept step beyond one per window (``windows="auto"``; in :meth:`state`)."""
