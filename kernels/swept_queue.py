@@ -112,16 +112,24 @@ def queue_pair(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), heap_key: w
 
 
 @wp.func
+def queue_restart(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), heap_key: wp.array(dtype=wp.int64),
+                  heap_owner: wp.array(dtype=wp.int32), heap_size: wp.array(dtype=wp.int32), i: int):
+    """A search's start for live parcel i: its key cleared, its wall crossing (if any) offered and queued."""
+    args.event_key[i] = EVENT_NONE
+    t_wall = wall_touch(args, particle_v, i)
+    if t_wall >= 0.0:
+        queue_offer(args, heap_key, heap_owner, heap_size, i, event_key(t_wall, args.dt, i))
+
+
+@wp.func
 def queue_predict(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), heap_key: wp.array(dtype=wp.int64),
                   heap_owner: wp.array(dtype=wp.int32), heap_size: wp.array(dtype=wp.int32), i: int):
     """Parcel i's events searched anew (its key cleared first): its wall crossing and every pair it may meet (the
     cell list out to partners of path bound <= bound_cut, the rest listed), offered to both parcels."""
-    args.event_key[i] = EVENT_NONE
     if args.particle_alive[i] == 0:
+        args.event_key[i] = EVENT_NONE
         return
-    t_wall = wall_touch(args, particle_v, i)
-    if t_wall >= 0.0:
-        queue_offer(args, heap_key, heap_owner, heap_size, i, event_key(t_wall, args.dt, i))
+    queue_restart(args, particle_v, heap_key, heap_owner, heap_size, i)
     ri = args.particle_radius[i]
     mi = args.anchor[i]
     extent_i = ri + args.path_bound[i]
@@ -148,14 +156,8 @@ def queue_predict_two(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), heap
     """``queue_predict`` of i and of j (the two parcels of an event, i != j, both live) in one walk of the union of
     their balls: a candidate near both is read once. The same offers, so the same keys (a key is the smallest
     offer, whatever their order) and the same queued events as the two searches one after the other."""
-    args.event_key[i] = EVENT_NONE
-    args.event_key[j] = EVENT_NONE
-    t_wall = wall_touch(args, particle_v, i)
-    if t_wall >= 0.0:
-        queue_offer(args, heap_key, heap_owner, heap_size, i, event_key(t_wall, args.dt, i))
-    t_wall = wall_touch(args, particle_v, j)
-    if t_wall >= 0.0:
-        queue_offer(args, heap_key, heap_owner, heap_size, j, event_key(t_wall, args.dt, j))
+    queue_restart(args, particle_v, heap_key, heap_owner, heap_size, i)
+    queue_restart(args, particle_v, heap_key, heap_owner, heap_size, j)
     cut = args.bound_cut
     partner_bound = args.max_radius + wp.min(cut, args.reach_max[0])
     mi = args.anchor[i]
