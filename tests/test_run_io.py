@@ -37,8 +37,10 @@ def build(collision="ktgf"):
 def run_config(out, steps, *, output_every=3, checkpoint_every=None, vtk=False):
     from hel_warp.run import RunConfig
 
+    # checkpoint_wall_s=0: a checkpoint at every output (these tests are about what a checkpoint holds)
     return RunConfig(out_dir=str(out), end_time=steps * DT, output_interval=output_every * DT,
-                     checkpoint_interval=None if checkpoint_every is None else checkpoint_every * DT, vtk=vtk)
+                     checkpoint_interval=None if checkpoint_every is None else checkpoint_every * DT, vtk=vtk,
+                     checkpoint_wall_s=0.0)
 
 
 
@@ -170,6 +172,44 @@ def test_nan_in_a_field_stops_the_run_and_keeps_the_last_checkpoint(tmp_path):
     import zarr
 
     np.testing.assert_array_equal(zarr.open_group(str(tmp_path / "run.zarr"), mode="r")["step"][...], [0, 3])
+
+
+def test_default_checkpoints_are_a_wall_clock_apart_and_a_restart_from_one_is_exact(tmp_path):
+    """No --checkpoint-interval: a checkpoint at the first step, then none sooner than ``checkpoint_wall_s`` of wall
+    clock (here never within the run), the last step always; the series are complete at the end, and a run killed
+    after several snapshots restarts from the step-0 checkpoint and ends bit for bit as the straight run."""
+    import dataclasses
+
+    import zarr
+
+    from hel_warp.run import CHECKPOINT_WALL_S, Run, RunConfig, read_checkpoint
+
+    assert RunConfig(out_dir=str(tmp_path), end_time=DT, output_interval=DT).checkpoint_wall_s == CHECKPOINT_WALL_S
+    gated = lambda out: dataclasses.replace(run_config(out, 9), checkpoint_wall_s=3600.0)  # noqa: E731
+    straight = build()
+    Run(straight, gated(tmp_path / "a")).run()
+    state, _, path = read_checkpoint(tmp_path / "a")
+    assert int(state["step"]) == 9
+    assert int(np.load(tmp_path / "a" / "checkpoint.prev.npz")["step"]) == 0  # none at the outputs 3 and 6
+    za = zarr.open_group(str(tmp_path / "a" / "run.zarr"), mode="r")
+    np.testing.assert_array_equal(za["step"][...], [0, 3, 6, 9])
+    np.testing.assert_array_equal(za["series"]["step"][...], np.arange(1, 10))
+    np.testing.assert_array_equal(za["series"]["output_step"][...], [0, 3, 6, 9])
+
+    first = build()
+    with pytest.raises(Interrupt):  # killed at step 8: snapshots at 3 and 6 written, the checkpoint is step 0's
+        Run(first, gated(tmp_path / "b")).run(progress=stop_at(8))
+    assert int(read_checkpoint(tmp_path / "b")[0]["step"]) == 0
+    resumed = build()
+    Run(resumed, gated(tmp_path / "b"), restart=True).run()
+    a, b = straight.state(), resumed.state()
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    zb = zarr.open_group(str(tmp_path / "b" / "run.zarr"), mode="r")
+    for name in ("step", "series/step", "series/output_step", "series/wall_hits", "series/timing_step"):
+        assert zb[name].shape == za[name].shape, name
+    np.testing.assert_array_equal(za["series"]["wall_hits"][...], zb["series"]["wall_hits"][...])
+    np.testing.assert_array_equal(za["snapshots"]["000002"]["x"][...], zb["snapshots"]["000002"]["x"][...])
 
 
 def test_pressure_solve_failure_keeps_the_checkpoint_and_gives_the_advice(tmp_path):
