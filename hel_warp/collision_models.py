@@ -209,6 +209,7 @@ class SurrogateCollision:
         self.cells = CellCollisions(config=cell, seed=seed, n_streams=self.n_streams)
         """The ``cell`` detection (its random state is :meth:`state`)."""
         self._solver_grid = None
+        self._solver_fluid = None
         self.wall_events = bool(wall_events)
         """Swept detection in a solver with walls: True (default) reflects a parcel whose path crosses the wall
         within the step at the crossing, in time order with its collisions (it then collides on its reflected
@@ -458,6 +459,7 @@ class SurrogateCollision:
         its packing stress, ``CellConfig.packing_stress``)."""
         solver.fields.parcel_a_coll.zero_()
         self._solver_grid = solver.grid  # the cell detection's collision cells
+        self._solver_fluid = getattr(solver, "cell_fluid", None)  # their fluid volumes
         if getattr(getattr(solver, "config", None), "particle_spin", False):
             self.particle_spin = True
         walls = getattr(getattr(solver, "config", None), "walls", False)
@@ -547,7 +549,8 @@ class SurrogateCollision:
             self.cells.collide(particles, dt, self.forest, self.swept.domain, batch_forest=self.batch_forest,
                                particle_spin=self.particle_spin, spin_form=self.flat.form == "contact_spin",
                                periodic_box=self.periodic_box,
-                               grid=None if self.periodic_box is not None else self._solver_grid, alive=alive)
+                               grid=None if self.periodic_box is not None else self._solver_grid, alive=alive,
+                               fluid=self._solver_fluid)
             return
         if self.detection == "swept":
             if dt is None or not dt > 0 or not np.isfinite(dt):

@@ -88,6 +88,9 @@ COUNT_CANDIDATES, COUNT_ACCEPTED, COUNT_OVER_MAX, COUNT_CELLS = 0, 1, 2, 3
 COUNT_SEPARATION, COUNT_COULOMB, COUNT_ENERGY, COUNT_CLAMPED, COUNT_LOG_OVERFLOW = 4, 5, 6, 7, 8
 COUNT_RESTORED, COUNT_UNRESTORED = 9, 10
 N_COUNTS = 11
+FLUID_VOLUME_FLOOR = wp.constant(0.125)
+"""Least share of a collision cell's volume that ``cell_fluid_volumes`` gives it: a cell nearly all wall would put
+its few parcels into a sliver's volume (a density estimate of one or two parcels, and pairs far past saturation)."""
 """``counts`` slots: candidates drawn, accepted events, candidates above the majorant, occupied cells (>= 2
 parcels), guard corrections (separation, Coulomb, energy), domain clamps, events not logged (log full), weight
 classes of a block whose energy deficit was restored / could not be (a single parcel of the class there)."""
@@ -124,6 +127,18 @@ class CellArgs:
     """1: the lattice tiles a periodic box [origin, origin + shape * cell_size): positions are wrapped into it."""
     cell_volume: wp.float32
     """Volume of one cell, m^3."""
+    use_fluid: wp.int32
+    """1: a cell's volume is the fluid volume inside it (``cell_fluid_volume``, from a HEL grid's fluid mask); 0:
+    ``cell_volume`` for every cell."""
+    fluid_integral: wp.array3d(dtype=wp.float64)
+    """(nx + 1, ny + 1, nz + 1) with ``use_fluid``: F[i, j, k] = fluid grid cells in [0, i) x [0, j) x [0, k); F is
+    trilinear inside a grid cell, so the fluid volume of any box is exact from it (``box_fluid_cells``)."""
+    fluid_origin: wp.vec3d
+    """Lower corner of the HEL grid, m."""
+    fluid_spacing: wp.float64
+    """HEL grid spacing, m."""
+    cell_fluid_volume: wp.array(dtype=wp.float32)
+    """(n_cells,) with ``use_fluid``: the fluid volume of each collision cell, m^3 (``cell_fluid_volumes``)."""
     dt: wp.float32
     seed: wp.int32
     """This step's seed (the host mixes the run seed with the step counter)."""
@@ -206,6 +221,75 @@ def carnahan_starling(eps: float, eps_cap: float):
     e = wp.clamp(eps, 0.0, eps_cap)
     one = 1.0 - e
     return (1.0 - 0.5 * e) / (one * one * one)
+
+
+@wp.func
+def fluid_integral_at(f: wp.array3d(dtype=wp.float64), g: wp.vec3d):
+    """F at the grid coordinates g (clamped into the grid): trilinear between F's nodes, which is exact."""
+    nx = f.shape[0] - 1
+    ny = f.shape[1] - 1
+    nz = f.shape[2] - 1
+    x = wp.clamp(g[0], wp.float64(0.0), wp.float64(nx))
+    y = wp.clamp(g[1], wp.float64(0.0), wp.float64(ny))
+    z = wp.clamp(g[2], wp.float64(0.0), wp.float64(nz))
+    i = wp.min(int(x), nx - 1)
+    j = wp.min(int(y), ny - 1)
+    k = wp.min(int(z), nz - 1)
+    fx = x - wp.float64(i)
+    fy = y - wp.float64(j)
+    fz = z - wp.float64(k)
+    one = wp.float64(1.0)
+    c00 = f[i, j, k] * (one - fx) + f[i + 1, j, k] * fx
+    c10 = f[i, j + 1, k] * (one - fx) + f[i + 1, j + 1, k] * fx
+    c01 = f[i, j, k + 1] * (one - fx) + f[i + 1, j, k + 1] * fx
+    c11 = f[i, j + 1, k + 1] * (one - fx) + f[i + 1, j + 1, k + 1] * fx
+    return (c00 * (one - fy) + c10 * fy) * (one - fz) + (c01 * (one - fy) + c11 * fy) * fz
+
+
+@wp.func
+def box_fluid_cells(f: wp.array3d(dtype=wp.float64), lo: wp.vec3d, hi: wp.vec3d):
+    """Fluid grid-cell volumes (in cells) inside the box [lo, hi) of grid coordinates: inclusion-exclusion of F."""
+    total = wp.float64(0.0)
+    for corner in range(8):
+        g = lo
+        sign = wp.float64(1.0)
+        for ax in range(3):
+            if (corner >> ax) & 1 == 1:
+                g[ax] = hi[ax]
+            else:
+                sign = -sign
+        total += sign * fluid_integral_at(f, g)
+    return total
+
+
+@wp.kernel
+def cell_fluid_volumes(args: CellArgs):
+    """``cell_fluid_volume`` of each collision cell: the fluid volume of its box, m^3. A cell whose box lies wholly
+    in fluid cells reads ``cell_volume`` itself (the plain lattice of fluid grid cells keeps its bits)."""
+    cell = wp.tid()
+    nyz = args.shape[1] * args.shape[2]
+    idx = wp.vec3i(cell / nyz, (cell / args.shape[2]) % args.shape[1], cell % args.shape[2])
+    lo = wp.vec3d(0.0, 0.0, 0.0)
+    hi = wp.vec3d(0.0, 0.0, 0.0)
+    for ax in range(3):
+        edge = wp.float64(args.cell_size[ax])
+        lo[ax] = (wp.float64(args.origin[ax]) + wp.float64(idx[ax]) * edge - args.fluid_origin[ax]) / args.fluid_spacing
+        hi[ax] = lo[ax] + edge / args.fluid_spacing
+    full = (hi[0] - lo[0]) * (hi[1] - lo[1]) * (hi[2] - lo[2])
+    fluid = box_fluid_cells(args.fluid_integral, lo, hi)
+    volume = args.cell_volume
+    if fluid < full * wp.float64(1.0 - 1.0e-6):
+        fluid = wp.max(fluid, full * wp.float64(FLUID_VOLUME_FLOOR))
+        volume = wp.float32(fluid * args.fluid_spacing * args.fluid_spacing * args.fluid_spacing)
+    args.cell_fluid_volume[cell] = volume
+
+
+@wp.func
+def cell_volume_of(args: CellArgs, cell: int):
+    """The volume the cell's number density is taken over: its fluid volume (``use_fluid``) or ``cell_volume``."""
+    if args.use_fluid != 0:
+        return args.cell_fluid_volume[cell]
+    return args.cell_volume
 
 
 @wp.func
@@ -425,14 +509,15 @@ def cell_prepare(
     u_max = float(0.0)
     for k in range(start, end):
         u_max = wp.max(u_max, wp.length(particle_v[args.cell_slot[k]] - c))
+    volume = cell_volume_of(args, cell)
     chi_max = float(1.0)
     if args.enskog != 0:
-        chi_max = carnahan_starling(solids / args.cell_volume, args.eps_cap)
+        chi_max = carnahan_starling(solids / volume, args.eps_cap)
     sigma_g_max = wp.pi * (2.0 * r_max) * (2.0 * r_max) * (2.0 * u_max)
     if args.approaching != 0:  # approaching pairs collide at twice the rate: twice the majorant
         sigma_g_max = 2.0 * sigma_g_max
     args.cell_sigma_g_max[cell] = sigma_g_max
-    expected = 0.5 * float(count) * float(count - 1) * w_max * chi_max * sigma_g_max * args.dt / args.cell_volume
+    expected = 0.5 * float(count) * float(count - 1) * w_max * chi_max * sigma_g_max * args.dt / volume
     args.cell_candidates[cell] = expected
     state = wp.rand_init(args.seed, cell)
     n_candidates = int(wp.floor(expected))
@@ -502,7 +587,7 @@ def cell_select(
     state = args.cell_rng[cell]
     bound = args.cell_bound[cell]
     solids = args.cell_solids[cell]
-    volume = args.cell_volume
+    volume = cell_volume_of(args, cell)
     while remaining > 0:
         remaining -= 1
         a = wp.min(int(wp.randf(state) * float(count)), count - 1)
@@ -850,6 +935,13 @@ def restore_energy(args: CellArgs, particle_v, block: int) -> None:
     for a in range(3):
         blocks *= (int(shape[a]) + block - 1) // block
     wp.launch(cell_restore, dim=blocks, device=particle_v.device, inputs=[args, int(block)], outputs=[particle_v])
+
+
+def fill_fluid_volumes(args: CellArgs) -> None:
+    """``args.cell_fluid_volume`` for the lattice in ``args`` (with ``use_fluid``; after each lattice shift)."""
+    if args.use_fluid != 0:
+        n_cells = int(args.shape[0]) * int(args.shape[1]) * int(args.shape[2])
+        wp.launch(cell_fluid_volumes, dim=n_cells, device=args.cell_fluid_volume.device, inputs=[args])
 
 
 def sort_by_cell(args: CellArgs) -> None:

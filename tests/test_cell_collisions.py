@@ -712,3 +712,106 @@ def test_nearest_partners_stay_within_their_cluster(constant_model, device, near
         assert cross == 0 and within > 20
     else:
         assert cross > 4 * within and cross > 20
+
+
+def box_fluid_volume(lo, hi, mask, grid_origin, h):
+    """Fluid volume of the box [lo, hi) over a grid's fluid mask: the product of 1-d overlaps with every grid cell
+    (an independent reference for ``kernels/cell_collide.py`` ``cell_fluid_volumes``)."""
+    lengths = []
+    for ax in range(3):
+        faces = grid_origin[ax] + np.arange(mask.shape[ax] + 1) * h
+        lengths.append(np.clip(np.minimum(hi[ax], faces[1:]) - np.maximum(lo[ax], faces[:-1]), 0.0, None))
+    return float(np.einsum("i,j,k,ijk->", *lengths, mask.astype(np.float64)))
+
+
+def test_collision_cells_take_the_fluid_volume_inside_them(device):
+    """Each collision cell's volume is the fluid volume its box holds (exact: the mask's integral is trilinear inside a
+    grid cell), at least FLUID_VOLUME_FLOOR of the box; a box wholly in fluid reads the cell volume itself."""
+    import warp as wp
+
+    from hel_warp.cell_collisions import CellCollisions
+    from kernels.cell_collide import FLUID_VOLUME_FLOOR, CellArgs, fill_fluid_volumes
+
+    rng = np.random.default_rng(1)
+    mask = (rng.random((7, 5, 6)) < 0.6).astype(np.int32)
+    mask[:3, :2, :4] = 1  # a wholly fluid box for the unshifted lattice's first cell (2.7 x 1.9 x 3.3 mm)
+    h, grid_origin = 1e-3, np.array([0.01, -0.02, 0.003])
+    edges = np.array([2.7e-3, 1.9e-3, 3.3e-3])  # merged cells not aligned with the grid, reaching past it
+    origin = grid_origin + np.array([0.0, 0.0, 0.0])
+    for shift in (np.zeros(3), np.array([-1.1e-3, -0.4e-3, -2.0e-3])):
+        shape = np.array([4, 5, 3])
+        a = CellArgs()
+        a.cell_fluid_volume = wp.zeros(int(np.prod(shape)), dtype=wp.float32, device=device)
+        a.use_fluid = 1
+        a.fluid_integral = CellCollisions().fluid_integral(wp.array(mask, device=device), device)
+        a.fluid_origin, a.fluid_spacing = tuple(grid_origin), h
+        a.origin, a.cell_size, a.shape = tuple(origin + shift), tuple(edges), tuple(int(v) for v in shape)
+        a.cell_volume = float(np.prod(edges))
+        fill_fluid_volumes(a)
+        got = a.cell_fluid_volume.numpy()
+        full = float(np.prod(edges))
+        floored = 0
+        for cell in range(len(got)):
+            idx = np.array([cell // (shape[1] * shape[2]), (cell // shape[2]) % shape[1], cell % shape[2]])
+            lo = origin + shift + idx * edges
+            fluid = box_fluid_volume(lo, lo + edges, mask, grid_origin, h)
+            want = full if fluid >= full * (1 - 1e-6) else max(fluid, FLUID_VOLUME_FLOOR * full)
+            floored += fluid < FLUID_VOLUME_FLOOR * full
+            assert got[cell] == pytest.approx(want, rel=1e-6, abs=1e-6 * full), cell
+        assert floored > 0
+    assert got[0] < full and a.cell_fluid_volume.numpy()[0] <= full
+    # the unshifted lattice's first cell lies in the all-fluid corner: exactly the cell volume
+    a.origin = tuple(origin)
+    fill_fluid_volumes(a)
+    assert a.cell_fluid_volume.numpy()[0] == np.float32(full)
+
+
+def test_candidates_use_the_fluid_volume_and_fluid_grid_cells_keep_their_bits(constant_model, device):
+    """A walled grid: merged collision cells count their parcels' density over the fluid volume inside them (the NTC
+    candidates grow by V / V_fluid, against the overlap reference), and the plain lattice of grid cells (weight 1's)
+    gives the same pairs and velocities with or without the fluid volumes."""
+    import warp as wp
+
+    from hel_warp.cell_collisions import CellConfig
+    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.coupling import GridSpec
+
+    h = 1e-3
+    grid = GridSpec(origin=(0.0, 0.0, 0.0), spacing=h, shape=(12, 6, 6))
+    mask = np.zeros(grid.shape, np.int32)
+    mask[:, 1:4, 1:3] = 1  # a 3 x 2 mm channel along x
+    rng = np.random.default_rng(3)
+    n = 3000
+    x = np.column_stack([rng.uniform(0.0, 12e-3, n), rng.uniform(1e-3, 4e-3, n), rng.uniform(1e-3, 3e-3, n)])
+
+    def run(**cell):
+        p = make_gas(n, 1.0, 8.0, np.random.default_rng(4), device)
+        p.x.assign(x)
+        s = SurrogateCollision(model_dir=constant_model, detection="cell", seed=2,
+                               cell=CellConfig(max_substeps=1, enskog=False, log_capacity=20000, **cell))
+        s._setup(p)
+        s.cells.collide(p, 1e-4, s.forest, s.swept.domain, grid=grid, fluid=wp.array(mask, device=device))
+        return s, p
+
+    for fluid_volume in (True, False):  # merged 6^3 cells, unshifted: two cells hold the channel
+        s, _ = run(coarsen=6, shift=False, fluid_volume=fluid_volume)
+        m = s.cells._args.cell_candidates.numpy()
+        if fluid_volume:
+            with_fluid = m
+        else:
+            whole = m
+    origin, edges, shape = s.cells.lattice
+    occupied = np.flatnonzero(whole > 0)
+    assert len(occupied) == 2
+    for cell in occupied:
+        idx = np.array([cell // (shape[1] * shape[2]), (cell // shape[2]) % shape[1], cell % shape[2]])
+        lo = np.asarray(origin) + idx * np.asarray(edges)
+        fluid = box_fluid_volume(lo, lo + np.asarray(edges), mask, np.zeros(3), h)
+        assert fluid == pytest.approx(6 * 3 * 2 * h**3)
+        assert with_fluid[cell] / whole[cell] == pytest.approx(float(np.prod(edges)) / fluid, rel=1e-5)
+    # grid cells (weight 1's lattice): every occupied cell is all fluid, so nothing changes, bit for bit
+    a, pa = run(coarsen=1, shift=False, fluid_volume=True)
+    b, pb = run(coarsen=1, shift=False, fluid_volume=False)
+    assert a.cells.counts()["cell_accepted"] > 100
+    assert np.array_equal(a.cells.event_log()["pair"], b.cells.event_log()["pair"])
+    assert np.array_equal(pa.v.numpy(), pb.v.numpy())
