@@ -276,6 +276,41 @@ def test_same_seed_same_run_and_restart_is_exact(constant_model, device):
     assert np.array_equal(d.v.numpy(), a.v.numpy())
 
 
+def test_approach_filter_cuts_the_step_by_the_last_steps_events_and_restarts_exactly(constant_model, device):
+    """With ``approaching``, a step is cut into at least ceil(events per parcel of the last step / approach_events)
+    sub-steps; that count is in the checkpoint, so a restart continues bit for bit (and without it, it would not)."""
+    import math as _math
+
+    rng = np.random.default_rng(9)
+    n, eps, dt = 1000, 0.05, 1e-3
+    side = box_side(8 * n, eps)
+    x = rng.uniform(0.0, side, size=(n, 3))
+    v = rng.normal(size=(n, 3))
+
+    def fresh():
+        from hel_warp.particles import Particles
+
+        return Particles.from_numpy(x, 0.5 * D, v=v, density=RHO, weight=8.0, check_overlap=False, device=device)
+
+    a = fresh()
+    sa = strategy(constant_model, side, seed=7, approaching=True)
+    sa.collide(a, dt)
+    first = sa.cells.substeps
+    events = sa.cells.events_per_parcel
+    assert events == pytest.approx(2.0 * sa.counts()["cell_accepted"] / n) and events > 0.5
+    state = {k: np.asarray(val).copy() for k, val in sa.state().items()}
+    v_mid = a.v.numpy().copy()
+    sa.collide(a, dt)
+    assert sa.cells.substeps == max(first, _math.ceil(events / 0.25)) > first
+    for keep in (True, False):
+        d = fresh()
+        d.v.assign(v_mid)
+        sd = strategy(constant_model, side, seed=0, approaching=True)
+        sd.set_state(state if keep else {k: val for k, val in state.items() if k != "cell_events_per_parcel"})
+        sd.collide(d, dt)
+        assert np.array_equal(d.v.numpy(), a.v.numpy()) == keep
+
+
 def test_detection_defaults_to_cell_when_a_parcel_is_heavier_than_one(constant_model, device):
     from hel_warp.collision_models import SurrogateCollision
 
