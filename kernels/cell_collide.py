@@ -193,6 +193,9 @@ class CellArgs:
     pending_normal: wp.array(dtype=wp.vec3)
     last_partner: wp.array(dtype=wp.int32)
     """(N,) the slot of each parcel's last accepted partner (-1: none); kept across steps (the checkpoint's)."""
+    recent_partners: wp.array2d(dtype=wp.int32)
+    """(N, R) with ``approaching``: each parcel's last R accepted partners, newest first (-1: none); kept across
+    steps (the checkpoint's). The approach filter's ``met`` exemption reads it."""
     particle_deficit: wp.array(dtype=wp.float32)
     """(N,) energy the parcel's partial impulses lost this sub-step against w_min real collisions, J (0 for a
     parcel never the heavier of its pairs); restored and zeroed by ``cell_restore``."""
@@ -468,6 +471,20 @@ def count_guard(args: CellArgs, flags: int):
 
 
 @wp.func
+def remember_partner(args: CellArgs, i: int, j: int):
+    """Put j first in i's recent partners (moved up if already there, the oldest dropped)."""
+    r = args.recent_partners.shape[1]
+    k = r - 1
+    for m in range(r - 1):  # where j already is, else the last slot
+        if args.recent_partners[i, m] == j and k == r - 1:
+            k = m
+    while k > 0:
+        args.recent_partners[i, k] = args.recent_partners[i, k - 1]
+        k -= 1
+    args.recent_partners[i, 0] = j
+
+
+@wp.func
 def cell_offset(args: CellArgs, i: int, j: int):
     """x_j - x_i, the nearest image in a periodic box (a shifted lattice's cell may straddle the box's side)."""
     dx = args.particle_x[j] - args.particle_x[i]
@@ -625,7 +642,10 @@ def cell_select(
                 spread_i = wp.pow((wi - 1.0) * sphere_volume(ri) * volume / solids, 1.0 / 3.0)
                 spread_j = wp.pow((wj - 1.0) * sphere_volume(rj) * volume / solids, 1.0 / 3.0)
                 dx = dx + spread_j * u_j - spread_i * u_i
-            met = args.last_partner[i] == j or args.last_partner[j] == i
+            met = bool(False)
+            for k in range(args.recent_partners.shape[1]):
+                if args.recent_partners[i, k] == j or args.recent_partners[j, k] == i:
+                    met = True
             if met and wp.max(wi, wj) > 1.0:
                 # a parcel that last met this weighted partner: its next real collision is with another particle
                 # of the cloud, not the receding one (a weight-1 pair that collided stays filtered: it recedes)
@@ -642,6 +662,9 @@ def cell_select(
         if args.approaching != 0 or args.nearest > 0:  # only these read the memory
             args.last_partner[i] = j
             args.last_partner[j] = i
+        if args.approaching != 0:
+            remember_partner(args, i, j)
+            remember_partner(args, j, i)
         n = sample_normal(g, u_b2, u_phi)
         if args.log_pair.shape[0] > 0:
             slot = wp.atomic_add(args.log_count, 0, 1)

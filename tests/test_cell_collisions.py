@@ -309,6 +309,28 @@ def test_approach_filter_cuts_the_step_by_the_last_steps_events_and_restarts_exa
         sd.set_state(state if keep else {k: val for k, val in state.items() if k != "cell_events_per_parcel"})
         sd.collide(d, dt)
         assert np.array_equal(d.v.numpy(), a.v.numpy()) == keep
+    # the recent partners are each parcel's accepted partners, newest first, a repeat moved up (replayed from the log)
+    e = fresh()
+    se = strategy(constant_model, side, seed=7, approaching=True, log=200000)
+    se.collide(e, dt)
+    ring = [[] for _ in range(n)]
+    for i, j in se.cells.event_log()["pair"].tolist():
+        for p_, q_ in ((i, j), (j, i)):
+            if q_ in ring[p_]:
+                ring[p_].remove(q_)
+            ring[p_] = ([q_] + ring[p_])[:16]
+    want = np.full((n, 16), -1, np.int32)
+    for p_, r in enumerate(ring):
+        want[p_, :len(r)] = r
+    assert np.array_equal(se.state()["cell_recent_partners"], want)
+    # the recent partners (the met exemption) are in the state too: without them the continuation differs
+    assert state["cell_recent_partners"].shape == (n, 16) and (state["cell_recent_partners"][:, 1] >= 0).any()
+    d = fresh()
+    d.v.assign(v_mid)
+    sd = strategy(constant_model, side, seed=0, approaching=True)
+    sd.set_state({k: val for k, val in state.items() if k != "cell_recent_partners"})
+    sd.collide(d, dt)
+    assert not np.array_equal(d.v.numpy(), a.v.numpy())
 
 
 def test_detection_defaults_to_cell_when_a_parcel_is_heavier_than_one(constant_model, device):
