@@ -992,7 +992,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cell-approaching", action="store_true",
                         help="cell detection: only parcel pairs whose centres approach collide, at twice the rate "
                              "(the two streams stop colliding once they have passed each other in a cell; it "
-                             "undercounts a dense homogeneous gas: 0.87 of Enskog at weight 64, eps_s = 0.05)")
+                             "undercounts a dense homogeneous gas: 0.94-0.96 of Enskog at weight 64, eps_s = 0.05)")
     parser.add_argument("--no-packing-stress", action="store_true",
                         help="cell detection: without the MP-PIC packing stress (on by default: the cell scheme's "
                              "parcels have no excluded volume)")
