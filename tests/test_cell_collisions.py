@@ -237,9 +237,9 @@ def test_momentum_exact_no_energy_gain_at_mixed_weights(constant_model, device):
         assert (m * (after**2).sum(axis=1)).sum() <= (m * (before**2).sum(axis=1)).sum() * (1.0 + 1e-6)
 
 
-def test_same_seed_same_run_and_restart_is_exact(constant_model, device):
-    rng = np.random.default_rng(6)
-    n, eps, dt = 1000, 0.05, 1e-3
+def weight8_gas(seed: int, device, n: int = 1000, eps: float = 0.05):
+    """(side, fresh): a periodic box of n parcels of 8 at eps, and a function giving the same parcels anew."""
+    rng = np.random.default_rng(seed)
     side = box_side(8 * n, eps)
     x = rng.uniform(0.0, side, size=(n, 3))
     v = rng.normal(size=(n, 3))
@@ -248,6 +248,13 @@ def test_same_seed_same_run_and_restart_is_exact(constant_model, device):
         from hel_warp.particles import Particles
 
         return Particles.from_numpy(x, 0.5 * D, v=v, density=RHO, weight=8.0, check_overlap=False, device=device)
+
+    return side, fresh
+
+
+def test_same_seed_same_run_and_restart_is_exact(constant_model, device):
+    n, dt = 1000, 1e-3
+    side, fresh = weight8_gas(6, device, n)
 
     def advance(s, p, steps):
         for _ in range(steps):
@@ -281,16 +288,8 @@ def test_approach_filter_cuts_the_step_by_the_last_steps_events_and_restarts_exa
     sub-steps; that count is in the checkpoint, so a restart continues bit for bit (and without it, it would not)."""
     import math as _math
 
-    rng = np.random.default_rng(9)
-    n, eps, dt = 1000, 0.05, 1e-3
-    side = box_side(8 * n, eps)
-    x = rng.uniform(0.0, side, size=(n, 3))
-    v = rng.normal(size=(n, 3))
-
-    def fresh():
-        from hel_warp.particles import Particles
-
-        return Particles.from_numpy(x, 0.5 * D, v=v, density=RHO, weight=8.0, check_overlap=False, device=device)
+    n, dt = 1000, 1e-3
+    side, fresh = weight8_gas(9, device, n)
 
     a = fresh()
     sa = strategy(constant_model, side, seed=7, approaching=True)
