@@ -302,7 +302,6 @@ class CellCollisions:
         self.events_per_parcel = 0.0
         """Accepted events per live parcel (each event counted for both parcels) of the last step: with
         ``approaching`` it sets the next step's sub-steps (``CellConfig.approach_events``); in the checkpoint."""
-        self._no_fluid = None
         self._fluid = None
         """(fluid mask array, its integral F on the device) of the last HEL grid (``fluid_integral``)."""
 
@@ -340,9 +339,7 @@ class CellCollisions:
         a.pending_normal = wp.zeros(n_cells, dtype=wp.vec3, device=dev)
         a.cell_fluid_volume = wp.zeros(n_cells, dtype=wp.float32, device=dev)
         a.use_fluid = 0
-        a.fluid_integral = self._no_fluid if self._no_fluid is not None else wp.zeros((1, 1, 1), dtype=wp.float64,
-                                                                                      device=dev)
-        self._no_fluid = a.fluid_integral
+        a.fluid_integral = wp.zeros((1, 1, 1), dtype=wp.float64, device=dev)  # none until a grid's mask is given
         a.particle_deficit = wp.zeros(n, dtype=wp.float32, device=dev)
         a.particle_spin_deficit = wp.zeros(n, dtype=wp.float32, device=dev)
         self._no_omega = wp.zeros(1, dtype=wp.vec3, device=dev)
