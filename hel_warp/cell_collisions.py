@@ -292,13 +292,10 @@ class CellCollisions:
         and size meets while it crosses one collision cell together (``pair_saturation``)."""
         self._saturation_warned = False
         self._shift_pending = False
-        self._last_partner = None
-        """(N,) each parcel's last accepted partner (``CellArgs.last_partner``), kept across steps."""
-        self._pending_last_partner = None
-        """A restored ``cell_last_partner`` waiting for the arrays to be allocated."""
         self._recent = None
-        """(N, R) ``CellArgs.recent_partners``, kept across steps."""
+        """(N, R) each parcel's last accepted partners (``CellArgs.recent_partners``), kept across steps."""
         self._pending_recent = None
+        """A restored ``cell_recent_partners`` waiting for the arrays to be allocated."""
         self.events_per_parcel = 0.0
         """Accepted events per live parcel (each event counted for both parcels) of the last step: with
         ``approaching`` it sets the next step's sub-steps (``CellConfig.approach_events``); in the checkpoint."""
@@ -343,18 +340,16 @@ class CellCollisions:
         a.particle_deficit = wp.zeros(n, dtype=wp.float32, device=dev)
         a.particle_spin_deficit = wp.zeros(n, dtype=wp.float32, device=dev)
         self._no_omega = wp.zeros(1, dtype=wp.vec3, device=dev)
-        if self._last_partner is None or self._last_partner.shape[0] != n or str(self._last_partner.device) != str(dev):
-            pending = self._pending_last_partner
-            self._pending_last_partner = None
-            self._last_partner = (wp.array(pending, dtype=wp.int32, device=dev) if pending is not None
-                                  and pending.shape[0] == n else wp.full(n, -1, dtype=wp.int32, device=dev))
-        a.last_partner = self._last_partner
         memory = int(self.config.approach_memory) if self.config.approaching else 1
-        if (self._recent is None or self._recent.shape != (n, memory) or str(self._recent.device) != str(dev)):
-            pending = self._pending_recent
+        if self._recent is None or self._recent.shape != (n, memory) or str(self._recent.device) != str(dev):
+            ring = np.full((n, memory), -1, np.int32)
+            pending = self._pending_recent if self._pending_recent is not None else (
+                self._recent.numpy() if self._recent is not None else None)
+            if pending is not None and pending.shape[0] == n:  # a restored or kept ring, cut or padded to R
+                k = min(memory, pending.shape[1])
+                ring[:, :k] = pending[:, :k]
             self._pending_recent = None
-            self._recent = (wp.array(pending, dtype=wp.int32, device=dev) if pending is not None
-                            and pending.shape == (n, memory) else wp.full((n, memory), -1, dtype=wp.int32, device=dev))
+            self._recent = wp.array(ring, dtype=wp.int32, device=dev)
         a.recent_partners = self._recent
         self._more = wp.zeros(1, dtype=wp.int32, device=dev)
         from kernels.cell_collide import CellArgs
@@ -586,14 +581,13 @@ class CellCollisions:
                 "candidates": a.cell_candidates.numpy().copy()}
 
     def state(self) -> dict:
-        """The random state: ``cell_seed`` and ``cell_steps`` (numpy scalars) and ``cell_last_partner`` (each
-        parcel's last partner, (N,) int32; empty before the first step): the checkpoint's."""
-        last = (self._last_partner.numpy().copy() if self._last_partner is not None
-                else np.zeros(0, np.int32) if self._pending_last_partner is None else self._pending_last_partner.copy())
+        """The random state: ``cell_seed`` and ``cell_steps`` (numpy scalars), ``cell_recent_partners`` (each parcel's
+        last accepted partners, (N, R) int32, newest first; empty before the first step) and
+        ``cell_events_per_parcel``: the checkpoint's."""
         recent = (self._recent.numpy().copy() if self._recent is not None
                   else np.zeros((0, 1), np.int32) if self._pending_recent is None else self._pending_recent.copy())
         return {"cell_seed": np.array(self.seed, np.int64), "cell_steps": np.array(self.steps, np.int64),
-                "cell_last_partner": last, "cell_recent_partners": recent,
+                "cell_recent_partners": recent,
                 "cell_events_per_parcel": np.array(self.events_per_parcel, np.float64)}
 
     def set_state(self, state: dict) -> None:
@@ -602,8 +596,11 @@ class CellCollisions:
             self.seed = int(np.asarray(state["cell_seed"]))
         if "cell_steps" in state:
             self.steps = int(np.asarray(state["cell_steps"]))
-        if "cell_recent_partners" in state:
-            recent = np.asarray(state["cell_recent_partners"], np.int32)
+        recent = state.get("cell_recent_partners")
+        if recent is None and "cell_last_partner" in state:  # a checkpoint from before the ring: its one column
+            recent = np.asarray(state["cell_last_partner"], np.int32).reshape(-1, 1)
+        if recent is not None:
+            recent = np.asarray(recent, np.int32)
             recent = recent.reshape(recent.shape[0], -1) if recent.size else recent.reshape(0, 1)
             if self._recent is not None and self._recent.shape == recent.shape:
                 self._recent.assign(recent)
@@ -612,10 +609,3 @@ class CellCollisions:
                 self._pending_recent = recent if recent.size else None
         if "cell_events_per_parcel" in state:
             self.events_per_parcel = float(np.asarray(state["cell_events_per_parcel"]))
-        if "cell_last_partner" in state:
-            last = np.asarray(state["cell_last_partner"], np.int32).reshape(-1)
-            if self._last_partner is not None and self._last_partner.shape[0] == last.shape[0]:
-                self._last_partner.assign(last)
-            else:  # put in place when the arrays are allocated for the particles (an empty one: none yet)
-                self._last_partner = None
-                self._pending_last_partner = last if last.size else None

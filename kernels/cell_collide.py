@@ -191,11 +191,10 @@ class CellArgs:
     """(n_cells,) batch row of the cell's accepted pair this round, -1: none."""
     pending_pair: wp.array(dtype=wp.vec2i)
     pending_normal: wp.array(dtype=wp.vec3)
-    last_partner: wp.array(dtype=wp.int32)
-    """(N,) the slot of each parcel's last accepted partner (-1: none); kept across steps (the checkpoint's)."""
     recent_partners: wp.array2d(dtype=wp.int32)
-    """(N, R) with ``approaching``: each parcel's last R accepted partners, newest first (-1: none); kept across
-    steps (the checkpoint's). The approach filter's ``met`` exemption reads it."""
+    """(N, R) each parcel's last R accepted partners, newest first (-1: none), written when ``approaching`` or
+    ``nearest`` reads them (R = ``CellConfig.approach_memory`` with the filter, else 1); kept across steps (the
+    checkpoint's). ``nearest`` leaves out column 0 (the last partner), the filter's ``met`` exemption reads every column."""
     particle_deficit: wp.array(dtype=wp.float32)
     """(N,) energy the parcel's partial impulses lost this sub-step against w_min real collisions, J (0 for a
     parcel never the heavier of its pairs); restored and zeroed by ``cell_restore``."""
@@ -553,7 +552,7 @@ def nearest_partner(args: CellArgs, start: int, count: int, a: int, state: wp.ui
     """Position in the cell of the parcel nearest to the cell's ``a``-th, among all the others or ``args.nearest``
     drawn ones, the last partner of ``a`` left out unless it is the only other parcel; returns (position, state)."""
     i = args.cell_slot[start + a]
-    last = args.last_partner[i]
+    last = args.recent_partners[i, 0]
     best = int(-1)
     best_d2 = float(0.0)
     scan_all = count - 1 <= args.nearest
@@ -660,9 +659,6 @@ def cell_select(
             continue
         wp.atomic_add(args.counts, COUNT_ACCEPTED, 1)
         if args.approaching != 0 or args.nearest > 0:  # only these read the memory
-            args.last_partner[i] = j
-            args.last_partner[j] = i
-        if args.approaching != 0:
             remember_partner(args, i, j)
             remember_partner(args, j, i)
         n = sample_normal(g, u_b2, u_phi)

@@ -322,6 +322,12 @@ def test_approach_filter_cuts_the_step_by_the_last_steps_events_and_restarts_exa
     for p_, r in enumerate(ring):
         want[p_, :len(r)] = r
     assert np.array_equal(se.state()["cell_recent_partners"], want)
+    # a checkpoint from before the ring (one last partner per parcel) restores as its first column
+    from hel_warp.cell_collisions import CellCollisions
+
+    old_state = CellCollisions()
+    old_state.set_state({"cell_last_partner": want[:, 0]})
+    np.testing.assert_array_equal(old_state.state()["cell_recent_partners"], want[:, :1])
     # the recent partners (the met exemption) are in the state too: without them the continuation differs
     assert state["cell_recent_partners"].shape == (n, 16) and (state["cell_recent_partners"][:, 1] >= 0).any()
     d = fresh()
