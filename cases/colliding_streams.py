@@ -330,9 +330,9 @@ class CaseConfig:
     cell_nearest: int = 0
     """``surrogate`` cell detection: nearest-neighbour partners among this many parcels (``CellConfig.nearest``;
     0: random partners)."""
-    cell_approaching: bool = False
-    """``surrogate`` cell detection: only pairs whose centres approach collide, at twice the rate
-    (``CellConfig.approaching``; weight 64 on this rig: FIGURES, seventeenth session)."""
+    cell_approaching: bool | None = None
+    """``surrogate`` cell detection: only pairs whose centres approach collide (``CellConfig.approaching``);
+    None: the ``CellConfig`` default (off: Bird's plain NTC; FIGURES, issue 12, eighteenth session)."""
     wall_events: bool = True
     """``surrogate`` swept detection: walls as events within the step, in time order with the collisions (False:
     the push's end-of-step reflection; ``SurrogateCollision.wall_events``)."""
@@ -437,7 +437,7 @@ def make_config(args) -> CaseConfig:
     nearest = getattr(args, "cell_nearest", None)
     for flag, given in (("--cell-coarsen", coarsen is not None), ("--cell-nearest", nearest is not None),
                         ("--no-packing-stress", getattr(args, "no_packing_stress", False)),
-                        ("--cell-approaching", getattr(args, "cell_approaching", False))):
+                        ("--[no-]cell-approaching", getattr(args, "cell_approaching", None) is not None)):
         if given and not uses_cell:
             raise ConfigError(f"{flag} is an option of the surrogate's cell detection (give --detection cell or "
                               "--particles-per-parcel > 1)")
@@ -467,7 +467,7 @@ def make_config(args) -> CaseConfig:
                       model=args.model, detection=detection or ("cell" if max(weights) > 1 else "swept"),
                       wall_events=not getattr(args, "no_wall_events", False), cell_coarsen=coarsen,
                       cell_packing_stress=not getattr(args, "no_packing_stress", False),
-                      cell_nearest=int(nearest or 0), cell_approaching=bool(getattr(args, "cell_approaching", False)),
+                      cell_nearest=int(nearest or 0), cell_approaching=getattr(args, "cell_approaching", None),
                       wall_contact=getattr(args, "wall_contact", "surface"),
                       wall_spin=bool(getattr(args, "wall_spin", False)),
                       particle_spin=bool(getattr(args, "particle_spin", False)),
@@ -605,11 +605,12 @@ class CollidingStreams:
             kwargs = {"model_dir": config.model, "detection": config.detection, "seed": config.seed,
                       "wall_events": config.wall_events}
             if (config.cell_coarsen is not None or not config.cell_packing_stress or config.cell_nearest
-                    or config.cell_approaching):
+                    or config.cell_approaching is not None):
                 from hel_warp.cell_collisions import CellConfig
 
+                approaching = {} if config.cell_approaching is None else {"approaching": config.cell_approaching}
                 kwargs["cell"] = CellConfig(coarsen=config.cell_coarsen, packing_stress=config.cell_packing_stress,
-                                            nearest=config.cell_nearest, approaching=config.cell_approaching)
+                                            nearest=config.cell_nearest, **approaching)
         elif config.collisions == "surrogate-paper":
             kwargs = {"model_dir": config.model}
         elif config.collisions == "dem":
@@ -989,10 +990,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cell-nearest", type=int, default=None,
                         help="cell detection: the partner of a candidate is the nearest of up to N parcels of its "
                              "cell (Bird's nearest-neighbour collisions; default 0: a random one)")
-    parser.add_argument("--cell-approaching", action="store_true",
-                        help="cell detection: only parcel pairs whose centres approach collide, at twice the rate "
-                             "(the two streams stop colliding once they have passed each other in a cell; it "
-                             "undercounts a dense homogeneous gas: 0.94-0.96 of Enskog at weight 64, eps_s = 0.05)")
+    parser.add_argument("--cell-approaching", action=argparse.BooleanOptionalAction, default=None,
+                        help="cell detection: only parcel pairs whose centres approach collide, a receding pair "
+                             "handing its collision to an approaching one of its cell, so that a cell collides as "
+                             "often as Bird's NTC says while two streams that have passed each other in it stop "
+                             "colliding (default: off, plain NTC: any pair of the cell; FIGURES, issue 12)")
     parser.add_argument("--no-packing-stress", action="store_true",
                         help="cell detection: without the MP-PIC packing stress (on by default: the cell scheme's "
                              "parcels have no excluded volume)")

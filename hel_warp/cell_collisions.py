@@ -55,6 +55,10 @@ parcels of a species of 1 parcel in 20 (a 1/8-weight 315/475 um mixture at 30 % 
 nearly never stands alone, while the block stays a few mean free paths wide."""
 EPS_CAP = 0.55
 """Largest cell solids fraction put into Carnahan-Starling's g0 (it diverges at 1; MP-PIC cells can overfill)."""
+APPROACH_REDRAW = 64
+"""Draws of the pair an accepted, receding candidate hands its collision to under the approach filter (each must
+approach and pass its own acceptance test): in a dense weighted gas 16 draws lose 1.5 % of the collisions, 64 none
+measurable; a cell of passed streams, with no approaching pair, spends them on each accepted candidate."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -80,18 +84,21 @@ class CellConfig:
     rig's channel axis is a face of the merged 4 mm cells: the two streams would only meet once a parcel has
     crossed it). None: shift merged cells (``coarsen`` > 1), keep grid cells and periodic lattices as they are."""
     approaching: bool = False
-    """True: only a pair whose centres approach, (x_j - x_i) . (v_i - v_j) > 0, can collide, at twice its rate (half
-    of a homogeneous cell's pairs approach), the colliding particle of a weighted parcel drawn from a cloud of
-    (w - 1) V_p / eps_cell about its centre, and a weighted pair that met last exempt (its next real collision is
-    with another particle of the cloud). Two streams that have passed each other within a cell then stop
-    colliding: on the rig at 1e-3 s (seed ensembles against two CFD-DEM seeds) the crossing at weight 8 goes from
-    +0.050 to +0.008 and v_y rms from +5.5 % to +0.5 %. But a pair that has just collided recedes and is filtered
-    out, so fewer than half of a cell's pairs approach: Enskog's frequency falls to 0.985 / 0.975 / 0.968 at weights
-    1 / 8 / 64 at eps_s = 0.01 and 0.92 / 0.89 / 0.80 at 0.05 (FIGURES, issue 12, ninth session). False (default):
-    any pair of the cell, whatever its positions (Bird's NTC, exact for the homogeneous gas). Its rig gain is mostly
-    not the streams': at weight 1 it cuts the injection clouds' collisions to a third of the CFD-DEM's onsets
-    (21k against 73k per step at 8 ms), which the packing stress now addresses by unpacking those clouds (FIGURES,
-    issue 12, tenth session)."""
+    """True: a collision goes to a pair whose centres approach, (x_j - x_i) . (v_i - v_j) > 0, the colliding
+    particle of a weighted parcel drawn from a cloud of (w - 1) V_p / eps_cell about its centre, a weighted pair that
+    met within ``approach_memory`` exempt (its next real collision is with another particle of the cloud).
+    Candidates are drawn and accepted as Bird's NTC; an accepted pair that recedes hands its collision to another
+    pair of the cell, drawn until one approaches and passes its own acceptance (``approach_redraw``), so a cell
+    collides as often as NTC says and only a cell whose pairs all recede (two streams that have passed each other)
+    collides less. Weight 64 on the rig (1e-3 s, 32-seed ensembles against two CFD-DEM seeds, sections 1-7):
+    crossing +0.040 / +0.083 / +0.049 on three seed sets against plain NTC's +0.081 / +0.108 / +0.091, v_y rms
+    3.5-4.4 % low; the homogeneous gas at weights 1 / 8 / 64, eps_s = 0.01 / 0.05, dt = 1e-3 / 1e-4 / 7.14e-5 s
+    within 2 % of Enskog's frequency and 5 % of Haff's cooling (0.951-0.985, 1-3 % below plain NTC's). Off by
+    default: pairs that have collided recede from their cell-mates too (positions are cell-scale), so fewer pairs of
+    single particles approach than of clouds, and in a mixture of weights 1 and 8 the collisions shift from the
+    weight-1 pairs to the mixed ones (0.946 of Enskog's small-small rate, 4.3 standard errors; FIGURES, issue 12,
+    eighteenth session). False (default): any pair of the cell, whatever its positions (Bird's NTC, exact for the
+    homogeneous gas)."""
     nearest: int = 0
     """> 0: nearest-neighbour partners (Bird 2007; SPARTA's ``collide_modify nearcp yes Nlimit``): each candidate's
     second parcel is the nearest to the first among up to ``nearest`` parcels of the cell (all when fewer), the
@@ -137,11 +144,19 @@ class CellConfig:
     the partial impulse alone (too much dissipation: several times the collisions' own at e = 0.9)."""
     approach_memory: int = 16
     """With ``approaching``: accepted partners each parcel remembers (``CellArgs.recent_partners``); a weighted pair
-    that met within them is exempt from the position test, at the plain rate (its next real collision is with
-    another particle of the partner's cloud). A pair that met keeps receding from each other until both have
+    that met within them is exempt from the position test (its next real collision is with another particle of the
+    partner's cloud). A pair that met keeps receding from each other until both have
     collided again, and in a dense gas that is more than the last partner: weight 64, eps_s = 0.05, dt = 1e-3 s,
     Enskog's frequency 0.924 / 0.941 / 0.956 / 0.952 of it remembering 1 / 4 / 16 / 64 partners (FIGURES, issue
     12, seventeenth session)."""
+    approach_redraw: int = APPROACH_REDRAW
+    """With ``approaching``: a candidate whose pair does not approach is drawn again from the cell, up to this many
+    draws, and the approaching (or exempt) pair it finds is accepted at the plain NTC rate. A cell then collides as
+    often as plain NTC says whatever share of its pairs approach (exactly so in expectation when that share is the
+    homogeneous gas's half), and only a cell with almost no approaching pair, two streams that have passed each
+    other, collides less (FIGURES, issue 12, eighteenth session). 0: the ninth session's rule, a pair that does not
+    approach is rejected and approaching ones collide at twice the rate: a dense gas, where pairs that have collided
+    recede, then collides too little (0.956 of Enskog's frequency at weight 64, eps_s = 0.05)."""
     approach_events: float = 0.25
     """With ``approaching``: the step is also cut so that the last step's accepted events per parcel come to at most
     this many per sub-step. Within one sampling a parcel that has collided heads away from the partner it met,
@@ -174,6 +189,8 @@ class CellConfig:
                               "the nearest partner, 0 for a random one")
         if int(self.approach_memory) != self.approach_memory or self.approach_memory < 1:
             raise ConfigError(f"cell approach_memory must be a positive integer (got {self.approach_memory!r})")
+        if int(self.approach_redraw) != self.approach_redraw or self.approach_redraw < 0:
+            raise ConfigError(f"cell approach_redraw must be an integer >= 0 (got {self.approach_redraw!r})")
         if not (math.isfinite(self.approach_events) and self.approach_events > 0.0):
             raise ConfigError(f"cell approach_events must be > 0 (got {self.approach_events!r})")
         if not 0.0 < self.eps_cap < 1.0:
@@ -482,6 +499,7 @@ class CellCollisions:
         a.dt = sub_dt
         a.enskog = 1 if self.config.enskog else 0
         a.approaching = 1 if self.config.approaching else 0
+        a.approach_redraw = int(self.config.approach_redraw) if self.config.approaching else 0
         a.nearest = int(self.config.nearest)
         a.eps_cap = float(self.config.eps_cap)
         a.apply = 1 if apply else 0

@@ -20,6 +20,15 @@ whatever w. Per collision cell of volume V holding N parcels, in one step dt:
   |v_i - v_j| <= |v_i - c| + |v_j - c|), w_max the cell's largest weight. A collision can raise a parcel's
   distance from c (by up to sqrt 2 for equal masses), so a later candidate may exceed the bound; it is then
   accepted and counted (``over_max``: the bias, measured ~0);
+- optionally the approach filter (``approaching``; ``CellConfig.approaching``, off by default): an accepted candidate whose centres do
+  not approach, (x_j - x_i) . (v_i - v_j) <= 0 (a weighted parcel's colliding particle drawn from its cloud; a
+  weighted pair that met recently exempt), hands its collision to another pair of the cell, drawn until one
+  approaches and passes its own acceptance test (at most ``approach_redraw`` draws). The cell's expected total
+  stays NTC's (every accepted candidate becomes a collision while the cell holds approaching pairs), placed on
+  approaching pairs in proportion to their rates; two streams that have passed each other in a cell (no pair
+  approaches) stop colliding there. ``approach_redraw`` = 0: the ninth session's rule instead (receding pairs
+  rejected, approaching ones at twice the rate against twice the majorant), which loses collisions in a dense
+  gas where pairs that have collided recede;
 - optionally (``nearest`` > 0; Bird 2007's nearest-neighbour collisions, SPARTA's ``collide_modify nearcp``) the
   second parcel of a candidate is the nearest to the first among up to ``nearest`` of the cell, the first's last
   partner excluded; the acceptance is the same (the partner's g is a random pair's where positions carry no
@@ -145,8 +154,13 @@ class CellArgs:
     enskog: wp.int32
     """1: Enskog's factor chi = g0 (Carnahan-Starling); 0: chi = 1 (Boltzmann)."""
     approaching: wp.int32
-    """1: only a pair whose centres approach, (x_j - x_i) . (v_i - v_j) > 0, can collide, at twice the rate (half
-    of a homogeneous cell's pairs approach: the rate is kept); 0: any pair of the cell (Bird's NTC)."""
+    """1: only a pair whose centres approach, (x_j - x_i) . (v_i - v_j) > 0, collides (``approach_redraw``); 0: any
+    pair of the cell (Bird's NTC)."""
+    approach_redraw: wp.int32
+    """With ``approaching``: > 0, candidates are drawn and accepted as NTC, and an accepted pair that does not
+    approach hands its collision to a pair drawn again until one approaches (or is exempt) and passes its own
+    acceptance, at most this many draws (the cell's NTC total kept however many of its pairs approach); 0: a pair
+    that does not approach is rejected and approaching ones collide at twice the rate (twice the majorant)."""
     nearest: wp.int32
     """> 0: the partner of the first drawn parcel is the nearest of up to ``nearest`` parcels of the cell (all of
     them when the cell holds fewer), its last partner excluded (Bird 2007's nearest-neighbour collisions; SPARTA's
@@ -530,7 +544,7 @@ def cell_prepare(
     if args.enskog != 0:
         chi_max = carnahan_starling(solids / volume, args.eps_cap)
     sigma_g_max = wp.pi * (2.0 * r_max) * (2.0 * r_max) * (2.0 * u_max)
-    if args.approaching != 0:  # approaching pairs collide at twice the rate: twice the majorant
+    if args.approaching != 0 and args.approach_redraw == 0:  # approaching pairs at twice the rate: twice the majorant
         sigma_g_max = 2.0 * sigma_g_max
     args.cell_sigma_g_max[cell] = sigma_g_max
     expected = 0.5 * float(count) * float(count - 1) * w_max * chi_max * sigma_g_max * args.dt / volume
@@ -606,56 +620,91 @@ def cell_select(
     volume = cell_volume_of(args, cell)
     while remaining > 0:
         remaining -= 1
-        a = wp.min(int(wp.randf(state) * float(count)), count - 1)
-        b = int(0)
-        if args.nearest > 0:
-            b, state = nearest_partner(args, start, count, a, state)
-        else:
-            b = wp.min(int(wp.randf(state) * float(count - 1)), count - 2)
-            if b >= a:
-                b += 1
-        i = args.cell_slot[start + a]
-        j = args.cell_slot[start + b]
-        u_accept = wp.randf(state)
-        u_b2 = wp.randf(state)
-        u_phi = wp.randf(state)
-        g = particle_v[i] - particle_v[j]
-        g_mag = wp.length(g)
-        if g_mag <= 0.0 or bound <= 0.0:
-            continue
-        ri = args.particle_radius[i]
-        rj = args.particle_radius[j]
-        wi = args.particle_weight[i]
-        wj = args.particle_weight[j]
-        chi = float(1.0)
-        if args.enskog != 0:
-            chi = carnahan_starling((solids - wi * sphere_volume(ri) - wj * sphere_volume(rj)) / volume, args.eps_cap)
-        rate = wp.pi * (ri + rj) * (ri + rj) * g_mag * wp.max(wi, wj) * chi
-        if args.approaching != 0:
-            dx = cell_offset(args, i, j)
-            # a parcel of w particles is a cloud: its w - 1 other particles fill (w - 1) V_p / eps_cell around the
-            # centre; the colliding particle of each is drawn uniformly from a cube of that volume (0 at weight 1)
-            u_i = wp.vec3(wp.randf(state) - 0.5, wp.randf(state) - 0.5, wp.randf(state) - 0.5)
-            u_j = wp.vec3(wp.randf(state) - 0.5, wp.randf(state) - 0.5, wp.randf(state) - 0.5)
-            if solids > 0.0:
-                spread_i = wp.pow((wi - 1.0) * sphere_volume(ri) * volume / solids, 1.0 / 3.0)
-                spread_j = wp.pow((wj - 1.0) * sphere_volume(rj) * volume / solids, 1.0 / 3.0)
-                dx = dx + spread_j * u_j - spread_i * u_i
-            met = bool(False)
-            for k in range(args.recent_partners.shape[1]):
-                if args.recent_partners[i, k] == j or args.recent_partners[j, k] == i:
-                    met = True
-            if met and wp.max(wi, wj) > 1.0:
-                # a parcel that last met this weighted partner: its next real collision is with another particle
-                # of the cloud, not the receding one (a weight-1 pair that collided stays filtered: it recedes)
-                rate = rate
-            elif wp.dot(dx, g) > 0.0:
-                rate = 2.0 * rate
+        # The candidate pair is drawn and tested as Bird's NTC. With the approach filter's transfer
+        # (approach_redraw > 0), an accepted pair whose centres do not approach hands its collision to another
+        # pair of the cell, drawn until one approaches and passes its own acceptance test (at most approach_redraw
+        # draws): the cell collides as often as plain NTC, among approaching pairs in proportion to their rates.
+        attempt = int(0)
+        found = bool(False)
+        searching = bool(True)
+        i = int(0)
+        j = int(0)
+        u_b2 = float(0.0)
+        u_phi = float(0.0)
+        g = wp.vec3(0.0)
+        wi = float(0.0)
+        wj = float(0.0)
+        while searching:
+            a = wp.min(int(wp.randf(state) * float(count)), count - 1)
+            b = int(0)
+            if args.nearest > 0:
+                b, state = nearest_partner(args, start, count, a, state)
             else:
-                rate = 0.0
-        if rate > bound:
-            wp.atomic_add(args.counts, COUNT_OVER_MAX, 1)
-        if not (u_accept * bound < rate):
+                b = wp.min(int(wp.randf(state) * float(count - 1)), count - 2)
+                if b >= a:
+                    b += 1
+            i = args.cell_slot[start + a]
+            j = args.cell_slot[start + b]
+            u_accept = wp.randf(state)
+            u_b2 = wp.randf(state)
+            u_phi = wp.randf(state)
+            g = particle_v[i] - particle_v[j]
+            g_mag = wp.length(g)
+            wi = args.particle_weight[i]
+            wj = args.particle_weight[j]
+            rate = float(0.0)
+            eligible = bool(True)
+            if g_mag > 0.0 and bound > 0.0:
+                ri = args.particle_radius[i]
+                rj = args.particle_radius[j]
+                chi = float(1.0)
+                if args.enskog != 0:
+                    chi = carnahan_starling((solids - wi * sphere_volume(ri) - wj * sphere_volume(rj)) / volume,
+                                            args.eps_cap)
+                rate = wp.pi * (ri + rj) * (ri + rj) * g_mag * wp.max(wi, wj) * chi
+                if args.approaching != 0:
+                    dx = cell_offset(args, i, j)
+                    # a parcel of w particles is a cloud: its w - 1 other particles fill (w - 1) V_p / eps_cell
+                    # around the centre; the colliding particle of each is drawn uniformly from a cube of that
+                    # volume (0 at weight 1)
+                    u_i = wp.vec3(wp.randf(state) - 0.5, wp.randf(state) - 0.5, wp.randf(state) - 0.5)
+                    u_j = wp.vec3(wp.randf(state) - 0.5, wp.randf(state) - 0.5, wp.randf(state) - 0.5)
+                    if solids > 0.0:
+                        spread_i = wp.pow((wi - 1.0) * sphere_volume(ri) * volume / solids, 1.0 / 3.0)
+                        spread_j = wp.pow((wj - 1.0) * sphere_volume(rj) * volume / solids, 1.0 / 3.0)
+                        dx = dx + spread_j * u_j - spread_i * u_i
+                    met = bool(False)
+                    for k in range(args.recent_partners.shape[1]):
+                        if args.recent_partners[i, k] == j or args.recent_partners[j, k] == i:
+                            met = True
+                    if met and wp.max(wi, wj) > 1.0:
+                        # a parcel that met this weighted partner: its next real collision is with another
+                        # particle of the cloud, not the receding one (a weight-1 pair that collided stays
+                        # filtered: it recedes)
+                        eligible = True
+                    else:
+                        eligible = wp.dot(dx, g) > 0.0
+                        if args.approach_redraw == 0:  # the doubled-rate rule
+                            if eligible:
+                                rate = 2.0 * rate
+                            else:
+                                rate = 0.0
+            if rate > bound:
+                wp.atomic_add(args.counts, COUNT_OVER_MAX, 1)
+            accept = u_accept * bound < rate
+            if args.approaching == 0 or args.approach_redraw == 0:
+                found = accept
+                searching = False
+            elif accept and eligible:
+                found = True
+                searching = False
+            elif attempt == 0 and not accept:  # the NTC candidate itself is rejected
+                searching = False
+            else:
+                attempt += 1
+                if attempt > args.approach_redraw:
+                    searching = False
+        if not found:
             continue
         wp.atomic_add(args.counts, COUNT_ACCEPTED, 1)
         if args.approaching != 0 or args.nearest > 0:  # only these read the memory

@@ -247,11 +247,13 @@ def test_paper_particle_sets(cs):
         config("315e-6", "--cell-nearest", "8")
     with pytest.raises(ConfigError, match="--cell-nearest must be"):
         surrogate("--detection", "cell", "--cell-nearest", "-1")
-    # --cell-approaching: cell detection only, off by default
+    # --[no-]cell-approaching: cell detection only; not given: CellConfig's default
     assert surrogate("--particles-per-parcel", "64", "--cell-approaching").cell_approaching is True
-    assert surrogate("--particles-per-parcel", "64").cell_approaching is False
-    with pytest.raises(ConfigError, match="--cell-approaching is an option"):
-        surrogate("--cell-approaching")  # weight 1: swept detection
+    assert surrogate("--particles-per-parcel", "64", "--no-cell-approaching").cell_approaching is False
+    assert surrogate("--particles-per-parcel", "64").cell_approaching is None
+    for flag in ("--cell-approaching", "--no-cell-approaching"):
+        with pytest.raises(ConfigError, match=r"--\[no-\]cell-approaching is an option"):
+            surrogate(flag)  # weight 1: swept detection
 
 
 def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
