@@ -155,6 +155,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default=None,
                         help="model directory (hel-warp train --out); needed by surrogate (contact form) and "
                              "surrogate-paper (paper form); with the others it only supplies the material")
+    parser.add_argument("--cell-approaching", action="store_true",
+                        help="cell detection: collisions go to parcel pairs whose centres approach, a receding "
+                             "accepted pair handing its collision to an approaching one of its cell "
+                             "(CellConfig.approaching; off by default)")
     parser.add_argument("--detection", choices=DETECTIONS, default=None,
                         help="surrogate only: swept (continuous), overlap (the paper's end-of-step test) or cell "
                              "(stochastic per collision cell, for parcels of many particles); default: swept, cell "
@@ -312,13 +316,17 @@ def make_config(args) -> CoolingConfig:
                           "does not use it (the dem's spheres spin on their own)")
     if name == "surrogate" and detection is None and max(weights) > 1:
         detection = "cell"  # the strategy's own default for parcels heavier than one particle
+    cell_approaching = bool(getattr(args, "cell_approaching", False))
+    if cell_approaching and not (name == "surrogate" and detection == "cell"):
+        raise ConfigError("--cell-approaching is an option of the surrogate's cell detection (give --detection cell "
+                          "or --particles-per-parcel > 1)")
     config = CoolingConfig(collisions=name, model=args.model, detection=detection, dt=float(args.dt), eps=eps,
                            particles=int(args.particles), parcels=parcels, weights=weights, parcel_eps=parcel_eps,
                            diameter=d,
                            theta0=float(args.granular_temperature), end_time=float(args.end_time), steps=steps,
                            seed=int(args.seed), out=str(args.out), overwrite=bool(args.overwrite), device=args.device,
                            box_length=L, material=material, material_source=source, model_meta=meta, species=species,
-                           particle_spin=particle_spin)
+                           particle_spin=particle_spin, cell_approaching=cell_approaching)
     check_search(config)
     return config
 
@@ -733,6 +741,10 @@ class SurrogateFlight(BallisticFlight):
             kwargs["detection"] = config.detection
         if config.detection == "cell":
             kwargs["seed"] = config.seed  # the collision cells' random numbers
+            if getattr(config, "cell_approaching", False):
+                from hel_warp.cell_collisions import CellConfig
+
+                kwargs["cell"] = CellConfig(approaching=True)
         if getattr(config, "particle_spin", False):
             kwargs["particle_spin"] = True
         self.strategy = cls(**kwargs)
@@ -959,6 +971,7 @@ def analyse(case: HomogeneousCooling, wall_s: float, kernel_load_s: float) -> di
         "rotational_temperature": case.rotational_temperature()[idx].tolist(),
         "rotational_temperature_final": float(case.rotational_temperature()[-1]),
         "particle_spin": bool(getattr(cfg, "particle_spin", False)),
+        "cell_approaching": bool(getattr(cfg, "cell_approaching", False)),
         "momentum_drift": momentum_drift(case), "strategy_counts": counts, "strategy_flags": flags,
         "diagnostics": case.flight.diagnostics(case.particles),
         "seed": cfg.seed, "device": str(cfg.device), "notes": notes,

@@ -57,8 +57,9 @@ EPS_CAP = 0.55
 """Largest cell solids fraction put into Carnahan-Starling's g0 (it diverges at 1; MP-PIC cells can overfill)."""
 APPROACH_REDRAW = 64
 """Draws of the pair an accepted, receding candidate hands its collision to under the approach filter (each must
-approach and pass its own acceptance test): in a dense weighted gas 16 draws lose 1.5 % of the collisions, 64 none
-measurable; a cell of passed streams, with no approaching pair, spends them on each accepted candidate."""
+have its two weights, approach and pass its own acceptance test): in a dense weighted gas 16 draws lose 1.5 % of the
+collisions, 64 none measurable; a cell of passed streams, with no approaching pair, spends them on each accepted
+candidate."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -84,21 +85,22 @@ class CellConfig:
     rig's channel axis is a face of the merged 4 mm cells: the two streams would only meet once a parcel has
     crossed it). None: shift merged cells (``coarsen`` > 1), keep grid cells and periodic lattices as they are."""
     approaching: bool = False
-    """True: a collision goes to a pair whose centres approach, (x_j - x_i) . (v_i - v_j) > 0, the colliding
-    particle of a weighted parcel drawn from a cloud of (w - 1) V_p / eps_cell about its centre, a weighted pair that
-    met within ``approach_memory`` exempt (its next real collision is with another particle of the cloud).
-    Candidates are drawn and accepted as Bird's NTC; an accepted pair that recedes hands its collision to another
-    pair of the cell, drawn until one approaches and passes its own acceptance (``approach_redraw``), so a cell
-    collides as often as NTC says and only a cell whose pairs all recede (two streams that have passed each other)
-    collides less. Weight 64 on the rig (1e-3 s, 32-seed ensembles against two CFD-DEM seeds, sections 1-7):
-    crossing +0.040 / +0.083 / +0.049 on three seed sets against plain NTC's +0.081 / +0.108 / +0.091, v_y rms
-    3.5-4.4 % low (5.6-7.0 % against four CFD-DEM seeds); the homogeneous gas at weights 1 / 8 / 64, eps_s = 0.01 / 0.05, dt = 1e-3 / 1e-4 / 7.14e-5 s
-    within 2 % of Enskog's frequency and 5 % of Haff's cooling (0.951-0.985, 1-3 % below plain NTC's). Off by
-    default: pairs that have collided recede from their cell-mates too (positions are cell-scale), so fewer pairs of
-    single particles approach than of clouds, and in a mixture of weights 1 and 8 the collisions shift from the
-    weight-1 pairs to the mixed ones (0.946 of Enskog's small-small rate, 4.3 standard errors; FIGURES, issue 12,
-    eighteenth session). False (default): any pair of the cell, whatever its positions (Bird's NTC, exact for the
-    homogeneous gas)."""
+    """True: a collision of a pair with a weighted parcel goes to a pair whose centres approach, (x_j - x_i) .
+    (v_i - v_j) > 0, the colliding particle of a weighted parcel drawn from a cloud of (w - 1) V_p / eps_cell about
+    its centre, a weighted pair that met within ``approach_memory`` exempt (its next real collision is with another
+    particle of the cloud). Candidates are drawn and accepted as Bird's NTC; an accepted pair that recedes hands its
+    collision to a pair of the cell with the same two weights, drawn until one approaches and passes its own
+    acceptance (``approach_redraw``): a cell collides as often as NTC says, and only a cell whose pairs all recede
+    (two streams that have passed each other) collides less; a candidate whose weights are rare in its cell collides
+    itself. Pairs of single particles are not tested (their approach at the cell's scale reads the correlation their
+    own collisions leave, not the flow: a weights 1 / 8 mixture lost 5 % of its small-small rate). On the rig
+    (1e-3 s, 32-seed ensembles): weight 64 crossing +0.031 / +0.070 / +0.038 on three seed sets against plain NTC's
+    +0.081 / +0.108 / +0.091, but v_y rms 5.6-7.0 % low against four CFD-DEM seeds; weight 8 -0.005 / -2.5 % and
+    +0.015 / -5.9 %; the 315 / 475 um mixture at weights 8, 8: the 475 um class +0.002 / +2.8 % (plain +0.089 /
+    +13.5 %). The homogeneous gas at weights 1 / 8 / 64, eps_s = 0.01 / 0.05, dt = 1e-3 / 1e-4 / 7.14e-5 s: within
+    2 % of Enskog's frequency and 5 % of Haff's cooling (0.951-0.991). Off by default: it trades the crossing for
+    the transverse spread, and plain NTC meets weight 8 on three seed sets (FIGURES, issue 12, eighteenth session).
+    False (default): any pair of the cell, whatever its positions (Bird's NTC, exact for the homogeneous gas)."""
     nearest: int = 0
     """> 0: nearest-neighbour partners (Bird 2007; SPARTA's ``collide_modify nearcp yes Nlimit``): each candidate's
     second parcel is the nearest to the first among up to ``nearest`` parcels of the cell (all when fewer), the

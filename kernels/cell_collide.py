@@ -21,14 +21,17 @@ whatever w. Per collision cell of volume V holding N parcels, in one step dt:
   distance from c (by up to sqrt 2 for equal masses), so a later candidate may exceed the bound; it is then
   accepted and counted (``over_max``: the bias, measured ~0);
 - optionally the approach filter (``approaching``; ``CellConfig.approaching``, off by default): an accepted
-  candidate whose centres do not approach, (x_j - x_i) . (v_i - v_j) <= 0 (a weighted parcel's colliding particle
-  drawn from its cloud; a weighted pair that met recently exempt), hands its collision to another pair of the cell, drawn until one
-  approaches and passes its own acceptance test (at most ``approach_redraw`` draws). The cell's expected total
-  stays NTC's (every accepted candidate becomes a collision while the cell holds approaching pairs), placed on
-  approaching pairs in proportion to their rates; two streams that have passed each other in a cell (no pair
-  approaches) stop colliding there. ``approach_redraw`` = 0: the ninth session's rule instead (receding pairs
-  rejected, approaching ones at twice the rate against twice the majorant), which loses collisions in a dense
-  gas where pairs that have collided recede;
+  candidate with a weighted parcel whose centres do not approach, (x_j - x_i) . (v_i - v_j) <= 0 (a weighted
+  parcel's colliding particle drawn from its cloud; a weighted pair that met recently exempt), hands its collision
+  to another pair of the cell with the same two weights, drawn until one approaches and passes its own acceptance
+  test (at most ``approach_redraw`` draws). The cell's expected total stays NTC's, placed on approaching pairs in
+  proportion to their rates; a cell in which no pair approaches (two streams that have passed each other) does not
+  collide, and a candidate whose weights are rare in its cell (others found partners, it none) collides itself, so
+  that each kind of pair keeps its count. Pairs of single particles are not tested: at the cell's scale their
+  approach reads the correlation their own collisions leave (a pair that collided recedes from its cell-mates too),
+  not the flow. ``approach_redraw`` = 0: the ninth session's rule instead (every receding pair rejected,
+  approaching ones at twice the rate against twice the majorant), which loses collisions in a dense gas where
+  pairs that have collided recede;
 - optionally (``nearest`` > 0; Bird 2007's nearest-neighbour collisions, SPARTA's ``collide_modify nearcp``) the
   second parcel of a candidate is the nearest to the first among up to ``nearest`` of the cell, the first's last
   partner excluded; the acceptance is the same (the partner's g is a random pair's where positions carry no
@@ -157,10 +160,11 @@ class CellArgs:
     """1: only a pair whose centres approach, (x_j - x_i) . (v_i - v_j) > 0, collides (``approach_redraw``); 0: any
     pair of the cell (Bird's NTC)."""
     approach_redraw: wp.int32
-    """With ``approaching``: > 0, candidates are drawn and accepted as NTC, and an accepted pair that does not
-    approach hands its collision to a pair drawn again until one approaches (or is exempt) and passes its own
-    acceptance, at most this many draws (the cell's NTC total kept however many of its pairs approach); 0: a pair
-    that does not approach is rejected and approaching ones collide at twice the rate (twice the majorant)."""
+    """With ``approaching``: > 0, candidates are drawn and accepted as NTC, and an accepted pair with a weighted
+    parcel that does not approach hands its collision to a pair of the same two weights drawn again until one
+    approaches (or is exempt) and passes its own acceptance, at most this many draws (the cell's NTC total kept
+    however many of its pairs approach); 0: every pair that does not approach is rejected and approaching ones
+    collide at twice the rate (twice the majorant)."""
     nearest: wp.int32
     """> 0: the partner of the first drawn parcel is the nearest of up to ``nearest`` parcels of the cell (all of
     them when the cell holds fewer), its last partner excluded (Bird 2007's nearest-neighbour collisions; SPARTA's
@@ -622,8 +626,9 @@ def cell_select(
         remaining -= 1
         # The candidate pair is drawn and tested as Bird's NTC. With the approach filter's transfer
         # (approach_redraw > 0), an accepted pair whose centres do not approach hands its collision to another
-        # pair of the cell, drawn until one approaches and passes its own acceptance test (at most approach_redraw
-        # draws): the cell collides as often as plain NTC, among approaching pairs in proportion to their rates.
+        # pair of the cell with the same two weights, drawn until one approaches and passes its own acceptance
+        # test (at most approach_redraw draws): the cell collides as often as plain NTC, among approaching pairs
+        # in proportion to their rates.
         attempt = int(0)
         found = bool(False)
         searching = bool(True)
@@ -634,10 +639,19 @@ def cell_select(
         g = wp.vec3(0.0)
         wi = float(0.0)
         wj = float(0.0)
+        # an accepted receding candidate: its weights (the pair's kind) and, for the fallback, itself
+        kind_wi = float(0.0)
+        kind_wj = float(0.0)
+        i0 = int(0)
+        j0 = int(0)
+        g0 = wp.vec3(0.0)
+        u_b20 = float(0.0)
+        u_phi0 = float(0.0)
+        seen = bool(False)  # a redrawn pair of other weights approached and was accepted
         while searching:
             a = wp.min(int(wp.randf(state) * float(count)), count - 1)
             b = int(0)
-            if args.nearest > 0:
+            if args.nearest > 0 and attempt == 0:
                 b, state = nearest_partner(args, start, count, a, state)
             else:
                 b = wp.min(int(wp.randf(state) * float(count - 1)), count - 2)
@@ -662,7 +676,9 @@ def cell_select(
                     chi = carnahan_starling((solids - wi * sphere_volume(ri) - wj * sphere_volume(rj)) / volume,
                                             args.eps_cap)
                 rate = wp.pi * (ri + rj) * (ri + rj) * g_mag * wp.max(wi, wj) * chi
-                if args.approaching != 0:
+                if args.approaching != 0 and (args.approach_redraw == 0 or wp.max(wi, wj) > 1.0):
+                    # (the transfer tests pairs with a weighted parcel only: the approach of two single particles
+                    # at the cell's scale reads the correlation their own collisions leave, not the flow)
                     dx = cell_offset(args, i, j)
                     # a parcel of w particles is a cloud: its w - 1 other particles fill (w - 1) V_p / eps_cell
                     # around the centre; the colliding particle of each is drawn uniformly from a cube of that
@@ -695,15 +711,39 @@ def cell_select(
             if args.approaching == 0 or args.approach_redraw == 0:
                 found = accept
                 searching = False
-            elif accept and eligible:
+            elif attempt == 0:
+                if accept and eligible:
+                    found = True
+                    searching = False
+                elif not accept:  # the NTC candidate itself is rejected
+                    searching = False
+                else:  # accepted, receding: its collision goes to an approaching pair of the same weights
+                    kind_wi = wi
+                    kind_wj = wj
+                    i0 = i
+                    j0 = j
+                    g0 = g
+                    u_b20 = u_b2
+                    u_phi0 = u_phi
+                    attempt = 1
+            elif accept and eligible and ((wi == kind_wi and wj == kind_wj) or (wi == kind_wj and wj == kind_wi)):
                 found = True
                 searching = False
-            elif attempt == 0 and not accept:  # the NTC candidate itself is rejected
-                searching = False
             else:
+                if eligible and accept:  # an approaching pair of another kind: this one is rare in the cell
+                    seen = True
                 attempt += 1
                 if attempt > args.approach_redraw:
                     searching = False
+                    if seen:  # other kinds found partners, this rare one none: the candidate collides itself
+                        i = i0
+                        j = j0
+                        g = g0
+                        u_b2 = u_b20
+                        u_phi = u_phi0
+                        wi = args.particle_weight[i]
+                        wj = args.particle_weight[j]
+                        found = True
         if not found:
             continue
         wp.atomic_add(args.counts, COUNT_ACCEPTED, 1)

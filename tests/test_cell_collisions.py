@@ -77,10 +77,9 @@ def brute_force_expectation(particles, lattice, dt, approaching=False, redraw=0)
     """Per the NTC formula and by brute force over every same-cell pair: (expected candidates, expected accepted,
     largest pair sigma g w_max chi over the largest majorant bound ratio) for one step. ``approaching``: a pair
     counts at twice its rate if its centres approach, (x_j - x_i) . (v_i - v_j) > 0 (nearest periodic image of the
-    lattice's box), else not at all, against twice the majorant. ``redraw`` = R > 0 (with ``approaching``): NTC's
-    candidates and test, and an accepted pair that does not approach hands its collision to a pair drawn again up
-    to R times until one approaches and passes its own test (each draw succeeds with q = sum of the approaching
-    pairs' rates / (pairs x bound)): sum over approaching pairs of rate + sum over the others x (1 - (1 - q)^R)."""
+    lattice's box), else not at all, against twice the majorant. ``redraw`` > 0 (with ``approaching``): NTC's
+    candidates and test, an accepted pair that does not approach handing its collision to another pair (or keeping
+    it): NTC's count, plain."""
     origin, edges, shape = lattice
     x = particles.x.numpy().astype(np.float64)
     v = particles.v.numpy().astype(np.float64)
@@ -120,11 +119,7 @@ def brute_force_expectation(particles, lattice, dt, approaching=False, redraw=0)
                  * w[members].max() * g0_cs(solids / vol_cell)) * factor
         m = 0.5 * n * (n - 1) * bound * dt / vol_cell
         candidates += m
-        if approaching and redraw:
-            q = rate[approach].sum() / (len(rate) * bound)
-            accepted += (rate[approach].sum() + rate[~approach].sum() * (1.0 - (1.0 - q) ** redraw)) * dt / vol_cell
-        else:
-            accepted += rate.sum() * dt / vol_cell
+        accepted += rate.sum() * dt / vol_cell
         worst = max(worst, float(rate.max() / bound))
     return candidates, accepted, worst
 
@@ -132,13 +127,15 @@ def brute_force_expectation(particles, lattice, dt, approaching=False, redraw=0)
 @pytest.mark.parametrize("eps, weights, dt, approaching, redraw", [(0.01, (1.0,), 1e-3, False, 0),
                                                                   (0.05, (1.0, 8.0, 64.0), 2e-4, False, 0),
                                                                   (0.05, (1.0,), 2e-4, True, 0),
-                                                                  (0.05, (1.0,), 2e-4, True, 64),
-                                                                  (0.05, (1.0,), 2e-4, True, 1)])
+                                                                  (0.05, (8.0,), 2e-4, True, 64),
+                                                                  (0.05, (8.0,), 2e-4, True, 1)])
 def test_candidates_and_acceptance_follow_the_ntc_formula(constant_model, device, eps, weights, dt, approaching,
                                                           redraw):
     """NTC's candidate count and acceptance against the formula summed by brute force over every pair of every
-    cell; with ``approaching``, the doubled-rate rule (redraw 0) and the transfer of a receding accepted pair's
-    collision (64 draws: nearly the plain total; 1 draw: much less of it)."""
+    cell; with ``approaching``, the doubled-rate rule (redraw 0), and the transfer of a receding accepted pair's
+    collision (weight 8: the transfer leaves pairs of single particles alone): NTC's count with 64 draws (one
+    loses some), the share of accepted pairs whose centres approach ~0.88 (the colliding particles are drawn from
+    the clouds; a uniform box: half of the candidates recede)."""
     rng = np.random.default_rng(1)
     n, reps = 2000, 12
     w = rng.choice(weights, size=n)
@@ -147,6 +144,7 @@ def test_candidates_and_acceptance_follow_the_ntc_formula(constant_model, device
                  approach_redraw=redraw, log=20000 if approaching else 0)
     drawn = accepted = exp_candidates = exp_accepted = 0.0
     worst = 0.0
+    logged = approached = 0
     for _ in range(reps):
         p = make_gas(n, side, w, rng, device)
         c = select(s, p, dt)
@@ -157,17 +155,28 @@ def test_candidates_and_acceptance_follow_the_ntc_formula(constant_model, device
         exp_accepted += ea
         worst = max(worst, wr)
         assert c["cell_over_max"] == 0  # nothing rises above the majorant without collisions
-        if approaching:  # every accepted pair of single particles approaches (nearest image)
+        if approaching:  # the accepted pairs approach (nearest image)
             log = s.cells.event_log()
             x = p.x.numpy().astype(np.float64)
             dx = x[log["pair"][:, 1]] - x[log["pair"][:, 0]]
             dx -= side * np.round(dx / side)
-            assert len(dx) > 100 and np.all(np.einsum("ij,ij->i", dx, log["g"].astype(np.float64)) > 0.0)
+            approach = np.einsum("ij,ij->i", dx, log["g"].astype(np.float64)) > 0.0
+            assert len(dx) > 100
+            logged += len(dx)
+            approached += int(approach.sum())
+            if redraw == 0:  # single particles, the doubled rule: every one
+                assert np.all(approach)
     assert worst <= 1.0  # the majorant bounds every pair (acceptance probability <= 1)
     # Poisson-like counts: 4 standard errors (the integer draw of the candidates has less variance than Poisson)
     assert abs(drawn - exp_candidates) <= 4.0 * math.sqrt(exp_candidates), (drawn, exp_candidates)
-    assert abs(accepted - exp_accepted) <= 4.0 * math.sqrt(exp_accepted), (accepted, exp_accepted)
+    if approaching and 0 < redraw < 64:  # one draw often finds no approaching pair: collisions are lost
+        assert accepted < exp_accepted - 4.0 * math.sqrt(exp_accepted), (accepted, exp_accepted)
+    else:
+        assert abs(accepted - exp_accepted) <= 4.0 * math.sqrt(exp_accepted), (accepted, exp_accepted)
     assert exp_accepted > 2000  # the check has statistics
+    if approaching and redraw:  # the share of accepted pairs whose centres approach (plain NTC: one half)
+        share = approached / logged
+        assert share > 0.83, share
 
 
 def test_impact_geometry_is_that_of_kinetic_theory(constant_model, device):
