@@ -597,6 +597,14 @@ def nearest_partner(args: CellArgs, start: int, count: int, a: int, state: wp.ui
     return best, state
 
 
+@wp.func
+def same_weights(args: CellArgs, i0: int, j0: int, wi: float, wj: float):
+    """Whether weights wi, wj are those of parcels i0, j0, in either order."""
+    a = args.particle_weight[i0]
+    b = args.particle_weight[j0]
+    return (wi == a and wj == b) or (wi == b and wj == a)
+
+
 @wp.kernel
 def cell_select(
     args_store: wp.array(dtype=CellArgs),
@@ -639,12 +647,9 @@ def cell_select(
         g = wp.vec3(0.0)
         wi = float(0.0)
         wj = float(0.0)
-        # an accepted receding candidate: its weights (the pair's kind) and, for the fallback, itself
-        kind_wi = float(0.0)
-        kind_wj = float(0.0)
+        # an accepted receding candidate (its weights are the kind a transfer must have; the fallback collides it)
         i0 = int(0)
         j0 = int(0)
-        g0 = wp.vec3(0.0)
         u_b20 = float(0.0)
         u_phi0 = float(0.0)
         seen = bool(False)  # a redrawn pair of other weights approached and was accepted
@@ -718,15 +723,12 @@ def cell_select(
                 elif not accept:  # the NTC candidate itself is rejected
                     searching = False
                 else:  # accepted, receding: its collision goes to an approaching pair of the same weights
-                    kind_wi = wi
-                    kind_wj = wj
                     i0 = i
                     j0 = j
-                    g0 = g
                     u_b20 = u_b2
                     u_phi0 = u_phi
                     attempt = 1
-            elif accept and eligible and ((wi == kind_wi and wj == kind_wj) or (wi == kind_wj and wj == kind_wi)):
+            elif accept and eligible and same_weights(args, i0, j0, wi, wj):
                 found = True
                 searching = False
             else:
@@ -738,7 +740,7 @@ def cell_select(
                     if seen:  # other kinds found partners, this rare one none: the candidate collides itself
                         i = i0
                         j = j0
-                        g = g0
+                        g = particle_v[i] - particle_v[j]  # no velocity changes within a candidate's draws
                         u_b2 = u_b20
                         u_phi = u_phi0
                         wi = args.particle_weight[i]
