@@ -35,6 +35,8 @@ jobs_list() {
     echo "$run|$opts --seed $s"
   done
 }
+# the run directories of one ensemble
+dirs() { local s; for s in $(seq "$2" "$3"); do echo "$out/$1_s$s"; done; }
 run_all() {
   # shellcheck disable=SC2016
   xargs -P "$jobs" -I{} bash -c 'run=${1%%|*}; opts=${1#*|}; python cases/colliding_streams.py $opts --out "$run" \
@@ -53,21 +55,21 @@ for w in $weights; do
   jobs_list "cell_w$w" "$s0" "$s1" "$model --particles-per-parcel $w --detection cell ${RIG_ARGS:-}" | run_all
 done
 
-ref=$(for s in $dem_seeds; do echo "$out/dem_s$s"; done)
-cell1=$(for s in $(seq "$s0" "$s1"); do echo "$out/cell_w1_s$s"; done)
+ref=$(for s in $dem_seeds; do dirs dem "$s" "$s"; done)
+cell1=$(dirs cell_w1 "$s0" "$s1")
 sections="1 2 3 4 5 6 7"
 echo "== against the CFD-DEM (seeds $dem_seeds); whole run, then sections $sections (every ensemble fills them)"
 # shellcheck disable=SC2086
 python scripts/rig_ensemble.py --label "swept w1" --reference $ref --sections $sections --jackknife \
-  --runs $(for s in $(seq "$w0" "$w1"); do echo "$out/swept_w1_s$s"; done)
+  --runs $(dirs swept_w1 "$w0" "$w1")
 for w in 1 $weights; do
   # shellcheck disable=SC2046,SC2086
   python scripts/rig_ensemble.py --label "cell w$w" --reference $ref --sections $sections --jackknife \
-    --runs $(for s in $(seq "$s0" "$s1"); do echo "$out/cell_w${w}_s$s"; done)
+    --runs $(dirs "cell_w$w" "$s0" "$s1")
 done
 echo "== against the weight-1 cell ensemble (the same collision scheme, one particle per parcel)"
 for w in $weights; do
   # shellcheck disable=SC2046,SC2086
   python scripts/rig_ensemble.py --label "cell w$w" --reference $cell1 --sections $sections --jackknife \
-    --runs $(for s in $(seq "$s0" "$s1"); do echo "$out/cell_w${w}_s$s"; done)
+    --runs $(dirs "cell_w$w" "$s0" "$s1")
 done
