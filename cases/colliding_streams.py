@@ -330,6 +330,12 @@ class CaseConfig:
     cell_nearest: int = 0
     """``surrogate`` cell detection: nearest-neighbour partners among this many parcels (``CellConfig.nearest``;
     0: random partners)."""
+    cell_subdivision: int = 1
+    """``surrogate`` cell detection: sub-cells per grid cell and axis (``CellConfig.subdivision``; 1: the grid cell
+    at weight 1, merged cells above it)."""
+    cell_cfl: float = 1.0
+    """``surrogate`` cell detection: largest path of a parcel per collision sub-step, in cell edges
+    (``CellConfig.cfl``)."""
     cell_approaching: bool | None = None
     """``surrogate`` cell detection: only pairs whose centres approach collide (``CellConfig.approaching``);
     None: the ``CellConfig`` default (off: Bird's plain NTC; FIGURES, issue 12, eighteenth session)."""
@@ -435,7 +441,10 @@ def make_config(args) -> CaseConfig:
     coarsen = getattr(args, "cell_coarsen", None)
     uses_cell = args.collisions == "surrogate" and (detection == "cell" or (detection is None and max(weights) > 1))
     nearest = getattr(args, "cell_nearest", None)
+    subdivision = getattr(args, "cell_subdivision", None)
+    cfl = getattr(args, "cell_cfl", None)
     for flag, given in (("--cell-coarsen", coarsen is not None), ("--cell-nearest", nearest is not None),
+                        ("--cell-subdivision", subdivision is not None), ("--cell-cfl", cfl is not None),
                         ("--no-packing-stress", getattr(args, "no_packing_stress", False)),
                         ("--[no-]cell-approaching", getattr(args, "cell_approaching", None) is not None)):
         if given and not uses_cell:
@@ -445,6 +454,12 @@ def make_config(args) -> CaseConfig:
         raise ConfigError(f"--cell-nearest must be >= 0 parcels (got {nearest}; 0: random partners)")
     if coarsen is not None and coarsen < 1:
         raise ConfigError(f"--cell-coarsen must be >= 1 grid cell (got {coarsen})")
+    if subdivision is not None and subdivision < 1:
+        raise ConfigError(f"--cell-subdivision must be >= 1 sub-cell per grid cell and axis (got {subdivision})")
+    if subdivision is not None and subdivision > 1 and coarsen is not None and coarsen > 1:
+        raise ConfigError("--cell-subdivision and --cell-coarsen exclude each other: give one of them")
+    if cfl is not None and not (math.isfinite(cfl) and cfl > 0.0):
+        raise ConfigError(f"--cell-cfl must be > 0 cell edges per sub-step (got {cfl})")
     if getattr(args, "no_wall_events", False) and (args.collisions != "surrogate" or detection in ("overlap", "cell")):
         raise ConfigError("--no-wall-events is an option of the surrogate's swept detection (got --collisions "
                           f"{args.collisions}{' --detection ' + detection if detection else ''})")
@@ -468,6 +483,7 @@ def make_config(args) -> CaseConfig:
                       wall_events=not getattr(args, "no_wall_events", False), cell_coarsen=coarsen,
                       cell_packing_stress=not getattr(args, "no_packing_stress", False),
                       cell_nearest=int(nearest or 0), cell_approaching=getattr(args, "cell_approaching", None),
+                      cell_subdivision=int(subdivision or 1), cell_cfl=float(cfl if cfl is not None else 1.0),
                       wall_contact=getattr(args, "wall_contact", "surface"),
                       wall_spin=bool(getattr(args, "wall_spin", False)),
                       particle_spin=bool(getattr(args, "particle_spin", False)),
@@ -605,12 +621,13 @@ class CollidingStreams:
             kwargs = {"model_dir": config.model, "detection": config.detection, "seed": config.seed,
                       "wall_events": config.wall_events}
             if (config.cell_coarsen is not None or not config.cell_packing_stress or config.cell_nearest
-                    or config.cell_approaching is not None):
+                    or config.cell_approaching is not None or config.cell_subdivision != 1 or config.cell_cfl != 1.0):
                 from hel_warp.cell_collisions import CellConfig
 
                 approaching = {} if config.cell_approaching is None else {"approaching": config.cell_approaching}
                 kwargs["cell"] = CellConfig(coarsen=config.cell_coarsen, packing_stress=config.cell_packing_stress,
-                                            nearest=config.cell_nearest, **approaching)
+                                            nearest=config.cell_nearest, subdivision=config.cell_subdivision,
+                                            cfl=config.cell_cfl, **approaching)
         elif config.collisions == "surrogate-paper":
             kwargs = {"model_dir": config.model}
         elif config.collisions == "dem":
@@ -990,6 +1007,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cell-nearest", type=int, default=None,
                         help="cell detection: the partner of a candidate is the nearest of up to N parcels of its "
                              "cell (Bird's nearest-neighbour collisions; default 0: a random one)")
+    parser.add_argument("--cell-subdivision", type=int, default=None,
+                        help="cell detection: sub-cells per grid cell and axis (default 1; finer cells sample "
+                             "pairs closer together, at more cost, and warn when a pair saturates)")
+    parser.add_argument("--cell-cfl", type=finite_float, default=None,
+                        help="cell detection: largest path of a parcel per collision sub-step, in cell edges "
+                             "(default 1)")
     parser.add_argument("--cell-approaching", action=argparse.BooleanOptionalAction, default=None,
                         help="cell detection: only parcel pairs whose centres approach collide, a receding pair "
                              "handing its collision to an approaching one of its cell, so that a cell collides as "

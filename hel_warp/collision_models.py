@@ -550,7 +550,7 @@ class SurrogateCollision:
                                particle_spin=self.particle_spin, spin_form=self.flat.form == "contact_spin",
                                periodic_box=self.periodic_box,
                                grid=None if self.periodic_box is not None else self._solver_grid, alive=alive,
-                               fluid=self._solver_fluid)
+                               fluid=self._solver_fluid, walls=self._walls)
             return
         if self.detection == "swept":
             if dt is None or not dt > 0 or not np.isfinite(dt):

@@ -941,3 +941,53 @@ def test_approach_filter_keeps_enskogs_frequency_in_a_dense_weighted_gas(hard_sp
     doubled = approach_gas_frequency(hard_sphere_model, device, approach_redraw=0)
     old = approach_gas_frequency(hard_sphere_model, device, approach_redraw=0, approach_memory=1, approach_events=1e9)
     assert old < doubled < ratio - 0.03, (old, doubled, ratio)
+
+
+@pytest.mark.parametrize("wall_paths", [True, False])
+def test_substep_paths_reflect_at_the_walls_as_the_push_does(constant_model, wall_paths):
+    """A parcel heading into a wall within a step of 17 sub-steps, no partner in reach: with ``wall_paths`` its
+    path turns at the wall in the sub-step that crosses it, so that the sub-steps after sample it on its side of the
+    wall, moving away. Reference: the reflection law written out by hand (v' = -e_n v_n + e_t v_t, the path
+    mirrored with e_n about the contact plane a radius from the wall: x = wall - e_n v_n (dt - t_hit), the tangential
+    motion at its old speed to the end of the crossing sub-step, as the push's reflection); a parcel
+    flying parallel to the wall moves by v dt. Without ``wall_paths`` (the earlier rule) the path runs straight
+    through the wall, for the push's end-of-step reflection."""
+    from hel_warp.cell_collisions import CellConfig
+    from hel_warp.collision_models import SurrogateCollision
+    from kernels.free_flight import drift
+    from tests.test_collision_models import make_particles
+    from tests.test_swept_walls import E_WALL, SIDE
+    from tests.test_wall_contact import surface_walls
+
+    r, dt, u, w = 0.5 * D, 1e-3, 4.0, 1.0
+    wall = SIDE - r  # the contact plane of a surface that meets the wall at x = SIDE
+    xa0 = wall - 0.5e-3
+    x = [[xa0, 0.005, 0.005], [0.002, 0.002, 0.002]]
+    v = [[u, w, 0.0], [0.0, 3.0, 0.0]]
+    p = make_particles(x, v)
+    s = SurrogateCollision(model_dir=constant_model, detection="cell", seed=1,
+                           cell=CellConfig(cell_size=2e-3, cfl=0.125, wall_paths=wall_paths, packing_stress=False))
+    s.set_walls(*surface_walls())
+    s.collide(p, dt)
+    assert s.cells.substeps == math.ceil(math.hypot(u, w) * dt / 0.25e-3)  # 17
+    c = s.counts()
+    assert c["collisions"] == 0
+    drift(p.x, p.v, p.alive, dt)
+    s.correct_positions(p)
+    xs, vs = p.x.numpy().astype(np.float64), p.v.numpy().astype(np.float64)
+    np.testing.assert_allclose(xs[1], [0.002, 0.002 + 3.0 * dt, 0.002], rtol=0, atol=2e-8)
+    if wall_paths:
+        t_hit = (wall - xa0) / u
+        assert c["cell_wall_hits"] == 1
+        np.testing.assert_allclose(vs[0], [-E_WALL * u, E_WALL * w, 0.0], rtol=1e-5)
+        # the reflection mirrors the depth past the plane along the normal only (kernels/reflect.py, as the push):
+        # the tangential motion keeps its old speed to the end of the sub-step that crossed
+        h = dt / s.cells.substeps
+        t_sub = math.ceil(t_hit / h) * h
+        np.testing.assert_allclose(xs[0], [wall - E_WALL * u * (dt - t_hit), 0.005 + w * t_sub + E_WALL * w *
+                                           (dt - t_sub), 0.005], rtol=0, atol=2e-8)
+    else:
+        assert c["cell_wall_hits"] == 0
+        np.testing.assert_allclose(vs[0], v[0], rtol=0)
+        np.testing.assert_allclose(xs[0], np.asarray(x[0]) + np.asarray(v[0]) * dt, rtol=0, atol=2e-8)
+        assert xs[0, 0] > wall  # through the wall until the push reflects it

@@ -254,6 +254,20 @@ def test_paper_particle_sets(cs):
     for flag in ("--cell-approaching", "--no-cell-approaching"):
         with pytest.raises(ConfigError, match=r"--\[no-\]cell-approaching is an option"):
             surrogate(flag)  # weight 1: swept detection
+    # --cell-subdivision, --cell-cfl: cell detection only, validated at the door
+    c = surrogate("--detection", "cell", "--cell-subdivision", "2", "--cell-cfl", "0.5")
+    assert c.cell_subdivision == 2 and c.cell_cfl == 0.5
+    d = surrogate("--detection", "cell")
+    assert d.cell_subdivision == 1 and d.cell_cfl == 1.0
+    for flag, value in (("--cell-subdivision", "2"), ("--cell-cfl", "0.5")):
+        with pytest.raises(ConfigError, match=f"{flag} is an option"):
+            surrogate(flag, value)  # weight 1: swept detection
+    with pytest.raises(ConfigError, match="--cell-subdivision must be"):
+        surrogate("--detection", "cell", "--cell-subdivision", "0")
+    with pytest.raises(ConfigError, match="--cell-cfl must be"):
+        surrogate("--detection", "cell", "--cell-cfl", "0")
+    with pytest.raises(ConfigError, match="exclude each other"):
+        surrogate("--particles-per-parcel", "8", "--cell-subdivision", "2", "--cell-coarsen", "2")
 
 
 def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
