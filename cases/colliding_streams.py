@@ -339,6 +339,9 @@ class CaseConfig:
     cell_approaching: bool | None = None
     """``surrogate`` cell detection: only pairs whose centres approach collide (``CellConfig.approaching``);
     None: the ``CellConfig`` default (off: Bird's plain NTC; FIGURES, issue 12, eighteenth session)."""
+    cell_transfer: bool | None = None
+    """``surrogate`` cell detection: the collisional transfer, colliders moved apart by their share of the contact
+    distance (``CellConfig.collisional_transfer``); None: the ``CellConfig`` default."""
     wall_events: bool = True
     """``surrogate`` swept detection: walls as events within the step, in time order with the collisions (False:
     the push's end-of-step reflection; ``SurrogateCollision.wall_events``)."""
@@ -446,7 +449,8 @@ def make_config(args) -> CaseConfig:
     for flag, given in (("--cell-coarsen", coarsen is not None), ("--cell-nearest", nearest is not None),
                         ("--cell-subdivision", subdivision is not None), ("--cell-cfl", cfl is not None),
                         ("--no-packing-stress", getattr(args, "no_packing_stress", False)),
-                        ("--[no-]cell-approaching", getattr(args, "cell_approaching", None) is not None)):
+                        ("--[no-]cell-approaching", getattr(args, "cell_approaching", None) is not None),
+                        ("--[no-]cell-transfer", getattr(args, "cell_transfer", None) is not None)):
         if given and not uses_cell:
             raise ConfigError(f"{flag} is an option of the surrogate's cell detection (give --detection cell or "
                               "--particles-per-parcel > 1)")
@@ -483,6 +487,7 @@ def make_config(args) -> CaseConfig:
                       wall_events=not getattr(args, "no_wall_events", False), cell_coarsen=coarsen,
                       cell_packing_stress=not getattr(args, "no_packing_stress", False),
                       cell_nearest=int(nearest or 0), cell_approaching=getattr(args, "cell_approaching", None),
+                      cell_transfer=getattr(args, "cell_transfer", None),
                       cell_subdivision=int(subdivision or 1), cell_cfl=float(cfl if cfl is not None else 1.0),
                       wall_contact=getattr(args, "wall_contact", "surface"),
                       wall_spin=bool(getattr(args, "wall_spin", False)),
@@ -621,10 +626,13 @@ class CollidingStreams:
             kwargs = {"model_dir": config.model, "detection": config.detection, "seed": config.seed,
                       "wall_events": config.wall_events}
             if (config.cell_coarsen is not None or not config.cell_packing_stress or config.cell_nearest
-                    or config.cell_approaching is not None or config.cell_subdivision != 1 or config.cell_cfl != 1.0):
+                    or config.cell_approaching is not None or config.cell_subdivision != 1 or config.cell_cfl != 1.0
+                    or config.cell_transfer is not None):
                 from hel_warp.cell_collisions import CellConfig
 
                 approaching = {} if config.cell_approaching is None else {"approaching": config.cell_approaching}
+                if config.cell_transfer is not None:
+                    approaching["collisional_transfer"] = config.cell_transfer
                 kwargs["cell"] = CellConfig(coarsen=config.cell_coarsen, packing_stress=config.cell_packing_stress,
                                             nearest=config.cell_nearest, subdivision=config.cell_subdivision,
                                             cfl=config.cell_cfl, **approaching)
@@ -1018,6 +1026,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "handing its collision to an approaching one of its cell, so that a cell collides as "
                              "often as Bird's NTC says while two streams that have passed each other in it stop "
                              "colliding (default: off, plain NTC: any pair of the cell; FIGURES, issue 12)")
+    parser.add_argument("--cell-transfer", action=argparse.BooleanOptionalAction, default=None,
+                        help="cell detection: the collisional transfer of the consistent Boltzmann algorithm, the "
+                             "two parcels of each collision moved apart by their share of the contact distance, so "
+                             "that a dense cloud pushes back as the DEM's spheres do (default: off)")
     parser.add_argument("--no-packing-stress", action="store_true",
                         help="cell detection: without the MP-PIC packing stress (on by default: the cell scheme's "
                              "parcels have no excluded volume)")

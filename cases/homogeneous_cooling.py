@@ -159,6 +159,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="cell detection: collisions go to parcel pairs whose centres approach, a receding "
                              "accepted pair handing its collision to an approaching one of its cell "
                              "(CellConfig.approaching; off by default)")
+    parser.add_argument("--cell-transfer", action=argparse.BooleanOptionalAction, default=None,
+                        help="cell detection: the collisional transfer, the two parcels of each collision moved "
+                             "apart by their share of the contact distance (CellConfig.collisional_transfer; "
+                             "default: CellConfig's)")
     parser.add_argument("--detection", choices=DETECTIONS, default=None,
                         help="surrogate only: swept (continuous), overlap (the paper's end-of-step test) or cell "
                              "(stochastic per collision cell, for parcels of many particles); default: swept, cell "
@@ -320,13 +324,18 @@ def make_config(args) -> CoolingConfig:
     if cell_approaching and not (name == "surrogate" and detection == "cell"):
         raise ConfigError("--cell-approaching is an option of the surrogate's cell detection (give --detection cell "
                           "or --particles-per-parcel > 1)")
+    cell_transfer = getattr(args, "cell_transfer", None)
+    if cell_transfer is not None and not (name == "surrogate" and detection == "cell"):
+        raise ConfigError("--[no-]cell-transfer is an option of the surrogate's cell detection (give --detection cell "
+                          "or --particles-per-parcel > 1)")
     config = CoolingConfig(collisions=name, model=args.model, detection=detection, dt=float(args.dt), eps=eps,
                            particles=int(args.particles), parcels=parcels, weights=weights, parcel_eps=parcel_eps,
                            diameter=d,
                            theta0=float(args.granular_temperature), end_time=float(args.end_time), steps=steps,
                            seed=int(args.seed), out=str(args.out), overwrite=bool(args.overwrite), device=args.device,
                            box_length=L, material=material, material_source=source, model_meta=meta, species=species,
-                           particle_spin=particle_spin, cell_approaching=cell_approaching)
+                           particle_spin=particle_spin, cell_approaching=cell_approaching,
+                           cell_transfer=cell_transfer)
     check_search(config)
     return config
 
@@ -741,10 +750,15 @@ class SurrogateFlight(BallisticFlight):
             kwargs["detection"] = config.detection
         if config.detection == "cell":
             kwargs["seed"] = config.seed  # the collision cells' random numbers
+            cell = {}
             if getattr(config, "cell_approaching", False):
+                cell["approaching"] = True
+            if getattr(config, "cell_transfer", None) is not None:
+                cell["collisional_transfer"] = bool(config.cell_transfer)
+            if cell:
                 from hel_warp.cell_collisions import CellConfig
 
-                kwargs["cell"] = CellConfig(approaching=True)
+                kwargs["cell"] = CellConfig(**cell)
         if getattr(config, "particle_spin", False):
             kwargs["particle_spin"] = True
         self.strategy = cls(**kwargs)
@@ -972,6 +986,8 @@ def analyse(case: HomogeneousCooling, wall_s: float, kernel_load_s: float) -> di
         "rotational_temperature_final": float(case.rotational_temperature()[-1]),
         "particle_spin": bool(getattr(cfg, "particle_spin", False)),
         "cell_approaching": bool(getattr(cfg, "cell_approaching", False)),
+        "cell_transfer": (bool(case.flight.strategy.cells.config.collisional_transfer)
+                          if getattr(getattr(case.flight, "strategy", None), "cells", None) is not None else None),
         "momentum_drift": momentum_drift(case), "strategy_counts": counts, "strategy_flags": flags,
         "diagnostics": case.flight.diagnostics(case.particles),
         "seed": cfg.seed, "device": str(cfg.device), "notes": notes,

@@ -179,6 +179,16 @@ class CellConfig:
     four CFD-DEM seeds; FIGURES, issue 12, twentieth session): it brings the release streams' local granular
     temperature by the arms' walls from 2.5x to ~1.5x the CFD-DEM's, but moves every weight further from the CFD-DEM
     (weight 1 crossing +0.053 -> +0.061 and v_y rms +0.8 -> +11.2 %; weight 8 +0.070 / +4.2 %), so it stays off."""
+    collisional_transfer: bool = False
+    """True: the Enskog collisional transfer of momentum across the contact distance (Alexander, Garcia & Alder
+    1995, "A consistent Boltzmann algorithm", PRL 74: 5212): after each event the two parcels' paths move apart along
+    the sampled normal, parcel i back and j on, each by its mass share of c (r_i + r_j) times w_min / w, with c such
+    that the new momenta carried across the displacements equal the real pair's collision virial (r_i + r_j) J.n
+    ((1 + e) / e for smooth spheres; ``kernels/cell_collide.py`` ``transfer_scale``). Point parcels of the NTC
+    scheme collide where they stand, so a dense cloud carries no collisional pressure (the excluded volume of DEM
+    spheres and the swept detection's parcels); with the displacement it carries Enskog's,
+    p_c = 2 (1 + e) eps^2 rho_p g0 Theta, and the velocities, collision frequency and momentum are those of plain
+    NTC. False (default): positions untouched."""
     restore_block: int = RESTORE_BLOCK
     """Collision cells per axis of a restoration block (the region whose parcels of one weight share a deficit)."""
 
@@ -517,6 +527,7 @@ class CellCollisions:
         a.nearest = int(self.config.nearest)
         a.eps_cap = float(self.config.eps_cap)
         a.apply = 1 if apply else 0
+        a.transfer = 1 if apply and cfg.collisional_transfer else 0
         a.domain = domain
         self._zero_counts()
         self._rounds.zero_()
@@ -536,7 +547,7 @@ class CellCollisions:
                           max_rounds=cfg.batched_rounds, min_rows=cfg.batched_min_rows, args_store=self._args_store)
             if apply and cfg.restore_energy:
                 restore_energy(a, particles.v, int(cfg.restore_block))
-            if substeps > 1:
+            if substeps > 1 or a.transfer:
                 if reflect:
                     wp.copy(self._path_start, self._path)
                 advance_paths(self._path, particles.v, particles.alive, sub_dt)
@@ -544,7 +555,7 @@ class CellCollisions:
                     reflect_at_walls(walls[0], walls[1], particles.alive, self._path, particles.v, self._wall_hits,
                                      particles.radius, particle_x_start=self._path_start,
                                      particle_omega=particles.omega)
-        if substeps > 1:
+        if substeps > 1 or a.transfer:
             path_shifts(self._path, particles.x, particles.v, particles.alive, float(dt), self._shift)
             self._shift_pending = True
         if cfg.approaching:

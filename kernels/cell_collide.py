@@ -173,6 +173,11 @@ class CellArgs:
     """Largest solids fraction put into g0 (Carnahan-Starling diverges at 1; an MP-PIC cell can overfill)."""
     apply: wp.int32
     """1: resolve accepted pairs with the forest; 0: selection only (counts and log, velocities unchanged)."""
+    transfer: wp.int32
+    """1: collisional transfer (Alexander, Garcia & Alder 1995's consistent Boltzmann algorithm): an accepted pair's
+    paths ``particle_x`` move apart along the sampled normal, each parcel by its mass share of c times the contact
+    distance times w_min / w (``transfer_scale``, ``collisional_displacement``); 0: the positions are untouched
+    (Bird's NTC)."""
     domain: ContactDomain
     cell_key: wp.array(dtype=wp.int32)
     """(2N,) radix-sort keys: cell index of each slot (dead: n_cells), sorted in place."""
@@ -417,6 +422,37 @@ def write_pair_features(args: CellArgs, i: int, j: int, n: wp.vec3, particle_v: 
                                             args.domain, row, features)
 
 
+TRANSFER_SCALE_MAX = wp.constant(4.0)
+"""Largest c of ``transfer_scale`` (a post-collision normal separation speed below a quarter of J_n / mu, e < 1/3)."""
+
+
+@wp.func
+def transfer_scale(J: wp.vec3, n: wp.vec3, vi: wp.vec3, vj: wp.vec3, mi: float, mj: float):
+    """c of the collisional transfer (Enskog's collisional momentum flux; the consistent Boltzmann algorithm's
+    displacement, Alexander, Garcia & Alder 1995): a real pair of contact distance d that exchanges J (on j) passes
+    the momentum d J.n across the contact (the collision virial). Point particles that move apart along n by
+    c d m_j / (m_i + m_j) (i) and c d m_i / (m_i + m_j) (j) after the collision carry their new momenta
+    across c d mu g'_n of it, g'_n = (v_j' - v_i').n the real pair's normal separation speed (vi, vj the velocities
+    before): c = J.n / (mu g'_n) makes the two equal, (1 + e) / e for smooth spheres (2 elastic). Clamped to
+    [0, TRANSFER_SCALE_MAX]."""
+    mu = mi * mj / (mi + mj)
+    jn = wp.dot(J, n)
+    gn = wp.dot(vj + J / mj - vi + J / mi, n)
+    if jn <= 0.0:
+        return 0.0
+    if gn * TRANSFER_SCALE_MAX <= jn / mu:
+        return TRANSFER_SCALE_MAX
+    return jn / (mu * gn)
+
+
+@wp.func
+def collisional_displacement(d: float, m_self: float, m_other: float, w_self: float, w_min: float, c: float):
+    """How far one parcel's centre moves along its side of the normal after an event (``transfer_scale``): a real
+    particle moves c d m_other / (m_self + m_other), and w_min of the parcel's w_self particles did so:
+    c d m_other / (m_self + m_other) w_min / w_self, m. The parcels' mass-weighted centre, sum w m x, stays."""
+    return c * d * m_other / (m_self + m_other) * (w_min / w_self)
+
+
 @wp.func
 def resolve_pair(args: CellArgs, i: int, j: int, n: wp.vec3, impulse_n: float, impulse_t: float, impulse_b: float,
                  moment_t: float, moment_b: float, particle_v: wp.array(dtype=wp.vec3)):
@@ -447,6 +483,11 @@ def resolve_pair(args: CellArgs, i: int, j: int, n: wp.vec3, impulse_n: float, i
     w_min = wp.min(wi, wj)
     particle_v[i] = vi - J * (w_min / (wi * mi))
     particle_v[j] = vj + J * (w_min / (wj * mj))
+    if args.transfer != 0:  # the Enskog collisional transfer: the pair moves apart along n (i behind, j ahead)
+        d = ri + rj
+        c = transfer_scale(J, n, vi, vj, mi, mj)
+        args.particle_x[i] = args.particle_x[i] - n * collisional_displacement(d, mi, mj, wi, w_min, c)
+        args.particle_x[j] = args.particle_x[j] + n * collisional_displacement(d, mj, mi, wj, w_min, c)
     if args.spin != 0:
         J_rot = J
         if args.spin_form != 0:

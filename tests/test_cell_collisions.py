@@ -494,9 +494,12 @@ def run_straight_and_restarted(build, out, dt: float, n: int):
     return straight, resumed
 
 
-def test_hel_run_with_cell_collisions_restarts_bitwise(constant_model, tmp_path):
+@pytest.mark.parametrize("transfer", [False, True])
+def test_hel_run_with_cell_collisions_restarts_bitwise(constant_model, tmp_path, transfer):
     """A HEL run (gas, walls, injection) of parcels of 8 particles under the cell detection (the grid cells): 2N steps
-    in one go == N steps, an interruption, a restart from the checkpoint at N (the random state is in it), N more."""
+    in one go == N steps, an interruption, a restart from the checkpoint at N (the random state is in it), N more;
+    with and without the collisional transfer (its displacements live within a step)."""
+    from hel_warp.cell_collisions import CellConfig
     from hel_warp.hel import collision_model
     from hel_warp.parcels import VolumeInjection
 
@@ -505,7 +508,9 @@ def test_hel_run_with_cell_collisions_restarts_bitwise(constant_model, tmp_path)
     def build():
         injection = VolumeInjection(box_lo=(0.001, 0.001, 0.001), box_hi=(0.004, 0.004, 0.004), diameter_mean=D,
                                     count=400, speed=1.0, direction=(1.0, 0.3, -1.0), weight=8.0, seed=5)
-        return small_walled_hel(collision_model("surrogate", model_dir=constant_model, seed=4), injection, 400, dt)
+        strategy = collision_model("surrogate", model_dir=constant_model, seed=4,
+                                   cell=CellConfig(collisional_transfer=transfer))
+        return small_walled_hel(strategy, injection, 400, dt)
 
     straight, resumed = run_straight_and_restarted(build, tmp_path, dt, n)
     assert straight.collision.detection == "cell"
@@ -991,3 +996,73 @@ def test_substep_paths_reflect_at_the_walls_as_the_push_does(constant_model, wal
         np.testing.assert_allclose(vs[0], v[0], rtol=0)
         np.testing.assert_allclose(xs[0], np.asarray(x[0]) + np.asarray(v[0]) * dt, rtol=0, atol=2e-8)
         assert xs[0, 0] > wall  # through the wall until the push reflects it
+
+
+def transfer_pair_runs(model, device, weights, dt, seed=3, n=1500, eps=0.05):
+    """The same periodic gas after one collision step of plain NTC and one with the collisional transfer (same seed,
+    one sub-step), each followed by the caller's x += v dt and ``correct_positions``: (plain, transfer, log of the
+    transfer run, side)."""
+    from kernels.free_flight import drift
+
+    rng = np.random.default_rng(seed)
+    w = rng.choice(weights, size=n)
+    side = box_side(w.sum(), eps)
+    runs = []
+    for transfer in (False, True):
+        p = make_gas(n, side, w, np.random.default_rng(seed + 1), device)
+        s = strategy(model, side, seed=9, log=20000, cfl=1e3, collisional_transfer=transfer)
+        s.collide(p, dt)
+        assert s.cells.substeps == 1
+        assert s.counts()["cell_log_overflow"] == 0
+        drift(p.x, p.v, p.alive, dt)
+        s.correct_positions(p)
+        runs.append((p.x.numpy().astype(np.float64), p.v.numpy().astype(np.float64), w))
+        log = s.cells.event_log()
+    return runs[0], runs[1], log, side
+
+
+def test_collisional_transfer_moves_each_pair_apart_by_its_share_of_the_collision_virial(hard_sphere_model, device):
+    """The consistent Boltzmann algorithm's displacement (Alexander, Garcia & Alder 1995; ``transfer_scale``): the
+    velocities are plain NTC's bit for bit; each event moves parcel i back along its sampled normal and j on, by
+    c d m_other / (m_i + m_j) w_min / w, with c = J.n / (mu g'_n) = (1 + e) / e for the hard-sphere forest
+    (J.n = mu (1 + e) g_n, g'_n = e g_n): written out by hand from the event log; the mass-weighted centre sum w m x
+    does not move."""
+    (x0, v0, w), (x1, v1, _), log, side = transfer_pair_runs(hard_sphere_model, device, [1.0, 8.0], 1e-3)
+    assert np.array_equal(v0, v1)
+    pairs, normal = log["pair"].astype(int), log["normal"].astype(np.float64)
+    assert len(pairs) > 300
+    c = (1.0 + E) / E
+    expected = np.zeros_like(x0)
+    for (i, j), nrm in zip(pairs, normal):
+        w_min = min(w[i], w[j])
+        expected[i] -= nrm * c * D * 0.5 * w_min / w[i]  # equal masses: each a half of c d
+        expected[j] += nrm * c * D * 0.5 * w_min / w[j]
+    moved = x1 - x0
+    moved -= side * np.round(moved / side)
+    assert np.abs(expected).max() > D  # a full weight-1 share is c d / 2 = 1.06 d
+    np.testing.assert_allclose(moved, expected, rtol=0, atol=2e-8)  # float32 positions of a ~4 mm box
+    np.testing.assert_allclose((w[:, None] * moved).sum(axis=0), 0.0, rtol=0, atol=2e-8 * w.sum())
+
+
+def test_collisional_transfer_carries_enskogs_collisional_pressure(hard_sphere_model, device):
+    """The momentum the displacements carry, P_c = sum_k m_k v_k' . dx_k / (3 V dt) over the parcels (v' after the
+    step), against Enskog's collisional pressure of smooth inelastic spheres, p_c = 2 (1 + e) eps^2 rho_p g0 Theta
+    (Lun et al. 1984; PHYSICS-NOTES "Enskog collision frequency") with the gas's own Theta. A short step (0.05
+    events per parcel) so that few parcels collide twice (their second v' then stands for both displacements):
+    a bias of about that share (3 % allowed); 4 standard errors of the event count besides. (c = 1 + e, the
+    displacement that follows the real pair's trajectory, would carry e of it: 0.9.)"""
+    eps, dt = 0.05, 2e-5
+    m = RHO * math.pi * D**3 / 6.0
+    flux = expected = events = 0.0
+    for rep in range(24):
+        (x0, v0, w), (x1, v1, _), log, side = transfer_pair_runs(hard_sphere_model, device, [1.0], dt, seed=20 + rep,
+                                                                 n=8000, eps=eps)
+        moved = x1 - x0
+        moved -= side * np.round(moved / side)
+        flux += float((m * np.einsum("ij,ij->i", v1, moved)).sum()) / (3.0 * side**3 * dt)
+        vin = make_gas(8000, side, 1.0, np.random.default_rng(20 + rep + 1), device).v.numpy().astype(np.float64)
+        theta = float(((vin - vin.mean(axis=0)) ** 2).sum() / (3 * len(vin)))
+        expected += 2.0 * (1.0 + E) * eps**2 * RHO * g0_cs(eps) * theta
+        events += len(log["pair"])
+    assert events > 4000
+    assert abs(flux / expected - 1.0) <= 4.0 / math.sqrt(events) + 0.03, flux / expected

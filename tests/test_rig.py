@@ -254,6 +254,13 @@ def test_paper_particle_sets(cs):
     for flag in ("--cell-approaching", "--no-cell-approaching"):
         with pytest.raises(ConfigError, match=r"--\[no-\]cell-approaching is an option"):
             surrogate(flag)  # weight 1: swept detection
+    # --[no-]cell-transfer: the same
+    assert surrogate("--particles-per-parcel", "8", "--cell-transfer").cell_transfer is True
+    assert surrogate("--detection", "cell", "--no-cell-transfer").cell_transfer is False
+    assert surrogate("--particles-per-parcel", "8").cell_transfer is None
+    for flag in ("--cell-transfer", "--no-cell-transfer"):
+        with pytest.raises(ConfigError, match=r"--\[no-\]cell-transfer is an option"):
+            surrogate(flag)  # weight 1: swept detection
     # --cell-subdivision, --cell-cfl: cell detection only, validated at the door
     c = surrogate("--detection", "cell", "--cell-subdivision", "2", "--cell-cfl", "0.5")
     assert c.cell_subdivision == 2 and c.cell_cfl == 0.5
