@@ -986,7 +986,7 @@ def analyse(case: HomogeneousCooling, wall_s: float, kernel_load_s: float) -> di
         "rotational_temperature_final": float(case.rotational_temperature()[-1]),
         "particle_spin": bool(getattr(cfg, "particle_spin", False)),
         "cell_approaching": bool(getattr(cfg, "cell_approaching", False)),
-        "cell_transfer": (bool(case.flight.strategy.cells.config.collisional_transfer)
+        "cell_transfer": (bool(case.flight.strategy.cells.config.transfer)
                           if getattr(getattr(case.flight, "strategy", None), "cells", None) is not None else None),
         "momentum_drift": momentum_drift(case), "strategy_counts": counts, "strategy_flags": flags,
         "diagnostics": case.flight.diagnostics(case.particles),
