@@ -179,29 +179,28 @@ class CellConfig:
     four CFD-DEM seeds; FIGURES, issue 12, twentieth session): it brings the release streams' local granular
     temperature by the arms' walls from 2.5x to ~1.5x the CFD-DEM's, but moves every weight further from the CFD-DEM
     (weight 1 crossing +0.053 -> +0.061 and v_y rms +0.8 -> +11.2 %; weight 8 +0.070 / +4.2 %), so it stays off."""
-    collisional_transfer: bool | None = None
-    """None (default): on, except with ``approaching`` (the filter's rates were measured without it, and with both a
-    weights 1 / 8 mixture's small-large rate fell to 0.936 +- 0.012 of Enskog's: the displacement leaves a collided
-    pair receding, which the filter reads; ``transfer``). True: the Enskog collisional transfer of momentum across
-    the contact distance (Alexander, Garcia & Alder 1995, "A consistent Boltzmann algorithm", PRL 74: 5212): after
-    each event the two parcels' paths move apart along the sampled normal, parcel i back and j on, each by its mass
-    share of c (r_i + r_j) times w_min / w, with c such that the new momenta carried across the displacements equal
-    the real pair's collision virial (r_i + r_j) J.n ((1 + e) / e for smooth spheres; ``kernels/cell_collide.py``
-    ``transfer_scale``). Point parcels of the NTC scheme collide where they stand, so a dense cloud carries no
-    collisional pressure (the excluded volume of DEM spheres and the swept detection's parcels); with the
-    displacement it carries Enskog's, p_c = 2 (1 + e) eps^2 rho_p g0 Theta, and the velocities, collision frequency
-    and momentum are those of plain NTC. On the rig (315 um, 1e-3 s, against four CFD-DEM seeds; FIGURES, issue 12,
-    twenty-first session): weight 1 crossing +0.053 -> +0.015 and 430,547 real collisions in a run instead of
-    881,045 (CFD-DEM 456,763); weight 8 +0.039 / -2.6 % -> +0.010 / -4.0 % (96 seeds); weight 64 +0.069 / -3.5 % ->
-    +0.051 / -4.7 %. False: positions untouched (before the twenty-first session)."""
+    collisional_transfer: bool = False
+    """True: the Enskog collisional transfer of momentum across the contact distance (Alexander, Garcia & Alder 1995, "A
+    consistent Boltzmann algorithm", PRL 74: 5212): after each event the two parcels' paths move apart along the
+    sampled normal, parcel i back and j on, each by its mass share of c (r_i + r_j) times w_min / w, with c such
+    that the new momenta carried across the displacements equal the real pair's collision virial (r_i + r_j) J.n ((1
+    + e) / e for smooth spheres; ``kernels/cell_collide.py`` ``transfer_scale``). Point parcels of the NTC scheme
+    collide where they stand, so a dense cloud carries no collisional pressure (the excluded volume of DEM spheres
+    and the swept detection's parcels); with the displacement it carries Enskog's, p_c = 2 (1 + e) eps^2 rho_p g0
+    Theta, the velocities and momentum of each event those of plain NTC. On the rig (315 um, 1e-3 s, against four
+    CFD-DEM seeds; FIGURES, issue 12, twenty-first session): weight 1 crossing +0.053 -> +0.015 and 430,547 real
+    collisions in a run instead of 881,045 (CFD-DEM 456,763); weight 8 +0.039 / -2.6 % -> +0.010 / -4.0 % (96
+    seeds); weight 64 +0.069 / -3.5 % -> +0.051 / -4.7 %. Off by default because it biases the homogeneous gas: the
+    displacement spreads the parcels of a dense cell apart, so cell counts fluctuate less than Poisson and NTC's N
+    (N - 1) undercounts the pairs (eps_s = 0.05: collision frequency 0.976-0.990 of Enskog's, cooling 0.945-0.982 of
+    Haff's, weight 64 below the 5 % target). With the approach filter it also biases a mixture's rates (weights 1 /
+    8: small-large 0.936 +- 0.012 of Enskog's). False (default): positions untouched (Bird's NTC)."""
     restore_block: int = RESTORE_BLOCK
     """Collision cells per axis of a restoration block (the region whose parcels of one weight share a deficit)."""
 
     @property
     def transfer(self) -> bool:
-        """Whether the collisional transfer is on (``collisional_transfer``, None resolved)."""
-        if self.collisional_transfer is None:
-            return not self.approaching
+        """Whether the collisional transfer is on (``collisional_transfer``)."""
         return bool(self.collisional_transfer)
 
     def __post_init__(self):

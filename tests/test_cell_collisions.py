@@ -938,7 +938,7 @@ def test_approach_filter_keeps_enskogs_frequency_in_a_dense_weighted_gas(hard_sp
     receding accepted pair hands its collision to an approaching one of the cell) keeps the frequency of plain NTC
     (Bird's, exact for the homogeneous gas) and of Enskog; the ninth session's rule (approaching pairs at twice the
     rate, one partner remembered, whole steps) loses ~15 % here, the seventeenth's (twice the rate, 16 partners,
-    <= 0.25 events per sub-step) ~6 %. The same with the collisional transfer (the default); the old rules' losses
+    <= 0.25 events per sub-step) ~6 %. The same with the collisional transfer; the old rules' losses
     were measured without it (the displacement moves a collided pair apart along its normal, which changes which
     pairs of a cell approach: the ninth session's rule loses less with it), so that ordering is checked without."""
     for transfer in (True, False):
@@ -1030,11 +1030,7 @@ def test_collisional_transfer_moves_each_pair_apart_by_its_share_of_the_collisio
     velocities are plain NTC's bit for bit; each event moves parcel i back along its sampled normal and j on, by
     c d m_other / (m_i + m_j) w_min / w, with c = J.n / (mu g'_n) = (1 + e) / e for the hard-sphere forest
     (J.n = mu (1 + e) g_n, g'_n = e g_n): written out by hand from the event log; the mass-weighted centre sum w m x
-    does not move. On by default, off by default with the approach filter."""
-    from hel_warp.cell_collisions import CellConfig
-
-    assert CellConfig().transfer and not CellConfig(approaching=True).transfer
-    assert CellConfig(approaching=True, collisional_transfer=True).transfer
+    does not move."""
     (x0, v0, w), (x1, v1, _), log, side = transfer_pair_runs(hard_sphere_model, device, [1.0, 8.0], 1e-3)
     assert np.array_equal(v0, v1)
     pairs, normal = log["pair"].astype(int), log["normal"].astype(np.float64)
