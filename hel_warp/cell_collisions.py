@@ -187,14 +187,18 @@ class CellConfig:
     + e) / e for smooth spheres; ``kernels/cell_collide.py`` ``transfer_scale``). Point parcels of the NTC scheme
     collide where they stand, so a dense cloud carries no collisional pressure (the excluded volume of DEM spheres
     and the swept detection's parcels); with the displacement it carries Enskog's, p_c = 2 (1 + e) eps^2 rho_p g0
-    Theta, the velocities and momentum of each event those of plain NTC. On the rig (315 um, 1e-3 s, against four
-    CFD-DEM seeds; FIGURES, issue 12, twenty-first session): weight 1 crossing +0.053 -> +0.015 and 430,547 real
-    collisions in a run instead of 881,045 (CFD-DEM 456,763); weight 8 +0.039 / -2.6 % -> +0.010 / -4.0 % (96
-    seeds); weight 64 +0.069 / -3.5 % -> +0.051 / -4.7 %. Off by default because it biases the homogeneous gas: the
-    displacement spreads the parcels of a dense cell apart, so cell counts fluctuate less than Poisson and NTC's N
-    (N - 1) undercounts the pairs (eps_s = 0.05: collision frequency 0.976-0.990 of Enskog's, cooling 0.945-0.982 of
-    Haff's, weight 64 below the 5 % target). With the approach filter it also biases a mixture's rates (weights 1 /
-    8: small-large 0.936 +- 0.012 of Enskog's). False (default): positions untouched (Bird's NTC)."""
+    Theta. The displacements give the parcels the hard-sphere gas's structure, so a cell's count varies as S N (S
+    the Carnahan-Starling compressibility), not as Poisson's N, and NTC's N (N - 1) would count 2 % too few pairs at
+    16 parcels per cell and eps_s = 0.05: the pairs are counted as N (N - 1) + (1 - S) N (``cell_prepare``).
+    Measured (FIGURES, issue 12, twenty-first session): the homogeneous gas at weights 1 / 8 / 64, eps_s = 0.01 /
+    0.05, dt = 1e-3 / 1e-4 / 7.14e-5 s within 2 % of Enskog's frequency and 5 % of Haff's cooling; the rig (315 um,
+    1e-3 s, against four CFD-DEM seeds) weight 1 with 456,430 real collisions per run on average (CFD-DEM 451,366,
+    plain NTC 881,045), crossing / v_y rms weight 1 +0.019 / -5.9 % (plain +0.053 / +0.8 %), weight 8 +0.019 / -4.9
+    % (plain +0.039 / -2.6 %), weight 64 +0.054 / -2.5 % (plain +0.069 / -3.5 %): the crossing closer at every
+    weight, the transverse spread lower at weights 1 and 8. Off by default for that (weight 8 meets the rig's
+    targets on every 32-seed set without it, on one of three with it), and with the approach filter it biases a
+    mixture's rates (weights 1 / 8: small-large 0.936 +- 0.012 of Enskog's). False (default): positions untouched
+    (Bird's NTC)."""
     restore_block: int = RESTORE_BLOCK
     """Collision cells per axis of a restoration block (the region whose parcels of one weight share a deficit)."""
 
@@ -538,7 +542,7 @@ class CellCollisions:
         a.nearest = int(self.config.nearest)
         a.eps_cap = float(self.config.eps_cap)
         a.apply = 1 if apply else 0
-        a.transfer = 1 if apply and cfg.transfer else 0
+        a.transfer = 1 if cfg.transfer else 0  # the count's correction even when only selecting
         a.domain = domain
         self._zero_counts()
         self._rounds.zero_()
@@ -558,7 +562,7 @@ class CellCollisions:
                           max_rounds=cfg.batched_rounds, min_rows=cfg.batched_min_rows, args_store=self._args_store)
             if apply and cfg.restore_energy:
                 restore_energy(a, particles.v, int(cfg.restore_block))
-            if substeps > 1 or a.transfer:
+            if substeps > 1 or (a.transfer and apply):
                 if reflect:
                     wp.copy(self._path_start, self._path)
                 advance_paths(self._path, particles.v, particles.alive, sub_dt)
@@ -566,7 +570,7 @@ class CellCollisions:
                     reflect_at_walls(walls[0], walls[1], particles.alive, self._path, particles.v, self._wall_hits,
                                      particles.radius, particle_x_start=self._path_start,
                                      particle_omega=particles.omega)
-        if substeps > 1 or a.transfer:
+        if substeps > 1 or (a.transfer and apply):
             path_shifts(self._path, particles.x, particles.v, particles.alive, float(dt), self._shift)
             self._shift_pending = True
         if cfg.approaching:
