@@ -247,20 +247,14 @@ def test_paper_particle_sets(cs):
         config("315e-6", "--cell-nearest", "8")
     with pytest.raises(ConfigError, match="--cell-nearest must be"):
         surrogate("--detection", "cell", "--cell-nearest", "-1")
-    # --[no-]cell-approaching: cell detection only; not given: CellConfig's default
-    assert surrogate("--particles-per-parcel", "64", "--cell-approaching").cell_approaching is True
-    assert surrogate("--particles-per-parcel", "64", "--no-cell-approaching").cell_approaching is False
-    assert surrogate("--particles-per-parcel", "64").cell_approaching is None
-    for flag in ("--cell-approaching", "--no-cell-approaching"):
-        with pytest.raises(ConfigError, match=r"--\[no-\]cell-approaching is an option"):
-            surrogate(flag)  # weight 1: swept detection
-    # --[no-]cell-transfer: the same
-    assert surrogate("--particles-per-parcel", "8", "--cell-transfer").cell_transfer is True
-    assert surrogate("--detection", "cell", "--no-cell-transfer").cell_transfer is False
-    assert surrogate("--particles-per-parcel", "8").cell_transfer is None
-    for flag in ("--cell-transfer", "--no-cell-transfer"):
-        with pytest.raises(ConfigError, match=r"--\[no-\]cell-transfer is an option"):
-            surrogate(flag)  # weight 1: swept detection
+    # --[no-]cell-approaching, --[no-]cell-transfer: cell detection only; not given: CellConfig's default
+    for option, field in (("cell-approaching", "cell_approaching"), ("cell-transfer", "cell_transfer")):
+        assert getattr(surrogate("--particles-per-parcel", "64", f"--{option}"), field) is True
+        assert getattr(surrogate("--detection", "cell", f"--no-{option}"), field) is False
+        assert getattr(surrogate("--particles-per-parcel", "8"), field) is None
+        for flag in (f"--{option}", f"--no-{option}"):
+            with pytest.raises(ConfigError, match=rf"--\[no-\]{option} is an option"):
+                surrogate(flag)  # weight 1: swept detection
     # --cell-subdivision, --cell-cfl: cell detection only, validated at the door
     c = surrogate("--detection", "cell", "--cell-subdivision", "2", "--cell-cfl", "0.5")
     assert c.cell_subdivision == 2 and c.cell_cfl == 0.5
