@@ -1029,9 +1029,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cell-transfer", action=argparse.BooleanOptionalAction, default=None,
                         help="cell detection: the collisional transfer of the consistent Boltzmann algorithm, the "
                              "two parcels of each collision moved apart by their share of the contact distance, so "
-                             "that a dense cloud pushes back as the DEM's spheres do (default: off: it "
-                             "brings the crossing closer to the CFD-DEM at every weight and the transverse spread "
-                             "lower at weights 1 and 8; FIGURES, issue 12)")
+                             "that a dense cloud pushes back as the DEM's spheres do (default: on, off "
+                             "with --cell-approaching; --no-cell-transfer: plain NTC, whose crossing is further from "
+                             "the CFD-DEM at every weight and transverse spread 1.5-3 points higher; FIGURES, "
+                             "issue 12)")
     parser.add_argument("--no-packing-stress", action="store_true",
                         help="cell detection: without the MP-PIC packing stress (on by default: the cell scheme's "
                              "parcels have no excluded volume)")

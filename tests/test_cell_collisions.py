@@ -85,8 +85,8 @@ def brute_force_expectation(particles, lattice, dt, approaching=False, redraw=0,
     lattice's box), else not at all, against twice the majorant. ``redraw`` > 0 (with ``approaching``): NTC's
     candidates and test, an accepted pair that does not approach handing its collision to another pair (or keeping
     it): NTC's count, plain. ``transfer`` (the collisional transfer's count): the pairs N (N - 1) of a cell read
-    as N (N - 1) + (1 - S) N, S the hard-sphere compressibility at the cell's solids fraction, the accepted sum
-    scaled alike."""
+    as N (N - 1) + (1 - S) k N, S the hard-sphere compressibility at the cell's solids fraction, k = 1 - (3/8) d
+    sum 1 / L_a the share of the excluded-volume hole inside a cell of edges L_a, the accepted sum scaled alike."""
     origin, edges, shape = lattice
     x = particles.x.numpy().astype(np.float64)
     v = particles.v.numpy().astype(np.float64)
@@ -124,7 +124,8 @@ def brute_force_expectation(particles, lattice, dt, approaching=False, redraw=0,
         c = v[members].mean(axis=0)
         bound = (math.pi * (2 * r[members].max()) ** 2 * 2 * np.linalg.norm(v[members] - c, axis=1).max()
                  * w[members].max() * g0_cs(solids / vol_cell)) * factor
-        scale = 1.0 + (1.0 - hard_sphere_compressibility(solids / vol_cell)) / (n - 1) if transfer else 1.0
+        kept = max(0.0, 1.0 - 0.375 * 2.0 * r[members].max() * float(np.sum(1.0 / np.asarray(edges))))
+        scale = 1.0 + (1.0 - hard_sphere_compressibility(solids / vol_cell)) * kept / (n - 1) if transfer else 1.0
         m = 0.5 * n * (n - 1) * bound * dt / vol_cell * scale
         candidates += m
         accepted += rate.sum() * dt / vol_cell * scale
@@ -136,6 +137,7 @@ def brute_force_expectation(particles, lattice, dt, approaching=False, redraw=0,
                          [(0.01, (1.0,), 1e-3, False, 0, False),
                           (0.05, (1.0, 8.0, 64.0), 2e-4, False, 0, False),
                           (0.05, (1.0, 8.0, 64.0), 2e-4, False, 0, True),
+                          (0.2, (1.0,), 1e-4, False, 0, True),
                           (0.05, (1.0,), 2e-4, True, 0, False),
                           (0.05, (8.0,), 2e-4, True, 64, False),
                           (0.05, (8.0,), 2e-4, True, 1, False)])
@@ -146,7 +148,7 @@ def test_candidates_and_acceptance_follow_the_ntc_formula(constant_model, device
     collision (weight 8: the transfer leaves pairs of single particles alone): NTC's count with 64 draws (one
     loses some), the share of accepted pairs whose centres approach ~0.88 (the colliding particles are drawn from
     the clouds; a uniform box: half of the candidates recede); with the collisional transfer, the pair count
-    N (N - 1) + (1 - S) N."""
+    N (N - 1) + (1 - S) k N."""
     rng = np.random.default_rng(1)
     n, reps = 2000, 12
     w = rng.choice(weights, size=n)
@@ -1041,7 +1043,12 @@ def test_collisional_transfer_moves_each_pair_apart_by_its_share_of_the_collisio
     momentum is unchanged; each event moves parcel i back along its sampled normal and j on, by
     c d m_other / (m_i + m_j) w_min / w, with c = J.n / (mu g'_n) = (1 + e) / e for the hard-sphere forest
     (J.n = mu (1 + e) g_n, g'_n = e g_n): written out by hand from the event log; the mass-weighted centre sum w m x
-    does not move, nor does momentum change."""
+    does not move, nor does momentum change. On by default, off by default with the approach filter."""
+    from hel_warp.cell_collisions import CellConfig
+
+    assert CellConfig().transfer and not CellConfig(approaching=True).transfer
+    assert CellConfig(approaching=True, collisional_transfer=True).transfer
+    assert not CellConfig(collisional_transfer=False).transfer
     moved, v0, v1, w, log, side = transfer_step(hard_sphere_model, device, [1.0, 8.0], 1e-3)
     assert np.abs((w[:, None] * (v1 - v0)).sum(axis=0)).max() <= 1e-6 * (w[:, None] * np.abs(v0)).sum()
     pairs, normal = log["pair"].astype(int), log["normal"].astype(np.float64)
@@ -1063,7 +1070,7 @@ def test_collisional_transfer_carries_enskogs_collisional_pressure(hard_sphere_m
     (Lun et al. 1984; PHYSICS-NOTES "Enskog collision frequency") with the gas's own Theta. A short step (0.05
     events per parcel) so that few parcels collide twice (their second v' then stands for both displacements,
     about -2 %); the fresh box's positions are Poisson's, not the structured ones the transfer's pair count
-    N (N - 1) + (1 - S) N assumes, so its first step collides ~(1 - S) / 16 = 2 % too often: 3 % allowed for
+    N (N - 1) + (1 - S) k N assumes, so its first step collides ~(1 - S) k / 16 = 1.5 % too often: 3 % allowed for
     the two; 4 standard errors of the event count besides. (c = 1 + e, the
     displacement that follows the real pair's trajectory, would carry e of it: 0.9.)"""
     eps, dt = 0.05, 2e-5
