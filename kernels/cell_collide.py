@@ -610,8 +610,8 @@ def cell_prepare(
         # reaching out of the cell; of the pair displacements r within d, a box of edges L_a keeps on average
         # prod (1 - |r_a| / L_a) ~ 1 - (3/8) d sum 1 / L_a (<|r_a|> = 3 d / 8 over the ball). At weight 1 (16 parcels
         # per cell), eps_s = 0.05, the homogeneous gas collides 0.998-1.006 times Enskog's frequency with k,
-        # 1.003-1.011 with k = 1, 0.981-0.990 with neither (FIGURES, issue 12, twenty-first and twenty-second
-        # sessions)
+        # 1.003-1.011 with k = 1, 0.981-0.990 with neither; with 4 parcels per cell it over-counts, +2 % at weight
+        # 1 and +5 % at weight 64 (FIGURES, issue 12, twenty-first and twenty-second sessions)
         d_max = 2.0 * r_max
         kept = 1.0 - 0.375 * d_max * (1.0 / args.cell_size[0] + 1.0 / args.cell_size[1] + 1.0 / args.cell_size[2])
         pairs += (1.0 - compressibility(solids / volume, args.eps_cap)) * wp.max(kept, 0.0) * float(count)
