@@ -194,8 +194,8 @@ class CellConfig:
     pairs at 16 parcels per cell and eps_s = 0.05: the pairs are counted as N (N - 1) + (1 - S) k N, k = 1 - (3/8) d
     sum 1 / L_a the share of a parcel's excluded-volume hole (radius d) that a cell of edges L_a holds
     (``cell_prepare``; it over-counts in cells of few parcels: +2 % at weight 1 and +5 % at weight 64 with 4 per
-    cell, eps_s = 0.05, FIGURES twenty-second session). Measured (FIGURES, issue 12, twenty-first and twenty-second sessions): the homogeneous gas at
-    weights 1 / 8 / 64, eps_s = 0.01 / 0.05, dt = 1e-3 / 1e-4 / 7.14e-5 s within 1.5 % of Enskog's frequency and
+    cell, eps_s = 0.05, FIGURES twenty-second session). Measured (FIGURES, issue 12, twenty-first and twenty-second
+    sessions): the homogeneous gas at weights 1 / 8 / 64, eps_s = 0.01 / 0.05, dt = 1e-3 / 1e-4 / 7.14e-5 s within 1.5 % of Enskog's frequency and
     within 5 % of Haff's cooling (weight 64, eps_s = 0.05: 0.945-0.979 over five seeds of the 1,000-parcel box,
     0.966-0.973 in the 8,000-parcel box; plain NTC's weight 64 cools as slowly); the rig (315 um, 1e-3 s, against
     four CFD-DEM seeds, whole run / sections 1-7) weight 1 +0.019 / -4.1 % and +0.041 / -6.7 % with ~450,000 real
