@@ -631,11 +631,10 @@ class CollidingStreams:
                 from hel_warp.cell_collisions import CellConfig
 
                 approaching = {} if config.cell_approaching is None else {"approaching": config.cell_approaching}
-                if config.cell_transfer is not None:
-                    approaching["collisional_transfer"] = config.cell_transfer
                 kwargs["cell"] = CellConfig(coarsen=config.cell_coarsen, packing_stress=config.cell_packing_stress,
                                             nearest=config.cell_nearest, subdivision=config.cell_subdivision,
-                                            cfl=config.cell_cfl, **approaching)
+                                            cfl=config.cell_cfl, collisional_transfer=config.cell_transfer,
+                                            **approaching)
         elif config.collisions == "surrogate-paper":
             kwargs = {"model_dir": config.model}
         elif config.collisions == "dem":

@@ -554,6 +554,9 @@ class CellCollisions:
         self._zero_counts()
         self._rounds.zero_()
         self._wall_hits.zero_()
+        # the parcels' paths are advanced here (and their shift handed to the push) when there are sub-steps or the
+        # transfer moves them
+        paths = substeps > 1 or (cfg.transfer and apply)
         reflect = walls is not None and cfg.wall_paths and substeps > 1 and apply
         if reflect:
             from kernels.reflect import reflect_at_walls
@@ -569,7 +572,7 @@ class CellCollisions:
                           max_rounds=cfg.batched_rounds, min_rows=cfg.batched_min_rows, args_store=self._args_store)
             if apply and cfg.restore_energy:
                 restore_energy(a, particles.v, int(cfg.restore_block))
-            if substeps > 1 or (a.transfer and apply):
+            if paths:
                 if reflect:
                     wp.copy(self._path_start, self._path)
                 advance_paths(self._path, particles.v, particles.alive, sub_dt)
@@ -577,7 +580,7 @@ class CellCollisions:
                     reflect_at_walls(walls[0], walls[1], particles.alive, self._path, particles.v, self._wall_hits,
                                      particles.radius, particle_x_start=self._path_start,
                                      particle_omega=particles.omega)
-        if substeps > 1 or (a.transfer and apply):
+        if paths:
             path_shifts(self._path, particles.x, particles.v, particles.alive, float(dt), self._shift)
             self._shift_pending = True
         if cfg.approaching:
