@@ -47,8 +47,9 @@ class GridSpec:
     periodic: tuple[bool, bool, bool] = (False, False, False)
     """Periodic flag per axis (the stencil wraps around)."""
     spread: bool = True
-    """Parcels heavier than ~3.4 real particles couple (deposit, interpolation, drag exchange) through a tent of
-    half-width round(w^(1/3)) cells instead of the trilinear stencil (``kernels/interp.py`` ``spread_half_width``);
+    """Parcels heavier than ~3.95 real particles couple (deposit, interpolation, drag exchange) through a tent of
+    half-width round(sqrt(w^(2/3) / 2 + 1)) cells (the tent with the second moment of the parcel's w particles)
+    instead of the trilinear stencil (``kernels/interp.py`` ``spread_half_width``);
     False: trilinear at any weight. Weight 1 is trilinear either way."""
 
     def __post_init__(self):

@@ -46,7 +46,7 @@ class CellGrid:
     shape: wp.vec3i
     periodic: wp.vec3i
     spread: wp.int32
-    """1: a parcel of w real particles couples through a tent of half-width K = round(w^(1/3)) cells per axis
+    """1: a parcel of w real particles couples through a tent of half-width K = round(sqrt(w^(2/3) / 2 + 1)) cells per axis
     (``parcel_stencil``; K = 1 is the trilinear stencil), 0: the trilinear stencil at any weight."""
     fluid: wp.array3d(dtype=wp.int32)
     """(nx, ny, nz) 1 for fluid cells, or empty (all fluid): a tent (K >= 2) keeps its weights on fluid cells,
@@ -129,13 +129,18 @@ def cic_corner(grid: CellGrid, base: wp.vec3i, frac: wp.vec3d, corner: int):
 
 @wp.func
 def spread_half_width(grid: CellGrid, weight: float):
-    """K = round(w^(1/3)) >= 1 cells with ``grid.spread``, else 1: the tent's volume (2 K h)^3 grows as w, so a
-    parcel's share per cell is that of one trilinear particle (coarse graining: the parcel's w particles spread
-    over w times the volume; a w = 64 parcel of 315 um in a 1 mm cell would otherwise take its whole drag from
-    the gas of 8 cells, ~1.8 times its drag impulse per step on the rig at 1e-3 s)."""
-    if grid.spread == 0 or weight < 3.375:  # w^(1/3) < 1.5
+    """K = round(sqrt(w^(2/3) / 2 + 1)) >= 1 cells with ``grid.spread``, else 1: the tent whose second moment is that
+    of the parcel's w real particles. They stand for a cube of w cells (one particle's trilinear share per cell,
+    edge w^(1/3) h, per-axis variance w^(2/3) h^2 / 12) each read through its own trilinear stencil (variance
+    h^2 / 6); a tent of half-width K has variance K^2 h^2 / 6 (coarse graining with the cloud's own filter width:
+    Radl et al. 2011, Capecelatro & Desjardins 2013). So K = 2 at w = 8 and 3 at w = 64 (a w = 64 parcel of 315 um
+    in a 1 mm cell would otherwise take its whole drag from the gas of 8 cells, ~1.8 times its drag impulse per step
+    on the rig at 1e-3 s). The earlier rule K = round(w^(1/3)) matched the tent's support (2 K h)^3 to 8 w cells,
+    twice the cloud's variance at large w: at w = 64 the rig's streams ran ahead of the CFD-DEM's and crossed more
+    (FIGURES, issue 12, twenty-third session)."""
+    if grid.spread == 0:
         return 1
-    return int(wp.round(wp.pow(weight, 1.0 / 3.0)))
+    return wp.max(int(wp.round(wp.sqrt(0.5 * wp.pow(weight, 2.0 / 3.0) + 1.0))), 1)
 
 
 @wp.func

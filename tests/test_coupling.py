@@ -408,12 +408,21 @@ def test_closed_periodic_box_momentum_change_is_the_gravity_impulse():
     assert gas_p[2] < 0.0 and abs(gas_p[2]) <= mass_share * impulse * 1.001
 
 
-@pytest.mark.parametrize("weight, half_width", [(8.0, 2), (64.0, 4)])
+def cloud_half_width(weight):
+    """The half-width K (cells) of the tent whose per-axis variance K^2 h^2 / 6 is nearest that of w real particles
+    standing for a cube of w cells (edge w^(1/3) h, variance w^(2/3) h^2 / 12), each read trilinearly (h^2 / 6)."""
+    return max(1, round(math.sqrt(6.0 * (weight ** (2.0 / 3.0) / 12.0 + 1.0 / 6.0))))
+
+
+@pytest.mark.parametrize("weight, half_width", [(8.0, 2), (27.0, 2), (64.0, 3), (216.0, 4)])
 def test_heavy_parcels_spread_over_tents_that_grow_with_their_weight(weight, half_width):
-    """A parcel of w real particles couples through a tent of half-width K = round(w^(1/3)) cells: its (2K)^3 weights
-    are a partition of unity, centred on the parcel (a linear field is read exactly away from the sides), the
-    deposit keeps its volume, and a parcel at a cell centre spreads over (2K - 1)^3 cells (the tent's zeros at
-    +-K); with ``spread=False`` the same parcel deposits trilinearly (one cell)."""
+    """A parcel of w real particles couples through a tent with the second moment of its w particles: its (2K)^3
+    weights are a partition of unity, centred on the parcel (a linear field is read exactly away from the sides), the
+    deposit keeps its volume, its per-axis variance about the parcel, averaged over positions in a cell, is the
+    continuous tent's K^2 h^2 / 6 with K the cloud's (``cloud_half_width``), and a parcel at a cell centre spreads
+    over (2K - 1)^3 cells (the tent's zeros at +-K); with ``spread=False`` the same parcel deposits trilinearly (one
+    cell)."""
+    assert cloud_half_width(weight) == half_width
     grid = GridSpec(origin=(0.0, 0.0, 0.0), spacing=1e-3, shape=(16, 16, 16))
     rng = np.random.default_rng(4)
     n = 200
@@ -433,6 +442,20 @@ def test_heavy_parcels_spread_over_tents_that_grow_with_their_weight(weight, hal
     deposit_parcels(grid, parts, fields)
     volume = weight * 4.0 / 3.0 * math.pi * float(np.float32(100e-6)) ** 3 * n
     assert fields.cell_solid_volume.numpy().sum() == pytest.approx(volume, rel=1e-12)
+    variances = []
+    for q in range(40):  # positions across one cell along x (midpoint rule over the cell)
+        xp = np.array([8.0 + (q + 0.5) / 40.0, 8.5, 8.5]) * 1e-3
+        single = Particles.from_numpy(xp[None, :], 100e-6, density=2000.0, weight=weight, check_overlap=False)
+        f1 = CouplingFields.allocate(grid, 1)
+        deposit_parcels(grid, single, f1)
+        vol = f1.cell_solid_volume.numpy().astype(np.float64)
+        share = vol / vol.sum()
+        xp64 = single.x.numpy().astype(np.float64)[0]
+        variances.append(float((share * (centres[..., 0] - xp64[0]) ** 2).sum()) / 1e-6)
+    # the sampled tent's variance about the parcel (cells^2), averaged over its position in the cell: the continuous
+    # tent's int (K - |s|) s^2 ds / K^2 = K^2 / 6, the cloud's w^(2/3) / 12 + 1 / 6 to within the integer K
+    assert np.mean(variances) == pytest.approx(half_width**2 / 6.0, rel=2e-3)
+    assert abs(np.mean(variances) - (weight ** (2.0 / 3.0) / 12.0 + 1.0 / 6.0)) < (half_width + 0.5) ** 2 / 6.0 - half_width**2 / 6.0
     centre = np.array([[7.5e-3, 8.5e-3, 6.5e-3]])
     one = Particles.from_numpy(centre, 100e-6, density=2000.0, weight=weight, check_overlap=False)
     for spread, cells in ((True, (2 * half_width - 1) ** 3), (False, 1)):
