@@ -138,9 +138,9 @@ def spread_half_width(grid: CellGrid, weight: float):
     on the rig at 1e-3 s). The earlier rule K = round(w^(1/3)) matched the tent's support (2 K h)^3 to 8 w cells,
     twice the cloud's variance at large w: at w = 64 the rig's streams ran ahead of the CFD-DEM's and crossed more
     (FIGURES, issue 12, twenty-third session)."""
-    if grid.spread == 0:
+    if grid.spread == 0 or weight < 3.9528:  # K < 1.5 below w = 2.5^1.5 (weight 1 skips the pow)
         return 1
-    return wp.max(int(wp.round(wp.sqrt(0.5 * wp.pow(weight, 2.0 / 3.0) + 1.0))), 1)
+    return int(wp.round(wp.sqrt(0.5 * wp.pow(weight, 2.0 / 3.0) + 1.0)))
 
 
 @wp.func
