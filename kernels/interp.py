@@ -30,6 +30,7 @@ it per corner costs twice as much) and the computed one, and indexes the cell fi
 
 from __future__ import annotations
 
+import math
 import weakref
 
 import warp as wp
@@ -141,6 +142,36 @@ def spread_half_width(grid: CellGrid, weight: float):
     if grid.spread == 0 or weight < 3.9528:  # K < 1.5 below w = 2.5^1.5 (weight 1 skips the pow)
         return 1
     return int(wp.round(wp.sqrt(0.5 * wp.pow(weight, 2.0 / 3.0) + 1.0)))
+
+
+def spread_half_width_host(spread: bool, weight: float) -> int:
+    """The largest K that :func:`spread_half_width` can return at ``weight``, on the host: what a launch needs to know
+    ahead of the kernel, e.g. how many cells a parcel of the largest weight adds into (``kernels/deposit.py``). The
+    kernel rounds a float32 sqrt(w^(2/3)/2 + 1), whose last bits depend on the device's pow; within 1e-5 of a half
+    the larger K is returned, elsewhere exactly the kernel's."""
+    if not spread or weight < 3.9527:
+        return 1
+    x = math.sqrt(0.5 * float(weight) ** (2.0 / 3.0) + 1.0) + 0.5
+    return max(1, int(math.floor(x + 1e-5)))
+
+
+@wp.kernel
+def max_live_weight_kernel(weight: wp.array(dtype=wp.float32), alive: wp.array(dtype=wp.int32),
+                           out: wp.array(dtype=wp.float32)):
+    """``out[0] = max(out[0], weight[i])`` over the live parcels (zero ``out`` first)."""
+    tid = wp.tid()
+    if alive[tid] != 0:
+        wp.atomic_max(out, 0, weight[tid])
+
+
+def max_live_weight(weight, alive) -> float:
+    """The largest weight of a live parcel (0 with none); one small reduction and a device-to-host copy of one float
+    (a synchronisation on CUDA)."""
+    out = wp.zeros(1, dtype=wp.float32, device=weight.device)
+    if weight.shape[0] > 0:
+        wp.launch(max_live_weight_kernel, dim=weight.shape[0], inputs=[weight, alive], outputs=[out],
+                  device=weight.device)
+    return float(out.numpy()[0])
 
 
 @wp.func

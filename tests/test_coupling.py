@@ -15,7 +15,9 @@ from hel_warp.coupling import (CouplingFields, GridSpec, PushConfig, deposit_par
 from hel_warp.errors import ConfigError, HelWarpError
 from hel_warp.parcels import ParcelPool, VolumeInjection
 from hel_warp.particles import Particles
-from kernels.interp import interpolate_scalar, interpolate_vec3, interpolate_vec3_parcels, stencil_weights
+from kernels.interp import CellGrid as CellGridStruct
+from kernels.interp import (interpolate_scalar, interpolate_vec3, interpolate_vec3_parcels, spread_half_width,
+                           stencil_weights)
 
 GRID = GridSpec(origin=(-0.01, 0.02, 0.0), spacing=0.005, shape=(6, 5, 4))
 
@@ -412,6 +414,48 @@ def cloud_half_width(weight):
     """The half-width K (cells) of the tent whose per-axis variance K^2 h^2 / 6 is nearest that of w real particles
     standing for a cube of w cells (edge w^(1/3) h, variance w^(2/3) h^2 / 12), each read trilinearly (h^2 / 6)."""
     return max(1, round(math.sqrt(6.0 * (weight ** (2.0 / 3.0) / 12.0 + 1.0 / 6.0))))
+
+
+@wp.kernel
+def _half_width_kernel(grid: CellGridStruct, weight: wp.array(dtype=wp.float32), out: wp.array(dtype=wp.int32)):
+    tid = wp.tid()
+    out[tid] = spread_half_width(grid, weight[tid])
+
+
+def test_the_host_knows_each_tent_before_the_launch(device):
+    """``spread_half_width_host`` (what sizes the deterministic deposit's per-thread records on CUDA) is the kernel's
+    ``spread_half_width`` at every weight, and never below it at the rounding boundaries K + 1/2 (float32 there);
+    ``max_live_weight`` skips removed parcels; and the CPU needs no reservation (its atomics keep no records)."""
+    from kernels.deposit import TRILINEAR_RECORDS, reserve_tent_records
+    from kernels.interp import max_live_weight, spread_half_width_host
+
+    edges = [(2.0 * ((k + 0.5) ** 2 - 1.0)) ** 1.5 for k in range(1, 12)]  # weights where K steps up
+    weights = np.concatenate([np.arange(1, 5001, dtype=np.float64),
+                              np.outer(edges, [1 - 1e-6, 1.0, 1 + 1e-6]).ravel(), [3.95, 3.9528, 3.96]])
+    weights = weights.astype(np.float32)
+    grid = GridSpec(origin=(0.0, 0.0, 0.0), spacing=1e-3, shape=(4, 4, 4))
+    for spread in (True, False):
+        g = GridSpec(origin=grid.origin, spacing=grid.spacing, shape=grid.shape, spread=spread).cell_grid()
+        out = wp.zeros(len(weights), dtype=wp.int32, device=device)
+        wp.launch(_half_width_kernel, dim=len(weights), inputs=[g, wp.array(weights, device=device)], outputs=[out],
+                  device=device)
+        host = np.array([spread_half_width_host(spread, float(w)) for w in weights])
+        kernel = out.numpy()
+        near_step = np.abs(np.sqrt(0.5 * weights.astype(np.float64) ** (2.0 / 3.0) + 1.0) % 1.0 - 0.5) < 1e-5
+        assert np.all(host >= kernel)  # a bound: never fewer cells than the kernel adds into
+        assert np.array_equal(host[~near_step], kernel[~near_step]) and np.all(host - kernel <= 1)
+        if spread:
+            assert 5 <= near_step.sum() <= 40  # the edges were sampled
+    for w in (64.0, 1000.0, 5000.0):  # the cloud's K (7 at 1000: the docs'), 1 without tents
+        assert spread_half_width_host(True, w) == cloud_half_width(w) and spread_half_width_host(False, w) == 1
+    w = wp.array(np.array([3.0, 900.0, 8.0], np.float32), device=device)
+    alive = wp.array(np.array([1, 0, 1], np.int32), device=device)
+    assert max_live_weight(w, alive) == 8.0
+    if not wp.get_device(device).is_cuda:
+        parts = Particles.from_numpy(np.full((2, 3), 2e-3), 100e-6, weight=64.0, check_overlap=False, device=device)
+        from kernels.interp import parcel_arrays
+
+        assert reserve_tent_records(grid.cell_grid(), parcel_arrays(parts)) == TRILINEAR_RECORDS
 
 
 @pytest.mark.parametrize("weight, half_width", [(8.0, 2), (27.0, 2), (64.0, 3), (216.0, 4)])
