@@ -336,6 +336,7 @@ class GasSolver:
         self._c_active = wp.zeros(n_rows, dtype=wp.int32, device=dev)
         self._pcg = [wp.zeros(n_rows, dtype=wp.float64, device=dev) for _ in range(4)]  # r, z, p, Ap
         self._scalars = wp.zeros(6, dtype=wp.float64, device=dev)  # kernels/gas.py "native Jacobi-PCG"
+        self._coefficients = wp.zeros(6, dtype=wp.float64, device=dev)  # alpha, beta as read beside the dot sums
         self._rb = [wp.zeros(n_rows, dtype=wp.float64, device=dev) for _ in range(5)]  # x_b, t, b_r, D_r^-1, D_b^-1
         self._pivot = wp.zeros(n_rows, dtype=wp.float64, device=dev)
         self._pivot_inverse = wp.zeros(n_rows, dtype=wp.float64, device=dev)
@@ -527,7 +528,7 @@ class GasSolver:
             return launches
         rhs, x, pivot, pivot_inverse = self._c_rhs[:n], self._c_x[:n], self._pivot[:n], self._pivot_inverse[:n]
         r, z, p, ap = (v[:n] for v in self._pcg)
-        s, dev = self._scalars, self.device
+        s, c, dev = self._scalars, self._coefficients, self.device
         dot_dim = (n + K.DOT_CHUNK - 1) // K.DOT_CHUNK
 
         def record(kernel, dim, inputs, outputs):  # the native row loops on the CPU (kernels/gas_cpu.py)
@@ -542,17 +543,17 @@ class GasSolver:
             "r.z new": dot(r, z, 2),
             "r.z new, r.r": record(K.pcg_dot_pair_kernel, dot_dim, [r, z, 2, 3], [s]),
             "ap, p.ap": record(K.pcg_matvec_dot_kernel, dot_dim, [A, p, 1], [ap, s]),
-            "alpha": record(K.pcg_ratio_kernel, 1, [0, 1, 4], [s]),
+            "alpha": record(K.pcg_ratio_kernel, 1, [0, 1, 4], [s, c]),
             "step": record(K.pcg_step_kernel, n, [p, ap, s], [x, r]),
             "step, ic0 apply": record(K.ic0_step_apply_kernel, 1, [pivot_inverse, A, p, ap, s, n, self._ordered_slots],
                                       [x, r, z]),
-            "beta": record(K.pcg_ratio_kernel, 1, [2, 0, 5], [s]),
+            "beta": record(K.pcg_ratio_kernel, 1, [2, 0, 5], [s, c]),
             "direction": record(K.pcg_direction_kernel, n, [z, s], [p]),
             "shift": record(K.pcg_shift_kernel, 1, [], [s]),
             "ic0 factor": record(K.ic0_factor_kernel, 1, [A, n, wp.float64(relaxation)], [pivot, pivot_inverse]),
             "ic0 apply": record(K.ic0_apply_kernel, 1, [pivot_inverse, A, r, n], [z]),
             "jacobi start": record(K.jacobi_start_kernel, n, [A.diag, r], [pivot_inverse, z]),
-            "step, jacobi, r.z new, r.r": record(K.jacobi_step_dot_kernel, dot_dim, [pivot_inverse, p, ap],
+            "step, jacobi, r.z new, r.r": record(K.jacobi_step_dot_kernel, dot_dim, [pivot_inverse, p, ap, c],
                                                  [x, r, z, s]),
         }
         split = self._red_black[system] if system in (0, 1, 2) else None
@@ -573,8 +574,8 @@ class GasSolver:
                 "rb N p": record(K.rb_red_kernel, n_r, [*red, wp.float64(0.0), p_b], [t]),
                 "rb ap, p.ap": record(K.rb_black_matvec_dot_kernel, black_dim,
                                       [A, split.black_rows, split.black_other, p_b, t], [ap_b, s]),
-                "rb step, jacobi, r.z new, r.r": record(K.jacobi_step_dot_kernel, black_dim, [inverse_b, p_b, ap_b],
-                                                        [x_b, r_b, z_b, s]),
+                "rb step, jacobi, r.z new, r.r": record(K.jacobi_step_dot_kernel, black_dim,
+                                                        [inverse_b, p_b, ap_b, c], [x_b, r_b, z_b, s]),
                 "rb direction": record(K.pcg_direction_kernel, n_b, [z_b, s], [p_b]),
                 "rb scatter black": record(K.rb_scatter_kernel, n_b, [split.black_rows, x_b], [x]),
                 "rb scatter red": record(K.rb_scatter_kernel, n_r, [split.red_rows, t], [x]),
@@ -648,7 +649,8 @@ class GasSolver:
         iterations = 0
         if residual > atol:
             p.zero_()
-            s.zero_()  # alpha = 0: the pass only takes z = D_b^-1 r and r.z (x and r stay)
+            s.zero_()  # alpha = 0 (read from the copy): the pass only takes z = D_b^-1 r and r.z (x and r stay)
+            self._coefficients.zero_()
             run["rb step, jacobi, r.z new, r.r"]()
             wp.copy(p, z)
             iteration = self._pcg_iteration_graph(system, n, run, "red_black")

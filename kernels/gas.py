@@ -37,6 +37,13 @@ come as one kernel per face axis (``ADVECT_KERNELS`` and the like, built by ``wp
 
 import warp as wp
 
+# The pressure solver's dot products are float64 atomic sums into a few scalars: on CUDA their order follows the
+# thread schedule, so that a HEL run and its restart drifted apart by ~1e-13 in the pressure (seen on an H200). Warp's
+# deterministic atomics order them (each thread's record sorted and reduced after the kernel; CUDA only: the CPU runs
+# kernels/gas_cpu.py's native loops in index order).
+if hasattr(wp.config, "DeterministicMode"):
+    wp.set_module_options({"deterministic": wp.config.DeterministicMode.RUN_TO_RUN})
+
 CPU_BLOCK = 64
 """Index-list entries per thread of the cell and face kernels on the CPU (module docstring, "Launches"; 64-256
 measured alike on the former ``face_forces_kernel``: 65 -> 33-35 ns per face)."""
@@ -1937,6 +1944,7 @@ def jacobi_step_dot_kernel(
     inverse_diag: wp.array(dtype=wp.float64),
     p: wp.array(dtype=wp.float64),
     ap: wp.array(dtype=wp.float64),
+    coefficients: wp.array(dtype=wp.float64),
     # outputs
     x: wp.array(dtype=wp.float64),
     r: wp.array(dtype=wp.float64),
@@ -1944,13 +1952,15 @@ def jacobi_step_dot_kernel(
     scalars: wp.array(dtype=wp.float64),
 ):
     """Jacobi-PCG's iteration after A p in one pass over the chunk [tid * DOT_CHUNK, ...) (launch
-    ceil(n / DOT_CHUNK) threads): the step x += alpha p, r -= alpha Ap (alpha = scalars[4], ``pcg_step_kernel``),
-    z = D^-1 r, and scalars[2] += r . z, scalars[3] += r . r (``pcg_dot_pair_kernel``'s chunks and partial sums):
-    the numbers of those three passes in one."""
+    ceil(n / DOT_CHUNK) threads): the step x += alpha p, r -= alpha Ap (alpha = coefficients[4],
+    ``pcg_step_kernel``), z = D^-1 r, and scalars[2] += r . z, scalars[3] += r . r (``pcg_dot_pair_kernel``'s chunks
+    and partial sums): the numbers of those three passes in one. alpha is read from ``coefficients``, the copy
+    ``pcg_ratio_kernel`` writes beside ``scalars``: the deterministic atomics (module header) refuse a kernel that
+    reads an array it adds to, also through a second argument over the same memory (checked at launch)."""
     t = wp.tid()
     first = t * DOT_CHUNK
     last = wp.min(first + DOT_CHUNK, p.shape[0])
-    alpha = scalars[4]
+    alpha = coefficients[4]
     rz0 = wp.float64(0.0)
     rz1 = wp.float64(0.0)
     rz2 = wp.float64(0.0)
@@ -2180,13 +2190,16 @@ def pcg_ratio_kernel(
     slot: int,
     # outputs
     scalars: wp.array(dtype=wp.float64),
+    coefficients: wp.array(dtype=wp.float64),
 ):
     """scalars[slot] = scalars[numerator] / scalars[denominator] (0 if the denominator is 0), one thread: alpha =
-    (r.z)/(p.Ap) into slot 4, beta = (r.z)_new/(r.z)_old into slot 5."""
+    (r.z)/(p.Ap) into slot 4, beta = (r.z)_new/(r.z)_old into slot 5; the same value into coefficients[slot], the
+    copy that ``jacobi_step_dot_kernel`` reads (it adds to ``scalars``)."""
     ratio = wp.float64(0.0)
     if scalars[denominator] != wp.float64(0.0):
         ratio = scalars[numerator] / scalars[denominator]
     scalars[slot] = ratio
+    coefficients[slot] = ratio
 
 
 @wp.kernel

@@ -421,17 +421,18 @@ def jacobi_step_dot_kernel(
     inverse_diag: wp.array(dtype=f64),
     p: wp.array(dtype=f64),
     ap: wp.array(dtype=f64),
+    coefficients: wp.array(dtype=f64),
     # outputs
     x: wp.array(dtype=f64),
     r: wp.array(dtype=f64),
     z: wp.array(dtype=f64),
     scalars: wp.array(dtype=f64),
 ):
-    """``kernels/gas.py`` ``jacobi_step_dot_kernel`` (one ``DOT_CHUNK`` per thread)."""
+    """``kernels/gas.py`` ``jacobi_step_dot_kernel`` (one ``DOT_CHUNK`` per thread; alpha from ``coefficients``)."""
     t = wp.tid()
     first = t * K.DOT_CHUNK
     last = wp.min(first + K.DOT_CHUNK, p.shape[0])
-    sums = jacobi_step_dot_chunk(inverse_diag, p, ap, scalars, x, r, z, first, last)
+    sums = jacobi_step_dot_chunk(inverse_diag, p, ap, coefficients, x, r, z, first, last)
     wp.atomic_add(scalars, 2, sums[0])
     wp.atomic_add(scalars, 3, sums[1])
 
