@@ -34,6 +34,7 @@ that CUDA keeps.
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -456,13 +457,26 @@ class DEMSolver:
         import warp as wp
 
         full, rest = (divmod(n_steps, self.config.cuda_graph_steps) if self._use_graph else (0, n_steps))
-        if full and self._graph is None:
-            with wp.ScopedCapture(device=self.device) as capture:
-                for _ in range(self.config.cuda_graph_steps):
-                    self._advance()
-            self._graph = capture.graph
-        for _ in range(full):
-            wp.capture_launch(self._graph)
+        replayed = 0
+        try:
+            if full and self._graph is None:
+                with wp.ScopedCapture(device=self.device) as capture:
+                    for _ in range(self.config.cuda_graph_steps):
+                        self._advance()
+                self._graph = capture.graph
+            for _ in range(full):
+                wp.capture_launch(self._graph)
+                replayed += 1
+        except RuntimeError as exc:
+            # a graph the driver will not instantiate (first seen on an H200 with Warp 1.19: "Graph creation error:
+            # invalid argument" for the rebuild's conditional body) has run no step: those steps go eagerly, and so
+            # does the rest of the run
+            if replayed or not wp.get_device(self.device).is_cuda:
+                raise
+            print(f"hel-warp: warning: DEM: the CUDA graph of {self.config.cuda_graph_steps} steps could not be "
+                  f"created ({str(exc).splitlines()[0][:120]}); the steps launch eagerly", file=sys.stderr)
+            self._use_graph, self._graph = False, None
+            rest += full * self.config.cuda_graph_steps
         if self.half_list and not self.sdf_kernels and rest > 1:
             self._simulate_fused(rest)
         else:

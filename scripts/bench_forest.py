@@ -52,11 +52,15 @@ def _interleaved_times(fns, repeats: int) -> list[dict]:
 def xgboost_inputs(boosters, xs: np.ndarray, device: str):
     """Point every booster's predictor at ``device`` ("cpu": one thread, "cuda": XGBoost's CUDA predictor) and
     return ``(rows, sync)``: the standardised rows as XGBoost should receive them (a CuPy array on CUDA when CuPy is
-    installed, else the NumPy array) and the call that waits for the device."""
+    installed and XGBoost was built with CUDA, else the NumPy array) and the call that waits for the device."""
+    import xgboost
+
     params = {"device": "cuda"} if device == "cuda" else {"nthread": 1, "device": "cpu"}
     for b in boosters:
         b.set_param(params)
-    if device == "cuda":
+    # an XGBoost without a CUDA build (the xgboost-cpu wheel) falls back to its CPU predictor for NumPy rows, but
+    # fails on device rows ("not compiled with GPU support"; seen on an H200): give it NumPy, the result names "cpu"
+    if device == "cuda" and xgboost.build_info().get("USE_CUDA", False):
         try:
             import cupy
 
