@@ -642,7 +642,9 @@ class CellCollisions:
 
     def event_log(self) -> dict:
         """The last step's logged events (host copies): ``pair`` (k, 2) parcel slots, ``g`` (k, 3) pre-collision
-        v_i - v_j, ``normal`` (k, 3) sampled contact normals; k = min(accepted, log_capacity)."""
+        v_i - v_j, ``normal`` (k, 3) sampled contact normals; k = min(accepted, log_capacity). Sub-steps and rounds
+        are logged in order, and each cell's events in its order; the cells of one launch interleave in their
+        threads' order (fixed on the CPU, varying from run to run on CUDA)."""
         if self._args is None:
             return {"pair": np.zeros((0, 2), np.int32), "g": np.zeros((0, 3)), "normal": np.zeros((0, 3))}
         a = self._args

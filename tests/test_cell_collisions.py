@@ -894,7 +894,7 @@ def test_candidates_use_the_fluid_volume_and_fluid_grid_cells_keep_their_bits(co
         p = make_gas(n, 1.0, 8.0, np.random.default_rng(4), device)
         p.x.assign(x)
         s = SurrogateCollision(model_dir=constant_model, detection="cell", seed=2,
-                               cell=CellConfig(max_substeps=1, enskog=False, log_capacity=20000, **cell))
+                               cell=CellConfig(max_substeps=1, enskog=False, log_capacity=200000, **cell))
         s._setup(p)
         s.cells.collide(p, 1e-4, s.forest, s.swept.domain, grid=grid, fluid=wp.array(mask, device=device))
         return s, p
@@ -918,8 +918,10 @@ def test_candidates_use_the_fluid_volume_and_fluid_grid_cells_keep_their_bits(co
     # grid cells (weight 1's lattice): every occupied cell is all fluid, so nothing changes, bit for bit
     a, pa = run(coarsen=1, shift=False, fluid_volume=True)
     b, pb = run(coarsen=1, shift=False, fluid_volume=False)
-    assert a.cells.counts()["cell_accepted"] > 100
-    assert np.array_equal(a.cells.event_log()["pair"], b.cells.event_log()["pair"])
+    assert a.cells.counts()["cell_accepted"] > 100 and a.cells.counts()["cell_log_overflow"] == 0
+    # the same events (the log's order across cells is the threads': on CUDA it varies from run to run)
+    pairs_a, pairs_b = (np.unique(run_.cells.event_log()["pair"], axis=0) for run_ in (a, b))
+    assert np.array_equal(pairs_a, pairs_b)
     assert np.array_equal(pa.v.numpy(), pb.v.numpy())
 
 
