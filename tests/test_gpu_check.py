@@ -123,3 +123,54 @@ def test_the_gpu_run_without_a_gpu_stops_at_its_first_step(tmp_path):
     assert "FAILED at step 'device' (exit" in done.stderr and "gpu_check.py device --device cuda" in done.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert [s["step"] for s in summary["steps"]] == ["device"] and not summary["passed"]
+
+
+# ------------------------------------------------------------------ scripts/gpu_check_cells.sh (issue 12 on a GPU)
+CELLS = ROOT / "scripts" / "gpu_check_cells.sh"
+
+
+def _run_cells(*args, env=None, timeout=900):
+    return subprocess.run([str(CELLS), *args], capture_output=True, text=True, cwd=ROOT, timeout=timeout,
+                          env={**os.environ, **(env or {})})
+
+
+def test_cells_check_dry_run_writes_the_physics_and_the_ratios(tmp_path, trained_models):
+    """The cell-detection GPU check as its ``--dry-run`` on the CPU: every step passes, the weight-8 box run twice
+    with one seed is identical (Theta series, counts), every cooling row and ratio is there."""
+    out = tmp_path / "cells_out"
+    models = str(Path(trained_models["contact"]).parent)
+    done = _run_cells("--dry-run", "--out", str(out), env={"HEL_WARP_TINY_MODELS": models})
+    assert done.returncode == 0, done.stderr[-3000:] + done.stdout[-3000:]
+    assert "every step passed on cpu" in done.stdout
+    summary = json.loads((out / "summary.json").read_text())
+    assert list(summary["steps"]) == ["device", "kernels", "tests", "tests_json", "cool_w1", "cool_w8", "cool_w64",
+                                      "cool_w8_again", "box_dem", "box_w1", "box_w8", "box_w64", "rig_bench"]
+    assert all(step["rc"] == 0 for step in summary["steps"].values())
+    assert summary["determinism"]["identical"] is True
+    assert summary["tests"]["tests"] >= 1 and summary["tests"]["failures"] == 0
+    for w in ("w1", "w8", "w64"):
+        row = summary["cooling"][w]
+        assert row["device"] == "cpu" and row["collisions"] > 0 and row["collision_frequency_ratio"] > 0
+        assert summary["box"][w]["dem_over_helscm"] > 0
+    assert set(summary["rig"]["ratios"]) >= {"dem_over_helscm_w1", "dem_over_helscm_w8", "dem_over_helscm_w64"}
+
+
+def test_cells_check_goes_on_past_a_failed_step_and_fails_at_the_end(tmp_path, trained_models):
+    # one short GPU lease should name every failure: a kernel step that fails (exit 3) is recorded, the physics
+    # steps still run, the exit is 1
+    fake = tmp_path / "python"
+    fake.write_text(f'#!/usr/bin/env bash\nif [ "$2" = kernels ]; then exit 3; fi\nexec {sys.executable} "$@"\n')
+    fake.chmod(fake.stat().st_mode | stat.S_IEXEC)
+    out = tmp_path / "cells_out"
+    models = str(Path(trained_models["contact"]).parent)
+    done = _run_cells("--dry-run", "--out", str(out), env={"PYTHON": str(fake), "HEL_WARP_TINY_MODELS": models})
+    assert done.returncode == 1
+    assert "step 'kernels' failed (exit 3)" in done.stderr
+    steps = (out / "steps.tsv").read_text().splitlines()
+    rc = {line.split("\t")[0]: int(line.split("\t")[1]) for line in steps}
+    assert rc["kernels"] == 3 and rc["cool_w64"] == 0 and rc["rig_bench"] == 0
+
+
+def test_cells_check_usage_errors_exit_2(tmp_path):
+    bad = _run_cells("--out", str(tmp_path / "x"), "--bogus", timeout=60)
+    assert bad.returncode == 2 and "usage: scripts/gpu_check_cells.sh [--dry-run] [--out DIR]" in bad.stderr
