@@ -506,7 +506,15 @@ class DEMSolver:
             return
         launch_kick_drift(self.spheres, self.force, self.torque, self.gravity, self.dt)
         launch_flag_rebuild(self.spheres, self.x_at_build, 0.5 * self.skin, self.rebuild_flag)
-        wp.capture_if(self.rebuild_flag, on_true=self._rebuild)
+        if wp.get_device(self.device).is_capturing:
+            # Under graph capture the hash grid is built every step, outside the conditional body: the H200's driver
+            # refused to instantiate a graph whose capture_if body holds wp.HashGrid.build, and accepted it built
+            # plainly (scripts/probe_dem_graph.py). Between list builds the grid is not read, and at one it is
+            # the grid of these positions either way, so the steps are the eager steps' bits.
+            self.grid.build(self.particles.x, self.cell_size)
+            wp.capture_if(self.rebuild_flag, on_true=self._rebuild_lists)
+        else:
+            wp.capture_if(self.rebuild_flag, on_true=self._rebuild)
         self._compute_forces()
         launch_kick(self.spheres, self.force, self.torque, self.gravity, self.dt)
 
@@ -555,12 +563,14 @@ class DEMSolver:
             launch_sdf_wall_forces(kernel, self.spheres, self.wall_params, self.dt, self.config.sdf_gradient_step,
                                    shear, self.force, self.torque)
 
-    def _rebuild(self) -> None:
-        """Hash grid + contact list (shear carried by partner id); optional spatial sort first."""
+    def _rebuild(self, grid_built: bool = False) -> None:
+        """Hash grid + contact list (shear carried by partner id); optional spatial sort first. ``grid_built``: the
+        grid is already that of the current positions (``_advance`` under graph capture)."""
         from kernels import contacts as kc
         from kernels.contacts import launch_build_contact_list
 
-        self.grid.build(self.particles.x, self.cell_size)
+        if not grid_built:
+            self.grid.build(self.particles.x, self.cell_size)
         kc.launch_count_rebuild(self.rebuild_count)
         self._host_rebuilds += 1  # only for the sort decision (eager launches)
         every = self.sort_every
@@ -577,6 +587,10 @@ class DEMSolver:
 
             launch_mark_near_walls(self.spheres, self.plane_walls, self.skin)
         self.rebuild_flag.zero_()
+
+    def _rebuild_lists(self) -> None:
+        """:meth:`_rebuild` after the grid was built (the conditional body under graph capture)."""
+        self._rebuild(grid_built=True)
 
     def _spatial_sort(self) -> None:
         """Reorder every per-particle array by hash-grid cell; contact rows go to ``_old_contacts``."""

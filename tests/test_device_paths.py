@@ -115,9 +115,9 @@ def test_dem_graph_captured_steps_equal_the_eager_steps(device):
     assert graph.onset_counts() == eager.onset_counts() and eager.onset_counts()["collisions"] > 0
     assert graph.steps_done == eager.steps_done == 20 * n_steps
     if fell_back:  # the eager fallback gave the eager answer; the graph itself is the known defect
-        pytest.xfail("CUDA: the driver refuses to instantiate a graph whose conditional body holds wp.HashGrid.build "
-                     "(H200, Warp 1.19: 'Graph creation error: invalid argument'; docs/FIGURES.md, issue 12, "
-                     "twenty-fourth session); DEMSolver fell back to eager steps")
+        pytest.xfail("CUDA: the driver refused the DEM's graph and DEMSolver fell back to eager steps (on the H200 "
+                     "with Warp 1.19 the cause was wp.HashGrid.build inside the conditional body, built outside it "
+                     "since: docs/FIGURES.md, issue 12, twenty-fourth session)")
     assert graph._graph is not None
     print(f"DEM graph replay vs eager: {graph.rebuilds} list builds, {eager.onset_counts()['collisions']} onsets, "
           "x, v, omega bit for bit")
