@@ -14,26 +14,8 @@
 # each step (default 300 s), TOTAL_TIMEOUT=S the whole check (default 450 s on the GPU, 900 s dry: no step starts
 # after it and none runs past it, so the check ends within TOTAL_TIMEOUT + 10 s of kill grace + the summary); PYTHON.
 set -uo pipefail
-cd "$(dirname "$0")/.."
-root=$(pwd)
-export PYTHONPATH="$root${PYTHONPATH:+:$PYTHONPATH}"
-py=${PYTHON:-python}
-
-dry=0
-out=gpu_out
-while [ $# -gt 0 ]; do
-  case "$1" in
-    --dry-run) dry=1 ;;
-    --out) [ $# -ge 2 ] || { echo "gpu_check: --out needs a directory" >&2; exit 2; }; out=$2; shift ;;
-    --out=*) out=${1#--out=} ;;
-    -h|--help) sed -n '2,15p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
-    *) echo "gpu_check: unknown argument '$1' (usage: scripts/gpu_check.sh [--dry-run] [--out DIR])" >&2; exit 2 ;;
-  esac
-  shift
-done
-mkdir -p "$out" || exit 2
-out=$(cd "$out" && pwd)
-: > "$out/steps.tsv"
+. "$(dirname "$0")/gpu_check_common.sh"
+gpu_check_args gpu_check gpu_out 15 "$@"
 step_timeout=${STEP_TIMEOUT:-300}
 kill_grace=10  # a step still running this long after its SIGTERM gets SIGKILL (timeout -k)
 
@@ -75,30 +57,15 @@ finish() {
 run() { _step "$1" "" "${@:2}"; }
 run_json() { _step "$1" "$out/$1.json" "${@:2}"; }
 _step() {
-  local name=$1 json=$2
-  shift 2
-  local t0 t1 rc limit
-  echo "== $name: $*"
-  t0=$(date +%s.%N)
-  limit=$(awk -v a="$started" -v b="$t0" -v total="$total_timeout" -v step="$step_timeout" \
-    'BEGIN { left = total - (b - a); printf "%d", (left < step ? left : step) }')
-  if [ "$limit" -le 0 ]; then
-    rc=124
-  elif [ -n "$json" ]; then
-    timeout -k "$kill_grace" "$limit" "$@" > "$json" 2> >(tee "$out/$name.log" >&2)
-    rc=$?
-  else
-    timeout -k "$kill_grace" "$limit" "$@" > >(tee "$out/$name.log") 2>&1
-    rc=$?
-  fi
-  t1=$(date +%s.%N)
-  printf '%s\t%s\t%s\t%s\n' "$name" "$rc" "$(awk -v a="$t0" -v b="$t1" 'BEGIN { printf "%.2f", b - a }')" "$*" \
-    >> "$out/steps.tsv"
+  local name=$1 rc
+  gpu_check_run "$@"
+  rc=$step_rc
   if [ "$rc" != 0 ]; then
     if [ "$rc" = 124 ] || [ "$rc" = 137 ]; then
       echo "gpu_check: step '$name' ran out of time (STEP_TIMEOUT=$step_timeout s per step," \
         "TOTAL_TIMEOUT=$total_timeout s in all)" >&2
     fi
+    shift 2
     echo "gpu_check: FAILED at step '$name' (exit $rc): $*" >&2
     echo "gpu_check: its output is in $out/$name.log" >&2
     finish 1

@@ -19,28 +19,10 @@
 # site-packages folder (docs/FIGURES.md, issue 12, twenty-fourth session, says how it was done) and put it on
 # PYTHONPATH; PYTHON=python3 there.
 set -uo pipefail
-cd "$(dirname "$0")/.."
-root=$(pwd)
-export PYTHONPATH="$root${PYTHONPATH:+:$PYTHONPATH}"
-py=${PYTHON:-python}
-
-dry=0
-out=gpu_cells_out
-while [ $# -gt 0 ]; do
-  case "$1" in
-    --dry-run) dry=1 ;;
-    --out) [ $# -ge 2 ] || { echo "gpu_check_cells: --out needs a directory" >&2; exit 2; }; out=$2; shift ;;
-    --out=*) out=${1#--out=} ;;
-    -h|--help) sed -n '2,20p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
-    *) echo "gpu_check_cells: unknown argument '$1' (usage: scripts/gpu_check_cells.sh [--dry-run] [--out DIR])" >&2
-       exit 2 ;;
-  esac
-  shift
-done
-mkdir -p "$out" || exit 2
-out=$(cd "$out" && pwd)
-: > "$out/steps.tsv"
+. "$(dirname "$0")/gpu_check_common.sh"
+gpu_check_args gpu_check_cells gpu_cells_out 20 "$@"
 step_timeout=${STEP_TIMEOUT:-240}
+kill_grace=10
 
 tests=(tests/test_cell_collisions.py tests/test_cell_list.py tests/test_device_paths.py tests/test_coupling.py)
 if [ "$dry" = 1 ]; then
@@ -56,33 +38,19 @@ fi
 
 started=$(date +%s.%N)
 failed=0
-# step NAME JSON|- COMMAND...: one step, its stdout to NAME.json (JSON given) or NAME.log; a failure is recorded and
-# the check goes on.
+# step NAME JSON|- COMMAND...: one step (gpu_check_run), its stdout to NAME.json (JSON given) or NAME.log; a failure
+# is recorded and the check goes on.
 step() {
   local name=$1 json=$2
   shift 2
-  local t0 t1 rc limit
-  echo "== $name: $*"
-  t0=$(date +%s.%N)
-  limit=$(awk -v a="$started" -v b="$t0" -v total="$total_timeout" -v s="$step_timeout" \
-    'BEGIN { left = total - (b - a); printf "%d", (left < s ? left : s) }')
-  if [ "$limit" -le 5 ]; then
-    rc=124
-    echo "gpu_check_cells: no time left for '$name'" >&2
-  elif [ "$json" != - ]; then
-    timeout -k 10 "$limit" "$@" > "$out/$json" 2> "$out/$name.log"
-    rc=$?
-  else
-    timeout -k 10 "$limit" "$@" > "$out/$name.log" 2>&1
-    rc=$?
-  fi
-  t1=$(date +%s.%N)
-  printf '%s\t%s\t%s\t%s\n' "$name" "$rc" "$(awk -v a="$t0" -v b="$t1" 'BEGIN { printf "%.2f", b - a }')" "$*" \
-    >> "$out/steps.tsv"
-  if [ "$rc" != 0 ]; then
+  gpu_check_run "$name" "$([ "$json" != - ] && echo "$out/$json")" "$@"
+  if [ "$step_rc" != 0 ]; then
     failed=1
-    echo "gpu_check_cells: step '$name' failed (exit $rc); its output: $out/$name.log" >&2
-    tail -n 5 "$out/$name.log" >&2 2>/dev/null
+    if [ "$step_rc" = 124 ] || [ "$step_rc" = 137 ]; then
+      echo "gpu_check_cells: step '$name' ran out of time (STEP_TIMEOUT=$step_timeout s," \
+        "TOTAL_TIMEOUT=$total_timeout s in all)" >&2
+    fi
+    echo "gpu_check_cells: step '$name' failed (exit $step_rc); its output: $out/$name.log" >&2
   fi
   return 0
 }
