@@ -32,6 +32,7 @@ overshoot in dense cells at large dt.
 
 from __future__ import annotations
 
+import time
 import weakref
 from dataclasses import dataclass
 
@@ -286,6 +287,12 @@ class GasSolver:
         self.launch_over = launch_over
         self._recorded_launches = {}  # _launch's recorded cell and face launches, by kernel and arguments
         self._params_cache = {}  # dt -> FlowParams (_params)
+        self.time_phases = False
+        """True: :meth:`step` times its four phases into :attr:`timings` (s), synchronising the device after each
+        (CUDA launches are asynchronous); what ``scripts/bench_rig.py`` reports per gas phase."""
+        self.timings: dict = {}
+        """The last step's wall clock per phase (``update_cell_state``, ``advect``, ``add_forces_and_diffuse``,
+        ``project``), when :attr:`time_phases`."""
         grid = domain.grid
         self.grid_info = grid.info()
         self._n_cells = int(np.prod(grid.shape))
@@ -792,10 +799,15 @@ class GasSolver:
             gas._started = True
         else:
             wp.copy(gas.cell_eps_f_prev, gas.cell_eps_f)
-        self.update_cell_state(gas)
-        self.advect(gas, dt)
-        self.add_forces_and_diffuse(gas, dt)
-        self.project(gas, dt)
+        for phase, args in ((self.update_cell_state, (gas,)), (self.advect, (gas, dt)),
+                            (self.add_forces_and_diffuse, (gas, dt)), (self.project, (gas, dt))):
+            if self.time_phases:
+                start = time.perf_counter()
+                phase(*args)
+                wp.synchronize_device(self.device)
+                self.timings[phase.__name__] = time.perf_counter() - start
+            else:
+                phase(*args)
         if self.config.check_finite:
             # counted by the projection's cell pass over the fluid cells (the solid cells hold constants)
             if int(self._bad.numpy()[0]) > 0:

@@ -378,8 +378,12 @@ class HelSolver:
                    cell_drag_coeff_f32=self.gas.cell_drag_coeff, launches=self.fields.launches)
 
     def gas_step(self) -> None:
-        """2. eps_f-weighted Navier-Stokes step with the particle momentum source (engineer F)."""
+        """2. eps_f-weighted Navier-Stokes step with the particle momentum source (engineer F); with
+        ``time_sub_steps`` its phases go into ``timings`` as ``gas_<phase>`` (inside ``gas_step``'s own time)."""
+        self.gas_solver.time_phases = self.time_sub_steps
         self.gas_solver.step(self.gas, self.config.dt)
+        if self.time_sub_steps:
+            self.timings.update({f"gas_{name}": seconds for name, seconds in self.gas_solver.timings.items()})
 
     def interpolate(self) -> None:
         """3. gas velocity, grad p' and eps_s at the parcels, with the deposit's weights."""

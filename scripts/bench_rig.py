@@ -11,7 +11,8 @@ Reported per model: the total step wall clock, the median step, the detected pai
 the ratios (wall clock, and ``_cpu``: process CPU time, a core's cost whatever the load); then the median of each phase of the step (``HelSolver.timings``, on CUDA a sync per sub-step):
 the gas step (and per fluid cell), the parcel phase = deposit + interpolate + push (per parcel-step, parcels
 alive at the step; for a strategy with its own ``advance`` the push is its collision step), the collision
-step = ``collide`` (+ that ``advance``), the rest (sort, outlets, walls, injection). Rerun to judge the noise.
+step = ``collide`` (+ that ``advance``), the rest (sort, outlets, walls, injection), and the gas step's own phases
+(``GasSolver.timings``: cell state, advection, forces and viscous solves, projection). Rerun to judge the noise.
 
 Usage::
 
@@ -74,6 +75,8 @@ def build_model(case, label: str, args):
 
 PARCEL_PHASES = ("deposit", "interpolate", "push")
 OTHER_PHASES = ("sort_parcels", "remove_at_outlets", "reflect_at_walls", "inject")
+GAS_PHASES = ("gas_update_cell_state", "gas_advect", "gas_add_forces_and_diffuse", "gas_project")
+"""The gas step's own phases (``GasSolver.timings``), inside ``gas``: where a GPU's gas time goes."""
 
 
 def phases(solver) -> dict:
@@ -83,7 +86,8 @@ def phases(solver) -> dict:
     parcel = sum(t.get(k, 0.0) for k in PARCEL_PHASES if not (k == "push" and own_advance))
     collision = t.get("collide", 0.0) + (t.get("push", 0.0) if own_advance else 0.0)
     return {"gas": t.get("gas_step", 0.0), "parcel": parcel, "collision": collision,
-            "other": sum(t.get(k, 0.0) for k in OTHER_PHASES)}
+            "other": sum(t.get(k, 0.0) for k in OTHER_PHASES),
+            **{k: t.get(k, 0.0) for k in GAS_PHASES}}
 
 
 def time_models(case, names, args) -> dict:
@@ -218,6 +222,10 @@ def main(argv=None) -> int:
         print(f"{r['model']:>16} {1e3 * m['gas']:>8.2f} {1e3 * m['parcel']:>8.2f} {1e3 * m['collision']:>10.2f} "
               f"{1e3 * m['other']:>8.2f} {r['gas_us_per_fluid_cell']:>12.2f} "
               f"{'-' if per_parcel is None else format(per_parcel, '.3f'):>17}")
+    print("gas phases, median per step (ms): cell state, advection, forces + viscous solves, projection")
+    for r in rows.values():
+        m = r["phase_median_s"]
+        print(f"{r['model']:>16} " + " ".join(f"{1e3 * m[k]:>8.2f}" for k in GAS_PHASES))
     for key, value in ratios.items():
         print(f"{key}: {value:.2f}")
     return 0
