@@ -245,6 +245,33 @@ class CouplingFields:
         return fields
 
 
+def max_live_weight(weight, alive) -> float:
+    """The largest weight of a live parcel (0 with none): one small reduction (``kernels/interp.py``
+    ``max_live_weight_kernel``) and a device-to-host copy of one float (a synchronisation on CUDA)."""
+    import warp as wp
+
+    from kernels.interp import max_live_weight_kernel
+
+    out = wp.zeros(1, dtype=wp.float32, device=weight.device)
+    if weight.shape[0] > 0:
+        wp.launch(max_live_weight_kernel, dim=weight.shape[0], inputs=[weight, alive], outputs=[out],
+                  device=weight.device)
+    return float(out.numpy()[0])
+
+
+def reserve_tent_records(grid: GridSpec, particles) -> int:
+    """Before the tent deposits of a coupling call on CUDA: Warp's deterministic atomics of ``kernels/deposit.py``
+    sized for the largest live parcel's tent (``kernels.deposit.reserve_records``; a tent of half-width K adds into
+    (2K)^3 cells). Nothing to do on the CPU, without tents or without parcels. Returns the bound in force."""
+    from kernels import deposit as D
+    from kernels.interp import spread_half_width_host
+
+    if not (D.DETERMINISTIC and particles.device.is_cuda and grid.spread and particles.count > 0):
+        return D.reserve_records(0)
+    k = spread_half_width_host(True, max_live_weight(particles.weight, particles.alive))
+    return D.reserve_records(8 * k**3)
+
+
 def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields, cell_fluid=None, *, stencil=None) -> None:
     """Step 1: parcels -> cells (volume, momentum source from the last push, sum beta V, solids momentum);
     ``cell_fluid``: the int32 fluid mask heavy parcels' tents keep to; ``stencil``: a ``ParcelStencil`` the
@@ -252,6 +279,7 @@ def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields, cell_flui
     from kernels.deposit import deposit, finish_cells
     from kernels.interp import parcel_arrays
 
+    reserve_tent_records(grid, particles)
     deposit(grid.cell_grid(cell_fluid), parcel_arrays(particles), fields.parcel_drag_impulse, fields.parcel_drag_coeff,
             cell_sums=fields.cell_deposit_sums, stencil=stencil, launches=fields.launches)
     finish_cells(grid.cell_volume, fields.cell_deposit_sums, cell_solid_volume=fields.cell_solid_volume,
@@ -332,6 +360,7 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
 
     p = particles
     f = fields
+    reserve_tent_records(grid, p)  # once for the passes below
     g = grid.cell_grid(cell_fluid)
     x_out = p.x if particle_x_out is None else particle_x_out
     v_out = p.v if particle_v_out is None else particle_v_out

@@ -28,9 +28,8 @@ import sys
 import warp as wp
 
 from kernels.launches import LaunchCache, launch
-from kernels.interp import (CellGrid, ParcelArrays, ParcelStencil, cell_offset, flat_cells, max_live_weight,
-                            parcel_cell, parcel_stencil, spread_half_width, spread_half_width_host, stencil_holds,
-                            stencil_or_empty, store_stencil)
+from kernels.interp import (CellGrid, ParcelArrays, ParcelStencil, cell_offset, flat_cells, parcel_cell,
+                            parcel_stencil, spread_half_width, stencil_holds, stencil_or_empty, store_stencil)
 from kernels.push import PushParams, body_acceleration, parcel_drag_rate_at, parcel_mass
 from kernels.push import parcel_voidage as parcel_voidage_of
 
@@ -51,25 +50,21 @@ if DETERMINISTIC:
 _records = TRILINEAR_RECORDS
 
 
-def reserve_tent_records(grid: CellGrid, parcels: ParcelArrays) -> int:
-    """Before a tent deposit on CUDA: make Warp's deterministic atomics hold the largest live parcel's tent.
+def reserve_records(need: int) -> int:
+    """Make Warp's deterministic atomics of this module hold ``need`` additions per thread and target; returns the
+    bound in force.
 
     On CUDA, ``DeterministicMode.RUN_TO_RUN`` keeps each thread's additions as records in a buffer of
     ``deterministic_max_records`` per thread and target, fixed when the module compiles, and fails a launch whose
     thread makes more (``WarpDeterminismError``; first seen on an H200, the CPU device has no such buffer). A parcel
-    of half-width K adds into (2K)^3 cells. So the largest live weight sets the bound, and the module is rebuilt when
-    the bound grows (once per run in practice: the weights are the injection's). Memory: parcels x (2K)^3 records of
-    the target's type, ~230 bytes per real particle at any weight (8 K^3 ~ 2.8 w). Returns the bound in force (the
-    CPU, a grid without tents: nothing to do)."""
+    of half-width K adds into (2K)^3 cells. The module is rebuilt when the bound grows (once per run in practice: the
+    weights are the injection's); ``hel_warp.coupling`` asks for the largest live parcel's tent before the step's
+    tent deposits on CUDA. Memory: parcels x (2K)^3 records of the target's type, ~230 bytes per real particle at
+    any weight (8 K^3 ~ 2.8 w)."""
     global _records
-    device = parcels.x.device
-    if not DETERMINISTIC or not device.is_cuda or grid.spread == 0 or parcels.x.shape[0] == 0:
-        return _records
-    k = spread_half_width_host(True, max_live_weight(parcels.weight, parcels.alive))
-    need = 8 * k * k * k
-    if need > _records:
-        _records = need
-        wp.set_module_options({"deterministic_max_records": need}, module=sys.modules[__name__])
+    if DETERMINISTIC and need > _records:
+        _records = int(need)
+        wp.set_module_options({"deterministic_max_records": _records}, module=sys.modules[__name__])
     return _records
 
 
@@ -373,7 +368,6 @@ def deposit(grid: CellGrid, parcels: ParcelArrays, parcel_drag_impulse, parcel_d
     with every trilinear parcel's row at ``parcels.x`` (the deposit is the step's first pass at new positions),
     None: no cache."""
     cell_sums.zero_()
-    reserve_tent_records(grid, parcels)
     launch(deposit_kernel, dim=parcels.x.shape[0], device=parcels.x.device,
            inputs=[grid, stencil_or_empty(stencil, parcels.x), parcels, parcel_drag_impulse, parcel_drag_coeff],
            outputs=[flat_cells(cell_sums)], cache=launches)
@@ -417,7 +411,6 @@ def exchange_deposit(grid: CellGrid, params, parcels: ParcelArrays, parcel_u_f, 
            inputs=[params, parcels, parcel_u_f, parcel_eps_s, parcel_voidage], outputs=[parcel_rate, parcel_exchange],
            cache=launches)
     cell_exchange_sums.zero_()
-    reserve_tent_records(grid, parcels)
     launch(exchange_deposit_kernel, dim=n, device=parcels.x.device,
            inputs=[grid, stencil_or_empty(stencil, parcels.x), params, parcels, parcel_grad_p, parcel_a_coll,
                    parcel_exchange],
@@ -446,7 +439,6 @@ def exchange_correct(grid: CellGrid, dt: float, cell_exchange_divisor, cell_mism
     n = parcels.x.shape[0]
     stencil = stencil_or_empty(stencil, parcels.x)
     mismatch = flat_cells(cell_mismatch)
-    reserve_tent_records(grid, parcels)
     launch(impulse_deposit_kernel, dim=n, device=parcels.x.device,
            inputs=[grid, stencil, parcels, parcel_drag_impulse], outputs=[mismatch], cache=launches)
     launch(exchange_correct_kernel, dim=n, device=parcels.x.device,

@@ -158,20 +158,11 @@ def spread_half_width_host(spread: bool, weight: float) -> int:
 @wp.kernel
 def max_live_weight_kernel(weight: wp.array(dtype=wp.float32), alive: wp.array(dtype=wp.int32),
                            out: wp.array(dtype=wp.float32)):
-    """``out[0] = max(out[0], weight[i])`` over the live parcels (zero ``out`` first)."""
+    """``out[0] = max(out[0], weight[i])`` over the live parcels (zero ``out`` first; read back by
+    ``hel_warp.coupling.max_live_weight``)."""
     tid = wp.tid()
     if alive[tid] != 0:
         wp.atomic_max(out, 0, weight[tid])
-
-
-def max_live_weight(weight, alive) -> float:
-    """The largest weight of a live parcel (0 with none); one small reduction and a device-to-host copy of one float
-    (a synchronisation on CUDA)."""
-    out = wp.zeros(1, dtype=wp.float32, device=weight.device)
-    if weight.shape[0] > 0:
-        wp.launch(max_live_weight_kernel, dim=weight.shape[0], inputs=[weight, alive], outputs=[out],
-                  device=weight.device)
-    return float(out.numpy()[0])
 
 
 @wp.func

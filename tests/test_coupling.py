@@ -426,8 +426,9 @@ def test_the_host_knows_each_tent_before_the_launch(device):
     """``spread_half_width_host`` (what sizes the deterministic deposit's per-thread records on CUDA) is the kernel's
     ``spread_half_width`` at every weight, and never below it at the rounding boundaries K + 1/2 (float32 there);
     ``max_live_weight`` skips removed parcels; and the CPU needs no reservation (its atomics keep no records)."""
-    from kernels.deposit import TRILINEAR_RECORDS, reserve_tent_records
-    from kernels.interp import max_live_weight, spread_half_width_host
+    from hel_warp.coupling import max_live_weight, reserve_tent_records
+    from kernels.deposit import TRILINEAR_RECORDS
+    from kernels.interp import spread_half_width_host
 
     edges = [(2.0 * ((k + 0.5) ** 2 - 1.0)) ** 1.5 for k in range(1, 12)]  # weights where K steps up
     weights = np.concatenate([np.arange(1, 5001, dtype=np.float64),
@@ -453,9 +454,7 @@ def test_the_host_knows_each_tent_before_the_launch(device):
     assert max_live_weight(w, alive) == 8.0
     if not wp.get_device(device).is_cuda:
         parts = Particles.from_numpy(np.full((2, 3), 2e-3), 100e-6, weight=64.0, check_overlap=False, device=device)
-        from kernels.interp import parcel_arrays
-
-        assert reserve_tent_records(grid.cell_grid(), parcel_arrays(parts)) == TRILINEAR_RECORDS
+        assert reserve_tent_records(grid, parts) == TRILINEAR_RECORDS
 
 
 @pytest.mark.parametrize("weight, half_width", [(8.0, 2), (27.0, 2), (64.0, 3), (216.0, 4)])
