@@ -93,6 +93,37 @@ def test_missing_values_take_the_default_direction(layout):
         np.testing.assert_allclose(out[:, k], reference, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.parametrize("depths", [(12, 2), (1, 3)], ids=["deep", "shallow"])
+def test_thread_per_row_forest_gives_the_block_kernels_bits_and_xgboosts_values(depths):
+    """The GPU's form of the perfect-layout walk (``eval_forest_perfect_rows_kernel``: one thread per row and target,
+    TREE_GROUP trees side by side, the leaves added in tree order) gives the CPU's block kernel's float32 sums bit
+    for bit, with trees of mixed depths (padded to their own depths; 31 per target, not a multiple of
+    TREE_GROUP), NaN features and a device row count that stops short of the batch; both equal XGBoost's predict
+    to 1e-5."""
+    import warp as wp
+
+    from kernels.forest import eval_forest
+
+    data = synthetic_collisions(1500, seed=12, polydisperse=True)
+    rows, cols, raw, mean, std, boosters, doc = _fit_forest("contact", data, depths, nan_fraction=0.05,
+                                                            n_estimators=31)
+    flat = _flat(doc, "contact")
+    forest = flat.to_device(None, layout="perfect")
+    x = wp.array(_full_features(rows, cols, raw)[:777], dtype=wp.float32)
+    n_targets = forest.tree_start.shape[0] - 1
+    count = wp.array([700], dtype=wp.int32)
+    outs = {}
+    for per_row in (False, True):
+        out = wp.array(np.full((x.shape[0], n_targets), np.nan, np.float32), dtype=wp.float32)
+        eval_forest(forest, x, out, row_count=count, thread_per_row=per_row)
+        outs[per_row] = out.numpy()
+    assert np.array_equal(outs[True][:700], outs[False][:700])
+    assert np.isnan(outs[True][700:]).all() and np.isnan(outs[False][700:]).all()  # past the count: not written
+    for k, booster in enumerate(boosters.values()):
+        reference = booster.predict(xgb.DMatrix(standardize(raw[:700], mean, std)))
+        np.testing.assert_allclose(outs[True][:700, k], reference, rtol=1e-5, atol=1e-5)
+
+
 def test_folded_thresholds_take_xgboosts_branch_for_every_float32():
     """x < T  <=>  float32((x - mean)/std) < t, checked on the float32 neighbours of T."""
     rng = np.random.default_rng(3)
