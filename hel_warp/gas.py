@@ -3,11 +3,11 @@
 Paper eqs. (1)-(3) with constant gas density, on the MAC grid of ``kernels/gas.py``:
 semi-Lagrangian advection, particle momentum source, backward-Euler viscous step with
 molecular + Smagorinsky viscosity, and a pressure projection onto
-``d(eps_f)/dt + div(eps_f u) = 0``; both linear systems are solved with
-``warp.optim.linear.cg`` with a Jacobi preconditioner (7-point stencils assembled once per step,
-applied through ``LinearOperator``s) on CUDA, and on the CPU with a native CG (``GasConfig.linear_solver``):
+``d(eps_f)/dt + div(eps_f u) = 0``; both linear systems (7-point stencils assembled once per step) are solved
+with a native CG on every device (``GasConfig.linear_solver``; ``warp.optim.linear.cg`` on request):
 the pressure preconditioned with an aggregation V-cycle, the viscous systems reduced to their black rows (red-black
-elimination) and preconditioned with the diagonal (``GasConfig.viscous_preconditioner``). On the CPU the step's hot loops (the linear solvers, the advection, the cell and
+elimination) and preconditioned with the diagonal (``GasConfig.viscous_preconditioner``); each iteration a
+captured graph, its dot products in fixed chunks (``device_tuning``: the CPU's and a GPU's shapes). On the CPU the step's hot loops (the linear solvers, the advection, the cell and
 face passes) run as native C++ loops over raw pointers (``kernels/gas_cpu.py``: the same numbers, ~2x faster on the
 colliding-streams rig).
 
@@ -42,7 +42,7 @@ import warp.optim.linear as wpl
 
 from hel_warp.errors import ConfigError, HelWarpError, require_finite, require_positive
 from hel_warp.grid import FlowDomain
-from hel_warp.multigrid import AggregationMultigrid
+from hel_warp.multigrid import COARSEST_ROWS, COARSEST_ROWS_CUDA, AggregationMultigrid
 from kernels import gas as K
 from kernels import gas_cpu
 
@@ -104,10 +104,12 @@ class GasConfig:
     with 'jacobi', and the viscous step costs 0.75 of its 'ic0' time (0.92 with 'jacobi'; docs/FIGURES.md, issue
     14, fourteenth session). The 'warp' solver always takes Jacobi."""
     linear_solver: str = "auto"
-    """'warp' (warp.optim.linear.cg, Jacobi preconditioner), 'native' (PCG with the preconditioners above and
-    atomic reductions, kernels/gas.py; sequential loops, for the CPU),
-    or 'auto': warp on CUDA, native on the CPU, where warp's tile-based dot products cost ~0.1 s
-    each at 1e5 unknowns."""
+    """'warp' (warp.optim.linear.cg, Jacobi preconditioner), 'native' (PCG with the preconditioners above,
+    deterministic atomic reductions and one captured graph per iteration, kernels/gas.py; a GPU's chunks and coarsest
+    level from ``device_tuning``), or 'auto': native on every device. On the CPU warp's tile-based dot products cost
+    ~0.1 s each at 1e5 unknowns; on an H200 the rig's step took 116 ms with 'warp' (1,280 launches and copies, the
+    device busy 23 % of it) against 67 ms with 'native' (twenty-fifth session, before the GPU's shapes; 30 ms
+    after)."""
     check_finite: bool = True
     """Raise HelWarpError when a NaN/inf appears (one int read back per step)."""
 
@@ -267,6 +269,18 @@ def _touches_fluid(fluid: np.ndarray, axis: int, periodic: bool) -> np.ndarray:
     return out
 
 
+
+def device_tuning(device) -> dict:
+    """The native solvers' shapes for ``device`` (a ``wp.Device``): rows per thread of the PCG's dot-product passes
+    (``dot_chunk``: kernels/gas.py DOT_CHUNK, DOT_CHUNK_CUDA) and the multigrid's coarsest level (``coarsest_rows``:
+    hel_warp/multigrid.py COARSEST_ROWS, COARSEST_ROWS_CUDA). A CPU thread runs its rows fast and the threads one
+    after another; a GPU thread runs its rows slowly and the threads side by side. The same CG either way, its sums
+    in another order (tests/test_gas.py runs the GPU's shapes on the CPU)."""
+    if device.is_cpu:
+        return {"dot_chunk": K.DOT_CHUNK, "coarsest_rows": COARSEST_ROWS}
+    return {"dot_chunk": K.DOT_CHUNK_CUDA, "coarsest_rows": COARSEST_ROWS_CUDA}
+
+
 class GasSolver:
     """One gas step per call; fixed data (domain, config, index lists) here, changing data in ``GasField``.
 
@@ -337,7 +351,8 @@ class GasSolver:
         if self.config.pressure_preconditioner == "multigrid":
             self._pressure_mg = AggregationMultigrid(self._systems["pressure"][0].numpy(), grid.shape,
                                                      tuple(bool(p) for p in grid.periodic), dev,
-                                                     scale=self.config.pressure_multigrid_scale)
+                                                     scale=self.config.pressure_multigrid_scale,
+                                                     coarsest_rows=device_tuning(self.device)["coarsest_rows"])
         n_rows = max(1, max(rows.shape[0] for rows, _ in self._systems.values()))
         self._c_rhs, self._c_x = (wp.zeros(n_rows, dtype=wp.float64, device=dev) for _ in range(2))
         self._c_active = wp.zeros(n_rows, dtype=wp.int32, device=dev)
@@ -351,8 +366,11 @@ class GasSolver:
         """dp of the last projection (flat, box-sized; 0 in solid cells)."""
         solver = self.config.linear_solver
         # the CUDA branch (warp.optim.linear.cg, our V-cycle as M) runs on the CPU too: tests/test_device_paths.py
-        self.linear_solver = ("warp" if self.device.is_cuda else "native") if solver == "auto" else solver
+        self.linear_solver = "native" if solver == "auto" else solver
         """The linear solver actually used ('warp' or 'native')."""
+        self.dot_chunk = device_tuning(self.device)["dot_chunk"]
+        """Rows one thread of the native PCG's dot-product passes sums (``kernels/gas.py`` DOT_CHUNK on the CPU,
+        DOT_CHUNK_CUDA on a GPU)."""
         self._bad = wp.zeros(1, dtype=wp.int32, device=dev)
         self._velocity_tmp = GasField._faces(grid, dev)
         self._face_grad_p = GasField._faces(grid, dev)
@@ -536,20 +554,21 @@ class GasSolver:
         rhs, x, pivot, pivot_inverse = self._c_rhs[:n], self._c_x[:n], self._pivot[:n], self._pivot_inverse[:n]
         r, z, p, ap = (v[:n] for v in self._pcg)
         s, c, dev = self._scalars, self._coefficients, self.device
-        dot_dim = (n + K.DOT_CHUNK - 1) // K.DOT_CHUNK
+        chunk = self.dot_chunk
+        dot_dim = (n + chunk - 1) // chunk
 
         def record(kernel, dim, inputs, outputs):  # the native row loops on the CPU (kernels/gas_cpu.py)
             kernel, dim = gas_cpu.for_device(kernel, dim, dev, inputs + outputs)
             return wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=dev, record_cmd=True)
 
         def dot(a, b, slot):
-            return record(K.pcg_dot_kernel, dot_dim, [a, b, slot], [s])
+            return record(K.pcg_dot_kernel, dot_dim, [a, b, slot, chunk], [s])
 
         launches = {
-            "r = b - A x, b.b, r.r": record(K.pcg_residual_start_kernel, dot_dim, [A, x, rhs], [r, s]),
+            "r = b - A x, b.b, r.r": record(K.pcg_residual_start_kernel, dot_dim, [A, x, rhs, chunk], [r, s]),
             "r.z new": dot(r, z, 2),
-            "r.z new, r.r": record(K.pcg_dot_pair_kernel, dot_dim, [r, z, 2, 3], [s]),
-            "ap, p.ap": record(K.pcg_matvec_dot_kernel, dot_dim, [A, p, 1], [ap, s]),
+            "r.z new, r.r": record(K.pcg_dot_pair_kernel, dot_dim, [r, z, 2, 3, chunk], [s]),
+            "ap, p.ap": record(K.pcg_matvec_dot_kernel, dot_dim, [A, p, 1, chunk], [ap, s]),
             "alpha": record(K.pcg_ratio_kernel, 1, [0, 1, 4], [s, c]),
             "step": record(K.pcg_step_kernel, n, [p, ap, s], [x, r]),
             "step, ic0 apply": record(K.ic0_step_apply_kernel, 1, [pivot_inverse, A, p, ap, s, n, self._ordered_slots],
@@ -560,7 +579,7 @@ class GasSolver:
             "ic0 factor": record(K.ic0_factor_kernel, 1, [A, n, wp.float64(relaxation)], [pivot, pivot_inverse]),
             "ic0 apply": record(K.ic0_apply_kernel, 1, [pivot_inverse, A, r, n], [z]),
             "jacobi start": record(K.jacobi_start_kernel, n, [A.diag, r], [pivot_inverse, z]),
-            "step, jacobi, r.z new, r.r": record(K.jacobi_step_dot_kernel, dot_dim, [pivot_inverse, p, ap, c],
+            "step, jacobi, r.z new, r.r": record(K.jacobi_step_dot_kernel, dot_dim, [pivot_inverse, p, ap, c, chunk],
                                                  [x, r, z, s]),
         }
         split = self._red_black[system] if system in (0, 1, 2) else None
@@ -569,7 +588,7 @@ class GasSolver:
             x_b, inverse_b = self._rb[0][:n_b], self._rb[4][:n_b]
             t, b_r, inverse_r = (v[:n_r] for v in self._rb[1:4])
             r_b, z_b, p_b, ap_b = (v[:n_b] for v in self._pcg)
-            black_dim = (n_b + K.DOT_CHUNK - 1) // K.DOT_CHUNK
+            black_dim = (n_b + chunk - 1) // chunk
             red = [A, split.red_rows, split.red_other, inverse_r, b_r]
             launches.update({
                 "b.b": dot(rhs, rhs, 1),
@@ -577,12 +596,12 @@ class GasSolver:
                 "rb gather red": record(K.rb_gather_kernel, n_r, [split.red_rows, A.diag, rhs], [inverse_r, b_r]),
                 "rb x_r": record(K.rb_red_kernel, n_r, [*red, wp.float64(1.0), x_b], [t]),
                 "rb residual, r.r": record(K.rb_black_residual_kernel, black_dim,
-                                           [A, split.black_rows, split.black_other, rhs, x_b, t], [r_b, s]),
+                                           [A, split.black_rows, split.black_other, rhs, x_b, t, chunk], [r_b, s]),
                 "rb N p": record(K.rb_red_kernel, n_r, [*red, wp.float64(0.0), p_b], [t]),
                 "rb ap, p.ap": record(K.rb_black_matvec_dot_kernel, black_dim,
-                                      [A, split.black_rows, split.black_other, p_b, t], [ap_b, s]),
+                                      [A, split.black_rows, split.black_other, p_b, t, chunk], [ap_b, s]),
                 "rb step, jacobi, r.z new, r.r": record(K.jacobi_step_dot_kernel, black_dim,
-                                                        [inverse_b, p_b, ap_b, c], [x_b, r_b, z_b, s]),
+                                                        [inverse_b, p_b, ap_b, c, chunk], [x_b, r_b, z_b, s]),
                 "rb direction": record(K.pcg_direction_kernel, n_b, [z_b, s], [p_b]),
                 "rb scatter black": record(K.rb_scatter_kernel, n_b, [split.black_rows, x_b], [x]),
                 "rb scatter red": record(K.rb_scatter_kernel, n_r, [split.red_rows, t], [x]),

@@ -27,7 +27,10 @@ from kernels import gas as K
 from kernels import gas_cpu
 
 COARSEST_ROWS = 32
-"""Stop coarsening below this many rows."""
+"""Stop coarsening below this many rows (the CPU's default)."""
+COARSEST_ROWS_CUDA = 4
+"""The same on a GPU, where the coarsest level's symmetric Gauss-Seidel sweeps run on one thread (20 sweeps of the
+rig's 26 coarsest rows: 0.3 ms of every V-cycle on an H200, twenty-fifth session): a level more, of a few rows."""
 RECORDED_CYCLES = 8
 """V-cycles and set-ups kept recorded (``wp.launch(record_cmd=True)``), one per (r, z, fine matrix) memory seen
 (set-up: per fine matrix memory); a replay skips the argument packing of ~40 launches (~25 us each on the CPU,
@@ -71,7 +74,7 @@ class AggregationMultigrid:
     fine matrix of every step, ``apply`` is the preconditioner."""
 
     def __init__(self, rows: np.ndarray, shape: tuple, periodic: tuple, device, *, sweeps: int = 2,
-                 scale: float = 1.8, coarsest_sweeps: int = 20):
+                 scale: float = 1.8, coarsest_sweeps: int = 20, coarsest_rows: int = COARSEST_ROWS):
         self.device = wp.get_device(device)
         self.sweeps, self.scale, self.coarsest_sweeps = int(sweeps), float(scale), int(coarsest_sweeps)
         if self.sweeps < 1:
@@ -93,7 +96,7 @@ class AggregationMultigrid:
                 level.child_start = wp.array(start, dtype=wp.int32, device=self.device)
             self.levels.append(level)
             factor = [2 if shape[a] > 1 and not (periodic[a] and shape[a] % 2 == 1) else 1 for a in range(3)]
-            if level.n <= COARSEST_ROWS or factor == [1, 1, 1]:
+            if level.n <= coarsest_rows or factor == [1, 1, 1]:
                 break
             coarse_shape = tuple(-(-shape[a] // factor[a]) for a in range(3))
             coarse_coords = coords // np.asarray(factor)

@@ -1620,8 +1620,15 @@ def mg_coarsest_kernel(
 
 
 DOT_CHUNK = 512
-"""Entries one thread of ``pcg_dot_kernel`` sums before its single atomic add (the CPU runs the
-threads one after another: one atomic per entry cost more than the products)."""
+"""Entries one thread of ``pcg_dot_kernel`` (and the other passes with a dot product, their ``chunk`` argument) sums
+before its single atomic add on the CPU (the CPU runs the threads one after another: one atomic per entry cost more
+than the products)."""
+DOT_CHUNK_CUDA = 16
+"""The same on a GPU, where a thread's rows run one after another while the other threads run side by side: at 512
+the rig's 7,312 pressure rows took 15 threads, and a pass with the matrix product ~0.7 ms on an H200 (twenty-fifth
+session); at 16, 457 threads (with COARSEST_ROWS_CUDA, one captured PCG iteration went from 0.86 to 0.21 ms and
+the rig's step at weight 64 from 67 to 30 ms). The chunks and partial sums fix the order of the additions, so a run repeats to the
+bit on one device (the atomics are deterministic) and differs from the CPU's in rounding."""
 
 
 @wp.kernel
@@ -1629,14 +1636,15 @@ def pcg_dot_kernel(
     a: wp.array(dtype=wp.float64),
     b: wp.array(dtype=wp.float64),
     slot: int,
+    chunk: int,
     # outputs
     scalars: wp.array(dtype=wp.float64),
 ):
     """scalars[slot] += a . b over the chunk [tid * DOT_CHUNK, ...) (launch ceil(n / DOT_CHUNK) threads), in four
     interleaved partial sums (one sum is a chain of dependent adds: ~4x slower on a CPU core)."""
     t = wp.tid()
-    first = t * DOT_CHUNK
-    last = wp.min(first + DOT_CHUNK, a.shape[0])
+    first = t * chunk
+    last = wp.min(first + chunk, a.shape[0])
     acc0 = wp.float64(0.0)
     acc1 = wp.float64(0.0)
     acc2 = wp.float64(0.0)
@@ -1658,14 +1666,15 @@ def pcg_dot_pair_kernel(
     b: wp.array(dtype=wp.float64),
     slot_ab: int,
     slot_aa: int,
+    chunk: int,
     # outputs
     scalars: wp.array(dtype=wp.float64),
 ):
     """scalars[slot_ab] += a . b and scalars[slot_aa] += a . a in one pass over ``a`` (``pcg_dot_kernel``'s chunks
     and partial sums: the same two numbers)."""
     t = wp.tid()
-    first = t * DOT_CHUNK
-    last = wp.min(first + DOT_CHUNK, a.shape[0])
+    first = t * chunk
+    last = wp.min(first + chunk, a.shape[0])
     ab0 = wp.float64(0.0)
     ab1 = wp.float64(0.0)
     ab2 = wp.float64(0.0)
@@ -1705,6 +1714,7 @@ def pcg_matvec_dot_kernel(
     A: Stencil,
     p: wp.array(dtype=wp.float64),
     slot: int,
+    chunk: int,
     # outputs
     ap: wp.array(dtype=wp.float64),
     scalars: wp.array(dtype=wp.float64),
@@ -1713,8 +1723,8 @@ def pcg_matvec_dot_kernel(
     ceil(n / DOT_CHUNK) threads): the numbers of ``stencil_matvec_kernel`` (alpha 1, beta 0) then
     ``pcg_dot_kernel`` (the same chunks and four interleaved partial sums), without a second pass over p and ap."""
     t = wp.tid()
-    first = t * DOT_CHUNK
-    last = wp.min(first + DOT_CHUNK, p.shape[0])
+    first = t * chunk
+    last = wp.min(first + chunk, p.shape[0])
     acc0 = wp.float64(0.0)
     acc1 = wp.float64(0.0)
     acc2 = wp.float64(0.0)
@@ -1745,6 +1755,7 @@ def pcg_residual_start_kernel(
     A: Stencil,
     x: wp.array(dtype=wp.float64),
     rhs: wp.array(dtype=wp.float64),
+    chunk: int,
     # outputs
     r: wp.array(dtype=wp.float64),
     scalars: wp.array(dtype=wp.float64),
@@ -1753,8 +1764,8 @@ def pcg_residual_start_kernel(
     ceil(n / DOT_CHUNK) threads): the numbers of ``stencil_matvec_kernel`` (alpha 1, beta 0), the subtraction and two
     ``pcg_dot_kernel`` passes (the same chunks and partial sums) in one pass."""
     t = wp.tid()
-    first = t * DOT_CHUNK
-    last = wp.min(first + DOT_CHUNK, x.shape[0])
+    first = t * chunk
+    last = wp.min(first + chunk, x.shape[0])
     bb0 = wp.float64(0.0)
     bb1 = wp.float64(0.0)
     bb2 = wp.float64(0.0)
@@ -1945,6 +1956,7 @@ def jacobi_step_dot_kernel(
     p: wp.array(dtype=wp.float64),
     ap: wp.array(dtype=wp.float64),
     coefficients: wp.array(dtype=wp.float64),
+    chunk: int,
     # outputs
     x: wp.array(dtype=wp.float64),
     r: wp.array(dtype=wp.float64),
@@ -1958,8 +1970,8 @@ def jacobi_step_dot_kernel(
     ``pcg_ratio_kernel`` writes beside ``scalars``: the deterministic atomics (module header) refuse a kernel that
     reads an array it adds to, also through a second argument over the same memory (checked at launch)."""
     t = wp.tid()
-    first = t * DOT_CHUNK
-    last = wp.min(first + DOT_CHUNK, p.shape[0])
+    first = t * chunk
+    last = wp.min(first + chunk, p.shape[0])
     alpha = coefficients[4]
     rz0 = wp.float64(0.0)
     rz1 = wp.float64(0.0)
@@ -2094,6 +2106,7 @@ def rb_black_matvec_dot_kernel(
     black_other: wp.array2d(dtype=wp.int32),
     p: wp.array(dtype=wp.float64),
     t: wp.array(dtype=wp.float64),
+    chunk: int,
     # outputs
     ap: wp.array(dtype=wp.float64),
     scalars: wp.array(dtype=wp.float64),
@@ -2101,8 +2114,8 @@ def rb_black_matvec_dot_kernel(
     """ap = S p = D_b p - N_br t (t = D_r^-1 N_rb p, ``rb_red_kernel``) and scalars[1] += p . ap over the chunk
     [tid * DOT_CHUNK, ...) of the black rows (``pcg_matvec_dot_kernel``'s chunks and partial sums)."""
     tid = wp.tid()
-    first = tid * DOT_CHUNK
-    last = wp.min(first + DOT_CHUNK, p.shape[0])
+    first = tid * chunk
+    last = wp.min(first + chunk, p.shape[0])
     acc0 = wp.float64(0.0)
     acc1 = wp.float64(0.0)
     acc2 = wp.float64(0.0)
@@ -2136,6 +2149,7 @@ def rb_black_residual_kernel(
     rhs: wp.array(dtype=wp.float64),
     x: wp.array(dtype=wp.float64),
     t: wp.array(dtype=wp.float64),
+    chunk: int,
     # outputs
     r: wp.array(dtype=wp.float64),
     scalars: wp.array(dtype=wp.float64),
@@ -2144,8 +2158,8 @@ def rb_black_residual_kernel(
     residual b_S - S x, which is the full system's residual on the black rows (0 on the red); scalars[3] += r . r
     over the chunk [tid * DOT_CHUNK, ...) of the black rows (four partial sums)."""
     tid = wp.tid()
-    first = tid * DOT_CHUNK
-    last = wp.min(first + DOT_CHUNK, x.shape[0])
+    first = tid * chunk
+    last = wp.min(first + chunk, x.shape[0])
     acc0 = wp.float64(0.0)
     acc1 = wp.float64(0.0)
     acc2 = wp.float64(0.0)

@@ -103,14 +103,15 @@ def pcg_matvec_dot_kernel(
     A: K.Stencil,
     p: wp.array(dtype=f64),
     slot: int,
+    chunk: int,
     # outputs
     ap: wp.array(dtype=f64),
     scalars: wp.array(dtype=f64),
 ):
     """``kernels/gas.py`` ``pcg_matvec_dot_kernel`` (one ``DOT_CHUNK`` per thread)."""
     t = wp.tid()
-    first = t * K.DOT_CHUNK
-    last = wp.min(first + K.DOT_CHUNK, p.shape[0])
+    first = t * chunk
+    last = wp.min(first + chunk, p.shape[0])
     wp.atomic_add(scalars, slot, matvec_dot_chunk(A.diag, A.coef, A.neighbour, p, ap, first, last))
 
 
@@ -173,14 +174,15 @@ def pcg_residual_start_kernel(
     A: K.Stencil,
     x: wp.array(dtype=f64),
     rhs: wp.array(dtype=f64),
+    chunk: int,
     # outputs
     r: wp.array(dtype=f64),
     scalars: wp.array(dtype=f64),
 ):
     """``kernels/gas.py`` ``pcg_residual_start_kernel`` (one ``DOT_CHUNK`` per thread)."""
     t = wp.tid()
-    first = t * K.DOT_CHUNK
-    last = wp.min(first + K.DOT_CHUNK, x.shape[0])
+    first = t * chunk
+    last = wp.min(first + chunk, x.shape[0])
     sums = residual_start_chunk(A.diag, A.coef, A.neighbour, x, rhs, r, first, last)
     wp.atomic_add(scalars, 1, sums[0])
     wp.atomic_add(scalars, 3, sums[1])
@@ -289,13 +291,14 @@ def pcg_dot_pair_kernel(
     b: wp.array(dtype=f64),
     slot_ab: int,
     slot_aa: int,
+    chunk: int,
     # outputs
     scalars: wp.array(dtype=f64),
 ):
     """``kernels/gas.py`` ``pcg_dot_pair_kernel`` (one ``DOT_CHUNK`` per thread)."""
     t = wp.tid()
-    first = t * K.DOT_CHUNK
-    last = wp.min(first + K.DOT_CHUNK, a.shape[0])
+    first = t * chunk
+    last = wp.min(first + chunk, a.shape[0])
     sums = dot_pair_chunk(a, b, first, last)
     wp.atomic_add(scalars, slot_ab, sums[0])
     wp.atomic_add(scalars, slot_aa, sums[1])
@@ -422,6 +425,7 @@ def jacobi_step_dot_kernel(
     p: wp.array(dtype=f64),
     ap: wp.array(dtype=f64),
     coefficients: wp.array(dtype=f64),
+    chunk: int,
     # outputs
     x: wp.array(dtype=f64),
     r: wp.array(dtype=f64),
@@ -430,8 +434,8 @@ def jacobi_step_dot_kernel(
 ):
     """``kernels/gas.py`` ``jacobi_step_dot_kernel`` (one ``DOT_CHUNK`` per thread; alpha from ``coefficients``)."""
     t = wp.tid()
-    first = t * K.DOT_CHUNK
-    last = wp.min(first + K.DOT_CHUNK, p.shape[0])
+    first = t * chunk
+    last = wp.min(first + chunk, p.shape[0])
     sums = jacobi_step_dot_chunk(inverse_diag, p, ap, coefficients, x, r, z, first, last)
     wp.atomic_add(scalars, 2, sums[0])
     wp.atomic_add(scalars, 3, sums[1])
@@ -605,14 +609,15 @@ def rb_black_matvec_dot_kernel(
     black_other: wp.array2d(dtype=wp.int32),
     p: wp.array(dtype=f64),
     t: wp.array(dtype=f64),
+    chunk: int,
     # outputs
     ap: wp.array(dtype=f64),
     scalars: wp.array(dtype=f64),
 ):
     """``kernels/gas.py`` ``rb_black_matvec_dot_kernel`` (one ``DOT_CHUNK`` per thread)."""
     tid = wp.tid()
-    first = tid * K.DOT_CHUNK
-    last = wp.min(first + K.DOT_CHUNK, p.shape[0])
+    first = tid * chunk
+    last = wp.min(first + chunk, p.shape[0])
     wp.atomic_add(scalars, 1, rb_black_matvec_dot_chunk(A.diag, A.coef, black_rows, black_other, p, t, ap, first, last))
 
 
@@ -666,14 +671,15 @@ def rb_black_residual_kernel(
     rhs: wp.array(dtype=f64),
     x: wp.array(dtype=f64),
     t: wp.array(dtype=f64),
+    chunk: int,
     # outputs
     r: wp.array(dtype=f64),
     scalars: wp.array(dtype=f64),
 ):
     """``kernels/gas.py`` ``rb_black_residual_kernel`` (one ``DOT_CHUNK`` per thread)."""
     tid = wp.tid()
-    first = tid * K.DOT_CHUNK
-    last = wp.min(first + K.DOT_CHUNK, x.shape[0])
+    first = tid * chunk
+    last = wp.min(first + chunk, x.shape[0])
     wp.atomic_add(scalars, 3, rb_black_residual_chunk(A.diag, A.coef, black_rows, black_other, rhs, x, t, r, first,
                                                       last))
 

@@ -15,6 +15,8 @@ import warp as wp
 
 from hel_warp.errors import ConfigError, HelWarpError
 from hel_warp.gas import GasConfig, GasField, GasSolver
+import hel_warp.gas as gas_module
+from hel_warp.multigrid import COARSEST_ROWS_CUDA
 from hel_warp.grid import Box, Channel, Geometry, Grid, Patch
 from kernels import gas as K
 from kernels import gas_cpu
@@ -436,6 +438,46 @@ def test_native_cpu_loops_give_the_warp_kernels_step(case, linear_solver, monkey
             assert np.array_equal(step_native[name], expected, equal_nan=True), name
 
 
+@pytest.mark.parametrize("case", ["inlet_outlet", "periodic"])
+def test_the_gpus_dot_chunks_give_the_cpus_step_to_the_solver_tolerance(case, monkeypatch):
+    """A GPU's native PCG sums DOT_CHUNK_CUDA rows per thread where the CPU sums DOT_CHUNK, and its V-cycle coarsens
+    to COARSEST_ROWS_CUDA rows (``device_tuning``): the same CG in another order of additions, with a coarser last
+    level. Run on the CPU with the Warp kernels (as on CUDA) and the GPU's shapes, three steps on the masked boxes give the CPU's fields to the solvers' tolerance (every field within 1e-6
+    of its largest value; the periodic box's pressure, whose level nothing fixes, up to a constant) and the last step's CG iterations within one; the recorded dot-product launches are over
+    ceil(rows / DOT_CHUNK_CUDA) threads."""
+    domain, config = _masked_case(case, "native")
+    cpu = GasSolver(domain, config)
+    reference = _three_steps(cpu, domain)
+    monkeypatch.setattr(gas_cpu, "for_device", lambda kernel, dim, device, arguments: (kernel, dim))
+    monkeypatch.setattr(gas_module, "device_tuning", lambda device: {"dot_chunk": K.DOT_CHUNK_CUDA,
+                                                                      "coarsest_rows": COARSEST_ROWS_CUDA})
+    solver = GasSolver(domain, config)
+    assert solver.dot_chunk == K.DOT_CHUNK_CUDA
+    gpu_levels, cpu_levels = solver._pressure_mg.rows_per_level, cpu._pressure_mg.rows_per_level
+    assert gpu_levels[:len(cpu_levels)] == cpu_levels  # the CPU's levels, then coarser ones where the grid allows
+    assert gpu_levels[-1] <= cpu_levels[-1]
+    if case == "inlet_outlet":
+        assert len(gpu_levels) > len(cpu_levels)
+    fields = _three_steps(solver, domain)
+    rows = solver._systems["pressure"][0].shape[0]
+    start = solver._pcg_recorded["pressure"]["r = b - A x, b.b, r.r"]
+    assert start.bounds.shape[0] == (rows + K.DOT_CHUNK_CUDA - 1) // K.DOT_CHUNK_CUDA
+    assert solver.last_iterations["pressure"] > 0
+    assert abs(solver.last_iterations["pressure"] - cpu.last_iterations["pressure"]) <= 1
+    assert all(abs(a - b) <= 1 for a, b in zip(solver.last_iterations["viscous"], cpu.last_iterations["viscous"]))
+    for step, step_ref in zip(fields, reference):
+        for name, expected in step_ref.items():
+            scale = float(np.nanmax(np.abs(expected))) or 1.0
+            actual = step[name]
+            if "pressure" in name and "grad" not in name and case == "periodic":  # no level fixed: up to a constant
+                fluid = domain.cell_fluid.numpy().astype(bool).reshape(-1)
+                flat = actual.reshape(-1) if actual.size == fluid.size else None
+                if flat is not None:
+                    shift = float(np.mean(flat[fluid] - expected.reshape(-1)[fluid]))
+                    actual = np.where(fluid, flat - shift, flat).reshape(actual.shape)
+            np.testing.assert_allclose(actual, expected, rtol=0, atol=1e-6 * scale, err_msg=name)
+
+
 def test_launch_over_is_checked():
     grid = Grid(spacing=1e-3, shape=(4, 4, 4), periodic=(True, True, True))
     domain = Geometry(shapes=(Box(lo=(-1, -1, -1), hi=(1, 1, 1)),)).build(grid)
@@ -561,19 +603,19 @@ def test_fused_pcg_kernels_equal_the_separate_passes(periodic):
 
     p, ap_fused, ap = vec(), wp.zeros(n, dtype=wp.float64), wp.zeros(n, dtype=wp.float64)
     fused, separate = wp.zeros(6, dtype=wp.float64), wp.zeros(6, dtype=wp.float64)
-    wp.launch(K.pcg_matvec_dot_kernel, dim=dots, inputs=[A, p, 1], outputs=[ap_fused, fused])
+    wp.launch(K.pcg_matvec_dot_kernel, dim=dots, inputs=[A, p, 1, K.DOT_CHUNK], outputs=[ap_fused, fused])
     wp.launch(K.stencil_matvec_kernel, dim=n, inputs=[A, p, p, one, zero], outputs=[ap])
-    wp.launch(K.pcg_dot_kernel, dim=dots, inputs=[p, ap, 1], outputs=[separate])
+    wp.launch(K.pcg_dot_kernel, dim=dots, inputs=[p, ap, 1, K.DOT_CHUNK], outputs=[separate])
     assert np.array_equal(ap_fused.numpy(), ap.numpy()) and np.array_equal(fused.numpy(), separate.numpy())
 
     x, b, r_fused = vec(), vec(), wp.zeros(n, dtype=wp.float64)
     fused.zero_()
     separate.zero_()
-    wp.launch(K.pcg_residual_start_kernel, dim=dots, inputs=[A, x, b], outputs=[r_fused, fused])
+    wp.launch(K.pcg_residual_start_kernel, dim=dots, inputs=[A, x, b, K.DOT_CHUNK], outputs=[r_fused, fused])
     wp.launch(K.stencil_matvec_kernel, dim=n, inputs=[A, x, b, one, zero], outputs=[ap])
     r = wp.array(b.numpy() - ap.numpy(), dtype=wp.float64)
-    wp.launch(K.pcg_dot_kernel, dim=dots, inputs=[b, b, 1], outputs=[separate])
-    wp.launch(K.pcg_dot_kernel, dim=dots, inputs=[r, r, 3], outputs=[separate])
+    wp.launch(K.pcg_dot_kernel, dim=dots, inputs=[b, b, 1, K.DOT_CHUNK], outputs=[separate])
+    wp.launch(K.pcg_dot_kernel, dim=dots, inputs=[r, r, 3, K.DOT_CHUNK], outputs=[separate])
     assert np.array_equal(r_fused.numpy(), r.numpy()) and np.array_equal(fused.numpy(), separate.numpy())
 
     pivot, pivot_inverse = wp.zeros(n, dtype=wp.float64), wp.zeros(n, dtype=wp.float64)
@@ -620,9 +662,9 @@ def test_native_cpu_loops_equal_the_warp_kernels(periodic):
     f64 = lambda a: wp.array(a, dtype=wp.float64)  # noqa: E731
     p, x, b = f64(vec()), f64(vec()), f64(vec())
     scalars = np.array([0.3, 0.0, 0.0, 0.0, 0.37, 0.61])  # alpha in slot 4, beta in slot 5
-    both("pcg_matvec_dot_kernel", dots, [A, p, 1], [np.zeros(n), scalars])
-    both("pcg_residual_start_kernel", dots, [A, x, b], [np.zeros(n), scalars])
-    both("pcg_dot_pair_kernel", dots, [p, b, 2, 3], [scalars])
+    both("pcg_matvec_dot_kernel", dots, [A, p, 1, K.DOT_CHUNK], [np.zeros(n), scalars])
+    both("pcg_residual_start_kernel", dots, [A, x, b, K.DOT_CHUNK], [np.zeros(n), scalars])
+    both("pcg_dot_pair_kernel", dots, [p, b, 2, 3, K.DOT_CHUNK], [scalars])
     both("pcg_step_kernel", n, [p, b, f64(scalars)], [vec(), vec()])
     both("pcg_direction_kernel", n, [x, f64(scalars)], [vec()])
     for relaxation in (0.0, 0.97):
