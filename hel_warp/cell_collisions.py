@@ -432,15 +432,19 @@ class CellCollisions:
         self._args = a
         self._key = key
 
-    def choose_lattice(self, particles, alive: np.ndarray, *, periodic_box=None, grid=None, reach: float = 0.0,
-                       extremes: tuple[float, float] | None = None):
+    def choose_lattice(self, particles, alive: np.ndarray | None, *, periodic_box=None, grid=None, reach: float = 0.0,
+                       extremes: tuple[float, float] | None = None, n_alive: int | None = None):
         """(origin, cell edges, shape) of this step's collision cells (see the module docstring); ``reach``: the
         largest path length of the step (pads the bounding box); ``extremes``: (w_max, r_max) of the live parcels
-        when the caller has them (``largest_weight_and_radius``)."""
+        when the caller has them (``largest_weight_and_radius``), ``n_alive`` their count (then ``alive``, the host
+        mask, may be None: read back only where the bounding box needs the positions)."""
         cfg = self.config
         self._merged = False
+        if alive is None and (extremes is None or n_alive is None or (periodic_box is None and grid is None)):
+            alive = particles.alive.numpy().astype(bool)
         w_max, r_max = extremes if extremes is not None else largest_weight_and_radius(particles, alive)
-        n_alive = int(np.count_nonzero(alive))
+        if n_alive is None:
+            n_alive = int(np.count_nonzero(alive))
         if periodic_box is not None:
             return periodic_lattice(periodic_box, n_alive, cfg.parcels_per_cell, cfg.cell_size)
         if grid is not None:
@@ -470,7 +474,7 @@ class CellCollisions:
 
     def collide(self, particles, dt: float, forest, domain, *, batch_forest=None, periodic_box=None, grid=None,
                 apply: bool = True, alive: np.ndarray | None = None, particle_spin: bool = False,
-                spin_form: bool = False, fluid=None, walls=None) -> None:
+                spin_form: bool = False, fluid=None, walls=None, extremes: tuple | None = None) -> None:
         """The step's collisions of ``particles`` (velocities in place); ``forest`` an explicit-layout ``Forest``,
         ``domain`` its ``ContactDomain``; ``batch_forest`` (perfect layout, optional): the accepted pairs predicted
         in batched rounds (faster, same pairs). ``apply=False``: selection only (counts and log; velocities
@@ -479,7 +483,9 @@ class CellCollisions:
         fluid mask (int, (nx, ny, nz)): a collision cell's number density is then taken over the fluid volume inside
         it, not its whole volume (a merged or shifted cell reaching into walls; ``CellConfig.fluid_volume``).
         ``walls``: (``SdfShapes``, ``WallParams``) of the solver: the sub-stepped paths reflect where they cross a
-        wall, the velocities with them (``CellConfig.wall_paths``)."""
+        wall, the velocities with them (``CellConfig.wall_paths``). ``extremes``: (max |v|, max weight, max radius,
+        count) of the live parcels when the caller reduced them on the device (``SurrogateCollision``: one read-back
+        instead of the live mask, the velocities, weights and radii); else from ``alive`` (read back if None)."""
         import warp as wp
 
         from kernels.cell_collide import (advance_paths, collide_cells, fill_fluid_volumes, path_shifts, restore_energy,
@@ -489,17 +495,23 @@ class CellCollisions:
             raise ConfigError(f"cell detection needs the step dt > 0 (got {dt!r})")
         self._counts = None
         self._shift_pending = False
-        if alive is None:
-            alive = particles.alive.numpy().astype(bool)
+        if extremes is None:
+            if alive is None:
+                alive = particles.alive.numpy().astype(bool)
+            n_alive = int(np.count_nonzero(alive))
+            v_max = (float(np.linalg.norm(particles.v.numpy()[alive].astype(np.float64), axis=1).max())
+                     if n_alive else 0.0)
+            w_max, r_max = largest_weight_and_radius(particles, alive)
+        else:  # (max |v|, max weight, max radius, count) of the live parcels (the caller reduced them on the device)
+            v_max, w_max, r_max, n_alive = extremes
+            n_alive = int(n_alive)
         seed = step_seed(self.seed, self.steps)
         self.steps += 1
-        if np.count_nonzero(alive) < 2:
+        if n_alive < 2:
             self._zero_counts()
             return
-        v_max = float(np.linalg.norm(particles.v.numpy()[alive].astype(np.float64), axis=1).max())
-        w_max, r_max = largest_weight_and_radius(particles, alive)
         origin, edges, shape = self.choose_lattice(particles, alive, periodic_box=periodic_box, grid=grid,
-                                                   reach=v_max * dt, extremes=(w_max, r_max))
+                                                   reach=v_max * dt, extremes=(w_max, r_max), n_alive=n_alive)
         shift = self.config.shift if self.config.shift is not None else self._merged
         if shift and periodic_box is None:
             shape = np.asarray(shape, int) + 1  # a shifted lattice reaches one cell further on every axis
@@ -587,7 +599,7 @@ class CellCollisions:
             from kernels.cell_collide import COUNT_ACCEPTED
 
             accepted = int(a.counts.numpy()[COUNT_ACCEPTED])
-            self.events_per_parcel = 2.0 * accepted / max(int(np.count_nonzero(alive)), 1)
+            self.events_per_parcel = 2.0 * accepted / max(n_alive, 1)
 
     def correct_positions(self, particles) -> None:
         """After the caller moved the parcels by v dt (the push): add the sub-stepped paths' position changes

@@ -498,6 +498,20 @@ class SurrogateCollision:
         collision_acceleration(grid.cell_grid(), 1.0e-6, particles.x, particles.density, fields.cell_grad_p_s,
                                fields.cell_eps_s, fields.parcel_a_coll, dt=solver.config.dt)
 
+    def _live_extremes(self, particles) -> tuple[float, float, float, int]:
+        """(max |v|, max weight, max radius, count) of the live parcels, reduced on the device
+        (``kernels/cell_collide.py`` ``live_extremes``)."""
+        import warp as wp
+
+        from kernels.cell_collide import launch_live_extremes
+
+        store = getattr(self, "_extremes", None)
+        if store is None or str(store.device) != str(particles.v.device):
+            store = self._extremes = wp.zeros(4, dtype=wp.float64, device=particles.v.device)
+        launch_live_extremes(particles.v, particles.weight, particles.radius, particles.alive, store)
+        v_max, w_max, r_max, count = (float(x) for x in store.numpy())
+        return v_max, w_max, r_max, int(count)
+
     def _uses_swept(self, particles) -> bool:
         """Whether :meth:`collide` takes the swept detection for these particles (``cell`` where auto-detection
         meets a parcel of weight > 1)."""
@@ -536,22 +550,23 @@ class SurrogateCollision:
         self._counts = None
         self._events = None
         self._shift_pending = False
-        alive = particles.alive.numpy().astype(bool)
-        if not alive.any():
+        extremes = self._live_extremes(particles)  # one launch and one read-back, not four arrays read back
+        v_max, w_max, r_max, n_alive = extremes
+        if n_alive == 0:
             return
-        r_max = float(particles.radius.numpy()[alive].max())
         if self.mode == "paper":
             self._collide_paper(particles, r_max)
             return
         if self.auto_detection:
-            self.detection = "cell" if bool((particles.weight.numpy()[alive] > 1.0).any()) else "swept"
+            self.detection = "cell" if w_max > 1.0 else "swept"
         if self.detection == "cell":
             self.cells.collide(particles, dt, self.forest, self.swept.domain, batch_forest=self.batch_forest,
                                particle_spin=self.particle_spin, spin_form=self.flat.form == "contact_spin",
                                periodic_box=self.periodic_box,
-                               grid=None if self.periodic_box is not None else self._solver_grid, alive=alive,
-                               fluid=self._solver_fluid, walls=self._walls)
+                               grid=None if self.periodic_box is not None else self._solver_grid,
+                               extremes=extremes, fluid=self._solver_fluid, walls=self._walls)
             return
+        alive = particles.alive.numpy().astype(bool)
         if self.detection == "swept":
             if dt is None or not dt > 0 or not np.isfinite(dt):
                 raise ConfigError(f"swept detection needs the step dt > 0 (got {dt!r})")

@@ -1087,3 +1087,38 @@ def test_collisional_transfer_carries_enskogs_collisional_pressure(hard_sphere_m
         events += len(log["pair"])
     assert events > 4000
     assert abs(flux / expected - 1.0) <= 4.0 / math.sqrt(events) + 0.03, flux / expected
+
+
+def test_live_extremes_on_the_device_equal_numpys_over_the_live_parcels(device):
+    """``kernels/cell_collide.py`` ``live_extremes`` (what ``SurrogateCollision.collide`` reads back instead of four
+    arrays): max |v| equals numpy's float64 norm of the float32 velocities bit for bit on the CPU (within 1 ulp
+    elsewhere: a GPU may fuse), the largest weight and radius and the count of the live parcels exactly; dead parcels
+    (here the fastest, heaviest and largest) are left out."""
+    import warp as wp
+
+    from kernels.cell_collide import launch_live_extremes
+
+    rng = np.random.default_rng(7)
+    n = 5000
+    v = rng.normal(0.0, 3.0, (n, 3)).astype(np.float32)
+    w = rng.uniform(1.0, 64.0, n).astype(np.float32)
+    r = rng.uniform(1e-4, 3e-4, n).astype(np.float32)
+    alive = (rng.random(n) < 0.7).astype(np.int32)
+    dead = np.flatnonzero(alive == 0)[:3]
+    v[dead[0]] = 100.0
+    w[dead[1]] = 1000.0
+    r[dead[2]] = 1.0
+    out = wp.zeros(4, dtype=wp.float64, device=device)
+    for _ in range(2):  # zeroed by the launch: a second call gives the same
+        launch_live_extremes(wp.array(v, dtype=wp.vec3, device=device), wp.array(w, dtype=wp.float32, device=device),
+                             wp.array(r, dtype=wp.float32, device=device),
+                             wp.array(alive, dtype=wp.int32, device=device), out)
+    got = out.numpy()
+    live = alive.astype(bool)
+    v_max = float(np.linalg.norm(v[live].astype(np.float64), axis=1).max())
+    if wp.get_device(device).is_cpu:
+        assert got[0] == v_max
+    else:
+        assert got[0] == pytest.approx(v_max, rel=2.3e-16)
+    assert got[1] == float(w[live].max()) and got[2] == float(r[live].max())
+    assert got[3] == float(live.sum())
