@@ -91,6 +91,9 @@ from types import SimpleNamespace
 
 import numpy as np
 
+if str(Path(__file__).resolve().parents[1]) not in sys.path:  # run as a script from anywhere
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 COLLISIONS = ("none", "ktgf", "surrogate", "surrogate-paper", "dem")
 DETECTIONS = ("swept", "overlap", "cell")
 KTGF_CELL = 1.0e-3
@@ -866,7 +869,9 @@ class HomogeneousCooling:
         velocity_moments(p.v, self._moment_weight, p.alive, self.moments, self.steps_done)
         for weight, moments in zip(self._species_weight, self.species_moments):
             velocity_moments(p.v, weight, p.alive, moments, self.steps_done)
-        if self.config.collisions in ("dem", "surrogate"):  # the others never turn a spin
+        # the others never turn a spin (the surrogate only with --particle-spin): their rows stay 0, with no read-back
+        if self.config.collisions == "dem" or (self.config.collisions == "surrogate"
+                                               and getattr(self.config, "particle_spin", False)):
             w = p.omega.numpy().astype(np.float64)
             r = p.radius.numpy().astype(np.float64)
             weight = np.asarray(self._moment_weight.numpy(), np.float64)

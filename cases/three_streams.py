@@ -28,8 +28,12 @@ import json
 import math
 import os
 import sys
+from pathlib import Path
 
 import numpy as np
+
+if str(Path(__file__).resolve().parents[1]) not in sys.path:  # run as a script from anywhere
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 DIAMETER = 315e-6
 """Particle diameter, m (the paper's small size)."""
