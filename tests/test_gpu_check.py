@@ -174,3 +174,24 @@ def test_cells_check_goes_on_past_a_failed_step_and_fails_at_the_end(tmp_path, t
 def test_cells_check_usage_errors_exit_2(tmp_path):
     bad = _run_cells("--out", str(tmp_path / "x"), "--bogus", timeout=60)
     assert bad.returncode == 2 and "usage: scripts/gpu_check_cells.sh [--dry-run] [--out DIR]" in bad.stderr
+
+
+def test_profile_step_runs_both_cases_on_the_cpu_and_reports_every_run(trained_models, capsys):
+    """``scripts/profile_step.py`` (the GPU profile of a box and a rig step) on the CPU at smoke sizes: one run per
+    weight and per (model, linear solver), each with its step's wall clock; the CPU records no device activity."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    import profile_step
+
+    model = trained_models["contact"]
+    assert profile_step.main(["box", "--model", model, "--particles", "1024", "--weights", "1", "8", "--warmup", "1",
+                              "--steps", "2", "--json"]) == 0
+    box = json.loads(capsys.readouterr().out)
+    assert [r["weight"] for r in box["runs"]] == [1.0, 8.0]
+    assert all(r["median_step_s"] > 0 and r["activities_per_step"] == 0 for r in box["runs"])
+    assert profile_step.main(["rig", "--model", model, "--models", "surrogate_w8", "--linear-solver", "native", "warp",
+                              "--cells", "3000", "--max-particles", "96", "--release-steps", "1", "--warmup", "1",
+                              "--steps", "1", "--json"]) == 0
+    rig = json.loads(capsys.readouterr().out)
+    assert [(r["model"], r["linear_solver"]) for r in rig["runs"]] == [("surrogate_w8", "native"),
+                                                                        ("surrogate_w8", "warp")]
+    assert all(r["median_step_s"] > 0 for r in rig["runs"])
