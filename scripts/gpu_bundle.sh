@@ -89,11 +89,16 @@ case "$(cd "$out" && pwd)/" in
   *) echo "gpu_bundle: note: $out is outside the repository; the device tool carries only paths inside it" \
        "(use --out .gpu, listed in .git/info/exclude)" >&2 ;;
 esac
-echo "On the device (each call within 30 s of the one before; 'carry' lists the one part it takes):"
+echo "Before the lease, compile the CUDA kernels here (a bare GPU machine spends ~120 s per process on them):"
+echo "  python scripts/gpu_kernel_cache.py --jobs 2 --out .gpuc/cache   (~3 min; list /.gpuc/ in .git/info/exclude)"
+echo "On the device (each call within 30 s of the one before; 'carry' lists what it takes):"
 for i in $(seq 1 $((k - 1))); do
   echo "  call $i: carry [\"$out/p$i\"]: mkdir -p /tmp/stage && cp $out/p$i /tmp/stage/"
 done
+echo "  call $k: carry [\".gpuc\"]: cp -r .gpuc/cache /tmp/stage/"
 stage=""
 [ "$k" -gt 1 ] && stage="/tmp/stage/p* "
-echo "  call $k: carry [\"$out/p$k\", ...]: mkdir -p /tmp/site && cat $stage$out/p$k | xz -dc | tar -xf - -C /tmp/site" \
-  "&& export PYTHONPATH=/tmp/site PYTHON=python3 && <the work, e.g. bash scripts/gpu_check_cells.sh>"
+echo "  call $((k + 1)): carry [\"$out/p$k\", ...]: mkdir -p /tmp/site && cat $stage$out/p$k | xz -dc | tar -xf - -C /tmp/site" \
+  "&& export PYTHONPATH=/tmp/site:\$PWD PYTHON=python3 WARP_CACHE_PATH=/tmp/stage/cache" \
+  "&& <the work, e.g. bash scripts/gpu_check_cells.sh --out /tmp/o> ; tar -czf \$OUT/out.tgz -C /tmp o" \
+  "(the tool returns at most 8 files: one archive)"

@@ -9,6 +9,8 @@ import sys
 import zipfile
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "gpu_bundle.sh"
 
@@ -51,3 +53,32 @@ def test_bad_arguments_exit_2(tmp_path):
         done = subprocess.run([str(SCRIPT), *args, "--out", str(tmp_path / "o")], capture_output=True, text=True,
                               cwd=ROOT, timeout=60)
         assert done.returncode == 2 and message in done.stderr, (args, done.stderr)
+
+
+def test_gpu_kernel_cache_compiles_modules_for_a_gpu_without_one(tmp_path):
+    """``scripts/gpu_kernel_cache.py`` compiles Warp modules for sm_90 here (Warp's NVRTC, no driver) into Warp's
+    cache layout: one cubin and its meta per module, named by the module's hash, no ``.cu`` left; ``--list`` names
+    every ``kernels/`` module with Warp code and leaves out the CPU-only queue; an architecture this Warp cannot
+    target exits 2."""
+    import warp as wp
+
+    wp.init()
+    if 90 not in set(getattr(wp._src.context.runtime, "nvrtc_supported_archs", None) or ()):
+        pytest.skip("this Warp build has no NVRTC for sm_90")
+    script = str(ROOT / "scripts" / "gpu_kernel_cache.py")
+    out = tmp_path / "cache"
+    done = subprocess.run([sys.executable, script, "--out", str(out), "--modules", "kernels.free_flight",
+                           "kernels.cell_list"], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    files = sorted(p.name for p in out.rglob("*") if p.is_file())
+    cubins = [f for f in files if f.endswith(".sm90.cubin")]
+    assert len(cubins) == 2
+    assert {c.rsplit("_", 1)[0] for c in cubins} == {"wp_kernels.free_flight", "wp_kernels.cell_list"}
+    assert {f.rsplit(".", 2)[0] for f in cubins} == {f[: -len(".meta")] for f in files if f.endswith(".meta")}
+    assert not any(f.endswith(".cu") for f in files)
+    listed = subprocess.run([sys.executable, script, "--list"], capture_output=True, text=True, timeout=600)
+    names = listed.stdout.split()
+    assert {"kernels.gas", "kernels.forest", "kernels.cell_collide", "kernels.deposit"} <= set(names)
+    assert "kernels.swept_queue" not in names
+    bad = subprocess.run([sys.executable, script, "--arch", "30", "--out", str(out)], capture_output=True, text=True)
+    assert bad.returncode == 2
