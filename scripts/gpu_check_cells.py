@@ -10,7 +10,8 @@
   strategy counter compared for equality;
 - ``box``: the particle-dominated box, wall clock per simulated second of the DEM and of HELSCM at each weight and
   their ratio (the issue's target is >= 100);
-- ``rig``: ``scripts/bench_rig.py``'s DEM / HELSCM ratios at weights 1, 8, 64.
+- ``rig``: ``scripts/bench_rig.py``'s DEM / HELSCM ratios at weights 1, 8, 64;
+- ``profile``: ``scripts/profile_step.py``'s box (per weight) and rig step: wall clock, device busy time, read-backs.
 
 Exit code 1 when the determinism comparison fails (or cannot be made because a run is missing), else 0.
 """
@@ -98,6 +99,13 @@ def summarise(out: str) -> tuple[dict, bool]:
         doc["rig"] = {k: rig.get(k) for k in ("device", "end_time", "dt", "ratios")}
         doc["rig"]["models"] = [{k: row.get(k) for k in ("model", "steps", "total_s", "median_step_s", "parcels",
                                                           "phase_median_s")} for row in rig.get("models") or []]
+    doc["profile"] = {}
+    for case in ("box", "rig"):
+        prof = _load(out, f"profile_{case}.json")
+        if prof:
+            doc["profile"][case] = [{k: run.get(k) for k in ("weight", "model", "linear_solver", "median_step_s",
+                                                              "median_busy_s", "d2h_copies_per_step")}
+                                    for run in prof.get("runs") or []]
     return doc, ok
 
 

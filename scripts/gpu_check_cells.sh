@@ -3,7 +3,8 @@
 # short lease names every failure: device report, CUDA kernel compilation, the device-agnostic cell tests on the
 # device, the cooling box (frequency / Enskog, cooling / Haff at weights 1, 8, 64; a second run of weight 8 with the
 # same seed for determinism), the particle-dominated box (DEM / HELSCM at weights 1, 8, 64, 102,400 real particles)
-# and the rig bench (DEM / HELSCM at weights 1, 8, 64).
+# the rig bench (DEM / HELSCM at weights 1, 8, 64) and the profiles of a box and a rig step (scripts/profile_step.py);
+# at the end DIR.tgz holds all of DIR (the device tool returns at most 8 files: fetch that one).
 #
 #   scripts/gpu_check_cells.sh [--dry-run] [--out DIR]
 #
@@ -17,7 +18,8 @@
 #
 # On a lent GPU machine without the project's packages (warp-lang, xgboost, zarr), carry them as a prepared
 # site-packages folder (docs/FIGURES.md, issue 12, twenty-fourth session, says how it was done) and put it on
-# PYTHONPATH; PYTHON=python3 there.
+# PYTHONPATH; PYTHON=python3 there. Carry a kernel cache compiled here (scripts/gpu_kernel_cache.py) and set
+# WARP_CACHE_PATH to it, or the kernels step compiles every CUDA module there (~120 s).
 set -uo pipefail
 . "$(dirname "$0")/gpu_check_common.sh"
 gpu_check_args gpu_check_cells gpu_cells_out 20 "$@"
@@ -28,11 +30,13 @@ tests=(tests/test_cell_collisions.py tests/test_cell_list.py tests/test_device_p
 if [ "$dry" = 1 ]; then
   device=cpu
   cool_n=512; box_n=4096; box_dem_steps=1; rig_end=0.002; rig_extra=(--cells 5000 --max-particles 192)
+  profile_rig_extra=(--cells 5000 --max-particles 192 --release-steps 1 --warmup 1 --steps 1)
   tests=(tests/test_cell_list.py)
   total_timeout=${TOTAL_TIMEOUT:-900}
 else
   device=cuda
   cool_n=32768; box_n=102400; box_dem_steps=2; rig_end=0.02; rig_extra=()
+  profile_rig_extra=()
   total_timeout=${TOTAL_TIMEOUT:-420}
 fi
 
@@ -92,7 +96,15 @@ done
 step rig_bench rig_bench.json "$py" scripts/bench_rig.py --models ktgf dem --model "$model" --weights 1 8 64 \
   --end-time "$rig_end" --device "$device" "${rig_extra[@]}" --json
 
+# where the steps' time goes (scripts/profile_step.py: Warp's activity timing; on the CPU the wall clock only)
+step profile_box profile_box.json "$py" scripts/profile_step.py box --device "$device" --model "$cool_model" \
+  --particles "$box_n" --weights 1 8 64 --json
+step profile_rig profile_rig.json "$py" scripts/profile_step.py rig --device "$device" --model "$model" \
+  --models surrogate_w64 --linear-solver native "${profile_rig_extra[@]}" --json
+
 "$py" scripts/gpu_check_cells.py "$out" > "$out/summary.json" 2> "$out/summary.log" || failed=1
+# one archive of everything (the device tool returns at most 8 files)
+tar -czf "$out.tgz" -C "$(dirname "$out")" "$(basename "$out")" 2>/dev/null || true
 wall=$(awk -v a="$started" -v b="$(date +%s.%N)" 'BEGIN { printf "%.1f", b - a }')
 if [ "$failed" = 0 ]; then
   echo "gpu_check_cells: every step passed on $device in $wall s; figures in $out/summary.json"

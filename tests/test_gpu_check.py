@@ -144,7 +144,8 @@ def test_cells_check_dry_run_writes_the_physics_and_the_ratios(tmp_path, trained
     assert "every step passed on cpu" in done.stdout
     summary = json.loads((out / "summary.json").read_text())
     assert list(summary["steps"]) == ["device", "kernels", "tests", "tests_json", "cool_w1", "cool_w8", "cool_w64",
-                                      "cool_w8_again", "box_dem", "box_w1", "box_w8", "box_w64", "rig_bench"]
+                                      "cool_w8_again", "box_dem", "box_w1", "box_w8", "box_w64", "rig_bench",
+                                      "profile_box", "profile_rig"]
     assert all(step["rc"] == 0 for step in summary["steps"].values())
     assert summary["determinism"]["identical"] is True
     assert summary["tests"]["tests"] >= 1 and summary["tests"]["failures"] == 0
@@ -153,6 +154,9 @@ def test_cells_check_dry_run_writes_the_physics_and_the_ratios(tmp_path, trained
         assert row["device"] == "cpu" and row["collisions"] > 0 and row["collision_frequency_ratio"] > 0
         assert summary["box"][w]["dem_over_helscm"] > 0
     assert set(summary["rig"]["ratios"]) >= {"dem_over_helscm_w1", "dem_over_helscm_w8", "dem_over_helscm_w64"}
+    assert [r["weight"] for r in summary["profile"]["box"]] == [1.0, 8.0, 64.0]
+    assert all(r["median_step_s"] > 0 for r in summary["profile"]["box"] + summary["profile"]["rig"])
+    assert (tmp_path / "cells_out.tgz").stat().st_size > 0  # everything in one archive
 
 
 def test_cells_check_goes_on_past_a_failed_step_and_fails_at_the_end(tmp_path, trained_models):
