@@ -110,6 +110,12 @@ class GasConfig:
     ~0.1 s each at 1e5 unknowns; on an H200 the rig's step took 116 ms with 'warp' (1,280 launches and copies, the
     device busy 23 % of it) against 67 ms with 'native' (twenty-fifth session, before the GPU's shapes; 30 ms
     after)."""
+    pcg_device_loop: bool = False
+    """The native CG as one captured graph per system whose iterations loop on the device (``wp.capture_while``,
+    the stop test in a kernel): one read-back per solve instead of one per iteration (~33 per rig step, each a sync
+    on a GPU). The same bits as the host loop (tests/test_gas.py). Off by default: on the CPU it cost 25.4 against
+    21.6 ms of gas per rig step (Warp's CPU replay of the loop), and on a GPU it has not run yet (twenty-fifth
+    session)."""
     check_finite: bool = True
     """Raise HelWarpError when a NaN/inf appears (one int read back per step)."""
 
@@ -378,6 +384,11 @@ class GasSolver:
         self._cell_kappa = wp.zeros(grid.shape, dtype=float, device=dev)
         self._pcg_recorded = {}  # system -> the native PCG's recorded launches (_pcg_launches)
         self._pcg_graphs = {}  # (system, rows, preconditioner) -> one captured PCG iteration (_pcg_iteration_graph)
+        self._pcg_solve_graphs = {}  # (system, rows, kind, tol, maxiter, atol_floor) -> a whole CG (_device_loop_pcg)
+        self._pcg_stop = wp.zeros(3, dtype=wp.float64, device=dev)  # bound, ||r||, iterations
+        self._pcg_more = wp.zeros(1, dtype=wp.int32, device=dev)  # the while loop's condition
+        self.device_loop = bool(self.config.pcg_device_loop)
+        """``GasConfig.pcg_device_loop`` (may be changed between steps)."""
         self._ordered_slots = int(not any(bool(v) for v in grid.periodic))
         """1 when every compact system couples a row to lower rows only through slots -x, -y, -z (no axis
         periodic: no coupling wraps around), which ``ic0_step_apply_kernel`` then takes without index tests."""
@@ -630,6 +641,26 @@ class GasSolver:
         else:
             precondition = None
 
+        def start():
+            s.zero_()
+            run["r = b - A x, b.b, r.r"]()
+
+        def prepare():
+            if precondition is None:
+                run["ic0 factor"]()
+                run["ic0 apply"]()
+            elif precondition == "jacobi":
+                run["jacobi start"]()  # D^-1 kept for the iterations
+            else:
+                precondition()
+            wp.copy(p, z)
+            s.zero_()
+            run["r.z new"]()  # the first iteration's shift moves it to (r.z)_old
+
+        if self.device_loop:
+            kind = precondition if precondition in (None, "jacobi") else "multigrid"
+            return self._device_loop_pcg((system, n, kind), start, prepare,
+                                         self._pcg_iteration(run, precondition), None, tol, maxiter, atol_floor)
         s.zero_()
         run["r = b - A x, b.b, r.r"]()
         host = s.numpy()
@@ -666,6 +697,26 @@ class GasSolver:
         n_b = self._red_black[system].black_rows.shape[0]
         z, p = self._pcg[1][:n_b], self._pcg[2][:n_b]
         s = self._scalars
+        if self.device_loop:
+            def start():
+                s.zero_()
+                for name in ("rb gather black", "rb gather red", "rb x_r", "rb residual, r.r", "b.b"):
+                    run[name]()
+
+            def prepare():
+                p.zero_()
+                s.zero_()  # alpha = 0 (read from the copy): the pass only takes z = D_b^-1 r and r.z (x, r stay)
+                self._coefficients.zero_()
+                run["rb step, jacobi, r.z new, r.r"]()
+                wp.copy(p, z)
+
+            def finish():
+                run["rb x_r"]()  # also after 0 iterations: t again from the same x_b
+                run["rb scatter black"]()
+                run["rb scatter red"]()
+
+            return self._device_loop_pcg((system, n, "red_black"), start, prepare,
+                                         self._pcg_iteration(run, "red_black"), finish, tol, maxiter, atol_floor)
         s.zero_()
         for name in ("rb gather black", "rb gather red", "rb x_r", "rb residual, r.r", "b.b"):
             run[name]()
@@ -702,30 +753,74 @@ class GasSolver:
         kind = precondition if precondition in (None, "jacobi", "red_black") else "multigrid"
         key = (system, n, kind)
         graph = self._pcg_graphs.get(key)
-        if graph is None and kind == "red_black":  # the reduced system's CG (``_red_black_pcg``)
+        if graph is None:
             with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+                self._pcg_iteration(run, precondition)()
+            graph = self._pcg_graphs[key] = capture.graph
+        return graph
+
+    @staticmethod
+    def _pcg_iteration(run: dict, precondition):
+        """One PCG iteration's launches as a callable (``_pcg_iteration_graph`` says what they do)."""
+        if precondition == "red_black":  # the reduced system's CG (``_red_black_pcg``)
+            def iteration():
                 for name in ("shift", "rb N p", "rb ap, p.ap", "alpha", "rb step, jacobi, r.z new, r.r", "beta",
                              "rb direction"):
                     run[name]()
-            graph = self._pcg_graphs[key] = capture.graph
-        elif graph is None:
-            with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
-                run["shift"]()
-                run["ap, p.ap"]()
-                run["alpha"]()
-                if precondition == "jacobi":
-                    run["step, jacobi, r.z new, r.r"]()
+            return iteration
+
+        def iteration():
+            run["shift"]()
+            run["ap, p.ap"]()
+            run["alpha"]()
+            if precondition == "jacobi":
+                run["step, jacobi, r.z new, r.r"]()
+            else:
+                if precondition is None:
+                    run["step, ic0 apply"]()
                 else:
-                    if precondition is None:
-                        run["step, ic0 apply"]()
-                    else:
-                        run["step"]()
-                        precondition()
-                    run["r.z new, r.r"]()  # the residual check's r.r in the same pass, every iteration
-                run["beta"]()
-                run["direction"]()
-            graph = self._pcg_graphs[key] = capture.graph
-        return graph
+                    run["step"]()
+                    precondition()
+                run["r.z new, r.r"]()  # the residual check's r.r in the same pass, every iteration
+            run["beta"]()
+            run["direction"]()
+        return iteration
+
+    def _device_loop_pcg(self, key: tuple, start, prepare, iteration, finish, tol: float, maxiter: int,
+                         atol_floor: float) -> tuple:
+        """The whole CG of one system as one captured graph (``GasSolver.device_loop``): ``start`` (r = b - A x, b.b,
+        r.r), the stop test's start (``pcg_stop_start_kernel``), ``prepare`` (the preconditioner's set-up, p = z,
+        r.z; run also when the guess already meets the bound: it leaves x alone), then the iterations in a
+        ``wp.capture_while`` loop (a CUDA graph's while node; Warp's CPU replay loops natively), each followed by
+        ``pcg_stop_kernel``, then ``finish`` (None or the red-black scatter). The same launches in the same order
+        as the host loop, so the same bits; one read-back per solve (bound, ||r||, iterations) where the host loop
+        reads ||r|| after every iteration (a sync each on a GPU). Captured once per (system, rows, kind, tol,
+        maxiter, atol_floor). Returns (iterations, ||r||, bound)."""
+        graph_key = (*key, float(tol), int(maxiter), float(atol_floor))
+        graph = self._pcg_solve_graphs.get(graph_key)
+        if graph is None:
+            dev, s, stop, more = self.device, self._scalars, self._pcg_stop, self._pcg_more
+            stop_start = wp.launch(K.pcg_stop_start_kernel, dim=1, inputs=[s, wp.float64(tol), wp.float64(atol_floor),
+                                                                         int(maxiter)], outputs=[stop, more],
+                                   device=dev, record_cmd=True)
+            check = wp.launch(K.pcg_stop_kernel, dim=1, inputs=[s, int(maxiter)], outputs=[stop, more], device=dev,
+                              record_cmd=True)
+
+            def body():
+                iteration()
+                check.launch()
+
+            with wp.ScopedCapture(device=dev, force_module_load=False) as capture:
+                start()
+                stop_start.launch()
+                prepare()
+                wp.capture_while(more, body)
+                if finish is not None:
+                    finish()
+            graph = self._pcg_solve_graphs[graph_key] = capture.graph
+        wp.capture_launch(graph)
+        atol, residual, iterations = (float(v) for v in self._pcg_stop.numpy())
+        return int(iterations), residual, atol
 
     # ------------------------------------------------------------------ sub-steps
     def update_cell_state(self, gas: GasField) -> None:

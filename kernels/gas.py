@@ -2217,6 +2217,44 @@ def pcg_ratio_kernel(
 
 
 @wp.kernel
+def pcg_stop_start_kernel(
+    scalars: wp.array(dtype=wp.float64),
+    tol: wp.float64,
+    atol_floor: wp.float64,
+    maxiter: int,
+    # outputs
+    stop: wp.array(dtype=wp.float64),
+    more: wp.array(dtype=wp.int32),
+):
+    """The device-side loop's start (``GasSolver._native_pcg``), one thread: from b.b (scalars[1]) and r.r
+    (scalars[3]) the bound atol = max(tol ||b||, atol_floor) into stop[0], ||r|| into stop[1], 0 iterations into
+    stop[2], and ``more`` = 1 while ||r|| > atol (NaN stops) and maxiter > 0: the host loop's numbers."""
+    atol = wp.max(tol * wp.sqrt(scalars[1]), atol_floor)
+    residual = wp.sqrt(scalars[3])
+    stop[0] = atol
+    stop[1] = residual
+    stop[2] = wp.float64(0.0)
+    more[0] = wp.where(residual > atol and maxiter > 0, 1, 0)
+
+
+@wp.kernel
+def pcg_stop_kernel(
+    scalars: wp.array(dtype=wp.float64),
+    maxiter: int,
+    # outputs
+    stop: wp.array(dtype=wp.float64),
+    more: wp.array(dtype=wp.int32),
+):
+    """After an iteration, one thread: one more iteration in stop[2], ||r|| (scalars[3] = r.r) into stop[1], and
+    ``more`` = 1 while ||r|| > stop[0] (NaN stops) and fewer than maxiter iterations were taken."""
+    k = stop[2] + wp.float64(1.0)
+    residual = wp.sqrt(scalars[3])
+    stop[2] = k
+    stop[1] = residual
+    more[0] = wp.where(residual > stop[0] and k < wp.float64(maxiter), 1, 0)
+
+
+@wp.kernel
 def pcg_shift_kernel(
     # outputs
     scalars: wp.array(dtype=wp.float64),

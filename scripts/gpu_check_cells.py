@@ -100,11 +100,12 @@ def summarise(out: str) -> tuple[dict, bool]:
         doc["rig"]["models"] = [{k: row.get(k) for k in ("model", "steps", "total_s", "median_step_s", "parcels",
                                                           "phase_median_s")} for row in rig.get("models") or []]
     doc["profile"] = {}
-    for case in ("box", "rig"):
+    for case in ("box", "rig", "rig_loop"):
         prof = _load(out, f"profile_{case}.json")
         if prof:
-            doc["profile"][case] = [{k: run.get(k) for k in ("weight", "model", "linear_solver", "median_step_s",
-                                                              "median_busy_s", "d2h_copies_per_step")}
+            doc["profile"][case] = [{k: run.get(k) for k in ("weight", "model", "linear_solver", "pcg_loop",
+                                                              "median_step_s", "median_busy_s",
+                                                              "d2h_copies_per_step")}
                                     for run in prof.get("runs") or []]
     return doc, ok
 

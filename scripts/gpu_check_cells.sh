@@ -101,6 +101,9 @@ step profile_box profile_box.json "$py" scripts/profile_step.py box --device "$d
   --particles "$box_n" --weights 1 8 64 --json
 step profile_rig profile_rig.json "$py" scripts/profile_step.py rig --device "$device" --model "$model" \
   --models surrogate_w64 --linear-solver native "${profile_rig_extra[@]}" --json
+# the native CG's device-side loop (GasConfig.pcg_device_loop, a CUDA while node), apart: it has not run on a GPU
+step profile_rig_loop profile_rig_loop.json "$py" scripts/profile_step.py rig --device "$device" --model "$model" \
+  --models surrogate_w64 --pcg-loop host device "${profile_rig_extra[@]}" --json
 
 "$py" scripts/gpu_check_cells.py "$out" > "$out/summary.json" 2> "$out/summary.log" || failed=1
 # one archive of everything (the device tool returns at most 8 files)

@@ -15,7 +15,8 @@ Cases:
 - ``box``: the particle-dominated cooling box of the issue's ratio (``cases/homogeneous_cooling.py``, eps_s 0.01,
   Theta0 = 1 m^2/s^2, ``--particles`` real particles), HELSCM with cell detection at each ``--weights``;
 - ``rig``: the colliding-streams rig (``scripts/bench_rig.py``'s ``build_model``) with each ``--models`` label
-  (``ktgf``, ``surrogate_w64``, ...) and each ``--linear-solver`` of the gas (``GasConfig.linear_solver``).
+  (``ktgf``, ``surrogate_w64``, ...), each ``--linear-solver`` of the gas (``GasConfig.linear_solver``) and each
+  ``--pcg-loop`` of the native one (``GasConfig.pcg_device_loop``).
 
 On the CPU the activity timing records nothing: the wall clock and the step counts are still printed (the script's
 own test runs it so).
@@ -24,6 +25,7 @@ Usage::
 
     python scripts/profile_step.py box --device cuda --weights 1 64 --model MODEL_DIR
     python scripts/profile_step.py rig --device cuda --models surrogate_w64 --linear-solver warp native --model DIR
+    python scripts/profile_step.py rig --device cuda --models ktgf --pcg-loop host device --model DIR
 """
 
 from __future__ import annotations
@@ -54,7 +56,7 @@ def _box(args, weight: float):
     return case.step
 
 
-def _rig(args, label: str, solver: str):
+def _rig(args, label: str, solver: str, loop: str = "host"):
     from cases import colliding_streams as case
 
     import bench_rig
@@ -64,6 +66,7 @@ def _rig(args, label: str, solver: str):
                             max_particles=args.max_particles, device=args.device)
     rig = bench_rig.build_model(case, label, ns)
     rig.gas_solver.linear_solver = solver  # GasConfig.linear_solver, after the set-up (both paths are set up)
+    rig.gas_solver.device_loop = loop == "device"  # GasConfig.pcg_device_loop
     rig.solver.time_sub_steps = False  # no sync per phase: the step as a user runs it
     for _ in range(args.release_steps):  # the release: parcels in the rig before the profiled steps
         rig.solver.step()
@@ -111,6 +114,9 @@ def main(argv=None) -> int:
     ap.add_argument("--models", nargs="+", default=["surrogate_w64"], help="rig: bench_rig labels")
     ap.add_argument("--linear-solver", nargs="+", default=["native"], choices=("warp", "native"),
                     help="rig: the gas's linear solver(s)")
+    ap.add_argument("--pcg-loop", nargs="+", default=["host"], choices=("host", "device"),
+                    help="rig: the native CG's loop(s): host (a read-back per iteration) or device "
+                         "(GasConfig.pcg_device_loop)")
     ap.add_argument("--cells", type=int, default=None, help="rig: shrink the grid (smoke runs)")
     ap.add_argument("--max-particles", type=int, default=None, help="rig: cap the parcels")
     ap.add_argument("--release-steps", type=int, default=6, help="rig: untimed steps of the release")
@@ -149,16 +155,19 @@ def main(argv=None) -> int:
     else:
         for label in args.models:
             for solver in args.linear_solver:
-                step = _rig(args, label, solver)
-                say(f"rig {label} gas={solver} set up and released")
-                runs.append({"case": "rig", "model": label, "linear_solver": solver,
-                             **profile(step, args, device)})
-                say(f"rig {label} gas={solver} profiled: step {1e3 * runs[-1]['median_step_s']:.2f} ms")
+                for loop in args.pcg_loop if solver == "native" else ["host"]:
+                    step = _rig(args, label, solver, loop)
+                    say(f"rig {label} gas={solver} loop={loop} set up and released")
+                    runs.append({"case": "rig", "model": label, "linear_solver": solver, "pcg_loop": loop,
+                                 **profile(step, args, device)})
+                    say(f"rig {label} gas={solver} loop={loop} profiled: step "
+                        f"{1e3 * runs[-1]['median_step_s']:.2f} ms")
     if args.json:
         print(json.dumps({"device": str(device), "runs": runs}, indent=1))
         return 0
     for r in runs:
-        what = f"box W={r['weight']:g}" if r["case"] == "box" else f"rig {r['model']} gas={r['linear_solver']}"
+        what = (f"box W={r['weight']:g}" if r["case"] == "box"
+                else f"rig {r['model']} gas={r['linear_solver']} loop={r['pcg_loop']}")
         print(f"== {what} on {device}: step {1e3 * r['median_step_s']:.2f} ms, device busy "
               f"{1e3 * r['median_busy_s']:.2f} ms ({100 * r['busy_fraction']:.0f} %), "
               f"{r['activities_per_step']:.0f} activities and {r['d2h_copies_per_step']:.0f} device-to-host copies per step")

@@ -478,6 +478,30 @@ def test_the_gpus_dot_chunks_give_the_cpus_step_to_the_solver_tolerance(case, mo
             np.testing.assert_allclose(actual, expected, rtol=0, atol=1e-6 * scale, err_msg=name)
 
 
+@pytest.mark.parametrize("case", ["inlet_outlet", "periodic"])
+@pytest.mark.parametrize("preconditioners", [("multigrid", "red_black"), ("ic", "ic0"), ("multigrid", "jacobi")],
+                         ids=["multigrid-red_black", "ic-ic0", "multigrid-jacobi"])
+def test_the_device_side_cg_loop_gives_the_host_loops_bits(case, preconditioners):
+    """``GasConfig.pcg_device_loop``: each CG as one captured graph, the stop test on the device in a
+    ``wp.capture_while`` loop (one read-back per solve), against the host loop that reads ||r|| after every captured
+    iteration: three steps on the masked boxes give every GasField array bit for bit and the same iterations, with
+    every preconditioner of the pressure and the viscous systems."""
+    domain, config = _masked_case(case, "native")
+    config = dataclasses.replace(config, pressure_preconditioner=preconditioners[0],
+                                 viscous_preconditioner=preconditioners[1])
+    host = GasSolver(domain, config)
+    assert not host.device_loop  # the default
+    reference = _three_steps(host, domain)
+    device = GasSolver(domain, dataclasses.replace(config, pcg_device_loop=True))
+    assert device.device_loop
+    fields = _three_steps(device, domain)
+    assert device.last_iterations == host.last_iterations and host.last_iterations["pressure"] > 0
+    assert len(device._pcg_solve_graphs) >= 2 and not host._pcg_solve_graphs
+    for step, step_ref in zip(fields, reference):
+        for name, expected in step_ref.items():
+            assert np.array_equal(step[name], expected, equal_nan=True), name
+
+
 def test_launch_over_is_checked():
     grid = Grid(spacing=1e-3, shape=(4, 4, 4), periodic=(True, True, True))
     domain = Geometry(shapes=(Box(lo=(-1, -1, -1), hi=(1, 1, 1)),)).build(grid)

@@ -145,7 +145,7 @@ def test_cells_check_dry_run_writes_the_physics_and_the_ratios(tmp_path, trained
     summary = json.loads((out / "summary.json").read_text())
     assert list(summary["steps"]) == ["device", "kernels", "tests", "tests_json", "cool_w1", "cool_w8", "cool_w64",
                                       "cool_w8_again", "box_dem", "box_w1", "box_w8", "box_w64", "rig_bench",
-                                      "profile_box", "profile_rig"]
+                                      "profile_box", "profile_rig", "profile_rig_loop"]
     assert all(step["rc"] == 0 for step in summary["steps"].values())
     assert summary["determinism"]["identical"] is True
     assert summary["tests"]["tests"] >= 1 and summary["tests"]["failures"] == 0
@@ -156,6 +156,7 @@ def test_cells_check_dry_run_writes_the_physics_and_the_ratios(tmp_path, trained
     assert set(summary["rig"]["ratios"]) >= {"dem_over_helscm_w1", "dem_over_helscm_w8", "dem_over_helscm_w64"}
     assert [r["weight"] for r in summary["profile"]["box"]] == [1.0, 8.0, 64.0]
     assert all(r["median_step_s"] > 0 for r in summary["profile"]["box"] + summary["profile"]["rig"])
+    assert [r["pcg_loop"] for r in summary["profile"]["rig_loop"]] == ["host", "device"]
     assert (tmp_path / "cells_out.tgz").stat().st_size > 0  # everything in one archive
 
 
@@ -198,4 +199,9 @@ def test_profile_step_runs_both_cases_on_the_cpu_and_reports_every_run(trained_m
     rig = json.loads(capsys.readouterr().out)
     assert [(r["model"], r["linear_solver"]) for r in rig["runs"]] == [("surrogate_w8", "native"),
                                                                         ("surrogate_w8", "warp")]
+    assert profile_step.main(["rig", "--model", model, "--models", "ktgf", "--pcg-loop", "host", "device",
+                              "--cells", "3000", "--max-particles", "96", "--release-steps", "1", "--warmup", "1",
+                              "--steps", "1", "--json"]) == 0
+    loops = json.loads(capsys.readouterr().out)
+    assert [r["pcg_loop"] for r in loops["runs"]] == ["host", "device"]
     assert all(r["median_step_s"] > 0 for r in rig["runs"])
