@@ -661,24 +661,14 @@ class GasSolver:
             kind = precondition if precondition in (None, "jacobi") else "multigrid"
             return self._device_loop_pcg((system, n, kind), start, prepare,
                                          self._pcg_iteration(run, precondition), None, tol, maxiter, atol_floor)
-        s.zero_()
-        run["r = b - A x, b.b, r.r"]()
+        start()
         host = s.numpy()
         atol = max(tol * float(np.sqrt(host[1])), atol_floor)
         residual = float(np.sqrt(host[3]))
         iterations = 0
         if residual <= atol:
             return iterations, residual, atol
-        if precondition is None:
-            run["ic0 factor"]()
-            run["ic0 apply"]()
-        elif precondition == "jacobi":
-            run["jacobi start"]()  # D^-1 kept for the iterations
-        else:
-            precondition()
-        wp.copy(p, z)
-        s.zero_()
-        run["r.z new"]()  # the first iteration's shift moves it to (r.z)_old
+        prepare()
         # captured, not run, the first time; IC(0) takes the step inside its forward substitution
         iteration = self._pcg_iteration_graph(system, n, run, precondition)
         while iterations < maxiter:
@@ -697,39 +687,36 @@ class GasSolver:
         n_b = self._red_black[system].black_rows.shape[0]
         z, p = self._pcg[1][:n_b], self._pcg[2][:n_b]
         s = self._scalars
-        if self.device_loop:
-            def start():
-                s.zero_()
-                for name in ("rb gather black", "rb gather red", "rb x_r", "rb residual, r.r", "b.b"):
-                    run[name]()
+        def start():
+            s.zero_()
+            for name in ("rb gather black", "rb gather red", "rb x_r", "rb residual, r.r", "b.b"):
+                run[name]()
 
-            def prepare():
-                p.zero_()
-                s.zero_()  # alpha = 0 (read from the copy): the pass only takes z = D_b^-1 r and r.z (x, r stay)
-                self._coefficients.zero_()
-                run["rb step, jacobi, r.z new, r.r"]()
-                wp.copy(p, z)
-
-            def finish():
-                run["rb x_r"]()  # also after 0 iterations: t again from the same x_b
-                run["rb scatter black"]()
-                run["rb scatter red"]()
-
-            return self._device_loop_pcg((system, n, "red_black"), start, prepare,
-                                         self._pcg_iteration(run, "red_black"), finish, tol, maxiter, atol_floor)
-        s.zero_()
-        for name in ("rb gather black", "rb gather red", "rb x_r", "rb residual, r.r", "b.b"):
-            run[name]()
-        host = s.numpy()
-        atol = max(tol * float(np.sqrt(host[1])), atol_floor)
-        residual = float(np.sqrt(host[3]))
-        iterations = 0
-        if residual > atol:
+        def prepare():
             p.zero_()
             s.zero_()  # alpha = 0 (read from the copy): the pass only takes z = D_b^-1 r and r.z (x and r stay)
             self._coefficients.zero_()
             run["rb step, jacobi, r.z new, r.r"]()
             wp.copy(p, z)
+
+        def scatter():
+            run["rb scatter black"]()
+            run["rb scatter red"]()
+
+        if self.device_loop:
+            def finish():
+                run["rb x_r"]()  # also after 0 iterations: t again from the same x_b
+                scatter()
+
+            return self._device_loop_pcg((system, n, "red_black"), start, prepare,
+                                         self._pcg_iteration(run, "red_black"), finish, tol, maxiter, atol_floor)
+        start()
+        host = s.numpy()
+        atol = max(tol * float(np.sqrt(host[1])), atol_floor)
+        residual = float(np.sqrt(host[3]))
+        iterations = 0
+        if residual > atol:
+            prepare()
             iteration = self._pcg_iteration_graph(system, n, run, "red_black")
             while iterations < maxiter:
                 wp.capture_launch(iteration)
@@ -738,8 +725,7 @@ class GasSolver:
                 if not residual > atol:
                     break
             run["rb x_r"]()
-        run["rb scatter black"]()
-        run["rb scatter red"]()
+        scatter()
         return iterations, residual, atol
 
     def _pcg_iteration_graph(self, system, n: int, run: dict, precondition):
