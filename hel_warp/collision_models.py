@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from hel_warp.errors import ConfigError
+from hel_warp.errors import ConfigError, HelWarpError
 from hel_warp.cfd_dem import DemCollision
 from hel_warp.pairs import DEFAULT_STREAMS, pair_counts
 
@@ -507,9 +507,12 @@ class SurrogateCollision:
 
         store = getattr(self, "_extremes", None)
         if store is None or str(store.device) != str(particles.v.device):
-            store = self._extremes = wp.zeros(4, dtype=wp.float64, device=particles.v.device)
+            store = self._extremes = wp.zeros(5, dtype=wp.float64, device=particles.v.device)
         launch_live_extremes(particles.v, particles.weight, particles.radius, particles.alive, store)
-        v_max, w_max, r_max, count = (float(x) for x in store.numpy())
+        v_max, w_max, r_max, count, bad = (float(x) for x in store.numpy())
+        if bad:
+            raise HelWarpError(f"{int(bad)} live parcels have a NaN or infinite velocity, weight or radius before the "
+                               "collisions: the step blew up (reduce dt) or the input holds NaN")
         return v_max, w_max, r_max, int(count)
 
     def _uses_swept(self, particles) -> bool:

@@ -32,6 +32,7 @@ overshoot in dense cells at large dt.
 
 from __future__ import annotations
 
+import sys
 import time
 import weakref
 from dataclasses import dataclass
@@ -371,7 +372,7 @@ class GasSolver:
         self._pressure_increment = wp.zeros(self._n_cells, dtype=wp.float64, device=dev)
         """dp of the last projection (flat, box-sized; 0 in solid cells)."""
         solver = self.config.linear_solver
-        # the CUDA branch (warp.optim.linear.cg, our V-cycle as M) runs on the CPU too: tests/test_device_paths.py
+        # 'warp' (warp.optim.linear.cg, our V-cycle as M) on request, tested on the CPU: tests/test_device_paths.py
         self.linear_solver = "native" if solver == "auto" else solver
         """The linear solver actually used ('warp' or 'native')."""
         self.dot_chunk = device_tuning(self.device)["dot_chunk"]
@@ -384,8 +385,10 @@ class GasSolver:
         self._cell_kappa = wp.zeros(grid.shape, dtype=float, device=dev)
         self._pcg_recorded = {}  # system -> the native PCG's recorded launches (_pcg_launches)
         self._pcg_graphs = {}  # (system, rows, preconditioner) -> one captured PCG iteration (_pcg_iteration_graph)
-        self._pcg_solve_graphs = {}  # (system, rows, kind, tol, maxiter, atol_floor) -> a whole CG (_device_loop_pcg)
+        self._pcg_solve_graphs = {}  # (system, rows, kind) -> a whole CG (_device_loop_pcg)
         self._pcg_stop = wp.zeros(3, dtype=wp.float64, device=dev)  # bound, ||r||, iterations
+        self._pcg_params = wp.zeros(3, dtype=wp.float64, device=dev)  # tol, atol_floor, maxiter
+        self._device_loop_warned = False
         self._pcg_more = wp.zeros(1, dtype=wp.int32, device=dev)  # the while loop's condition
         self.device_loop = bool(self.config.pcg_device_loop)
         """``GasConfig.pcg_device_loop`` (may be changed between steps)."""
@@ -659,8 +662,10 @@ class GasSolver:
 
         if self.device_loop:
             kind = precondition if precondition in (None, "jacobi") else "multigrid"
-            return self._device_loop_pcg((system, n, kind), start, prepare,
-                                         self._pcg_iteration(run, precondition), None, tol, maxiter, atol_floor)
+            done = self._device_loop_pcg((system, n, kind), start, prepare, self._pcg_iteration(run, precondition),
+                                         None, tol, maxiter, atol_floor)
+            if done is not None:
+                return done
         start()
         host = s.numpy()
         atol = max(tol * float(np.sqrt(host[1])), atol_floor)
@@ -708,14 +713,16 @@ class GasSolver:
                 run["rb x_r"]()  # also after 0 iterations: t again from the same x_b
                 scatter()
 
-            return self._device_loop_pcg((system, n, "red_black"), start, prepare,
+            done = self._device_loop_pcg((system, n, "red_black"), start, prepare,
                                          self._pcg_iteration(run, "red_black"), finish, tol, maxiter, atol_floor)
+            if done is not None:
+                return done
         start()
         host = s.numpy()
         atol = max(tol * float(np.sqrt(host[1])), atol_floor)
         residual = float(np.sqrt(host[3]))
         iterations = 0
-        if residual > atol:
+        if not residual <= atol:  # a NaN residual takes one iteration, as in ``_native_pcg`` (the caller reports it)
             prepare()
             iteration = self._pcg_iteration_graph(system, n, run, "red_black")
             while iterations < maxiter:
@@ -779,17 +786,28 @@ class GasSolver:
         r.z; run also when the guess already meets the bound: it leaves x alone), then the iterations in a
         ``wp.capture_while`` loop (a CUDA graph's while node; Warp's CPU replay loops natively), each followed by
         ``pcg_stop_kernel``, then ``finish`` (None or the red-black scatter). The same launches in the same order
-        as the host loop, so the same bits; one read-back per solve (bound, ||r||, iterations) where the host loop
-        reads ||r|| after every iteration (a sync each on a GPU). Captured once per (system, rows, kind, tol,
-        maxiter, atol_floor). Returns (iterations, ||r||, bound)."""
-        graph_key = (*key, float(tol), int(maxiter), float(atol_floor))
-        graph = self._pcg_solve_graphs.get(graph_key)
+        as the host loop, so the same bits (NaN cases too); one read-back per solve (bound, ||r||, iterations) where
+        the host loop reads ||r|| after every iteration (a sync each on a GPU). Captured once per (system, rows,
+        kind); tol, atol_floor and maxiter are written to the device before each solve. Returns (iterations, ||r||,
+        bound), or None where the driver cannot loop in a graph (then ``device_loop`` is switched off with a
+        warning and the caller takes the host loop)."""
+        dev, s, stop, more, params = self.device, self._scalars, self._pcg_stop, self._pcg_more, self._pcg_params
+        if dev.is_cuda and not wp.is_conditional_graph_supported():
+            if not self._device_loop_warned:
+                self._device_loop_warned = True
+                print("hel-warp: warning: GasConfig.pcg_device_loop needs CUDA graph conditional nodes (CUDA 12.4+), "
+                      "which this driver lacks: the CG loops on the host", file=sys.stderr)
+            self.device_loop = False
+            return None
+        # the stop test's parameters on the device, so that one graph serves every step (the pressure's atol_floor
+        # changes with the step's gross divergence)
+        wp.launch(K.pcg_params_kernel, dim=1, inputs=[wp.float64(tol), wp.float64(atol_floor), wp.float64(maxiter)],
+                  outputs=[params], device=dev)
+        graph = self._pcg_solve_graphs.get(key)
         if graph is None:
-            dev, s, stop, more = self.device, self._scalars, self._pcg_stop, self._pcg_more
-            stop_start = wp.launch(K.pcg_stop_start_kernel, dim=1, inputs=[s, wp.float64(tol), wp.float64(atol_floor),
-                                                                         int(maxiter)], outputs=[stop, more],
+            stop_start = wp.launch(K.pcg_stop_start_kernel, dim=1, inputs=[s, params], outputs=[stop, more],
                                    device=dev, record_cmd=True)
-            check = wp.launch(K.pcg_stop_kernel, dim=1, inputs=[s, int(maxiter)], outputs=[stop, more], device=dev,
+            check = wp.launch(K.pcg_stop_kernel, dim=1, inputs=[s, params], outputs=[stop, more], device=dev,
                               record_cmd=True)
 
             def body():
@@ -803,7 +821,7 @@ class GasSolver:
                 wp.capture_while(more, body)
                 if finish is not None:
                     finish()
-            graph = self._pcg_solve_graphs[graph_key] = capture.graph
+            graph = self._pcg_solve_graphs[key] = capture.graph
         wp.capture_launch(graph)
         atol, residual, iterations = (float(v) for v in self._pcg_stop.numpy())
         return int(iterations), residual, atol

@@ -1640,8 +1640,8 @@ def pcg_dot_kernel(
     # outputs
     scalars: wp.array(dtype=wp.float64),
 ):
-    """scalars[slot] += a . b over the chunk [tid * DOT_CHUNK, ...) (launch ceil(n / DOT_CHUNK) threads), in four
-    interleaved partial sums (one sum is a chain of dependent adds: ~4x slower on a CPU core)."""
+    """scalars[slot] += a . b over the chunk [tid * chunk, ...) (launch ceil(n / chunk) threads; ``chunk``:
+    DOT_CHUNK on the CPU, DOT_CHUNK_CUDA on a GPU), in four interleaved partial sums (one sum is a chain of dependent adds: ~4x slower on a CPU core)."""
     t = wp.tid()
     first = t * chunk
     last = wp.min(first + chunk, a.shape[0])
@@ -1719,8 +1719,8 @@ def pcg_matvec_dot_kernel(
     ap: wp.array(dtype=wp.float64),
     scalars: wp.array(dtype=wp.float64),
 ):
-    """ap = A p and scalars[slot] += p . ap in one pass over the chunk [tid * DOT_CHUNK, ...) (launch
-    ceil(n / DOT_CHUNK) threads): the numbers of ``stencil_matvec_kernel`` (alpha 1, beta 0) then
+    """ap = A p and scalars[slot] += p . ap in one pass over the chunk [tid * chunk, ...) (launch
+    ceil(n / chunk) threads): the numbers of ``stencil_matvec_kernel`` (alpha 1, beta 0) then
     ``pcg_dot_kernel`` (the same chunks and four interleaved partial sums), without a second pass over p and ap."""
     t = wp.tid()
     first = t * chunk
@@ -1760,8 +1760,8 @@ def pcg_residual_start_kernel(
     r: wp.array(dtype=wp.float64),
     scalars: wp.array(dtype=wp.float64),
 ):
-    """r = b - A x, scalars[1] += b . b and scalars[3] += r . r over the chunk [tid * DOT_CHUNK, ...) (launch
-    ceil(n / DOT_CHUNK) threads): the numbers of ``stencil_matvec_kernel`` (alpha 1, beta 0), the subtraction and two
+    """r = b - A x, scalars[1] += b . b and scalars[3] += r . r over the chunk [tid * chunk, ...) (launch
+    ceil(n / chunk) threads): the numbers of ``stencil_matvec_kernel`` (alpha 1, beta 0), the subtraction and two
     ``pcg_dot_kernel`` passes (the same chunks and partial sums) in one pass."""
     t = wp.tid()
     first = t * chunk
@@ -1963,8 +1963,8 @@ def jacobi_step_dot_kernel(
     z: wp.array(dtype=wp.float64),
     scalars: wp.array(dtype=wp.float64),
 ):
-    """Jacobi-PCG's iteration after A p in one pass over the chunk [tid * DOT_CHUNK, ...) (launch
-    ceil(n / DOT_CHUNK) threads): the step x += alpha p, r -= alpha Ap (alpha = coefficients[4],
+    """Jacobi-PCG's iteration after A p in one pass over the chunk [tid * chunk, ...) (launch
+    ceil(n / chunk) threads): the step x += alpha p, r -= alpha Ap (alpha = coefficients[4],
     ``pcg_step_kernel``), z = D^-1 r, and scalars[2] += r . z, scalars[3] += r . r (``pcg_dot_pair_kernel``'s chunks
     and partial sums): the numbers of those three passes in one. alpha is read from ``coefficients``, the copy
     ``pcg_ratio_kernel`` writes beside ``scalars``: the deterministic atomics (module header) refuse a kernel that
@@ -2112,7 +2112,7 @@ def rb_black_matvec_dot_kernel(
     scalars: wp.array(dtype=wp.float64),
 ):
     """ap = S p = D_b p - N_br t (t = D_r^-1 N_rb p, ``rb_red_kernel``) and scalars[1] += p . ap over the chunk
-    [tid * DOT_CHUNK, ...) of the black rows (``pcg_matvec_dot_kernel``'s chunks and partial sums)."""
+    [tid * chunk, ...) of the black rows (``pcg_matvec_dot_kernel``'s chunks and partial sums)."""
     tid = wp.tid()
     first = tid * chunk
     last = wp.min(first + chunk, p.shape[0])
@@ -2156,7 +2156,7 @@ def rb_black_residual_kernel(
 ):
     """r = b_b - (D_b x - N_br t) with t = x_r = D_r^-1 (b_r + N_rb x) (``rb_red_kernel``, weight 1): the reduced
     residual b_S - S x, which is the full system's residual on the black rows (0 on the red); scalars[3] += r . r
-    over the chunk [tid * DOT_CHUNK, ...) of the black rows (four partial sums)."""
+    over the chunk [tid * chunk, ...) of the black rows (four partial sums)."""
     tid = wp.tid()
     first = tid * chunk
     last = wp.min(first + chunk, x.shape[0])
@@ -2217,41 +2217,57 @@ def pcg_ratio_kernel(
 
 
 @wp.kernel
-def pcg_stop_start_kernel(
-    scalars: wp.array(dtype=wp.float64),
+def pcg_params_kernel(
     tol: wp.float64,
     atol_floor: wp.float64,
-    maxiter: int,
+    maxiter: wp.float64,
+    # outputs
+    params: wp.array(dtype=wp.float64),
+):
+    """params = (tol, atol_floor, maxiter), one thread: the device-side CG loop's stop test, written before each
+    solve outside its captured graph (a launch: no host-to-device copy and no sync)."""
+    params[0] = tol
+    params[1] = atol_floor
+    params[2] = maxiter
+
+
+@wp.kernel
+def pcg_stop_start_kernel(
+    scalars: wp.array(dtype=wp.float64),
+    params: wp.array(dtype=wp.float64),
     # outputs
     stop: wp.array(dtype=wp.float64),
     more: wp.array(dtype=wp.int32),
 ):
-    """The device-side loop's start (``GasSolver._native_pcg``), one thread: from b.b (scalars[1]) and r.r
-    (scalars[3]) the bound atol = max(tol ||b||, atol_floor) into stop[0], ||r|| into stop[1], 0 iterations into
-    stop[2], and ``more`` = 1 while ||r|| > atol (NaN stops) and maxiter > 0: the host loop's numbers."""
-    atol = wp.max(tol * wp.sqrt(scalars[1]), atol_floor)
+    """The device-side loop's start (``GasSolver._device_loop_pcg``), one thread. ``params``: tol, atol_floor,
+    maxiter (written before each solve, so one captured graph serves every step). From b.b (scalars[1]) and r.r
+    (scalars[3]): the bound atol = max(tol ||b||, atol_floor) into stop[0] (Python's ``max``: a NaN first argument
+    stays), ||r|| into stop[1], 0 iterations into stop[2], and ``more`` = 1 unless ||r|| <= atol or maxiter = 0
+    (so a NaN residual takes one iteration, as the host loop does): the host loop's numbers, NaN included."""
+    first = params[0] * wp.sqrt(scalars[1])
+    atol = wp.where(params[1] > first, params[1], first)
     residual = wp.sqrt(scalars[3])
     stop[0] = atol
     stop[1] = residual
     stop[2] = wp.float64(0.0)
-    more[0] = wp.where(residual > atol and maxiter > 0, 1, 0)
+    more[0] = wp.where(residual <= atol or params[2] < wp.float64(1.0), 0, 1)
 
 
 @wp.kernel
 def pcg_stop_kernel(
     scalars: wp.array(dtype=wp.float64),
-    maxiter: int,
+    params: wp.array(dtype=wp.float64),
     # outputs
     stop: wp.array(dtype=wp.float64),
     more: wp.array(dtype=wp.int32),
 ):
     """After an iteration, one thread: one more iteration in stop[2], ||r|| (scalars[3] = r.r) into stop[1], and
-    ``more`` = 1 while ||r|| > stop[0] (NaN stops) and fewer than maxiter iterations were taken."""
+    ``more`` = 1 while ||r|| > stop[0] (NaN stops) and fewer than maxiter (params[2]) iterations were taken."""
     k = stop[2] + wp.float64(1.0)
     residual = wp.sqrt(scalars[3])
     stop[2] = k
     stop[1] = residual
-    more[0] = wp.where(residual > stop[0] and k < wp.float64(maxiter), 1, 0)
+    more[0] = wp.where(residual > stop[0] and k < params[2], 1, 0)
 
 
 @wp.kernel

@@ -25,7 +25,7 @@ What is here, rig timings (best of 60-300 launches, Warp -> native):
 Each kernel has the signature of the ``kernels/gas.py`` kernel of the same name, so a launch takes either
 (``for_device`` picks, at the bottom). The solver loops run in one thread (``dim=1``: the CPU runs a launch's
 threads one after another in order, so one thread over all rows is the same order), except the chunked
-dot-product passes, which keep ``DOT_CHUNK`` rows per thread and one atomic add per chunk (the same partial sums);
+dot-product passes, which keep ``chunk`` rows per thread (``kernels/gas.py`` DOT_CHUNK on the CPU) and one atomic add per chunk (the same partial sums);
 the cell and face passes keep their kernels' ``block`` entries per thread. The native loops need contiguous
 arrays (``for_device`` checks when a launch is recorded). Only the CPU launches them: the CUDA path keeps the Warp
 kernels (the module still compiles for CUDA, as ``wp.force_load`` on a GPU builds every module: tested with
@@ -108,7 +108,7 @@ def pcg_matvec_dot_kernel(
     ap: wp.array(dtype=f64),
     scalars: wp.array(dtype=f64),
 ):
-    """``kernels/gas.py`` ``pcg_matvec_dot_kernel`` (one ``DOT_CHUNK`` per thread)."""
+    """``kernels/gas.py`` ``pcg_matvec_dot_kernel`` (one ``chunk`` of rows per thread)."""
     t = wp.tid()
     first = t * chunk
     last = wp.min(first + chunk, p.shape[0])
@@ -179,7 +179,7 @@ def pcg_residual_start_kernel(
     r: wp.array(dtype=f64),
     scalars: wp.array(dtype=f64),
 ):
-    """``kernels/gas.py`` ``pcg_residual_start_kernel`` (one ``DOT_CHUNK`` per thread)."""
+    """``kernels/gas.py`` ``pcg_residual_start_kernel`` (one ``chunk`` of rows per thread)."""
     t = wp.tid()
     first = t * chunk
     last = wp.min(first + chunk, x.shape[0])
@@ -295,7 +295,7 @@ def pcg_dot_pair_kernel(
     # outputs
     scalars: wp.array(dtype=f64),
 ):
-    """``kernels/gas.py`` ``pcg_dot_pair_kernel`` (one ``DOT_CHUNK`` per thread)."""
+    """``kernels/gas.py`` ``pcg_dot_pair_kernel`` (one ``chunk`` of rows per thread)."""
     t = wp.tid()
     first = t * chunk
     last = wp.min(first + chunk, a.shape[0])
@@ -432,7 +432,7 @@ def jacobi_step_dot_kernel(
     z: wp.array(dtype=f64),
     scalars: wp.array(dtype=f64),
 ):
-    """``kernels/gas.py`` ``jacobi_step_dot_kernel`` (one ``DOT_CHUNK`` per thread; alpha from ``coefficients``)."""
+    """``kernels/gas.py`` ``jacobi_step_dot_kernel`` (one ``chunk`` of rows per thread; alpha from ``coefficients``)."""
     t = wp.tid()
     first = t * chunk
     last = wp.min(first + chunk, p.shape[0])
@@ -614,7 +614,7 @@ def rb_black_matvec_dot_kernel(
     ap: wp.array(dtype=f64),
     scalars: wp.array(dtype=f64),
 ):
-    """``kernels/gas.py`` ``rb_black_matvec_dot_kernel`` (one ``DOT_CHUNK`` per thread)."""
+    """``kernels/gas.py`` ``rb_black_matvec_dot_kernel`` (one ``chunk`` of rows per thread)."""
     tid = wp.tid()
     first = tid * chunk
     last = wp.min(first + chunk, p.shape[0])
@@ -676,7 +676,7 @@ def rb_black_residual_kernel(
     r: wp.array(dtype=f64),
     scalars: wp.array(dtype=f64),
 ):
-    """``kernels/gas.py`` ``rb_black_residual_kernel`` (one ``DOT_CHUNK`` per thread)."""
+    """``kernels/gas.py`` ``rb_black_residual_kernel`` (one ``chunk`` of rows per thread)."""
     tid = wp.tid()
     first = tid * chunk
     last = wp.min(first + chunk, x.shape[0])

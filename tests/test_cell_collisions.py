@@ -1093,7 +1093,7 @@ def test_live_extremes_on_the_device_equal_numpys_over_the_live_parcels(device):
     """``kernels/cell_collide.py`` ``live_extremes`` (what ``SurrogateCollision.collide`` reads back instead of four
     arrays): max |v| equals numpy's float64 norm of the float32 velocities bit for bit on the CPU (within 1 ulp
     elsewhere: a GPU may fuse), the largest weight and radius and the count of the live parcels exactly; dead parcels
-    (here the fastest, heaviest and largest) are left out."""
+    (here the fastest, heaviest and largest) are left out; a live NaN or inf is counted apart."""
     import warp as wp
 
     from kernels.cell_collide import launch_live_extremes
@@ -1108,7 +1108,7 @@ def test_live_extremes_on_the_device_equal_numpys_over_the_live_parcels(device):
     v[dead[0]] = 100.0
     w[dead[1]] = 1000.0
     r[dead[2]] = 1.0
-    out = wp.zeros(4, dtype=wp.float64, device=device)
+    out = wp.zeros(5, dtype=wp.float64, device=device)
     for _ in range(2):  # zeroed by the launch: a second call gives the same
         launch_live_extremes(wp.array(v, dtype=wp.vec3, device=device), wp.array(w, dtype=wp.float32, device=device),
                              wp.array(r, dtype=wp.float32, device=device),
@@ -1121,4 +1121,26 @@ def test_live_extremes_on_the_device_equal_numpys_over_the_live_parcels(device):
     else:
         assert got[0] == pytest.approx(v_max, rel=2.3e-16)
     assert got[1] == float(w[live].max()) and got[2] == float(r[live].max())
-    assert got[3] == float(live.sum())
+    assert got[3] == float(live.sum()) and got[4] == 0.0
+    v[np.flatnonzero(live)[5]] = np.nan  # a live NaN: a maximum passes it over, the fifth slot counts it
+    w[np.flatnonzero(live)[6]] = np.inf
+    launch_live_extremes(wp.array(v, dtype=wp.vec3, device=device), wp.array(w, dtype=wp.float32, device=device),
+                         wp.array(r, dtype=wp.float32, device=device), wp.array(alive, dtype=wp.int32, device=device),
+                         out)
+    assert out.numpy()[4] == 2.0
+
+
+def test_a_nan_velocity_stops_the_cell_collisions_with_a_clear_error(constant_model, device):
+    """A live parcel with a NaN velocity: ``SurrogateCollision.collide`` (cell detection) raises HelWarpError
+    naming it, instead of stepping on (the device reduction's maximum passes a NaN over)."""
+    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.errors import HelWarpError
+
+    rng = np.random.default_rng(3)
+    p = make_gas(512, 4e-3, 8.0, rng, device)
+    v = p.v.numpy()
+    v[7] = np.nan
+    p.v.assign(v)
+    strategy = SurrogateCollision(model_dir=constant_model, detection="cell", periodic_box=(4e-3,) * 3, seed=1)
+    with pytest.raises(HelWarpError, match="NaN or infinite velocity"):
+        strategy.collide(p, 1e-4)

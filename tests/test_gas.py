@@ -502,6 +502,42 @@ def test_the_device_side_cg_loop_gives_the_host_loops_bits(case, preconditioners
             assert np.array_equal(step[name], expected, equal_nan=True), name
 
 
+@pytest.mark.parametrize("where", ["guess", "rhs"])
+def test_the_device_side_cg_loop_reports_nan_as_the_host_loop_does(where):
+    """A NaN in the first guess or the right-hand side: the device-side loop returns the host loop's (iterations,
+    ||r||, bound) - one iteration for a NaN residual, a NaN bound for a NaN ||b|| - and the same solution bits, for
+    the pressure (V-cycle) and a viscous (red-black) system; the step's own check then raises. After more steps the
+    device loop still holds one captured graph per system (its stop test reads tol, atol_floor and maxiter from
+    the device)."""
+    domain, config = _masked_case("inlet_outlet", "native")
+    results = {}
+    for loop in (False, True):
+        solver = GasSolver(domain, dataclasses.replace(config, pcg_device_loop=loop))
+        _three_steps(solver, domain)
+        if loop:
+            graphs = len(solver._pcg_solve_graphs)
+            _three_steps(solver, domain)
+            assert len(solver._pcg_solve_graphs) == graphs == 4  # pressure and three viscous systems
+        out = []
+        for system, kwargs in (("pressure", {"multigrid": solver._pressure_mg, "atol_floor": 1e-12}),
+                               (0, {"preconditioner": "red_black"})):
+            n = solver._systems[system][0].shape[0]
+            rng = np.random.default_rng(2)
+            rhs, guess = rng.normal(size=n), rng.normal(size=n)
+            (guess if where == "guess" else rhs)[n // 2] = np.nan
+            solver._c_rhs.assign(np.concatenate([rhs, np.zeros(solver._c_rhs.shape[0] - n)]))
+            solver._c_x.assign(np.concatenate([guess, np.zeros(solver._c_x.shape[0] - n)]))
+            if kwargs.get("multigrid") is not None:
+                kwargs["multigrid"].setup(solver._stencils[system])
+            got = solver._native_pcg(system, n, solver._stencils[system], 1e-8, 50, **kwargs)
+            out.append((tuple(repr(float(v)) for v in got), solver._c_x.numpy()[:n].copy()))
+        results[loop] = out
+    for (host_result, host_x), (device_result, device_x) in zip(results[False], results[True]):
+        assert device_result == host_result
+        assert np.array_equal(device_x, host_x, equal_nan=True)
+    assert results[True][0][0][0] == "1.0"  # a NaN residual takes one iteration
+
+
 def test_launch_over_is_checked():
     grid = Grid(spacing=1e-3, shape=(4, 4, 4), periodic=(True, True, True))
     domain = Geometry(shapes=(Box(lo=(-1, -1, -1), hi=(1, 1, 1)),)).build(grid)

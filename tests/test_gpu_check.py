@@ -204,4 +204,5 @@ def test_profile_step_runs_both_cases_on_the_cpu_and_reports_every_run(trained_m
                               "--steps", "1", "--json"]) == 0
     loops = json.loads(capsys.readouterr().out)
     assert [r["pcg_loop"] for r in loops["runs"]] == ["host", "device"]
+    assert all(r["median_step_s"] > 0 for r in loops["runs"])
     assert all(r["median_step_s"] > 0 for r in rig["runs"])
