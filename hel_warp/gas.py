@@ -114,9 +114,9 @@ class GasConfig:
     pcg_device_loop: bool = False
     """The native CG as one captured graph per system whose iterations loop on the device (``wp.capture_while``,
     the stop test in a kernel): one read-back per solve instead of one per iteration (~33 per rig step, each a sync
-    on a GPU). The same bits as the host loop (tests/test_gas.py). Off by default: on the CPU it cost 25.4 against
-    21.6 ms of gas per rig step (Warp's CPU replay of the loop), and on a GPU it has not run yet (twenty-fifth
-    session)."""
+    on a GPU). The same bits as the host loop (tests/test_gas.py), NaN cases included, and as fast on the CPU
+    (21.8 against 22.1 ms of gas per rig step, twenty-fifth session). Off by default: it has not run on a GPU yet;
+    a driver without graph conditional nodes falls back to the host loop with a warning."""
     check_finite: bool = True
     """Raise HelWarpError when a NaN/inf appears (one int read back per step)."""
 
