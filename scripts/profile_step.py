@@ -127,6 +127,22 @@ def main(argv=None) -> int:
                     help="print every thread's Python stack every S seconds (0: never): where a slow run spends it")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
+    if args.steps < 1 or args.warmup < 0 or args.release_steps < 0 or args.particles < 2 or args.top < 1:
+        ap.exit(2, "profile_step: need --steps >= 1, --warmup >= 0, --release-steps >= 0, --particles >= 2, "
+                   "--top >= 1\n")
+    if not os.path.isdir(args.model):
+        ap.exit(2, f"profile_step: --model {args.model}: no such directory; give a directory written by "
+                   "`hel-warp train`\n")
+    from hel_warp.errors import HelWarpError
+
+    try:
+        return _run(args)
+    except HelWarpError as exc:  # ConfigError too: one line, exit 2
+        print(f"profile_step: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _run(args) -> int:
     if args.stack_every > 0:
         import faulthandler
 

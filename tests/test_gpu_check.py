@@ -206,3 +206,18 @@ def test_profile_step_runs_both_cases_on_the_cpu_and_reports_every_run(trained_m
     assert [r["pcg_loop"] for r in loops["runs"]] == ["host", "device"]
     assert all(r["median_step_s"] > 0 for r in loops["runs"])
     assert all(r["median_step_s"] > 0 for r in rig["runs"])
+
+
+def test_profile_step_bad_input_is_one_line_and_exit_2(tmp_path):
+    """``scripts/profile_step.py``: a missing model directory, no steps to time, or a device that is not there: one
+    line naming what to change, exit 2."""
+    script = str(Path(__file__).resolve().parents[1] / "scripts" / "profile_step.py")
+    model = tmp_path / "model"
+    model.mkdir()
+    for args, says in ((["box", "--model", str(tmp_path / "none")], "no such directory"),
+                       (["box", "--model", str(model), "--steps", "0"], "--steps >= 1"),
+                       (["box", "--model", str(model), "--device", "nonesuch"], "error")):
+        done = subprocess.run([sys.executable, script, *args], capture_output=True, text=True, timeout=300)
+        assert done.returncode == 2, (args, done.stderr[-1500:])
+        assert says in done.stderr and "Traceback" not in done.stderr
+
