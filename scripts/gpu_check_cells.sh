@@ -13,7 +13,7 @@
 # per step, steps.tsv (name, exit code, seconds, command) and summary.json. Exit 0 only if every step passed.
 # Environment: MODEL=DIR the rig's contact-form model, COOL_MODEL=DIR the boxes' (frictionless for Haff's law; default
 # MODEL; both default to the tests' tiny one, trained into HEL_WARP_TINY_MODELS or DIR/models); STEP_TIMEOUT=S caps
-# each step (default 240 s), TOTAL_TIMEOUT=S the whole check (default 420 s on the GPU, 900 s dry: a step gets what
+# each step (default 240 s), TOTAL_TIMEOUT=S the whole check (default 540 s on the GPU, 900 s dry: a step gets what
 # is left, none starts after it); PYTHON.
 #
 # On a lent GPU machine without the project's packages (warp-lang, xgboost, zarr), carry them as a prepared
@@ -26,7 +26,8 @@ gpu_check_args gpu_check_cells gpu_cells_out 20 "$@"
 step_timeout=${STEP_TIMEOUT:-240}
 kill_grace=10
 
-tests=(tests/test_cell_collisions.py tests/test_cell_list.py tests/test_device_paths.py tests/test_coupling.py)
+tests=(tests/test_cell_collisions.py tests/test_cell_list.py tests/test_device_paths.py tests/test_coupling.py
+       tests/test_gas.py tests/test_forest.py)
 if [ "$dry" = 1 ]; then
   device=cpu
   cool_n=512; box_n=4096; box_dem_steps=1; rig_end=0.002; rig_extra=(--cells 5000 --max-particles 192)
@@ -37,7 +38,7 @@ else
   device=cuda
   cool_n=32768; box_n=102400; box_dem_steps=2; rig_end=0.02; rig_extra=()
   profile_rig_extra=()
-  total_timeout=${TOTAL_TIMEOUT:-420}
+  total_timeout=${TOTAL_TIMEOUT:-540}
 fi
 
 started=$(date +%s.%N)
@@ -67,7 +68,8 @@ models=${HEL_WARP_TINY_MODELS:-$out/models}
   --out "$out/models.json"
 model=${MODEL:-$models/model_contact}
 cool_model=${COOL_MODEL:-$model}
-step tests - env HEL_WARP_DEVICE="$device" HEL_WARP_TINY_MODELS="$models" "$py" -m pytest -q -p no:cacheprovider \
+# -v: each test's name is in tests.log before it runs (a lease's run ended in a segmentation fault that named none)
+step tests - env HEL_WARP_DEVICE="$device" HEL_WARP_TINY_MODELS="$models" "$py" -m pytest -v -p no:cacheprovider \
   "${tests[@]}" --basetemp "$out/pytest" --junitxml "$out/tests.xml"
 [ -f "$out/tests.xml" ] && step tests_json - "$py" scripts/gpu_check.py junit "$out/tests.xml" --out "$out/tests.json"
 
