@@ -305,13 +305,6 @@ weight-w parcels exchange 2 % / 17 % / 33 % less momentum than kinetic theory's 
 issue 12, eighth session)."""
 
 
-def largest_weight_and_radius(particles, alive: np.ndarray) -> tuple[float, float]:
-    """(w_max, r_max) of the live parcels (1, 0 when none is alive)."""
-    if not alive.any():
-        return 1.0, 0.0
-    return float(particles.weight.numpy()[alive].max()), float(particles.radius.numpy()[alive].max())
-
-
 def pair_saturation(w_max: float, r_max: float, edges) -> float:
     """w_max sigma_max h_max / V of the collision cells (sigma_max = pi (2 r_max)^2): the expected collisions of a
     parcel pair of the largest weight while it crosses a cell side by side (the cell's real number density of one
@@ -432,19 +425,19 @@ class CellCollisions:
         self._args = a
         self._key = key
 
-    def choose_lattice(self, particles, alive: np.ndarray | None, *, periodic_box=None, grid=None, reach: float = 0.0,
-                       extremes: tuple[float, float] | None = None, n_alive: int | None = None):
+    def choose_lattice(self, particles, *, periodic_box=None, grid=None, reach: float = 0.0,
+                       extremes: tuple[float, float, int] | None = None):
         """(origin, cell edges, shape) of this step's collision cells (see the module docstring); ``reach``: the
-        largest path length of the step (pads the bounding box); ``extremes``: (w_max, r_max) of the live parcels
-        when the caller has them (``largest_weight_and_radius``), ``n_alive`` their count (then ``alive``, the host
-        mask, may be None: read back only where the bounding box needs the positions)."""
+        largest path length of the step (pads the bounding box); ``extremes``: (w_max, r_max, live count) when the
+        caller has them (``Particles.live_extremes``). The positions are read back only where a bounding box needs
+        them."""
         cfg = self.config
         self._merged = False
-        if alive is None and (extremes is None or n_alive is None or (periodic_box is None and grid is None)):
-            alive = particles.alive.numpy().astype(bool)
-        w_max, r_max = extremes if extremes is not None else largest_weight_and_radius(particles, alive)
-        if n_alive is None:
-            n_alive = int(np.count_nonzero(alive))
+        if extremes is None:
+            extremes = particles.live_extremes()[1:4]
+        w_max, r_max, n_alive = extremes
+        if not n_alive:
+            w_max, r_max = 1.0, 0.0
         if periodic_box is not None:
             return periodic_lattice(periodic_box, n_alive, cfg.parcels_per_cell, cfg.cell_size)
         if grid is not None:
@@ -455,7 +448,7 @@ class CellCollisions:
                     k = unsaturated_coarsening(float(grid.spacing), w_max, r_max)
             self._merged = k > 1
             return grid_lattice(grid, cfg.subdivision, k)
-        x = particles.x.numpy()[alive].astype(np.float64)
+        x = particles.x.numpy()[particles.alive.numpy() != 0].astype(np.float64)
         return bounding_lattice(x, r_max + reach, cfg.parcels_per_cell, cfg.cell_size)
 
     # ------------------------------------------------------------------ one step
@@ -473,8 +466,8 @@ class CellCollisions:
         return self._fluid[1]
 
     def collide(self, particles, dt: float, forest, domain, *, batch_forest=None, periodic_box=None, grid=None,
-                apply: bool = True, alive: np.ndarray | None = None, particle_spin: bool = False,
-                spin_form: bool = False, fluid=None, walls=None, extremes: tuple | None = None) -> None:
+                apply: bool = True, particle_spin: bool = False, spin_form: bool = False, fluid=None, walls=None,
+                extremes: tuple | None = None) -> None:
         """The step's collisions of ``particles`` (velocities in place); ``forest`` an explicit-layout ``Forest``,
         ``domain`` its ``ContactDomain``; ``batch_forest`` (perfect layout, optional): the accepted pairs predicted
         in batched rounds (faster, same pairs). ``apply=False``: selection only (counts and log; velocities
@@ -484,8 +477,7 @@ class CellCollisions:
         it, not its whole volume (a merged or shifted cell reaching into walls; ``CellConfig.fluid_volume``).
         ``walls``: (``SdfShapes``, ``WallParams``) of the solver: the sub-stepped paths reflect where they cross a
         wall, the velocities with them (``CellConfig.wall_paths``). ``extremes``: (max |v|, max weight, max radius,
-        count) of the live parcels when the caller reduced them on the device (``SurrogateCollision``: one read-back
-        instead of the live mask, the velocities, weights and radii); else from ``alive`` (read back if None)."""
+        count) of the live parcels when the caller has them, else ``Particles.live_extremes`` here (one read-back)."""
         import warp as wp
 
         from kernels.cell_collide import (advance_paths, collide_cells, fill_fluid_volumes, path_shifts, restore_energy,
@@ -496,22 +488,16 @@ class CellCollisions:
         self._counts = None
         self._shift_pending = False
         if extremes is None:
-            if alive is None:
-                alive = particles.alive.numpy().astype(bool)
-            n_alive = int(np.count_nonzero(alive))
-            v_max = (float(np.linalg.norm(particles.v.numpy()[alive].astype(np.float64), axis=1).max())
-                     if n_alive else 0.0)
-            w_max, r_max = largest_weight_and_radius(particles, alive)
-        else:  # (max |v|, max weight, max radius, count) of the live parcels (the caller reduced them on the device)
-            v_max, w_max, r_max, n_alive = extremes
-            n_alive = int(n_alive)
+            extremes = particles.live_extremes()[:4]
+        v_max, w_max, r_max, n_alive = extremes
+        n_alive = int(n_alive)
         seed = step_seed(self.seed, self.steps)
         self.steps += 1
         if n_alive < 2:
             self._zero_counts()
             return
-        origin, edges, shape = self.choose_lattice(particles, alive, periodic_box=periodic_box, grid=grid,
-                                                   reach=v_max * dt, extremes=(w_max, r_max), n_alive=n_alive)
+        origin, edges, shape = self.choose_lattice(particles, periodic_box=periodic_box, grid=grid,
+                                                   reach=v_max * dt, extremes=(w_max, r_max, n_alive))
         shift = self.config.shift if self.config.shift is not None else self._merged
         if shift and periodic_box is None:
             shape = np.asarray(shape, int) + 1  # a shifted lattice reaches one cell further on every axis

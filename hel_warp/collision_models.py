@@ -498,23 +498,6 @@ class SurrogateCollision:
         collision_acceleration(grid.cell_grid(), 1.0e-6, particles.x, particles.density, fields.cell_grad_p_s,
                                fields.cell_eps_s, fields.parcel_a_coll, dt=solver.config.dt)
 
-    def _live_extremes(self, particles) -> tuple[float, float, float, int]:
-        """(max |v|, max weight, max radius, count) of the live parcels, reduced on the device
-        (``kernels/cell_collide.py`` ``live_extremes``)."""
-        import warp as wp
-
-        from kernels.cell_collide import launch_live_extremes
-
-        store = getattr(self, "_extremes", None)
-        if store is None or str(store.device) != str(particles.v.device):
-            store = self._extremes = wp.zeros(5, dtype=wp.float64, device=particles.v.device)
-        launch_live_extremes(particles.v, particles.weight, particles.radius, particles.alive, store)
-        v_max, w_max, r_max, count, bad = (float(x) for x in store.numpy())
-        if bad:
-            raise HelWarpError(f"{int(bad)} live parcels have a NaN or infinite velocity, weight or radius before the "
-                               "collisions: the step blew up (reduce dt) or the input holds NaN")
-        return v_max, w_max, r_max, int(count)
-
     def _uses_swept(self, particles) -> bool:
         """Whether :meth:`collide` takes the swept detection for these particles (``cell`` where auto-detection
         meets a parcel of weight > 1)."""
@@ -553,8 +536,11 @@ class SurrogateCollision:
         self._counts = None
         self._events = None
         self._shift_pending = False
-        extremes = self._live_extremes(particles)  # one launch and one read-back, not four arrays read back
-        v_max, w_max, r_max, n_alive = extremes
+        v_max, w_max, r_max, n_alive, bad = particles.live_extremes()  # one read-back, not four arrays
+        if bad:
+            raise HelWarpError(f"{bad} live parcels have a NaN or infinite velocity, weight or radius before the "
+                               "collisions: the step blew up (reduce dt) or the input holds NaN")
+        extremes = (v_max, w_max, r_max, n_alive)
         if n_alive == 0:
             return
         if self.mode == "paper":

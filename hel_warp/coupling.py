@@ -245,20 +245,6 @@ class CouplingFields:
         return fields
 
 
-def max_live_weight(weight, alive) -> float:
-    """The largest weight of a live parcel (0 with none): one small reduction (``kernels/interp.py``
-    ``max_live_weight_kernel``) and a device-to-host copy of one float (a synchronisation on CUDA)."""
-    import warp as wp
-
-    from kernels.interp import max_live_weight_kernel
-
-    out = wp.zeros(1, dtype=wp.float32, device=weight.device)
-    if weight.shape[0] > 0:
-        wp.launch(max_live_weight_kernel, dim=weight.shape[0], inputs=[weight, alive], outputs=[out],
-                  device=weight.device)
-    return float(out.numpy()[0])
-
-
 def reserve_tent_records(grid: GridSpec, particles) -> int:
     """Before the tent deposits of a coupling call on CUDA: Warp's deterministic atomics of ``kernels/deposit.py``
     sized for the largest live parcel's tent (``kernels.deposit.reserve_records``; a tent of half-width K adds into
@@ -268,7 +254,7 @@ def reserve_tent_records(grid: GridSpec, particles) -> int:
 
     if not (D.DETERMINISTIC and particles.device.is_cuda and grid.spread and particles.count > 0):
         return D.reserve_records(0)
-    k = spread_half_width_host(True, max_live_weight(particles.weight, particles.alive))
+    k = spread_half_width_host(True, particles.live_extremes()[1])  # the largest live weight
     return D.reserve_records(8 * k**3)
 
 

@@ -173,6 +173,23 @@ class Particles:
         r = self.radius.numpy().astype(np.float64)
         return self.density.numpy().astype(np.float64) * 4.0 / 3.0 * math.pi * r**3
 
+    def live_extremes(self) -> tuple[float, float, float, int, int]:
+        """(max |v| m/s, max weight, max radius m, live count, live parcels with a non-finite |v|, weight or radius),
+        reduced on the device (``kernels/interp.py`` ``live_extremes``): one launch and one 40-byte read-back (a
+        sync on CUDA) instead of reading the arrays back. With no live parcel: (0, 0, 0, 0, 0). A NaN is counted in
+        the last entry, not in the maxima (an atomic maximum passes it over): callers that need finite values check
+        it."""
+        import warp as wp
+
+        from kernels.interp import launch_live_extremes
+
+        store = getattr(self, "_extremes_store", None)
+        if store is None or str(store.device) != str(self.v.device):
+            store = self._extremes_store = wp.zeros(5, dtype=wp.float64, device=self.v.device)
+        launch_live_extremes(self.v, self.weight, self.radius, self.alive, store)
+        v_max, w_max, r_max, count, bad = (float(x) for x in store.numpy())
+        return v_max, w_max, r_max, int(count), int(bad)
+
     def clone(self) -> "Particles":
         import warp as wp
 

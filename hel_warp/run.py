@@ -140,6 +140,20 @@ def kernel_modules(device) -> list:
     return [m for name, m in modules.items() if not (device.is_cuda and name in CPU_ONLY_MODULES)]
 
 
+def import_kernel_modules(cpu: bool = True) -> None:
+    """Import every module of ``kernels/`` (less ``CPU_ONLY_MODULES`` when ``cpu`` is False), so that Warp knows
+    their modules (``load_kernels``; ``scripts/gpu_kernel_cache.py`` compiles them for a GPU)."""
+    import importlib
+    import pkgutil
+
+    import kernels
+
+    for info in pkgutil.iter_modules(kernels.__path__):
+        name = f"kernels.{info.name}"
+        if cpu or name not in CPU_ONLY_MODULES:
+            importlib.import_module(name)
+
+
 def load_kernels(device) -> float:
     """Compile (or load from Warp's kernel cache) every Warp module of ``kernels/`` and any other imported module
     with Warp code, on ``device`` (None: every device), less ``CPU_ONLY_MODULES`` on CUDA; returns the seconds it
@@ -148,20 +162,11 @@ def load_kernels(device) -> float:
     Warp compiles a module at its first launch, so without this the first steps of a run on a cold cache carry
     the compilation (on a fresh machine the first model run looked 3x slower than the next); ``Run.run`` calls it
     before it times any step and reports the time apart (``kernel_load_s``)."""
-    import importlib
-    import pkgutil
-
     import warp as wp
-
-    import kernels
 
     start = _time.perf_counter()
     devices = wp.get_devices() if device is None else [wp.get_device(device)]
-    any_cpu = any(not d.is_cuda for d in devices)
-    for info in pkgutil.iter_modules(kernels.__path__):
-        name = f"kernels.{info.name}"
-        if any_cpu or name not in CPU_ONLY_MODULES:
-            importlib.import_module(name)
+    import_kernel_modules(cpu=any(not d.is_cuda for d in devices))
     for d in devices:
         wp.force_load(device=d, modules=kernel_modules(d))
     return _time.perf_counter() - start

@@ -1087,43 +1087,6 @@ def cell_restore(
                     restore_spin(args, p, wp.vec3(wp.randn(spin_state), wp.randn(spin_state), wp.randn(spin_state)))
 
 
-@wp.kernel
-def live_extremes(
-    particle_v: wp.array(dtype=wp.vec3),
-    particle_weight: wp.array(dtype=wp.float32),
-    particle_radius: wp.array(dtype=wp.float32),
-    particle_alive: wp.array(dtype=wp.int32),
-    # outputs
-    extremes: wp.array(dtype=wp.float64),
-):
-    """Over the live parcels (``extremes`` zeroed by the caller): [0] max |v| (float64 from the float32 components,
-    (vx^2 + vy^2) + vz^2 then the root: numpy's ``linalg.norm(v.astype(float64), axis=1)``), [1] max weight, [2] max
-    radius, [3] += 1 per live parcel, [4] += 1 per live parcel whose |v|, weight or radius is not finite (an atomic
-    maximum passes a NaN over: the caller must look here). A maximum does not depend on the order of the atomics,
-    and the counts are integers far below 2^53: the same values in every run (on the CPU numpy's; a GPU may fuse a
-    product and a sum)."""
-    p = wp.tid()
-    if particle_alive[p] == 0:
-        return
-    v = particle_v[p]
-    vx = wp.float64(v[0])
-    vy = wp.float64(v[1])
-    vz = wp.float64(v[2])
-    sx = vx * vx
-    sy = vy * vy
-    sz = vz * vz
-    sxy = sx + sy
-    speed = wp.sqrt(sxy + sz)
-    w = wp.float64(particle_weight[p])
-    r = wp.float64(particle_radius[p])
-    wp.atomic_max(extremes, 0, speed)
-    wp.atomic_max(extremes, 1, w)
-    wp.atomic_max(extremes, 2, r)
-    wp.atomic_add(extremes, 3, wp.float64(1.0))
-    if not (wp.isfinite(speed) and wp.isfinite(w) and wp.isfinite(r)):
-        wp.atomic_add(extremes, 4, wp.float64(1.0))
-
-
 # ------------------------------------------------------------------------------------------ launch wrappers
 
 
@@ -1225,10 +1188,3 @@ def collide_cells(args: CellArgs, forest: Forest, particle_v, more, round_count,
     # thousands; the last few pairs of a sparse step: a batch of a few rows costs a whole block) finish inline, in
     # the same order
     select_inline()
-
-
-def launch_live_extremes(particle_v, particle_weight, particle_radius, particle_alive, extremes) -> None:
-    """``live_extremes`` into ``extremes`` (5 float64, zeroed here)."""
-    extremes.zero_()
-    wp.launch(live_extremes, dim=particle_v.shape[0], device=particle_v.device,
-              inputs=[particle_v, particle_weight, particle_radius, particle_alive], outputs=[extremes])

@@ -156,13 +156,40 @@ def spread_half_width_host(spread: bool, weight: float) -> int:
 
 
 @wp.kernel
-def max_live_weight_kernel(weight: wp.array(dtype=wp.float32), alive: wp.array(dtype=wp.int32),
-                           out: wp.array(dtype=wp.float32)):
-    """``out[0] = max(out[0], weight[i])`` over the live parcels (zero ``out`` first; read back by
-    ``hel_warp.coupling.max_live_weight``)."""
-    tid = wp.tid()
-    if alive[tid] != 0:
-        wp.atomic_max(out, 0, weight[tid])
+def live_extremes(
+    particle_v: wp.array(dtype=wp.vec3),
+    particle_weight: wp.array(dtype=wp.float32),
+    particle_radius: wp.array(dtype=wp.float32),
+    particle_alive: wp.array(dtype=wp.int32),
+    # outputs
+    extremes: wp.array(dtype=wp.float64),
+):
+    """Over the live parcels (``extremes`` zeroed by the caller; ``Particles.live_extremes`` reads it back): [0] max |v| (float64 from the float32 components,
+    (vx^2 + vy^2) + vz^2 then the root: numpy's ``linalg.norm(v.astype(float64), axis=1)``), [1] max weight, [2] max
+    radius, [3] += 1 per live parcel, [4] += 1 per live parcel whose |v|, weight or radius is not finite (an atomic
+    maximum passes a NaN over: the caller must look here). A maximum does not depend on the order of the atomics,
+    and the counts are integers far below 2^53: the same values in every run (on the CPU numpy's; a GPU may fuse a
+    product and a sum)."""
+    p = wp.tid()
+    if particle_alive[p] == 0:
+        return
+    v = particle_v[p]
+    vx = wp.float64(v[0])
+    vy = wp.float64(v[1])
+    vz = wp.float64(v[2])
+    sx = vx * vx
+    sy = vy * vy
+    sz = vz * vz
+    sxy = sx + sy
+    speed = wp.sqrt(sxy + sz)
+    w = wp.float64(particle_weight[p])
+    r = wp.float64(particle_radius[p])
+    wp.atomic_max(extremes, 0, speed)
+    wp.atomic_max(extremes, 1, w)
+    wp.atomic_max(extremes, 2, r)
+    wp.atomic_add(extremes, 3, wp.float64(1.0))
+    if not (wp.isfinite(speed) and wp.isfinite(w) and wp.isfinite(r)):
+        wp.atomic_add(extremes, 4, wp.float64(1.0))
 
 
 @wp.func
@@ -663,3 +690,10 @@ def stencil_weights(grid: CellGrid, particle_x, parcel_cells, parcel_weights):
     """The eight (cell, weight) pairs of each parcel, shape (n, 8) (diagnostics and tests)."""
     wp.launch(stencil_weights_kernel, dim=particle_x.shape[0], device=particle_x.device,
               inputs=[grid, particle_x], outputs=[parcel_cells, parcel_weights])
+
+
+def launch_live_extremes(particle_v, particle_weight, particle_radius, particle_alive, extremes) -> None:
+    """``live_extremes`` into ``extremes`` (5 float64, zeroed here)."""
+    extremes.zero_()
+    wp.launch(live_extremes, dim=particle_v.shape[0], device=particle_v.device,
+              inputs=[particle_v, particle_weight, particle_radius, particle_alive], outputs=[extremes])

@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
-import pkgutil
 import subprocess
 import sys
 import time
@@ -33,7 +32,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 IMPORTS = ("hel_warp.hel", "hel_warp.gas", "hel_warp.multigrid", "hel_warp.cell_collisions", "hel_warp.collision_models",
            "hel_warp.dem", "hel_warp.cfd_dem", "cases.colliding_streams", "cases.homogeneous_cooling", "bench_rig",
            "profile_step")
-"""Modules imported besides every ``kernels/`` module (as ``hel_warp.run.load_kernels`` does): they define Warp
+"""Modules imported besides every ``kernels/`` module (``hel_warp.run.import_kernel_modules``): they define Warp
 kernels of their own or import the modules that do."""
 
 
@@ -41,13 +40,9 @@ def engine_modules() -> list:
     """Every Warp module with kernels that the engine, the cases and the benches import, less the CPU-only ones."""
     import warp as wp
 
-    import kernels
-    from hel_warp.run import CPU_ONLY_MODULES
+    from hel_warp.run import CPU_ONLY_MODULES, import_kernel_modules
 
-    for info in pkgutil.iter_modules(kernels.__path__):
-        name = f"kernels.{info.name}"
-        if name not in CPU_ONLY_MODULES:
-            importlib.import_module(name)
+    import_kernel_modules(cpu=False)
     for name in IMPORTS:
         try:
             importlib.import_module(name)

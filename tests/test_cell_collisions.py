@@ -1090,13 +1090,13 @@ def test_collisional_transfer_carries_enskogs_collisional_pressure(hard_sphere_m
 
 
 def test_live_extremes_on_the_device_equal_numpys_over_the_live_parcels(device):
-    """``kernels/cell_collide.py`` ``live_extremes`` (what ``SurrogateCollision.collide`` reads back instead of four
-    arrays): max |v| equals numpy's float64 norm of the float32 velocities bit for bit on the CPU (within 1 ulp
+    """``kernels/interp.py`` ``live_extremes`` (``Particles.live_extremes``: what the cell step reads back instead
+    of four arrays): max |v| equals numpy's float64 norm of the float32 velocities bit for bit on the CPU (within 1 ulp
     elsewhere: a GPU may fuse), the largest weight and radius and the count of the live parcels exactly; dead parcels
     (here the fastest, heaviest and largest) are left out; a live NaN or inf is counted apart."""
     import warp as wp
 
-    from kernels.cell_collide import launch_live_extremes
+    from kernels.interp import launch_live_extremes
 
     rng = np.random.default_rng(7)
     n = 5000

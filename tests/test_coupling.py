@@ -425,8 +425,9 @@ def _half_width_kernel(grid: CellGridStruct, weight: wp.array(dtype=wp.float32),
 def test_the_host_knows_each_tent_before_the_launch(device):
     """``spread_half_width_host`` (what sizes the deterministic deposit's per-thread records on CUDA) is the kernel's
     ``spread_half_width`` at every weight, and never below it at the rounding boundaries K + 1/2 (float32 there);
-    ``max_live_weight`` skips removed parcels; and the CPU needs no reservation (its atomics keep no records)."""
-    from hel_warp.coupling import max_live_weight, reserve_tent_records
+    ``Particles.live_extremes`` (whose largest weight sizes it) skips removed parcels; and the CPU needs no
+    reservation (its atomics keep no records)."""
+    from hel_warp.coupling import reserve_tent_records
     from kernels.deposit import TRILINEAR_RECORDS
     from kernels.interp import spread_half_width_host
 
@@ -449,9 +450,10 @@ def test_the_host_knows_each_tent_before_the_launch(device):
             assert 5 <= near_step.sum() <= 40  # the edges were sampled
     for w in (64.0, 1000.0, 5000.0):  # the cloud's K (7 at 1000: the docs'), 1 without tents
         assert spread_half_width_host(True, w) == cloud_half_width(w) and spread_half_width_host(False, w) == 1
-    w = wp.array(np.array([3.0, 900.0, 8.0], np.float32), device=device)
-    alive = wp.array(np.array([1, 0, 1], np.int32), device=device)
-    assert max_live_weight(w, alive) == 8.0
+    removed = Particles.from_numpy(np.full((3, 3), 2e-3), 100e-6, weight=np.array([3.0, 900.0, 8.0]),
+                                   check_overlap=False, device=device)
+    removed.alive.assign(np.array([1, 0, 1], np.int32))
+    assert removed.live_extremes()[1] == 8.0
     if not wp.get_device(device).is_cuda:
         parts = Particles.from_numpy(np.full((2, 3), 2e-3), 100e-6, weight=64.0, check_overlap=False, device=device)
         assert reserve_tent_records(grid, parts) == TRILINEAR_RECORDS
