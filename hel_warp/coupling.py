@@ -47,10 +47,16 @@ class GridSpec:
     periodic: tuple[bool, bool, bool] = (False, False, False)
     """Periodic flag per axis (the stencil wraps around)."""
     spread: bool = True
-    """Parcels heavier than ~3.95 real particles couple (deposit, interpolation, drag exchange) through a tent of
-    half-width round(sqrt(w^(2/3) / 2 + 1)) cells (the tent with the second moment of the parcel's w particles)
-    instead of the trilinear stencil (``kernels/interp.py`` ``spread_half_width``);
-    False: trilinear at any weight. Weight 1 is trilinear either way."""
+    """Weighted parcels couple (deposit, interpolation, drag exchange) through tents with the second moment of
+    their w real particles instead of the trilinear stencil; False: trilinear at any weight. Weight 1 is trilinear
+    either way."""
+    cloud_density: bool = True
+    """With ``spread``: a parcel's w particles stand at the number density of the real particles around it, so
+    its cloud is narrower where they are dense: a cube of w particles at their spacing, uniform of width
+    b = sqrt(w^(2/3) - 1) min(1, (n h^3)^(-1/3)) cells per axis, each point read trilinearly (``kernels/deposit.py``
+    ``cloud_width_kernel``, ``kernels/interp.py`` ``cloud_weight``); False: the weight rule, a tent of whole
+    half-width round(sqrt(w^(2/3) / 2 + 1)) cells (the cloud at one particle per cell) anywhere
+    (``kernels/interp.py`` ``spread_half_width``)."""
 
     def __post_init__(self):
         if len(self.origin) != 3 or len(self.shape) != 3:
@@ -66,21 +72,24 @@ class GridSpec:
     def cell_volume(self) -> float:
         return self.spacing**3
 
-    def cell_grid(self, fluid=None):
-        """The kernel-side ``CellGrid`` struct (``fluid``: the int32 fluid mask the tents keep to, None: all fluid),
-        built once per mask and kept (building one costs ~20 us, three per HEL step); callers must not modify it."""
+    def cell_grid(self, fluid=None, cloud=None):
+        """The kernel-side ``CellGrid`` struct (``fluid``: the int32 fluid mask the tents keep to, None: all fluid;
+        ``cloud``: the parcels' float32 tent half-widths, ``CouplingFields.parcel_cloud``, None: the weight rule),
+        built once per (mask, widths) and kept (building one costs ~20 us, three per HEL step); callers must not
+        modify it."""
         from kernels.interp import make_cell_grid
 
         cache = self.__dict__.get("_cell_grids")
         if cache is None:
             cache = {}
             object.__setattr__(self, "_cell_grids", cache)  # frozen: not a field (no part of eq, hash or repr)
-        entry = cache.get(id(fluid))
-        if entry is None or entry[0] is not fluid:  # the entry holds the mask, so its id is not reused
-            entry = (fluid, make_cell_grid(self.origin, self.spacing, self.shape, self.periodic, spread=self.spread,
-                                           fluid=fluid))
-            cache[id(fluid)] = entry
-        return entry[1]
+        key = (id(fluid), id(cloud))
+        entry = cache.get(key)
+        if entry is None or entry[0] is not fluid or entry[1] is not cloud:  # held, so the ids are not reused
+            entry = (fluid, cloud, make_cell_grid(self.origin, self.spacing, self.shape, self.periodic,
+                                                  spread=self.spread, fluid=fluid, cloud=cloud))
+            cache[key] = entry
+        return entry[2]
 
     @classmethod
     def of(cls, grid) -> "GridSpec":
@@ -209,6 +218,8 @@ class CouplingFields:
     cell_deposit_sums: object = field(default=None, metadata={"checkpoint": False})
     cell_gas_record: object = field(default=None, metadata={"checkpoint": False})
     parcel_voidage: object = field(default=None, metadata={"checkpoint": False})
+    parcel_cloud: object = field(default=None, metadata={"checkpoint": False})
+    """Per parcel the cloud width (cells) of this step (``GridSpec.cloud_density``), computed by the deposit."""
 
     @classmethod
     def allocate(cls, grid: GridSpec, capacity: int, *, device=None) -> "CouplingFields":
@@ -240,7 +251,7 @@ class CouplingFields:
             cell_mismatch=cells(wp.vec3d), parcel_rate=parcels(wp.float32), parcel_exchange=parcels(wp.float64),
             parcel_u_eq=parcels(wp.vec3), parcel_x_start=parcels(wp.vec3), cell_exchange_divisor=cells(wp.float64),
             cell_exchange_sums=cells(wp.vec4d), cell_deposit_sums=cells(vec9d), cell_gas_record=cells(gas_record),
-            parcel_voidage=parcels(wp.float32))
+            parcel_voidage=parcels(wp.float32), parcel_cloud=parcels(wp.float32))
         fields.launches = LaunchCache()
         return fields
 
@@ -250,23 +261,46 @@ def reserve_tent_records(grid: GridSpec, particles) -> int:
     sized for the largest live parcel's tent (``kernels.deposit.reserve_records``; a tent of half-width K adds into
     (2K)^3 cells). Nothing to do on the CPU, without tents or without parcels. Returns the bound in force."""
     from kernels import deposit as D
-    from kernels.interp import spread_half_width_host
 
     if not (D.DETERMINISTIC and particles.device.is_cuda and grid.spread and particles.count > 0):
         return D.reserve_records(0)
-    k = spread_half_width_host(True, particles.live_extremes()[1])  # the largest live weight
+    k = tent_support_host(grid, particles.live_extremes()[1])  # the largest live weight
     return D.reserve_records(8 * k**3)
+
+
+def tent_support_host(grid: GridSpec, weight: float) -> int:
+    """The most cells per axis / 2 a parcel of ``weight`` couples through on ``grid``: the weight rule's K, or with
+    ``cloud_density`` the larger of it (the deposit that reads the clouds' surroundings) and the widest cloud's."""
+    from kernels.interp import cloud_support_host, cloud_width_host, spread_half_width_host
+
+    k = spread_half_width_host(grid.spread, weight)
+    if grid.spread and grid.cloud_density:
+        k = max(k, cloud_support_host(cloud_width_host(weight)))
+    return k
+
+
+def parcel_grid(grid: GridSpec, fields: "CouplingFields", cell_fluid=None):
+    """The ``CellGrid`` the step's coupling kernels use: with the cloud widths of the step's deposit when it
+    computed them (``fields.cloud_on``), else the weight rule's."""
+    cloud = fields.parcel_cloud if getattr(fields, "cloud_on", False) else None
+    return grid.cell_grid(cell_fluid, cloud)
 
 
 def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields, cell_fluid=None, *, stencil=None) -> None:
     """Step 1: parcels -> cells (volume, momentum source from the last push, sum beta V, solids momentum);
     ``cell_fluid``: the int32 fluid mask heavy parcels' tents keep to; ``stencil``: a ``ParcelStencil`` the
     deposit fills at the parcels' positions (every trilinear row: the parcels moved since the last step)."""
-    from kernels.deposit import deposit, finish_cells
+    from kernels.deposit import cloud_widths, deposit, finish_cells
     from kernels.interp import parcel_arrays
 
     reserve_tent_records(grid, particles)
-    deposit(grid.cell_grid(cell_fluid), parcel_arrays(particles), fields.parcel_drag_impulse, fields.parcel_drag_coeff,
+    arrays = parcel_arrays(particles)
+    fields.cloud_on = False  # not a field: True from a deposit that computed parcel_cloud to the next deposit
+    if grid.spread and grid.cloud_density and particles.count > 0 and particles.live_extremes()[1] > 1.0:
+        cloud_widths(grid.cell_grid(cell_fluid), arrays, cell_solid_volume=fields.cell_solid_volume,
+                     parcel_cloud=fields.parcel_cloud, launches=fields.launches)
+        fields.cloud_on = True
+    deposit(parcel_grid(grid, fields, cell_fluid), arrays, fields.parcel_drag_impulse, fields.parcel_drag_coeff,
             cell_sums=fields.cell_deposit_sums, stencil=stencil, launches=fields.launches)
     finish_cells(grid.cell_volume, fields.cell_deposit_sums, cell_solid_volume=fields.cell_solid_volume,
                  cell_momentum_source=fields.cell_momentum_source, cell_drag_coeff=fields.cell_drag_coeff,
@@ -281,7 +315,7 @@ def interpolate_gas(grid: GridSpec, particles, cell_velocity, cell_grad_p, field
     ``stencil``: the deposit's cache (its rows are read where the parcels have not moved since)."""
     from kernels.interp import interpolate_gas_parcels
 
-    interpolate_gas_parcels(grid.cell_grid(cell_fluid), particles.x, particles.weight, cell_velocity, cell_grad_p,
+    interpolate_gas_parcels(parcel_grid(grid, fields, cell_fluid), particles.x, particles.weight, cell_velocity, cell_grad_p,
                             fields.cell_eps_s, cell_gas=fields.cell_gas_record, parcel_u_f=fields.parcel_u_f,
                             parcel_grad_p=fields.parcel_grad_p, parcel_eps_s=fields.parcel_eps_s, stencil=stencil,
                             launches=fields.launches)
@@ -347,7 +381,7 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
     p = particles
     f = fields
     reserve_tent_records(grid, p)  # once for the passes below
-    g = grid.cell_grid(cell_fluid)
+    g = parcel_grid(grid, fields, cell_fluid)
     x_out = p.x if particle_x_out is None else particle_x_out
     v_out = p.v if particle_v_out is None else particle_v_out
     wp.copy(f.parcel_x_start, p.x)

@@ -262,6 +262,14 @@ class HelConfig:
     order). Parcel ids (``particle_id``) travel with the parcels; a strategy with per-parcel memory must
     provide ``permute_parcels(new_to_old, old_to_new)`` or the sort is skipped."""
 
+    parcel_cloud: str = "density"
+    """How wide a weighted parcel couples (deposit, interpolation, drag exchange; weight 1 is trilinear either way):
+    ``density`` (default): its w real particles stand at the number density of the real particles around it, so
+    its cloud is narrow in a dense stream and one particle per cell wide where the others are sparse
+    (``GridSpec.cloud_density``, ``kernels/deposit.py`` ``cloud_width_kernel``); ``weight``: the weight rule, one
+    particle per cell anywhere (a tent of half-width round(sqrt(w^(2/3) / 2 + 1)) cells, the twenty-third to
+    twenty-fifth sessions' default; FIGURES, issue 12, twenty-sixth session)."""
+
     stencil_cache: bool = True
     """Compute each trilinear parcel's cloud-in-cell stencil once per step (at the deposit) and read it in the
     interpolation and the implicit exchange's passes (``kernels.interp.ParcelStencil``; a parcel moved in
@@ -275,6 +283,8 @@ class HelConfig:
             raise ConfigError(f"sort_every must be an integer >= 0 (got {self.sort_every!r}); 0 switches sorting off")
         if self.coupling not in ("implicit", "explicit"):
             raise ConfigError(f"coupling must be 'implicit' or 'explicit' (got {self.coupling!r})")
+        if self.parcel_cloud not in ("density", "weight"):
+            raise ConfigError(f"parcel_cloud must be 'density' or 'weight' (got {self.parcel_cloud!r})")
         if not -1.0 <= float(self.wall_spin_restitution) <= 1.0:
             raise ConfigError(f"wall_spin_restitution must be in [-1, 1] (got {self.wall_spin_restitution})")
         if self.wall_contact not in ("point", "surface"):
@@ -312,7 +322,7 @@ class HelSolver:
         self.config = config
         self.collision = collision if collision is not None else NoCollision()
         domain = getattr(gas, "domain", None) or getattr(gas_solver, "domain", None)
-        self.grid = GridSpec.of(domain.grid)
+        self.grid = dataclasses.replace(GridSpec.of(domain.grid), cloud_density=config.parcel_cloud == "density")
         gas_config = getattr(gas_solver, "config", None)
         if gas_config is not None:
             for name, ours, theirs in (("density", config.push.fluid_density, gas_config.density),

@@ -29,7 +29,7 @@ import warp as wp
 
 from kernels.launches import LaunchCache, launch
 from kernels.interp import (CellGrid, ParcelArrays, ParcelStencil, cell_offset, flat_cells, parcel_cell,
-                            parcel_stencil, spread_half_width, stencil_holds, stencil_or_empty, store_stencil)
+                            parcel_stencil, parcel_support, stencil_holds, stencil_or_empty, store_stencil)
 from kernels.push import PushParams, body_acceleration, parcel_drag_rate_at, parcel_mass
 from kernels.push import parcel_voidage as parcel_voidage_of
 
@@ -82,7 +82,7 @@ def deposit_kernel(
     tid = wp.tid()
     x = parcels.x[tid]
     weight = parcels.weight[tid]
-    cache = stencil.x.shape[0] > 0 and spread_half_width(grid, weight) == 1
+    cache = stencil.x.shape[0] > 0 and parcel_support(grid, weight, tid) == 1
     if cache:  # the step's first pass at these positions: it fills the cache (dead parcels too)
         store_stencil(grid, stencil, tid, x)
     if parcels.alive[tid] == 0:
@@ -98,10 +98,73 @@ def deposit_kernel(
         for corner in range(8):
             wp.atomic_add(cell_sums, stencil.cell[tid, corner], stencil.weight[tid, corner] * sums)
     else:
-        base, frac, kw, norm = parcel_stencil(grid, x, weight)
+        base, frac, kw, b, norm = parcel_stencil(grid, x, weight, tid)
         for corner in range(8 * kw * kw * kw):
-            idx, w = parcel_cell(grid, base, frac, kw, norm, corner)
+            idx, w = parcel_cell(grid, base, frac, kw, b, norm, corner)
             wp.atomic_add(cell_sums, cell_offset(grid, idx), w * sums)
+
+
+@wp.kernel
+def cloud_volume_kernel(
+    grid: CellGrid,
+    parcels: ParcelArrays,
+    # outputs (flat, accumulated into; zero it first)
+    cell_solid_volume: wp.array(dtype=wp.float64),
+):
+    """The live parcels' solid volume w V_p into the cells with the weight rule's stencils (``grid`` without
+    cloud widths): what ``cloud_width_kernel`` reads the parcels' surroundings from."""
+    tid = wp.tid()
+    if parcels.alive[tid] == 0:
+        return
+    r = wp.float64(parcels.radius[tid])
+    volume = wp.float64(parcels.weight[tid]) * SPHERE_VOLUME_FACTOR * r * r * r
+    base, frac, kw, b, norm = parcel_stencil(grid, parcels.x[tid], parcels.weight[tid], tid)
+    for corner in range(8 * kw * kw * kw):
+        idx, w = parcel_cell(grid, base, frac, kw, b, norm, corner)
+        wp.atomic_add(cell_solid_volume, cell_offset(grid, idx), w * volume)
+
+
+@wp.kernel
+def cloud_width_kernel(
+    grid: CellGrid,
+    parcels: ParcelArrays,
+    cell_solid_volume: wp.array(dtype=wp.float64),
+    # outputs
+    parcel_cloud: wp.array(dtype=wp.float32),
+):
+    """Per parcel the width b (cells) of the cloud it couples through (``kernels/interp.py`` ``cloud_weight``): its
+    w real particles stand on a cube lattice at the spacing l = n^(-1/3) of the real particles around it, per-axis
+    variance (w^(2/3) - 1) l^2 / 12, which a uniform cloud of width
+
+        b = sqrt(w^(2/3) - 1) min(1, (n h^3)^(-1/3)),   n = eps_env / V_p,
+
+    has. eps_env is the solids fraction of the *other* parcels at the parcel, read from ``cloud_volume_kernel``'s
+    deposit with the parcel's own weight-rule stencil W_c: sum_c W_c (V_c - w V_p W_c) / h^3 (its own deposit
+    taken out exactly: alone, a parcel's particles would otherwise make their own density). Where the others are
+    sparser than one particle per cell (n h^3 < 1) the spacing is taken as h: the widest cloud, b =
+    sqrt(w^(2/3) - 1), as wide as the weight rule's tent in second moment. Weight 1 (and dead slots): b = 0, the
+    trilinear stencil."""
+    tid = wp.tid()
+    b = wp.float64(0.0)
+    weight = parcels.weight[tid]
+    if parcels.alive[tid] != 0 and weight > 1.0 and grid.spread != 0:
+        r = wp.float64(parcels.radius[tid])
+        vp = SPHERE_VOLUME_FACTOR * r * r * r
+        w64 = wp.float64(weight)
+        base, frac, kw, b0, norm = parcel_stencil(grid, parcels.x[tid], weight, tid)
+        read = wp.float64(0.0)
+        own = wp.float64(0.0)
+        for corner in range(8 * kw * kw * kw):
+            idx, w = parcel_cell(grid, base, frac, kw, b0, norm, corner)
+            read = read + w * cell_solid_volume[cell_offset(grid, idx)]
+            own = own + w * w
+        h3 = grid.spacing * grid.spacing * grid.spacing
+        others = wp.max(read - w64 * vp * own, wp.float64(0.0))  # eps_env h^3, m^3
+        spacing = wp.float64(1.0)  # l / h
+        if others > vp:
+            spacing = wp.pow(vp / others, wp.float64(1.0 / 3.0))
+        b = wp.sqrt(wp.max(wp.pow(w64, wp.float64(2.0 / 3.0)) - wp.float64(1.0), wp.float64(0.0))) * spacing
+    parcel_cloud[tid] = float(b)
 
 
 @wp.kernel
@@ -238,13 +301,13 @@ def exchange_deposit_kernel(
     dv = wp.vec4d(d, d * wp.float64(v_star[0]), d * wp.float64(v_star[1]), d * wp.float64(v_star[2]))
     x = parcels.x[tid]
     weight = parcels.weight[tid]
-    if stencil_holds(stencil, tid, x, spread_half_width(grid, weight)):
+    if stencil_holds(stencil, tid, x, parcel_support(grid, weight, tid)):
         for corner in range(8):
             wp.atomic_add(cell_exchange_sums, stencil.cell[tid, corner], stencil.weight[tid, corner] * dv)
     else:
-        base, frac, kw, norm = parcel_stencil(grid, x, weight)
+        base, frac, kw, b, norm = parcel_stencil(grid, x, weight, tid)
         for corner in range(8 * kw * kw * kw):
-            idx, w = parcel_cell(grid, base, frac, kw, norm, corner)
+            idx, w = parcel_cell(grid, base, frac, kw, b, norm, corner)
             wp.atomic_add(cell_exchange_sums, cell_offset(grid, idx), w * dv)
 
 
@@ -308,13 +371,13 @@ def impulse_deposit_kernel(
     j = parcel_drag_impulse[tid]
     x = parcels.x[tid]
     weight = parcels.weight[tid]
-    if stencil_holds(stencil, tid, x, spread_half_width(grid, weight)):
+    if stencil_holds(stencil, tid, x, parcel_support(grid, weight, tid)):
         for corner in range(8):
             wp.atomic_add(cell_mismatch, stencil.cell[tid, corner], stencil.weight[tid, corner] * j)
     else:
-        base, frac, kw, norm = parcel_stencil(grid, x, weight)
+        base, frac, kw, b, norm = parcel_stencil(grid, x, weight, tid)
         for corner in range(8 * kw * kw * kw):
-            idx, w = parcel_cell(grid, base, frac, kw, norm, corner)
+            idx, w = parcel_cell(grid, base, frac, kw, b, norm, corner)
             wp.atomic_add(cell_mismatch, cell_offset(grid, idx), w * j)
 
 
@@ -340,14 +403,14 @@ def exchange_correct_kernel(
     corr = wp.vec3d(0.0, 0.0, 0.0)
     x = parcels.x[tid]
     weight = parcels.weight[tid]
-    if stencil_holds(stencil, tid, x, spread_half_width(grid, weight)):
+    if stencil_holds(stencil, tid, x, parcel_support(grid, weight, tid)):
         for corner in range(8):
             c = stencil.cell[tid, corner]
             corr = corr + (stencil.weight[tid, corner] / cell_exchange_divisor[c]) * cell_mismatch[c]
     else:
-        base, frac, kw, norm = parcel_stencil(grid, x, weight)
+        base, frac, kw, b, norm = parcel_stencil(grid, x, weight, tid)
         for corner in range(8 * kw * kw * kw):
-            idx, w = parcel_cell(grid, base, frac, kw, norm, corner)
+            idx, w = parcel_cell(grid, base, frac, kw, b, norm, corner)
             c = cell_offset(grid, idx)
             corr = corr + (w / cell_exchange_divisor[c]) * cell_mismatch[c]
     dj = -parcel_exchange[tid] * corr
@@ -371,6 +434,19 @@ def deposit(grid: CellGrid, parcels: ParcelArrays, parcel_drag_impulse, parcel_d
     launch(deposit_kernel, dim=parcels.x.shape[0], device=parcels.x.device,
            inputs=[grid, stencil_or_empty(stencil, parcels.x), parcels, parcel_drag_impulse, parcel_drag_coeff],
            outputs=[flat_cells(cell_sums)], cache=launches)
+
+
+def cloud_widths(grid: CellGrid, parcels: ParcelArrays, *, cell_solid_volume, parcel_cloud,
+                 launches: LaunchCache | None = None):
+    """Every parcel's cloud width from the real particles around it (``cloud_width_kernel``) into
+    ``parcel_cloud``; ``grid``: without cloud widths (the weight rule's tents read the surroundings);
+    ``cell_solid_volume``: float64 cells, overwritten (scratch)."""
+    cell_solid_volume.zero_()
+    n = parcels.x.shape[0]
+    launch(cloud_volume_kernel, dim=n, device=parcels.x.device, inputs=[grid, parcels],
+           outputs=[flat_cells(cell_solid_volume)], cache=launches)
+    launch(cloud_width_kernel, dim=n, device=parcels.x.device,
+           inputs=[grid, parcels, flat_cells(cell_solid_volume)], outputs=[parcel_cloud], cache=launches)
 
 
 def finish_cells(cell_volume: float, cell_sums, *, cell_solid_volume, cell_momentum_source, cell_drag_coeff,

@@ -53,6 +53,12 @@ class CellGrid:
     """(nx, ny, nz) 1 for fluid cells, or empty (all fluid): a tent (K >= 2) keeps its weights on fluid cells,
     renormalised, so that a heavy parcel near a wall neither reads the solid cells' zero gas velocity nor deposits
     into them (the trilinear stencil, K = 1, is left as it is)."""
+    cloud: wp.array(dtype=wp.float32)
+    """Per parcel slot: the width b >= 0 (cells) of the parcel's cloud, from the real particles' number density
+    around it (``kernels/deposit.py`` ``cloud_width_kernel``): the parcel couples through ``cloud_weight``, a
+    uniform cloud of width b per axis read through the trilinear stencil at each of its points (b = 0: the
+    trilinear stencil itself); empty, or a slot past its end (points that are not parcels): the weight rule's
+    tents, ``spread_half_width``."""
 
 
 @wp.struct
@@ -144,6 +150,69 @@ def spread_half_width(grid: CellGrid, weight: float):
     return int(wp.round(wp.sqrt(0.5 * wp.pow(weight, 2.0 / 3.0) + 1.0)))
 
 
+@wp.func
+def cloud_support(b: wp.float64):
+    """K = ceil(b / 2 + 1): a cloud of width b read trilinearly reaches b / 2 + 1 cells from the parcel, within
+    the 2K cells base - K + 1 .. base + K per axis (K = 1 at b = 0: the trilinear stencil)."""
+    if b <= wp.float64(0.0):
+        return 1
+    return int(wp.ceil(wp.float64(0.5) * b + wp.float64(1.0) - wp.float64(1.0e-9)))
+
+
+@wp.func
+def parcel_shape(grid: CellGrid, weight: float, tid: int):
+    """(K, b) of parcel slot ``tid``: its stencil spans 2K cells per axis (K = 1: trilinear); b >= 0 the width of
+    its cloud (``grid.cloud``, ``cloud_weight``), b < 0 the weight rule's tent of half-width K."""
+    if tid < grid.cloud.shape[0]:
+        b = wp.float64(grid.cloud[tid])
+        return cloud_support(b), b
+    return spread_half_width(grid, weight), wp.float64(-1.0)
+
+
+@wp.func
+def parcel_support(grid: CellGrid, weight: float, tid: int):
+    """K of parcel slot ``tid``'s stencil (1: trilinear)."""
+    k, b = parcel_shape(grid, weight, tid)
+    return k
+
+
+@wp.func
+def hat_integral(u: wp.float64):
+    """int_{-inf}^{u} max(1 - |t|, 0) dt: the trilinear weight's antiderivative along one axis."""
+    one = wp.float64(1.0)
+    half = wp.float64(0.5)
+    if u <= -one:
+        return wp.float64(0.0)
+    if u <= wp.float64(0.0):
+        return half * (u + one) * (u + one)
+    if u < one:
+        return one - half * (one - u) * (one - u)
+    return one
+
+
+@wp.func
+def cloud_weight(offset: int, k: int, b: wp.float64, f: wp.float64):
+    """Weight of the cell ``offset`` in [0, 2K) (cell base - K + 1 + offset, the parcel at base + f) for a cloud
+    of width b > 0: the trilinear weight averaged over the cloud's points, (H(u + b/2) - H(u - b/2)) / b with
+    u = f - (offset - K + 1) and H ``hat_integral``. The 2K weights sum to 1 and their centroid is the parcel
+    (the trilinear weights reproduce 1 and x at every point of the cloud); their variance about it, averaged over
+    positions, is b^2 / 12 + 1 / 6: the cloud's own and one trilinear stencil's."""
+    u = f - wp.float64(offset - k + 1)
+    hb = wp.float64(0.5) * b
+    return (hat_integral(u + hb) - hat_integral(u - hb)) / b
+
+
+def cloud_width_host(weight: float) -> float:
+    """The widest cloud a parcel of ``weight`` can get (``kernels/deposit.py`` ``cloud_width_kernel``, no other
+    parcel around it): b = sqrt(w^(2/3) - 1) cells, w particles one cell apart."""
+    return math.sqrt(max(float(weight) ** (2.0 / 3.0) - 1.0, 0.0))
+
+
+def cloud_support_host(b: float) -> int:
+    """``cloud_support`` on the host."""
+    return 1 if b <= 0.0 else int(math.ceil(0.5 * b + 1.0 - 1.0e-9))
+
+
 def spread_half_width_host(spread: bool, weight: float) -> int:
     """The largest K that :func:`spread_half_width` can return at ``weight``, on the host: what a launch needs to know
     ahead of the kernel, e.g. how many cells a parcel of the largest weight adds into (``kernels/deposit.py``). The
@@ -211,44 +280,53 @@ def tent_weight(offset: int, k: int, f: wp.float64):
 
 
 @wp.func
-def tent_cell(grid: CellGrid, base: wp.vec3i, frac: wp.vec3d, k: int, n: int):
-    """Cell index and raw tent weight of entry n in [0, (2K)^3) (K >= 2)."""
-    m = 2 * k
-    a = n % m
-    b = (n / m) % m
-    c = n / (m * m)
-    idx = wp.vec3i(tent_index(base[0] - k + 1 + a, grid.shape[0], grid.periodic[0]),
-                   tent_index(base[1] - k + 1 + b, grid.shape[1], grid.periodic[1]),
-                   tent_index(base[2] - k + 1 + c, grid.shape[2], grid.periodic[2]))
-    return idx, tent_weight(a, k, frac[0]) * tent_weight(b, k, frac[1]) * tent_weight(c, k, frac[2])
+def axis_weight(offset: int, k: int, b: wp.float64, f: wp.float64):
+    """One axis's weight of a parcel's stencil: the cloud's (b >= 0, ``cloud_weight``) or the weight rule's tent
+    (b < 0, ``tent_weight``)."""
+    if b < wp.float64(0.0):
+        return tent_weight(offset, k, f)
+    return cloud_weight(offset, k, b, f)
 
 
 @wp.func
-def parcel_stencil(grid: CellGrid, x: wp.vec3, weight: float):
-    """The stencil of a parcel of ``weight``: its trilinear base cell and fractions, the tent's half-width K
-    (``parcel_cell`` walks its (2 K)^3 cells) and the tent's weight on fluid cells (1 at K = 1, without a mask,
-    or when the whole tent lies in solid cells)."""
+def tent_cell(grid: CellGrid, base: wp.vec3i, frac: wp.vec3d, k: int, b: wp.float64, n: int):
+    """Cell index and weight of entry n in [0, (2K)^3) (K >= 2) of a tent (b < 0) or a cloud of width b."""
+    m = 2 * k
+    i = n % m
+    j = (n / m) % m
+    l = n / (m * m)
+    idx = wp.vec3i(tent_index(base[0] - k + 1 + i, grid.shape[0], grid.periodic[0]),
+                   tent_index(base[1] - k + 1 + j, grid.shape[1], grid.periodic[1]),
+                   tent_index(base[2] - k + 1 + l, grid.shape[2], grid.periodic[2]))
+    return idx, axis_weight(i, k, b, frac[0]) * axis_weight(j, k, b, frac[1]) * axis_weight(l, k, b, frac[2])
+
+
+@wp.func
+def parcel_stencil(grid: CellGrid, x: wp.vec3, weight: float, tid: int):
+    """The stencil of parcel slot ``tid`` of ``weight`` at x: its trilinear base cell and fractions, its support K
+    and cloud width b (``parcel_shape``; ``parcel_cell`` walks the (2 K)^3 cells) and its weight on fluid cells
+    (1 at K = 1, without a mask, or when the whole stencil lies in solid cells)."""
     base, frac = cic_stencil(grid, x)
-    k = spread_half_width(grid, weight)
+    k, b = parcel_shape(grid, weight, tid)
     norm = wp.float64(1.0)
     if k > 1 and grid.fluid.shape[0] > 0:
         total = wp.float64(0.0)
         for n in range(8 * k * k * k):
-            idx, w = tent_cell(grid, base, frac, k, n)
+            idx, w = tent_cell(grid, base, frac, k, b, n)
             if grid.fluid[idx[0], idx[1], idx[2]] != 0:
                 total = total + w
         if total > wp.float64(0.0):
             norm = total
-    return base, frac, k, norm
+    return base, frac, k, b, norm
 
 
 @wp.func
-def parcel_cell(grid: CellGrid, base: wp.vec3i, frac: wp.vec3d, k: int, norm: wp.float64, n: int):
+def parcel_cell(grid: CellGrid, base: wp.vec3i, frac: wp.vec3d, k: int, b: wp.float64, norm: wp.float64, n: int):
     """Cell index and weight of entry n in [0, (2K)^3) of a parcel's stencil (K = 1: ``cic_corner``, bitwise; a
-    tent's weight on a solid cell is 0 and the fluid cells' are divided by ``norm``, ``parcel_stencil``'s)."""
+    wider stencil's weight on a solid cell is 0 and the fluid cells' are divided by ``norm``, ``parcel_stencil``'s)."""
     if k == 1:
         return cic_corner(grid, base, frac, n)
-    idx, w = tent_cell(grid, base, frac, k, n)
+    idx, w = tent_cell(grid, base, frac, k, b, n)
     if grid.fluid.shape[0] > 0 and norm != wp.float64(1.0):
         if grid.fluid[idx[0], idx[1], idx[2]] == 0:
             w = wp.float64(0.0)
@@ -341,7 +419,7 @@ def fill_stencil_kernel(
     weight = float(1.0)
     if particle_weight.shape[0] > 0:
         weight = particle_weight[tid]
-    if spread_half_width(grid, weight) != 1:
+    if parcel_support(grid, weight, tid) != 1:
         return
     x = particle_x[tid]
     if only_stale != 0:
@@ -377,13 +455,13 @@ def interp_vec3_parcels_kernel(
         weight = particle_weight[tid]
     x = particle_x[tid]
     acc = wp.vec3d(0.0, 0.0, 0.0)
-    if stencil_holds(stencil, tid, x, spread_half_width(grid, weight)):
+    if stencil_holds(stencil, tid, x, parcel_support(grid, weight, tid)):
         for n in range(8):
             acc = acc + stencil.weight[tid, n] * vec3_to_64(cell_field[stencil.cell[tid, n]])
     else:
-        base, frac, k, norm = parcel_stencil(grid, x, weight)
+        base, frac, k, b, norm = parcel_stencil(grid, x, weight, tid)
         for n in range(8 * k * k * k):
-            idx, w = parcel_cell(grid, base, frac, k, norm, n)
+            idx, w = parcel_cell(grid, base, frac, k, b, norm, n)
             acc = acc + w * vec3_to_64(cell_field[cell_offset(grid, idx)])
     parcel_value[tid] = vec3_from_64(acc)
 
@@ -405,13 +483,13 @@ def interp_scalar_parcels_kernel(
         weight = particle_weight[tid]
     x = particle_x[tid]
     acc = wp.float64(0.0)
-    if stencil_holds(stencil, tid, x, spread_half_width(grid, weight)):
+    if stencil_holds(stencil, tid, x, parcel_support(grid, weight, tid)):
         for n in range(8):
             acc = acc + stencil.weight[tid, n] * wp.float64(cell_field[stencil.cell[tid, n]])
     else:
-        base, frac, k, norm = parcel_stencil(grid, x, weight)
+        base, frac, k, b, norm = parcel_stencil(grid, x, weight, tid)
         for n in range(8 * k * k * k):
-            idx, w = parcel_cell(grid, base, frac, k, norm, n)
+            idx, w = parcel_cell(grid, base, frac, k, b, norm, n)
             acc = acc + w * wp.float64(cell_field[cell_offset(grid, idx)])
     parcel_value[tid] = float(acc)
 
@@ -466,13 +544,13 @@ def interp_gas_kernel(
     u = wp.vec3d(0.0, 0.0, 0.0)
     g = wp.vec3d(0.0, 0.0, 0.0)
     e = wp.float64(0.0)
-    if stencil_holds(stencil, tid, x, spread_half_width(grid, weight)):
+    if stencil_holds(stencil, tid, x, parcel_support(grid, weight, tid)):
         for n in range(8):
             u, g, e = add_gas_record(stencil.weight[tid, n], cell_gas[stencil.cell[tid, n]], u, g, e)
     else:
-        base, frac, k, norm = parcel_stencil(grid, x, weight)
+        base, frac, k, b, norm = parcel_stencil(grid, x, weight, tid)
         for n in range(8 * k * k * k):
-            idx, w = parcel_cell(grid, base, frac, k, norm, n)
+            idx, w = parcel_cell(grid, base, frac, k, b, norm, n)
             u, g, e = add_gas_record(w, cell_gas[cell_offset(grid, idx)], u, g, e)
     parcel_u_f[tid] = vec3_from_64(u)
     parcel_grad_p[tid] = vec3_from_64(g)
@@ -550,13 +628,14 @@ def parcel_arrays(particles, *, x=None, v=None) -> ParcelArrays:
 
 
 def make_cell_grid(origin, spacing: float, shape, periodic=(False, False, False), spread: bool = False,
-                   fluid=None) -> CellGrid:
+                   fluid=None, cloud=None) -> CellGrid:
     """A ``CellGrid`` from plain values (origin m, spacing m, shape and periodic flags of three entries; ``spread``:
     weighted parcels couple through tents that grow with their weight, ``spread_half_width``; ``fluid``: the
     int32 fluid mask the tents keep to, None: all fluid)."""
     grid = CellGrid()
     grid.spread = 1 if spread else 0
     grid.fluid = fluid if fluid is not None else _no_mask()
+    grid.cloud = cloud if cloud is not None else _no_cloud()
     grid.origin = wp.vec3d(*[float(o) for o in origin])
     grid.spacing = wp.float64(spacing)
     grid.shape = wp.vec3i(*[int(n) for n in shape])
@@ -630,6 +709,14 @@ def _no_mask():
     key = str(wp.get_device())
     if key not in _NO_MASK:
         _NO_MASK[key] = wp.empty((0, 0, 0), dtype=wp.int32)
+    return _NO_MASK[key]
+
+
+def _no_cloud():
+    """An empty float32 array of cloud widths (the weight rule) on the default device, kept once per device."""
+    key = "cloud:" + str(wp.get_device())
+    if key not in _NO_MASK:
+        _NO_MASK[key] = wp.empty(0, dtype=wp.float32)
     return _NO_MASK[key]
 
 

@@ -98,12 +98,13 @@ def reserve_deposit_records(names, device) -> None:
     import warp as wp
 
     from kernels import deposit as D
-    from kernels.interp import spread_half_width_host
+    from kernels.interp import cloud_support_host, cloud_width_host, spread_half_width_host
 
     if not wp.get_device(device).is_cuda:
         return
     heaviest = max((split_label(name)[1] or 1.0) for name in names)
-    D.reserve_records(8 * spread_half_width_host(True, heaviest) ** 3)
+    k = max(spread_half_width_host(True, heaviest), cloud_support_host(cloud_width_host(heaviest)))  # either rule
+    D.reserve_records(8 * k**3)
     wp.force_load(device=device, modules=[wp.get_module(D.__name__)])
 
 

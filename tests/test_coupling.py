@@ -10,14 +10,14 @@ import pytest
 import warp as wp
 from scipy.optimize import brentq
 
-from hel_warp.coupling import (CouplingFields, GridSpec, PushConfig, deposit_parcels, interpolate_gas,
+from hel_warp.coupling import (CouplingFields, GridSpec, PushConfig, deposit_parcels, parcel_grid, interpolate_gas,
                                ktgf_collision, push_parcels)
 from hel_warp.errors import ConfigError, HelWarpError
 from hel_warp.parcels import ParcelPool, VolumeInjection
 from hel_warp.particles import Particles
 from kernels.interp import CellGrid as CellGridStruct
-from kernels.interp import (interpolate_scalar, interpolate_vec3, interpolate_vec3_parcels, spread_half_width,
-                           stencil_weights)
+from kernels.interp import (cloud_support, interpolate_scalar, interpolate_vec3, interpolate_vec3_parcels,
+                           spread_half_width, stencil_weights)
 
 GRID = GridSpec(origin=(-0.01, 0.02, 0.0), spacing=0.005, shape=(6, 5, 4))
 
@@ -103,8 +103,10 @@ def test_deposit_and_interpolation_use_the_same_weights():
     rng = np.random.default_rng(9)
     u_cells = rng.normal(0, 1, GRID.shape + (3,)).astype(np.float32)
     u_f = wp.zeros(parts.count, dtype=wp.vec3)
-    # weights 1..8: the heavier parcels spread over wider tents (kernels/interp.py spread_half_width), read alike
-    interpolate_vec3_parcels(GRID.cell_grid(), parts.x, parts.weight, wp.array(u_cells, dtype=wp.vec3), u_f)
+    # weights 1..8: the heavier parcels spread over wider tents (the deposit's cloud widths, GridSpec.cloud_density),
+    # read alike through the step's grid
+    assert fields.cloud_on
+    interpolate_vec3_parcels(parcel_grid(GRID, fields), parts.x, parts.weight, wp.array(u_cells, dtype=wp.vec3), u_f)
     lhs = np.sum(fields.cell_momentum_source.numpy() * u_cells.astype(np.float64))
     rhs = -np.sum((impulse * u_f.numpy().astype(np.float64))[alive == 1])
     assert lhs == pytest.approx(rhs, rel=1e-6)  # u_f stored in float32
@@ -118,10 +120,12 @@ def test_deposit_is_deterministic():
 
 
 def test_parcel_at_a_cell_centre_deposits_into_that_cell_only():
+    # the weight rule keeps parcels below w = 3.95 trilinear (a cloud of three alone would spread: cloud_density)
+    grid = GridSpec(origin=GRID.origin, spacing=GRID.spacing, shape=GRID.shape, cloud_density=False)
     x = np.array(GRID.origin) + GRID.spacing * np.array([2.5, 1.5, 3.5])
     parts = Particles.from_numpy(x[None, :], 200e-6, density=1500.0, weight=3.0, check_overlap=False)
-    fields = CouplingFields.allocate(GRID, 1)
-    deposit_parcels(GRID, parts, fields)
+    fields = CouplingFields.allocate(grid, 1)
+    deposit_parcels(grid, parts, fields)
     vol = fields.cell_solid_volume.numpy()
     expect = 3.0 * 4.0 / 3.0 * math.pi * float(np.float32(200e-6)) ** 3  # radius is stored in float32
     # positions are float32: the parcel sits within ~1e-9 m of the centre, leaving ~1e-6 of its volume aside
@@ -468,7 +472,7 @@ def test_heavy_parcels_spread_over_tents_that_grow_with_their_weight(weight, hal
     over (2K - 1)^3 cells (the tent's zeros at +-K); with ``spread=False`` the same parcel deposits trilinearly (one
     cell)."""
     assert cloud_half_width(weight) == half_width
-    grid = GridSpec(origin=(0.0, 0.0, 0.0), spacing=1e-3, shape=(16, 16, 16))
+    grid = GridSpec(origin=(0.0, 0.0, 0.0), spacing=1e-3, shape=(16, 16, 16), cloud_density=False)  # the weight rule
     rng = np.random.default_rng(4)
     n = 200
     x = rng.uniform(half_width + 0.5, 16 - half_width - 0.5, size=(n, 3)) * 1e-3  # K cells from the sides
@@ -503,7 +507,7 @@ def test_heavy_parcels_spread_over_tents_that_grow_with_their_weight(weight, hal
     centre = np.array([[7.5e-3, 8.5e-3, 6.5e-3]])
     one = Particles.from_numpy(centre, 100e-6, density=2000.0, weight=weight, check_overlap=False)
     for spread, cells in ((True, (2 * half_width - 1) ** 3), (False, 1)):
-        g = GridSpec(origin=(0.0, 0.0, 0.0), spacing=1e-3, shape=(16, 16, 16), spread=spread)
+        g = GridSpec(origin=(0.0, 0.0, 0.0), spacing=1e-3, shape=(16, 16, 16), spread=spread, cloud_density=False)
         f = CouplingFields.allocate(g, 1)
         deposit_parcels(g, one, f)
         vol = f.cell_solid_volume.numpy()
@@ -538,3 +542,115 @@ def test_a_heavy_parcels_tent_keeps_to_the_fluid_next_to_a_wall():
     v_p = 4.0 / 3.0 * math.pi * float(np.float32(100e-6)) ** 3
     assert vol.sum() == pytest.approx(65.0 * v_p, rel=1e-12)
     assert vol[fluid == 0].sum() == 0.0  # the trilinear parcel 1.5 cells up does not reach the wall either
+
+
+@pytest.mark.parametrize("b", [0.4, 1.09, 1.73, 2.44, 3.87])
+def test_a_cloud_stencil_has_the_moments_of_its_cloud(b):
+    """A parcel coupling through a cloud of width b (``kernels/interp.py`` ``cloud_weight``; ``GridSpec.cloud_density``)
+    stands for its particles spread uniformly over b cells per axis, each read trilinearly: its (2K)^3 weights sum
+    to 1, their centroid is the parcel (a linear field is read exactly away from the sides), and their per-axis
+    variance about it, averaged over positions in a cell, is the uniform cloud's b^2 / 12 plus one trilinear
+    stencil's 1 / 6 (cells^2); the weights reach no further than b / 2 + 1 cells."""
+    from kernels.interp import interpolate_scalar_parcels, make_cell_grid
+
+    n_cells = 16
+    rng = np.random.default_rng(7)
+    n = 400
+    x = np.column_stack([8.0 + (np.arange(n) + rng.uniform(size=n)) / n,  # every position across one cell in x
+                         rng.uniform(6.0, 10.0, n), rng.uniform(6.0, 10.0, n)]) * 1e-3
+    parts = Particles.from_numpy(x, 100e-6, density=2000.0, weight=64.0, check_overlap=False)
+    cloud = wp.array(np.full(n, b, np.float32), dtype=wp.float32)
+    grid = make_cell_grid((0.0, 0.0, 0.0), 1e-3, (n_cells,) * 3, spread=True, cloud=cloud)
+    centres = (np.indices((n_cells,) * 3).transpose(1, 2, 3, 0) + 0.5) * 1e-3
+
+    def read(field):
+        out = wp.zeros(n, dtype=float)
+        interpolate_scalar_parcels(grid, parts.x, parts.weight, wp.array(field.astype(np.float32), dtype=float), out)
+        return out.numpy().astype(np.float64)
+
+    xs = parts.x.numpy().astype(np.float64)
+    assert np.allclose(read(np.ones((n_cells,) * 3)), 1.0, rtol=0, atol=1e-6)
+    a0, grad = 0.3, np.array([2.0, -1.0, 4.0])
+    assert np.allclose(read(a0 + centres @ grad), a0 + xs @ grad, rtol=0, atol=2e-6)
+    # variance along x in cells^2 (the field read relative to a nearby origin keeps float32 exact enough)
+    u = (centres[..., 0] - 8.5e-3) / 1e-3
+    variance = read(u * u) - ((xs[:, 0] - 8.5e-3) / 1e-3) ** 2
+    assert np.mean(variance) == pytest.approx(b * b / 12.0 + 1.0 / 6.0, rel=3e-3)
+    # support: cells further than b / 2 + 1 from the parcel get nothing
+    far = (np.abs(centres[..., 0] - xs[0, 0]) >= (0.5 * b + 1.0) * 1e-3 + 1e-9).astype(np.float64)
+    assert read(far)[0] == 0.0
+
+
+def _bath(per_cell, n_cells, radius):
+    """``per_cell`` weight-1 particles at every cell centre of an n_cells^3 grid of 1 mm cells."""
+    centres = (np.indices((n_cells,) * 3).reshape(3, -1).T + 0.5) * 1e-3
+    return np.repeat(centres, per_cell, axis=0)
+
+
+@pytest.mark.parametrize("weight", [8.0, 27.0, 64.0])
+@pytest.mark.parametrize("per_cell", [0, 1, 8, 27])
+def test_a_parcels_cloud_takes_the_number_density_of_the_particles_around_it(weight, per_cell):
+    """A parcel of w real particles in a bath of ``per_cell`` single particles per cell (n h^3 = per_cell, uniform:
+    one at each cell centre) gets the cloud of w particles at the bath's spacing h n^(-1/3), per-axis variance
+    (w^(2/3) - 1) h^2 n^(-2/3) / 12, i.e. width b = sqrt(w^(2/3) - 1) (n h^3)^(-1/3) cells; with one particle per
+    cell or fewer around it the spacing is h (b = sqrt(w^(2/3) - 1)), also when the parcel is alone: its own
+    particles do not make the density it is spread at."""
+    n_cells = 12
+    radius = 100e-6
+    rng = np.random.default_rng(int(weight) + 100 * per_cell)
+    probe = (6.0 + rng.uniform(0.0, 1.0, 3)) * 1e-3
+    bath = _bath(per_cell, n_cells, radius)
+    x = np.vstack([probe[None, :], bath])
+    w = np.concatenate([[weight], np.ones(len(bath))])
+    parts = Particles.from_numpy(x, radius, density=2000.0, weight=w, check_overlap=False)
+    grid = GridSpec(origin=(0.0, 0.0, 0.0), spacing=1e-3, shape=(n_cells,) * 3, periodic=(True, True, True))
+    fields = CouplingFields.allocate(grid, len(x))
+    deposit_parcels(grid, parts, fields)
+    assert fields.cloud_on
+    b = fields.parcel_cloud.numpy()
+    expect = math.sqrt(weight ** (2.0 / 3.0) - 1.0) * min(1.0, max(per_cell, 1e-30) ** (-1.0 / 3.0))
+    assert b[0] == pytest.approx(expect, rel=2e-5)
+    assert np.all(b[1:] == 0.0)  # the single particles stay trilinear
+    volume = w.sum() * 4.0 / 3.0 * math.pi * float(np.float32(radius)) ** 3
+    assert fields.cell_solid_volume.numpy().sum() == pytest.approx(volume, rel=1e-12)
+
+
+def test_weight_one_is_trilinear_with_either_cloud_rule():
+    """Without weighted parcels the cloud rule computes nothing and the deposit is the trilinear one, bit for bit."""
+    parts, _ = random_parcels(300, seed=3, weight=1.0)
+    out = []
+    for density in (True, False):
+        grid = GridSpec(origin=GRID.origin, spacing=GRID.spacing, shape=GRID.shape, cloud_density=density)
+        fields = CouplingFields.allocate(grid, parts.count)
+        deposit_parcels(grid, parts, fields)
+        assert not fields.cloud_on
+        out.append(fields.cell_solid_volume.numpy())
+    assert np.array_equal(out[0], out[1])
+
+
+@wp.kernel
+def _cloud_support_kernel(b: wp.array(dtype=wp.float32), out: wp.array(dtype=wp.int32)):
+    tid = wp.tid()
+    out[tid] = cloud_support(wp.float64(b[tid]))
+
+
+def test_the_host_knows_each_cloud_before_the_launch():
+    """The host's bound on a cloud's stencil (what sizes the deterministic deposit's records on CUDA,
+    ``coupling.tent_support_host``) is the kernel's ``cloud_support`` for every float32 width, the widest cloud a
+    weight can get (alone) is ``cloud_width_host``'s, and the bound covers both rules' stencils."""
+    from hel_warp.coupling import tent_support_host
+    from kernels.interp import cloud_support_host, cloud_width_host, spread_half_width_host
+
+    widths = np.concatenate([np.linspace(0.0, 12.0, 2401), np.float32([2.0, 4.0, 6.0]) + np.float32(1e-6)])
+    widths = widths.astype(np.float32)
+    out = wp.zeros(len(widths), dtype=wp.int32)
+    wp.launch(_cloud_support_kernel, dim=len(widths), inputs=[wp.array(widths, dtype=wp.float32)], outputs=[out])
+    assert np.array_equal(out.numpy(), [cloud_support_host(float(b)) for b in widths])
+    grid = GridSpec(origin=(0.0, 0.0, 0.0), spacing=1e-3, shape=(12, 12, 12), periodic=(True, True, True))
+    for weight in (2.0, 8.0, 27.0, 64.0, 1000.0):
+        alone = Particles.from_numpy(np.full((1, 3), 6.3e-3), 100e-6, weight=weight, check_overlap=False)
+        fields = CouplingFields.allocate(grid, 1)
+        deposit_parcels(grid, alone, fields)
+        assert fields.parcel_cloud.numpy()[0] == pytest.approx(cloud_width_host(weight), rel=1e-6)
+        k = tent_support_host(grid, weight)
+        assert k >= cloud_support_host(cloud_width_host(weight)) and k >= spread_half_width_host(True, weight)
