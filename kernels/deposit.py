@@ -34,6 +34,13 @@ from kernels.push import PushParams, body_acceleration, parcel_drag_rate_at, par
 from kernels.push import parcel_voidage as parcel_voidage_of
 
 SPHERE_VOLUME_FACTOR = wp.constant(wp.float64(4.0 * math.pi / 3.0))  # float64 (wp.pi is float32)
+
+
+@wp.func
+def solid_volume(parcels: ParcelArrays, tid: int, weight: wp.float64):
+    """``weight`` real particles of parcel ``tid``, m^3 (float64; the product in the deposit's order)."""
+    r = wp.float64(parcels.radius[tid])
+    return weight * SPHERE_VOLUME_FACTOR * r * r * r
 vec9d = wp.types.vector(length=9, dtype=wp.float64)
 """The deposit's per-cell sums in one record: solid volume, momentum source (3), drag coefficient, solid mass, solid
 momentum (3)."""
@@ -87,8 +94,7 @@ def deposit_kernel(
         store_stencil(grid, stencil, tid, x)
     if parcels.alive[tid] == 0:
         return
-    r = wp.float64(parcels.radius[tid])
-    volume = wp.float64(parcels.weight[tid]) * SPHERE_VOLUME_FACTOR * r * r * r
+    volume = solid_volume(parcels, tid, wp.float64(parcels.weight[tid]))
     mass = volume * wp.float64(parcels.density[tid])
     v = parcels.v[tid]
     source = -parcel_drag_impulse[tid]
@@ -116,8 +122,7 @@ def cloud_volume_kernel(
     tid = wp.tid()
     if parcels.alive[tid] == 0:
         return
-    r = wp.float64(parcels.radius[tid])
-    volume = wp.float64(parcels.weight[tid]) * SPHERE_VOLUME_FACTOR * r * r * r
+    volume = solid_volume(parcels, tid, wp.float64(parcels.weight[tid]))
     base, frac, kw, b, norm = parcel_stencil(grid, parcels.x[tid], parcels.weight[tid], tid)
     for corner in range(8 * kw * kw * kw):
         idx, w = parcel_cell(grid, base, frac, kw, b, norm, corner)
@@ -148,8 +153,7 @@ def cloud_width_kernel(
     b = wp.float64(0.0)
     weight = parcels.weight[tid]
     if parcels.alive[tid] != 0 and weight > 1.0 and grid.spread != 0:
-        r = wp.float64(parcels.radius[tid])
-        vp = SPHERE_VOLUME_FACTOR * r * r * r
+        vp = solid_volume(parcels, tid, wp.float64(1.0))
         w64 = wp.float64(weight)
         base, frac, kw, b0, norm = parcel_stencil(grid, parcels.x[tid], weight, tid)
         read = wp.float64(0.0)
