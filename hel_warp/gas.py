@@ -666,22 +666,32 @@ class GasSolver:
                                          None, tol, maxiter, atol_floor)
             if done is not None:
                 return done
+        return self._host_loop_pcg(system, n, run, precondition, start, prepare, None, tol, maxiter, atol_floor)
+
+    def _host_loop_pcg(self, system, n: int, run: dict, precondition, start, prepare, after, tol: float,
+                       maxiter: int, atol_floor: float) -> tuple:
+        """The PCG's loop on the host: ``start`` (residual and ||b||), the stop bound max(tol ||b||, atol_floor), then
+        unless the residual is within it (a NaN residual takes one iteration; the caller reports it) ``prepare``,
+        the captured iteration (``_pcg_iteration_graph``) until the bound or ``maxiter``, and ``after`` (None:
+        nothing). One read-back per iteration. Returns (iterations, ||r||, bound)."""
+        s = self._scalars
         start()
         host = s.numpy()
         atol = max(tol * float(np.sqrt(host[1])), atol_floor)
         residual = float(np.sqrt(host[3]))
         iterations = 0
-        if residual <= atol:
-            return iterations, residual, atol
-        prepare()
-        # captured, not run, the first time; IC(0) takes the step inside its forward substitution
-        iteration = self._pcg_iteration_graph(system, n, run, precondition)
-        while iterations < maxiter:
-            wp.capture_launch(iteration)
-            iterations += 1
-            residual = float(np.sqrt(s.numpy()[3]))
-            if not residual > atol:  # converged, or NaN (reported by the caller)
-                break
+        if not residual <= atol:
+            prepare()
+            # captured, not run, the first time; IC(0) takes the step inside its forward substitution
+            iteration = self._pcg_iteration_graph(system, n, run, precondition)
+            while iterations < maxiter:
+                wp.capture_launch(iteration)
+                iterations += 1
+                residual = float(np.sqrt(s.numpy()[3]))
+                if not residual > atol:  # converged, or NaN (reported by the caller)
+                    break
+            if after is not None:
+                after()
         return iterations, residual, atol
 
     def _red_black_pcg(self, system, n: int, run: dict, tol: float, maxiter: int, atol_floor: float) -> tuple:
@@ -717,23 +727,10 @@ class GasSolver:
                                          self._pcg_iteration(run, "red_black"), finish, tol, maxiter, atol_floor)
             if done is not None:
                 return done
-        start()
-        host = s.numpy()
-        atol = max(tol * float(np.sqrt(host[1])), atol_floor)
-        residual = float(np.sqrt(host[3]))
-        iterations = 0
-        if not residual <= atol:  # a NaN residual takes one iteration, as in ``_native_pcg`` (the caller reports it)
-            prepare()
-            iteration = self._pcg_iteration_graph(system, n, run, "red_black")
-            while iterations < maxiter:
-                wp.capture_launch(iteration)
-                iterations += 1
-                residual = float(np.sqrt(s.numpy()[3]))
-                if not residual > atol:
-                    break
-            run["rb x_r"]()
+        done = self._host_loop_pcg(system, n, run, "red_black", start, prepare, run["rb x_r"], tol, maxiter,
+                                   atol_floor)
         scatter()
-        return iterations, residual, atol
+        return done
 
     def _pcg_iteration_graph(self, system, n: int, run: dict, precondition):
         """One PCG iteration of ``system`` as a captured graph (``wp.ScopedCapture``: a CUDA graph, or Warp's CPU
