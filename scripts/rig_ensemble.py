@@ -8,6 +8,10 @@ the real mass is one run's) gives the metrics of W x more parcels at no change o
 runs, one or several seeds) is pooled the same way (issue 12, docs/FIGURES.md):
 
     python scripts/rig_ensemble.py --reference runs/dem_s0 runs/dem_s1 --runs runs/w8_s* --label cell_w8
+
+``--jackknife`` adds standard errors from the seed-to-seed spread (``--jackknife-groups G`` for ensembles of
+hundreds of runs: G evaluations instead of one per run); every ensemble also reports its mean real collision rate
+against the reference's, in total and per stream pair.
 """
 
 from __future__ import annotations
@@ -73,16 +77,52 @@ def fixed_sections(m: dict, ref: dict, sections) -> dict:
 
 
 def ensemble_metrics(paths, reference_paths, min_samples: int = 10, label: str | None = None,
-                     sections=None, jackknife: bool = False) -> dict:
+                     sections=None, jackknife: bool = False, groups: int | None = None) -> dict:
     """Crossing and transverse rms of the pooled ``paths`` against the pooled ``reference_paths`` (and over the
-    fixed ``sections``, 1-based, when given: ``fixed``); ``jackknife``: their standard errors (``jackknife``)."""
+    fixed ``sections``, 1-based, when given: ``fixed``); the real collision rates of both (``collisions``);
+    ``jackknife``: the standard errors of the compared figures (``jackknife``), leaving out one run at a time or,
+    with ``groups``, one of that many groups of runs."""
     from hel_warp.report import load_run
 
     runs = [load_run(p) for p in paths]
     refs = [load_run(p) for p in reference_paths]
     out = pooled_metrics(runs, refs, min_samples, label, sections)
+    out["collisions"] = ensemble_collisions(runs, refs)
     if jackknife:
-        out["jackknife"] = jackknife_errors(runs, refs, min_samples, out)
+        out["jackknife"] = jackknife_errors(runs, refs, min_samples, out, sections=sections, groups=groups)
+    return out
+
+
+def ensemble_collisions(runs, refs) -> dict:
+    """Real binary collisions per simulated second (``hel_warp.report.collision_rates``), the mean over the runs
+    and over the reference runs, in total and per stream pair, and their ratio (runs / reference; None where the
+    reference has none or a side does not count collisions): how often the model collides, beside what the
+    collisions do to the streams. Collisions are a rate of each run, not of the pooled parcels, so they are
+    averaged, not pooled."""
+    from hel_warp.report import collision_rates
+
+    def mean_rates(group):
+        rates = [collision_rates(r) for r in group]
+        if not rates or any(r["collision_rate"] is None for r in rates):
+            return None, None
+        total = float(np.mean([r["collision_rate"] for r in rates]))
+        pairs = sorted(set().union(*(r["collision_rate_per_stream_pair"] or {} for r in rates)))
+        per_pair = {k: float(np.mean([(r["collision_rate_per_stream_pair"] or {}).get(k, 0.0) for r in rates]))
+                    for k in pairs}
+        return total, per_pair
+
+    def ratio(a, b):
+        return None if a is None or b is None or b <= 0.0 else a / b
+
+    total, per_pair = mean_rates(runs)
+    ref_total, ref_pair = mean_rates(refs)
+    out = {"collision_rate": total, "reference_collision_rate": ref_total,
+           "collision_rate_vs_dem": ratio(total, ref_total),
+           "collision_rate_per_stream_pair": per_pair, "reference_collision_rate_per_stream_pair": ref_pair,
+           "collision_rate_per_stream_pair_vs_dem": None}
+    if per_pair is not None and ref_pair is not None:
+        out["collision_rate_per_stream_pair_vs_dem"] = {k: ratio(per_pair.get(k), ref_pair.get(k))
+                                                        for k in sorted(set(per_pair) | set(ref_pair))}
     return out
 
 
@@ -90,12 +130,33 @@ JACKKNIFE_KEYS = ("stream_crossing_vs_dem", "transverse_velocity_rms_vs_dem")
 
 
 def _jackknife_values(m: dict) -> dict:
-    """The compared figures of a ``pooled_metrics`` result, flat: whole run and each size class."""
-    vals = {k: m[k] for k in JACKKNIFE_KEYS}
+    """The compared figures of a ``pooled_metrics`` result, flat: whole run (and over the fixed sections,
+    ``fixed_*``) and each size class."""
+
+    def figures(r: dict, prefix: str) -> dict:
+        vals = {prefix + k: r[k] for k in JACKKNIFE_KEYS}
+        if "fixed" in r:
+            vals.update({f"{prefix}fixed_{k}": r["fixed"][k] for k in JACKKNIFE_KEYS})
+        return vals
+
+    vals = figures(m, "")
     for c in m.get("size_classes", []):
-        for k in JACKKNIFE_KEYS:
-            vals[f"{1e6 * c['diameter']:.0f}um_{k}"] = c[k]
+        vals.update(figures(c, f"{1e6 * c['diameter']:.0f}um_"))
     return vals
+
+
+def leave_out_groups(n: int, groups: int | None) -> list[list[int]]:
+    """Indices 0..n-1 in the groups a jackknife leaves out in turn: one each (``groups`` None or >= n), else
+    ``groups`` contiguous groups of near-equal size (the delete-a-group jackknife: with runs in seed order, each
+    group a block of seeds)."""
+    if groups is None or groups >= n:
+        return [[k] for k in range(n)]
+    if groups < 2:
+        from hel_warp.errors import ConfigError
+
+        raise ConfigError(f"a jackknife needs at least 2 groups (got {groups})")
+    bounds = np.linspace(0, n, groups + 1).round().astype(int)
+    return [list(range(a, b)) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
 def _leave_one_out_error(estimates: list[dict]) -> dict:
@@ -112,20 +173,29 @@ def _leave_one_out_error(estimates: list[dict]) -> dict:
     return out
 
 
-def jackknife_errors(runs, refs, min_samples: int, full: dict) -> dict:
-    """Standard errors of the ``*_vs_dem`` figures (whole run and per size class) from the seed-to-seed spread:
-    leave one run out of the ensemble (``runs``), and of the reference (``refs``) when it holds two or more runs;
-    ``combined`` adds the two in quadrature. A difference from the reference smaller than ~2 combined errors is not
-    resolved by these ensembles."""
+def jackknife_errors(runs, refs, min_samples: int, full: dict, sections=None, groups: int | None = None) -> dict:
+    """Standard errors of the ``*_vs_dem`` figures (whole run, over the fixed ``sections`` when given, per size
+    class) from the seed-to-seed spread: leave one run out of the ensemble (``runs``; with ``groups``, one of that
+    many contiguous groups of runs at a time, the delete-a-group jackknife, which costs ``groups`` evaluations
+    instead of one per run), and one run of the reference (``refs``) when it holds two or more runs; ``combined``
+    adds the two in quadrature. A difference from the reference smaller than ~2 combined errors is not resolved by
+    these ensembles."""
     base = _jackknife_values(full)
-    out = {"runs": None, "reference": None}
+    out = {"runs": None, "reference": None, "groups": None}
+
+    def without(group, leave):
+        drop = set(leave)
+        return [r for k, r in enumerate(group) if k not in drop]
+
     if len(runs) >= 2:
-        out["runs"] = _leave_one_out_error([_jackknife_values(pooled_metrics(runs[:k] + runs[k + 1:], refs,
-                                                                             min_samples))
-                                            for k in range(len(runs))])
+        parts = leave_out_groups(len(runs), groups)
+        out["groups"] = len(parts)
+        out["runs"] = _leave_one_out_error([_jackknife_values(pooled_metrics(without(runs, leave), refs, min_samples,
+                                                                             sections=sections))
+                                            for leave in parts])
     if len(refs) >= 2:
-        out["reference"] = _leave_one_out_error([_jackknife_values(pooled_metrics(runs, refs[:k] + refs[k + 1:],
-                                                                                  min_samples))
+        out["reference"] = _leave_one_out_error([_jackknife_values(pooled_metrics(runs, without(refs, [k]),
+                                                                                  min_samples, sections=sections))
                                                  for k in range(len(refs))])
     combined = {}
     for key in base:
@@ -178,11 +248,17 @@ def main(argv=None) -> int:
     p.add_argument("--jackknife", action="store_true",
                    help="also the standard errors of the *_vs_dem figures, leaving one run (and one reference run) "
                         "out at a time (one pooled evaluation per run)")
+    p.add_argument("--jackknife-groups", type=int, default=None, metavar="G",
+                   help="with --jackknife: leave out one of G contiguous groups of runs at a time instead of one run "
+                        "(G evaluations instead of one per run; for ensembles of hundreds of runs)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     args = p.parse_args(argv)
+    if args.jackknife_groups is not None and args.jackknife_groups < 2:
+        print(f"rig_ensemble: error: --jackknife-groups must be >= 2 (got {args.jackknife_groups})", file=sys.stderr)
+        return 2
     try:
         out = ensemble_metrics(args.runs, args.reference, args.min_samples, args.label, args.sections,
-                               jackknife=args.jackknife)
+                               jackknife=args.jackknife, groups=args.jackknife_groups)
     except ConfigError as exc:
         print(f"rig_ensemble: error: {exc}", file=sys.stderr)
         return 2
@@ -199,13 +275,18 @@ def main(argv=None) -> int:
                 f"{num(m['reference_transverse_velocity_rms'], '.3f')} m/s "
                 f"({num(None if m['transverse_velocity_rms_vs_dem'] is None else 100 * m['transverse_velocity_rms_vs_dem'], '+.1f')} %)")
 
-    def fixed(m):
+    def fixed(m, prefix=""):
         f = m.get("fixed")
         if not f:
             return ""
         vy = f["transverse_velocity_rms_vs_dem"]
+        jk = (out.get("jackknife") or {}).get("combined") or {}
+        ex, ev = jk.get(prefix + "fixed_" + JACKKNIFE_KEYS[0]), jk.get(prefix + "fixed_" + JACKKNIFE_KEYS[1])
+        se = (f" (+- {num(ex, '.3f')} / {num(None if ev is None else 100 * ev, '.1f')} %)"
+              if out.get("jackknife") else "")
         return (f"; sections {','.join(str(k) for k in f['sections'])}: crossing "
-                f"{num(f['stream_crossing_vs_dem'], '+.3f')}, v_y rms {num(None if vy is None else 100 * vy, '+.1f')} %")
+                f"{num(f['stream_crossing_vs_dem'], '+.3f')}, v_y rms {num(None if vy is None else 100 * vy, '+.1f')} %"
+                + se)
 
     def errors(prefix=""):
         jk = out.get("jackknife")
@@ -219,7 +300,14 @@ def main(argv=None) -> int:
     print(line(f"{out['label']} ({out['runs']} runs) vs reference ({out['reference_runs']} runs)", out) + fixed(out)
           + errors())
     for c in out.get("size_classes", []):
-        print("  " + line(f"{1e6 * c['diameter']:.0f} um", c) + fixed(c) + errors(f"{1e6 * c['diameter']:.0f}um_"))
+        name = f"{1e6 * c['diameter']:.0f}um_"
+        print("  " + line(f"{1e6 * c['diameter']:.0f} um", c) + fixed(c, name) + errors(name))
+    col = out["collisions"]
+    if col["collision_rate"] is not None:
+        ratios = col["collision_rate_per_stream_pair_vs_dem"] or {}
+        print(f"  real collisions per second (mean of the runs): {col['collision_rate']:.4g}, "
+              f"{num(col['collision_rate_vs_dem'], '.3f')} of the reference's; per stream pair "
+              + ", ".join(f"{k} {num(v, '.3f')}" for k, v in ratios.items()))
     return 0
 
 

@@ -347,10 +347,64 @@ def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
         assert (two["fixed"][key] is None and one["fixed"][key] is None) or \
             two["fixed"][key] == pytest.approx(one["fixed"][key], rel=1e-12, abs=1e-12)
     assert one["stream_crossing"] == pytest.approx(by["none"]["stream_metrics"]["stream_crossing"], rel=1e-12)
+    assert {"fixed_stream_crossing_vs_dem", "fixed_transverse_velocity_rms_vs_dem"} <= set(two["jackknife"]["runs"])
+    # the ensemble's collision rates are the mean of its runs' (the report's own figure), beside the reference's
+    col = ens.ensemble_metrics([runs[2], runs[2]], [runs[2]], min_samples=1)["collisions"]
+    if dem["collision_rate"] is not None:
+        assert col["collision_rate"] == pytest.approx(dem["collision_rate"], rel=1e-12)
+        assert (col["collision_rate_vs_dem"] == pytest.approx(1.0, rel=1e-12) if dem["collision_rate"] > 0.0
+                else col["collision_rate_vs_dem"] is None)  # no ratio against a reference that never collided
+        assert all(v is None or v == pytest.approx(1.0, rel=1e-12)
+                   for v in col["collision_rate_per_stream_pair_vs_dem"].values())
+    # with known counts (a run's series replaced): runs of 30 and 50 real collisions against references of 10 and 30,
+    # over the dem run's simulated time T: rates 40 / T and 20 / T, ratio 2; per stream pair likewise
+    import dataclasses
+
+    from hel_warp.report import load_run
+
+    base = load_run(runs[2])
+    t = base.config.get("simulated_time", base.config["end_time"])
+
+    def counted(left_left, left_right):
+        series = {"collisions_collisions": np.array([left_left + left_right, 0.0]),
+                  "collisions_collisions_0_0": np.array([left_left, 0.0]),
+                  "collisions_collisions_0_1": np.array([0.0, left_right])}
+        return dataclasses.replace(base, series=series)
+
+    col = ens.ensemble_collisions([counted(20, 10), counted(40, 10)], [counted(10, 0), counted(10, 20)])
+    assert col["collision_rate"] == pytest.approx(40.0 / t) and col["reference_collision_rate"] == pytest.approx(20 / t)
+    assert col["collision_rate_vs_dem"] == pytest.approx(2.0)
+    assert col["collision_rate_per_stream_pair_vs_dem"]["left-left"] == pytest.approx(3.0)
+    assert col["collision_rate_per_stream_pair_vs_dem"]["left-right"] == pytest.approx(1.0)
+    # none collides at rate 0; ktgf counts no collision, so there is no ratio against it
+    col = ens.ensemble_metrics([runs[0]], [runs[1]], min_samples=1)["collisions"]
+    assert col["collision_rate"] == 0.0 and col["reference_collision_rate"] is None
+    assert col["collision_rate_vs_dem"] is None
     from hel_warp.errors import ConfigError
 
     with pytest.raises(ConfigError, match="snapshot times differ"):
         ens.ensemble_metrics([runs[0], runs[2]], [runs[1]], min_samples=1)
+
+
+def test_grouped_jackknife_of_a_mean_is_the_standard_error_of_the_group_means():
+    """scripts/rig_ensemble.py --jackknife-groups G: leaving out one of G equal contiguous groups at a time gives,
+    for a mean, std(group means, ddof=1) / sqrt(G) (closed form); groups cover every run once; G >= n is the
+    leave-one-out jackknife; fewer than 2 groups is refused."""
+    ens = load_file("rig_ensemble", "scripts/rig_ensemble.py")
+    from hel_warp.errors import ConfigError
+
+    x = np.random.default_rng(7).normal(size=24)
+    parts = ens.leave_out_groups(len(x), 6)
+    assert sorted(k for g in parts for k in g) == list(range(24)) and all(len(g) == 4 for g in parts)
+    estimates = [{"a": float(np.delete(x, g).mean())} for g in parts]
+    means = x.reshape(6, 4).mean(axis=1)
+    assert ens._leave_one_out_error(estimates)["a"] == pytest.approx(means.std(ddof=1) / np.sqrt(6), rel=1e-12)
+    assert ens.leave_out_groups(5, None) == ens.leave_out_groups(5, 9) == [[k] for k in range(5)]
+    uneven = ens.leave_out_groups(10, 3)
+    assert sorted(k for g in uneven for k in g) == list(range(10)) and {len(g) for g in uneven} <= {3, 4}
+    with pytest.raises(ConfigError, match="at least 2 groups"):
+        ens.leave_out_groups(10, 1)
+    assert ens.main(["--runs", "a", "--reference", "b", "--jackknife", "--jackknife-groups", "1"]) == 2
 
 
 def test_no_wall_events_is_refused_outside_the_swept_surrogate(cs, tmp_path, capsys):
