@@ -24,10 +24,12 @@ whatever w. Per collision cell of volume V holding N parcels, in one step dt:
   candidate with a weighted parcel whose centres do not approach, (x_j - x_i) . (v_i - v_j) <= 0 (a weighted
   parcel's colliding particle drawn from its cloud; a weighted pair that met recently exempt), hands its collision
   to another pair of the cell with the same two weights, drawn until one approaches and passes its own acceptance
-  test (at most ``approach_redraw`` draws). The cell's expected total stays NTC's, placed on approaching pairs in
-  proportion to their rates; a cell in which no pair approaches (two streams that have passed each other) does not
-  collide, and a candidate whose weights are rare in its cell (others found partners, it none) collides itself, so
-  that each kind of pair keeps its count. Pairs of single particles are not tested: at the cell's scale their
+  test (at most ``approach_redraw`` draws; a draw of other weights is followed by one among the parcels of the
+  candidate's two weights, ``draw_of_weight``, so that a kind of pair rare in its cell, one weight-8 parcel among
+  sixteen single particles, finds its partners as often as a common one). The cell's expected total stays NTC's,
+  placed on approaching pairs of each kind in proportion to their rates; a cell in which no pair approaches (two
+  streams that have passed each other) does not collide, and a candidate whose kind finds no approaching pair
+  where other kinds do collides itself, so that each kind of pair keeps its count. Pairs of single particles are not tested: at the cell's scale their
   approach reads the correlation their own collisions leave (a pair that collided recedes from its cell-mates too),
   not the flow. ``approach_redraw`` = 0: the ninth session's rule instead (every receding pair rejected,
   approaching ones at twice the rate against twice the majorant), which loses collisions in a dense gas where
@@ -101,6 +103,9 @@ COUNT_SEPARATION, COUNT_COULOMB, COUNT_ENERGY, COUNT_CLAMPED, COUNT_LOG_OVERFLOW
 COUNT_RESTORED, COUNT_UNRESTORED = 9, 10
 N_COUNTS = 11
 FLUID_VOLUME_FLOOR = wp.constant(0.125)
+REDRAW_CLASS_TRIES = wp.constant(8)
+"""Uniform draws per cell parcel at most when the approach filter redraws a parcel of a given weight
+(``draw_of_weight``): a weight held by one parcel of the cell is missed with probability e^-8."""
 """Least share of a collision cell's volume that ``cell_fluid_volumes`` gives it: a cell nearly all wall would put
 its few parcels into a sliver's volume (a density estimate of one or two parcels, and pairs far past saturation)."""
 """``counts`` slots: candidates drawn, accepted events, candidates above the majorant, occupied cells (>= 2
@@ -662,6 +667,29 @@ def nearest_partner(args: CellArgs, start: int, count: int, a: int, state: wp.ui
 
 
 @wp.func
+def draw_of_weight(args: CellArgs, start: int, count: int, w: float, exclude: int, state: wp.uint32):
+    """Position in the cell of a parcel of weight ``w`` drawn uniformly among those of the cell (``exclude`` >= 0:
+    that position left out), by rejection from uniform draws: the first draw is NTC's (uniform over the cell, or
+    over the others when ``exclude`` >= 0), so a cell of one weight consumes the same random numbers as a plain
+    draw. At most ``REDRAW_CLASS_TRIES`` x ``count`` draws (a class of one parcel in the cell is missed with
+    probability e^-8); returns (position or -1, state)."""
+    found = int(-1)
+    tries = int(0)
+    while found < 0 and tries < REDRAW_CLASS_TRIES * count:
+        tries += 1
+        k = int(0)
+        if exclude < 0:
+            k = wp.min(int(wp.randf(state) * float(count)), count - 1)
+        else:
+            k = wp.min(int(wp.randf(state) * float(count - 1)), count - 2)
+            if k >= exclude:
+                k += 1
+        if args.particle_weight[args.cell_slot[start + k]] == w:
+            found = k
+    return found, state
+
+
+@wp.func
 def same_weights(args: CellArgs, i0: int, j0: int, wi: float, wj: float):
     """Whether weights wi, wj are those of parcels i0, j0, in either order."""
     a = args.particle_weight[i0]
@@ -711,21 +739,34 @@ def cell_select(
         g = wp.vec3(0.0)
         wi = float(0.0)
         wj = float(0.0)
-        # an accepted receding candidate (its weights are the kind a transfer must have; the fallback collides it)
+        # an accepted receding candidate (its two weights are the kind its collision goes to; the fallback
+        # collides it)
         i0 = int(0)
         j0 = int(0)
         u_b20 = float(0.0)
         u_phi0 = float(0.0)
         seen = bool(False)  # a redrawn pair of other weights approached and was accepted
+        restricted = bool(False)  # this draw is among the candidate's two weights only
         while searching:
-            a = wp.min(int(wp.randf(state) * float(count)), count - 1)
+            a = int(0)
             b = int(0)
-            if args.nearest > 0 and attempt == 0:
-                b, state = nearest_partner(args, start, count, a, state)
-            else:
-                b = wp.min(int(wp.randf(state) * float(count - 1)), count - 2)
-                if b >= a:
-                    b += 1
+            drawn = bool(True)
+            if not restricted:  # a pair of the cell as NTC draws it
+                a = wp.min(int(wp.randf(state) * float(count)), count - 1)
+                if args.nearest > 0 and attempt == 0:
+                    b, state = nearest_partner(args, start, count, a, state)
+                else:
+                    b = wp.min(int(wp.randf(state) * float(count - 1)), count - 2)
+                    if b >= a:
+                        b += 1
+            else:  # a pair of the receding candidate's two weights, uniform among those of the cell
+                a, state = draw_of_weight(args, start, count, args.particle_weight[i0], -1, state)
+                if a >= 0:
+                    b, state = draw_of_weight(args, start, count, args.particle_weight[j0], a, state)
+                drawn = a >= 0 and b >= 0
+                if not drawn:
+                    a = 0
+                    b = 1
             i = args.cell_slot[start + a]
             j = args.cell_slot[start + b]
             u_accept = wp.randf(state)
@@ -792,12 +833,18 @@ def cell_select(
                     u_b20 = u_b2
                     u_phi0 = u_phi
                     attempt = 1
-            elif accept and eligible and same_weights(args, i0, j0, wi, wj):
+            elif not restricted and not same_weights(args, i0, j0, wi, wj):
+                # a pair of other weights tells whether the cell's pairs approach at all; a pair of the
+                # candidate's weights is then drawn among those (one weight-8 parcel among sixteen single
+                # particles finds its partners as often as a common kind)
+                if eligible and accept:
+                    seen = True
+                restricted = True
+            elif drawn and accept and eligible:
                 found = True
                 searching = False
             else:
-                if eligible and accept:  # an approaching pair of another kind: this one is rare in the cell
-                    seen = True
+                restricted = False
                 attempt += 1
                 if attempt > args.approach_redraw:
                     searching = False
@@ -810,6 +857,7 @@ def cell_select(
                         wi = args.particle_weight[i]
                         wj = args.particle_weight[j]
                         found = True
+                    # else: no pair of the cell approaches (two streams that have passed): lost
         if not found:
             continue
         wp.atomic_add(args.counts, COUNT_ACCEPTED, 1)

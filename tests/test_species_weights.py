@@ -332,7 +332,7 @@ def _cool(hc, capsys, tmp_path, model, weights, particles=4000, extra=()):
     return json.loads(out.out)
 
 
-@pytest.mark.parametrize("extra", [(), ("--cell-approaching",)])
+@pytest.mark.parametrize("extra", [(), ("--cell-approaching",), ("--cell-approaching", "--cell-transfer")])
 def test_mixed_weights_collide_and_cool_as_weight_one(hc, capsys, tmp_path, constant_mixture_model, extra):
     """The same 4,000 real particles (315 / 475 um, 30 % large) at weights 1,1 and 1,8: per pair type the collisions
     per real particle against the mixture's Enskog rate within 4 standard errors, and each species' Theta at the end
