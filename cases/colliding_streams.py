@@ -340,7 +340,8 @@ class CaseConfig:
     (``CellConfig.cfl``)."""
     cell_approaching: bool | None = None
     """``surrogate`` cell detection: only pairs whose centres approach collide (``CellConfig.approaching``);
-    None: the ``CellConfig`` default (off: Bird's plain NTC; FIGURES, issue 12, eighteenth session)."""
+    None: the ``CellConfig`` default (on when a parcel weighs more than 1, off at weight 1; FIGURES, issue 12,
+    twenty-eighth session)."""
     cell_transfer: bool | None = None
     """``surrogate`` cell detection: the collisional transfer, colliders moved apart by their share of the contact
     distance (``CellConfig.collisional_transfer``); None: the ``CellConfig`` default."""
@@ -1027,15 +1028,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="cell detection: only parcel pairs whose centres approach collide, a receding pair "
                              "handing its collision to an approaching one of its cell, so that a cell collides as "
                              "often as Bird's NTC says while two streams that have passed each other in it stop "
-                             "colliding (default: off, plain NTC: any pair of the cell; at 64 particles per parcel "
-                             "it meets the crossing and transverse-rms targets here where the default crosses "
-                             "+0.05 too much, but cools a dense weighted gas ~5.3 %% slower than Haff's law; "
-                             "FIGURES, issue 12, twenty-seventh session)")
+                             "colliding (default: on when a parcel weighs more than 1, off at weight 1; "
+                             "--no-cell-approaching: plain NTC, any pair of the cell, which crosses ~0.05 too much "
+                             "at 64 particles per parcel; FIGURES, issue 12, twenty-eighth session)")
     parser.add_argument("--cell-transfer", action=argparse.BooleanOptionalAction, default=None,
                         help="cell detection: the collisional transfer of the consistent Boltzmann algorithm, the "
                              "two parcels of each collision moved apart by their share of the contact distance, so "
-                             "that a dense cloud pushes back as the DEM's spheres do (default: on, off "
-                             "with --cell-approaching; --no-cell-transfer: plain NTC, whose crossing is further from "
+                             "that a dense cloud pushes back as the DEM's spheres do (default: on; "
+                             "--no-cell-transfer: plain NTC, whose crossing is further from "
                              "the CFD-DEM at every weight and transverse spread 1.5-3 points higher; FIGURES, "
                              "issue 12)")
     parser.add_argument("--parcel-cloud", choices=("density", "weight"), default="density",

@@ -158,10 +158,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default=None,
                         help="model directory (hel-warp train --out); needed by surrogate (contact form) and "
                              "surrogate-paper (paper form); with the others it only supplies the material")
-    parser.add_argument("--cell-approaching", action="store_true",
+    parser.add_argument("--cell-approaching", action=argparse.BooleanOptionalAction, default=None,
                         help="cell detection: collisions go to parcel pairs whose centres approach, a receding "
                              "accepted pair handing its collision to an approaching one of its cell "
-                             "(CellConfig.approaching; off by default)")
+                             "(CellConfig.approaching; default: on when a parcel weighs more than 1)")
     parser.add_argument("--cell-transfer", action=argparse.BooleanOptionalAction, default=None,
                         help="cell detection: the collisional transfer, the two parcels of each collision moved "
                              "apart by their share of the contact distance (CellConfig.collisional_transfer; "
@@ -323,9 +323,9 @@ def make_config(args) -> CoolingConfig:
                           "does not use it (the dem's spheres spin on their own)")
     if name == "surrogate" and detection is None and max(weights) > 1:
         detection = "cell"  # the strategy's own default for parcels heavier than one particle
-    cell_approaching = bool(getattr(args, "cell_approaching", False))
-    if cell_approaching and not (name == "surrogate" and detection == "cell"):
-        raise ConfigError("--cell-approaching is an option of the surrogate's cell detection (give --detection cell "
+    cell_approaching = getattr(args, "cell_approaching", None)
+    if cell_approaching is not None and not (name == "surrogate" and detection == "cell"):
+        raise ConfigError("--[no-]cell-approaching is an option of the surrogate's cell detection (give --detection cell "
                           "or --particles-per-parcel > 1)")
     cell_transfer = getattr(args, "cell_transfer", None)
     if cell_transfer is not None and not (name == "surrogate" and detection == "cell"):
@@ -754,8 +754,8 @@ class SurrogateFlight(BallisticFlight):
         if config.detection == "cell":
             kwargs["seed"] = config.seed  # the collision cells' random numbers
             cell = {}
-            if getattr(config, "cell_approaching", False):
-                cell["approaching"] = True
+            if getattr(config, "cell_approaching", None) is not None:
+                cell["approaching"] = bool(config.cell_approaching)
             if getattr(config, "cell_transfer", None) is not None:
                 cell["collisional_transfer"] = bool(config.cell_transfer)
             if cell:
@@ -990,7 +990,8 @@ def analyse(case: HomogeneousCooling, wall_s: float, kernel_load_s: float) -> di
         "rotational_temperature": case.rotational_temperature()[idx].tolist(),
         "rotational_temperature_final": float(case.rotational_temperature()[-1]),
         "particle_spin": bool(getattr(cfg, "particle_spin", False)),
-        "cell_approaching": bool(getattr(cfg, "cell_approaching", False)),
+        "cell_approaching": (bool(case.flight.strategy.cells.approaching)  # the last step's, the default resolved
+                             if getattr(getattr(case.flight, "strategy", None), "cells", None) is not None else None),
         "cell_transfer": (bool(case.flight.strategy.cells.config.transfer)
                           if getattr(getattr(case.flight, "strategy", None), "cells", None) is not None else None),
         "momentum_drift": momentum_drift(case), "strategy_counts": counts, "strategy_flags": flags,

@@ -84,7 +84,7 @@ class CellConfig:
     whether two parcels can meet then depends on their separation only, not on where a fixed cell face falls (the
     rig's channel axis is a face of the merged 4 mm cells: the two streams would only meet once a parcel has
     crossed it). None: shift merged cells (``coarsen`` > 1), keep grid cells and periodic lattices as they are."""
-    approaching: bool = False
+    approaching: bool | None = None
     """True: a collision of a pair with a weighted parcel goes to a pair whose centres approach, (x_j - x_i) .
     (v_i - v_j) > 0, the colliding particle of a weighted parcel drawn from a cloud of (w - 1) V_p / eps_cell about
     its centre, a weighted pair that met within ``approach_memory`` exempt (its next real collision is with another
@@ -106,7 +106,12 @@ class CellConfig:
     weight 64 on 192 held-out seeds -0.025 / -0.4 % (sections 1-7 +0.007 / -0.8 %; the default +0.052 / +0.0 % there),
     but the dense weight-64 gas (eps_s = 0.05, 8,000 parcels) cools at 0.945-0.948 of Haff's rate (the default
     0.972), just past the 5 % target, so it stays off.
-    False (default): any pair of the cell, whatever its positions (Bird's NTC, exact for the homogeneous gas)."""
+    None (default, twenty-eighth session): on while a live parcel weighs more than 1 (with the collisional transfer:
+    the weighted rig within 0.05 / 5 % of 28 CFD-DEM seeds on held-out seeds at weights 8 and 64, the homogeneous
+    gas within 5 % of Enskog and Haff at weights 8 and 64, the weights 1 / 8 mixture's collisions per kind of pair
+    as plain NTC's; FIGURES, issue 12, twenty-eighth session), off at weight 1 (the filter leaves pairs of single
+    particles alone).
+    False: any pair of the cell, whatever its positions (Bird's NTC, exact for the homogeneous gas)."""
     nearest: int = 0
     """> 0: nearest-neighbour partners (Bird 2007; SPARTA's ``collide_modify nearcp yes Nlimit``): each candidate's
     second parcel is the nearest to the first among up to ``nearest`` parcels of the cell (all when fewer), the
@@ -186,9 +191,9 @@ class CellConfig:
     temperature by the arms' walls from 2.5x to ~1.5x the CFD-DEM's, but moves every weight further from the CFD-DEM
     (weight 1 crossing +0.053 -> +0.061 and v_y rms +0.8 -> +11.2 %; weight 8 +0.070 / +4.2 %), so it stays off."""
     collisional_transfer: bool | None = None
-    """None (default): on, except with ``approaching`` (with both, a weights 1 / 8 mixture's small-large rate fell to
-    0.936 +- 0.012 of Enskog's: the displacement leaves a collided pair receding, which the filter reads; ``transfer``).
-    True: the Enskog collisional transfer of momentum across the contact distance (Alexander, Garcia & Alder 1995, "A
+    """None (default): on (``transfer``; with ``approaching`` too since the twenty-eighth session, when the filter's
+    redraw stopped losing a rare kind's collisions: before, a weights 1 / 8 mixture's 1-8 rate fell to 0.92-0.94 of
+    Enskog's with both). True: the Enskog collisional transfer of momentum across the contact distance (Alexander, Garcia & Alder 1995, "A
     consistent Boltzmann algorithm", PRL 74: 5212): after each event the two parcels' paths move apart along the sampled
     normal, parcel i back and j on, each by its mass share of c (r_i + r_j) times w_min / w, with c such that the new
     momenta carried across the displacements equal the real pair's collision virial (r_i + r_j) J.n ((1 + e) / e for
@@ -214,11 +219,17 @@ class CellConfig:
 
     @property
     def transfer(self) -> bool:
-        """Whether the collisional transfer is on (``collisional_transfer``, None resolved: on unless
-        ``approaching``)."""
+        """Whether the collisional transfer is on (``collisional_transfer``, None resolved: on)."""
         if self.collisional_transfer is None:
-            return not self.approaching
+            return True
         return bool(self.collisional_transfer)
+
+    def approaching_at(self, w_max: float) -> bool:
+        """Whether the approach filter is on in a step whose heaviest live parcel weighs ``w_max``
+        (``approaching``, None resolved: on when ``w_max`` > 1)."""
+        if self.approaching is None:
+            return bool(w_max > 1.0)
+        return bool(self.approaching)
 
     def __post_init__(self):
         if not (math.isfinite(self.parcels_per_cell) and self.parcels_per_cell >= 2.0):
@@ -235,6 +246,8 @@ class CellConfig:
         if int(self.nearest) != self.nearest or self.nearest < 0:
             raise ConfigError(f"cell nearest must be an integer >= 0 (got {self.nearest!r}): parcels scanned for "
                               "the nearest partner, 0 for a random one")
+        if self.approaching not in (None, True, False):
+            raise ConfigError(f"cell approaching must be True, False or None (got {self.approaching!r})")
         if int(self.approach_memory) != self.approach_memory or self.approach_memory < 1:
             raise ConfigError(f"cell approach_memory must be a positive integer (got {self.approach_memory!r})")
         if int(self.approach_redraw) != self.approach_redraw or self.approach_redraw < 0:
@@ -354,6 +367,8 @@ class CellCollisions:
         """(N, R) each parcel's last accepted partners (``CellArgs.recent_partners``), kept across steps."""
         self._pending_recent = None
         """A restored ``cell_recent_partners`` waiting for the arrays to be allocated."""
+        self.approaching = False
+        """Whether the last step ran the approach filter (``CellConfig.approaching_at`` its heaviest parcel)."""
         self.events_per_parcel = 0.0
         """Accepted events per live parcel (each event counted for both parcels) of the last step: with
         ``approaching`` it sets the next step's sub-steps (``CellConfig.approach_events``); in the checkpoint."""
@@ -366,7 +381,8 @@ class CellCollisions:
 
         from kernels.cell_collide import N_COUNTS, CellArgs
 
-        key = (str(particles.device), particles.count, n_cells, bool(spin_form))
+        memory = int(self.config.approach_memory) if self.approaching else 1
+        key = (str(particles.device), particles.count, n_cells, bool(spin_form), memory)
         if self._key == key:
             return
         dev = particles.device
@@ -398,7 +414,6 @@ class CellCollisions:
         a.particle_deficit = wp.zeros(n, dtype=wp.float32, device=dev)
         a.particle_spin_deficit = wp.zeros(n, dtype=wp.float32, device=dev)
         self._no_omega = wp.zeros(1, dtype=wp.vec3, device=dev)
-        memory = int(self.config.approach_memory) if self.config.approaching else 1
         if self._recent is None or self._recent.shape != (n, memory) or str(self._recent.device) != str(dev):
             ring = np.full((n, memory), -1, np.int32)
             pending = self._pending_recent if self._pending_recent is not None else (
@@ -519,11 +534,12 @@ class CellCollisions:
                   f"{1e3 * float(np.max(edges)):.3g} mm (w sigma h / V > {SATURATION_WARN:g}): the pair collides with "
                   "itself and the momentum it exchanges saturates (too little, docs/FIGURES.md issue 12, eighth "
                   "session); use a lower weight or coarser collision cells", file=sys.stderr)
+        cfg = self.config
+        self.approaching = approaching = cfg.approaching_at(w_max)
         self._allocate(particles, n_cells, spin_form)
         a = self._args
-        cfg = self.config
         substeps = max(1, math.ceil(v_max * dt / (cfg.cfl * float(np.min(edges)))))
-        if cfg.approaching:
+        if approaching:
             substeps = max(substeps, math.ceil(self.events_per_parcel / cfg.approach_events - 1e-9))
         substeps = int(min(cfg.max_substeps, substeps))
         self.substeps = substeps
@@ -548,8 +564,8 @@ class CellCollisions:
         sub_dt = float(dt) / substeps
         a.dt = sub_dt
         a.enskog = 1 if self.config.enskog else 0
-        a.approaching = 1 if self.config.approaching else 0
-        a.approach_redraw = int(self.config.approach_redraw) if self.config.approaching else 0
+        a.approaching = 1 if approaching else 0
+        a.approach_redraw = int(cfg.approach_redraw) if approaching else 0
         a.nearest = int(self.config.nearest)
         a.eps_cap = float(self.config.eps_cap)
         a.apply = 1 if apply else 0
@@ -587,7 +603,7 @@ class CellCollisions:
         if paths:
             path_shifts(self._path, particles.x, particles.v, particles.alive, float(dt), self._shift)
             self._shift_pending = True
-        if cfg.approaching:
+        if approaching:
             from kernels.cell_collide import COUNT_ACCEPTED
 
             accepted = int(a.counts.numpy()[COUNT_ACCEPTED])

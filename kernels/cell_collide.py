@@ -20,7 +20,7 @@ whatever w. Per collision cell of volume V holding N parcels, in one step dt:
   |v_i - v_j| <= |v_i - c| + |v_j - c|), w_max the cell's largest weight. A collision can raise a parcel's
   distance from c (by up to sqrt 2 for equal masses), so a later candidate may exceed the bound; it is then
   accepted and counted (``over_max``: the bias, measured ~0);
-- optionally the approach filter (``approaching``; ``CellConfig.approaching``, off by default): an accepted
+- the approach filter (``approaching``; ``CellConfig.approaching``, on by default for weighted parcels): an accepted
   candidate with a weighted parcel whose centres do not approach, (x_j - x_i) . (v_i - v_j) <= 0 (a weighted
   parcel's colliding particle drawn from its cloud; a weighted pair that met recently exempt), hands its collision
   to another pair of the cell with the same two weights, drawn until one approaches and passes its own acceptance

@@ -1088,10 +1088,14 @@ def test_collisional_transfer_moves_each_pair_apart_by_its_share_of_the_collisio
     momentum is unchanged; each event moves parcel i back along its sampled normal and j on, by
     c d m_other / (m_i + m_j) w_min / w, with c = J.n / (mu g'_n) = (1 + e) / e for the hard-sphere forest
     (J.n = mu (1 + e) g_n, g'_n = e g_n): written out by hand from the event log; the mass-weighted centre sum w m x
-    does not move, nor does momentum change. On by default, off by default with the approach filter."""
+    does not move, nor does momentum change. On by default, with the approach filter too (twenty-eighth session);
+    the filter is on by default where a parcel weighs more than 1."""
     from hel_warp.cell_collisions import CellConfig
 
-    assert CellConfig().transfer and not CellConfig(approaching=True).transfer
+    assert CellConfig().transfer and CellConfig(approaching=True).transfer
+    assert not CellConfig(collisional_transfer=False).transfer
+    assert not CellConfig().approaching_at(1.0) and CellConfig().approaching_at(8.0)
+    assert not CellConfig(approaching=False).approaching_at(64.0) and CellConfig(approaching=True).approaching_at(1.0)
     assert CellConfig(approaching=True, collisional_transfer=True).transfer
     assert not CellConfig(collisional_transfer=False).transfer
     moved, v0, v1, w, log, side = transfer_step(hard_sphere_model, device, [1.0, 8.0], 1e-3)

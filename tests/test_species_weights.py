@@ -332,15 +332,18 @@ def _cool(hc, capsys, tmp_path, model, weights, particles=4000, extra=()):
     return json.loads(out.out)
 
 
-@pytest.mark.parametrize("extra", [(), ("--cell-approaching",), ("--cell-approaching", "--cell-transfer")])
+@pytest.mark.parametrize("extra", [(), ("--no-cell-approaching",), ("--cell-approaching", "--no-cell-transfer")])
 def test_mixed_weights_collide_and_cool_as_weight_one(hc, capsys, tmp_path, constant_mixture_model, extra):
     """The same 4,000 real particles (315 / 475 um, 30 % large) at weights 1,1 and 1,8: per pair type the collisions
     per real particle against the mixture's Enskog rate within 4 standard errors, and each species' Theta at the end
     within 10 % of the weight-1 run. The 10 %: two seeds of the weight-1 run differ by 1-3 %, and the scheme leaves
     the 475 um species 3-5 % too hot at mixed weights (docs/FIGURES.md, issue 13 item 4); without the energy put
-    back the weight-8 species ended at 13 % of the weight-1 Theta and the other at 60 %. The same with the approach
-    filter (eighteenth session): a transfer that took any approaching pair of the cell gave 0.946 +- 0.0125 of the
-    small-small rate here; it now keeps the candidate's two weights (and leaves pairs of single particles alone)."""
+    back the weight-8 species ended at 13 % of the weight-1 Theta and the other at 60 %. The default (the approach
+    filter with the collisional transfer at weights 1, 8; off at 1, 1), plain NTC (--no-cell-approaching) and the
+    filter without the transfer. The filter's redraw keeps the candidate's two weights (a transfer that took any
+    approaching pair of the cell gave 0.946 +- 0.0125 of the small-small rate here, eighteenth session), leaves
+    pairs of single particles alone, and draws among the parcels of those weights (drawn from the whole cell,
+    0.924 +- 0.012 of the small-large rate with the transfer, twenty-eighth session)."""
     one = _cool(hc, capsys, tmp_path, constant_mixture_model, "1,1", extra=extra)
     mixed = _cool(hc, capsys, tmp_path, constant_mixture_model, "1,8", extra=extra)
     assert mixed["species"]["parcels"] == [2800, 150] and mixed["particles"] == one["particles"] == 4000
@@ -355,11 +358,12 @@ def test_mixed_weights_collide_and_cool_as_weight_one(hc, capsys, tmp_path, cons
         assert final[1] == pytest.approx(final[0], rel=0.10), (k, final)
 
 
-@pytest.mark.parametrize("flag, says", [("--cell-approaching", "--cell-approaching"),
+@pytest.mark.parametrize("flag, says", [("--cell-approaching", "--[no-]cell-approaching"),
+                                        ("--no-cell-approaching", "--[no-]cell-approaching"),
                                         ("--cell-transfer", "--[no-]cell-transfer"),
                                         ("--no-cell-transfer", "--[no-]cell-transfer")])
 def test_cell_options_are_options_of_the_cell_detection(hc, capsys, tmp_path, constant_mixture_model, flag, says):
-    """The cooling case's --cell-approaching and --[no-]cell-transfer: refused with one line (exit 2) where the cell
+    """The cooling case's --[no-]cell-approaching and --[no-]cell-transfer: refused with one line (exit 2) where the cell
     detection is not used."""
     argv = ["--collisions", "surrogate", "--model", constant_mixture_model, "--detection", "swept", "--dt", "1e-3",
             "--solids-fraction", "0.01", "--particles", "400", "--diameter", str(D1), *MIXTURE,
