@@ -325,8 +325,8 @@ def make_config(args) -> CoolingConfig:
         detection = "cell"  # the strategy's own default for parcels heavier than one particle
     cell_approaching = getattr(args, "cell_approaching", None)
     if cell_approaching is not None and not (name == "surrogate" and detection == "cell"):
-        raise ConfigError("--[no-]cell-approaching is an option of the surrogate's cell detection (give --detection cell "
-                          "or --particles-per-parcel > 1)")
+        raise ConfigError("--[no-]cell-approaching is an option of the surrogate's cell detection (give --detection "
+                          "cell or --particles-per-parcel > 1)")
     cell_transfer = getattr(args, "cell_transfer", None)
     if cell_transfer is not None and not (name == "surrogate" and detection == "cell"):
         raise ConfigError("--[no-]cell-transfer is an option of the surrogate's cell detection (give --detection cell "

@@ -94,8 +94,9 @@ class CellConfig:
     weights, so that one weight-8 parcel among sixteen single particles finds its partners: drawn from the whole cell
     a weights 1 / 8 mixture lost 4-5 % of its 1-8 collisions, twenty-eighth session): a cell collides as often as
     NTC says, and only a cell whose pairs all recede (two streams that have passed each other) collides less; a
-    candidate whose weights find no approaching pair where other weights do collides itself. Pairs of single particles are not tested (their approach at the cell's scale reads the correlation their
-    own collisions leave, not the flow: a weights 1 / 8 mixture lost 5 % of its small-small rate). On the rig
+    candidate whose weights find no approaching pair where other weights do collides itself. Pairs of single
+    particles are not tested (their approach at the cell's scale reads the correlation their own collisions leave,
+    not the flow: a weights 1 / 8 mixture lost 5 % of its small-small rate). On the rig
     (1e-3 s, 32-seed ensembles): weight 64 crossing +0.031 / +0.070 / +0.038 on three seed sets against plain NTC's
     +0.081 / +0.108 / +0.091, but v_y rms 5.6-7.0 % low against four CFD-DEM seeds; weight 8 -0.005 / -2.5 % and
     +0.015 / -5.9 %; the 315 / 475 um mixture at weights 8, 8: the 475 um class +0.002 / +2.8 % (plain +0.089 /
@@ -193,27 +194,27 @@ class CellConfig:
     collisional_transfer: bool | None = None
     """None (default): on (``transfer``; with ``approaching`` too since the twenty-eighth session, when the filter's
     redraw stopped losing a rare kind's collisions: before, a weights 1 / 8 mixture's 1-8 rate fell to 0.92-0.94 of
-    Enskog's with both). True: the Enskog collisional transfer of momentum across the contact distance (Alexander, Garcia & Alder 1995, "A
-    consistent Boltzmann algorithm", PRL 74: 5212): after each event the two parcels' paths move apart along the sampled
-    normal, parcel i back and j on, each by its mass share of c (r_i + r_j) times w_min / w, with c such that the new
-    momenta carried across the displacements equal the real pair's collision virial (r_i + r_j) J.n ((1 + e) / e for
-    smooth spheres; ``kernels/cell_collide.py`` ``transfer_scale``). Point parcels of the NTC scheme collide where they
-    stand, so a dense cloud carries no collisional pressure (the excluded volume of DEM spheres and the swept
-    detection's parcels); with the displacement it carries Enskog's, p_c = 2 (1 + e) eps^2 rho_p g0 Theta. The
-    displacements give the parcels the hard-sphere gas's structure, so a cell's count varies as S N (S the
-    Carnahan-Starling compressibility), not as Poisson's N, and NTC's N (N - 1) would count 2 % too few pairs at 16
-    parcels per cell and eps_s = 0.05: the pairs are counted as N (N - 1) + (1 - S) k N, k = 1 - (3/8) d sum 1 / L_a the
-    share of a parcel's excluded-volume hole (radius d) that a cell of edges L_a holds (``cell_prepare``; it over-counts
-    in cells of few parcels: +2 % at weight 1 and +5 % at weight 64 with 4 per cell, eps_s = 0.05, FIGURES twenty-second
-    session). Measured (FIGURES, issue 12, twenty-first and twenty-second sessions): the homogeneous gas at weights 1 /
-    8 / 64, eps_s = 0.01 / 0.05, dt = 1e-3 / 1e-4 / 7.14e-5 s within 1.5 % of Enskog's frequency and within 5 % of
-    Haff's cooling (weight 64, eps_s = 0.05: 0.945-0.979 over five seeds of the 1,000-parcel box, 0.966-0.973 in the
-    8,000-parcel box; plain NTC's weight 64 cools as slowly); the rig (315 um, 1e-3 s, against four CFD-DEM seeds, whole
-    run / sections 1-7) weight 1 +0.019 / -4.1 % and +0.041 / -6.7 % with ~450,000 real collisions per run (CFD-DEM
-    451,366, plain NTC 881,045), weight 8 +0.027 / -4.3 % and +0.053 / -4.0 % (plain +0.041 / -2.8 % and +0.083 / -2.5
-    %), weight 64 +0.047 / -3.0 % and +0.076 / -4.4 % (plain +0.074 / -1.1 % and +0.101 / -1.7 %): the crossing closer
-    at every weight, the transverse spread 1.5-3 points lower. False: positions untouched (Bird's NTC; the default
-    before the twenty-second session)."""
+    Enskog's with both). True: the Enskog collisional transfer of momentum across the contact distance (Alexander,
+    Garcia & Alder 1995, "A consistent Boltzmann algorithm", PRL 74: 5212): after each event the two parcels' paths
+    move apart along the sampled normal, parcel i back and j on, each by its mass share of c (r_i + r_j) times w_min
+    / w, with c such that the new momenta carried across the displacements equal the real pair's collision virial
+    (r_i + r_j) J.n ((1 + e) / e for smooth spheres; ``kernels/cell_collide.py`` ``transfer_scale``). Point parcels
+    of the NTC scheme collide where they stand, so a dense cloud carries no collisional pressure (the excluded volume
+    of DEM spheres and the swept detection's parcels); with the displacement it carries Enskog's, p_c = 2 (1 + e)
+    eps^2 rho_p g0 Theta. The displacements give the parcels the hard-sphere gas's structure, so a cell's count
+    varies as S N (S the Carnahan-Starling compressibility), not as Poisson's N, and NTC's N (N - 1) would count 2 %
+    too few pairs at 16 parcels per cell and eps_s = 0.05: the pairs are counted as N (N - 1) + (1 - S) k N, k = 1 -
+    (3/8) d sum 1 / L_a the share of a parcel's excluded-volume hole (radius d) that a cell of edges L_a holds
+    (``cell_prepare``; it over-counts in cells of few parcels: +2 % at weight 1 and +5 % at weight 64 with 4 per
+    cell, eps_s = 0.05, FIGURES twenty-second session). Measured (FIGURES, issue 12, twenty-first and twenty-second
+    sessions): the homogeneous gas at weights 1 / 8 / 64, eps_s = 0.01 / 0.05, dt = 1e-3 / 1e-4 / 7.14e-5 s within
+    1.5 % of Enskog's frequency and within 5 % of Haff's cooling (weight 64, eps_s = 0.05: 0.945-0.979 over five
+    seeds of the 1,000-parcel box, 0.966-0.973 in the 8,000-parcel box; plain NTC's weight 64 cools as slowly); the
+    rig (315 um, 1e-3 s, against four CFD-DEM seeds, whole run / sections 1-7) weight 1 +0.019 / -4.1 % and +0.041 /
+    -6.7 % with ~450,000 real collisions per run (CFD-DEM 451,366, plain NTC 881,045), weight 8 +0.027 / -4.3 % and
+    +0.053 / -4.0 % (plain +0.041 / -2.8 % and +0.083 / -2.5 %), weight 64 +0.047 / -3.0 % and +0.076 / -4.4 % (plain
+    +0.074 / -1.1 % and +0.101 / -1.7 %): the crossing closer at every weight, the transverse spread 1.5-3 points
+    lower. False: positions untouched (Bird's NTC; the default before the twenty-second session)."""
     restore_block: int = RESTORE_BLOCK
     """Collision cells per axis of a restoration block (the region whose parcels of one weight share a deficit)."""
 

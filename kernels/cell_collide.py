@@ -29,11 +29,11 @@ whatever w. Per collision cell of volume V holding N parcels, in one step dt:
   sixteen single particles, finds its partners as often as a common one). The cell's expected total stays NTC's,
   placed on approaching pairs of each kind in proportion to their rates; a cell in which no pair approaches (two
   streams that have passed each other) does not collide, and a candidate whose kind finds no approaching pair
-  where other kinds do collides itself, so that each kind of pair keeps its count. Pairs of single particles are not tested: at the cell's scale their
-  approach reads the correlation their own collisions leave (a pair that collided recedes from its cell-mates too),
-  not the flow. ``approach_redraw`` = 0: the ninth session's rule instead (every receding pair rejected,
-  approaching ones at twice the rate against twice the majorant), which loses collisions in a dense gas where
-  pairs that have collided recede;
+  where other kinds do collides itself, so that each kind of pair keeps its count. Pairs of single particles are not
+  tested: at the cell's scale their approach reads the correlation their own collisions leave (a pair that
+  collided recedes from its cell-mates too), not the flow. ``approach_redraw`` = 0: the ninth session's rule instead
+  (every receding pair rejected, approaching ones at twice the rate against twice the majorant), which loses
+  collisions in a dense gas where pairs that have collided recede;
 - optionally (``nearest`` > 0; Bird 2007's nearest-neighbour collisions, SPARTA's ``collide_modify nearcp``) the
   second parcel of a candidate is the nearest to the first among up to ``nearest`` of the cell, the first's last
   partner excluded; the acceptance is the same (the partner's g is a random pair's where positions carry no

@@ -363,8 +363,8 @@ def test_mixed_weights_collide_and_cool_as_weight_one(hc, capsys, tmp_path, cons
                                         ("--cell-transfer", "--[no-]cell-transfer"),
                                         ("--no-cell-transfer", "--[no-]cell-transfer")])
 def test_cell_options_are_options_of_the_cell_detection(hc, capsys, tmp_path, constant_mixture_model, flag, says):
-    """The cooling case's --[no-]cell-approaching and --[no-]cell-transfer: refused with one line (exit 2) where the cell
-    detection is not used."""
+    """The cooling case's --[no-]cell-approaching and --[no-]cell-transfer: refused with one line (exit 2) where the
+    cell detection is not used."""
     argv = ["--collisions", "surrogate", "--model", constant_mixture_model, "--detection", "swept", "--dt", "1e-3",
             "--solids-fraction", "0.01", "--particles", "400", "--diameter", str(D1), *MIXTURE,
             "--granular-temperature", "1", "--end-time", "0.002", flag, "--out", str(tmp_path / "x")]
