@@ -941,6 +941,7 @@ def check(case: HomogeneousCooling, theta: np.ndarray) -> list[str]:
 def analyse(case: HomogeneousCooling, wall_s: float, kernel_load_s: float) -> dict:
     """The summary: Theta(t), collisions, the Enskog and Haff references, their ratios and the statistics."""
     cfg = case.config
+    cells = getattr(getattr(case.flight, "strategy", None), "cells", None)  # the cell detection's, if it runs
     t = case.time()
     theta = case.theta()
     T = float(t[-1])
@@ -990,10 +991,8 @@ def analyse(case: HomogeneousCooling, wall_s: float, kernel_load_s: float) -> di
         "rotational_temperature": case.rotational_temperature()[idx].tolist(),
         "rotational_temperature_final": float(case.rotational_temperature()[-1]),
         "particle_spin": bool(getattr(cfg, "particle_spin", False)),
-        "cell_approaching": (bool(case.flight.strategy.cells.approaching)  # the last step's, the default resolved
-                             if getattr(getattr(case.flight, "strategy", None), "cells", None) is not None else None),
-        "cell_transfer": (bool(case.flight.strategy.cells.config.transfer)
-                          if getattr(getattr(case.flight, "strategy", None), "cells", None) is not None else None),
+        "cell_approaching": None if cells is None else bool(cells.approaching),  # the last step's, resolved
+        "cell_transfer": None if cells is None else bool(cells.config.transfer),
         "momentum_drift": momentum_drift(case), "strategy_counts": counts, "strategy_flags": flags,
         "diagnostics": case.flight.diagnostics(case.particles),
         "seed": cfg.seed, "device": str(cfg.device), "notes": notes,

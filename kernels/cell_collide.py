@@ -103,11 +103,11 @@ COUNT_SEPARATION, COUNT_COULOMB, COUNT_ENERGY, COUNT_CLAMPED, COUNT_LOG_OVERFLOW
 COUNT_RESTORED, COUNT_UNRESTORED = 9, 10
 N_COUNTS = 11
 FLUID_VOLUME_FLOOR = wp.constant(0.125)
+"""Least share of a collision cell's volume that ``cell_fluid_volumes`` gives it: a cell nearly all wall would put
+its few parcels into a sliver's volume (a density estimate of one or two parcels, and pairs far past saturation)."""
 REDRAW_CLASS_TRIES = wp.constant(8)
 """Uniform draws per cell parcel at most when the approach filter redraws a parcel of a given weight
 (``draw_of_weight``): a weight held by one parcel of the cell is missed with probability e^-8."""
-"""Least share of a collision cell's volume that ``cell_fluid_volumes`` gives it: a cell nearly all wall would put
-its few parcels into a sliver's volume (a density estimate of one or two parcels, and pairs far past saturation)."""
 """``counts`` slots: candidates drawn, accepted events, candidates above the majorant, occupied cells (>= 2
 parcels), guard corrections (separation, Coulomb, energy), domain clamps, events not logged (log full), weight
 classes of a block whose energy deficit was restored / could not be (a single parcel of the class there)."""
@@ -635,6 +635,20 @@ def cell_prepare(
 
 
 @wp.func
+def uniform_position(count: int, exclude: int, state: wp.uint32):
+    """A position in the cell's [0, count) drawn uniformly, ``exclude`` >= 0 left out (the second parcel of a
+    pair); returns (position, state)."""
+    k = int(0)
+    if exclude < 0:
+        k = wp.min(int(wp.randf(state) * float(count)), count - 1)
+    else:
+        k = wp.min(int(wp.randf(state) * float(count - 1)), count - 2)
+        if k >= exclude:
+            k += 1
+    return k, state
+
+
+@wp.func
 def nearest_partner(args: CellArgs, start: int, count: int, a: int, state: wp.uint32):
     """Position in the cell of the parcel nearest to the cell's ``a``-th, among all the others or ``args.nearest``
     drawn ones, the last partner of ``a`` left out unless it is the only other parcel; returns (position, state)."""
@@ -649,9 +663,7 @@ def nearest_partner(args: CellArgs, start: int, count: int, a: int, state: wp.ui
     for t in range(tries):
         k = t
         if not scan_all:
-            k = wp.min(int(wp.randf(state) * float(count - 1)), count - 2)
-            if k >= a:
-                k += 1
+            k, state = uniform_position(count, a, state)
         if k != a:
             p = args.cell_slot[start + k]
             if p != last:
@@ -660,9 +672,7 @@ def nearest_partner(args: CellArgs, start: int, count: int, a: int, state: wp.ui
                     best = k
                     best_d2 = d2
     if best < 0:  # only the last partner is left
-        best = wp.min(int(wp.randf(state) * float(count - 1)), count - 2)
-        if best >= a:
-            best += 1
+        best, state = uniform_position(count, a, state)
     return best, state
 
 
@@ -677,13 +687,7 @@ def draw_of_weight(args: CellArgs, start: int, count: int, w: float, exclude: in
     tries = int(0)
     while found < 0 and tries < REDRAW_CLASS_TRIES * count:
         tries += 1
-        k = int(0)
-        if exclude < 0:
-            k = wp.min(int(wp.randf(state) * float(count)), count - 1)
-        else:
-            k = wp.min(int(wp.randf(state) * float(count - 1)), count - 2)
-            if k >= exclude:
-                k += 1
+        k, state = uniform_position(count, exclude, state)
         if args.particle_weight[args.cell_slot[start + k]] == w:
             found = k
     return found, state
@@ -752,13 +756,11 @@ def cell_select(
             b = int(0)
             drawn = bool(True)
             if not restricted:  # a pair of the cell as NTC draws it
-                a = wp.min(int(wp.randf(state) * float(count)), count - 1)
+                a, state = uniform_position(count, -1, state)
                 if args.nearest > 0 and attempt == 0:
                     b, state = nearest_partner(args, start, count, a, state)
                 else:
-                    b = wp.min(int(wp.randf(state) * float(count - 1)), count - 2)
-                    if b >= a:
-                        b += 1
+                    b, state = uniform_position(count, a, state)
             else:  # a pair of the receding candidate's two weights, uniform among those of the cell
                 a, state = draw_of_weight(args, start, count, args.particle_weight[i0], -1, state)
                 if a >= 0:

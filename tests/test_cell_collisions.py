@@ -1093,7 +1093,6 @@ def test_collisional_transfer_moves_each_pair_apart_by_its_share_of_the_collisio
     from hel_warp.cell_collisions import CellConfig
 
     assert CellConfig().transfer and CellConfig(approaching=True).transfer
-    assert not CellConfig(collisional_transfer=False).transfer
     assert not CellConfig().approaching_at(1.0) and CellConfig().approaching_at(8.0)
     assert not CellConfig(approaching=False).approaching_at(64.0) and CellConfig(approaching=True).approaching_at(1.0)
     assert CellConfig(approaching=True, collisional_transfer=True).transfer
