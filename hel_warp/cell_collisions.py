@@ -154,8 +154,9 @@ class CellConfig:
     """The batched rounds stop after a round of fewer pairs than this (the rest inline)."""
     restore_energy: bool = True
     """Parcels of unequal weight: put the energy the heavier parcel's partial impulse loses (against w_min real
-    collisions) back into its weight class after each sub-step (``kernels/cell_collide.py``, Boyd 1996); False:
-    the partial impulse alone (too much dissipation: several times the collisions' own at e = 0.9)."""
+    collisions) back into its weight class after each sub-step, as a random kick along the events' impulses
+    (``kernels/cell_collide.py``, Boyd 1996); False: the partial impulse alone (too much dissipation: several times
+    the collisions' own at e = 0.9)."""
     approach_memory: int = 16
     """With ``approaching``: accepted partners each parcel remembers (``CellArgs.recent_partners``); a weighted pair
     that met within them is exempt from the position test (its next real collision is with another particle of the
@@ -412,7 +413,7 @@ class CellCollisions:
         a.cell_fluid_volume = wp.zeros(n_cells, dtype=wp.float32, device=dev)
         a.use_fluid = 0
         a.fluid_integral = wp.zeros((1, 1, 1), dtype=wp.float64, device=dev)  # none until a grid's mask is given
-        a.particle_deficit = wp.zeros(n, dtype=wp.float32, device=dev)
+        a.particle_deficit = wp.zeros(n, dtype=wp.mat33, device=dev)
         a.particle_spin_deficit = wp.zeros(n, dtype=wp.float32, device=dev)
         self._no_omega = wp.zeros(1, dtype=wp.vec3, device=dev)
         if self._recent is None or self._recent.shape != (n, memory) or str(self._recent.device) != str(dev):

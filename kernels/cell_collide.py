@@ -55,18 +55,32 @@ whatever w. Per collision cell of volume V holding N parcels, in one step dt:
   would give w_min of the parcel's w particles, ``deficit = w_min (1 - w_min/w) |J|^2 / (2 m)`` per event. At
   e = 0.9 that is several times the collision's own dissipation (1 - e^2) mu g_n^2 / 2 (315/475 um, weights 1/8:
   3.8x with the large parcel the heavier, 13x with the small one), so without a remedy a mixture of weights cools
-  several times too fast. The deficit is put back after each sub-step (``cell_restore``) as the random spread it
-  is: per block of ``restore_block``^3 cells and per weight class of parcels carrying a deficit, every parcel of
-  the class gets a normal, isotropic kick of expected energy its own deficit, less the class's mass-weighted mean
-  kick, scaled so that the class gains exactly its deficits D: momentum exact, the energy that of the w_min real
-  collisions, and it stays with the weight class (in a mixture of per-species weights: the species) that would
-  have had it. Additive noise, as the real spread is (a deterministic rescaling of the class's velocities about
-  its mean, tried first, kept the energy too, with the mixture cooling 2.7-3.4 % slower than at weight 1 instead
-  of 0-2.5 %). Measured (docs/FIGURES.md, issue 13 item 4): mixture cooling and each species' Theta within a few
-  per cent of the weight-1 run, not within their statistical error (the 475 um species ends 3-4 % too hot
-  whichever species is heavier: mostly a light parcel meeting the same few heavy parcels of its cell again and
-  again, where its real particle would meet W times as many distinct ones). A class with a single parcel in its
-  block cannot take it (``unrestored``: that event keeps the loss; counted).
+  several times too fast. What is lost is not only an energy but a second moment along the impulse: the w_min
+  real collisions give the parcel's particles sum (v v^T) a term w_min |J|^2 / m J^ J^ (J^ = J / |J|), the
+  partial impulse only (w_min / w) of it. Each parcel keeps that missing part as a tensor, T = sum over its events
+  of deficit J^ J^ (trace: the deficit), and it is put back after each sub-step (``cell_restore``) as the random
+  spread it is: per block of ``restore_block``^3 cells and per weight class of parcels carrying a deficit, every
+  parcel of the class gets a normal kick of covariance 2 T / M (along its impulses, expected energy its own
+  deficit), less the class's mass-weighted mean kick (momentum exact), scaled so that the kicks' own energy is the
+  class's deficits D; the class's velocities about their block mean are then scaled by alpha ~ 1 so that the class
+  gains exactly D (the kicks' cross term with the velocities, zero in expectation, is not left in the energy). So
+  momentum is exact, the energy is that of the w_min real collisions and stays with the weight class (in a
+  mixture of per-species weights: the species) that would have had it, and the class's velocity tensor gains
+  what the real collisions' would, in expectation. Until the twenty-ninth session the kick was isotropic and its
+  scale s the root of sum M (s v.delta + s^2 |delta|^2 / 2) = D that is ~2 |v.delta| / |delta|^2 when v.delta < 0
+  and D is small against the class's energy: the kick then mirrored the parcels' velocities about random planes
+  whatever D was, isotropizing the heavier class at every sub-step (a box with T_x = 3 T_y = 3 T_z, weights 1,8:
+  the 475 um class kept 0.45 of the anisotropy T_x / T_yz - 1 that weight 1 keeps, 1.1 of it now; on the
+  315 / 475 um rig at weights 1,8 its transverse spread came out 19 % short of the CFD-DEM's, +1.5 % now;
+  docs/FIGURES.md, issue 12, twenty-ninth session). A deterministic rescaling of the class's velocities about its
+  mean, tried first (issue 13), keeps the energy too but not the tensor: the smallest-kick root of the same
+  equation, which acts as one, left the box 1.6 times the anisotropy weight 1 keeps. Measured (docs/FIGURES.md, issue
+  13 item 4 and issue 12, twenty-ninth session): mixture cooling and each species' Theta within a few per cent of
+  the weight-1 run, not within their statistical error (the 475 um species ends too hot whichever species is
+  heavier, +9 % at weights 1,8 with the approach filter and +6 % without: mostly a light parcel meeting the same
+  few heavy parcels of its cell again and again, where its real particle would meet W times as many distinct
+  ones). A class with a single parcel in its block cannot take it
+  (``unrestored``: that event keeps the loss; counted).
 
 Sub-steps: a parcel must not fly past a cell within one collision sampling (DSMC's rule that dt be small against
 the cell transit time; at dt = 1e-3 s a parcel of 5 m/s crosses five 1 mm cells). The step is cut into K
@@ -223,9 +237,10 @@ class CellArgs:
     """(N, R) each parcel's last R accepted partners, newest first (-1: none), written when ``approaching`` or
     ``nearest`` reads them (R = ``CellConfig.approach_memory`` with the filter, else 1); kept across steps (the
     checkpoint's). ``nearest`` leaves out column 0 (the last partner), the filter's ``met`` exemption reads every column."""
-    particle_deficit: wp.array(dtype=wp.float32)
-    """(N,) energy the parcel's partial impulses lost this sub-step against w_min real collisions, J (0 for a
-    parcel never the heavier of its pairs); restored and zeroed by ``cell_restore``."""
+    particle_deficit: wp.array(dtype=wp.mat33)
+    """(N,) the second moment the parcel's partial impulses lost this sub-step against w_min real collisions, as a
+    tensor: sum over its events of the energy lost times J^ J^ (J^ the impulse's direction), J; its trace is the
+    energy (0 for a parcel never the heavier of its pairs); restored and zeroed by ``cell_restore``."""
     particle_spin_deficit: wp.array(dtype=wp.float32)
     """(N,) the same for the spins (``spin``): the rotational energy the parcel's partial spin kicks lost against
     w_min real collisions, J; restored as a random spin kick and zeroed by ``cell_restore``."""
@@ -525,10 +540,13 @@ def resolve_pair(args: CellArgs, i: int, j: int, n: wp.vec3, impulse_n: float, i
             args.particle_spin_deficit[j] = args.particle_spin_deficit[j] + lost
     # the heavier parcel's energy deficit against w_min real collisions (module docstring; none for equal weights)
     j2 = wp.dot(J, J)
+    along = wp.mat33(0.0)  # the spread's direction: J J^T / |J|^2
+    if j2 > 0.0:
+        along = wp.outer(J, J) / j2
     if wi > w_min:
-        args.particle_deficit[i] = args.particle_deficit[i] + partial_impulse_deficit(j2, mi, wi, w_min)
+        args.particle_deficit[i] = args.particle_deficit[i] + partial_impulse_deficit(j2, mi, wi, w_min) * along
     if wj > w_min:
-        args.particle_deficit[j] = args.particle_deficit[j] + partial_impulse_deficit(j2, mj, wj, w_min)
+        args.particle_deficit[j] = args.particle_deficit[j] + partial_impulse_deficit(j2, mj, wj, w_min) * along
     return flags
 
 
@@ -1013,24 +1031,34 @@ def as_vec3d(v: wp.vec3):
 
 @wp.func
 def deficit_kick(args: CellArgs, p: int, mass: wp.float64, xi: wp.vec3d):
-    """The parcel's random kick of expected energy ``deficit`` (its lost spread): sqrt(2 deficit / (3 mass)) per
-    component times ``xi`` (three standard normals, drawn by the caller whether the deficit is 0 or not, so that
-    every pass replays the same numbers), m/s."""
-    return wp.sqrt(wp.float64(2.0) * wp.float64(args.particle_deficit[p]) / (wp.float64(3.0) * mass)) * xi
+    """The parcel's random kick (its lost spread), covariance 2 T / mass for its deficit tensor T: along each
+    eigenvector of T, sqrt(2 lambda / mass) times a component of ``xi`` (three standard normals, drawn by the caller
+    whether the deficit is 0 or not, so that every pass replays the same numbers); expected energy trace T, m/s."""
+    tensor = args.particle_deficit[p]
+    axes, energies = wp.eig3(tensor)
+    kick = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    for a in range(3):
+        e = wp.float64(wp.max(energies[a], 0.0))
+        axis = wp.vec3d(wp.float64(axes[0, a]), wp.float64(axes[1, a]), wp.float64(axes[2, a]))
+        kick += wp.sqrt(wp.float64(2.0) * e / mass) * xi[a] * axis
+    return kick
 
 
 @wp.func
 def restore_class(args: CellArgs, lo: wp.vec3i, hi: wp.vec3i, weight: float, key: int,
                   particle_v: wp.array(dtype=wp.vec3)):
     """The block's parcels of ``weight``: their deficits D put back as the random spread they are. Each parcel gets
-    a kick delta_k of expected energy its own deficit (normal, isotropic), less the class's mass-weighted mean kick
-    (momentum exact), times the s >= 0 that makes the energy gained exactly D:
-    sum M_k (s v_k.delta_k + s^2 |delta_k|^2 / 2) = D. Deficits zeroed. The random numbers come from
-    ``wp.rand_init(key)``, replayed in each pass. Returns 1 when restored, 0 when the class cannot take it (one
-    parcel in the block: no momentum partner)."""
+    a kick s delta_k, delta_k its ``deficit_kick`` (along its impulses) less the class's mass-weighted
+    mean kick (momentum exact), s = sqrt(2 D / sum M_k |delta_k|^2) (the kicks' own energy exactly D); the class's
+    velocities about its mass-weighted mean u are then scaled by the alpha that makes the energy gained exactly D:
+    v_k' = u + alpha (v_k - u + s delta_k), alpha^2 = (P + D) / (P + D + R), P the class's energy about u before,
+    R = s sum M_k (v_k - u).delta_k the kicks' cross term (zero in expectation, so alpha ~ 1; P + D + R >= 0 always).
+    Deficits zeroed. The random numbers come from ``wp.rand_init(key)``, replayed in each pass. Returns 1 when
+    restored, 0 when the class cannot take it (one parcel in the block: no momentum partner)."""
     n_block = (hi[0] - lo[0]) * (hi[1] - lo[1]) * (hi[2] - lo[2])
     mass = wp.float64(0.0)
     kick_momentum = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    momentum = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
     deficit = wp.float64(0.0)
     members = int(0)
     state = wp.rand_init(key)
@@ -1043,11 +1071,14 @@ def restore_class(args: CellArgs, lo: wp.vec3i, hi: wp.vec3i, weight: float, key
                 mass += m
                 xi = wp.vec3d(wp.float64(wp.randn(state)), wp.float64(wp.randn(state)), wp.float64(wp.randn(state)))
                 kick_momentum += m * deficit_kick(args, p, m, xi)
-                deficit += wp.float64(args.particle_deficit[p])
+                momentum += m * as_vec3d(particle_v[p])
+                deficit += wp.float64(wp.trace(args.particle_deficit[p]))
                 members += 1
     mean_kick = kick_momentum / mass
+    u = momentum / mass
     quadratic = wp.float64(0.0)  # sum M |delta|^2
-    linear = wp.float64(0.0)  # sum M v.delta
+    linear = wp.float64(0.0)  # sum M (v - u).delta
+    peculiar = wp.float64(0.0)  # sum M |v - u|^2 / 2
     state = wp.rand_init(key)
     for k in range(n_block):
         cell = block_cell(args, lo, hi, k)
@@ -1057,12 +1088,18 @@ def restore_class(args: CellArgs, lo: wp.vec3i, hi: wp.vec3i, weight: float, key
                 m = wp.float64(weight * sphere_mass(2.0 * args.particle_radius[p], args.particle_density[p]))
                 xi = wp.vec3d(wp.float64(wp.randn(state)), wp.float64(wp.randn(state)), wp.float64(wp.randn(state)))
                 delta = deficit_kick(args, p, m, xi) - mean_kick
+                c = as_vec3d(particle_v[p]) - u
                 quadratic += m * wp.dot(delta, delta)
-                linear += m * wp.dot(as_vec3d(particle_v[p]), delta)
+                linear += m * wp.dot(c, delta)
+                peculiar += wp.float64(0.5) * m * wp.dot(c, c)
     restored = int(0)
     scale = wp.float64(0.0)
+    alpha = wp.float64(1.0)
     if members >= 2 and quadratic > wp.float64(0.0):
-        scale = (wp.sqrt(linear * linear + wp.float64(2.0) * quadratic * deficit) - linear) / quadratic
+        scale = wp.sqrt(wp.float64(2.0) * deficit / quadratic)
+        after = peculiar + deficit + scale * linear
+        if after > wp.float64(0.0):
+            alpha = wp.sqrt((peculiar + deficit) / after)
         restored = 1
     state = wp.rand_init(key)
     for k in range(n_block):
@@ -1073,9 +1110,9 @@ def restore_class(args: CellArgs, lo: wp.vec3i, hi: wp.vec3i, weight: float, key
                 m = wp.float64(weight * sphere_mass(2.0 * args.particle_radius[p], args.particle_density[p]))
                 xi = wp.vec3d(wp.float64(wp.randn(state)), wp.float64(wp.randn(state)), wp.float64(wp.randn(state)))
                 delta = deficit_kick(args, p, m, xi) - mean_kick
-                args.particle_deficit[p] = 0.0
+                args.particle_deficit[p] = wp.mat33(0.0)
                 if restored == 1:
-                    nv = as_vec3d(particle_v[p]) + scale * delta
+                    nv = u + alpha * (as_vec3d(particle_v[p]) - u + scale * delta)
                     particle_v[p] = wp.vec3(wp.float32(nv[0]), wp.float32(nv[1]), wp.float32(nv[2]))
     return restored
 
@@ -1121,7 +1158,7 @@ def cell_restore(
         cell = block_cell(args, lo, hi, k)
         for s in range(args.cell_start[cell], args.cell_end[cell]):
             p = args.cell_slot[s]
-            if args.particle_deficit[p] > 0.0:
+            if wp.trace(args.particle_deficit[p]) > 0.0:
                 key = wp.randi(block_state)
                 if restore_class(args, lo, hi, args.particle_weight[p], key, particle_v) == 1:
                     wp.atomic_add(args.counts, COUNT_RESTORED, 1)
