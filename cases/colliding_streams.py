@@ -1030,8 +1030,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "often as Bird's NTC says while two streams that have passed each other in it stop "
                              "colliding (default: on when a parcel weighs more than 1, off at weight 1; "
                              "--no-cell-approaching: plain NTC, any pair of the cell, which crosses ~0.05 too much "
-                             "at 64 particles per parcel; a mixture whose small species is at weight 1 is better "
-                             "with --no-cell-approaching, README Limits; FIGURES, issue 12, twenty-eighth session)")
+                             "at 64 particles per parcel; FIGURES, issue 12, twenty-eighth and twenty-ninth "
+                             "sessions)")
     parser.add_argument("--cell-transfer", action=argparse.BooleanOptionalAction, default=None,
                         help="cell detection: the collisional transfer of the consistent Boltzmann algorithm, the "
                              "two parcels of each collision moved apart by their share of the contact distance, so "
