@@ -414,7 +414,7 @@ class CellCollisions:
         a.use_fluid = 0
         a.fluid_integral = wp.zeros((1, 1, 1), dtype=wp.float64, device=dev)  # none until a grid's mask is given
         a.particle_deficit = wp.zeros(n, dtype=wp.mat33, device=dev)
-        a.particle_spin_deficit = wp.zeros(n, dtype=wp.float32, device=dev)
+        a.particle_spin_deficit = wp.zeros(n, dtype=wp.mat33, device=dev)
         self._no_omega = wp.zeros(1, dtype=wp.vec3, device=dev)
         if self._recent is None or self._recent.shape != (n, memory) or str(self._recent.device) != str(dev):
             ring = np.full((n, memory), -1, np.int32)

@@ -241,9 +241,10 @@ class CellArgs:
     """(N,) the second moment the parcel's partial impulses lost this sub-step against w_min real collisions, as a
     tensor: sum over its events of the energy lost times J^ J^ (J^ the impulse's direction), J; its trace is the
     energy (0 for a parcel never the heavier of its pairs); restored and zeroed by ``cell_restore``."""
-    particle_spin_deficit: wp.array(dtype=wp.float32)
+    particle_spin_deficit: wp.array(dtype=wp.mat33)
     """(N,) the same for the spins (``spin``): the rotational energy the parcel's partial spin kicks lost against
-    w_min real collisions, J; restored as a random spin kick and zeroed by ``cell_restore``."""
+    w_min real collisions, as a tensor along the one-collision spin changes (trace: the energy), J; restored as a
+    random spin kick along them (``restore_spin``) and zeroed by ``cell_restore``."""
     counts: wp.array(dtype=wp.int32)
     """(N_COUNTS,) integer counters of the step (slots above)."""
     calls: wp.array(dtype=wp.int32)
@@ -530,13 +531,14 @@ def resolve_pair(args: CellArgs, i: int, j: int, n: wp.vec3, impulse_n: float, i
             flags = flags | GUARD_ENERGY
             J_rot = J
         # the heavier parcel's spin spread: w_min (1 - w_min/w) I |d omega_1|^2 / 2 (d omega_1 of one real collision)
+        # as a tensor along the kick (trace: the energy), as the translational deficit below
         if wi > w_min:
             ki = spin_kick(J_rot, n, ri, mi)
-            lost = w_min * (1.0 - w_min / wi) * 0.2 * mi * ri * ri * wp.dot(ki, ki)
+            lost = w_min * (1.0 - w_min / wi) * 0.2 * mi * ri * ri * wp.outer(ki, ki)
             args.particle_spin_deficit[i] = args.particle_spin_deficit[i] + lost
         if wj > w_min:
             kj = spin_kick(J_rot, n, rj, mj)
-            lost = w_min * (1.0 - w_min / wj) * 0.2 * mj * rj * rj * wp.dot(kj, kj)
+            lost = w_min * (1.0 - w_min / wj) * 0.2 * mj * rj * rj * wp.outer(kj, kj)
             args.particle_spin_deficit[j] = args.particle_spin_deficit[j] + lost
     # the heavier parcel's energy deficit against w_min real collisions (module docstring; none for equal weights)
     j2 = wp.dot(J, J)
@@ -1119,21 +1121,35 @@ def restore_class(args: CellArgs, lo: wp.vec3i, hi: wp.vec3i, weight: float, key
 
 @wp.func
 def restore_spin(args: CellArgs, p: int, xi: wp.vec3):
-    """The parcel's lost spin spread put back: omega += s xi (``xi`` an isotropic random direction), with the s >= 0
-    that adds exactly its ``particle_spin_deficit`` D to its rotational energy, I_w (s omega.xi + s^2 |xi|^2 / 2) =
-    D (I_w = weight 2/5 m r^2; no partner needed: the collisions' moment impulses do not keep the spins' sum
-    either); the deficit zeroed."""
+    """The parcel's lost spin spread put back: a kick k of covariance 2 T / I_w for its ``particle_spin_deficit``
+    tensor T (along the events' one-collision spin changes; ``xi`` three standard normals; I_w = weight 2/5 m r^2),
+    scaled by s so that its own energy I_w s^2 |k|^2 / 2 is D = trace T, then omega' = alpha (omega + s k) with
+    alpha^2 = (E + D) / (E + D + R), E = I_w |omega|^2 / 2 and R = I_w s omega.k (zero in expectation): exactly D
+    more rotational energy, the spin changed by about the deficit's own spread. No partner needed: the collisions'
+    moment impulses do not keep the spins' sum either. The deficit zeroed. (Until the twenty-ninth session: omega
+    + s xi with the root s of I_w (s omega.xi + s^2 |xi|^2 / 2) = D, which mirrored omega about a random plane
+    whenever omega.xi < 0 and D was small, as the translational restoration did.)"""
     r = args.particle_radius[p]
     inertia = wp.float64(args.particle_weight[p] * 0.4 * sphere_mass(2.0 * r, args.particle_density[p]) * r * r)
-    deficit = wp.float64(args.particle_spin_deficit[p])
-    args.particle_spin_deficit[p] = 0.0
-    x = as_vec3d(xi)
-    w = as_vec3d(args.particle_omega[p])
-    xx = wp.dot(x, x)
-    if xx > wp.float64(0.0) and inertia > wp.float64(0.0):
-        wx = wp.dot(w, x)
-        scale = (wp.sqrt(wx * wx + wp.float64(2.0) * deficit * xx / inertia) - wx) / xx
-        nw = w + scale * x
+    tensor = args.particle_spin_deficit[p]
+    deficit = wp.float64(wp.trace(tensor))
+    args.particle_spin_deficit[p] = wp.mat33(0.0)
+    axes, energies = wp.eig3(tensor)
+    k = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    for a in range(3):
+        e = wp.float64(wp.max(energies[a], 0.0))
+        axis = wp.vec3d(wp.float64(axes[0, a]), wp.float64(axes[1, a]), wp.float64(axes[2, a]))
+        k += wp.sqrt(e) * wp.float64(xi[a]) * axis
+    kk = wp.dot(k, k)
+    if kk > wp.float64(0.0) and inertia > wp.float64(0.0) and deficit > wp.float64(0.0):
+        w = as_vec3d(args.particle_omega[p])
+        s = wp.sqrt(wp.float64(2.0) * deficit / (inertia * kk))
+        energy = wp.float64(0.5) * inertia * wp.dot(w, w)
+        after = energy + deficit + inertia * s * wp.dot(w, k)
+        alpha = wp.float64(1.0)
+        if after > wp.float64(0.0):
+            alpha = wp.sqrt((energy + deficit) / after)
+        nw = alpha * (w + s * k)
         args.particle_omega[p] = wp.vec3(wp.float32(nw[0]), wp.float32(nw[1]), wp.float32(nw[2]))
 
 
@@ -1170,7 +1186,7 @@ def cell_restore(
             cell = block_cell(args, lo, hi, k)
             for s in range(args.cell_start[cell], args.cell_end[cell]):
                 p = args.cell_slot[s]
-                if args.particle_spin_deficit[p] > 0.0:
+                if wp.trace(args.particle_spin_deficit[p]) > 0.0:
                     restore_spin(args, p, wp.vec3(wp.randn(spin_state), wp.randn(spin_state), wp.randn(spin_state)))
 
 
