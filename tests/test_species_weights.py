@@ -321,23 +321,30 @@ def test_restoration_over_many_steps_momentum_exact_energy_never_grows(constant_
     assert restored > 100 and unrestored <= 0.01 * restored
 
 
-def _anisotropy_decay(model, device, large_weight, seed, steps=4, dt=2e-4):
-    """A periodic box at real eps_s = 0.05 of 12,000 single 315 um particles and 2,400 real 475 um ones in parcels
-    of ``large_weight``, velocities Maxwellian with T_x = 3 T_y = 3 T_z (Theta ~ 1/m), collided ``steps`` steps of
-    ``dt`` with ~13 sub-steps each (``cfl`` 0.05): the large class's T_x / T_yz - 1 after each step."""
-    from hel_warp.cell_collisions import CellConfig
-    from hel_warp.collision_models import SurrogateCollision
-    from hel_warp.particles import Particles
-
+def _weighted_box(seed, large_weight, hot_x=1.0):
+    """A periodic box at real eps_s = 0.05 of 12,000 single 315 um particles and 2,400 real 475 um ones in parcels of
+    ``large_weight``; Maxwellian velocities with Theta ~ 1/m and T_x = ``hot_x`` T_y = ``hot_x`` T_z, no net
+    momentum. Returns (rng, d, w, side, x, v)."""
     rng = np.random.default_rng(seed)
     n_small, n_large = 12000, 2400 // large_weight
     d = np.r_[np.full(n_small, D1), np.full(n_large, D2)]
     w = np.r_[np.ones(n_small), np.full(n_large, float(large_weight))]
     side = (float((w * math.pi * d**3 / 6.0).sum()) / 0.05) ** (1.0 / 3.0)
     x = rng.uniform(0.0, side, size=(d.size, 3))
-    v = rng.normal(0.0, 1.0, size=(d.size, 3)) * np.array([math.sqrt(3.0), 1.0, 1.0]) / ((d / D1) ** 1.5)[:, None]
+    v = rng.normal(0.0, 1.0, size=(d.size, 3)) * np.array([math.sqrt(hot_x), 1.0, 1.0]) / ((d / D1) ** 1.5)[:, None]
     m = w * d**3
     v -= (m[:, None] * v).sum(axis=0) / m.sum()
+    return rng, d, w, side, x, v
+
+
+def _anisotropy_decay(model, device, large_weight, seed, steps=4, dt=2e-4):
+    """``_weighted_box`` with T_x = 3 T_y = 3 T_z, collided ``steps`` steps of ``dt`` with ~13 sub-steps each
+    (``cfl`` 0.05): the large class's T_x / T_yz - 1 after each step."""
+    from hel_warp.cell_collisions import CellConfig
+    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.particles import Particles
+
+    _, d, w, side, x, v = _weighted_box(seed, large_weight, hot_x=3.0)
     p = Particles.from_numpy(x, 0.5 * d, v=v, density=RHO, weight=w, stream=(d > D1).astype(int),
                              check_overlap=False, device=device)
     s = SurrogateCollision(model_dir=model, detection="cell", periodic_box=(side,) * 3, seed=seed,
@@ -371,7 +378,7 @@ def test_heavier_class_relaxes_its_anisotropy_as_at_weight_one(constant_mixture_
 
 
 def _spin_decay(model, device, large_weight, seed, restore=True, steps=4, dt=2e-4):
-    """The box of ``_anisotropy_decay`` (isotropic velocities) with organised spins, omega = (xi + z^) 2 / d (xi
+    """``_weighted_box`` (isotropic velocities) with organised spins, omega = (xi + z^) 2 / d (xi
     normal, sd 0.5), the rough constant forest and ``particle_spin``: the large class's mean omega_z after ``steps``
     steps, over its start."""
     import warp as wp
@@ -380,15 +387,7 @@ def _spin_decay(model, device, large_weight, seed, restore=True, steps=4, dt=2e-
     from hel_warp.collision_models import SurrogateCollision
     from hel_warp.particles import Particles
 
-    rng = np.random.default_rng(seed)
-    n_small, n_large = 12000, 2400 // large_weight
-    d = np.r_[np.full(n_small, D1), np.full(n_large, D2)]
-    w = np.r_[np.ones(n_small), np.full(n_large, float(large_weight))]
-    side = (float((w * math.pi * d**3 / 6.0).sum()) / 0.05) ** (1.0 / 3.0)
-    x = rng.uniform(0.0, side, size=(d.size, 3))
-    v = rng.normal(0.0, 1.0, size=(d.size, 3)) / ((d / D1) ** 1.5)[:, None]
-    m = w * d**3
-    v -= (m[:, None] * v).sum(axis=0) / m.sum()
+    rng, d, w, side, x, v = _weighted_box(seed, large_weight)
     omega = (rng.normal(0.0, 0.5, size=(d.size, 3)) + np.array([0.0, 0.0, 1.0])) * (2.0 / d)[:, None]
     p = Particles.from_numpy(x, 0.5 * d, v=v, density=RHO, weight=w, stream=(d > D1).astype(int),
                              check_overlap=False, device=device)
