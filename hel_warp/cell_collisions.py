@@ -87,8 +87,10 @@ class CellConfig:
     approaching: bool | None = None
     """True: a collision of a pair with a weighted parcel goes to a pair whose centres approach, (x_j - x_i) .
     (v_i - v_j) > 0, the colliding particle of a weighted parcel drawn from a cloud of (w - 1) V_p / eps_cell about
-    its centre, a weighted pair that met within ``approach_memory`` exempt (its next real collision is with another
-    particle of the cloud). Candidates are drawn and accepted as Bird's NTC; an accepted pair that recedes hands its
+    its centre, a weighted pair that met within ``approach_memory`` exempt from the position test (its next real
+    collision is with another particle of the cloud, which approaches one time in two: such a pair is eligible with
+    probability 1/2; always eligible, as until the twenty-ninth session, it met again twice as often as plain NTC's
+    pairs). Candidates are drawn and accepted as Bird's NTC; an accepted pair that recedes hands its
     collision to a pair of the cell with the same two weights, drawn until one approaches and passes its own
     acceptance (``approach_redraw``; after a draw of other weights the next is drawn among the parcels of the two
     weights, so that one weight-8 parcel among sixteen single particles finds its partners: drawn from the whole cell
@@ -160,7 +162,7 @@ class CellConfig:
     approach_memory: int = 16
     """With ``approaching``: accepted partners each parcel remembers (``CellArgs.recent_partners``); a weighted pair
     that met within them is exempt from the position test (its next real collision is with another particle of the
-    partner's cloud). A pair that met keeps receding from each other until both have
+    partner's cloud, eligible one time in two). A pair that met keeps receding from each other until both have
     collided again, and in a dense gas that is more than the last partner: weight 64, eps_s = 0.05, dt = 1e-3 s,
     Enskog's frequency 0.924 / 0.941 / 0.956 / 0.952 of it remembering 1 / 4 / 16 / 64 partners (FIGURES, issue
     12, seventeenth session)."""
