@@ -1034,18 +1034,36 @@ def as_vec3d(v: wp.vec3):
 
 
 @wp.func
-def deficit_kick(args: CellArgs, p: int, mass: wp.float64, xi: wp.vec3d):
-    """The parcel's random kick (its lost spread), covariance 2 T / mass for its deficit tensor T: along each
-    eigenvector of T, sqrt(2 lambda / mass) times a component of ``xi`` (three standard normals, drawn by the caller
-    whether the deficit is 0 or not, so that every pass replays the same numbers); expected energy trace T, m/s."""
-    tensor = args.particle_deficit[p]
+def tensor_kick(tensor: wp.mat33, xi: wp.vec3d):
+    """A random vector of covariance ``tensor`` (symmetric, >= 0; tiny negative eigenvalues of round-off taken as
+    0): along each eigenvector, sqrt(lambda) times a component of ``xi`` (three standard normals)."""
     axes, energies = wp.eig3(tensor)
     kick = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
     for a in range(3):
         e = wp.float64(wp.max(energies[a], 0.0))
         axis = wp.vec3d(wp.float64(axes[0, a]), wp.float64(axes[1, a]), wp.float64(axes[2, a]))
-        kick += wp.sqrt(wp.float64(2.0) * e / mass) * xi[a] * axis
+        kick += wp.sqrt(e) * xi[a] * axis
     return kick
+
+
+@wp.func
+def exact_energy_scale(energy: wp.float64, deficit: wp.float64, cross: wp.float64):
+    """alpha of the restorations: after a kick of its own energy ``deficit`` whose cross term with the velocities is
+    ``cross``, scaling the (peculiar) velocities of ``energy`` by alpha leaves exactly energy + deficit:
+    alpha^2 = (energy + deficit) / (energy + deficit + cross) (1 where the kicked energy is 0)."""
+    after = energy + deficit + cross
+    alpha = wp.float64(1.0)
+    if after > wp.float64(0.0):
+        alpha = wp.sqrt((energy + deficit) / after)
+    return alpha
+
+
+@wp.func
+def deficit_kick(args: CellArgs, p: int, mass: wp.float64, xi: wp.vec3d):
+    """The parcel's random kick (its lost spread), covariance 2 T / mass for its deficit tensor T
+    (``tensor_kick``; ``xi`` three standard normals, drawn by the caller whether the deficit is 0 or not, so that
+    both passes replay the same numbers); expected energy trace T, m/s."""
+    return wp.sqrt(wp.float64(2.0) / mass) * tensor_kick(args.particle_deficit[p], xi)
 
 
 @wp.func
@@ -1057,12 +1075,18 @@ def restore_class(args: CellArgs, lo: wp.vec3i, hi: wp.vec3i, weight: float, key
     velocities about its mass-weighted mean u are then scaled by the alpha that makes the energy gained exactly D:
     v_k' = u + alpha (v_k - u + s delta_k), alpha^2 = (P + D) / (P + D + R), P the class's energy about u before,
     R = s sum M_k (v_k - u).delta_k the kicks' cross term (zero in expectation, so alpha ~ 1; P + D + R >= 0 always).
-    Deficits zeroed. The random numbers come from ``wp.rand_init(key)``, replayed in each pass. Returns 1 when
-    restored, 0 when the class cannot take it (one parcel in the block: no momentum partner)."""
+    One pass gathers the sums (the centred ones from the raw: sum M |delta|^2 = sum M |k|^2 - M |k_mean|^2, and so
+    on, in float64), a second applies the kicks. Deficits zeroed. The random numbers come from
+    ``wp.rand_init(key)``, replayed in each pass. Returns 1 when restored, 0 when the class cannot take it (one
+    parcel in the block: no momentum partner)."""
     n_block = (hi[0] - lo[0]) * (hi[1] - lo[1]) * (hi[2] - lo[2])
+    zero = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
     mass = wp.float64(0.0)
-    kick_momentum = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-    momentum = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    kick_momentum = zero
+    momentum = zero
+    kick_square = wp.float64(0.0)  # sum M |k|^2
+    velocity_kick = wp.float64(0.0)  # sum M v.k
+    velocity_square = wp.float64(0.0)  # sum M |v|^2
     deficit = wp.float64(0.0)
     members = int(0)
     state = wp.rand_init(key)
@@ -1072,38 +1096,28 @@ def restore_class(args: CellArgs, lo: wp.vec3i, hi: wp.vec3i, weight: float, key
             p = args.cell_slot[s]
             if args.particle_weight[p] == weight:
                 m = wp.float64(weight * sphere_mass(2.0 * args.particle_radius[p], args.particle_density[p]))
-                mass += m
                 xi = wp.vec3d(wp.float64(wp.randn(state)), wp.float64(wp.randn(state)), wp.float64(wp.randn(state)))
-                kick_momentum += m * deficit_kick(args, p, m, xi)
-                momentum += m * as_vec3d(particle_v[p])
+                kick = deficit_kick(args, p, m, xi)
+                v = as_vec3d(particle_v[p])
+                mass += m
+                kick_momentum += m * kick
+                momentum += m * v
+                kick_square += m * wp.dot(kick, kick)
+                velocity_kick += m * wp.dot(v, kick)
+                velocity_square += m * wp.dot(v, v)
                 deficit += wp.float64(wp.trace(args.particle_deficit[p]))
                 members += 1
     mean_kick = kick_momentum / mass
     u = momentum / mass
-    quadratic = wp.float64(0.0)  # sum M |delta|^2
-    linear = wp.float64(0.0)  # sum M (v - u).delta
-    peculiar = wp.float64(0.0)  # sum M |v - u|^2 / 2
-    state = wp.rand_init(key)
-    for k in range(n_block):
-        cell = block_cell(args, lo, hi, k)
-        for s in range(args.cell_start[cell], args.cell_end[cell]):
-            p = args.cell_slot[s]
-            if args.particle_weight[p] == weight:
-                m = wp.float64(weight * sphere_mass(2.0 * args.particle_radius[p], args.particle_density[p]))
-                xi = wp.vec3d(wp.float64(wp.randn(state)), wp.float64(wp.randn(state)), wp.float64(wp.randn(state)))
-                delta = deficit_kick(args, p, m, xi) - mean_kick
-                c = as_vec3d(particle_v[p]) - u
-                quadratic += m * wp.dot(delta, delta)
-                linear += m * wp.dot(c, delta)
-                peculiar += wp.float64(0.5) * m * wp.dot(c, c)
+    quadratic = kick_square - mass * wp.dot(mean_kick, mean_kick)  # sum M |delta|^2
+    linear = velocity_kick - mass * wp.dot(u, mean_kick)  # sum M (v - u).delta
+    peculiar = wp.float64(0.5) * wp.max(velocity_square - mass * wp.dot(u, u), wp.float64(0.0))  # sum M |v - u|^2 / 2
     restored = int(0)
     scale = wp.float64(0.0)
     alpha = wp.float64(1.0)
     if members >= 2 and quadratic > wp.float64(0.0):
         scale = wp.sqrt(wp.float64(2.0) * deficit / quadratic)
-        after = peculiar + deficit + scale * linear
-        if after > wp.float64(0.0):
-            alpha = wp.sqrt((peculiar + deficit) / after)
+        alpha = exact_energy_scale(peculiar, deficit, scale * linear)
         restored = 1
     state = wp.rand_init(key)
     for k in range(n_block):
@@ -1136,21 +1150,12 @@ def restore_spin(args: CellArgs, p: int, xi: wp.vec3):
     tensor = args.particle_spin_deficit[p]
     deficit = wp.float64(wp.trace(tensor))
     args.particle_spin_deficit[p] = wp.mat33(0.0)
-    axes, energies = wp.eig3(tensor)
-    k = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-    for a in range(3):
-        e = wp.float64(wp.max(energies[a], 0.0))
-        axis = wp.vec3d(wp.float64(axes[0, a]), wp.float64(axes[1, a]), wp.float64(axes[2, a]))
-        k += wp.sqrt(e) * wp.float64(xi[a]) * axis
+    k = tensor_kick(tensor, as_vec3d(xi))
     kk = wp.dot(k, k)
     if kk > wp.float64(0.0) and inertia > wp.float64(0.0) and deficit > wp.float64(0.0):
         w = as_vec3d(args.particle_omega[p])
         s = wp.sqrt(wp.float64(2.0) * deficit / (inertia * kk))
-        energy = wp.float64(0.5) * inertia * wp.dot(w, w)
-        after = energy + deficit + inertia * s * wp.dot(w, k)
-        alpha = wp.float64(1.0)
-        if after > wp.float64(0.0):
-            alpha = wp.sqrt((energy + deficit) / after)
+        alpha = exact_energy_scale(wp.float64(0.5) * inertia * wp.dot(w, w), deficit, inertia * s * wp.dot(w, k))
         nw = alpha * (w + s * k)
         args.particle_omega[p] = wp.vec3(wp.float32(nw[0]), wp.float32(nw[1]), wp.float32(nw[2]))
 
