@@ -9,12 +9,13 @@ checkpoint restarts exactly) and turns the device counters into the strategy's `
 Collision cells (:class:`CellConfig`):
 
 - a triply periodic box (``periodic_box``): a lattice that tiles the box, cells as close to cubic as the sides
-  allow, sized to hold ``parcels_per_cell`` parcels on average (or of edge ``cell_size``);
+  allow, sized to hold ``parcels_per_cell`` parcels on average (or of edge ``cell_size``), larger where heavy
+  parcels' pairs would saturate (``automatic_edge``);
 - with a HEL solver (``grid``, a ``hel_warp.coupling.GridSpec``): the grid cells, each cut into
   ``subdivision``^3 sub-cells, or merged ``coarsen``^3 (heavy parcels), shifted at random every sub-step; a cell's
   number density is taken over the fluid volume inside it (``CellConfig.fluid_volume``: merged or shifted cells
   reach into walls);
-- otherwise the bounding box of the live parcels, cells of ``cell_size`` (or sized for ``parcels_per_cell``).
+- otherwise the bounding box of the live parcels, cells of ``cell_size`` (or sized as the periodic box's).
 
 Which anchor it follows, and where it differs (README "Cell detection"): Bird's NTC (SPARTA ``collide vss``:
 candidates from the cell's (sigma g)_max, acceptance sigma g / (sigma g)_max) with the weighted parcels of
@@ -67,7 +68,8 @@ class CellConfig:
     """Settings of the ``cell`` detection (validated at construction)."""
 
     parcels_per_cell: float = PARCELS_PER_CELL
-    """Mean parcels per cell the lattice is sized for (periodic box / bounding box; ignored with a grid)."""
+    """Mean parcels per cell the lattice is sized for (periodic box / bounding box; ignored with a grid); heavy
+    parcels get larger cells where this many would saturate their pairs (``automatic_edge``)."""
     cell_size: float | None = None
     """Cell edge, m; overrides ``parcels_per_cell`` (periodic box / bounding box)."""
     subdivision: int = 1
@@ -282,12 +284,31 @@ def step_seed(seed: int, step: int) -> int:
     return int((z ^ (z >> 31)) & 0x7FFFFFFF)
 
 
-def periodic_lattice(box, n_parcels: int, parcels_per_cell: float, cell_size: float | None):
-    """(origin, cell edges, shape) of a lattice tiling the periodic ``box``: edge ``cell_size`` or the edge of a
-    cube holding ``parcels_per_cell`` parcels, rounded so whole cells fill each side."""
+def unsaturated_edge(w_max: float, r_max: float) -> float:
+    """The smallest cube edge h with ``pair_saturation`` <= ``SATURATION_TARGET`` for a parcel pair of weight w_max
+    and radius r_max (0 at weight 1: single particles do not saturate)."""
+    if w_max <= 1.0:
+        return 0.0
+    return math.sqrt(pair_saturation(w_max, r_max, (1.0, 1.0, 1.0)) / SATURATION_TARGET)  # it goes as 1 / h^2
+
+
+def automatic_edge(volume: float, n_parcels: int, parcels_per_cell: float, w_max: float, r_max: float) -> float:
+    """The edge of a cube holding ``parcels_per_cell`` of ``n_parcels`` parcels spread over ``volume``, or the
+    unsaturated edge if that is larger (heavy parcels; grids coarsen by the same rule, ``unsaturated_coarsening``).
+    At 16 parcels per cell the saturation grows as w^(1/3): weight 64 at eps_s = 0.05 had 0.42 and cooled 0.972 of
+    Haff over 8 seeds, 0.992 in the unsaturated cells (FIGURES, issue 12, thirtieth session)."""
+    edge = (float(volume) * parcels_per_cell / max(n_parcels, 1)) ** (1.0 / 3.0)
+    return max(edge, unsaturated_edge(w_max, r_max))
+
+
+def periodic_lattice(box, n_parcels: int, parcels_per_cell: float, cell_size: float | None, w_max: float = 1.0,
+                     r_max: float = 0.0):
+    """(origin, cell edges, shape) of a lattice tiling the periodic ``box``: edge ``cell_size`` or
+    ``automatic_edge`` (``parcels_per_cell`` parcels per cube, no saturated heavy pairs), rounded so whole cells
+    fill each side."""
     box = np.asarray(box, np.float64)
     if cell_size is None:
-        cell_size = (float(np.prod(box)) * parcels_per_cell / max(n_parcels, 1)) ** (1.0 / 3.0)
+        cell_size = automatic_edge(float(np.prod(box)), n_parcels, parcels_per_cell, w_max, r_max)
     shape = np.maximum(1, np.round(box / cell_size)).astype(int)
     return np.zeros(3), box / shape, shape
 
@@ -303,18 +324,18 @@ def grid_lattice(grid, subdivision: int, coarsen: int = 1):
 def unsaturated_coarsening(grid_spacing: float, w_max: float, r_max: float) -> int:
     """The smallest k >= 1 with w_max pi (2 r_max)^2 / (k h)^2 <= SATURATION_TARGET (``pair_saturation`` of cubic
     cells of edge k h)."""
-    h_needed = math.sqrt(pair_saturation(w_max, r_max, (1.0, 1.0, 1.0)) / SATURATION_TARGET)  # it goes as 1 / h^2
-    return max(1, math.ceil(h_needed / grid_spacing * (1.0 - 1e-9)))
+    return max(1, math.ceil(unsaturated_edge(w_max, r_max) / grid_spacing * (1.0 - 1e-9)))
 
 
-def bounding_lattice(x: np.ndarray, r_max: float, parcels_per_cell: float, cell_size: float | None):
-    """(origin, cell edges, shape) over the bounding box of ``x`` (padded by r_max): edge ``cell_size`` or that of a
-    cube holding ``parcels_per_cell`` parcels of the box."""
-    lo = x.min(axis=0) - r_max
-    hi = x.max(axis=0) + r_max
-    extent = np.maximum(hi - lo, 2.0 * r_max)
+def bounding_lattice(x: np.ndarray, pad: float, parcels_per_cell: float, cell_size: float | None,
+                     w_max: float = 1.0, r_max: float = 0.0):
+    """(origin, cell edges, shape) over the bounding box of ``x`` (padded by ``pad``): edge ``cell_size`` or
+    ``automatic_edge`` over the box."""
+    lo = x.min(axis=0) - pad
+    hi = x.max(axis=0) + pad
+    extent = np.maximum(hi - lo, 2.0 * pad)
     if cell_size is None:
-        cell_size = (float(np.prod(extent)) * parcels_per_cell / max(len(x), 1)) ** (1.0 / 3.0)
+        cell_size = automatic_edge(float(np.prod(extent)), len(x), parcels_per_cell, w_max, r_max)
     shape = np.maximum(1, np.ceil(extent / cell_size)).astype(int)
     return lo, np.full(3, cell_size), shape
 
@@ -464,7 +485,7 @@ class CellCollisions:
         if not n_alive:
             w_max, r_max = 1.0, 0.0
         if periodic_box is not None:
-            return periodic_lattice(periodic_box, n_alive, cfg.parcels_per_cell, cfg.cell_size)
+            return periodic_lattice(periodic_box, n_alive, cfg.parcels_per_cell, cfg.cell_size, w_max, r_max)
         if grid is not None:
             k = cfg.coarsen
             if k is None:
@@ -474,7 +495,7 @@ class CellCollisions:
             self._merged = k > 1
             return grid_lattice(grid, cfg.subdivision, k)
         x = particles.x.numpy()[particles.alive.numpy() != 0].astype(np.float64)
-        return bounding_lattice(x, r_max + reach, cfg.parcels_per_cell, cfg.cell_size)
+        return bounding_lattice(x, r_max + reach, cfg.parcels_per_cell, cfg.cell_size, w_max, r_max)
 
     # ------------------------------------------------------------------ one step
     def fluid_integral(self, fluid, device):

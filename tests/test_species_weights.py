@@ -379,6 +379,13 @@ def _weighted_box(seed, large_weight, hot_x=1.0):
     return rng, d, w, side, x, v
 
 
+def _sixteen_per_cell(side, parcels):
+    """The edge of a cube holding 16 of the box's parcels: both weights' boxes in cells of ~16 parcels, where these
+    figures were measured (the automatic cells of the weight-8 box are larger since the thirtieth session, sized so
+    that a pair of the heaviest parcels does not saturate)."""
+    return (side**3 * 16.0 / parcels) ** (1.0 / 3.0)
+
+
 def _anisotropy_decay(model, device, large_weight, seed, steps=4, dt=2e-4):
     """``_weighted_box`` with T_x = 3 T_y = 3 T_z, collided ``steps`` steps of ``dt`` with ~13 sub-steps each
     (``cfl`` 0.05): the large class's T_x / T_yz - 1 after each step."""
@@ -390,7 +397,7 @@ def _anisotropy_decay(model, device, large_weight, seed, steps=4, dt=2e-4):
     p = Particles.from_numpy(x, 0.5 * d, v=v, density=RHO, weight=w, stream=(d > D1).astype(int),
                              check_overlap=False, device=device)
     s = SurrogateCollision(model_dir=model, detection="cell", periodic_box=(side,) * 3, seed=seed,
-                           cell=CellConfig(cfl=0.05))
+                           cell=CellConfig(cfl=0.05, cell_size=_sixteen_per_cell(side, d.size)))
     large = d > D1
     out = []
     for _ in range(steps):
@@ -436,7 +443,8 @@ def _spin_decay(model, device, large_weight, seed, restore=True, steps=4, dt=2e-
                              check_overlap=False, device=device)
     p.omega.assign(wp.array(omega.astype(np.float32), dtype=wp.vec3, device=p.x.device))
     s = SurrogateCollision(model_dir=model, detection="cell", periodic_box=(side,) * 3, seed=seed, particle_spin=True,
-                           cell=CellConfig(cfl=0.05, restore_energy=restore))
+                           cell=CellConfig(cfl=0.05, restore_energy=restore,
+                                           cell_size=_sixteen_per_cell(side, d.size)))
     for _ in range(steps):
         s.collide(p, dt)
     large = d > D1
@@ -494,7 +502,10 @@ def test_mixed_weights_collide_and_cool_as_weight_one(hc, capsys, tmp_path, cons
         for name, row in s["collision_pair_types"].items():
             assert abs(row["ratio"] - 1.0) < 4.0 * row["ratio_stderr"], (s["particles_per_parcel"], name, row)
     counts = mixed["strategy_counts"]
-    assert counts["cell_restored"] > 500 and counts["cell_unrestored"] <= 0.05 * counts["cell_restored"]
+    # restorations are per block of cells, weight class and sub-step: ~1,050 in the box's ~16-parcel cells,
+    # 250-320 in the larger cells it gets since the thirtieth session (a 475 um pair of weight 8 would saturate
+    # 16-parcel cells)
+    assert counts["cell_restored"] > 200 and counts["cell_unrestored"] <= 0.05 * counts["cell_restored"]
     for k in (1, 2):
         final = [s[f"granular_temperature_{k}_final"] for s in (one, mixed)]
         assert final[1] == pytest.approx(final[0], rel=0.15), (k, final)
