@@ -460,6 +460,11 @@ class SurrogateCollision:
         solver.fields.parcel_a_coll.zero_()
         self._solver_grid = solver.grid  # the cell detection's collision cells
         self._solver_fluid = getattr(solver, "cell_fluid", None)  # their fluid volumes
+        fields = getattr(solver, "fields", None)
+        self._solver_local = None
+        if getattr(fields, "parcel_eps_s", None) is not None:
+            from hel_warp.coupling import parcel_grid
+            self._solver_local = (parcel_grid(solver.grid, fields, self._solver_fluid), fields.parcel_eps_s)
         if getattr(getattr(solver, "config", None), "particle_spin", False):
             self.particle_spin = True
         walls = getattr(getattr(solver, "config", None), "walls", False)
@@ -553,7 +558,8 @@ class SurrogateCollision:
                                particle_spin=self.particle_spin, spin_form=self.flat.form == "contact_spin",
                                periodic_box=self.periodic_box,
                                grid=None if self.periodic_box is not None else self._solver_grid,
-                               extremes=extremes, fluid=self._solver_fluid, walls=self._walls)
+                               extremes=extremes, fluid=self._solver_fluid, walls=self._walls,
+                               local=None if self.periodic_box is not None else getattr(self, "_solver_local", None))
             return
         alive = particles.alive.numpy().astype(bool)
         if self.detection == "swept":

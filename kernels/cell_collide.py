@@ -16,6 +16,12 @@ whatever w. Per collision cell of volume V holding N parcels, in one step dt:
   WITHOUT the two candidates (sum_k w_k V_k - w_i V_i - w_j V_j) / V, so that with Poisson cell counts the
   expected rate is ``1/2 n^2 sigma <g> g0(eps)`` exactly for g0 linear in eps; chi_max = g0 of the whole cell
   bounds it (g0 grows with eps). ``enskog = 0``: chi = 1 (Boltzmann);
+- the density around the pair (``local_density``; ``CellConfig.local_density``, merged grid cells of heavy
+  parcels): ``chi_ij = g0(e_ij) e_ij / e_cell``, e_ij the mean of the two parcels' ``particle_eps_local`` (the
+  coupling's deposited eps_s at the parcel less its own share, ``local_solids_kernel``) and e_cell the cell's
+  real solids fraction less the pair's mean share: each parcel collides at the density of the others around it,
+  not at the cell's mean (a 10 mm cell averages the rig's clouds; in a uniform gas E[e_ij] = e_cell).
+  chi_max = g0(e_max) e_max / (e_cell less the largest share) bounds it;
 - the majorant: sigma_max = pi (2 r_max)^2 of the cell, g_max = 2 max_k |v_k - c| (c the cell's mean velocity:
   |v_i - v_j| <= |v_i - c| + |v_j - c|), w_max the cell's largest weight. A collision can raise a parcel's
   distance from c (by up to sqrt 2 for equal masses), so a later candidate may exceed the bound; it is then
@@ -111,6 +117,7 @@ from kernels.forest import (GUARD_COULOMB, GUARD_ENERGY, GUARD_SEPARATION, Conta
                             contact_point_velocity, contact_spin_impulse, spin_guard, spin_kick, turn_spins,
                             write_contact_spin_features_in_domain,
                             contact_impulse, sphere_mass, write_contact_features_in_domain)
+from kernels.interp import CellGrid, parcel_cell, parcel_stencil
 
 COUNT_CANDIDATES, COUNT_ACCEPTED, COUNT_OVER_MAX, COUNT_CELLS = 0, 1, 2, 3
 COUNT_SEPARATION, COUNT_COULOMB, COUNT_ENERGY, COUNT_CLAMPED, COUNT_LOG_OVERFLOW = 4, 5, 6, 7, 8
@@ -173,6 +180,11 @@ class CellArgs:
     dt: wp.float32
     seed: wp.int32
     """This step's seed (the host mixes the run seed with the step counter)."""
+    local_density: wp.int32
+    """1: a pair's rate takes the real solids fraction around its two parcels (``particle_eps_local``) instead of
+    the cell's mean, for cells coarser than the coupling's deposit."""
+    particle_eps_local: wp.array(dtype=wp.float32)
+    """(N,) with ``local_density``: the deposited solids fraction at the parcel without its own share."""
     enskog: wp.int32
     """1: Enskog's factor chi = g0 (Carnahan-Starling); 0: chi = 1 (Boltzmann)."""
     approaching: wp.int32
@@ -267,6 +279,18 @@ def carnahan_starling(eps: float, eps_cap: float):
     e = wp.clamp(eps, 0.0, eps_cap)
     one = 1.0 - e
     return (1.0 - 0.5 * e) / (one * one * one)
+
+
+@wp.func
+def local_factor(eps_local: float, eps_minus: float, enskog: int, eps_cap: float):
+    """The pair's rate over the cell's NTC rate without Enskog: the others' solids fraction around the pair over
+    the cell's without the pair (number densities, one size), times g0 of the local fraction (Enskog)."""
+    if eps_minus <= 0.0:
+        return float(0.0)
+    chi = eps_local / eps_minus
+    if enskog != 0:
+        chi = chi * carnahan_starling(eps_local, eps_cap)
+    return chi
 
 
 @wp.func
@@ -622,6 +646,14 @@ def cell_prepare(
     chi_max = float(1.0)
     if args.enskog != 0:
         chi_max = carnahan_starling(solids / volume, args.eps_cap)
+    if args.local_density != 0:
+        e_max = float(0.0)
+        wv_max = float(0.0)
+        for k in range(start, end):
+            p = args.cell_slot[k]
+            e_max = wp.max(e_max, args.particle_eps_local[p])
+            wv_max = wp.max(wv_max, args.particle_weight[p] * sphere_volume(args.particle_radius[p]))
+        chi_max = local_factor(e_max, (solids - wv_max) / volume, args.enskog, args.eps_cap)
     sigma_g_max = wp.pi * (2.0 * r_max) * (2.0 * r_max) * (2.0 * u_max)
     if args.approaching != 0 and args.approach_redraw == 0:  # approaching pairs at twice the rate: twice the majorant
         sigma_g_max = 2.0 * sigma_g_max
@@ -804,7 +836,11 @@ def cell_select(
                 ri = args.particle_radius[i]
                 rj = args.particle_radius[j]
                 chi = float(1.0)
-                if args.enskog != 0:
+                if args.local_density != 0:
+                    chi = local_factor(0.5 * (args.particle_eps_local[i] + args.particle_eps_local[j]),
+                                       (solids - 0.5 * (wi * sphere_volume(ri) + wj * sphere_volume(rj))) / volume,
+                                       args.enskog, args.eps_cap)
+                elif args.enskog != 0:
                     chi = carnahan_starling((solids - wi * sphere_volume(ri) - wj * sphere_volume(rj)) / volume,
                                             args.eps_cap)
                 rate = wp.pi * (ri + rj) * (ri + rj) * g_mag * wp.max(wi, wj) * chi
@@ -1298,3 +1334,38 @@ def collide_cells(args: CellArgs, forest: Forest, particle_v, more, round_count,
     # thousands; the last few pairs of a sparse step: a batch of a few rows costs a whole block) finish inline, in
     # the same order
     select_inline()
+
+
+@wp.kernel
+def local_solids_kernel(
+    grid: CellGrid,
+    particle_x: wp.array(dtype=wp.vec3),
+    particle_weight: wp.array(dtype=wp.float32),
+    particle_radius: wp.array(dtype=wp.float32),
+    particle_alive: wp.array(dtype=wp.int32),
+    parcel_eps_s: wp.array(dtype=float),
+    cell_volume: wp.float64,
+    # outputs
+    eps_local: wp.array(dtype=wp.float32),
+):
+    """The deposited eps_s at the parcel (interpolated with its own stencil S) less its own share,
+    w V_p sum_f S_f^2 / V_cell: the real solids fraction of the OTHER parcels around it."""
+    tid = wp.tid()
+    if particle_alive[tid] == 0:
+        eps_local[tid] = wp.float32(0.0)
+        return
+    w = float(particle_weight[tid])
+    base, frac, k, b, norm = parcel_stencil(grid, particle_x[tid], w, tid)
+    s2 = wp.float64(0.0)
+    for n in range(8 * k * k * k):
+        idx, sw = parcel_cell(grid, base, frac, k, b, norm, n)
+        s2 = s2 + sw * sw
+    own = wp.float64(w * sphere_volume(float(particle_radius[tid]))) * s2 / cell_volume
+    eps_local[tid] = wp.float32(wp.max(wp.float64(parcel_eps_s[tid]) - own, wp.float64(0.0)))
+
+
+def local_solids(grid, particles, parcel_eps_s, eps_local) -> None:
+    """``local_solids_kernel`` over ``particles`` (``grid``: the coupling's ``CellGrid`` of the step)."""
+    wp.launch(local_solids_kernel, dim=particles.count, device=particles.device,
+              inputs=[grid, particles.x, particles.weight, particles.radius, particles.alive, parcel_eps_s,
+                      float(grid.spacing) ** 3], outputs=[eps_local])

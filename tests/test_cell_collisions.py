@@ -1222,3 +1222,68 @@ def test_a_nan_velocity_stops_the_cell_collisions_with_a_clear_error(constant_mo
     strategy = SurrogateCollision(model_dir=constant_model, detection="cell", periodic_box=(4e-3,) * 3, seed=1)
     with pytest.raises(HelWarpError, match="NaN or infinite velocity"):
         strategy.collide(p, 1e-4)
+
+
+def _grid_gas_collisions(model, device, slabs, local, reps=10, weight=64.0, eps=0.05, dt=2e-4, seed=21):
+    """Weight-64 parcels in a 20 mm periodic box of 1 mm HEL cells, the collision cells the 10 mm merged ones
+    (k = 10, unshifted: two per axis, whole); eps_s = 0.05 over the box, or (``slabs``) the same parcels in the
+    slabs x mod 10 mm < 5 mm, so at 0.10 in half of each collision cell. The coupling's deposit and interpolation
+    give each parcel its eps_s (``CouplingFields.parcel_eps_s``). One step from a Maxwellian per repetition, the
+    collisions applied: real collisions over all repetitions and over Enskog's at the occupied solids fraction
+    (1/2 n omega dt per real particle); and the parcel events behind them."""
+    import warp as wp
+    from types import SimpleNamespace
+
+    from hel_warp.cell_collisions import CellConfig
+    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.coupling import CouplingFields, GridSpec, deposit_parcels, parcel_grid
+    from kernels.interp import interpolate_scalar_parcels
+
+    side, h = 20e-3, 1e-3
+    grid = GridSpec(origin=(0.0, 0.0, 0.0), spacing=h, shape=(20, 20, 20), periodic=(True, True, True))
+    n = int(round(eps * side**3 / (weight * math.pi * D**3 / 6.0)))
+    rng = np.random.default_rng(seed)
+    occupied = 2.0 * eps if slabs else eps
+    real = expected = 0.0
+    for rep in range(reps):
+        p = make_gas(n, side, weight, rng, device)
+        if slabs:
+            x = p.x.numpy()
+            x[:, 0] = np.floor(x[:, 0] / 10e-3) * 10e-3 + np.mod(x[:, 0], 10e-3) * 0.5
+            p.x.assign(x)
+        fields = CouplingFields.allocate(grid, n, device=device)
+        deposit_parcels(grid, p, fields)
+        eps_at = wp.zeros(n, dtype=float, device=device)
+        interpolate_scalar_parcels(parcel_grid(grid, fields), p.x, p.weight, fields.cell_eps_s, eps_at)
+        s = SurrogateCollision(model_dir=model, seed=seed + rep, detection="cell",
+                               cell=CellConfig(coarsen=10, shift=False, local_density=local, max_substeps=1))
+        solver = SimpleNamespace(grid=grid, pool=SimpleNamespace(particles=p), config=SimpleNamespace(dt=dt),
+                                 fields=SimpleNamespace(parcel_a_coll=wp.zeros(n, dtype=wp.vec3, device=device),
+                                                        parcel_eps_s=eps_at, cloud_on=fields.cloud_on,
+                                                        parcel_cloud=fields.parcel_cloud))
+        v = p.v.numpy().astype(np.float64)
+        theta = float(((v - v.mean(axis=0)) ** 2).sum() / (3 * n))
+        s.accelerate(solver)
+        real += s.counts()["collisions"]
+        omega = 24.0 * occupied * g0_cs(occupied) * math.sqrt(theta) / (math.sqrt(math.pi) * D)
+        expected += 0.5 * n * weight * omega * dt
+    return real / expected, real / weight
+
+
+def test_merged_cells_collide_at_the_solids_fraction_around_the_parcels(hard_sphere_model, device):
+    """Merged collision cells (heavy parcels on a HEL grid) average the number density over their volume and lose
+    the collisions of structure inside them: parcels packed into half of each 10 mm cell collide at 0.44 of the rate
+    of their own density (Enskog at eps_s 0.10 against 0.05) with the cell's mean. With ``local_density`` a pair's
+    rate takes the coupling's deposited eps_s around its two parcels, less each parcel's own share: the uniform gas
+    keeps Enskog's frequency (its own share would count a parcel as its own partner), and the slabs collide at more
+    than the cell mean gives (0.80 over 30 repetitions) and at most at their own density's rate (the deposit smooths
+    the slabs' edges)."""
+    for local in (False, True):
+        ratio, events = _grid_gas_collisions(hard_sphere_model, device, slabs=False, local=local)
+        assert abs(ratio - 1.0) <= 4.0 / math.sqrt(events), (local, ratio, events)
+    plain, events = _grid_gas_collisions(hard_sphere_model, device, slabs=True, local=False)
+    mean_field = 0.5 * g0_cs(0.05) / g0_cs(0.10)  # the cell mean's rate over the slabs' own
+    assert abs(plain / mean_field - 1.0) <= 4.0 / math.sqrt(events), (plain, mean_field)
+    ratio, events = _grid_gas_collisions(hard_sphere_model, device, slabs=True, local=True)
+    print(f"slabs: {plain:.3f} (cell mean) and {ratio:.3f} (local) of their own density's rate")
+    assert mean_field + 0.2 < ratio <= 1.0 + 4.0 / math.sqrt(events), (ratio, mean_field)

@@ -247,8 +247,10 @@ def test_paper_particle_sets(cs):
         config("315e-6", "--cell-nearest", "8")
     with pytest.raises(ConfigError, match="--cell-nearest must be"):
         surrogate("--detection", "cell", "--cell-nearest", "-1")
-    # --[no-]cell-approaching, --[no-]cell-transfer: cell detection only; not given: CellConfig's default
-    for option, field in (("cell-approaching", "cell_approaching"), ("cell-transfer", "cell_transfer")):
+    # --[no-]cell-approaching, --[no-]cell-transfer, --[no-]cell-local-density: cell detection only; not given:
+    # CellConfig's default
+    for option, field in (("cell-approaching", "cell_approaching"), ("cell-transfer", "cell_transfer"),
+                          ("cell-local-density", "cell_local_density")):
         assert getattr(surrogate("--particles-per-parcel", "64", f"--{option}"), field) is True
         assert getattr(surrogate("--detection", "cell", f"--no-{option}"), field) is False
         assert getattr(surrogate("--particles-per-parcel", "8"), field) is None
