@@ -210,6 +210,7 @@ class SurrogateCollision:
         """The ``cell`` detection (its random state is :meth:`state`)."""
         self._solver_grid = None
         self._solver_fluid = None
+        self._solver_local = None  # (CellGrid, parcel_eps_s) of the step, for CellConfig.local_density
         self.wall_events = bool(wall_events)
         """Swept detection in a solver with walls: True (default) reflects a parcel whose path crosses the wall
         within the step at the crossing, in time order with its collisions (it then collides on its reflected
@@ -460,10 +461,11 @@ class SurrogateCollision:
         solver.fields.parcel_a_coll.zero_()
         self._solver_grid = solver.grid  # the cell detection's collision cells
         self._solver_fluid = getattr(solver, "cell_fluid", None)  # their fluid volumes
-        fields = getattr(solver, "fields", None)
+        fields = solver.fields
         self._solver_local = None
-        if getattr(fields, "parcel_eps_s", None) is not None:
+        if self.cells.config.local_density and getattr(fields, "parcel_eps_s", None) is not None:
             from hel_warp.coupling import parcel_grid
+
             self._solver_local = (parcel_grid(solver.grid, fields, self._solver_fluid), fields.parcel_eps_s)
         if getattr(getattr(solver, "config", None), "particle_spin", False):
             self.particle_spin = True
@@ -559,7 +561,7 @@ class SurrogateCollision:
                                periodic_box=self.periodic_box,
                                grid=None if self.periodic_box is not None else self._solver_grid,
                                extremes=extremes, fluid=self._solver_fluid, walls=self._walls,
-                               local=None if self.periodic_box is not None else getattr(self, "_solver_local", None))
+                               local=None if self.periodic_box is not None else self._solver_local)
             return
         alive = particles.alive.numpy().astype(bool)
         if self.detection == "swept":

@@ -629,6 +629,8 @@ def cell_prepare(
     r_max = float(0.0)
     w_max = float(0.0)
     solids = float(0.0)
+    e_max = float(0.0)  # local_density: the largest parcel_eps_local and own share w V_p of the cell
+    wv_max = float(0.0)
     c = wp.vec3(0.0)
     for k in range(start, end):
         p = args.cell_slot[k]
@@ -637,6 +639,9 @@ def cell_prepare(
         r_max = wp.max(r_max, r)
         w_max = wp.max(w_max, w)
         solids += w * sphere_volume(r)
+        if args.local_density != 0:
+            e_max = wp.max(e_max, args.particle_eps_local[p])
+            wv_max = wp.max(wv_max, w * sphere_volume(r))
         c += particle_v[p]
     c = c / float(count)
     u_max = float(0.0)
@@ -644,16 +649,10 @@ def cell_prepare(
         u_max = wp.max(u_max, wp.length(particle_v[args.cell_slot[k]] - c))
     volume = cell_volume_of(args, cell)
     chi_max = float(1.0)
-    if args.enskog != 0:
-        chi_max = carnahan_starling(solids / volume, args.eps_cap)
     if args.local_density != 0:
-        e_max = float(0.0)
-        wv_max = float(0.0)
-        for k in range(start, end):
-            p = args.cell_slot[k]
-            e_max = wp.max(e_max, args.particle_eps_local[p])
-            wv_max = wp.max(wv_max, args.particle_weight[p] * sphere_volume(args.particle_radius[p]))
         chi_max = local_factor(e_max, (solids - wv_max) / volume, args.enskog, args.eps_cap)
+    elif args.enskog != 0:
+        chi_max = carnahan_starling(solids / volume, args.eps_cap)
     sigma_g_max = wp.pi * (2.0 * r_max) * (2.0 * r_max) * (2.0 * u_max)
     if args.approaching != 0 and args.approach_redraw == 0:  # approaching pairs at twice the rate: twice the majorant
         sigma_g_max = 2.0 * sigma_g_max
