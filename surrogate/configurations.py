@@ -201,7 +201,7 @@ class ConfigurationSpec:
                 raise ConfigError(f"{name} must lie in [0, 1] (got {getattr(self, name)})")
         if self.central_fraction + self.grazing_fraction > 1.0 + 1e-12:
             raise ConfigError(f"central_fraction + grazing_fraction must be <= 1 (got {self.central_fraction} + "
-                              f"{self.grazing_fraction})")
+                              f"{self.grazing_fraction}); lower --grazing-fraction or leave it unset")
         if not 0.0 <= self.max_offset < 1.0:
             raise ConfigError(f"max_offset must lie in [0, 1) (got {self.max_offset})")
         if not 0.0 <= self.grazing_angle < 90.0:

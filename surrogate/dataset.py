@@ -155,10 +155,14 @@ class DatasetSpec:
         return json.loads(json.dumps(attrs))
 
 
+DEFAULT_GRAZING_FRACTION = 0.3
+"""Share of grazing rows when the caller sets none and the central share leaves room for it."""
+
+
 def make_spec(*, samples: int, seed: int, diameter: float, diameter_std: float | None = None,
               density_std: float = 0.0, material: Material | None = None, contact_model: str = "hertz",
               chunk_size: int = DEFAULT_CHUNK_SIZE, central_fraction: float = 0.1,
-              grazing_fraction: float = 0.3, grazing_angle: float = 60.0, max_offset: float = GRAZING_MAX_OFFSET,
+              grazing_fraction: float | None = None, grazing_angle: float = 60.0, max_offset: float = GRAZING_MAX_OFFSET,
               slow_fraction: float = 0.3, min_relative_speed: float = 0.01, min_normal_speed: float = 1e-3,
               speed_max: float = 20.0, touch_steps: float = 2.0, dt_factor: float = 0.5,
               mixture_diameters: tuple = (), mixture_diameter_stds: tuple | None = None,
@@ -173,7 +177,13 @@ def make_spec(*, samples: int, seed: int, diameter: float, diameter_std: float |
     be given for another diameter. The pair starts ``touch_time = touch_steps x dt_factor x`` the
     eq. (12) step of the smallest likely particle (mean - 4 std) at 40 m/s before first touch:
     about ``touch_steps`` DEM steps of a pair (measured on 4096 pairs: 1.7-2.0 steps with the defaults).
+
+    ``grazing_fraction`` left unset (None) is ``min(0.3, 1 - central_fraction)``: the default 0.3 gives way to a
+    central fraction the caller chose (``central_fraction=1``: every row central, none grazing). The rows
+    neither central nor grazing, ``1 - central - grazing``, are uniform in b^2.
     """
+    if grazing_fraction is None:
+        grazing_fraction = min(DEFAULT_GRAZING_FRACTION, max(0.0, 1.0 - float(central_fraction)))
     material = material if material is not None else Material()
     if not (isinstance(diameter, (int, float)) and math.isfinite(diameter) and diameter > 0):
         raise ConfigError(f"--diameter must be a positive number of metres (got {diameter!r}); e.g. 315e-6")

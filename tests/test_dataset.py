@@ -343,3 +343,29 @@ def test_cli_builds_resumes_and_refuses_other_parameters(tmp_path, capsys):
     assert main(["dataset", "--out", str(tmp_path / "notes"), "--samples", "10", "--overwrite", "--no-progress"]) == 2
     assert (tmp_path / "notes" / "keep.txt").exists()                       # --overwrite never deletes other data
     assert load_dataset(out).inputs.shape == (300, 14)
+
+
+def test_a_set_central_fraction_makes_the_unset_grazing_default_give_way(tmp_path, capsys):
+    """`--central-fraction 1` (all central, the paper's form) is the user's choice; the grazing default (0.3)
+    was not, so it shrinks to what is left, min(0.3, 1 - central). Both set explicitly and summing above 1 is
+    still the user's contradiction and is refused."""
+    from hel_warp.cli import main
+    from hel_warp.errors import ConfigError
+
+    assert make_spec(samples=10, seed=0, diameter=315e-6).configurations.grazing_fraction == 0.3  # default kept
+    for central in (1.0, 0.8, 0.5):
+        cfg = make_spec(samples=10, seed=0, diameter=315e-6, central_fraction=central).configurations
+        assert cfg.central_fraction == central and cfg.grazing_fraction == pytest.approx(min(0.3, 1.0 - central))
+    with pytest.raises(ConfigError, match="central_fraction"):
+        make_spec(samples=10, seed=0, diameter=315e-6, central_fraction=1.0, grazing_fraction=0.3)
+
+    out = tmp_path / "ds"
+    assert main(["dataset", "--out", str(out), "--samples", "64", "--chunk-size", "64", "--central-fraction", "1",
+                 "--no-progress"]) == 0
+    capsys.readouterr()
+    configuration = load_dataset(out).attrs["configuration"]
+    assert configuration["central_fraction"] == 1.0 and configuration["grazing_fraction"] == 0.0
+    assert main(["dataset", "--out", str(tmp_path / "both"), "--samples", "64", "--central-fraction", "1",
+                 "--grazing-fraction", "0.3", "--no-progress"]) == 2
+    assert capsys.readouterr().err.startswith("hel-warp: error:")
+    assert not (tmp_path / "both").exists()

@@ -46,10 +46,12 @@ def add_parser(subparsers):
                    help="the earlier paper-like set: --central-fraction 0.5 --grazing-fraction 0 --max-offset 0.95 "
                         "--slow-fraction 0 --min-normal-speed 0.05 (options given explicitly still win)")
     p.add_argument("--central-fraction", type=finite_float, default=None,
-                   help="fraction of central impacts, offset 0 as in the paper (default 0.1)")
+                   help="fraction of central impacts, offset 0 as in the paper (default 0.1); the rest are "
+                        "grazing (--grazing-fraction) or uniform in b^2 (1 - central - grazing)")
     p.add_argument("--grazing-fraction", type=finite_float, default=None,
                    help="fraction of rows with incidence angle uniform in [--grazing-angle, asin(--max-offset)] "
-                        "(default 0.3)")
+                        "(default 0.3, or 1 - --central-fraction when that is smaller: --central-fraction 1 "
+                        "alone gives an all-central set; both given must sum to <= 1)")
     p.add_argument("--grazing-angle", type=finite_float, default=None,
                    help="smallest incidence angle of the grazing rows, degrees (default 60)")
     p.add_argument("--max-offset", type=finite_float, default=None,
