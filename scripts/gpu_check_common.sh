@@ -25,6 +25,16 @@ gpu_check_args() {
     esac
     shift
   done
+  # the models and tests steps need pytest (a test extra): without it they would fail minutes in with a traceback
+  if ! command -v "$py" > /dev/null 2>&1; then
+    echo "$name: no python '$py' on the PATH: set PYTHON to the project's python (e.g. PYTHON=.venv/bin/python)" >&2
+    exit 2
+  fi
+  if ! "$py" -c "import pytest" > /dev/null 2>&1; then
+    echo "$name: $py lacks pytest, which the check's test steps need: install the test extras," \
+      "$py -m pip install -e '.[test]'" >&2
+    exit 2
+  fi
   mkdir -p "$out" || exit 2
   out=$(cd "$out" && pwd)
   : > "$out/steps.tsv"

@@ -221,3 +221,20 @@ def test_profile_step_bad_input_is_one_line_and_exit_2(tmp_path):
         assert done.returncode == 2, (args, done.stderr[-1500:])
         assert says in done.stderr and "Traceback" not in done.stderr
 
+
+
+@pytest.mark.parametrize("script", [SCRIPT, ROOT / "scripts" / "gpu_check_cells.sh"], ids=["gpu_check", "cells"])
+def test_a_python_without_pytest_is_one_line_saying_what_to_install(tmp_path, script):
+    # the check runs the test subset with pytest (a test extra): a python without it is refused before any step runs,
+    # in one line that names the install command, exit 2 and nothing written (not a traceback minutes later)
+    shadow = tmp_path / "no_pytest" / "pytest"
+    shadow.mkdir(parents=True)
+    (shadow / "__init__.py").write_text('raise ModuleNotFoundError("No module named \'pytest\'", name="pytest")\n')
+    out = tmp_path / "gpu_out"
+    done = subprocess.run([str(script), "--dry-run", "--out", str(out)], capture_output=True, text=True, cwd=ROOT,
+                          timeout=300, env={**os.environ, "PYTHON": sys.executable,
+                                            "PYTHONPATH": str(shadow.parent)})
+    assert done.returncode == 2, done.stderr[-2000:]
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "pytest" in lines[0] and "pip install" in lines[0] and ".[test]" in lines[0], lines
+    assert "Traceback" not in done.stderr and done.stdout == "" and not out.exists()
