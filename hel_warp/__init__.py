@@ -1,6 +1,6 @@
 """hel_warp: a particle engine for gas-solid flows on NVIDIA Warp.
 
-Rooms (see ARCHITECTURE.md): ``kernels`` (Warp kernels only), ``hel_warp`` (host-side
+Rooms (docs/developer/architecture.md): ``kernels`` (Warp kernels only), ``hel_warp`` (host-side
 engine, CLI), ``surrogate`` (offline data set, training, flattening).
 """
 

@@ -73,7 +73,7 @@ class CellConfig:
     parcel less its own share (w V_p sum S^2 / h^3 over its stencil S), e_ij their mean, chi_ij = g0(e_ij) e_ij /
     e_cell (e_cell the cell's fraction without the pair's mean share), so that a parcel collides at the density of
     the others around it. Unbiased in a uniform gas (the own share removed). Off by default: on the rig (96
-    held-out seeds against 28 CFD-DEM seeds, thirtieth session, FIGURES) it raises the real collisions from 0.47 to
+    held-out seeds against 28 CFD-DEM seeds, ``scripts/rig_ensemble.py``) it raises the real collisions from 0.47 to
     0.51 of the CFD-DEM's at weight 8 with the transverse spread closer (-1.5 % against -5.1 %), but at weight 64
     from 0.37 to 0.54 with the spread 11.6 % low (the default -4.2 %). Grid cells of weight 1 and periodic boxes are
     not merged and keep the cell's mean either way."""
@@ -89,8 +89,7 @@ class CellConfig:
     smallest k that keeps a parcel pair of the largest weight from saturating, ``pair_saturation`` <=
     ``SATURATION_TARGET`` (h >= sqrt(w sigma / 0.2): 4 cells of the rig's 1 mm grid at weight 8), when a parcel
     weighs more than 1 and no subdivision is asked; else 1. Coarser cells average the number density over more
-    volume: the collisions of dense clouds smaller than a cell are undercounted (FIGURES, issue 12, eighth
-    session)."""
+    volume: the collisions of dense clouds smaller than a cell are undercounted."""
     shift: bool | None = None
     """Shift the collision lattice by a random offset in [0, h)^3 every sub-step (Ihle & Kroll 2001's grid shift):
     whether two parcels can meet then depends on their separation only, not on where a fixed cell face falls (the
@@ -101,12 +100,11 @@ class CellConfig:
     (v_i - v_j) > 0, the colliding particle of a weighted parcel drawn from a cloud of (w - 1) V_p / eps_cell about
     its centre, a weighted pair that met within ``approach_memory`` exempt from the position test (its next real
     collision is with another particle of the cloud, which approaches one time in two: such a pair is eligible with
-    probability 1/2; always eligible, as until the twenty-ninth session, it met again twice as often as plain NTC's
-    pairs). Candidates are drawn and accepted as Bird's NTC; an accepted pair that recedes hands its
+    probability 1/2; always eligible, it would meet again twice as often as plain NTC's pairs). Candidates are drawn and accepted as Bird's NTC; an accepted pair that recedes hands its
     collision to a pair of the cell with the same two weights, drawn until one approaches and passes its own
     acceptance (``approach_redraw``; after a draw of other weights the next is drawn among the parcels of the two
     weights, so that one weight-8 parcel among sixteen single particles finds its partners: drawn from the whole cell
-    a weights 1 / 8 mixture lost 4-5 % of its 1-8 collisions, twenty-eighth session): a cell collides as often as
+    a weights 1 / 8 mixture lost 4-5 % of its 1-8 collisions): a cell collides as often as
     NTC says, and only a cell whose pairs all recede (two streams that have passed each other) collides less; a
     candidate whose weights find no approaching pair where other weights do collides itself. Pairs of single
     particles are not tested (their approach at the cell's scale reads the correlation their own collisions leave,
@@ -116,15 +114,15 @@ class CellConfig:
     +0.015 / -5.9 %; the 315 / 475 um mixture at weights 8, 8: the 475 um class +0.002 / +2.8 % (plain +0.089 /
     +13.5 %). The homogeneous gas at weights 1 / 8 / 64, eps_s = 0.01 / 0.05, dt = 1e-3 / 1e-4 / 7.14e-5 s: within
     2 % of Enskog's frequency and 5 % of Haff's cooling (0.951-0.991). Off by default: it trades the crossing for
-    the transverse spread, and plain NTC meets weight 8 on three seed sets (FIGURES, issue 12, eighteenth session).
-    With the parcels' clouds (twenty-seventh session, against 28 CFD-DEM seeds) it costs little transverse spread:
+    the transverse spread, and plain NTC meets weight 8 on three seed sets.
+    With the parcels' clouds (against 28 CFD-DEM seeds) it costs little transverse spread:
     weight 64 on 192 held-out seeds -0.025 / -0.4 % (sections 1-7 +0.007 / -0.8 %; the default +0.052 / +0.0 % there),
     but the dense weight-64 gas (eps_s = 0.05, 8,000 parcels) cools at 0.945-0.948 of Haff's rate (the default
     0.972), just past the 5 % target, so it stays off.
-    None (default, twenty-eighth session): on while a live parcel weighs more than 1 (with the collisional transfer:
+    None (default): on while a live parcel weighs more than 1 (with the collisional transfer:
     the weighted rig within 0.05 / 5 % of 28 CFD-DEM seeds on held-out seeds at weights 8 and 64, the homogeneous
     gas within 5 % of Enskog and Haff at weights 8 and 64, the weights 1 / 8 mixture's collisions per kind of pair
-    as plain NTC's; FIGURES, issue 12, twenty-eighth session), off at weight 1 (the filter leaves pairs of single
+    as plain NTC's), off at weight 1 (the filter leaves pairs of single
     particles alone).
     False: any pair of the cell, whatever its positions (Bird's NTC, exact for the homogeneous gas)."""
     nearest: int = 0
@@ -138,12 +136,12 @@ class CellConfig:
     detection has no excluded volume (parcels may overlap; DEM spheres and the swept detection's parcels may not):
     without it the rig's injection clouds overpack (eps_s > 1 in a 1 mm cell at dt = 1e-4 s; at 1e-3 s the
     collision rate of the weight-1 clouds, from their own snapshots, is 3-5x the CFD-DEM's in the supply channels
-    and arms), over-collide and leave the holders too hot. On by default (tenth session). With the trilinear
+    and arms), over-collide and leave the holders too hot. On by default. With the trilinear
     coupling it took the rig at weight 8, dt = 1e-3 s (sixteen seeds against two CFD-DEM seeds) from +0.019 /
     +6.9 % to +0.005 / -0.4 % in crossing / v_y rms; beside the weight-scaled coupling tents (``GridSpec.spread``)
     it changes little there (seeds 0-7: +0.055 / -1.8 % with, +0.059 / -1.8 % without). At weight 1 and 1e-4 s
     both miss (+0.124 / +29 % with, +0.085 / +20 % without; the swept detection is weight 1's default). A periodic
-    box (no grid) has no stress (FIGURES, issue 12, ninth and tenth sessions)."""
+    box (no grid) has no stress."""
     packing_pressure: float = 10.0
     """P_s of the packing stress, Pa (OpenFOAM's ``pSolid`` default)."""
     packing_beta: float = 2.0
@@ -176,14 +174,13 @@ class CellConfig:
     that met within them is exempt from the position test (its next real collision is with another particle of the
     partner's cloud, eligible one time in two). A pair that met keeps receding from each other until both have
     collided again, and in a dense gas that is more than the last partner: weight 64, eps_s = 0.05, dt = 1e-3 s,
-    Enskog's frequency 0.924 / 0.941 / 0.956 / 0.952 of it remembering 1 / 4 / 16 / 64 partners (FIGURES, issue
-    12, seventeenth session)."""
+    Enskog's frequency 0.924 / 0.941 / 0.956 / 0.952 of it remembering 1 / 4 / 16 / 64 partners."""
     approach_redraw: int = APPROACH_REDRAW
     """With ``approaching``: a candidate whose pair does not approach is drawn again from the cell, up to this many
     draws, and the approaching (or exempt) pair it finds is accepted at the plain NTC rate. A cell then collides as
     often as plain NTC says whatever share of its pairs approach (exactly so in expectation when that share is the
     homogeneous gas's half), and only a cell with almost no approaching pair, two streams that have passed each
-    other, collides less (FIGURES, issue 12, eighteenth session). 0: the ninth session's rule, a pair that does not
+    other, collides less. 0: a pair that does not
     approach is rejected and approaching ones collide at twice the rate: a dense gas, where pairs that have collided
     recede, then collides too little (0.956 of Enskog's frequency at weight 64, eps_s = 0.05)."""
     approach_events: float = 0.25
@@ -191,25 +188,25 @@ class CellConfig:
     this many per sub-step. Within one sampling a parcel that has collided heads away from the partner it met,
     which sits on the cell-mates' side, so its later candidates of the sub-step approach less often than half: at
     weight 64, eps_s = 0.05, dt = 1e-3 s (1.1 events per parcel and step) the frequency fell to 0.87 of Enskog's;
-    new positions (the paths advance between sub-steps) undo the bias (FIGURES, issue 12, seventeenth session)."""
+    new positions (the paths advance between sub-steps) undo the bias."""
     fluid_volume: bool = True
     """With a HEL grid and its fluid mask: a collision cell's real number density (and g0's solids fraction) is
     taken over the fluid volume inside it (at least 1/8 of the cell), not its whole volume. A merged or shifted cell
     reaching into walls otherwise dilutes the density there: on the rig an 11 mm cell in a 4 x 8 mm supply channel
     is a quarter fluid. Cells of fluid grid cells alone (weight 1's lattice) are unchanged bit for bit. False: the
-    whole volume (before the seventeenth session)."""
+    whole volume."""
     wall_paths: bool = False
     """True: with a solver's walls and more than one sub-step, a sub-stepped path that crosses a wall is reflected
     there (``kernels/reflect.py``, the push's e_n, e_t and surface contact), its velocity with it, so that the next
     sub-steps sample the parcel on its side of the wall. False (default): the paths run straight through the walls
     for the whole step and the push reflects at its end. Measured on the rig (315 um, 1e-3 s, 32 seeds against the
-    four CFD-DEM seeds; FIGURES, issue 12, twentieth session): it brings the release streams' local granular
+    four CFD-DEM seeds): it brings the release streams' local granular
     temperature by the arms' walls from 2.5x to ~1.5x the CFD-DEM's, but moves every weight further from the CFD-DEM
     (weight 1 crossing +0.053 -> +0.061 and v_y rms +0.8 -> +11.2 %; weight 8 +0.070 / +4.2 %), so it stays off."""
     collisional_transfer: bool | None = None
-    """None (default): on (``transfer``; with ``approaching`` too since the twenty-eighth session, when the filter's
-    redraw stopped losing a rare kind's collisions: before, a weights 1 / 8 mixture's 1-8 rate fell to 0.92-0.94 of
-    Enskog's with both). True: the Enskog collisional transfer of momentum across the contact distance (Alexander,
+    """None (default): on (``transfer``; with ``approaching`` too, whose redraw among the parcels of the candidate's
+    two weights keeps a rare kind's collisions: drawn from the whole cell, a weights 1 / 8 mixture's 1-8 rate fell to
+    0.92-0.94 of Enskog's with both). True: the Enskog collisional transfer of momentum across the contact distance (Alexander,
     Garcia & Alder 1995, "A consistent Boltzmann algorithm", PRL 74: 5212): after each event the two parcels' paths
     move apart along the sampled normal, parcel i back and j on, each by its mass share of c (r_i + r_j) times w_min
     / w, with c such that the new momenta carried across the displacements equal the real pair's collision virial
@@ -221,15 +218,14 @@ class CellConfig:
     too few pairs at 16 parcels per cell and eps_s = 0.05: the pairs are counted as N (N - 1) + (1 - S) k N, k = 1 -
     (3/8) d sum 1 / L_a the share of a parcel's excluded-volume hole (radius d) that a cell of edges L_a holds
     (``cell_prepare``; it over-counts in cells of few parcels: +2 % at weight 1 and +5 % at weight 64 with 4 per
-    cell, eps_s = 0.05, FIGURES twenty-second session). Measured (FIGURES, issue 12, twenty-first and twenty-second
-    sessions): the homogeneous gas at weights 1 / 8 / 64, eps_s = 0.01 / 0.05, dt = 1e-3 / 1e-4 / 7.14e-5 s within
+    cell, eps_s = 0.05). Measured (``cases/homogeneous_cooling.py``, ``scripts/rig_ensemble.py``): the homogeneous gas at weights 1 / 8 / 64, eps_s = 0.01 / 0.05, dt = 1e-3 / 1e-4 / 7.14e-5 s within
     1.5 % of Enskog's frequency and within 5 % of Haff's cooling (weight 64, eps_s = 0.05: 0.945-0.979 over five
     seeds of the 1,000-parcel box, 0.966-0.973 in the 8,000-parcel box; plain NTC's weight 64 cools as slowly); the
     rig (315 um, 1e-3 s, against four CFD-DEM seeds, whole run / sections 1-7) weight 1 +0.019 / -4.1 % and +0.041 /
     -6.7 % with ~450,000 real collisions per run (CFD-DEM 451,366, plain NTC 881,045), weight 8 +0.027 / -4.3 % and
     +0.053 / -4.0 % (plain +0.041 / -2.8 % and +0.083 / -2.5 %), weight 64 +0.047 / -3.0 % and +0.076 / -4.4 % (plain
     +0.074 / -1.1 % and +0.101 / -1.7 %): the crossing closer at every weight, the transverse spread 1.5-3 points
-    lower. False: positions untouched (Bird's NTC; the default before the twenty-second session)."""
+    lower. False: positions untouched (Bird's NTC)."""
     restore_block: int = RESTORE_BLOCK
     """Collision cells per axis of a restoration block (the region whose parcels of one weight share a deficit)."""
 
@@ -306,7 +302,7 @@ def automatic_edge(volume: float, n_parcels: int, parcels_per_cell: float, w_max
     """The edge of a cube holding ``parcels_per_cell`` of ``n_parcels`` parcels spread over ``volume``, or the
     unsaturated edge if that is larger (heavy parcels; grids coarsen by the same rule, ``unsaturated_coarsening``).
     At 16 parcels per cell the saturation grows as w^(1/3): weight 64 at eps_s = 0.05 had 0.42 and cooled 0.972 of
-    Haff over 8 seeds, 0.992 in the unsaturated cells (FIGURES, issue 12, thirtieth session)."""
+    Haff over 8 seeds, 0.992 in the unsaturated cells (``cases/homogeneous_cooling.py``)."""
     edge = (float(volume) * parcels_per_cell / max(n_parcels, 1)) ** (1.0 / 3.0)
     return max(edge, unsaturated_edge(w_max, r_max))
 
@@ -352,11 +348,10 @@ def bounding_lattice(x: np.ndarray, pad: float, parcels_per_cell: float, cell_si
 
 SATURATION_TARGET = 0.2
 """``pair_saturation`` that the automatic coarsening of a HEL grid's collision cells aims below (``CellConfig.coarsen``):
-the beams then exchange 0.98 of weight 1's momentum (FIGURES, issue 12, eighth session)."""
+the beams then exchange 0.98 of weight 1's momentum (``tests/test_cell_collisions.py``)."""
 SATURATION_WARN = 0.3
 """``pair_saturation`` above which the cell detection warns once per run: two cold counter-streaming beams of
-weight-w parcels exchange 2 % / 17 % / 33 % less momentum than kinetic theory's at 0.16 / 0.62 / 1.25 (FIGURES,
-issue 12, eighth session)."""
+weight-w parcels exchange 2 % / 17 % / 33 % less momentum than kinetic theory's at 0.16 / 0.62 / 1.25."""
 
 
 def pair_saturation(w_max: float, r_max: float, edges) -> float:
@@ -571,8 +566,8 @@ class CellCollisions:
             print(f"hel-warp: warning: cell detection: a parcel pair of weight {w_max:g} meets "
                   f"{self.pair_saturation:.2g} collisions while it crosses one collision cell of "
                   f"{1e3 * float(np.max(edges)):.3g} mm (w sigma h / V > {SATURATION_WARN:g}): the pair collides with "
-                  "itself and the momentum it exchanges saturates (too little, docs/FIGURES.md issue 12, eighth "
-                  "session); use a lower weight or coarser collision cells", file=sys.stderr)
+                  "itself and the momentum it exchanges saturates (too little: two counter-streaming beams lose "
+                  "17 % of their exchange at 0.62); use a lower weight or coarser collision cells", file=sys.stderr)
         cfg = self.config
         self.approaching = approaching = cfg.approaching_at(w_max)
         self._allocate(particles, n_cells, spin_form)

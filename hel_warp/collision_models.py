@@ -1,7 +1,7 @@
 """Collision strategies ``surrogate`` (HELSCM, reference paper sec. 4.3) and ``dem`` (CFD-DEM reference).
 
 Both follow the strategy interface of ``hel_warp.hel``: ``name``, ``accelerate(solver)`` (step 4 of
-ARCHITECTURE.md "The step", before the push), ``counts()`` (per-step collision counts, a dict), and
+docs/developer/architecture.md "The step", before the push), ``counts()`` (per-step collision counts, a dict), and
 for ``dem`` also ``advance(solver)``, which replaces the push.
 
 - :class:`SurrogateCollision` (``mode="pairwise"`` default, ``mode="paper"``): end-of-step detection of
@@ -60,7 +60,7 @@ WINDOW_REACH = 0.4
 times half the window) of about this many particle radii (r_max). The step's paths and events do not depend on it;
 the searches do: a search's ball has a radius of r_i + r_max + its path bound + the cut (4 mean reaches), so at
 dt = 1e-3 s on the colliding-streams rig, where the mean reach is ~7 radii, one window searched ~2,000 parcels per
-dirty parcel against tens in windows of 0.4 radii's reach (docs/FIGURES.md, issue 14, fifteenth session)."""
+dirty parcel against tens in windows of 0.4 radii's reach (``scripts/profile_swept_rounds.py``)."""
 WINDOW_ROUNDS = 30
 """``windows="auto"``: the step is cut into windows when the previous step needed at least this many rounds of
 events beyond one per window (chains of collisions: the rounds' searches are then the cost); with fewer, each
@@ -69,7 +69,7 @@ window's full search costs more than it saves (a dilute cooling box at 1e-3 s: 9
 WINDOWS_SERIAL = 1.3
 """``windows="auto"`` with the serial queue: ceil(WINDOWS_SERIAL (mean reach / r_max) sqrt(events per parcel of the
 last step)) windows. Measured fastest: a cooling box at 1e-3 s (0.18 events per parcel, reach 5 r) in 2-4, the rig
-after its pile (0.44, 8.4 r) in 8, in the pile (7.8, 5.6 r) in 16 (docs/FIGURES.md, fifteenth session)."""
+after its pile (0.44, 8.4 r) in 8, in the pile (7.8, 5.6 r) in 16."""
 SERIAL_GROWTH = 4.0
 """``windows="auto"`` with the serial queue: the first window's forecast of the step's events per parcel is the last
 step's times its growth over the step before, at most this factor (the colliding-streams rig's pile grows 3-4x per
@@ -94,7 +94,7 @@ class SurrogateCollision:
         contact normal of the moment of touch, and after the impulse each parcel flies with its new velocity
         for the rest of the step. Several collisions of one parcel within the step are resolved in time
         order (rounds of mutually earliest events, ``kernels/collide.py``). The collision frequency and the
-        impact geometry are then those of kinetic theory at any dt (PHYSICS-NOTES, "Collisions in a granular
+        impact geometry are then those of kinetic theory at any dt (docs/physics/references.md, "Collisions in a granular
         gas"). The in-step position changes are added after the push (:meth:`after_push`, or
         :meth:`correct_positions` when the caller moves the parcels itself), so nothing is left overlapping
         and nothing passes through.
@@ -122,7 +122,7 @@ class SurrogateCollision:
     ``-min(w_i, w_j) J`` and parcel j ``+min(w_i, w_j) J``, i.e. ``dv_i = -(min/w_i) J/m_i``,
     ``dv_j = +(min/w_j) J/m_j``: equal weights give the binary outcome, the parcel momentum
     ``w_i m_i v_i + w_j m_j v_j`` is conserved. (Per real particle this collides w times too rarely for
-    w > 1: the cell-based scheme of ARCHITECTURE.md is the fix.) Paper mode averages partner velocities
+    w > 1: the cell-based scheme of docs/developer/architecture.md is the fix.) Paper mode averages partner velocities
     with the partner weights as weights.
 
     ``periodic_box=(Lx, Ly, Lz)``: a triply periodic box [0, L) (collisions across the faces, minimum image);
@@ -216,7 +216,7 @@ class SurrogateCollision:
         within the step at the crossing, in time order with its collisions (it then collides on its reflected
         path); False leaves walls to the push's end-of-step reflection (the collisions of a parcel that bounces
         within a step are then found on its straight path through the wall, or one step late). Measured on the rig
-        at dt = 1e-3 s (docs/FIGURES.md, issue 10, seventh session): the collision rate -55 % of the CFD-DEM's
+        at dt = 1e-3 s (``hel-warp report``'s ``collision_rate_vs_dem``): the collision rate -55 % of the CFD-DEM's
         onsets without, +14 % with wall events; at 1e-4 s +3.3 % / +1.2 %; the run costs 1.1x."""
         self._walls = None
         self.kick_first = bool(kick_first)
@@ -229,8 +229,8 @@ class SurrogateCollision:
         self._kicked = False
         self._x_scratch = None
         self.particle_spin = bool(particle_spin)
-        """Pairwise mode, swept and cell detection: the collisions act at the contact point (docs/TEAM-NOTES.md "Spin in
-        particle-particle collisions"): the model is asked at the contact points' relative velocity (translation
+        """Pairwise mode, swept and cell detection: the collisions act at the contact point
+        (docs/physics/spin-and-mixtures.md): the model is asked at the contact points' relative velocity (translation
         and spin, ``Particles.omega``) and its impulse turns the spins. Off: spinless collisions (the training
         data's). A ``HelSolver`` whose ``HelConfig.particle_spin`` is set switches it on."""
         self.record_events = bool(collision_events)

@@ -10,7 +10,7 @@ equation of motion of an impact at approach speed ``v`` becomes the dimensionles
 
 whose restitution ``e = -x'(end)`` depends on ``c`` alone — not on speed, size, mass or modulus.
 The total force is clipped at zero (no attraction), so the classical closed forms, which
-assume the force may turn attractive, return a higher ``e`` (PHYSICS-NOTES, "damping pitfall";
+assume the force may turn attractive, return a higher ``e`` (docs/physics/references.md, "damping pitfall";
 Thornton, Cummins & Cleary 2013, Powder Technol. 233: 30-46). ``damping_coefficient`` therefore
 inverts ``e(c)`` of the clipped oscillator by root bracketing (Brent), once per distinct
 ``(e, model)``, cached (many distinct values at once: a table of e(c), interpolated). The raw

@@ -1,10 +1,10 @@
 """Two-way gas-parcel coupling on a uniform Cartesian grid (host wrappers of the HEL step).
 
-The order inside one HEL step (ARCHITECTURE.md, "The step"):
+The order inside one HEL step (docs/developer/architecture.md, "The step"):
 
 1. :func:`deposit_parcels`  - solid volume, -drag impulse (the gas momentum source), sum beta V,
    solids mass and momentum to the cells (``kernels/deposit.py``);
-2. gas step                 - engineer F's ``GasSolver`` (reads ``cell_eps_s``, ``cell_momentum_source``,
+2. gas step                 - ``hel_warp.gas.GasSolver`` (reads ``cell_eps_s``, ``cell_momentum_source``,
    ``cell_drag_coeff``), not here;
 3. :func:`interpolate_gas`  - gas velocity, modified-pressure gradient and eps_s at the parcels,
    with the same cloud-in-cell weights (``kernels/interp.py``);
@@ -14,7 +14,7 @@ The order inside one HEL step (ARCHITECTURE.md, "The step"):
 
 Stencil cache: given a ``kernels.interp.ParcelStencil`` (``stencil=``, as ``HelSolver`` does), the deposit
 computes each trilinear parcel's stencil once into it and the interpolation and the implicit exchange's passes
-read it (issue 14: ~12 stencil computations per parcel and step before); every kernel checks per parcel that the
+read it (computed in every kernel, a parcel's stencil costs ~12 evaluations per step); every kernel checks per parcel that the
 cached row is at the position it is given and computes it otherwise, so the results are those of the computed
 stencils, bit for bit. None: every stencil computed.
 

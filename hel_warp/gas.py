@@ -102,20 +102,19 @@ class GasConfig:
     per iteration) or 'jacobi' (the diagonal, one streaming pass per iteration). Every one stops at the same
     ``viscous_tolerance``. On the colliding-streams rig (off-diagonal sums 0.44 of the diagonal, median; 0.79 at
     most) the three components take 8 / 8 / 8 iterations with 'red_black', 6 / 6 / 6 with 'ic0', 15 / 16 / 16
-    with 'jacobi', and the viscous step costs 0.75 of its 'ic0' time (0.92 with 'jacobi'; docs/FIGURES.md, issue
-    14, fourteenth session). The 'warp' solver always takes Jacobi."""
+    with 'jacobi', and the viscous step costs 0.75 of its 'ic0' time (0.92 with 'jacobi'; ``scripts/bench_hel.py --profile-gas``). The 'warp' solver always takes Jacobi."""
     linear_solver: str = "auto"
     """'warp' (warp.optim.linear.cg, Jacobi preconditioner), 'native' (PCG with the preconditioners above,
     deterministic atomic reductions and one captured graph per iteration, kernels/gas.py; a GPU's chunks and coarsest
     level from ``device_tuning``), or 'auto': native on every device. On the CPU warp's tile-based dot products cost
     ~0.1 s each at 1e5 unknowns; on an H200 the rig's step took 116 ms with 'warp' (1,280 launches and copies, the
-    device busy 23 % of it) against 67 ms with 'native' (twenty-fifth session, before the GPU's shapes; 30 ms
-    after)."""
+    device busy 23 % of it) against 67 ms with 'native' (30 ms with the GPU's dot chunks and coarsest level;
+    ``scripts/profile_step.py rig --device cuda``)."""
     pcg_device_loop: bool = False
     """The native CG as one captured graph per system whose iterations loop on the device (``wp.capture_while``,
     the stop test in a kernel): one read-back per solve instead of one per iteration (~33 per rig step, each a sync
     on a GPU). The same bits as the host loop (tests/test_gas.py), NaN cases included, and as fast on the CPU
-    (21.8 against 22.1 ms of gas per rig step, twenty-fifth session). Off by default: it has not run on a GPU yet;
+    (21.8 against 22.1 ms of gas per rig step). Off by default: it has not run on a GPU yet;
     a driver without graph conditional nodes falls back to the host loop with a warning."""
     check_finite: bool = True
     """Raise HelWarpError when a NaN/inf appears (one int read back per step)."""
@@ -399,7 +398,7 @@ class GasSolver:
         self.last_iterations = {"pressure": 0, "viscous": [0, 0, 0]}
         """CG iterations of the last step (diagnostic)."""
 
-    # ------------------------------------------------------------------ helpers
+    # ------------------------------------------------------------------ private building blocks
     def _params(self, dt: float) -> K.FlowParams:
         """The ``FlowParams`` of a step of ``dt``: one struct per dt, kept (``_launch`` records launches by the
         identity of their arguments)."""
@@ -902,7 +901,7 @@ class GasSolver:
 
     # ------------------------------------------------------------------ the step
     def step(self, gas: GasField, dt: float) -> None:
-        """Advance ``gas`` by ``dt`` in place (ARCHITECTURE.md, step 2)."""
+        """Advance ``gas`` by ``dt`` in place (docs/developer/architecture.md, step 2)."""
         if not dt > 0.0:
             raise ConfigError(f"gas time step dt must be > 0 (got {dt!r})")
         self._prime(gas)

@@ -30,7 +30,7 @@ COARSEST_ROWS = 32
 """Stop coarsening below this many rows (the CPU's default)."""
 COARSEST_ROWS_CUDA = 4
 """The same on a GPU, where the coarsest level's symmetric Gauss-Seidel sweeps run on one thread (20 sweeps of the
-rig's 26 coarsest rows: 0.3 ms of every V-cycle on an H200, twenty-fifth session): a level more, of a few rows."""
+rig's 26 coarsest rows: 0.3 ms of every V-cycle on an H200): a level more, of a few rows."""
 RECORDED_CYCLES = 8
 """V-cycles and set-ups kept recorded (``wp.launch(record_cmd=True)``), one per (r, z, fine matrix) memory seen
 (set-up: per fine matrix memory); a replay skips the argument packing of ~40 launches (~25 us each on the CPU,

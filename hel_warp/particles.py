@@ -1,6 +1,6 @@
 """Particle state: a structure of Warp arrays, one entry per sphere (parcel).
 
-``Particles`` is the changing part of a DEM or HEL run (the *State* of CONVENTIONS rule 3);
+``Particles`` is the changing part of a DEM or HEL run (the *State* of docs/developer/conventions.md rule 3);
 the material, walls and solver settings are fixed elsewhere. Every array lives on one Warp
 device and stays there between steps; :meth:`Particles.to_numpy` copies a snapshot back
 (output intervals only).

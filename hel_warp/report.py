@@ -15,7 +15,7 @@ What the paper compares (sections 6 and 8; Figs. 11-23):
   17, 20): eps_s of the last snapshot, particle volume binned on the grid spacing in the x-y plane
   and divided by the bin volume (bin area x channel depth);
 - wall clock per model and time step (Figs. 12, 22), Warp kernel loading apart (``kernel_load_s``);
-- what tells collision models apart (issue 11), from the particles in each section over the snapshots of a
+- what tells collision models apart, from the particles in each section over the snapshots of a
   window (default: the second half of each run), weighted by parcel weight: the stream composition per sub-box,
   the **stream crossing** (the fraction of a stream found on the far side of the channel axis from its own arm:
   0 = both streams stay on their side, 1 = they pass through each other, 1/2 = mixed), the transverse spread
@@ -24,7 +24,7 @@ What the paper compares (sections 6 and 8; Figs. 11-23):
 - real collision rates (Fig. 23): binary collisions per simulated second, series ``collisions_collisions``
   (``dem``: contact onsets between spheres; ``surrogate``: resolved collisions, min(w_i, w_j) each), per stream
   pair (left-left, left-right, right-right); the pairs overlapping at step ends (``collisions_detected_pairs``,
-  the count before issue 11) stay as ``overlap_pair_rate``;
+  which depend on dt and on how long contacts last) stay as ``overlap_pair_rate``;
 - like with like: what still differs between ``dem`` and the HEL runs besides the particle collisions
   (:data:`MODEL_DIFFERENCES`, and each run's config differences), and the gap the walls alone make, measured
   as ``none`` against ``dem`` with the particle contacts off (``model`` ``dem-no-contacts``).
@@ -269,7 +269,7 @@ def paper_uncertainty(diameter: float) -> float | None:
 # ------------------------------------------------------------------------------------------ stream metrics
 DEFAULT_STREAM_WINDOW = (0.5, 1.0)
 """The stream metrics average the snapshots from this fraction of each run's simulated time to that one: the
-second half by default, when the streams have reached the sections and the release is under way (issue 11)."""
+second half by default, when the streams have reached the sections and the release is under way."""
 DEFAULT_COMPOSITION_SECTION = "S5"
 """The section whose stream composition the stacked-bar picture shows (the middle one of the ten)."""
 
@@ -478,7 +478,7 @@ during the sub-steps; ``surrogate`` resolved collisions, each min(w_i, w_j) real
 OVERLAP_PAIRS = "collisions_detected_pairs"
 """Series of parcel pairs overlapping at the end of a step (``counts()['detected_pairs']``); per stream pair
 ``collisions_detected_pairs_<a>_<b>``. Not a collision rate: it depends on dt and on how long contacts last."""
-COLLISION_SERIES = OVERLAP_PAIRS  # the name before issue 11
+COLLISION_SERIES = OVERLAP_PAIRS  # the series name that older run directories carry
 
 
 def _pair_rates(run: RunData, prefix: str, total_time: float) -> dict:
@@ -555,7 +555,7 @@ MODEL_DIFFERENCES = (
                  "wall keeps 0.60-0.70 of the tangential speed at 20-60 deg incidence (the sphere leaves rolling), "
                  "the HEL reflection 0.8 (Table 1) until the Coulomb cap; HEL walls at e_t = 5/7 on the mixture rig "
                  "(16 seeds, 1e-3 s) gave the 475 um class's transverse rms +14.9 +- 7.5 % of the dem's against "
-                 "+17.2 +- 7.0 % at 0.8 (docs/FIGURES.md, issue 13, eleventh session)"},
+                 "+17.2 +- 7.0 % at 0.8 (scripts/rig_ensemble.py)"},
     {"what": "parcel integration", "intended": False,
      "dem": "velocity-Verlet sub-steps at the DEM step with the fluid acceleration of the push held over the fluid "
             "step (same fluid impulse per step)",
@@ -659,7 +659,7 @@ def size_class_entries(run: RunData, ref: RunData | None, boxes, *, downstream_o
         prof = {str(b): profiles(view, b, downstream_only=downstream_only, from_time=from_time) for b in boxes}
         metrics = stream_metrics(view, boxes, window=window, min_samples=min_samples)
         entry = {"diameter": float(c["diameter"]), "label": f"{float(c['diameter']) * 1e6:.0f} um",
-                 "particles_per_parcel": c.get("particles_per_parcel"),  # None: a run from before issue 13 item 4
+                 "particles_per_parcel": c.get("particles_per_parcel"),  # None: a run directory written without per-species weights
                  "paper_experimental_uncertainty": paper_uncertainty(float(c["diameter"])),
                  "profiles": prof, "stream_metrics": metrics}
         if ref is not None and ref is not run and size_classes(ref) is not None:

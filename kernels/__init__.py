@@ -1,1 +1,1 @@
-"""Warp kernels and ``@wp.func``s only, one file per physics concern (see ARCHITECTURE.md)."""
+"""Warp kernels and ``@wp.func``s only, one file per physics concern (see docs/developer/architecture.md)."""

@@ -1,6 +1,6 @@
 """Stochastic parcel collisions per collision cell: Bird's no-time-counter (NTC) scheme with the surrogate outcome.
 
-What it computes (ARCHITECTURE.md "Collision detection", ``cell``; PHYSICS-NOTES "Stochastic collisions of
+What it computes (docs/developer/architecture.md "Collision detection", ``cell``; docs/physics/references.md "Stochastic collisions of
 parcels"): parcels of weight w (real particles per parcel) collide with the frequency of the REAL number density,
 whatever w. Per collision cell of volume V holding N parcels, in one step dt:
 
@@ -37,7 +37,7 @@ whatever w. Per collision cell of volume V holding N parcels, in one step dt:
   streams that have passed each other) does not collide, and a candidate whose kind finds no approaching pair
   where other kinds do collides itself, so that each kind of pair keeps its count. Pairs of single particles are not
   tested: at the cell's scale their approach reads the correlation their own collisions leave (a pair that
-  collided recedes from its cell-mates too), not the flow. ``approach_redraw`` = 0: the ninth session's rule instead
+  collided recedes from its cell-mates too), not the flow. ``approach_redraw`` = 0: the doubled-rate rule instead
   (every receding pair rejected, approaching ones at twice the rate against twice the majorant), which loses
   collisions in a dense gas where pairs that have collided recede;
 - optionally (``nearest`` > 0; Bird 2007's nearest-neighbour collisions, SPARTA's ``collide_modify nearcp``) the
@@ -45,7 +45,7 @@ whatever w. Per collision cell of volume V holding N parcels, in one step dt:
   partner excluded; the acceptance is the same (the partner's g is a random pair's where positions carry no
   information on velocities, so Enskog's frequency stays);
 - impact geometry of an accepted pair: the impact parameter uniform in b^2 on [0, (r_i + r_j)^2] and a uniform
-  azimuth about g (PHYSICS-NOTES "Impact parameter"): ``n = cos(chi) g_hat + sin(chi) (cos(phi) e1 + sin(phi)
+  azimuth about g (docs/physics/references.md "Impact parameter"): ``n = cos(chi) g_hat + sin(chi) (cos(phi) e1 + sin(phi)
   e2)``, sin^2(chi) = b^2 / (r_i + r_j)^2, so g.n = |g| cos(chi) > 0 (approaching), n from i to j;
 - outcome: the contact-form forest on the features clamped into its training domain, through the
   admissibility guard (``kernels/forest.py``), the impulse of one representative real pair J
@@ -72,16 +72,15 @@ whatever w. Per collision cell of volume V holding N parcels, in one step dt:
   gains exactly D (the kicks' cross term with the velocities, zero in expectation, is not left in the energy). So
   momentum is exact, the energy is that of the w_min real collisions and stays with the weight class (in a
   mixture of per-species weights: the species) that would have had it, and the class's velocity tensor gains
-  what the real collisions' would, in expectation. Until the twenty-ninth session the kick was isotropic and its
-  scale s the root of sum M (s v.delta + s^2 |delta|^2 / 2) = D that is ~2 |v.delta| / |delta|^2 when v.delta < 0
-  and D is small against the class's energy: the kick then mirrored the parcels' velocities about random planes
+  what the real collisions' would, in expectation. An isotropic kick of scale s, the root of sum M (s v.delta + s^2 |delta|^2 / 2) = D that is ~2 |v.delta| / |delta|^2 when v.delta < 0
+  and D is small against the class's energy, would mirror the parcels' velocities about random planes
   whatever D was, isotropizing the heavier class at every sub-step (a box with T_x = 3 T_y = 3 T_z, weights 1,8:
-  the 475 um class kept 0.45 of the anisotropy T_x / T_yz - 1 that weight 1 keeps, 1.1 of it now; on the
-  315 / 475 um rig at weights 1,8 its transverse spread came out 19 % short of the CFD-DEM's, +1.5 % now;
-  docs/FIGURES.md, issue 12, twenty-ninth session). A deterministic rescaling of the class's velocities about its
-  mean, tried first (issue 13), keeps the energy too but not the tensor: the smallest-kick root of the same
-  equation, which acts as one, left the box 1.6 times the anisotropy weight 1 keeps. Measured (docs/FIGURES.md, issue
-  13 item 4 and issue 12, twenty-ninth session): mixture cooling and each species' Theta within a few per cent of
+  the 475 um class would keep 0.45 of the anisotropy T_x / T_yz - 1 that weight 1 keeps, against 1.1 along the
+  impulses; on the 315 / 475 um rig at weights 1,8 its transverse spread would come out 19 % short of the
+  CFD-DEM's, against +1.5 %; ``tests/test_species_weights.py``). A deterministic rescaling of the class's
+  velocities about its mean keeps the energy too but not the tensor: the smallest-kick root of the same
+  equation, which acts as one, leaves the box 1.6 times the anisotropy weight 1 keeps. Measured
+  (``cases/homogeneous_cooling.py`` with ``--particles-per-parcel 1,8``): mixture cooling and each species' Theta within a few per cent of
   the weight-1 run, not within their statistical error (the 475 um species ends too hot whichever species is
   heavier, +9 % at weights 1,8 with the approach filter and +6 % without: mostly a light parcel meeting the same
   few heavy parcels of its cell again and again, where its real particle would meet W times as many distinct
@@ -667,7 +666,7 @@ def cell_prepare(
         # prod (1 - |r_a| / L_a) ~ 1 - (3/8) d sum 1 / L_a (<|r_a|> = 3 d / 8 over the ball). At weight 1 (16 parcels
         # per cell), eps_s = 0.05, the homogeneous gas collides 0.998-1.006 times Enskog's frequency with k,
         # 1.003-1.011 with k = 1, 0.981-0.990 with neither; with 4 parcels per cell it over-counts, +2 % at weight
-        # 1 and +5 % at weight 64 (FIGURES, issue 12, twenty-first and twenty-second sessions)
+        # 1 and +5 % at weight 64 (cases/homogeneous_cooling.py)
         d_max = 2.0 * r_max
         kept = 1.0 - 0.375 * d_max * (1.0 / args.cell_size[0] + 1.0 / args.cell_size[1] + 1.0 / args.cell_size[2])
         pairs += (1.0 - compressibility(solids / volume, args.eps_cap)) * wp.max(kept, 0.0) * float(count)
@@ -864,8 +863,8 @@ def cell_select(
                         # a parcel that met this weighted partner: its next real collision is with another
                         # particle of the cloud, not the receding one, which approaches as a random particle of the
                         # cloud does, one time in two (always eligible, the redraw gave met pairs twice their NTC
-                        # rate: a single particle met the same weight-8 parcel again 2.2x as often as plain NTC's,
-                        # twenty-ninth session; a weight-1 pair that collided stays filtered: it recedes)
+                        # rate: a single particle met the same weight-8 parcel again 2.2x as often as plain NTC's;
+                        # a weight-1 pair that collided stays filtered: it recedes)
                         eligible = wp.randf(state) < 0.5
                     else:
                         eligible = wp.dot(dx, g) > 0.0
@@ -1177,9 +1176,9 @@ def restore_spin(args: CellArgs, p: int, xi: wp.vec3):
     scaled by s so that its own energy I_w s^2 |k|^2 / 2 is D = trace T, then omega' = alpha (omega + s k) with
     alpha^2 = (E + D) / (E + D + R), E = I_w |omega|^2 / 2 and R = I_w s omega.k (zero in expectation): exactly D
     more rotational energy, the spin changed by about the deficit's own spread. No partner needed: the collisions'
-    moment impulses do not keep the spins' sum either. The deficit zeroed. (Until the twenty-ninth session: omega
-    + s xi with the root s of I_w (s omega.xi + s^2 |xi|^2 / 2) = D, which mirrored omega about a random plane
-    whenever omega.xi < 0 and D was small, as the translational restoration did.)"""
+    moment impulses do not keep the spins' sum either. The deficit zeroed. (Not omega + s xi with the root s of
+    I_w (s omega.xi + s^2 |xi|^2 / 2) = D: that mirrors omega about a random plane whenever omega.xi < 0 and D is
+    small.)"""
     r = args.particle_radius[p]
     inertia = wp.float64(args.particle_weight[p] * 0.4 * sphere_mass(2.0 * r, args.particle_density[p]) * r * r)
     tensor = args.particle_spin_deficit[p]

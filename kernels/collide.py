@@ -1,11 +1,11 @@
 """HELSCM collision kernels: swept (continuous) pair detection with time-ordered resolution, surrogate impulses per
 pair, the paper's cluster-averaged mode, per-stream counts.
 
-What it computes (reference paper sec. 4.3; ARCHITECTURE.md "Collision detection"):
+What it computes (reference paper sec. 4.3; docs/developer/architecture.md "Collision detection"):
 
 - ``pairwise`` (contact form of surrogate/features.py), swept detection: over the step every parcel flies on a
   straight line; a pair collides at the first time its centres come within r_i + r_j while approaching, with
-  the contact normal of that moment (PHYSICS-NOTES "Swept (continuous) detection"), and each parcel then
+  the contact normal of that moment (docs/physics/references.md "Swept (continuous) detection"), and each parcel then
   follows its new velocity for the rest of the step. Several collisions per parcel are resolved in time order,
   event-driven within the step (the section "swept detection" below). The paper's end-of-step overlap test
   ``|x_i - x_j| < r_i + r_j`` is the same machinery with paths of zero length (every event at t = 0, ties by
@@ -301,7 +301,7 @@ def launch_paper_update(args: PaperArgs, forest: Forest, features, particle_v_ou
 
 # ------------------------------------------------------------------------------------------ swept detection
 #
-# Swept (continuous) detection, event-driven within the step (PHYSICS-NOTES "Swept (continuous) detection";
+# Swept (continuous) detection, event-driven within the step (docs/physics/references.md "Swept (continuous) detection";
 # Alder & Wainwright 1959; Rapaport, *The Art of Molecular Dynamics Simulation*, ch. 14).
 # Over the step [0, dt] every parcel moves on a straight line. Its position relative to its hash point
 # m = x0 + v0 dt/2 (the midpoint of its initial path, wrapped into the periodic box if any) is
@@ -355,7 +355,7 @@ class SweptArgs:
     """1: a ``contact_spin`` model (8 features, 3 targets: kernels/forest.py ``write_contact_spin_features_in_domain``,
     ``contact_spin_impulse``)."""
     spin: wp.int32
-    """1: the particle-particle collisions act at the contact point (docs/TEAM-NOTES.md "Spin in particle-particle
+    """1: the particle-particle collisions act at the contact point (docs/physics/spin-and-mixtures.md "Spin in particle-particle
     collisions"): the model is asked at the contact points' relative velocity and the impulse turns the spins."""
     n_streams: wp.int32
     dt: wp.float32
@@ -538,7 +538,7 @@ def first_touch(args: SweptArgs, particle_v: wp.array(dtype=wp.vec3), a: int, b:
     """Earliest time in [t_lo, t_end] at which the pair (a < b) touches while approaching, -1 if none.
 
     |s0 + g tau| = R with s0 = s(t_lo), g = v_b - v_a, R = r_a + r_b: tau = c / (-s0.g + sqrt((s0.g)^2 - |g|^2 c)),
-    c = |s0|^2 - R^2 (the root of PHYSICS-NOTES in its cancellation-free form); an overlapping approaching pair
+    c = |s0|^2 - R^2 (the root of docs/physics/references.md in its cancellation-free form); an overlapping approaching pair
     (c <= 0) collides at once, tau = 0."""
     if args.dt <= 0.0:
         # overlap detection (paths of zero length, every event at t = 0): no immediate repeat of a pair
@@ -1162,7 +1162,7 @@ def follow_new_path(args: SweptArgs, i: int, partner: int, t: float, v_old: wp.v
 @wp.func
 def end_of_contact_normal(args: SweptArgs, i: int, j: int, t: float, n: wp.vec3, g_after: wp.vec3, mass_i: float,
                           mass_j: float):
-    """A grazing soft contact ends with the centre line turned (the spheres slide during the contact; PHYSICS-NOTES
+    """A grazing soft contact ends with the centre line turned (the spheres slide during the contact; docs/physics/references.md
     "Soft spheres at oblique incidence"): an outcome still closing along the first-touch normal n (g'.n > 0, which
     the DEM shows at grazing incidence and the guard admits up to its slack) leaves the pair touching along the
     nearest normal n' perpendicular to g' instead, the pair turned about its centre of mass (momentum and energy

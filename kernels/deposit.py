@@ -17,7 +17,7 @@ and index the cell arrays flat (``flat_cells``; the launch wrappers take the (nx
 Accumulation is in float64 with atomics, and this module compiles with Warp's deterministic
 atomics (``DeterministicMode.RUN_TO_RUN``, Warp >= 1.19): the additions into a cell are done in
 an order that does not depend on thread scheduling, so a rerun on the same device is
-bit-identical (CONVENTIONS rule 10; tested by running twice).
+bit-identical (docs/developer/conventions.md rule 10; tested by running twice).
 """
 
 from __future__ import annotations
@@ -238,7 +238,7 @@ def to_float32_kernel(
 # impulses go to the walls in the gas step, as before).
 #
 # The correction reads A_c through ``cell_exchange_divisor`` (A_c, or +inf for a cell it leaves out) so that its
-# corner loop has no branch and no fluid-mask read (~2x faster on the CPU, issue 14): an excluded cell adds
+# corner loop has no branch and no fluid-mask read (~2x faster on the CPU): an excluded cell adds
 # (w / inf) delta_c = +-0, which leaves the sum as it is (it starts at +0 and a sum is -0 only when both terms
 # are), the same bits as skipping it while delta_c is finite.
 

@@ -310,7 +310,7 @@ def eval_forest_perfect_rows_kernel(forest: Forest, features: wp.array(dtype=wp.
     threads; thread ``row * n_targets + t``): the GPU's form. ``eval_forest_perfect_kernel`` gives a thread
     BLOCK_ROWS rows and every tree, the CPU's best form, which on a GPU leaves ~30 threads for a batch of 2,000 rows
     (measured on an H200: ~1.4 ms per batch whatever its size, 19 of the cooling box's 23 ms of device time per
-    step; this kernel ~67 us per batch there, twenty-fifth session). Here TREE_GROUP trees are walked side by side (independent load chains; a tree stops at its own depth),
+    step; this kernel ~67 us per batch there). Here TREE_GROUP trees are walked side by side (independent load chains; a tree stops at its own depth),
     their leaves then added one by one in tree order: base + tree 0 + tree 1 + ... in float32 as the block kernel
     adds them, so both give the same bits. ``row_count`` as there."""
     tid = wp.tid()
@@ -488,7 +488,7 @@ def admissible_impulse(cos_angle: float, impulse_n: float, impulse_t: float, fri
     ``contact_impulse``) corrected into the admissible set; returns ``(a, b, flags)``.
 
     With ``c = cos_angle`` (the pair's own, not clamped), ``s = sqrt(1 - c^2)``, the post-collision
-    relative velocity is ``g' = |g| ((c - a) n + (s - b) t_hat)`` (PHYSICS-NOTES "Binary collision
+    relative velocity is ``g' = |g| ((c - a) n + (s - b) t_hat)`` (docs/physics/references.md "Binary collision
     outcome"), so in ``u = g'/|g|``:
 
     - flag 1 (GUARD_SEPARATION): separating along n, ``u_n = c - a <= separation_slack``: ``a`` raised to
@@ -546,7 +546,7 @@ def admissible_impulse(cos_angle: float, impulse_n: float, impulse_t: float, fri
 
 SPIN_ENERGY_FACTOR = 3.5
 """``m* (1/m1 + 1/m2 + r1^2/I1 + r2^2/I2)`` of two solid spheres (I = 2/5 m r^2): the inverse effective mass of the
-contact point's tangential motion in units of 1/m*, whatever the sizes and densities (docs/TEAM-NOTES.md "Spin in
+contact point's tangential motion in units of 1/m*, whatever the sizes and densities (docs/physics/spin-and-mixtures.md "Spin in
 particle-particle collisions")."""
 
 

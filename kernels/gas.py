@@ -126,7 +126,7 @@ def make_stencil(diag, coef, neighbour) -> Stencil:
     return A
 
 
-# ----------------------------------------------------------------- index helpers
+# ----------------------------------------------------------------- index functions
 
 
 @wp.func
@@ -1625,8 +1625,8 @@ before its single atomic add on the CPU (the CPU runs the threads one after anot
 than the products)."""
 DOT_CHUNK_CUDA = 16
 """The same on a GPU, where a thread's rows run one after another while the other threads run side by side: at 512
-the rig's 7,312 pressure rows took 15 threads, and a pass with the matrix product ~0.7 ms on an H200 (twenty-fifth
-session); at 16, 457 threads (with COARSEST_ROWS_CUDA, one captured PCG iteration went from 0.86 to 0.21 ms and
+the rig's 7,312 pressure rows took 15 threads, and a pass with the matrix product ~0.7 ms on an H200;
+at 16, 457 threads (with COARSEST_ROWS_CUDA, one captured PCG iteration went from 0.86 to 0.21 ms and
 the rig's step at weight 64 from 67 to 30 ms). The chunks and partial sums fix the order of the additions, so a run repeats to the
 bit on one device (the atomics are deterministic) and differs from the CPU's in rounding."""
 

@@ -24,7 +24,7 @@ Normal force, model ``MODEL_LINEAR`` (Cundall & Strack 1979, Geotechnique 29: 47
 The total normal force is clipped at zero (no attraction). The dimensionless damping ``c``
 is computed on the host (``hel_warp.contact_law.damping_coefficient``) so that the clipped
 contact returns exactly the requested restitution ``e`` (c depends on e alone — see
-PHYSICS-NOTES "damping pitfall"); the raw Tsuji and LIGGGHTS forms are host options too.
+docs/physics/references.md "damping pitfall"); the raw Tsuji and LIGGGHTS forms are host options too.
 Thornton, Cummins & Cleary (2013), Powder Technol. 233: 30-46, discuss why the clipped
 contact needs its own calibration.
 

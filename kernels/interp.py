@@ -21,7 +21,7 @@ kernels of ``kernels/push.py`` and ``kernels/deposit.py`` take as one argument; 
 ``ParcelStencil`` caches each parcel's trilinear stencil (eight flat cell indices and weights) for positions
 that stay fixed over several parcel-grid passes (the step's deposit and interpolation, the implicit exchange's
 eight passes): a pass that reads the cache instead of recomputing ``cic_corner`` per corner costs ~20-30 ns per
-parcel instead of ~100 on the CPU (issue 14). Cached and computed passes add the same terms in the same order,
+parcel instead of ~100 on the CPU. Cached and computed passes add the same terms in the same order,
 so their results are bit for bit the same. A kernel that takes a ``ParcelStencil`` has two loops, the cached
 one over eight constant corners (unrolled; one loop over ``8 K^3`` entries that picks a row's entry or computes
 it per corner costs twice as much) and the computed one, and indexes the cell fields flat, (i ny + j) nz + k
@@ -144,7 +144,7 @@ def spread_half_width(grid: CellGrid, weight: float):
     in a 1 mm cell would otherwise take its whole drag from the gas of 8 cells, ~1.8 times its drag impulse per step
     on the rig at 1e-3 s). The earlier rule K = round(w^(1/3)) matched the tent's support (2 K h)^3 to 8 w cells,
     twice the cloud's variance at large w; on the rig at w = 64 it crossed 0.01-0.04 more and spread 2-5 points less
-    than this tent on the same seeds (FIGURES, issue 12, twenty-third session)."""
+    than this tent on the same seeds (``scripts/rig_ensemble.py``)."""
     if grid.spread == 0 or weight < 3.9528:  # K < 1.5 below w = 2.5^1.5 (weight 1 skips the pow)
         return 1
     return int(wp.round(wp.sqrt(0.5 * wp.pow(weight, 2.0 / 3.0) + 1.0)))
@@ -369,7 +369,7 @@ def stencil_holds(stencil: ParcelStencil, tid: int, x: wp.vec3, k: int):
 def store_stencil(grid: CellGrid, stencil: ParcelStencil, tid: int, x: wp.vec3):
     """Compute x's trilinear stencil into row ``tid`` of the cache: corner n is ``cic_corner``'s (the same cell and
     the same product (w_x w_y) w_z, bit for bit), with the per-axis indices and the four w_x w_y products formed
-    once instead of per corner (~30 instead of ~42 ns per parcel on the CPU, issue 14)."""
+    once instead of per corner (~30 instead of ~42 ns per parcel on the CPU)."""
     base, frac = cic_stencil(grid, x)
     one = wp.float64(1.0)
     ny = grid.shape[1]

@@ -1,4 +1,4 @@
-"""Recorded kernel launches, replayed (issue 14: the parcel phase's per-call cost).
+"""Recorded kernel launches, replayed (the parcel phase's per-call cost: many small launches per step).
 
 ``wp.launch`` packs every argument on every call: ~20-30 us per launch with the parcel kernels' structs on the
 CPU, and the parcel phase makes ~20 launches per HEL step, ~50 ns per parcel at 1e4 parcels. A launch recorded

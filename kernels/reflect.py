@@ -20,7 +20,7 @@ centre has crossed the wall during the push (signed distance ``d = sdf_union(x) 
 With ``WallParams.spin`` the parcel is a rough solid sphere that carries its spin (``reflect_spin``): the wall
 acts at its contact point, so a sphere already rolling along the wall keeps its tangential speed, where the
 spinless law takes a factor e_t from it at every impact (the dem reference's spheres roll: on the rig's arms the
-spinless parcels fell 8 % behind them; docs/FIGURES.md, twelfth session).
+spinless parcels fell 8 % behind them; ``python scripts/collision_events.py``).
 
 A point near a corner may still lie outside after one reflection (the second wall); the
 reflection repeats (``max_iterations``) and, should it still be outside, the parcel is moved

@@ -7,7 +7,7 @@
   is not expected to stay flat).
 - Gas on the rig's own grid (``cases/colliding_streams.py``, default size: 160 x 64 x 10 cells, 34,768 of
   them fluid): ``GasSolver.step`` on the rig's flow after its gas warm-up (``--rig-repeats`` steps, the
-  eps_s left by the warm-up); median per box cell and per fluid cell (the issue-14 target: <= 1 us per
+  eps_s left by the warm-up); median per box cell and per fluid cell (the target: <= 1 us per
   fluid cell), wall-clock and process CPU time (Warp's CPU kernels run on one thread). ``--no-rig`` skips it.
 - Parcels: the parcel phase as ``HelSolver.step`` runs it, ``HelSolver.deposit`` + ``interpolate`` +
   ``push`` (with ``HelConfig.coupling = "implicit"``, the default, the push is the implicit drag
@@ -18,7 +18,7 @@
 
   * ``ppc``: the grid grows with the parcel count at a constant ``--parcels-per-cell`` (default 8;
     near-cubic shapes chosen so that the actual parcels per cell stays within a few % of it) -- the
-    way a real case scales, and the figure for the issue-4 target (flat within 1.5x per parcel);
+    way a real case scales, and the figure for the scaling target (flat within 1.5x per parcel);
   * ``fixed``: one ``--fixed-side``^3 grid (default 32^3) for every count, as the benchmark used to
     run: at small counts the fixed cell work dominates the per-parcel cost;
   * ``ppc rand`` (``--random-order``, off by default): the ``ppc`` grids with the parcel slots left in
@@ -161,7 +161,7 @@ def profile_rig_gas(rig_steps: int, device, top: int = 20) -> list[dict]:
     (CPU launches are synchronous, so a launch's CPU time is its kernel plus the host call; recorded launches
     are timed at their replay, ``Launch.launch``; a captured PCG iteration, ``GasSolver._pcg_iteration_graph``, at
     its ``wp.capture_launch``, as one row per system: its kernels run inside the graph). Sorted, largest
-    first; the diagnostic behind the issue-14 notes on where the gas step's time goes."""
+    first: where the gas step's time goes."""
     import collections
 
     import warp as wp

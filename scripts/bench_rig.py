@@ -1,6 +1,6 @@
 """Wall clock of the collision models on the colliding-streams rig, side by side in one process.
 
-The issue-5 ratios: HELSCM / HEL (``surrogate`` over ``ktgf``, target <= 1.2) and DEM / HELSCM (``dem`` over
+The ratios that judge HELSCM's cost: HELSCM / HEL (``surrogate`` over ``ktgf``, target <= 1.2) and DEM / HELSCM (``dem`` over
 ``surrogate``, the paper claims two to three orders of magnitude) for the same simulated time, at one particle
 size and time step. Every model runs the same case (``cases/colliding_streams.py``: same grid, gas warm-up,
 injection, seed) from the release to ``--end-time`` in this one process, round robin (step n of every model, then
@@ -93,7 +93,7 @@ def phases(solver) -> dict:
 def reserve_deposit_records(names, device) -> None:
     """On CUDA, before any timed step: the tent deposits' deterministic-atomics records sized for the heaviest
     parcel of every run (``kernels.deposit.reserve_records``, which rebuilds that module when the bound grows), and
-    the module built, so that no step compiles it. On an H200 (twenty-fifth session) the weight-8 run took 10.5 s
+    the module built, so that no step compiles it. On an H200 without this the weight-8 run took 10.5 s
     for ten steps of median 54 ms: most likely that rebuild (~7 s of NVRTC here) inside its first step."""
     import warp as wp
 

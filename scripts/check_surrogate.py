@@ -1,4 +1,4 @@
-"""A contact-form surrogate against the verified DEM over incidence angle and speed (issue 10's figure).
+"""A contact-form surrogate against the verified DEM over incidence angle and speed (the model's acceptance figure).
 
     python scripts/check_surrogate.py --model MODEL_DIR [--json] [--diameter D] [--size-ratio R ...] [--spin]
 

@@ -7,8 +7,8 @@ surrogate resolves), several runs side by side.
 Per run and group (all; left-left, left-right, right-right; for a mixture the cross-stream pairs by size class):
 the count, the share that repeats a pair already met in the run (and within 1 ms of its last meeting), the median
 normal approach speed and the shares below 0.05 / 0.2 / 0.5 m/s. Lasting contacts that chatter (many slow onsets of
-the same pairs) show as a high repeat share with slow speeds; the twelfth session found the rig's cross-stream
-onsets of the CFD-DEM to be real impacts (docs/FIGURES.md, "Issues 11 and 13 — twelfth session").
+the same pairs) show as a high repeat share with slow speeds; the rig's cross-stream onsets of the CFD-DEM read
+as real impacts (few repeats, approach speeds of the streams' relative motion).
 """
 
 from __future__ import annotations

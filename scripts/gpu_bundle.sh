@@ -13,8 +13,7 @@
 # *.whl found there instead.
 #
 # Then, on the device, every part but the last goes in a call of its own, and the last call runs the work, each
-# within the machine's 30 s warm window of the one before; the script prints the calls (carry .gpu/pK). The
-# twenty-fourth session did this by hand (docs/FIGURES.md, issue 12). Exit 2 on bad arguments or a failed
+# within the machine's 30 s warm window of the one before; the script prints the calls (carry .gpu/pK). Exit 2 on bad arguments or a failed
 # download.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -89,7 +88,7 @@ case "$(cd "$out" && pwd)/" in
   *) echo "gpu_bundle: note: $out is outside the repository; the device tool carries only paths inside it" \
        "(use --out .gpu, listed in .git/info/exclude)" >&2 ;;
 esac
-echo "Before the lease, compile the CUDA kernels here (a bare GPU machine spends ~120 s per process on them):"
+echo "Before the GPU run, compile the CUDA kernels here (a bare GPU machine spends ~120 s per process on them):"
 echo "  python scripts/gpu_kernel_cache.py --jobs 2 --out .gpuc/cache   (~3 min; list /.gpuc/ in .git/info/exclude)"
 echo "On the device (each call within 30 s of the one before; 'carry' lists what it takes):"
 for i in $(seq 1 $((k - 1))); do

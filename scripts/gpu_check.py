@@ -72,7 +72,7 @@ def kernel_report(device: str) -> dict:
                  "hel_warp.cell_collisions", "hel_warp.cfd_dem", "hel_warp.hel", "hel_warp.impact"):
         try:
             importlib.import_module(name)
-        except ModuleNotFoundError as exc:  # a module another issue renamed: its kernels still load at first use
+        except ModuleNotFoundError as exc:  # a module renamed or moved: its kernels still load at first use
             if exc.name != name:
                 raise
     doc = {"device": str(dev), "kernel_load_s": load_kernels(dev), "workers": wp.config.load_module_max_workers,

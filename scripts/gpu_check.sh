@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The first GPU run as a confirmation (issue 15): device report, kernel compilation, the device-agnostic tests on the
+# A GPU run as a confirmation: device report, kernel compilation, the device-agnostic tests on the
 # device, the DEM / forest / HEL benches and a short rig run for ktgf, surrogate (swept detection, kick first, wall
 # events), dem and surrogate at 8 particles per parcel (cell detection), every figure as JSON.
 #
@@ -93,7 +93,7 @@ for collisions in ktgf surrogate dem; do
     --out "$out/rig_$collisions"
   run "rig_${collisions}_json" "$py" scripts/gpu_check.py rig "$out/rig_$collisions" --out "$out/rig_$collisions.json"
 done
-# the cell detection (issue 12): parcels of 8 particles collide per cell, its rounds with the batched forest
+# the cell detection: parcels of 8 particles collide per cell, its rounds with the batched forest
 run rig_surrogate_cell "$py" cases/colliding_streams.py --diameter 315e-6 --dt 1e-3 --collisions surrogate \
   --particles-per-parcel 8 --model "$model" --device "$device" "${rig_args[@]}" --no-vtk --no-gas-snapshots \
   --no-progress --overwrite --out "$out/rig_surrogate_cell"

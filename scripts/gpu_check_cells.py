@@ -9,7 +9,7 @@
 - ``determinism``: the weight-8 box run twice with one seed — the Theta(t) series, the collision count and every
   strategy counter compared for equality;
 - ``box``: the particle-dominated box, wall clock per simulated second of the DEM and of HELSCM at each weight and
-  their ratio (the issue's target is >= 100);
+  their ratio (target >= 100);
 - ``rig``: ``scripts/bench_rig.py``'s DEM / HELSCM ratios at weights 1, 8, 64;
 - ``profile``: ``scripts/profile_step.py``'s box (per weight) and rig step: wall clock, device busy time, read-backs.
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The cell detection (issue 12) on a GPU, as one time-capped run that keeps going past a failed step, so that a single
-# short lease names every failure: device report, CUDA kernel compilation, the device-agnostic cell tests on the
+# The cell detection on a GPU, as one time-capped run that keeps going past a failed step, so that a single
+# short GPU run names every failure: device report, CUDA kernel compilation, the device-agnostic cell tests on the
 # device, the cooling box (frequency / Enskog, cooling / Haff at weights 1, 8, 64; a second run of weight 8 with the
 # same seed for determinism), the particle-dominated box (DEM / HELSCM at weights 1, 8, 64, 102,400 real particles)
 # the rig bench (DEM / HELSCM at weights 1, 8, 64) and the profiles of a box and a rig step (scripts/profile_step.py);
@@ -17,7 +17,7 @@
 # is left, none starts after it); PYTHON.
 #
 # On a lent GPU machine without the project's packages (warp-lang, xgboost, zarr), carry them as a prepared
-# site-packages folder (docs/FIGURES.md, issue 12, twenty-fourth session, says how it was done) and put it on
+# site-packages folder (scripts/gpu_bundle.sh builds it; docs/gpu.md) and put it on
 # PYTHONPATH; PYTHON=python3 there. Carry a kernel cache compiled here (scripts/gpu_kernel_cache.py) and set
 # WARP_CACHE_PATH to it, or the kernels step compiles every CUDA module there (~120 s).
 set -uo pipefail
@@ -68,7 +68,7 @@ models=${HEL_WARP_TINY_MODELS:-$out/models}
   --out "$out/models.json"
 model=${MODEL:-$models/model_contact}
 cool_model=${COOL_MODEL:-$model}
-# -v: each test's name is in tests.log before it runs (a lease's run ended in a segmentation fault that named none)
+# -v: each test's name is in tests.log before it runs (a segmentation fault otherwise leaves no test named)
 step tests - env HEL_WARP_DEVICE="$device" HEL_WARP_TINY_MODELS="$models" "$py" -m pytest -v -p no:cacheprovider \
   "${tests[@]}" --basetemp "$out/pytest" --junitxml "$out/tests.xml"
 [ -f "$out/tests.xml" ] && step tests_json - "$py" scripts/gpu_check.py junit "$out/tests.xml" --out "$out/tests.json"

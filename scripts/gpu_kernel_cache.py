@@ -1,10 +1,10 @@
 """Compile the engine's Warp modules for a GPU here, without one, into a kernel cache to carry to it.
 
-A lent GPU machine starts bare: every process there compiled every CUDA module first (~120 s on an H200, twenty-fourth
-and twenty-fifth sessions), and the first lease of the twenty-fifth session lost its runs to it. Warp's NVRTC is in
+A lent GPU machine starts bare: every process there compiles every CUDA module first (~120 s on an H200), which can
+take a short time-limited run's whole budget. Warp's NVRTC is in
 its own library, so the modules compile here for the GPU's architecture (``wp.compile_aot_module``) into Warp's
 cache layout (``OUT/<warp version>/wp_<module>_<hash>/...<arch>.cubin``). Carry OUT to the GPU and point Warp at it
-there with ``WARP_CACHE_PATH=OUT``: the twenty-fifth session's H200 then loaded every module in 7.6 s.
+there with ``WARP_CACHE_PATH=OUT``: an H200 then loads every module in 7.6 s.
 
 Which form the GPU loads: Warp takes cubins when the driver's CUDA is older than Warp's NVRTC (the H200's driver
 580 is CUDA 13.0, Warp 1.19's NVRTC 13.4: sm_90 cubins, this script's default) and PTX otherwise (``--ptx``). A

@@ -5,7 +5,7 @@
 Each entry captures one piece of ``DEMSolver._rebuild`` (on the tests' stirred column) inside a ``wp.capture_if`` body
 (``if_*``) or plainly (``plain_*``), instantiates and launches the graph: "ok" or the error's first line. Last,
 ``simulate_graph``: a solver with ``cuda_graph_steps`` > 0 (after a refusal it falls back to eager steps, and
-``use_graph`` is then False). Seen on an H200 with Warp 1.19 (docs/FIGURES.md, issue 12, twenty-fourth session): only
+``use_graph`` is then False). Seen on an H200 with Warp 1.19: only
 ``if_hashgrid_build`` and ``if_whole_rebuild`` fail ("Graph creation error: invalid argument").
 """
 import json

@@ -1,6 +1,6 @@
 """Where one HEL step's time goes on a device: wall clock against the device's own activity, per kernel.
 
-Builds one of the two cases the issue-12 speed figures use, runs a few untimed steps (module loads, first captures,
+Builds one of the two cases the weighted parcels' speed figures use, runs a few untimed steps (module loads, first captures,
 the release on the rig), then ``--steps`` steps under Warp's activity timing (``wp.timing_begin``: CUDA events
 around every kernel launch, graph launch, memcpy and memset, on CUDA only) and prints per run:
 
@@ -12,7 +12,7 @@ around every kernel launch, graph launch, memcpy and memset, on CUDA only) and p
 
 Cases:
 
-- ``box``: the particle-dominated cooling box of the issue's ratio (``cases/homogeneous_cooling.py``, eps_s 0.01,
+- ``box``: the particle-dominated cooling box of the DEM / HELSCM ratio (``cases/homogeneous_cooling.py``, eps_s 0.01,
   Theta0 = 1 m^2/s^2, ``--particles`` real particles), HELSCM with cell detection at each ``--weights``;
 - ``rig``: the colliding-streams rig (``scripts/bench_rig.py``'s ``build_model``) with each ``--models`` label
   (``ktgf``, ``surrogate_w64``, ...), each ``--linear-solver`` of the gas (``GasConfig.linear_solver``) and each

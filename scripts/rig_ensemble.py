@@ -5,7 +5,7 @@ per-section crossing and transverse rms rest on W times fewer samples (``scripts
 measures that noise). Runs of the same case with different ``--seed`` are independent samples of the same flow:
 pooling their snapshots (each snapshot time, the parcels of every run, weights divided by the number of runs so
 the real mass is one run's) gives the metrics of W x more parcels at no change of physics. The reference (``dem``
-runs, one or several seeds) is pooled the same way (issue 12, docs/FIGURES.md):
+runs, one or several seeds) is pooled the same way:
 
     python scripts/rig_ensemble.py --reference runs/dem_s0 runs/dem_s1 --runs runs/w8_s* --label cell_w8
 

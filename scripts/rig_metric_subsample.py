@@ -3,7 +3,7 @@
 A run of W particles per parcel carries the real particles of a weight-1 run in 1/W of the parcels; the report's
 per-section crossing and transverse rms then rest on W times fewer samples. Thinning a weight-1 run (every k-th
 ``particle_id``, weights times k) gives the sampling noise of the metrics at that parcel count without any change of
-physics (issue 12, docs/FIGURES.md):
+physics:
 
     python scripts/rig_metric_subsample.py --reference runs/i10/dem_1e-3 runs/i10/dem_1e-3 runs/i10/none_1e-3 \\
         --keep 1 8 64

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The rig at one particle size and several steps for the collision models side by side, then one report per step
-# (issue 10 / 11 tables in docs/FIGURES.md):
+# (the tables of docs/validation.md's rig check, at full size):
 #   MODEL=/path/to/contact_model scripts/rig_models.sh [OUT_DIR] [DT ...]
 # defaults: OUT_DIR runs/rig_models, steps 1e-3 1e-4 7.14e-5; DIAMETER (315e-6) and END_TIME (0.02) from the
 # environment, RIG_ARGS (extra options of every run, e.g. "--force" for a mixture model at one of its sizes). Each run

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
-# The weighted rig of issue 12 in one command: seed ensembles of the cell detection at several weights beside weight 1
+# The weighted rig in one command: seed ensembles of the cell detection at several weights beside weight 1
 # (the swept detection, the default there, and the cell detection), pooled by scripts/rig_ensemble.py against the
 # CFD-DEM seeds and, per weight, against the weight-1 cell ensemble (the same collision scheme with every particle its
-# own parcel: what the weights must reproduce). docs/FIGURES.md, issue 12, nineteenth session.
+# own parcel: what the weights must reproduce).
 #
 #   MODEL=/path/to/contact_model scripts/rig_weights.sh [OUT_DIR]
 #

@@ -13,7 +13,7 @@ rows run in the centre-of-mass frame):
 - energy: ``|g'|/|g| <= 1`` on every row (largest ``|g'|^2/|g|^2`` 1 + 5e-7: float32);
 - Coulomb, in the frame of the FIRST-TOUCH normal: with mu = 0.3 the largest ``b/(mu a)`` is 0.9992
   (sliding sits at the bound), so ``friction_bound`` = mu; frictionless, ``b <= 4e-7`` (b is
-  negative: the centre line turns while the soft spheres slide, PHYSICS-NOTES), largest ``b/a``
+  negative: the centre line turns while the soft spheres slide, docs/physics/references.md), largest ``b/a``
   0.0023 at ``a ~ 1e-4`` (89.7 deg). So ``friction_bound = max(mu, largest b/a)``;
 - separation along the first-touch normal: NOT always. Beyond ~70 deg and above a few m/s the
   soft spheres slide past each other before the normal motion is reversed, and ``a < c``

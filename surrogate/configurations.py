@@ -23,7 +23,7 @@ Beyond the paper (the engine meets every impact: any angle, |g| from ~0.01 to 20
   ``offset = sin chi``) uniform in ``[grazing_angle, asin(max_offset)]`` (grazing oversampled:
   random collisions put only 3 % of their impacts beyond 80 deg); the others have
   ``offset = max_offset * sqrt(U)``, uniform in ``b^2``: impact points uniform over the collision
-  disc, as real collisions in a granular gas (PHYSICS-NOTES "Collisions in a granular gas"). The contact
+  disc, as real collisions in a granular gas (docs/physics/references.md "Collisions in a granular gas"). The contact
   normal at first touch is ``n = sqrt(1 - b^2) g_hat + b p_hat`` (from 1 to 2), ``g = v1 - v2``,
   ``p_hat`` perpendicular to ``g`` (in the plane of ``v1, v2`` for the converging family, so
   both straight paths still cross at the common point; any direction otherwise);

@@ -1,7 +1,7 @@
 """The collision data set: configurations (``surrogate.configurations``) run through the batched
 binary DEM (``hel_warp.impact.simulate_pairs``) and stored in a zarr group, paper section 4.1.
 
-Layout (``docs/TEAM-NOTES.md`` "Collision data set"): arrays ``inputs`` (N, 14) float64,
+Layout (``docs/file-formats.md`` "The collision data set"): arrays ``inputs`` (N, 14) float64,
 ``outputs`` (N, 15) float64, ``config_id`` (N,) int64, ``family`` (N,) int8, ``chunk_done``
 (n_chunks,) bool, and the group attrs listed there.
 

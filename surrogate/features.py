@@ -1,6 +1,6 @@
 """Features and targets of the surrogate collision model, in two forms.
 
-Rows come from the collision data set (docs/TEAM-NOTES.md): ``inputs`` columns
+Rows come from the collision data set (docs/file-formats.md): ``inputs`` columns
 ``v1x v1y v1z v2x v2y v2z d1 d2 rho1 rho2 nx ny nz offset`` and ``outputs`` columns
 ``u1x u1y u1z u2x u2y u2z ...`` (post-collision velocities first).
 
@@ -21,7 +21,7 @@ Targets are the impulse on particle 2, ``J = J_n n + J_t t`` (t the unit tangent
 slip direction), normalised by ``m* |g|`` (``1/m* = 1/m1 + 1/m2``) so they are O(1):
 ``impulse_n = J_n / (m*|g|)``, ``impulse_t = J_t / (m*|g|)``. For a frictionless impact
 with restitution e, ``impulse_n = (1 + e) g_n/|g|`` and ``impulse_t = 0`` exactly
-(PHYSICS-NOTES "Binary collision outcome"). The impulse is applied equal and opposite
+(docs/physics/references.md "Binary collision outcome"). The impulse is applied equal and opposite
 (:func:`apply_contact_model`), so momentum ``m1 v1 + m2 v2`` is conserved exactly,
 whatever the trees predict.
 
@@ -73,7 +73,7 @@ CENTRAL_OFFSET_TOL = 1e-6
 
 @dataclass
 class CollisionData:
-    """Rows of the collision data set, columns as in docs/TEAM-NOTES.md."""
+    """Rows of the collision data set, columns as in docs/file-formats.md."""
 
     inputs: np.ndarray
     """(N, 14) float64, INPUT_COLUMNS."""
@@ -132,7 +132,7 @@ def validate_data(data: CollisionData) -> None:
 
 
 def load_collision_data(path: str, *, samples_limit: int | None = None) -> CollisionData:
-    """Read the data set written by ``hel-warp dataset`` (schema: docs/TEAM-NOTES.md).
+    """Read the data set written by ``hel-warp dataset`` (schema: docs/file-formats.md).
 
     Goes through ``surrogate.dataset.load_dataset`` (which refuses an incomplete or corrupted
     set: chunk flags, config ids, dataset_hash), then keeps the first ``samples_limit`` rows.
@@ -162,7 +162,7 @@ def load_collision_data(path: str, *, samples_limit: int | None = None) -> Colli
 
 
 # ---------------------------------------------------------------------------------------------
-# physics helpers shared by both forms
+# physics shared by both forms
 
 
 def sphere_mass(d, rho):
@@ -257,7 +257,7 @@ def apply_contact_model(v1, v2, n, d1, d2, rho1, rho2, predicted_targets):
     particle 2 along ``n`` and ``t_hat``, divided by ``m* |g|``. With
     ``J = m*|g| (impulse_n n + impulse_t t_hat)``:
     ``v1' = v1 - J/m1``, ``v2' = v2 + J/m2`` — equal and opposite, so ``m1 v1 + m2 v2`` is
-    unchanged (PHYSICS-NOTES "Binary collision outcome"). Returns ``(v1', v2')``, (N, 3) each.
+    unchanged (docs/physics/references.md "Binary collision outcome"). Returns ``(v1', v2')``, (N, 3) each.
     The Warp twin is ``apply_contact_impulse`` in kernels/forest.py.
     """
     v1, v2, n = (np.atleast_2d(np.asarray(a, dtype=np.float64)) for a in (v1, v2, n))
@@ -422,12 +422,12 @@ def synthetic_collisions(samples: int, *, seed: int = 0, restitution: float = 0.
     """TEST FIXTURE — frictionless binary impacts with restitution ``e``, solved analytically.
 
     ``v1' = v1 - (1+e) m2/(m1+m2) (g.n) n``, ``v2' = v2 + (1+e) m1/(m1+m2) (g.n) n`` with
-    ``g = v1 - v2`` (PHYSICS-NOTES "Binary collision outcome"); no spin. Velocities follow
+    ``g = v1 - v2`` (docs/physics/references.md "Binary collision outcome"); no spin. Velocities follow
     eq. (16) (speed uniform in [0, max_speed], direction uniform on the sphere) in the
     three families: 0 converging (independent directions), 1 parallel (same direction, the
     rear one faster), 2 head-on (opposite directions). The contact normal makes the angle
     ``asin(offset)`` with ``g``; ``central_fraction`` of rows have offset 0, the others
-    uniform offset in [0, 0.95). Written in the data-set schema of docs/TEAM-NOTES.md.
+    uniform offset in [0, 0.95). Written in the data-set schema of docs/file-formats.md.
     """
     rng = np.random.default_rng(seed)
 
@@ -459,8 +459,8 @@ def synthetic_collisions(samples: int, *, seed: int = 0, restitution: float = 0.
     g_hat = g / np.linalg.norm(g, axis=1, keepdims=True)
     offset = np.where(rng.uniform(size=samples) < central_fraction, 0.0, rng.uniform(0.0, 0.95, samples))
     # a unit vector perpendicular to g_hat
-    helper = np.where((np.abs(g_hat[:, 0]) < 0.9)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
-    p = np.cross(g_hat, helper)
+    aux_axis = np.where((np.abs(g_hat[:, 0]) < 0.9)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    p = np.cross(g_hat, aux_axis)
     p /= np.linalg.norm(p, axis=1, keepdims=True)
     q = np.cross(g_hat, p)
     psi = rng.uniform(0.0, 2.0 * math.pi, samples)
@@ -483,7 +483,7 @@ def synthetic_collisions(samples: int, *, seed: int = 0, restitution: float = 0.
 
 
 def write_synthetic_zarr(path: str, samples: int, **kwargs) -> CollisionData:
-    """TEST FIXTURE — write :func:`synthetic_collisions` as a complete zarr data set (TEAM-NOTES schema)."""
+    """TEST FIXTURE — write :func:`synthetic_collisions` as a complete zarr data set (docs/file-formats.md schema)."""
     import zarr
 
     data = synthetic_collisions(samples, **kwargs)

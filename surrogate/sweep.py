@@ -1,4 +1,4 @@
-"""The surrogate against the verified DEM over incidence angle and speed (issue 10's acceptance figure).
+"""The surrogate against the verified DEM over incidence angle and speed (the model's acceptance figure).
 
 For each incidence angle chi (between g = v1 - v2 and the first-touch normal n), relative speed
 |g| and size ratio d2/d1, one isolated sphere-sphere impact is run by the batched DEM that
@@ -25,7 +25,7 @@ SWEEP_SPEEDS = tuple(float(v) for v in np.geomspace(0.1, 20.0, 12))
 """Relative speeds |g| of the sweep, m/s (0.1-20, log spaced)."""
 SWEEP_BANDS = ((0.0, 30.0), (30.0, 60.0), (60.0, 70.0), (70.0, 80.0), (80.0, 85.0), (85.0, 89.5))
 TARGET_PERCENT = 2.0
-"""Issue 10's acceptance: post-collision relative velocity within 2 % of |g|."""
+"""Acceptance: post-collision relative velocity within 2 % of |g|."""
 
 
 def sweep_pairs(*, diameter: float, size_ratios, density: float, angles=SWEEP_ANGLES, speeds=SWEEP_SPEEDS):

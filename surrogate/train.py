@@ -56,7 +56,7 @@ SEARCH_SPACE = {
 """Ranges of the tuned hyperparameters (learning_rate and reg_alpha sampled log-uniform). The forest's cost per
 collision is about trees x depth node visits: with the contact targets fitted per cos_angle / sin_angle (the
 default) 50 + 40 trees of depth <= 8 meet the engine sweep against the DEM with 0.75 % of |g| at worst (the rig's
-data set), where the unscaled fit needed 400 + 95 trees of depth 9 for 1.64 % (docs/FIGURES.md, issue 10)."""
+data set), where the unscaled fit needed 400 + 95 trees of depth 9 for 1.64 % (``python scripts/check_surrogate.py --model DIR``)."""
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -1,9 +1,9 @@
 """Shared fixtures: Warp quiet, on the device named by HEL_WARP_DEVICE (default ``cpu``); HEL_WARP_FULL=1 runs the
 full-size physics checks.
 
-HEL_WARP_DEVICE=cuda (or cuda:N) makes that device Warp's default for the whole session, so every test that
+HEL_WARP_DEVICE=cuda (or cuda:N) makes that device Warp's default for the whole test run, so every test that
 allocates without naming a device, or takes the ``device`` fixture, runs there (``scripts/gpu_check.sh`` runs the
-device-agnostic subset this way). Without such a device the session stops at once with a one-line reason.
+device-agnostic subset this way). Without such a device the run stops at once with a one-line reason.
 """
 
 import os

@@ -1,9 +1,9 @@
-"""Training domain and physical admissibility of the contact-form surrogate (issue 10).
+"""Training domain and physical admissibility of the contact-form surrogate.
 
-References (CONVENTIONS rule 9):
+References (docs/developer/conventions.md rule 9):
 - the post-collision relative velocity of a normalised impulse (a, b) on particle 2 along n and
   t_hat is ``g' = |g| ((c - a) n + (s - b) t_hat)``, c = cos(incidence), s = sqrt(1 - c^2)
-  (PHYSICS-NOTES "Binary collision outcome"): separation ``a >= c``, Coulomb ``b <= bound a``,
+  (docs/physics/references.md "Binary collision outcome"): separation ``a >= c``, Coulomb ``b <= bound a``,
   kinetic energy ``|g'| <= |g|`` (an internal impulse leaves the centre-of-mass energy unchanged);
 - momentum ``m1 v1 + m2 v2`` unchanged by an equal and opposite impulse;
 - the clamp: ``g_n = |g| c``, ``g_t = |g| s`` with c kept, closed forms below;

@@ -1,6 +1,6 @@
 """``cell`` detection of the surrogate (hel_warp/cell_collisions.py, kernels/cell_collide.py): Bird's NTC per cell.
 
-References (CONVENTIONS rule 9; PHYSICS-NOTES "Stochastic collisions of parcels", "Impact parameter", "Enskog
+References (docs/developer/conventions.md rule 9; docs/physics/references.md "Stochastic collisions of parcels", "Impact parameter", "Enskog
 collision frequency"):
 
 - the NTC candidate count ``1/2 N (N - 1) w_max chi_max (sigma g)_max dt / V`` per cell, and the expected accepted
@@ -203,10 +203,10 @@ def test_approach_filter_keeps_each_kind_of_pairs_count_where_a_weight_is_rare(c
     """One weighted parcel (w = 8, 475 um, Theta / 3) per cell of ~16 single 315 um particles, eps_s = 0.05, one
     sampling: per pair of weights (1-1, 1-8, 8-8) the accepted count against NTC's, summed by brute force over every
     pair of every cell. With the approach filter a receding accepted pair hands its collision to an approaching pair
-    of its own two weights, drawn among the parcels of those weights (``draw_of_weight``). Drawn from the whole cell
-    (before the twenty-eighth session), 64 draws often missed the one weight-8 parcel's pairs, and when no pair of
+    of its own two weights, drawn among the parcels of those weights (``draw_of_weight``). Drawn from the whole cell,
+    64 draws often missed the one weight-8 parcel's pairs, and when no pair of
     the other weights was accepted either (small-small pairs pass the majorant of the large, 8-weighted pairs
-    seldom), the collision was lost: 4-5 % of the 1-8 collisions of a cooling weights 1 / 8 mixture."""
+    seldom), the collision would be lost: 4-5 % of the 1-8 collisions of a cooling weights 1 / 8 mixture."""
     from hel_warp.particles import Particles
 
     rng = np.random.default_rng(7)
@@ -694,7 +694,7 @@ def test_counter_streaming_beams_lose_momentum_at_kinetic_theorys_rate_unless_a_
 
 
 def test_heavy_parcels_cool_at_haffs_rate_in_the_periodic_boxs_own_cells(hard_sphere_model, device):
-    """Weight 64 at eps_s = 0.05 (1,000 parcels, the issue's cooling box), default lattice: the box's cells are
+    """Weight 64 at eps_s = 0.05 (1,000 parcels, the reference cooling box), default lattice: the box's cells are
     sized for 16 parcels unless that would saturate a heavy pair, as grids coarsen. At 16 parcels per cell
     (6.9 mm, w sigma h / V = 0.42) a pair recollided with its own deflected self and the gas cooled 0.976 +- 0.002
     of Haff's rate over these 24 seeds (0.972 with the trained frictionless model over 8); in cells of at least
@@ -1026,11 +1026,11 @@ def test_approach_filter_keeps_enskogs_frequency_in_a_dense_weighted_gas(hard_sp
     20 steps from a Maxwellian. Pairs that have collided recede, and in a cell they recede from the cell-mates too,
     so fewer than half of a cell's pairs approach, and those more slowly than the rest. The filter's transfer (a
     receding accepted pair hands its collision to an approaching one of the cell) keeps the frequency of plain NTC
-    (Bird's, exact for the homogeneous gas) and of Enskog; the ninth session's rule (approaching pairs at twice the
-    rate, one partner remembered, whole steps) loses ~15 % here, the seventeenth's (twice the rate, 16 partners,
-    <= 0.25 events per sub-step) ~6 %. The same with the collisional transfer; the old rules' losses
+    (Bird's, exact for the homogeneous gas) and of Enskog; the doubled-rate rule (approaching pairs at twice the
+    rate, one partner remembered, whole steps) loses ~15 % here, and with 16 partners and
+    <= 0.25 events per sub-step ~6 %. The same with the collisional transfer; the old rules' losses
     were measured without it (the displacement moves a collided pair apart along its normal, which changes which
-    pairs of a cell approach: the ninth session's rule loses less with it), so that ordering is checked without."""
+    pairs of a cell approach: the doubled-rate rule loses less with it), so that ordering is checked without."""
     for transfer in (True, False):
         plain = approach_gas_frequency(hard_sphere_model, device, approaching=False, collisional_transfer=transfer)
         ratio = approach_gas_frequency(hard_sphere_model, device, collisional_transfer=transfer)
@@ -1120,7 +1120,7 @@ def test_collisional_transfer_moves_each_pair_apart_by_its_share_of_the_collisio
     momentum is unchanged; each event moves parcel i back along its sampled normal and j on, by
     c d m_other / (m_i + m_j) w_min / w, with c = J.n / (mu g'_n) = (1 + e) / e for the hard-sphere forest
     (J.n = mu (1 + e) g_n, g'_n = e g_n): written out by hand from the event log; the mass-weighted centre sum w m x
-    does not move, nor does momentum change. On by default, with the approach filter too (twenty-eighth session);
+    does not move, nor does momentum change. On by default, with the approach filter too;
     the filter is on by default where a parcel weighs more than 1."""
     from hel_warp.cell_collisions import CellConfig
 
@@ -1147,7 +1147,7 @@ def test_collisional_transfer_moves_each_pair_apart_by_its_share_of_the_collisio
 def test_collisional_transfer_carries_enskogs_collisional_pressure(hard_sphere_model, device):
     """The momentum the displacements carry, P_c = sum_k m_k v_k' . dx_k / (3 V dt) over the parcels (v' after the
     step), against Enskog's collisional pressure of smooth inelastic spheres, p_c = 2 (1 + e) eps^2 rho_p g0 Theta
-    (Lun et al. 1984; PHYSICS-NOTES "Enskog collision frequency") with the gas's own Theta. A short step (0.05
+    (Lun et al. 1984; docs/physics/references.md "Enskog collision frequency") with the gas's own Theta. A short step (0.05
     events per parcel) so that few parcels collide twice (their second v' then stands for both displacements,
     about -2 %); the fresh box's positions are Poisson's, not the structured ones the transfer's pair count
     N (N - 1) + (1 - S) k N assumes, so its first step collides ~(1 - S) k / 16 = 1.5 % too often: 3 % allowed for

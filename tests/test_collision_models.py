@@ -1,9 +1,9 @@
 """Collision strategies of hel_warp/collision_models.py: surrogate (pairwise, paper) and dem.
 
-References (CONVENTIONS rule 9): XGBoost's own ``predict`` of the trained boosters with the numpy
+References (docs/developer/conventions.md rule 9): XGBoost's own ``predict`` of the trained boosters with the numpy
 contact-form impulse of surrogate/features.py; the closed-form frictionless binary collision
-(PHYSICS-NOTES "Binary collision outcome"); momentum conservation; an O(N^2) brute-force pair search.
-The model is a tiny contact-form (and paper-form) XGBoost trained once per session on a few thousand
+(docs/physics/references.md "Binary collision outcome"); momentum conservation; an O(N^2) brute-force pair search.
+The model is a tiny contact-form (and paper-form) XGBoost trained once per test run on a few thousand
 frictionless Hertz DEM impacts (surrogate/dataset.py + surrogate/train.py, 1 trial).
 """
 
@@ -46,7 +46,7 @@ def train_tiny_models(root) -> dict:
 
 @pytest.fixture(scope="session")
 def trained_models(tmp_path_factory):
-    """Tiny contact- and paper-form models, cached in the session's base temp dir (shared across modules), or in
+    """Tiny contact- and paper-form models, cached in pytest's base temp dir (shared across modules), or in
     HEL_WARP_TINY_MODELS when set (scripts/gpu_check.sh trains them once for its tests and its rig runs)."""
     import os
     from pathlib import Path
@@ -111,7 +111,7 @@ def make_particles(x, v, *, radius=0.5 * D, density=RHO, weight=1.0, stream=0):
     from hel_warp.particles import Particles
 
     return Particles.from_numpy(np.asarray(x, float), radius, v=np.asarray(v, float), density=density,
-                                weight=weight, stream=stream, check_overlap=False, device=None)  # the session device
+                                weight=weight, stream=stream, check_overlap=False, device=None)  # the test run's device
 
 
 def momentum(p) -> np.ndarray:
@@ -303,7 +303,7 @@ def test_batched_prediction_changes_nothing(trained_models, mode):
     results = []
     for batched in (False, True):
         p = random_cloud(n=3000, seed=4)
-        # swept named: the cloud's parcels weigh 1-3, for which the default is now the cell detection (issue 12)
+        # swept named: the cloud's parcels weigh 1-3, for which the default is the cell detection
         strategy = SurrogateCollision(model_dir=trained_models["contact" if mode == "pairwise" else "paper"],
                                       mode=mode, batched=batched, detection="swept")
         v0 = p.v.numpy().copy()

@@ -29,7 +29,7 @@ def brute_force_rows(x, radius, cutoff_extra):
 def build_list(particles, skin, capacity, old=None):
     n = particles.count
     r_max = float(particles.radius.numpy().max())
-    grid = wp.HashGrid(16, 16, 16)  # the session device (conftest)
+    grid = wp.HashGrid(16, 16, 16)  # the test run's device (conftest)
     grid.build(particles.x, 2.0 * r_max + skin)
     new = ContactList.empty(n, capacity, None)
     if old is None:

@@ -291,7 +291,7 @@ def test_periodic_axis_wraps_the_stencil():
 
 def periodic_suspension(eps_s, *, gravity=(0.0, 0.0, 0.0), mean_pressure_gradient=(0.0, 0.0, 0.0), v0=None,
                         coupling="implicit", per_axis=12, d=315e-6, rho_p=1000.0, dt=1e-3):
-    """A triply periodic box of 4^3 cells of 2 mm with engineer F's gas solver and a uniform suspension of
+    """A triply periodic box of 4^3 cells of 2 mm with the engine's gas solver and a uniform suspension of
     ``per_axis``^3 parcels on a lattice (solid fraction ``eps_s`` in every cell, velocity ``v0``), Gidaspow drag.
     Returns (HelSolver, GasField, grid, push config, parcel masses m_p weight)."""
     from hel_warp.gas import GasConfig, GasField, GasSolver
@@ -329,7 +329,7 @@ def gas_momentum(gas, grid, push, eps_s):
 
 
 def test_hel_solver_with_gas_hindered_settling_conserves_momentum():
-    # Periodic box, uniform suspension (parcels on a lattice, eps_s = 0.1 in every cell), engineer F's gas
+    # Periodic box, uniform suspension (parcels on a lattice, eps_s = 0.1 in every cell), the engine's gas
     # solver, mean grad p' = eps_s (rho_p - rho_f) g balancing the mixture weight. External forces then sum to
     # zero, so particles + gas keep zero momentum (up to the impulse of the last push, still owed to the gas),
     # and the slip tends to the Gidaspow (Wen-Yu branch) balance beta |slip| = eps_s eps_f (rho_p - rho_f) g.

@@ -3,7 +3,7 @@
 References used below:
 - ballistic first touch: ``|x2 - x1 + t (v2 - v1)| = r1 + r2`` has its first root at ``touch_time``;
 - momentum: ``m1 v1 + m2 v2`` unchanged by equal and opposite contact forces;
-- restitution: ``(u1 - u2).n = -e (v1 - v2).n`` for a central impact (PHYSICS-NOTES
+- restitution: ``(u1 - u2).n = -e (v1 - v2).n`` for a central impact (docs/physics/references.md
   "Binary collision outcome"); the DEM calibrates its damping so the clipped contact gives ``e``.
 """
 
@@ -19,7 +19,7 @@ SPEC = ConfigurationSpec(diameter_mean=315e-6, diameter_std=8.2e-6, touch_time=1
 
 
 def analytic_stand_in(configs, spec):
-    """STAND-IN, NOT THE DEM: the frictionless impulse of PHYSICS-NOTES "Binary collision outcome",
+    """STAND-IN, NOT THE DEM: the frictionless impulse of docs/physics/references.md "Binary collision outcome",
     ``v1' = v1 - (1+e) m2/(m1+m2) (g.n) n``, ``v2' = v2 + (1+e) m1/(m1+m2) (g.n) n``; no spin;
     elastic Hertz duration, overlap and force (Johnson 1985, section 11.4). Used to test the store
     fast and without warp; the DEM itself is checked in ``test_dem_rows_*``."""
@@ -103,7 +103,7 @@ def test_default_set_covers_every_impact_the_engine_meets():
 
 def test_uniform_b_squared_share_matches_kinetic_theory():
     """Without the central and grazing shares, b^2 = offset^2 is uniform on [0, max_offset^2]
-    (PHYSICS-NOTES: random collisions are uniform in b^2): Kolmogorov-Smirnov distance small.
+    (docs/physics/references.md: random collisions are uniform in b^2): Kolmogorov-Smirnov distance small.
     Parallel and head-on families only: a converging pair must also have its common point ahead of
     both particles, which rejects large offsets more often (that family leans to central impacts)."""
     spec = ConfigurationSpec(diameter_mean=315e-6, diameter_std=0.0, touch_time=1e-7, central_fraction=0.0,

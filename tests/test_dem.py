@@ -228,7 +228,7 @@ def wall_impact(theta_deg, restitution, friction, dt_fraction):
 def test_wall_impact_restitution_and_gross_sliding():
     """Normal impact returns the material's e (damping c(e) of hel_warp.contact_law). Oblique impact in
     gross sliding (tan theta >= 3.5 mu (1+e)): e_t = 1 - mu (1+e) cot theta and w = 2.5 mu (1+e) v cos theta / R
-    (PHYSICS-NOTES; Maw, Barber & Fawcett 1976). At dt = eq.(12)/4 (~60 steps per contact); measured at
+    (docs/physics/references.md; Maw, Barber & Fawcett 1976). At dt = eq.(12)/4 (~60 steps per contact); measured at
     eq. (12) itself (~15 steps): e = 0.508 for 0.5."""
     e, mu = 0.5, 0.1
     v, _, _, cos_t = wall_impact(0.0, e, 0.3, 0.25)

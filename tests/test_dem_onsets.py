@@ -100,7 +100,7 @@ def test_oblique_onset_speed_is_the_normal_approach_speed(b):
     tol = g * (g * strategy.dt_dem / D) + 1e-6 * g
     assert abs(float(ev["speed"][0]) - expected) <= tol
     assert strategy.counts()["impact_speed_sum"] == pytest.approx(float(ev["speed"][0]), rel=1e-6)
-    # onset time: the straight-line touch |s0 + g_rel t| = r1 + r2 (PHYSICS-NOTES, swept detection), found
+    # onset time: the straight-line touch |s0 + g_rel t| = r1 + r2 (docs/physics/references.md, swept detection), found
     # at the end of the sub-step that contains it
     s0 = np.array([dx, b * D, 0.0])
     grel = np.array([-g, 0.0, 0.0])

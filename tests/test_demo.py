@@ -22,7 +22,7 @@ def test_demo_reduced_end_to_end(tmp_path, capsys):
                       ["dem", "ktgf", "none", "surrogate/swept"])
     for run in report["runs"]:
         assert run["end_time"] > 0 and run["wall_clock_s"] > 0
-    # the table per step (issue 11): one row per model, printed at the end and kept in the summary
+    # the table per step: one row per model, printed at the end and kept in the summary
     assert [row["model"] for row in summary["summary_table"]] == [r["model"] for r in report["summary_table"]]
     assert sorted(row["model"] for row in summary["summary_table"]) == models
     printed = capsys.readouterr().out

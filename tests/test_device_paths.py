@@ -1,4 +1,4 @@
-"""Every CUDA-only branch of the engine, run on the test device through the same functions (issue 15).
+"""Every CUDA-only branch of the engine, run on the test device through the same functions.
 
 No GPU has run this code yet, so each branch that the engine takes only on CUDA is exercised here on whatever
 device ``HEL_WARP_DEVICE`` names (the ``device`` fixture, default ``cpu``) and compared with the branch the CPU
@@ -6,7 +6,7 @@ takes today. Warp >= 1.19 records and replays graphs on the CPU too (``wp.Scoped
 ``capture_if`` and ``capture_while`` as conditional nodes), so even the captured paths run here, captured; what
 still differs on a GPU is the graph backend (CUDA graphs vs Warp's CPU replay) and the CUDA compiler.
 
-References (CONVENTIONS rule 9): the eager steps for the captured ones (bit for bit: the same kernels in the
+References (docs/developer/conventions.md rule 9): the eager steps for the captured ones (bit for bit: the same kernels in the
 same order on the same data), the CPU's native CG for warp.optim.linear.cg (both stop at ||r|| <= tol ||b||),
 the CPU's rows-per-thread default and XGBoost's own ``inplace_predict`` for the forest (bit for bit).
 """
@@ -116,8 +116,8 @@ def test_dem_graph_captured_steps_equal_the_eager_steps(device):
     assert graph.steps_done == eager.steps_done == 20 * n_steps
     if fell_back:  # the eager fallback gave the eager answer; the graph itself is the known defect
         pytest.xfail("CUDA: the driver refused the DEM's graph and DEMSolver fell back to eager steps (on the H200 "
-                     "with Warp 1.19 the cause was wp.HashGrid.build inside the conditional body, built outside it "
-                     "since: docs/FIGURES.md, issue 12, twenty-fourth session)")
+                     "with Warp 1.19 the cause was wp.HashGrid.build inside the conditional body, now built outside "
+                     "it; python scripts/probe_dem_graph.py names the refused piece)")
     assert graph._graph is not None
     print(f"DEM graph replay vs eager: {graph.rebuilds} list builds, {eager.onset_counts()['collisions']} onsets, "
           "x, v, omega bit for bit")
@@ -330,7 +330,7 @@ def test_swept_rounds_captured_as_a_graph_loop_equal_the_eager_rounds(device, tr
 
 # ------------------------------------------------------------------------------ cell rounds: capture_while
 def test_cell_rounds_captured_as_a_graph_loop_equal_the_eager_rounds(device, trained_models, monkeypatch):
-    """kernels/cell_collide.py ``collide_cells`` (issue 12: parcels of weight > 1 collide per cell) runs its batched
+    """kernels/cell_collide.py ``collide_cells`` (parcels of weight > 1 collide per cell) runs its batched
     forest rounds as ``wp.capture_while`` too, then finishes the dense cells inline. The call captured into a graph
     and replayed, against the same call eager: bit for bit, and the same counts, two steps of a dense gas of
     weight-8 parcels."""

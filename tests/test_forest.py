@@ -204,7 +204,7 @@ def test_contact_pairs_conserve_momentum_and_match_numpy():
     assert_close_rows(feats.numpy(), reference, 2e-6 * (scale_g + np.abs(reference)) + 1e-7)
     feats_np = feats.numpy()
     targets = wp.zeros((len(v1), 2), dtype=wp.float32)
-    forest = _flat(doc, "contact").to_device(None)  # the session device (conftest)
+    forest = _flat(doc, "contact").to_device(None)  # the test run's device (conftest)
     kf.eval_forest(forest, feats, targets, rows_per_thread=16)
     xgb_targets = np.column_stack([b.predict(xgb.DMatrix(standardize(feats_np[:, cols], mean, std)))
                                    for b in boosters.values()])
@@ -262,7 +262,7 @@ def test_forest_file_errors(tmp_path):
         load_forest(str(tmp_path))
     with pytest.raises(ConfigError, match="shape"):
         ForestPredictor(parse_forest(json.loads(text))).predict_features(np.zeros((3, 2), np.float32))
-    # a forest without a training domain (format version 1, before issue 10) is refused: retrain
+    # a forest without a training domain (format version 1) is refused: retrain
     (tmp_path / "metadata.json").unlink()
     for old in (dict(json.loads(text), version=1), {k: v for k, v in json.loads(text).items() if k != "domain"}):
         old.pop("domain", None)

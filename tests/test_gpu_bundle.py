@@ -1,5 +1,5 @@
 """scripts/gpu_bundle.sh: wheels packed into carry-sized parts that, joined in order on the device, unpack into an
-importable site-packages folder (the recipe of the first GPU run, docs/FIGURES.md issue 12, twenty-fourth session)."""
+importable site-packages folder (docs/gpu.md)."""
 
 from __future__ import annotations
 

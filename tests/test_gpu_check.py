@@ -1,4 +1,4 @@
-"""scripts/gpu_check.sh: the prepared first GPU run, here as its ``--dry-run`` on the CPU (issue 15).
+"""scripts/gpu_check.sh: the prepared GPU run, here as its ``--dry-run`` on the CPU.
 
 The dry run is the same sequence as the GPU run (device report, kernel compilation, the device-agnostic tests on
 the device, the DEM / forest / HEL benches, the rig for ktgf, surrogate and dem) at the smallest sizes; this test is
@@ -30,7 +30,7 @@ def _run(*args, env=None, timeout=900):
 
 def test_dry_run_passes_and_writes_every_figure_as_json(tmp_path, trained_models):
     out = tmp_path / "gpu_out"
-    models = str(Path(trained_models["contact"]).parent)  # the session's tiny models: not trained twice
+    models = str(Path(trained_models["contact"]).parent)  # the test run's tiny models: not trained twice
     done = _run("--dry-run", "--out", str(out), env={"HEL_WARP_TINY_MODELS": models})
     assert done.returncode == 0, done.stderr[-3000:] + done.stdout[-3000:]
     assert "every step passed on cpu" in done.stdout
@@ -125,7 +125,7 @@ def test_the_gpu_run_without_a_gpu_stops_at_its_first_step(tmp_path):
     assert [s["step"] for s in summary["steps"]] == ["device"] and not summary["passed"]
 
 
-# ------------------------------------------------------------------ scripts/gpu_check_cells.sh (issue 12 on a GPU)
+# ------------------------------------------------------------------ scripts/gpu_check_cells.sh (cell detection on a GPU)
 CELLS = ROOT / "scripts" / "gpu_check_cells.sh"
 
 
@@ -161,7 +161,7 @@ def test_cells_check_dry_run_writes_the_physics_and_the_ratios(tmp_path, trained
 
 
 def test_cells_check_goes_on_past_a_failed_step_and_fails_at_the_end(tmp_path, trained_models):
-    # one short GPU lease should name every failure: a kernel step that fails (exit 3) is recorded, the physics
+    # one short GPU run should name every failure: a kernel step that fails (exit 3) is recorded, the physics
     # steps still run, the exit is 1
     fake = tmp_path / "python"
     fake.write_text(f'#!/usr/bin/env bash\nif [ "$2" = kernels ]; then exit 3; fi\nexec {sys.executable} "$@"\n')

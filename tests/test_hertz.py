@@ -76,7 +76,7 @@ def rk4_clipped_restitution(c, p, steps=40000):
 @pytest.mark.parametrize("e,c_notes", [(0.2, 1.635), (0.5, 0.571), (0.8, 0.166)])
 def test_damping_calibration_reproduces_e_with_clipping(e, c_notes):
     c = damping_coefficient(e, "hertz")
-    # PHYSICS-NOTES quotes c to 3 digits (its own integration of the damped Hertz oscillator)
+    # docs/physics/references.md quotes c to 3 digits (its own integration of the damped Hertz oscillator)
     assert c == pytest.approx(c_notes, abs=1.5e-3)
     # independent RK4 (h = 1.5e-4 in units of the contact time scale ~3): error << 1e-4
     assert rk4_clipped_restitution(c, 1.5) == pytest.approx(e, abs=2e-4)
@@ -85,7 +85,7 @@ def test_damping_calibration_reproduces_e_with_clipping(e, c_notes):
 
 
 def test_raw_tsuji_and_liggghts_forms_give_a_higher_e_when_clipped():
-    # PHYSICS-NOTES: with the force clipped both forms return e = 0.325 / 0.55 / 0.81 for 0.2 / 0.5 / 0.8
+    # docs/physics/references.md: with the force clipped both forms return e = 0.325 / 0.55 / 0.81 for 0.2 / 0.5 / 0.8
     for e, e_clipped in ((0.2, 0.325), (0.5, 0.55), (0.8, 0.81)):
         for form in ("tsuji", "liggghts"):
             got = rk4_clipped_restitution(damping_coefficient(e, "hertz", form), 1.5)
@@ -290,7 +290,7 @@ def test_oblique_gross_sliding_matches_rigid_body_coulomb(model):
     mu, e, v = 0.3, 0.9, 2.0
     theta = [65.0, 70.0, 80.0]
     th, jn, jt, res, vc0, vc1 = _oblique_wall(theta, mu, e, v, model)
-    assert np.all(np.tan(th) >= 3.5 * mu * (1 + e))  # gross sliding throughout (PHYSICS-NOTES)
+    assert np.all(np.tan(th) >= 3.5 * mu * (1 + e))  # gross sliding throughout (docs/physics/references.md)
     np.testing.assert_allclose(-jt, mu * jn, rtol=0.01)  # |Jt| = mu Jn
     spin = 2.5 * mu * (1 + e) * v * np.cos(th) / R  # |omega'| = 2.5 mu (1+e) v cos(theta) / R
     np.testing.assert_allclose(np.abs(res.omega1[:, 1]), spin, rtol=0.01)

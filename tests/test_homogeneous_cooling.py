@@ -1,6 +1,6 @@
 """cases/homogeneous_cooling.py: the start, the CLI contract, and the HELSCM surrogate against kinetic theory.
 
-References (``../shared/PHYSICS-NOTES.md``, "Collisions in a granular gas"): the Enskog collision frequency
+References (docs/physics/references.md, "Collisions in a granular gas"): the Enskog collision frequency
 omega = 24 eps g0 sqrt(Theta) / (sqrt(pi) d) with the Carnahan-Starling g0, and Haff's law, Theta^-1/2 growing
 linearly at 4 (1 - e^2) g0 eps / (d sqrt(pi)).
 """
@@ -255,7 +255,7 @@ def test_surrogate_swept_follows_enskog_and_haff(hc, capsys, tmp_path, trained_m
 def test_surrogate_swept_at_the_paper_step(hc, capsys, tmp_path, trained_models, full_size):
     """The same at the paper's dt = 1e-3 s, where a particle flies ~5 diameters per step; the box must hold the
     step's search (L > 2 x 2 (r + v_max dt) ~ 19 mm): 4,000 particles at eps_s = 0.005 in CI size (~16,000
-    collisions), HEL_WARP_FULL=1: 8,000 at eps_s = 0.01, the issue's case (~60,000)."""
+    collisions), HEL_WARP_FULL=1: 8,000 at eps_s = 0.01, the reference case (~60,000)."""
     if not _swept_available():
         pytest.skip("SurrogateCollision has no swept detection / periodic_box in this checkout")
     particles, eps = (8000, 0.01) if full_size else (4000, 0.005)

@@ -1,5 +1,5 @@
-"""Recorded launches (``kernels.launches.LaunchCache``, issue 14): a replayed launch must pass the kernel what a fresh
-``wp.launch`` would. References (CONVENTIONS rule 9): ``wp.launch`` itself for the values, and the same HelSolver
+"""Recorded launches (``kernels.launches.LaunchCache``): a replayed launch must pass the kernel what a fresh
+``wp.launch`` would. References (docs/developer/conventions.md rule 9): ``wp.launch`` itself for the values, and the same HelSolver
 run with plain launches (``fields.launches = None``) for the step, bit for bit, every array.
 """
 

@@ -1,11 +1,11 @@
-"""Binary size mixtures (issue 13): the data set's pair types, the mixture CLI, the kinetic theory of a mixture,
+"""Binary size mixtures: the data set's pair types, the mixture CLI, the kinetic theory of a mixture,
 a two-size binary collision against the closed form, and the per-species outputs of the cooling case.
 
 References used below:
 - pair types of a mixture: number fractions x_i = (w_i / E[d_i^3]) / sum, rows of type (i, j) in proportion
   x_i x_j E[(d_i + d_j)^2] (the collision rate n_i n_j pi sigma_ij^2 <|g|> with one velocity distribution for
   every size; surrogate/configurations.py);
-- frictionless central impact of unequal masses (PHYSICS-NOTES "Binary collision outcome"):
+- frictionless central impact of unequal masses (docs/physics/references.md "Binary collision outcome"):
   v1' = v1 - (1 + e) m2/(m1 + m2) (g.n) n, v2' = v2 + (1 + e) m1/(m1 + m2) (g.n) n, with e the DEM's own
   restitution measured on an equal pair (its damping depends on the damping constant alone, not on sizes or masses);
 - one species of the mixture kinetic theory is Haff's law, dTheta/dt = -8 (1 - e^2) g0 eps Theta^(3/2) / (sqrt(pi) d),
@@ -32,7 +32,7 @@ def test_pair_types_follow_the_collision_proportion():
 
     spec = make_spec(samples=10, seed=0, diameter=3.6e-4, diameter_std=0.0, mixture_diameters=(D1, D2),
                      mixture_mass_fractions=(0.5, 0.5)).configurations
-    # the closed form, from the mass fractions (not from the spec's own helpers)
+    # the closed form, from the mass fractions (not from the spec's own functions)
     cube = np.array([D1**3 + 3 * D1 * S1**2, D2**3 + 3 * D2 * S2**2])
     x = (np.array([0.5, 0.5]) / cube) / (np.array([0.5, 0.5]) / cube).sum()
     cross = lambda i, j: ((D1, D2)[i] + (D1, D2)[j]) ** 2 + ((S1, S2)[i] ** 2 + (S1, S2)[j] ** 2)  # noqa: E731

@@ -59,7 +59,7 @@ def built(shape, periodic, seed, solid_fraction=0.3):
     rng = np.random.default_rng(seed)
     fluid = rng.uniform(size=shape) > solid_fraction
     diag, coef, neighbour, dense, rows = stencil_system(shape, periodic, fluid, rng)
-    mg = AggregationMultigrid(rows, shape, periodic, None)  # the session device (conftest)
+    mg = AggregationMultigrid(rows, shape, periodic, None)  # the test run's device (conftest)
     mg.setup(to_warp(diag, coef, neighbour))
     return mg, dense, rows
 

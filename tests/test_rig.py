@@ -274,7 +274,7 @@ def test_paper_particle_sets(cs):
 
 
 def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
-    """CI size of issue 11: `none` and `ktgf` long enough (0.02 s) for the parcels to reach the sections (from
+    """CI size of the stream metrics: `none` and `ktgf` long enough (0.02 s) for the parcels to reach the sections (from
     t ~ 0.014 s on this grid), a short `dem` (its sub-steps cost ~1 s per step here) for the real collision counts,
     and the report over all of them. Facts checked: what the metrics are by definition (fractions in [0, 1], the
     sample counts of the window, none's rate 0, ktgf's null with its reason), not numbers of this physics."""

@@ -1,7 +1,7 @@
-"""A weight per species (issue 13 item 4): ``--particles-per-parcel W1,W2`` in the cooling case and the rig, and the
+"""A weight per species: ``--particles-per-parcel W1,W2`` in the cooling case and the rig, and the
 cell detection's collisions between parcels of unequal weight (kernels/cell_collide.py, ``cell_restore``).
 
-References (CONVENTIONS rule 9):
+References (docs/developer/conventions.md rule 9):
 
 - the real particles and their mass are those asked for, whatever the weights: N_k real = parcels_k x W_k;
 - energy of an event between parcels of weights w_i != w_j: w_min real binary collisions with the impulse J of the
@@ -321,7 +321,7 @@ def test_approach_filter_meets_a_partner_again_as_often_as_ntc(constant_mixture_
     particle of the partner's cloud), but such a particle approaches one time in two, so the pair must meet again
     about as often as Bird's NTC pairs do, which are drawn without memory. Counted over two seeds, pairs with a
     weight-8 parcel, share of the events that repeat a pair: plain NTC 5.6 % (1-8) and 6.9 % (8-8); the filter 7.3 %
-    and 8.6 % (1.3x, ~0.1 of it the counts' scatter); always eligible (until the twenty-ninth session) 11.6 % and
+    and 8.6 % (1.3x, ~0.1 of it the counts' scatter); always eligible 11.6 % and
     13.4 % (2.1x and 1.9x)."""
     share = {}
     for approaching in (False, True):
@@ -381,7 +381,7 @@ def _weighted_box(seed, large_weight, hot_x=1.0):
 
 def _sixteen_per_cell(side, parcels):
     """The edge of a cube holding 16 of the box's parcels: both weights' boxes in cells of ~16 parcels, where these
-    figures were measured (the automatic cells of the weight-8 box are larger since the thirtieth session, sized so
+    figures were measured (the automatic cells of the weight-8 box are larger, sized so
     that a pair of the heaviest parcels does not saturate)."""
     return (side**3 * 16.0 / parcels) ** (1.0 / 3.0)
 
@@ -414,10 +414,9 @@ def test_heavier_class_relaxes_its_anisotropy_as_at_weight_one(constant_mixture_
     its anisotropy T_x / T_yz - 1 (from 2) as the same real particles do at weight 1, in log over steps 2-4 and
     three seeds (seed scatter: 0.1 at weight 1, 0.15-0.2 at weight 8 per seed). The real collisions give the
     heavier parcel's particles the second moment w_min |J|^2 / m along J that its partial impulse keeps only
-    w_min / w of; the restoration puts it back along J. Until the twenty-ninth session it mirrored the parcels'
-    velocities about random planes at every sub-step: log decay -1.21 +- 0.21 at weights 1,8 against -0.40 +- 0.03
-    at weight 1 (mean of 6-9 seeds; docs/FIGURES.md issue 12, twenty-ninth session); at these three seeds -1.54
-    against -0.34, and -0.49 now (seed 1 an outlier: -0.29 +- 0.09 over seeds 0-8). The 0.3 allowed is ~2.7
+    w_min / w of; the restoration puts it back along J. A restoration that mirrors the parcels'
+    velocities about random planes at every sub-step gives log decay -1.21 +- 0.21 at weights 1,8 against -0.40 +-
+    0.03 at weight 1 (mean of 6-9 seeds); at these three seeds -1.54 against -0.34, and -0.49 along J (seed 1 an outlier: -0.29 +- 0.09 over seeds 0-8). The 0.3 allowed is ~2.7
     standard errors of the difference of two 3-seed means."""
     decay = {}
     for weight in (1, 8):
@@ -456,8 +455,8 @@ def test_heavier_class_keeps_its_organised_spin_through_the_restoration(rough_co
     spin (all spinning about z at the start) decays as it does with no spread put back (within 0.1, two seeds; seed
     scatter ~0.03), and within 0.2 of the same real particles at weight 1 (the partial spin impulses at weights 1,8
     keep 0.68 of it after 4 steps against 0.56 at weight 1, with or without the restoration: a residual of the
-    weighting, not of the restoration). Until the twenty-ninth session the restoration mirrored omega about random
-    planes and the class kept -0.04 of its mean spin."""
+    weighting, not of the restoration). A restoration that mirrors omega about random planes leaves the class -0.04
+    of its mean spin."""
     seeds = (0, 1)
     on = np.mean([_spin_decay(rough_constant_model, device, 8, seed) for seed in seeds])
     off = np.mean([_spin_decay(rough_constant_model, device, 8, seed, restore=False) for seed in seeds])
@@ -485,15 +484,14 @@ def test_mixed_weights_collide_and_cool_as_weight_one(hc, capsys, tmp_path, cons
     per real particle against the mixture's Enskog rate within 4 standard errors, and each species' Theta at the end
     within 15 % of the weight-1 run. The 15 %: the scheme leaves the 475 um species too hot at mixed weights, by
     +6.5 +- 1.4 % at the default and +6.3 +- 1.1 % with --no-cell-approaching (seeds 0-8, per-seed scatter 3-4 %;
-    +9.4 +- 1.1 % with the filter's met pairs always eligible, before the twenty-ninth session; docs/FIGURES.md,
-    issue 12, twenty-ninth session), and the 315 um species 3-4 % too cold; the 10 % asked before held at seed 0
-    only by luck (seeds 3, 7 and 8 were 11-17 % off then). Without the energy put back the
+    +9.4 +- 1.1 % with the filter's met pairs always eligible), and the 315 um species 3-4 % too cold; a 10 %
+    bound holds at seed 0 only by luck (seeds 3, 7 and 8 are 11-17 % off with met pairs always eligible). Without the energy put back the
     weight-8 species ended at 13 % of the weight-1 Theta and the other at 60 %. The default (the approach
     filter with the collisional transfer at weights 1, 8; off at 1, 1), plain NTC (--no-cell-approaching) and the
     filter without the transfer. The filter's redraw keeps the candidate's two weights (a transfer that took any
-    approaching pair of the cell gave 0.946 +- 0.0125 of the small-small rate here, eighteenth session), leaves
+    approaching pair of the cell gave 0.946 +- 0.0125 of the small-small rate here), leaves
     pairs of single particles alone, and draws among the parcels of those weights (drawn from the whole cell,
-    0.924 +- 0.012 of the small-large rate with the transfer, twenty-eighth session)."""
+    0.924 +- 0.012 of the small-large rate with the transfer)."""
     one = _cool(hc, capsys, tmp_path, constant_mixture_model, "1,1", extra=extra)
     mixed = _cool(hc, capsys, tmp_path, constant_mixture_model, "1,8", extra=extra)
     assert mixed["species"]["parcels"] == [2800, 150] and mixed["particles"] == one["particles"] == 4000
@@ -503,7 +501,7 @@ def test_mixed_weights_collide_and_cool_as_weight_one(hc, capsys, tmp_path, cons
             assert abs(row["ratio"] - 1.0) < 4.0 * row["ratio_stderr"], (s["particles_per_parcel"], name, row)
     counts = mixed["strategy_counts"]
     # restorations are per block of cells, weight class and sub-step: ~1,050 in the box's ~16-parcel cells,
-    # 250-320 in the larger cells it gets since the thirtieth session (a 475 um pair of weight 8 would saturate
+    # 250-320 in the larger cells it gets (a 475 um pair of weight 8 would saturate
     # 16-parcel cells)
     assert counts["cell_restored"] > 200 and counts["cell_unrestored"] <= 0.05 * counts["cell_restored"]
     for k in (1, 2):

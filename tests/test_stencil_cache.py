@@ -1,7 +1,7 @@
-"""The parcels' stencil cache (``kernels.interp.ParcelStencil``, ``HelConfig.stencil_cache``, issue 14).
+"""The parcels' stencil cache (``kernels.interp.ParcelStencil``, ``HelConfig.stencil_cache``).
 
 The cache must change nothing but the time: its rows are ``cic_corner``'s (cell, weight) pairs, and a pass that
-reads them adds the same terms in the same order as a pass that computes them. References (CONVENTIONS rule 9):
+reads them adds the same terms in the same order as a pass that computes them. References (docs/developer/conventions.md rule 9):
 ``stencil_weights`` (the computed corners) for the rows, and the same HelSolver run with the cache switched off
 (``HelConfig(stencil_cache=False)``: every pass computes its stencils, the code path before the cache) for the
 step, bit for bit, every particle, coupling and gas array.

@@ -1,9 +1,9 @@
 """Swept (continuous) detection of the ``surrogate`` strategy (hel_warp/collision_models.py, kernels/collide.py).
 
-References (CONVENTIONS rule 9):
+References (docs/developer/conventions.md rule 9):
 - the first touch of two straight paths against a brute-force time march of |s(t)| (no root formula involved);
 - time-ordered resolution against the hard-sphere closed form: with a forest that predicts the constant normal
-  impulse (1 + e) of a frictionless central impact (the contact form's exact answer at cos = 1; PHYSICS-NOTES
+  impulse (1 + e) of a frictionless central impact (the contact form's exact answer at cos = 1; docs/physics/references.md
   "Binary collision outcome"), a head-on chain of three equal spheres has a closed-form sequence of collision
   times and velocities;
 - the strict event-driven order (``ordering="sequential"``: one event per round, the globally earliest) for the

@@ -1,7 +1,7 @@
 """The swept detection's windows (hel_warp/collision_models.py ``windows``, kernels/collide.py ``swept_window``).
 
 A step may be resolved in windows, one after the other, each with searches of the window's reach; the paths, event
-times and outcomes are those of the whole step. References (CONVENTIONS rule 9): the strict event order in one window
+times and outcomes are those of the whole step. References (docs/developer/conventions.md rule 9): the strict event order in one window
 (tests/test_swept.py ``test_windows_change_the_searches_not_the_events``, tests/test_swept_walls.py with walls); here
 the automatic choice of the window count against its rule, the checkpoint round trip of what drives it, and a HEL run
 (gas, walls, injection) that switches to windows restarting bit for bit.

@@ -1,7 +1,7 @@
 """Training, model artifact, Optuna resume, the train/predict commands.
 
 Data: ``surrogate.features.synthetic_collisions`` — a TEST FIXTURE of analytic frictionless
-impacts with restitution 0.9 (PHYSICS-NOTES "Binary collision outcome"), not DEM.
+impacts with restitution 0.9 (docs/physics/references.md "Binary collision outcome"), not DEM.
 References: the trivial baseline (train-mean velocity), momentum conservation, XGBoost's
 own predict, the analytic outcome.
 """
