@@ -109,13 +109,13 @@ def check_device(name: str) -> str:
     """``name`` if Warp has that device here (``cpu``, ``cuda``, ``cuda:N``), else a ConfigError saying to use
     ``--device cpu`` (asked for ``cuda`` on a machine without a GPU, Warp raises a RuntimeError deep in the first
     allocation)."""
-    from hel_warp._warp import init_warp
+    from hel_warp._warp import init_warp, start_warp
 
     if not isinstance(name, str) or not (name == "cpu" or name == "cuda" or name.startswith("cuda:")):
         raise ConfigError(f"--device must be cpu, cuda or cuda:N (got {name!r})")
     import warp as wp
 
-    init_warp()
+    start_warp(cuda=name != "cpu")  # Warp's missing-driver line only where a CUDA device is asked for
     if name != "cpu" and not wp.is_cuda_available():
         raise ConfigError(f"--device {name}: Warp finds no CUDA device on this machine (no GPU or no driver); "
                           "use --device cpu")

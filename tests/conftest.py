@@ -17,8 +17,9 @@ DEVICE = os.environ.get("HEL_WARP_DEVICE", "cpu").strip() or "cpu"
 def pytest_configure(config):
     import warp as wp
 
-    wp.config.log_level = wp.LOG_WARNING
-    wp.init()
+    from hel_warp._warp import start_warp
+
+    start_warp(cuda=DEVICE != "cpu")  # quiet; Warp's missing-driver line only when a CUDA device is asked for
     if DEVICE != "cpu" and not wp.is_cuda_available():
         raise pytest.UsageError(f"HEL_WARP_DEVICE={DEVICE}: Warp finds no CUDA device here; unset it to test on the CPU")
     try:
