@@ -39,7 +39,9 @@ MATERIAL_CORRECTION = 1e-3
 """A guard correction that moves the post-collision relative velocity by more than this fraction of
 |g| (0.1 %, a twentieth of the 2 % accuracy target) counts as material in the metrics."""
 FLAG_FRACTION = 1e-3
-"""A model whose guard corrections (material ones) exceed this fraction of the calls is flagged."""
+"""A model is flagged when the guard moves more than this fraction of its test outcomes farther from the DEM by a
+material amount, or corrects more than this fraction of the DEM outcomes themselves (the guard then contradicts
+the physics it was trained on)."""
 
 
 def outcome_components(features: np.ndarray, targets: np.ndarray):
@@ -110,8 +112,9 @@ def training_domain(form: str, features: np.ndarray, *, friction: float, frictio
             "rows": int(x.shape[0]), **extra}
 
 
-def guarded_targets(cos_angle: np.ndarray, targets: np.ndarray, friction_bound: float):
-    """``(guarded (N, 2), flags (N,))``: the Warp guard (``kernels.forest.admissible_impulse``) row by row."""
+def guarded_targets(cos_angle: np.ndarray, targets: np.ndarray, friction_bound: float, separation_slack: float = 0.0):
+    """``(guarded (N, 2), flags (N,))``: the Warp guard (``kernels.forest.admissible_impulse``) row by row;
+    ``separation_slack`` as the engine's (``FlatForest.separation_slack``), 0 for the strict separation rule."""
     import warp as wp
 
     from kernels.forest import admissible_targets
@@ -120,5 +123,5 @@ def guarded_targets(cos_angle: np.ndarray, targets: np.ndarray, friction_bound: 
     t_w = wp.array(np.ascontiguousarray(targets, dtype=np.float32), dtype=wp.float32, device="cpu")
     out = wp.zeros(t_w.shape, dtype=wp.float32, device="cpu")
     flags = wp.zeros(cos_w.shape[0], dtype=wp.int32, device="cpu")
-    admissible_targets(cos_w, t_w, friction_bound, out, flags)
+    admissible_targets(cos_w, t_w, friction_bound, out, flags, separation_slack=separation_slack)
     return out.numpy().astype(np.float64), flags.numpy()

@@ -397,8 +397,7 @@ def train(data: CollisionData, model_dir: str, config: TrainConfig, *, log=print
         log(format_spin_table(metrics["spin_sweep"]))
     if config.form == "contact":
         metrics["guard"] = guard_metrics(doc, rows, test_r, predicted)
-        if metrics["guard"]["flagged"]:
-            log(f"WARNING: {metrics['guard']['warning']}")
+        log(f"WARNING: {metrics['guard']['warning']}" if metrics["guard"]["flagged"] else metrics["guard"]["note"])
         if material is not None and config.sweep:
             from hel_warp.forest import parse_forest
             from surrogate.sweep import format_table, sweep_against_dem
@@ -480,10 +479,21 @@ def guard_metrics(doc: dict, rows: FormRows, test_rows: np.ndarray, predicted: n
     """How often the engine's domain clamp and admissibility guard act on the test set (contact form).
 
     ``fraction_*``: calls of the engine path (``ForestPredictor.predict_pairs``, clamp + guard) with
-    that correction, any size. ``material_fraction``: calls whose guard correction moves g' by more
-    than MATERIAL_CORRECTION |g|; ``beyond_dem_fraction``: those among them where the DEM outcome of
-    the row needs no such correction (a model error, not the guard's rule against the DEM);
-    ``flagged`` when the material fraction exceeds FLAG_FRACTION (0.1 %).
+    that correction, any size. The rest measure the guard the engine applies (the artifact's Coulomb bound and
+    separation slack, the training DEM's own largest b/a and separation shortfall), target by target:
+    ``material_fraction``: calls whose guard correction moves g' by more than MATERIAL_CORRECTION |g|
+    (``max_correction``: the largest, in units of |g|); ``dem_needs_fraction``: test rows whose DEM outcome the
+    guard would move that much; ``beyond_dem_fraction``: corrected rows whose DEM outcome needs none (the
+    model's raw outcome outside the admissible set); ``farther_fraction``: rows the guard moves farther from the
+    DEM outcome by more than MATERIAL_CORRECTION |g|.
+
+    The admissible set is convex and holds every DEM outcome of the data, so a correction brings the raw outcome
+    towards the DEM, not away (a model of ``hel-warp demo``'s size, 20,000 default rows and 4 trials: 6.3 % of the
+    test rows corrected by up to 2.2 % of |g|, median error against the DEM 0.72 -> 0.16 % of |g|, none farther).
+    A correction is then the guard doing its work, reported in ``note``; ``flagged`` (with ``warning``) when the
+    guard contradicts the DEM: ``farther_fraction`` or ``dem_needs_fraction`` above FLAG_FRACTION (0.1 %). Measured
+    with the strict separation rule (no slack) instead, the DEM's own grazing outcomes would count as corrected
+    (4-5 % of the rows), which the engine never does.
     """
     from hel_warp.forest import ForestPredictor, parse_forest
     from surrogate.admissibility import FLAG_FRACTION, MATERIAL_CORRECTION, guarded_targets
@@ -497,29 +507,41 @@ def guard_metrics(doc: dict, rows: FormRows, test_rows: np.ndarray, predicted: n
     counts = predictor.last_counts
     n_calls = max(1, counts["pairs"])
     cos = rows.features[test_rows, 2]
-    fixed, flags = guarded_targets(cos, predicted, flat.friction_bound)
-    moved = np.hypot(*(fixed - predicted).T) > MATERIAL_CORRECTION
-    dem_fixed, _ = guarded_targets(cos, rows.targets[test_rows], flat.friction_bound)
-    dem_needs = np.hypot(*(dem_fixed - rows.targets[test_rows]).T) > MATERIAL_CORRECTION
+    slack = flat.separation_slack
+    dem = rows.targets[test_rows]
+    fixed, flags = guarded_targets(cos, predicted, flat.friction_bound, slack)
+    correction = np.hypot(*(fixed - predicted).T)
+    moved = correction > MATERIAL_CORRECTION
+    dem_fixed, _ = guarded_targets(cos, dem, flat.friction_bound, slack)
+    dem_needs = np.hypot(*(dem_fixed - dem).T) > MATERIAL_CORRECTION
+    farther = np.hypot(*(fixed - dem).T) - np.hypot(*(predicted - dem).T) > MATERIAL_CORRECTION
     out = {"calls": int(counts["pairs"]),
            "fraction_clamped": counts["clamped"] / n_calls,
            "fraction_separation": counts["guard_separation"] / n_calls,
            "fraction_coulomb": counts["guard_coulomb"] / n_calls,
            "fraction_energy": counts["guard_energy"] / n_calls,
            "fraction_any": counts["guard_any"] / n_calls,
+           "separation_slack": float(slack),
            "material_correction": MATERIAL_CORRECTION,
            "material_fraction": float(np.mean(moved)),
            "material_fraction_by_flag": {name: float(np.mean(moved & ((flags & bit) != 0)))
                                          for name, bit in (("separation", 1), ("coulomb", 2), ("energy", 4))},
+           "max_correction": float(np.max(correction)) if correction.size else 0.0,
            "dem_needs_fraction": float(np.mean(dem_needs)),
            "beyond_dem_fraction": float(np.mean(moved & ~dem_needs)),
+           "farther_fraction": float(np.mean(farther)),
            "flag_fraction": FLAG_FRACTION}
-    out["flagged"] = bool(out["material_fraction"] > FLAG_FRACTION)
-    out["warning"] = (f"the admissibility guard changes {100 * out['material_fraction']:.2f} % of the test-set "
-                      f"outcomes by more than {100 * MATERIAL_CORRECTION:g} % of |g| (limit "
-                      f"{100 * FLAG_FRACTION:g} %): separation {100 * out['material_fraction_by_flag']['separation']:.2f} %, "
-                      f"Coulomb {100 * out['material_fraction_by_flag']['coulomb']:.2f} %, energy "
-                      f"{100 * out['material_fraction_by_flag']['energy']:.2f} %; the DEM outcomes themselves need it "
-                      f"in {100 * out['dem_needs_fraction']:.2f} % (soft spheres sliding past at grazing incidence), "
-                      f"the model beyond them in {100 * out['beyond_dem_fraction']:.2f} %") if out["flagged"] else ""
+    pct = {k: 100 * v for k, v in out["material_fraction_by_flag"].items()}
+    out["note"] = (f"the admissibility guard brings {100 * out['material_fraction']:.2f} % of the test-set outcomes "
+                   f"back into the physical set (separation {pct['separation']:.2f} %, Coulomb "
+                   f"{pct['coulomb']:.2f} %, energy {pct['energy']:.2f} %) by more than "
+                   f"{100 * MATERIAL_CORRECTION:g} % of |g|, at most {100 * out['max_correction']:.2f} %; "
+                   f"{100 * out['farther_fraction']:.2f} % end farther from the DEM")
+    out["flagged"] = bool(out["farther_fraction"] > FLAG_FRACTION or out["dem_needs_fraction"] > FLAG_FRACTION)
+    out["warning"] = (f"the admissibility guard contradicts the DEM: it moves {100 * out['farther_fraction']:.2f} % "
+                      f"of the test-set outcomes farther from the DEM and would change "
+                      f"{100 * out['dem_needs_fraction']:.2f} % of the DEM outcomes themselves by more than "
+                      f"{100 * MATERIAL_CORRECTION:g} % of |g| (limit {100 * FLAG_FRACTION:g} %); its bound "
+                      f"{flat.friction_bound:.6g} and separation slack {slack:.6g} do not hold the training DEM"
+                      ) if out["flagged"] else ""
     return out
