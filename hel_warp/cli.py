@@ -19,7 +19,7 @@ import sys
 from hel_warp.errors import HelWarpError
 
 # name -> module under hel_warp.commands; a module not (yet) present is skipped.
-COMMANDS = ("timestep", "impact", "dem", "dataset", "train", "predict", "particle", "run", "report", "demo")
+COMMANDS = ("timestep", "impact", "dem", "dataset", "train", "predict", "particle", "run", "report", "demo", "ensemble")
 
 
 class _Parser(argparse.ArgumentParser):
