@@ -73,7 +73,7 @@ class CellConfig:
     parcel less its own share (w V_p sum S^2 / h^3 over its stencil S), e_ij their mean, chi_ij = g0(e_ij) e_ij /
     e_cell (e_cell the cell's fraction without the pair's mean share), so that a parcel collides at the density of
     the others around it. Unbiased in a uniform gas (the own share removed). Off by default: on the rig (96
-    held-out seeds against 28 CFD-DEM seeds, ``scripts/rig_ensemble.py``) it raises the real collisions from 0.47 to
+    held-out seeds against 28 CFD-DEM seeds, ``hel_warp.rig_ensemble``) it raises the real collisions from 0.47 to
     0.51 of the CFD-DEM's at weight 8 with the transverse spread closer (-1.5 % against -5.1 %), but at weight 64
     from 0.37 to 0.54 with the spread 11.6 % low (the default -4.2 %). Grid cells of weight 1 and periodic boxes are
     not merged and keep the cell's mean either way."""
@@ -218,7 +218,7 @@ class CellConfig:
     too few pairs at 16 parcels per cell and eps_s = 0.05: the pairs are counted as N (N - 1) + (1 - S) k N, k = 1 -
     (3/8) d sum 1 / L_a the share of a parcel's excluded-volume hole (radius d) that a cell of edges L_a holds
     (``cell_prepare``; it over-counts in cells of few parcels: +2 % at weight 1 and +5 % at weight 64 with 4 per
-    cell, eps_s = 0.05). Measured (``cases/homogeneous_cooling.py``, ``scripts/rig_ensemble.py``): the homogeneous gas at weights 1 / 8 / 64, eps_s = 0.01 / 0.05, dt = 1e-3 / 1e-4 / 7.14e-5 s within
+    cell, eps_s = 0.05). Measured (``cases/homogeneous_cooling.py``, ``hel_warp.rig_ensemble``): the homogeneous gas at weights 1 / 8 / 64, eps_s = 0.01 / 0.05, dt = 1e-3 / 1e-4 / 7.14e-5 s within
     1.5 % of Enskog's frequency and within 5 % of Haff's cooling (weight 64, eps_s = 0.05: 0.945-0.979 over five
     seeds of the 1,000-parcel box, 0.966-0.973 in the 8,000-parcel box; plain NTC's weight 64 cools as slowly); the
     rig (315 um, 1e-3 s, against four CFD-DEM seeds, whole run / sections 1-7) weight 1 +0.019 / -4.1 % and +0.041 /

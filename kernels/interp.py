@@ -144,7 +144,7 @@ def spread_half_width(grid: CellGrid, weight: float):
     in a 1 mm cell would otherwise take its whole drag from the gas of 8 cells, ~1.8 times its drag impulse per step
     on the rig at 1e-3 s). The earlier rule K = round(w^(1/3)) matched the tent's support (2 K h)^3 to 8 w cells,
     twice the cloud's variance at large w; on the rig at w = 64 it crossed 0.01-0.04 more and spread 2-5 points less
-    than this tent on the same seeds (``scripts/rig_ensemble.py``)."""
+    than this tent on the same seeds (``hel_warp.rig_ensemble``)."""
     if grid.spread == 0 or weight < 3.9528:  # K < 1.5 below w = 2.5^1.5 (weight 1 skips the pow)
         return 1
     return int(wp.round(wp.sqrt(0.5 * wp.pow(weight, 2.0 / 3.0) + 1.0)))

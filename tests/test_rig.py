@@ -329,9 +329,9 @@ def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
     for label in ("none", "ktgf"):
         keys = {d["key"] for d in by[label]["config_differences_vs_dem"]}
         assert not any(k.startswith(("case.", "gas.", "grid.")) for k in keys), keys
-    # scripts/rig_ensemble.py: the metrics are ratios over the parcels, so a run pooled with itself (twice the
+    # hel_warp.rig_ensemble: the metrics are ratios over the parcels, so a run pooled with itself (twice the
     # parcels at half the weight) has the metrics of the run; runs of another snapshot schedule are refused
-    ens = load_file("rig_ensemble", "scripts/rig_ensemble.py")
+    ens = importlib.import_module("hel_warp.rig_ensemble")
     filled = [k + 1 for k, s in enumerate(by["none"]["stream_metrics"]["sections"]) if s["samples"]]
     one = ens.ensemble_metrics([runs[0]], [runs[1]], min_samples=1, sections=filled[:2])
     two = ens.ensemble_metrics([runs[0], runs[0]], [runs[1], runs[1], runs[1]], min_samples=1, sections=filled[:2],
@@ -350,6 +350,14 @@ def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
             two["fixed"][key] == pytest.approx(one["fixed"][key], rel=1e-12, abs=1e-12)
     assert one["stream_crossing"] == pytest.approx(by["none"]["stream_metrics"]["stream_crossing"], rel=1e-12)
     assert {"fixed_stream_crossing_vs_dem", "fixed_transverse_velocity_rms_vs_dem"} <= set(two["jackknife"]["runs"])
+    # the ensemble's hook (hel-warp ensemble): a run pooled with itself keeps the report's figures, per section too
+    for hook in (ens.case_hook([runs[0], runs[0]], [runs[1]], min_samples=1, sections=filled[:2]),
+                 ens.case_hook([runs[0], runs[0]], None, min_samples=1, sections=filled[:2])):
+        sections = by["none"]["stream_metrics"]["sections"]
+        assert hook["metrics"]["stream_crossing"] == pytest.approx(by["none"]["stream_metrics"]["stream_crossing"])
+        assert hook["metrics"]["transverse_velocity_rms_per_section"] == pytest.approx(
+            [s["transverse_velocity_rms"] for s in sections], nan_ok=True)
+        assert all(v is None or v == pytest.approx(0.0, abs=1e-12) for v in hook["stderr"].values())
     # the ensemble's collision rates are the mean of its runs' (the report's own figure), beside the reference's
     col = ens.ensemble_metrics([runs[2], runs[2]], [runs[2]], min_samples=1)["collisions"]
     if dem["collision_rate"] is not None:
@@ -389,10 +397,10 @@ def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
 
 
 def test_grouped_jackknife_of_a_mean_is_the_standard_error_of_the_group_means():
-    """scripts/rig_ensemble.py --jackknife-groups G: leaving out one of G equal contiguous groups at a time gives,
+    """hel_warp.rig_ensemble --jackknife-groups G: leaving out one of G equal contiguous groups at a time gives,
     for a mean, std(group means, ddof=1) / sqrt(G) (closed form); groups cover every run once; G >= n is the
     leave-one-out jackknife; fewer than 2 groups is refused."""
-    ens = load_file("rig_ensemble", "scripts/rig_ensemble.py")
+    ens = importlib.import_module("hel_warp.rig_ensemble")
     from hel_warp.errors import ConfigError
 
     x = np.random.default_rng(7).normal(size=24)

@@ -1,13 +1,18 @@
-"""Stream metrics of an ensemble: runs that differ only in their seed, pooled, against a (pooled) reference.
+"""Stream metrics of an ensemble of rig runs: runs that differ only in their seed, pooled, against a (pooled)
+reference.
 
 A run of W particles per parcel carries the real particles of a weight-1 run in 1/W of the parcels, so one run's
 per-section crossing and transverse rms rest on W times fewer samples (``scripts/rig_metric_subsample.py``
 measures that noise). Runs of the same case with different ``--seed`` are independent samples of the same flow:
 pooling their snapshots (each snapshot time, the parcels of every run, weights divided by the number of runs so
-the real mass is one run's) gives the metrics of W x more parcels at no change of physics. The reference (``dem``
-runs, one or several seeds) is pooled the same way:
+the real mass is one run's) gives the metrics of W x more parcels at no change of physics, which the mean of the
+runs' own figures does not (a section of a weighted run often holds too few parcels for a figure at all). The
+reference (``dem`` runs, one or several seeds) is pooled the same way.
 
-    python scripts/rig_ensemble.py --reference runs/dem_s0 runs/dem_s1 --runs runs/w8_s* --label cell_w8
+``hel-warp ensemble cases/colliding_streams.py ...`` calls ``case_hook`` (the rig's ``pooled_metrics``) once per
+parameter combination; the same figures for run folders made otherwise:
+
+    python -m hel_warp.rig_ensemble --reference runs/dem_s0 runs/dem_s1 --runs runs/w8_s* --label cell_w8
 
 ``--jackknife`` adds standard errors from the seed-to-seed spread (``--jackknife-groups G`` for ensembles of
 hundreds of runs: G evaluations instead of one per run); every ensemble also reports its mean real collision rate
@@ -223,7 +228,11 @@ def pooled_metrics(runs, refs, min_samples: int = 10, label: str | None = None, 
                 "reference_transverse_velocity_rms": ref["transverse_velocity_rms"],
                 "transverse_velocity_rms_vs_dem": vs["transverse_velocity_rms_vs_dem"]["relative_difference"],
                 "crossing_per_section": [s.get("stream_crossing") for s in m.get("sections", [])],
-                "reference_crossing_per_section": [s.get("stream_crossing") for s in ref.get("sections", [])]}
+                "reference_crossing_per_section": [s.get("stream_crossing") for s in ref.get("sections", [])],
+                "transverse_velocity_rms_per_section": [s.get("transverse_velocity_rms")
+                                                        for s in m.get("sections", [])],
+                "reference_transverse_velocity_rms_per_section": [s.get("transverse_velocity_rms")
+                                                                  for s in ref.get("sections", [])]}
 
     out = {"label": run.label, "runs": len(runs), "reference_runs": len(refs), **compare(run, ref_run)}
     classes = size_classes(run)
@@ -234,10 +243,96 @@ def pooled_metrics(runs, refs, min_samples: int = 10, label: str | None = None, 
     return out
 
 
+HOOK_SECTIONS = (1, 2, 3, 4, 5, 6, 7)
+"""The fixed sections of ``case_hook``'s ``fixed_*`` figures: the sections every ensemble of the rig fills (a
+whole-run figure moves with the set of filled sections, so ensembles of different sizes compare over these)."""
+HOOK_MIN_SAMPLES = 10
+"""Parcels a section needs for a figure (as ``hel-warp report --min-samples``)."""
+HOOK_LEAVE_ONE_OUT = 32
+"""Up to this many runs the jackknife leaves one run out at a time; beyond, one of ``HOOK_GROUPS`` blocks."""
+HOOK_GROUPS = 24
+
+
+def _alone_values(runs, min_samples: int, sections) -> dict:
+    """The pooled figures of runs without a reference: crossing and v_y rms over the whole run and over
+    ``sections``, per section, per size class."""
+    from hel_warp.report import DEFAULT_BOXES, size_class_view, size_classes, stream_metrics
+
+    run = pooled(runs)
+
+    def figures(r, prefix: str) -> dict:
+        m = stream_metrics(r, DEFAULT_BOXES, min_samples=min_samples)
+        secs = m.get("sections", [])
+        vals = {prefix + "stream_crossing": m["stream_crossing"],
+                prefix + "transverse_velocity_rms": m["transverse_velocity_rms"]}
+        if sections:
+            picked = [secs[k - 1] if 0 < k <= len(secs) else {} for k in sections]
+            for key in ("stream_crossing", "transverse_velocity_rms"):
+                v = [x.get(key) for x in picked]
+                vals[f"{prefix}fixed_{key}"] = None if any(x is None for x in v) else float(np.mean(v))
+        vals[prefix + "crossing_per_section"] = [x.get("stream_crossing") for x in secs]
+        vals[prefix + "transverse_velocity_rms_per_section"] = [x.get("transverse_velocity_rms") for x in secs]
+        return vals
+
+    out = figures(run, "")
+    for k, c in enumerate(size_classes(run) or []):
+        out.update(figures(size_class_view(run, k), f"{1e6 * float(c['diameter']):.0f}um_"))
+    return out
+
+
+def case_hook(member_dirs, reference_dirs=None, *, min_samples: int = HOOK_MIN_SAMPLES,
+              sections=HOOK_SECTIONS) -> dict:
+    """The rig's ``pooled_metrics`` for ``hel-warp ensemble``: its figures pooled over the members' snapshots.
+
+    With reference folders (the ``--reference`` ensemble's matching members, e.g. the CFD-DEM seeds):
+    ``ensemble_metrics`` with the fixed ``sections`` and the jackknife (whole run, sections, per size class, per
+    section, collision rates and their ratio to the reference's); without: the pooled crossing and v_y rms of the
+    members alone, with the jackknife over the members. The jackknife leaves one run out up to
+    ``HOOK_LEAVE_ONE_OUT`` runs, else one of ``HOOK_GROUPS`` blocks. Returns ``{"metrics": flat figures,
+    "stderr": their standard errors where the jackknife gives one, "detail": the full result}``."""
+    runs = list(member_dirs)
+    groups = None if len(runs) <= HOOK_LEAVE_ONE_OUT else HOOK_GROUPS
+    if reference_dirs:
+        full = ensemble_metrics(runs, list(reference_dirs), min_samples, sections=sections, jackknife=True,
+                                groups=groups)
+        keys = ("stream_crossing", "reference_stream_crossing", "stream_crossing_vs_dem", "transverse_velocity_rms",
+                "reference_transverse_velocity_rms", "transverse_velocity_rms_vs_dem", "crossing_per_section",
+                "reference_crossing_per_section", "transverse_velocity_rms_per_section",
+                "reference_transverse_velocity_rms_per_section")
+
+        def flat(m: dict, prefix: str) -> dict:
+            vals = {prefix + k: m.get(k) for k in keys}
+            vals.update({f"{prefix}fixed_{k}": v for k, v in (m.get("fixed") or {}).items() if k != "sections"})
+            return vals
+
+        metrics = flat(full, "")
+        for c in full.get("size_classes", []):
+            metrics.update(flat(c, f"{1e6 * c['diameter']:.0f}um_"))
+        col = full["collisions"]
+        metrics.update({k: col[k] for k in ("collision_rate", "reference_collision_rate", "collision_rate_vs_dem")})
+        for k, v in (col.get("collision_rate_per_stream_pair_vs_dem") or {}).items():
+            metrics[f"collision_rate_vs_dem_{k}"] = v
+        return {"metrics": metrics, "stderr": full["jackknife"]["combined"], "detail": full}
+    from hel_warp.report import collision_rates, load_run
+
+    loaded = [load_run(p) for p in runs]
+    metrics = _alone_values(loaded, min_samples, sections)
+    rates = [collision_rates(r)["collision_rate"] for r in loaded]
+    metrics["collision_rate"] = None if any(r is None for r in rates) else float(np.mean(rates))
+    stderr = None
+    if len(loaded) >= 2:
+        scalar = lambda vals: {k: v for k, v in vals.items() if not isinstance(v, list)}  # noqa: E731
+        parts = leave_out_groups(len(loaded), groups)
+        stderr = _leave_one_out_error([scalar(_alone_values([r for k, r in enumerate(loaded) if k not in set(g)],
+                                                            min_samples, sections)) for g in parts])
+    return {"metrics": metrics, "stderr": stderr or {}, "detail": {"runs": len(loaded), "groups": groups,
+                                                                   "sections": list(sections)}}
+
+
 def main(argv=None) -> int:
     from hel_warp.errors import ConfigError
 
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m hel_warp.rig_ensemble", description=__doc__.split("\n\n")[0])
     p.add_argument("--runs", nargs="+", required=True, help="run directories of one case, different --seed")
     p.add_argument("--reference", nargs="+", required=True, help="reference run directories (dem), pooled alike")
     p.add_argument("--label", default=None, help="name of the ensemble in the output")
@@ -254,13 +349,13 @@ def main(argv=None) -> int:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     args = p.parse_args(argv)
     if args.jackknife_groups is not None and args.jackknife_groups < 2:
-        print(f"rig_ensemble: error: --jackknife-groups must be >= 2 (got {args.jackknife_groups})", file=sys.stderr)
+        print(f"hel-warp: error: --jackknife-groups must be >= 2 (got {args.jackknife_groups})", file=sys.stderr)
         return 2
     try:
         out = ensemble_metrics(args.runs, args.reference, args.min_samples, args.label, args.sections,
                                jackknife=args.jackknife, groups=args.jackknife_groups)
     except ConfigError as exc:
-        print(f"rig_ensemble: error: {exc}", file=sys.stderr)
+        print(f"hel-warp: error: {exc}", file=sys.stderr)
         return 2
     if args.json:
         print(json.dumps(out))
