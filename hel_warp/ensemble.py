@@ -84,7 +84,7 @@ CHECKPOINTS = ("checkpoint.npz", "checkpoint.prev.npz")
 MAX_LIST = 16
 """Lists of at most this many items enter the metrics element by element (per-section figures); longer ones (time
 series) are left out."""
-TIMING = re.compile(r"wall_clock|(^|_)wall_s$|kernel_load|^timing|elapsed|(^|_)seconds$")
+TIMING = re.compile(r"wall_clock|(^|_)wall_s$|kernel_load|^timing|elapsed|(^|_)seconds$|steps_per_second|throughput")
 """Summary keys that measure the machine (wall clock, kernel loading), not the flow: left out of the metrics, so
 that an ensemble's result is the same however and wherever its members ran."""
 MANAGED = ("--seed", "--out", "--json", "--overwrite", "--resume", "--no-progress")

@@ -87,7 +87,7 @@ def test_scalar_metrics_of_a_summary():
     summary = {"seed": 4, "a": 1, "b": 2.5, "flag": True, "name": "x", "none": None, "nan": float("nan"),
                "nested": {"c": 3, "d": {"e": -1.0}, "seed": 9}, "short": [1.0, 2.0], "long": list(range(100)),
                "rows": [{"v": 1.0}, {"v": 2.0}], "wall_clock_s": 3.0, "kernel_load_s": 9.0,
-               "wall_events": 7}
+               "setup_wall_clock_s": 1.0, "parcel_steps_per_second": 5e5, "wall_events": 7}
     assert ens.scalar_metrics(summary) == {
         "a": 1.0, "b": 2.5, "nested.c": 3.0, "nested.d.e": -1.0, "nested.seed": 9.0, "short[0]": 1.0,
         "short[1]": 2.0, "rows[0].v": 1.0, "rows[1].v": 2.0, "wall_events": 7.0}
