@@ -536,9 +536,12 @@ def _client(scheduler: str | None, workers: int):
             raise ConfigError(f"cannot reach the Dask scheduler at {scheduler!r} ({exc}); check the address or "
                               "scheduler file") from None
     import logging
+    import warnings
 
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=False, dashboard_address=None,
-                           silence_logs=logging.ERROR)
+    with warnings.catch_warnings():  # its health endpoint takes another port when two ensembles run: no matter
+        warnings.filterwarnings("ignore", message="Port .* is already in use")
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=False, dashboard_address=None,
+                               silence_logs=logging.ERROR)
     return Client(cluster), cluster
 
 
@@ -639,6 +642,7 @@ def run_ensemble(case, seeds, sets, out, case_args=(), *, scheduler: str | None 
         client, cluster = _client(scheduler, min(workers or default_workers(), len(todo)))
     try:
         out.mkdir(parents=True, exist_ok=True)
+        lock = _lock(out)
         _write_json(out / COMMAND_JSON, command, indent=1)
     except BaseException:
         if client is not None:
@@ -646,18 +650,57 @@ def run_ensemble(case, seeds, sets, out, case_args=(), *, scheduler: str | None 
             if cluster is not None:
                 cluster.close()
         raise
-    records = []
-    if todo:
-        specs = [_spec(m, out, case_file, case_args, options) for m in todo]
-        records = _run_members(specs, client, cluster, progress, say)
-    hook = load_hook(case_file)
+    try:
+        records = []
+        if todo:
+            specs = [_spec(m, out, case_file, case_args, options) for m in todo]
+            records = _run_members(specs, client, cluster, progress, say)
+        result = _finish(out, members, case_file, case_args, seeds, sets, ref)
+    finally:
+        if lock is not None:
+            lock.close()
+    ran = [r["name"] for r in records if r.get("ran")]
+    return {**result, "run": {"ran": ran, "skipped": len(members) - len(ran), "members": len(members),
+                              "wall_s": time.perf_counter() - start, "out": str(out)}}
+
+
+def _finish(out: Path, members, case_file, case_args, seeds, sets, ref) -> dict:
+    """Summarise the member folders (with the case's pooled metrics) and write ``ensemble.json``."""
+    try:
+        hook = load_hook(case_file)
+    except Exception as exc:  # noqa: BLE001 - the members are on disk; the result says why no pooled metrics
+        message = f"the case module could not be loaded for its pooled_metrics: {type(exc).__name__}: {exc}"
+
+        def hook(dirs, ref_dirs, _message=message):
+            raise ConfigError(_message)
     result = summarise(out, members, case_file=case_file, case_args=case_args, seeds=seeds, sets=sets,
                        reference=ref, hook=hook)
     _write_json(out / ENSEMBLE_JSON, result, indent=1)
-    ran = [r["name"] for r in records if r.get("ran")]
-    result = {**result, "run": {"ran": ran, "skipped": len(members) - len(ran), "members": len(members),
-                                "wall_s": time.perf_counter() - start, "out": str(out)}}
     return result
+
+
+def _lock(out: Path):
+    """Hold ``DIR/.ensemble.lock`` while this driver runs (released by the system when it dies, even killed): a
+    second driver on the same DIR would run the same members into the same folders. None where locks are not
+    available."""
+    try:
+        import fcntl
+    except ImportError:
+        return None
+    fh = open(out / ".ensemble.lock", "a+")
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        fh.seek(0)
+        holder = fh.read().strip()
+        fh.close()
+        raise ConfigError(f"another hel-warp ensemble runs in {out} ({holder or 'a process'}); wait for it, or give "
+                          "another --out") from None
+    fh.seek(0)
+    fh.truncate()
+    fh.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
+    fh.flush()
+    return fh
 
 
 # ------------------------------------------------------------------------------------------------ the table

@@ -282,3 +282,11 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypatch)
     capsys.readouterr()
     assert main(["ensemble", TOY, "--seeds", "0-1", "--out", str(out), "--", "--steps", "3"]) == 2
     assert "holds an ensemble of" in capsys.readouterr().err
+    # nor run by two drivers at once (the lock a running driver holds)
+    import fcntl
+
+    with open(out / ".ensemble.lock", "a+") as held:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        assert main(["ensemble", TOY, "--seeds", "0-1", "--out", str(out), "--", "--steps", "2"]) == 2
+        assert "another hel-warp ensemble runs in" in capsys.readouterr().err
+    assert not (out / "seed1").exists()
