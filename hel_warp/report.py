@@ -555,7 +555,7 @@ MODEL_DIFFERENCES = (
                  "wall keeps 0.60-0.70 of the tangential speed at 20-60 deg incidence (the sphere leaves rolling), "
                  "the HEL reflection 0.8 (Table 1) until the Coulomb cap; HEL walls at e_t = 5/7 on the mixture rig "
                  "(16 seeds, 1e-3 s) gave the 475 um class's transverse rms +14.9 +- 7.5 % of the dem's against "
-                 "+17.2 +- 7.0 % at 0.8 (scripts/rig_ensemble.py)"},
+                 "+17.2 +- 7.0 % at 0.8 (python -m hel_warp.rig_ensemble)"},
     {"what": "parcel integration", "intended": False,
      "dem": "velocity-Verlet sub-steps at the DEM step with the fluid acceleration of the push held over the fluid "
             "step (same fluid impulse per step)",
