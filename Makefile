@@ -5,6 +5,7 @@
 # on first use and reinstalled only when pyproject.toml changes (a stamp file per extra), so a second
 # `make test` goes straight to the tests.
 PYTHON ?= python3
+export NO_MKDOCS_2_WARNING := 1
 VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
