@@ -379,6 +379,7 @@ class SurrogateCollision:
         a.shapes.center = zeros(1, wp.vec3)
         a.shapes.rotation = zeros(1, wp.mat33)
         a.shapes.half_extent = zeros(1, wp.vec3)
+        a.shapes.kind = zeros(1, wp.int32)
         a.shapes.count = 0
         a.wall = make_wall_params()
         a.wall_count, a.wall_hits = zeros(1, wp.int32), zeros(1, wp.int32)

@@ -2,8 +2,8 @@
 
 - ``Grid``: uniform spacing ``h`` on all axes, ``origin`` (m), ``shape`` (nx, ny, nz), a
   periodic flag per axis. Cell ``(i, j, k)`` has its centre at ``origin + (i+1/2, j+1/2, k+1/2) h``.
-- ``Geometry``: a union of ``Box`` (axis-aligned) and ``Channel`` (rectangular cross-section
-  along any direction) shapes, signed distance negative inside the fluid
+- ``Geometry``: a union of ``Box`` (axis-aligned), ``Channel`` (rectangular cross-section
+  along any direction) and ``Cylinder`` (circular cross-section, capped) shapes, signed distance negative inside the fluid
   (``kernels/sdf.py``), and named ``Patch``es (inlet at a fixed velocity vector, outlet at
   a fixed pressure) on the domain boundary.
 - ``FlowDomain``: what the gas solver needs on the device: the fluid mask and the MAC face
@@ -153,6 +153,37 @@ class Channel:
 
 
 @dataclass(frozen=True, kw_only=True)
+class Cylinder:
+    """Capped circular cylinder of fluid of ``radius`` (m) from ``start`` to ``end`` (m), e.g. a riser or a
+    round column; on the Cartesian grid its wall is stair-stepped, as every wall."""
+
+    start: tuple
+    end: tuple
+    radius: float
+    name: str = "cylinder"
+    kind = 1
+    """``kernels.sdf.SHAPE_CYLINDER``."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "start", _vec(f"{self.name} start", self.start))
+        object.__setattr__(self, "end", _vec(f"{self.name} end", self.end))
+        require_positive(f"{self.name} radius", self.radius, "m")
+        if np.linalg.norm(np.subtract(self.end, self.start)) == 0.0:
+            raise ConfigError(f"{self.name}: start and end coincide; give a cylinder of non-zero length")
+
+    def oriented(self) -> tuple:
+        d = np.subtract(self.end, self.start)
+        length = float(np.linalg.norm(d))
+        d = d / length
+        aux_axis = np.array((0.0, 0.0, 1.0)) if abs(d[2]) < 0.9 else np.array((0.0, 1.0, 0.0))
+        e2 = np.cross(aux_axis, d)
+        e2 /= np.linalg.norm(e2)
+        e3 = np.cross(d, e2)
+        centre = 0.5 * (np.array(self.start) + np.array(self.end))
+        return centre, np.stack([d, e2, e3]), np.array([0.5 * length, self.radius, self.radius]), (1, 2)
+
+
+@dataclass(frozen=True, kw_only=True)
 class Patch:
     """A named boundary patch: the faces of the domain side ``axis``/``side`` whose centres lie in
     the region ``lo``..``hi`` (the ``axis`` component of lo/hi is ignored) next to fluid cells."""
@@ -233,7 +264,7 @@ class Geometry:
         object.__setattr__(self, "shapes", tuple(self.shapes))
         object.__setattr__(self, "patches", tuple(self.patches))
         if not self.shapes:
-            raise ConfigError("geometry needs at least one Box or Channel")
+            raise ConfigError("geometry needs at least one Box, Channel or Cylinder")
         names = [p.name for p in self.patches]
         if len(set(names)) != len(names):
             raise ConfigError(f"patch names must be unique (got {names})")
@@ -245,6 +276,8 @@ class Geometry:
         shapes.center = wp.array(np.array([d[0] for d in data]), dtype=wp.vec3, device=device)
         shapes.rotation = wp.array(np.array([d[1] for d in data]), dtype=wp.mat33, device=device)
         shapes.half_extent = wp.array(np.array([d[2] for d in data]), dtype=wp.vec3, device=device)
+        shapes.kind = wp.array(np.array([getattr(s, "kind", 0) for s in self.shapes], np.int32), dtype=wp.int32,
+                               device=device)
         shapes.count = len(data)
         return shapes
 

@@ -39,7 +39,7 @@ from kernels.forest import (COS_FEATURE, GUARD_COULOMB, GUARD_ENERGY, GUARD_SEPA
                             write_contact_features_in_domain)
 from kernels.cell_list import CellList, range_count, range_slots, range_slots_pair, search_box, search_box_pair
 from kernels.reflect import WallParams, wall_impact
-from kernels.sdf import SdfShapes, sdf_oriented_box, sdf_union, sdf_union_normal
+from kernels.sdf import SdfShapes, sdf_shape, sdf_union, sdf_union_normal
 
 PAIR_PENDING = wp.constant(0)
 """``pair_state`` of a detected pair (the overlap pair list of ``hel_warp.pairs.PairDetector``)."""
@@ -602,8 +602,8 @@ def shapes_near_segment(shapes: SdfShapes, x_a: wp.vec3, x_b: wp.vec3, extra: fl
     margin = WALL_CULL_EPS * (wp.length(x_a) + wp.length(x_b) + half_length + extra)
     mask = int(0)
     for s in range(shapes.count):
-        d_a = sdf_oriented_box(x_a, shapes.center[s], shapes.rotation[s], shapes.half_extent[s])
-        d_b = sdf_oriented_box(x_b, shapes.center[s], shapes.rotation[s], shapes.half_extent[s])
+        d_a = sdf_shape(shapes, s, x_a)
+        d_b = sdf_shape(shapes, s, x_b)
         if 0.5 * (d_a + d_b) - half_length + extra <= margin:
             mask = mask | (1 << s)
     return mask
@@ -622,7 +622,7 @@ def bisect_crossing(shapes: SdfShapes, start: wp.vec3, v: wp.vec3, extra: float,
         d = float(1.0e30)
         for s in range(shapes.count):
             if mask == -1 or (mask & (1 << s)) != 0:
-                d = wp.min(d, sdf_oriented_box(x, shapes.center[s], shapes.rotation[s], shapes.half_extent[s]))
+                d = wp.min(d, sdf_shape(shapes, s, x))
         if d + extra > 0.0:
             hi = mid
         else:

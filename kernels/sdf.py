@@ -1,4 +1,4 @@
-"""Analytic signed distance of the flow geometry: a union of (possibly rotated) boxes.
+"""Analytic signed distance of the flow geometry: a union of (possibly rotated) boxes and capped cylinders.
 
 Sign convention: **negative inside the fluid**, positive in the solid, zero on the wall.
 
@@ -12,6 +12,10 @@ Box distance (exact, Quilez, "distance functions", 2D/3D box):
 Its gradient (the unit normal, pointing from the fluid into the wall) is
 ``sign(p) max(q,0)/|max(q,0)|`` outside and ``sign(p_a) e_a`` (a = argmax q) inside,
 rotated back to world axes with ``R^T``.
+
+A capped cylinder (``kind`` 1) uses the same frame: its axis is the first local axis, ``b = (half length,
+radius, radius)``; with ``q = (|p_x| - b_x, sqrt(p_y^2 + p_z^2) - b_y)`` its exact distance is
+``|max(q, 0)| + min(max(q_0, q_1), 0)`` (Quilez, "capped cylinder").
 
 Union: ``d = min_i d_i``; exact outside the union and on its zero level set. Inside, ``|d|``
 is a lower bound of the distance to the wall (exact away from the junctions where shapes
@@ -27,15 +31,21 @@ import warp as wp
 
 @wp.struct
 class SdfShapes:
-    """Oriented boxes of the geometry (arrays of length ``count``)."""
+    """Oriented boxes and cylinders of the geometry (arrays of length ``count``)."""
 
     center: wp.array(dtype=wp.vec3)
-    """Box centres, m."""
+    """Shape centres, m."""
     rotation: wp.array(dtype=wp.mat33)
-    """Rows are the box's local axes in world coordinates (orthonormal)."""
+    """Rows are the shape's local axes in world coordinates (orthonormal)."""
     half_extent: wp.array(dtype=wp.vec3)
-    """Half sizes along the local axes, m."""
+    """Half sizes along the local axes, m (a cylinder: half length, radius, radius)."""
+    kind: wp.array(dtype=wp.int32)
+    """SHAPE_BOX or SHAPE_CYLINDER."""
     count: int
+
+
+SHAPE_BOX = wp.constant(0)
+SHAPE_CYLINDER = wp.constant(1)
 
 
 @wp.func
@@ -71,9 +81,46 @@ def sdf_box_gradient(p_local: wp.vec3, half: wp.vec3):
 
 
 @wp.func
+def sdf_cylinder(p_local: wp.vec3, half: wp.vec3):
+    """Exact signed distance of a capped cylinder along the local x axis centred at the origin (negative inside)."""
+    rho = wp.sqrt(p_local[1] * p_local[1] + p_local[2] * p_local[2])
+    qx = wp.abs(p_local[0]) - half[0]
+    qr = rho - half[1]
+    outside = wp.sqrt(wp.max(qx, 0.0) * wp.max(qx, 0.0) + wp.max(qr, 0.0) * wp.max(qr, 0.0))
+    return outside + wp.min(wp.max(qx, qr), 0.0)
+
+
+@wp.func
+def sdf_cylinder_gradient(p_local: wp.vec3, half: wp.vec3):
+    """Unit gradient of ``sdf_cylinder`` in the cylinder frame (points from inside towards outside)."""
+    rho = wp.sqrt(p_local[1] * p_local[1] + p_local[2] * p_local[2])
+    radial = wp.vec3(0.0, 1.0, 0.0)
+    if rho > 0.0:
+        radial = wp.vec3(0.0, p_local[1] / rho, p_local[2] / rho)
+    axial = wp.vec3(_sign(p_local[0]), 0.0, 0.0)
+    qx = wp.abs(p_local[0]) - half[0]
+    qr = rho - half[1]
+    if qx > 0.0 or qr > 0.0:
+        g = axial * wp.max(qx, 0.0) + radial * wp.max(qr, 0.0)
+        return g / wp.length(g)
+    if qx >= qr:
+        return axial
+    return radial
+
+
+@wp.func
 def sdf_oriented_box(p: wp.vec3, center: wp.vec3, rotation: wp.mat33, half: wp.vec3):
     """Signed distance of a rotated box (see the module docstring for ``rotation``)."""
     return sdf_box(rotation * (p - center), half)
+
+
+@wp.func
+def sdf_shape(shapes: SdfShapes, s: int, p: wp.vec3):
+    """Signed distance of shape ``s`` of the union (a box or a capped cylinder)."""
+    p_local = shapes.rotation[s] * (p - shapes.center[s])
+    if shapes.kind[s] == SHAPE_CYLINDER:
+        return sdf_cylinder(p_local, shapes.half_extent[s])
+    return sdf_box(p_local, shapes.half_extent[s])
 
 
 @wp.func
@@ -81,7 +128,7 @@ def sdf_union(shapes: SdfShapes, p: wp.vec3):
     """Signed distance of the union of all shapes, ``min_i d_i`` (negative inside the fluid)."""
     d = float(1.0e30)
     for s in range(shapes.count):
-        d = wp.min(d, sdf_oriented_box(p, shapes.center[s], shapes.rotation[s], shapes.half_extent[s]))
+        d = wp.min(d, sdf_shape(shapes, s, p))
     return d
 
 
@@ -91,12 +138,15 @@ def sdf_union_normal(shapes: SdfShapes, p: wp.vec3):
     d = float(1.0e30)
     best = int(0)
     for s in range(shapes.count):
-        ds = sdf_oriented_box(p, shapes.center[s], shapes.rotation[s], shapes.half_extent[s])
+        ds = sdf_shape(shapes, s, p)
         if ds < d:
             d = ds
             best = s
     rotation = shapes.rotation[best]
-    n_local = sdf_box_gradient(rotation * (p - shapes.center[best]), shapes.half_extent[best])
+    p_local = rotation * (p - shapes.center[best])
+    n_local = sdf_box_gradient(p_local, shapes.half_extent[best])
+    if shapes.kind[best] == SHAPE_CYLINDER:
+        n_local = sdf_cylinder_gradient(p_local, shapes.half_extent[best])
     return wp.transpose(rotation) * n_local
 
 
