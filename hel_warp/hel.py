@@ -496,6 +496,15 @@ class HelSolver:
             reflect_at_walls(self.shapes, self.wall_params, p.alive, p.x, p.v, self._wall_hits, p.radius,
                              particle_x_start=start, particle_omega=p.omega)
 
+    def wrap_periodic(self) -> None:
+        """Parcels that left through a periodic face come back through the opposite one (the grid's periodic
+        axes)."""
+        from kernels.free_flight import wrap_axes
+
+        g = self.grid
+        length = tuple(n * g.spacing for n in g.shape)
+        wrap_axes(self.pool.particles.x, self.pool.particles.alive, g.origin, length, g.periodic)
+
     def inject(self) -> None:
         """Scheduled injectors add the parcels due by the end of this step."""
         self._inject_due(self.time + self.config.dt)
@@ -512,6 +521,8 @@ class HelSolver:
         self._timed(self.push)
         self._timed(self.remove_at_outlets)
         self._timed(self.reflect_at_walls)
+        if any(self.grid.periodic):
+            self._timed(self.wrap_periodic)
         self._timed(self.inject)
         self.time += self.config.dt
         self.step_count += 1

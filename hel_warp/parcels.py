@@ -208,10 +208,17 @@ class ParcelPool:
 
     def inject(self, injection: VolumeInjection) -> int:
         """Fill the next free slots with the parcels of ``injection``; returns how many were added."""
+        s = injection.sample(blocked=self._blocked_sites())
+        return self.place(s["x"], s["radius"], v=s["v"], density=injection.density, weight=injection.weight,
+                          stream=injection.stream)
+
+    def place(self, x, radius, *, v=None, omega=None, density=1000.0, weight=1.0, stream=0) -> int:
+        """Fill the next free slots with parcels at the given positions (n, 3), radii and velocities (the caller
+        answers for overlaps); scalars apply to every parcel. Returns how many were added."""
         import warp as wp
 
-        s = injection.sample(blocked=self._blocked_sites())
-        n = s["x"].shape[0]
+        x = np.asarray(x, np.float64).reshape(-1, 3)
+        n = x.shape[0]
         if self.used + n > self.capacity:
             raise ConfigError(f"injecting {n} parcels overflows the pool ({self.used} of {self.capacity} slots "
                               "used); create the ParcelPool with a larger capacity")
@@ -221,13 +228,17 @@ class ParcelPool:
         def put(dest, host, dtype):
             wp.copy(dest, wp.array(host, dtype=dtype, device=dev), dest_offset=self.used, count=n)
 
-        put(p.x, s["x"].astype(np.float32), wp.vec3)
-        put(p.v, s["v"].astype(np.float32), wp.vec3)
-        put(p.omega, np.zeros((n, 3), np.float32), wp.vec3)
-        put(p.radius, s["radius"].astype(np.float32), wp.float32)
-        put(p.density, np.full(n, injection.density, np.float32), wp.float32)
-        put(p.weight, np.full(n, injection.weight, np.float32), wp.float32)
-        put(p.stream, np.full(n, injection.stream, np.int32), wp.int32)
+        def each(value, dtype):
+            return np.broadcast_to(np.asarray(value, dtype), (n,)).copy()
+
+        put(p.x, x.astype(np.float32), wp.vec3)
+        put(p.v, (np.zeros((n, 3)) if v is None else np.asarray(v).reshape(n, 3)).astype(np.float32), wp.vec3)
+        put(p.omega, (np.zeros((n, 3)) if omega is None else np.asarray(omega).reshape(n, 3)).astype(np.float32),
+            wp.vec3)
+        put(p.radius, each(radius, np.float32), wp.float32)
+        put(p.density, each(density, np.float32), wp.float32)
+        put(p.weight, each(weight, np.float32), wp.float32)
+        put(p.stream, each(stream, np.int32), wp.int32)
         put(p.alive, np.ones(n, np.int32), wp.int32)
         put(p.particle_id, np.arange(self.used, self.used + n, dtype=np.int32), wp.int32)
         self.used += n

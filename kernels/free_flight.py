@@ -65,6 +65,27 @@ def wrap_kernel(
 
 
 @wp.kernel
+def wrap_axes_kernel(
+    origin: wp.vec3,
+    box_length: wp.vec3,
+    periodic: wp.vec3i,
+    particle_alive: wp.array(dtype=wp.int32),
+    # outputs
+    particle_x: wp.array(dtype=wp.vec3),
+):
+    """Positions wrapped into [origin_a, origin_a + L_a) on the periodic axes only (a HEL grid periodic along
+    some axes, walls or open boundaries on the others)."""
+    i = wp.tid()
+    if particle_alive[i] == 0:
+        return
+    x = particle_x[i]
+    for a in range(3):
+        if periodic[a] != 0:
+            x[a] = origin[a] + wrap_coordinate(x[a] - origin[a], box_length[a])
+    particle_x[i] = x
+
+
+@wp.kernel
 def velocity_moments_kernel(
     particle_v: wp.array(dtype=wp.vec3),
     particle_weight: wp.array(dtype=wp.float32),
@@ -107,6 +128,13 @@ def wrap_periodic(particle_x, particle_alive, box_length) -> None:
     """Positions wrapped into [0, L_a) per axis in place; ``box_length`` (3,) m."""
     wp.launch(wrap_kernel, dim=particle_x.shape[0], device=particle_x.device,
               inputs=[wp.vec3(*[float(b) for b in box_length]), particle_alive], outputs=[particle_x])
+
+
+def wrap_axes(particle_x, particle_alive, origin, box_length, periodic) -> None:
+    """Positions wrapped into the box per periodic axis in place (``periodic``: three flags)."""
+    wp.launch(wrap_axes_kernel, dim=particle_x.shape[0], device=particle_x.device,
+              inputs=[wp.vec3(*[float(o) for o in origin]), wp.vec3(*[float(b) for b in box_length]),
+                      wp.vec3i(*[int(bool(p)) for p in periodic]), particle_alive], outputs=[particle_x])
 
 
 def velocity_moments(particle_v, particle_weight, particle_alive, moments, row: int) -> None:
