@@ -10,7 +10,6 @@ asked for hold with margin; float32 round-off bounds the conservation checks (be
 """
 
 import math
-import time
 
 import numpy as np
 import pytest
@@ -374,7 +373,11 @@ def test_bad_pair_input_is_refused(kw, match):
         simulate_pairs(**args)
 
 
-def test_sixty_thousand_pairs_within_a_minute():
+def test_sixty_thousand_random_pairs_all_touch_separate_and_keep_e():
+    """A batch at the data set's scale: every pair touches and separates, and each head-on pair leaves with
+    e = 0.9 along its normal (the runner's clipped-oscillator calibration; 1 % as the module's Verlet bound). Its
+    speed is measured by scripts/bench_pairs.py, not here: a wall-clock bound in a unit test fails on a loaded
+    machine and proves nothing on an idle one."""
     rng = np.random.default_rng(1)
     n = 60_000
     r1, r2 = (R * rng.uniform(0.7, 1.3, n) for _ in range(2))
@@ -383,14 +386,25 @@ def test_sixty_thousand_pairs_within_a_minute():
     normal = g / np.linalg.norm(g, axis=1)[:, None]
     dt = np.minimum(stable_time_step(r1, RHO, E_MOD, NU), stable_time_step(r2, RHO, E_MOD, NU))
     x1, x2 = place_just_apart(normal=normal, velocity1=v1, velocity2=v2, radius1=r1, radius2=r2, dt=dt)
-    t0 = time.perf_counter()
     res = simulate_pairs(x1=x1, x2=x2, v1=v1, v2=v2, radius1=r1, radius2=r2, density1=RHO, youngs1=E_MOD,
                          poisson1=NU, restitution=0.9, friction=0.3, device=DEVICE)
-    elapsed = time.perf_counter() - t0
     assert res.separated.all() and res.touched.all()
-    assert elapsed < 60.0
     e_out = -np.einsum("ij,ij->i", res.velocity1 - res.velocity2, normal) / np.linalg.norm(g, axis=1)
     np.testing.assert_allclose(e_out, 0.9, rtol=0.01)  # head-on along the normal: e exactly
+
+
+def test_the_pair_benchmark_runs_and_counts_every_pair():
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, str(root / "scripts" / "bench_pairs.py"), "--pairs", "300", "--json"],
+                          capture_output=True, text=True, cwd=root, timeout=300)
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    assert out["pairs"] == out["touched"] == out["separated"] == 300 and out["pairs_per_s"] > 0
 
 
 @wp.kernel
