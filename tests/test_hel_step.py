@@ -117,20 +117,30 @@ def test_grazing_wall_impact_loses_at_most_the_coulomb_share():
 @pytest.mark.parametrize("wall_friction", [None, 0.0])
 def test_parcel_sliding_on_a_wall_slows_by_coulomb_friction_at_any_step(wall_friction):
     # A parcel resting on the floor (centre on the wall) launched along it at 0.25 m/s under gravity, in still
-    # air, for 0.03 s at dt = 1e-3 and 1e-4 s. Gravity presses it into the floor every step or two; the wall's
-    # normal impulse then averages m g per unit time, so with the Coulomb cap the tangential speed falls at
-    # mu g: 0.25 - 0.3 g 0.03 = 0.162 m/s (drag on this 8000 kg/m^3, 1 mm sphere: tau = 25 s, negligible),
-    # whatever dt. With the bare e_t (wall_friction = 0) each hit keeps 0.8 of it: it stops within 0.03 s.
-    coulomb = 0.25 - 0.3 * 9.80665 * 0.03
+    # air, for T = 0.03 s at dt = 1e-3 and 1e-4 s. Gravity presses it into the floor every step or two. Momentum
+    # along z is exact bookkeeping whatever the integrator: the floor's normal impulse per unit mass over the run is
+    # J = g T + v_z(T) - v_z(0), v_z(0) = 0 (the z drag adds < 1e-5 m/s: |v_z| < 0.01 m/s at a rate of 0.08 /s).
+    # Sliding throughout (mu (1 + e_n) |v_z| << v_x at every hit), the Coulomb cap takes mu times each normal
+    # impulse from v_x, so v_x(T) = v0 - mu J - (drag loss), and the drag loss lies between 0 (gas dragged along
+    # with the parcel) and the still-air Schiller-Naumann loss at the launch slip, v0 T F(v0) (F falls with the
+    # slip): 6.2e-4 m/s here, 8000 kg/m^3 and 1 mm. Float32 state over 300 steps: 1e-5 m/s of round-off.
+    # With the bare e_t (wall_friction = 0) each hit keeps 0.8 of v_x: at most v0 e_t^hits is left.
+    v0, T, mu, g = 0.25, 0.03, 0.3, 9.80665
+    rho_f, mu_f, d, rho_p = 1.205, 1.81e-5, 1e-3, 8000.0  # PushConfig's air; make_solver's parcel
+    # Schiller & Naumann (1933): F = 18 mu_f (1 + 0.15 Re^0.687) / (rho_p d^2) per unit slip
+    re = rho_f * v0 * d / mu_f
+    drag_bound = v0 * T * 18.0 * mu_f * (1.0 + 0.15 * re**0.687) / (rho_p * d**2)
     for dt in (1e-3, 1e-4):
-        solver = make_solver(x=[(0.001, 0.003, 1e-7)], v=[(0.25, 0.0, 0.0)], dt=dt, wall_friction=wall_friction)
-        for _ in range(int(round(0.03 / dt))):
+        solver = make_solver(x=[(0.001, 0.003, 1e-7)], v=[(v0, 0.0, 0.0)], dt=dt, wall_friction=wall_friction)
+        for _ in range(int(round(T / dt))):
             solver.step()
-        v_x = float(solver.pool.particles.v.numpy()[0, 0])
+        v_x, v_z = (float(c) for c in solver.pool.particles.v.numpy()[0, [0, 2]])
         if wall_friction is None:
-            assert v_x == pytest.approx(coulomb, abs=0.02)
+            coulomb = v0 - mu * (g * T + v_z)
+            assert coulomb - drag_bound - 1e-5 <= v_x <= coulomb + 1e-5, (dt, v_x, coulomb, drag_bound)
         else:
-            assert v_x < 0.05
+            hits = solver.wall_hit_count()
+            assert hits >= 10 and v_x <= v0 * E_T**hits + 1e-6, (dt, v_x, hits)
 
 
 def test_wall_restitution_comes_from_the_material():
