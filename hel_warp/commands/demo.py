@@ -168,15 +168,18 @@ def run(args) -> int:
                     end = args.end_time if model != "dem" or args.dem_end_time is None else args.dem_end_time
                     name = "dem_no_contacts" if "--no-particle-contacts" in extra else model
                     run_dir = out / "rig" / f"{name}_dt{dt:g}"
+                    # the report reads the particle snapshots and series of run.zarr only: no VTK, no gas fields
                     argv = ["--diameter", repr(args.diameter), "--dt", repr(dt), "--collisions", model,
                             "--end-time", repr(end), "--out", str(run_dir), "--device", args.device, "--overwrite",
-                            *extra]
+                            "--no-vtk", "--no-gas-snapshots", *extra]
                     if args.cells:
                         argv += ["--cells", str(args.cells)]
                     if args.max_particles and args.max_particles > 0:
                         argv += ["--max-particles", str(args.max_particles)]
                     print(f"    rig: {name}, dt = {dt:g} s", flush=True)
                     _check(rig.main(argv), f"rig {name} dt={dt:g}")
+                    for checkpoint in run_dir.glob("checkpoint*.npz"):  # for --resume; a rerun here overwrites
+                        checkpoint.unlink()
                     rig_runs.append(str(run_dir))
 
         stages.run(f"colliding-streams rig ({' / '.join(_names(models))}) at dt = "
