@@ -476,8 +476,8 @@ class SurrogateCollision:
         particles = solver.pool.particles
         self._kicked = False
         uses_swept = self._uses_swept(particles)
-        if not uses_swept and self.mode == "pairwise":
-            self._packing_stress(solver)
+        if not uses_swept and self.mode == "pairwise" and getattr(solver.config, "packing_stress", None) is None:
+            self._packing_stress(solver)  # a solver's own packing stress (HelConfig.packing_stress) replaces it
         if self.kick_first and uses_swept:
             import warp as wp
 

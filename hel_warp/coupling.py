@@ -220,6 +220,8 @@ class CouplingFields:
     parcel_voidage: object = field(default=None, metadata={"checkpoint": False})
     parcel_cloud: object = field(default=None, metadata={"checkpoint": False})
     """Per parcel the cloud width (cells) of this step (``GridSpec.cloud_density``), computed by the deposit."""
+    cell_packing_stress: object = field(default=None, metadata={"checkpoint": False})
+    """The enduring-contact stress tau of this step (``packing_acceleration``), Pa."""
 
     @classmethod
     def allocate(cls, grid: GridSpec, capacity: int, *, device=None) -> "CouplingFields":
@@ -251,7 +253,8 @@ class CouplingFields:
             cell_mismatch=cells(wp.vec3d), parcel_rate=parcels(wp.float32), parcel_exchange=parcels(wp.float64),
             parcel_u_eq=parcels(wp.vec3), parcel_x_start=parcels(wp.vec3), cell_exchange_divisor=cells(wp.float64),
             cell_exchange_sums=cells(wp.vec4d), cell_deposit_sums=cells(vec9d), cell_gas_record=cells(gas_record),
-            parcel_voidage=parcels(wp.float32), parcel_cloud=parcels(wp.float32))
+            parcel_voidage=parcels(wp.float32), parcel_cloud=parcels(wp.float32),
+            cell_packing_stress=cells(wp.float32))
         fields.launches = LaunchCache()
         return fields
 
@@ -340,6 +343,22 @@ def ktgf_collision(grid: GridSpec, particles, fields: CouplingFields, params, *,
                            fields.cell_grad_p_s, fields.cell_eps_s, fields.parcel_a_coll, dt=dt)
 
 
+def packing_acceleration(grid: GridSpec, particles, fields: CouplingFields, *, pressure: float, beta: float,
+                         packed: float, eps: float, dt: float | None, onset: float = 0.0, knee: float = 1.0,
+                         knee_stress: float = 0.0, stiffness: float = 0.0) -> None:
+    """Step 4, added to any collision model's: the enduring-contact stress of the packed parcels (MP-PIC,
+    Harris & Crighton 1994; Snider 2001), tau(eps_s) of the deposited ``fields.cell_eps_s``
+    (``kernels/ktgf.py`` ``packing_stress``), as a_coll += -grad tau / (eps_s rho_p) with the gradient on the cell
+    faces (``face_stress_acceleration_kernel``), limited to h / dt^2 on its own. Needs :func:`deposit_parcels` first; ``hel_warp.hel.PackingStress`` holds the
+    parameters and the reasons."""
+    from kernels.ktgf import face_stress_acceleration, packing_pressure
+
+    packing_pressure(fields.cell_eps_s, fields.cell_packing_stress, p_solid=pressure, beta=beta, packed=packed,
+                     eps=eps, onset=onset, knee=knee, knee_stress=knee_stress, stiffness=stiffness)
+    face_stress_acceleration(grid.cell_grid(), 1.0e-6, particles, fields.cell_packing_stress, fields.cell_eps_s,
+                             fields.parcel_a_coll, dt=dt)
+
+
 def push_parcels(particles, fields: CouplingFields, push_params, *, particle_x_out=None,
                  particle_v_out=None) -> None:
     """Step 5: eq. (4) on ``particles.x``/``particles.v`` (in place unless ``particle_*_out`` are given);
@@ -361,7 +380,7 @@ drag law's balance with three passes, 3.7 % with two (the iteration alternates a
 
 def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params, *, cell_velocity, cell_fluid,
                   gas_density: float, eps_f_min: float, particle_x_out=None, particle_v_out=None,
-                  stencil=None) -> None:
+                  stencil=None, cell_grad_p=None) -> None:
     """Step 5 with the implicit drag exchange (``kernels/deposit.py``): eq. (4) for the parcels and the gas
     impulse ``fields.cell_gas_impulse`` for the next gas step, solved together per cell so that neither
     phase overshoots their common velocity however dense the cell, and momentum balances to round-off.
@@ -371,6 +390,10 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
     unless ``particle_*_out`` are given; records drag impulses and rates as :func:`push_parcels` does.
     ``stencil``: a ``ParcelStencil``, brought up to the start positions here (only rows computed elsewhere, e.g.
     before a collision moved the parcel: none in the plain step) and read by the exchange's eight passes.
+    ``cell_grad_p``: the gas's grad p' (Pa/m), held over the step while the gas relaxes with the parcels, so that a
+    steady drag balances the pressure force (``kernels/deposit.py`` ``exchange_cells_kernel``); None: the gas's
+    inertia alone, which carries at most ~M u / dt of drag per cell (a packed bed at 0.1 m/s and 5e-4 s: 8 Pa of
+    the 62 Pa Ergun's law asks).
     """
     import warp as wp
 
@@ -398,7 +421,9 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
                        f.cell_exchange_sums, cell_exchange_coeff=f.cell_exchange_coeff,
                        cell_exchange_momentum=f.cell_exchange_momentum, cell_u_eq=f.cell_u_eq,
                        cell_gas_impulse=f.cell_gas_impulse, cell_mismatch=f.cell_mismatch,
-                       cell_exchange_divisor=f.cell_exchange_divisor, launches=f.launches)
+                       cell_exchange_divisor=f.cell_exchange_divisor, cell_grad_p=cell_grad_p,
+                       pressure_scale=0.0 if cell_grad_p is None else push_params.dt / float(gas_density),
+                       launches=f.launches)
         interpolate_vec3_parcels(g, f.parcel_x_start, p.weight, f.cell_u_eq, f.parcel_u_eq, stencil=stencil,
                                  launches=f.launches)
         slip_against = f.parcel_u_eq

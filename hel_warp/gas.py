@@ -69,6 +69,10 @@ class GasConfig:
     """Lower clip of eps_f = 1 - eps_s (1 - packing limit 0.63)."""
     mean_pressure_gradient: tuple = (0.0, 0.0, 0.0)
     """Imposed mean gradient of p' (Pa/m), e.g. to drive a periodic duct; reported in cell_grad_p."""
+    inlet_superficial: bool = False
+    """eps_f = 1 on the inlet faces: the inlet velocity is the superficial velocity of the gas entering (a
+    distributor under a bed: CFDEMcoupling's inlets hold voidfraction 1). False: the face takes the mean eps_f of
+    its cells, so solids beside an inlet cut its flux (the dilute rig's inlets, whose figures were measured so)."""
     pressure_tolerance: float = 1e-7
     """Relative residual of the pressure (continuity) system."""
     pressure_max_iterations: int = 5000
@@ -325,6 +329,9 @@ class GasSolver:
         self._solid_cells = _index_list(~fluid, dev)
         """Cells that hold the solid constants (written once per GasField)."""
         self._solved_faces, self._coefficient_faces, self._alias_faces, self._far_faces = [], [], [], []
+        self._inlet_faces = []
+        """Per axis the inlet faces: eps_f = 1 on them (``K.inlet_face_eps_kernel``: the patch velocity is the
+        superficial velocity of the gas entering, whatever solids lie beside the inlet)."""
         solved_masks = []
         for axis, types in enumerate((domain.face_type.x, domain.face_type.y, domain.face_type.z)):
             t = types.numpy()
@@ -336,6 +343,7 @@ class GasSolver:
             self._coefficient_faces.append(_index_list(every if box else near, dev))
             self._alias_faces.append(_index_list(every if box else t == int(K.FACE_ALIAS), dev))
             self._far_faces.append(_index_list(~near, dev))
+            self._inlet_faces.append(_index_list(t == int(K.FACE_INLET), dev))
         self._fluid_sum = wp.zeros(3, dtype=wp.float64, device=dev)
         # solved rows only (kernels/gas.py "compacted systems"): fluid cells, solved faces per axis
         self._systems = {"pressure": self._row_map(fluid.ravel())}
@@ -835,6 +843,10 @@ class GasSolver:
             faces = self._coefficient_faces[axis]
             self._launch(K.FACE_COEFFICIENTS_KERNELS[axis], faces, [g, faces, dom.cell_fluid, gas.cell_eps_f,
                                                                     self._cell_kappa, gas.face_eps, gas.face_kappa])
+            inlets = self._inlet_faces[axis]
+            if inlets.shape[0] and self.config.inlet_superficial:
+                wp.launch(K.inlet_face_eps_kernel, dim=inlets.shape[0], inputs=[axis, inlets, gas.face_eps],
+                          device=self.device)
 
     def advect(self, gas: GasField, dt: float) -> None:
         """Semi-Lagrangian advection of the face velocities into the scratch faces (``add_forces_and_diffuse`` takes

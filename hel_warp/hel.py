@@ -213,6 +213,100 @@ class Outlet:
         object.__setattr__(self, "normal", tuple(float(v) for v in normal / np.linalg.norm(normal)))
 
 
+DAMPING_RAMP = 0.01
+"""Solids fraction above ``PackingStress.onset`` over which the contact damping rises from 0 to full."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class PackingStress:
+    """Enduring contacts of packed parcels: the MP-PIC particle normal stress added to every HEL collision model.
+
+    tau(eps_s) = ``pressure`` eps_s^``beta`` / max(``packed`` - eps_s, ``eps`` (1 - eps_s)) of the deposited solids
+    fraction (Harris & Crighton 1994; Snider 2001, J. Comput. Phys. 170: 523; OpenFOAM's ``HarrisCrighton``), as
+    a_coll += -grad tau / (eps_s rho_p) (``coupling.packing_acceleration``). Ignored by ``dem``, whose Hertz contacts
+    carry enduring contacts themselves; the surrogate's cell detection then leaves its own stress
+    (``CellConfig.packing_stress``) to this one."""
+
+    pressure: float = 10.0
+    """P_s, Pa."""
+    beta: float = 2.0
+    """Exponent beta of eps_s."""
+    packed: float = 0.6
+    """Close-packed solids fraction eps_cp at which tau diverges."""
+    onset: float = 0.0
+    """Solids fraction below which parcels carry no enduring contacts (tau = 0), in [0, packed): tau =
+    ``pressure`` max(eps_s - onset, 0)^beta / max(packed - eps_s, ...), the threshold of Johnson & Jackson's (1987)
+    frictional pressure; 0: Harris & Crighton's form."""
+    eps: float = 1.0e-7
+    """Floor of the denominator, relative to 1 - eps_s (Snider 2001): tau stays finite past eps_cp."""
+    damping: float = 0.0
+    """Share of a parcel's velocity relative to the local mass-averaged solids velocity removed per step where eps_s
+    exceeds ``onset`` by ``DAMPING_RAMP`` (O'Rourke & Snider 2010's collision damping, complete where contacts
+    endure; ramped from the onset; momentum exact, ``kernels/ktgf.py`` ``contact_damping_kernel``). Needs an onset
+    > 0. 0: none."""
+    stiffness_limit: float = 0.25
+    """Cap of d tau / d eps_s as a fraction of rho_p (h / dt)^2 (rho_p the material's density, h the grid spacing):
+    above the solids fraction where tau is that stiff it goes on along its tangent. The explicit stress term is an
+    acoustic one, c^2 = (d tau / d eps_s) / rho_p, stable while c dt < h; 0.25 keeps c dt <= h / 2. 0: no cap."""
+
+    def __post_init__(self):
+        require_positive("packing stress pressure", self.pressure, "Pa")
+        require_positive("packing stress beta", self.beta)
+        require_positive("packing stress eps", self.eps)
+        if not 0.0 < self.packed < 1.0:
+            raise ConfigError(f"packing stress packed fraction must lie in (0, 1) (got {self.packed})")
+        if not 0.0 <= self.onset < self.packed:
+            raise ConfigError(f"packing stress onset must lie in [0, packed = {self.packed}) (got {self.onset})")
+        if not 0.0 <= self.damping <= 1.0:
+            raise ConfigError(f"packing stress damping must lie in [0, 1] (got {self.damping})")
+        if self.damping > 0.0 and self.onset <= 0.0:
+            raise ConfigError("packing stress damping acts above the onset of enduring contacts: give onset > 0")
+        if not self.stiffness_limit >= 0.0:
+            raise ConfigError(f"packing stress stiffness_limit must be >= 0 (got {self.stiffness_limit})")
+
+    def uncapped(self, eps_s):
+        """tau(eps_s) without the stiffness cap, Pa (numpy, host side)."""
+        e = np.clip(np.asarray(eps_s, float), 0.0, 0.999999)
+        return (self.pressure * np.maximum(e - self.onset, 0.0) ** self.beta
+                / np.maximum(self.packed - e, self.eps * (1.0 - e)))
+
+    def knee(self, stiffness: float) -> tuple[float, float]:
+        """(eps_K, tau(eps_K)): the solids fraction where d tau / d eps_s reaches ``stiffness`` (Pa) and the stress
+        there; (1, 0) when ``stiffness`` <= 0 (no cap). d tau / d eps_s grows monotonically from the onset to
+        eps_cp, so a bisection finds it."""
+        if not stiffness > 0.0:
+            return 1.0, 0.0
+
+        def slope(e):
+            x = e - self.onset
+            if x <= 0.0:
+                return 0.0
+            gap = self.packed - e
+            return self.pressure * x**self.beta * (self.beta / x + 1.0 / gap) / gap
+
+        lo, hi = self.onset, self.packed - 1e-12
+        if slope(hi) <= stiffness:
+            return hi, float(self.uncapped(hi))
+        for _ in range(100):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if slope(mid) < stiffness else (lo, mid)
+        return lo, float(self.uncapped(lo))
+
+    def stiffness(self, *, density: float, spacing: float, dt: float) -> float:
+        """The cap of d tau / d eps_s, Pa: ``stiffness_limit`` rho_p (h / dt)^2."""
+        return self.stiffness_limit * density * (spacing / dt) ** 2
+
+    def stress(self, eps_s, *, density: float | None = None, spacing: float | None = None, dt: float | None = None):
+        """tau(eps_s), Pa (numpy, host side), with the stiffness cap of the given density, spacing and dt."""
+        tau = self.uncapped(eps_s)
+        if density is None:
+            return tau
+        k = self.stiffness(density=density, spacing=spacing, dt=dt)
+        knee, knee_stress = self.knee(k)
+        e = np.clip(np.asarray(eps_s, float), 0.0, 0.999999)
+        return np.where((k > 0) & (e > knee), knee_stress + k * (e - knee), tau)
+
+
 @dataclass(frozen=True, kw_only=True)
 class HelConfig:
     """Settings of the HEL loop."""
@@ -271,6 +365,16 @@ class HelConfig:
     weighted streams run ahead of weight 1's on the rig, 33 % against 23 % of the real particles past x = 50 mm at
     0.02 s)."""
 
+    exchange_pressure: bool = False
+    """``implicit`` coupling: the gas relaxes with the parcels under its pressure gradient held over the step
+    (``coupling.exchange_push``), so a steady drag balances the pressure force: a packed bed's pressure drop is
+    Ergun's. False: the gas's inertia alone, whose drag a packed bed caps near M u / dt per cell (8 Pa of Ergun's
+    62 Pa in the bubbling bed at 0.1 m/s, dt = 5e-4 s); in dilute flows the two agree (the case API turns it on for
+    flows that start from a filled bed, ``hel_warp.case.Gas.exchange_pressure``)."""
+    packing_stress: PackingStress | None = None
+    """Enduring contacts of packed parcels (:class:`PackingStress`) for every collision model but ``dem``; None: off
+    (the surrogate's cell detection keeps its own ``CellConfig.packing_stress``)."""
+
     stencil_cache: bool = True
     """Compute each trilinear parcel's cloud-in-cell stencil once per step (at the deposit) and read it in the
     interpolation and the implicit exchange's passes (``kernels.interp.ParcelStencil``; a parcel moved in
@@ -290,6 +394,8 @@ class HelConfig:
             raise ConfigError(f"wall_spin_restitution must be in [-1, 1] (got {self.wall_spin_restitution})")
         if self.wall_contact not in ("point", "surface"):
             raise ConfigError(f"wall_contact must be 'point' or 'surface' (got {self.wall_contact!r})")
+        if self.packing_stress is not None and not isinstance(self.packing_stress, PackingStress):
+            raise ConfigError("packing_stress must be a hel_warp.hel.PackingStress or None")
         object.__setattr__(self, "injectors", tuple(self.injectors))
         object.__setattr__(self, "outlets", tuple(self.outlets))
         for k, inj in enumerate(self.injectors):
@@ -360,6 +466,7 @@ class HelSolver:
                                             spin_restitution=float(config.wall_spin_restitution))
         self._wall_hits = wp.zeros(1, dtype=wp.int32, device=device)
         self._counter = wp.zeros(1, dtype=wp.int32, device=device)
+        self._packing_knee = None
         self._injected_count = np.zeros(len(config.injectors), dtype=np.int64)
         self._injected_mass = np.zeros(len(config.injectors), dtype=np.float64)
         self._releases = np.zeros(len(config.injectors), dtype=np.int64)
@@ -404,8 +511,33 @@ class HelSolver:
                         self.cell_fluid, stencil=self.stencil)
 
     def collide(self) -> None:
-        """4. the collision model's acceleration (and/or velocity jumps)."""
+        """4. the collision model's acceleration (and/or velocity jumps), then the packing stress of enduring
+        contacts (``HelConfig.packing_stress``) on top."""
+        stress = self.config.packing_stress
+        if stress is not None and stress.damping > 0.0 and getattr(self.collision, "name", None) != "dem":
+            from hel_warp.coupling import parcel_grid
+            from kernels.ktgf import contact_damping
+
+            # before the collisions: the deposit's solids velocities are those of these velocities (momentum exact)
+            contact_damping(parcel_grid(self.grid, self.fields, self.cell_fluid), self.pool.particles,
+                            self.fields.cell_eps_s, self.fields.cell_solid_velocity, onset=stress.onset,
+                            ramp=DAMPING_RAMP, damping=stress.damping)
         self.collision.accelerate(self)
+        if stress is not None and getattr(self.collision, "name", None) != "dem":
+            from hel_warp.coupling import packing_acceleration
+
+            if getattr(self.collision, "_kicked", False):  # the swept detection pushed inside its collisions
+                raise ConfigError("packing_stress acts through the push, which the surrogate's swept detection "
+                                  "runs inside its collisions; use detection='cell' for packed parcels")
+
+            if self._packing_knee is None:  # fixed by the parameters, the material, h and dt: once
+                k = stress.stiffness(density=self.config.material.density, spacing=self.grid.spacing,
+                                     dt=self.config.dt)
+                self._packing_knee = (*stress.knee(k), k)
+            knee, knee_stress, k = self._packing_knee
+            packing_acceleration(self.grid, self.pool.particles, self.fields, pressure=stress.pressure,
+                                 beta=stress.beta, packed=stress.packed, eps=stress.eps, dt=self.config.dt,
+                                 onset=stress.onset, knee=knee, knee_stress=knee_stress, stiffness=k)
 
     def push(self) -> None:
         """5. eq. (4), semi-implicit drag; records the drag impulses for the next deposit.
@@ -435,7 +567,8 @@ class HelSolver:
             exchange_push(self.grid, p, self.fields, self.push_params, cell_velocity=self.gas.cell_velocity,
                           cell_fluid=self.cell_fluid, gas_density=self.config.push.fluid_density,
                           eps_f_min=self.eps_f_min, particle_x_out=particle_x_out, particle_v_out=particle_v_out,
-                          stencil=self.stencil)
+                          stencil=self.stencil,
+                          cell_grad_p=self.gas.cell_grad_p if self.config.exchange_pressure else None)
         else:
             push_parcels(p, self.fields, self.push_params, particle_x_out=particle_x_out,
                          particle_v_out=particle_v_out)

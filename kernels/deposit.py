@@ -323,6 +323,8 @@ def exchange_cells_kernel(
     cell_eps_s: wp.array(dtype=float),
     cell_velocity: wp.array(dtype=wp.vec3),
     cell_exchange_sums: wp.array(dtype=wp.vec4d),
+    pressure_scale: wp.float64,
+    cell_grad_p: wp.array(dtype=wp.vec3),
     # outputs
     cell_exchange_coeff: wp.array(dtype=wp.float64),
     cell_exchange_momentum: wp.array(dtype=wp.vec3d),
@@ -333,7 +335,13 @@ def exchange_cells_kernel(
 ):
     """A_c and B_c from the deposit's sums; u_eq_c and G_c (``gas_mass_full`` = rho_f V_c, the gas mass of a
     particle-free cell); mismatch = G_c; the correction's divisor A_c (``NO_EXCHANGE`` where the cell is left out).
-    Cell arrays flat (``flat_cells``: one index instead of three per access)."""
+    Cell arrays flat (``flat_cells``: one index instead of three per access).
+
+    The gas relaxes with the parcels while its pressure gradient, held over the step, accelerates it by
+    s = -``pressure_scale`` grad p' (``pressure_scale`` = dt / rho_f; 0: the gas's inertia alone):
+    u_eq = (M (u + s) + B) / (M + A), G = M (u_eq - u - s), the drag impulse alone (the gas step applies the
+    pressure itself). Backward Euler of both phases under their held forces, so in a steady state the drag equals
+    the pressure force; with the inertia alone a packed bed's drag is capped near M u / dt."""
     c = wp.tid()
     u = cell_velocity[c]
     sums = cell_exchange_sums[c]
@@ -352,8 +360,10 @@ def exchange_cells_kernel(
     eps_f = wp.max(1.0 - cell_eps_s[c], eps_f_min)
     m = gas_mass_full * wp.float64(eps_f)
     ud = wp.vec3d(wp.float64(u[0]), wp.float64(u[1]), wp.float64(u[2]))
-    u_eq = (m * ud + b) / (m + a)
-    g = m * (u_eq - ud)
+    gp = cell_grad_p[c]
+    held = -pressure_scale * wp.vec3d(wp.float64(gp[0]), wp.float64(gp[1]), wp.float64(gp[2]))
+    u_eq = (m * (ud + held) + b) / (m + a)
+    g = m * (u_eq - ud - held)
     cell_u_eq[c] = wp.vec3(float(u_eq[0]), float(u_eq[1]), float(u_eq[2]))
     cell_gas_impulse[c] = g
     cell_mismatch[c] = g
@@ -499,13 +509,18 @@ def exchange_deposit(grid: CellGrid, params, parcels: ParcelArrays, parcel_u_f, 
 
 def exchange_cells(gas_mass_full: float, eps_f_min: float, cell_fluid, cell_eps_s, cell_velocity,
                    cell_exchange_sums, *, cell_exchange_coeff, cell_exchange_momentum, cell_u_eq, cell_gas_impulse,
-                   cell_mismatch, cell_exchange_divisor, launches: LaunchCache | None = None):
+                   cell_mismatch, cell_exchange_divisor, cell_grad_p=None, pressure_scale: float = 0.0,
+                   launches: LaunchCache | None = None):
     """A and B from :func:`exchange_deposit`'s sums, u_eq, the gas impulse G and the mismatch's start value G per
     cell (implicit exchange, step 2), and the divisor the correction reads (A, or inf where a cell is left out:
-    outside the fluid or A = 0)."""
+    outside the fluid or A = 0). ``cell_grad_p`` (grad p', Pa/m) with ``pressure_scale`` = dt / rho_f: the gas
+    relaxes under its held pressure gradient (``exchange_cells_kernel``); None: its inertia alone."""
+    if cell_grad_p is None:
+        cell_grad_p, pressure_scale = cell_velocity, 0.0  # any vec3 cell array, scaled by 0
     launch(exchange_cells_kernel, dim=cell_eps_s.size, device=cell_eps_s.device,
            inputs=[wp.float64(gas_mass_full), float(eps_f_min)]
-           + [flat_cells(a) for a in (cell_fluid, cell_eps_s, cell_velocity, cell_exchange_sums)],
+           + [flat_cells(a) for a in (cell_fluid, cell_eps_s, cell_velocity, cell_exchange_sums)]
+           + [wp.float64(pressure_scale), flat_cells(cell_grad_p)],
            outputs=[flat_cells(a) for a in (cell_exchange_coeff, cell_exchange_momentum, cell_u_eq, cell_gas_impulse,
                                             cell_mismatch, cell_exchange_divisor)], cache=launches)
 

@@ -641,6 +641,14 @@ FACE_COEFFICIENTS_KERNELS = per_axis_kernels(_face_coefficients_kernel, __name__
 ``ADVECT_KERNELS``)."""
 
 
+@wp.kernel
+def inlet_face_eps_kernel(axis: int, faces: wp.array(dtype=wp.vec3i), face_eps: FaceFloat):
+    """eps_f = 1 on the inlet faces ``faces`` of ``axis``: an inlet brings gas only, so its flux is the patch
+    velocity itself, the superficial velocity (CFDEMcoupling's inlets hold voidfraction 1), whatever solids the
+    cell beside it holds (the face mean of ``face_coefficients_one`` would take that cell's eps_f)."""
+    set_f(face_eps, axis, faces[wp.tid()], 1.0)
+
+
 @wp.func
 def momentum_source_increment(g: GridInfo, axis: int, params: FlowParams, cell_fluid: wp.array3d(dtype=wp.int32),
                               face_eps: FaceFloat, cell_momentum_source: wp.array3d(dtype=wp.vec3), f: wp.vec3i):
