@@ -35,6 +35,7 @@ Usage::
         --end-time 0.02 --out runs/cs_ktgf_1e-3
     python cases/colliding_streams.py --diameter 315e-6 --dt 1e-3 --collisions none \
         --end-time 0.003 --cells 5000 --max-particles 200 --out runs/ci    # reduced rig
+    hel-warp run colliding_streams --diameter 315e-6 --dt 1e-3 --collisions surrogate --end-time 0.02 --out runs/cs
 
 A binary mixture: ``--diameter 315e-6 --diameter2 475e-6 --mass-fraction2 0.5`` (``mixture_release``): both
 holders release both sizes over one window each, the total mass that of the paper's one-size runs (0.196 g,
@@ -48,14 +49,14 @@ mass and its split stay, each species releases real / W_k parcels (50/50 at 1,8:
 window is the holder's real mass over its mass flow, and the cell detection (the default when a weight exceeds 1)
 collides them at the real number density. (One size keeps the parcel count and scales the mass with W.)
 
-The step is engineer G's ``HelSolver.step`` (deposit, gas, interpolate, collide, push, outlets,
-walls with e_n = e_t = 0.8, scheduled injection) driven by ``hel_warp.run.Run``, which writes
-``OUT/run.zarr`` (particle snapshots with x, v, radius, weight, stream, particle_id; gas fields;
-series ``timing_step``, ``timing_<sub-step>``, ``collisions_<kind>``), VTK files and checkpoints
-(``--resume`` continues from the last one). The case adds attrs ``config.case`` (the settings, the
-grid and the rig layout ``rig``: sections and axes, which ``hel-warp report`` reads) and, at the
-end, ``summary`` (``collisions``, ``dt``, ``diameter``, ``end_time``, ``wall_clock_s`` = the sum of
-the per-step wall clock, collision totals, ``check_errors``). ``check()`` verifies physical facts at
+The rig is a flow of the case API (``hel_warp.case``): its shapes, inlets, outlet, injectors and gas warm-up
+described in :func:`build`, the step (``HelSolver.step``: deposit, gas, interpolate, collide, push, outlets,
+walls with e_n = e_t = 0.8, scheduled injection) and the outputs those of every case: ``OUT/run.zarr``
+(particle snapshots with x, v, radius, weight, stream, particle_id; gas fields; series ``timing_step``,
+``timing_<sub-step>``, ``collisions_<kind>``), VTK files, checkpoints (``--resume`` continues from the last
+one) and ``summary.json`` (``--json`` prints it). The case adds attrs ``config.case`` (the settings, the grid
+and the rig layout ``rig``: sections and axes, which ``hel-warp report`` reads) and the summary's
+``collisions``, ``diameter``, ``total_collisions``, ``check_errors``. ``check()`` verifies physical facts at
 the end (no parcel centre inside a wall, parcels alive = injected - removed).
 
 Further assumptions: gravity along +x (the rig upright, flow downwards, holders above the arms);
@@ -65,13 +66,8 @@ stabilized", section 2); diameters normal with the paper's sigma (8.2 / 22 um), 
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
-import os
-import shutil
 import sys
-import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -80,6 +76,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(REPO))
+
+from hel_warp import case as hc  # noqa: E402
 
 LITRE_PER_MIN = 1.0e-3 / 60.0
 """1 l/min in m^3/s."""
@@ -215,15 +213,14 @@ def dimensions_for_cells(cells: int | None) -> RigDimensions:
                    side_depth=max(dims.side_depth, least))
 
 
-def build_geometry(dims: RigDimensions):
-    """(Grid, Geometry, inlet speeds {patch: m/s}) of the rig; speeds make patch area x speed = the paper's flow."""
-    from hel_warp.grid import Box, Channel, Geometry, Grid, Patch
 
-    lo, hi = dims.domain()
+def rig_shapes(dims: RigDimensions) -> tuple:
+    """The fluid region: the main channel, two supply channels and two inclined arms (a union of shapes that runs
+    past the inlet and outlet planes, so that no wall stands on an open boundary)."""
+    from hel_warp.grid import Box, Channel
+
     h = dims.spacing
-    shape = tuple(max(1, int(math.ceil((b - a) / h - 1e-9))) for a, b in zip(lo, hi))
-    grid = Grid(origin=lo, spacing=h, shape=shape)
-    beyond = 5.0 * h  # shapes run past the inlet / outlet planes so that no wall sits on an open boundary
+    beyond = 5.0 * h
     zc = 0.5 * dims.main_depth
     shapes = [Box(lo=(-beyond, -0.5 * dims.main_width, 0.0),
                   hi=(dims.main_length + beyond, 0.5 * dims.main_width, dims.main_depth), name="main")]
@@ -235,47 +232,43 @@ def build_geometry(dims: RigDimensions):
         start, end = dims.arm_axis(side)
         shapes.append(Channel(start=start, end=end, width=dims.side_width, height=dims.side_depth,
                               up=(0.0, 0.0, 1.0), name=f"{label}_arm"))
+    return tuple(shapes)
+
+
+def add_boundaries(flow, dims: RigDimensions) -> None:
+    """Three inlets on x = 0 at the paper's volume flows (the speed is the flow over the discrete patch area) and
+    the outlet at x = main_length; parcels leave through both ends."""
     big = 1.0
-    regions = {
-        "main_inlet": ((-big, -0.5 * dims.main_width, -big), (big, 0.5 * dims.main_width, big)),
-        "left_inlet": ((-big, dims.side_offset - 0.5 * dims.side_width, -big),
-                       (big, dims.side_offset + 0.5 * dims.side_width, big)),
-        "right_inlet": ((-big, -dims.side_offset - 0.5 * dims.side_width, -big),
-                        (big, -dims.side_offset + 0.5 * dims.side_width, big)),
-    }
-    flows = {"main_inlet": dims.main_flow, "left_inlet": dims.side_flow, "right_inlet": dims.side_flow}
-    # discrete patch areas: fluid cells of the first layer whose centres lie in the patch region
-    fluid = _fluid_mask(grid, Geometry(shapes=tuple(shapes)))
-    centres = grid.cell_centres()[0]
-    speeds = {}
-    for name, (rlo, rhi) in regions.items():
-        inside = ((centres[..., 1] >= rlo[1]) & (centres[..., 1] <= rhi[1]) & fluid[0])
-        area = float(inside.sum()) * h * h
-        if area == 0.0:
-            from hel_warp.errors import ConfigError
-
-            raise ConfigError(f"patch {name} covers no fluid cell at h = {h:.3g} m; use more --cells")
-        speeds[name] = flows[name] / area
-    patches = [Patch(name=name, kind="inlet", axis=0, side="min", lo=rlo, hi=rhi, velocity=(speeds[name], 0.0, 0.0))
-               for name, (rlo, rhi) in regions.items()]
-    patches.append(Patch(name="outlet", kind="outlet", axis=0, side="max", pressure=0.0))
-    return grid, Geometry(shapes=tuple(shapes), patches=tuple(patches)), speeds
+    flow.inlet("main_inlet", "x-", flow_rate=dims.main_flow, lo=(-big, -0.5 * dims.main_width, -big),
+               hi=(big, 0.5 * dims.main_width, big), particles="remove")
+    for name, yc in (("left_inlet", dims.side_offset), ("right_inlet", -dims.side_offset)):
+        flow.inlet(name, "x-", flow_rate=dims.side_flow, lo=(-big, yc - 0.5 * dims.side_width, -big),
+                   hi=(big, yc + 0.5 * dims.side_width, big), particles="remove")
+    flow.outlet("outlet", "x+", pressure=0.0)
 
 
-def _fluid_mask(grid, geometry) -> np.ndarray:
-    import warp as wp
+def rig_flow(dims: RigDimensions, gravity=(9.80665, 0.0, 0.0), warmup: float = 0.0):
+    lo, hi = dims.domain()
+    flow = hc.Flow("colliding_streams", lo=lo, hi=hi, spacing=dims.spacing, gravity=gravity,
+                   gas=hc.Gas(warmup=warmup), shapes=rig_shapes(dims))
+    add_boundaries(flow, dims)
+    return flow
 
-    from kernels import sdf as sdf_kernels
 
-    cell_fluid = wp.zeros(grid.shape, dtype=wp.int32, device="cpu")
-    sdf_kernels.eval_fluid_mask(geometry.shapes_struct("cpu"), grid.origin, grid.spacing, cell_fluid)
-    return cell_fluid.numpy().astype(bool)
+def build_geometry(dims: RigDimensions):
+    """(Grid, Geometry, inlet speeds {patch: m/s}) of the rig; speeds make patch area x speed = the paper's flow."""
+    from hel_warp.case.build import geometry_of, grid_of
+
+    flow = rig_flow(dims)
+    grid = grid_of(flow)
+    geometry, _, speeds = geometry_of(flow, grid)
+    return grid, geometry, speeds
 
 
 # ---------------------------------------------------------------------------------------------- the case
 @dataclass(frozen=True, kw_only=True)
 class CaseConfig:
-    """One run of the rig (validated by :func:`make_config`)."""
+    """The rig's own settings of one run (validated by :func:`make_config`; the shared ones are the case API's)."""
 
     diameter: float
     """Mean particle diameter, m (paper: 315e-6 or 475e-6)."""
@@ -283,11 +276,9 @@ class CaseConfig:
     """HEL time step, s (paper: 1e-3, 1e-4, 7.14e-5)."""
     collisions: str
     """Collision model: none, ktgf, surrogate, surrogate-paper, dem."""
-    end_time: float
-    """Simulated time after the particle release, s (paper: 0.02-0.03)."""
     particle_contacts: bool = True
     """``dem`` only: False switches the particle-particle contacts off (walls, drag, injection unchanged): the
-    like-with-like run that, beside ``none``, shows how much of a gap the walls alone make (issue 11)."""
+    like-with-like run that, beside ``none``, shows how much of a gap the walls alone make."""
     particles_per_parcel: float = 1.0
     """Real particles per parcel of the (first) species (paper's second HEL run: 8). One size: the parcel count
     stays, the mass scales; a mixture: the real mass stays (:func:`mixture_release`), parcels = real / weight."""
@@ -306,51 +297,19 @@ class CaseConfig:
     gas_warmup: float = 0.01
     """Gas-only time before the release (1e-3 s steps), s: "once the flow is stabilized" (section 2);
     0.01 s at 20 m/s flushes the 160 mm rig 1.25 times."""
-    output_interval: float = 1.0e-3
-    """Simulated time between particle snapshots, s (the report averages over snapshots)."""
     model: str | None = None
     """Surrogate model directory (surrogate and surrogate-paper)."""
     detection: str = "swept"
     """``surrogate`` pair detection: ``swept`` (continuous, default), ``overlap`` (the paper's end-of-step test) or
-    ``cell`` (stochastic per grid cell, the default with ``particles_per_parcel`` > 1; hel_warp/cell_collisions.py)."""
+    ``cell`` (stochastic per collision cell, the default with ``particles_per_parcel`` > 1)."""
     wall_contact: str = "surface"
     """Where HEL parcels meet the walls: ``surface`` (default: a particle radius from the centre, as the ``dem``
-    spheres, so that HEL and its reference share the walls' geometry) or ``point`` (their centre, MP-PIC;
-    ``HelConfig.wall_contact``). ``dem`` keeps its Hertz-Mindlin wall contact."""
+    spheres, so that HEL and its reference share the walls' geometry) or ``point`` (their centre, MP-PIC)."""
     wall_spin: bool = False
-    """HEL parcels meet the walls as rough spheres that carry their spin (``HelConfig.wall_spin``), as the ``dem``
-    spheres roll; False: the spinless reflection with Table 1's e_t = 0.8."""
+    """HEL parcels meet the walls as rough spheres that carry their spin, as the ``dem`` spheres roll; False: the
+    spinless reflection with Table 1's e_t = 0.8."""
     particle_spin: bool = False
-    """``surrogate`` (pairwise): collisions at the contact point, the spins turned (``HelConfig.particle_spin``)."""
-    parcel_cloud: str = "density"
-    """How wide weighted parcels couple to the gas (``HelConfig.parcel_cloud``)."""
-    cell_coarsen: int | None = None
-    """``surrogate`` cell detection: grid cells per collision cell and axis (``CellConfig.coarsen``; None: the
-    automatic choice, merged cells for weighted parcels)."""
-    cell_packing_stress: bool = True
-    """``surrogate`` cell detection: the MP-PIC packing stress (``CellConfig.packing_stress``)."""
-    cell_nearest: int = 0
-    """``surrogate`` cell detection: nearest-neighbour partners among this many parcels (``CellConfig.nearest``;
-    0: random partners)."""
-    cell_subdivision: int = 1
-    """``surrogate`` cell detection: sub-cells per grid cell and axis (``CellConfig.subdivision``; 1: the grid cell
-    at weight 1, merged cells above it)."""
-    cell_cfl: float = 1.0
-    """``surrogate`` cell detection: largest path of a parcel per collision sub-step, in cell edges
-    (``CellConfig.cfl``)."""
-    cell_approaching: bool | None = None
-    """``surrogate`` cell detection: only pairs whose centres approach collide (``CellConfig.approaching``);
-    None: the ``CellConfig`` default (on when a parcel weighs more than 1, off at weight 1; FIGURES, issue 12,
-    twenty-eighth session)."""
-    cell_transfer: bool | None = None
-    """``surrogate`` cell detection: the collisional transfer, colliders moved apart by their share of the contact
-    distance (``CellConfig.collisional_transfer``); None: the ``CellConfig`` default."""
-    cell_local_density: bool | None = None
-    """``surrogate`` cell detection: in merged cells a pair's rate takes the deposited solids fraction around its
-    parcels (``CellConfig.local_density``); None: the ``CellConfig`` default."""
-    wall_events: bool = True
-    """``surrogate`` swept detection: walls as events within the step, in time order with the collisions (False:
-    the push's end-of-step reflection; ``SurrogateCollision.wall_events``)."""
+    """``surrogate`` (pairwise): collisions at the contact point, the spins turned."""
     seed: int = 0
     device: str = "cpu"
     gravity: tuple = (9.80665, 0.0, 0.0)
@@ -393,22 +352,14 @@ class CaseConfig:
 
 
 def make_config(args) -> CaseConfig:
+    """The rig's options, checked (a ConfigError names what to change)."""
     from hel_warp.errors import ConfigError
+    from hel_warp.mixture import species_weights
 
     if not args.diameter > 0:
         raise ConfigError(f"--diameter must be > 0 m (got {args.diameter}); e.g. 315e-6")
     if not args.dt > 0:
         raise ConfigError(f"--dt must be > 0 s (got {args.dt})")
-    if not args.end_time > 0:
-        raise ConfigError(f"--end-time must be > 0 s (got {args.end_time})")
-    if args.end_time < args.dt * (1.0 - 1e-9):
-        raise ConfigError(f"--end-time {args.end_time:g} s is shorter than one step (--dt {args.dt:g} s), so the "
-                          "run would take no step; give an end time of at least one step")
-    from hel_warp.run import check_device
-
-    check_device(args.device)
-    from hel_warp.mixture import species_weights
-
     two_sizes = getattr(args, "diameter2", None) is not None or getattr(args, "mass_fraction2", None) is not None
     weights = species_weights(args.particles_per_parcel, 2 if two_sizes else 1)
     known = min(PAPER_PARTICLES, key=lambda d: abs(d - args.diameter))
@@ -438,45 +389,9 @@ def make_config(args) -> CaseConfig:
     if args.no_particle_contacts and args.collisions != "dem":
         raise ConfigError(f"--no-particle-contacts is a dem option (got --collisions {args.collisions}); none "
                           "already has no particle-particle collisions")
-    if getattr(args, "collision_events", None) and args.collisions in ("none", "ktgf"):
-        raise ConfigError(f"--collision-events records the dem and surrogate collisions; --collisions "
-                          f"{args.collisions} resolves none")
-    if getattr(args, "particle_spin", False) and args.collisions != "surrogate":
-        raise ConfigError(f"--particle-spin turns the surrogate's collisions at the contact point; --collisions "
-                          f"{args.collisions} does not use it (the dem's spheres spin on their own)")
-    if (args.collisions.startswith("surrogate")) and not args.model:
-        raise ConfigError(f"--collisions {args.collisions} needs --model MODEL_DIR (a `hel-warp train` output)")
+    if getattr(args, "wall_spin", False) and args.collisions == "dem":
+        raise ConfigError("--wall-spin is a HEL option; the dem's spheres roll on the walls on their own")
     detection = getattr(args, "detection", None)
-    coarsen = getattr(args, "cell_coarsen", None)
-    uses_cell = args.collisions == "surrogate" and (detection == "cell" or (detection is None and max(weights) > 1))
-    nearest = getattr(args, "cell_nearest", None)
-    subdivision = getattr(args, "cell_subdivision", None)
-    cfl = getattr(args, "cell_cfl", None)
-    for flag, given in (("--cell-coarsen", coarsen is not None), ("--cell-nearest", nearest is not None),
-                        ("--cell-subdivision", subdivision is not None), ("--cell-cfl", cfl is not None),
-                        ("--no-packing-stress", getattr(args, "no_packing_stress", False)),
-                        ("--[no-]cell-approaching", getattr(args, "cell_approaching", None) is not None),
-                        ("--[no-]cell-transfer", getattr(args, "cell_transfer", None) is not None),
-                        ("--[no-]cell-local-density", getattr(args, "cell_local_density", None) is not None)):
-        if given and not uses_cell:
-            raise ConfigError(f"{flag} is an option of the surrogate's cell detection (give --detection cell or "
-                              "--particles-per-parcel > 1)")
-    if nearest is not None and nearest < 0:
-        raise ConfigError(f"--cell-nearest must be >= 0 parcels (got {nearest}; 0: random partners)")
-    if coarsen is not None and coarsen < 1:
-        raise ConfigError(f"--cell-coarsen must be >= 1 grid cell (got {coarsen})")
-    if subdivision is not None and subdivision < 1:
-        raise ConfigError(f"--cell-subdivision must be >= 1 sub-cell per grid cell and axis (got {subdivision})")
-    if subdivision is not None and subdivision > 1 and coarsen is not None and coarsen > 1:
-        raise ConfigError("--cell-subdivision and --cell-coarsen exclude each other: give one of them")
-    if cfl is not None and not (math.isfinite(cfl) and cfl > 0.0):
-        raise ConfigError(f"--cell-cfl must be > 0 cell edges per sub-step (got {cfl})")
-    if getattr(args, "no_wall_events", False) and (args.collisions != "surrogate" or detection in ("overlap", "cell")):
-        raise ConfigError("--no-wall-events is an option of the surrogate's swept detection (got --collisions "
-                          f"{args.collisions}{' --detection ' + detection if detection else ''})")
-    if detection is not None and args.collisions != "surrogate":
-        raise ConfigError(f"--detection is a surrogate option (got --collisions {args.collisions}); surrogate-paper "
-                          "keeps the paper's overlap test")
     mixture = mixture_release(args, args.diameter, std, known if paper_size else None, weights)
     if mixture is not None:
         particles = mixture.pop("particles")
@@ -485,22 +400,13 @@ def make_config(args) -> CaseConfig:
         mass_flow = PAPER_MASS_FLOW[known] if paper_size else DEFAULT_MASS_FLOW
         mixture = {}
     return CaseConfig(diameter=float(args.diameter), dt=float(args.dt), collisions=args.collisions,
-                      end_time=float(args.end_time), particles_per_parcel=float(weights[0]),
-                      particle_contacts=not args.no_particle_contacts,
+                      particles_per_parcel=float(weights[0]), particle_contacts=not args.no_particle_contacts,
                       particles=particles, diameter_std=std, **mixture, release_weight=release_weight,
-                      mass_flow=mass_flow, cells=args.cells,
-                      gas_warmup=float(args.gas_warmup), output_interval=float(args.output_interval),
-                      model=args.model, detection=detection or ("cell" if max(weights) > 1 else "swept"),
-                      wall_events=not getattr(args, "no_wall_events", False), cell_coarsen=coarsen,
-                      cell_packing_stress=not getattr(args, "no_packing_stress", False),
-                      cell_nearest=int(nearest or 0), cell_approaching=getattr(args, "cell_approaching", None),
-                      cell_transfer=getattr(args, "cell_transfer", None),
-                      cell_local_density=getattr(args, "cell_local_density", None),
-                      cell_subdivision=int(subdivision or 1), cell_cfl=float(cfl if cfl is not None else 1.0),
+                      mass_flow=mass_flow, cells=args.cells, gas_warmup=float(args.gas_warmup), model=args.model,
+                      detection=detection or ("cell" if max(weights) > 1 else "swept"),
                       wall_contact=getattr(args, "wall_contact", "surface"),
                       wall_spin=bool(getattr(args, "wall_spin", False)),
                       particle_spin=bool(getattr(args, "particle_spin", False)),
-                      parcel_cloud=getattr(args, "parcel_cloud", "density"),
                       seed=int(args.seed), device=args.device)
 
 
@@ -557,198 +463,130 @@ def mixture_release(args, diameter: float, std: float, known: float | None, weig
             "diameter2_std": float(std2), "mass_fraction2": float(f2), "mass_flow": flow}
 
 
-def check_model(model_dir: str, diameter: float, density: float, force: bool, diameters=None,
-                force_flag: str = "--force") -> dict:
-    """Refuse a surrogate trained for another particle size or material (metadata ``defaults``: mean d1, rho1).
+def holder_release(config: CaseConfig):
+    """Per holder: each species' parcels (left, right), and the holder's release window, s. Each holder releases
+    half of the parcels at its measured mass flow (section 2): a window of (parcels x particle mass) / mass flow, for
+    one size the same for any particles-per-parcel (the parcel count stays); a mixture: every holder releases half
+    of each species, all species over the holder's one window of its real mass."""
+    species = config.species()
+    mass_weights = config.release_weights()
+    split = [(n // 2, n - n // 2) for _, _, n in species]  # per species: (left, right) parcels
+    windows = []
+    for side in (0, 1):
+        holder_mass = sum(split[k][side] * mass_weights[k] * config.density * math.pi / 6.0
+                          * (d**3 + 3.0 * d * sd**2) for k, (d, sd, _) in enumerate(species))
+        windows.append(holder_mass / config.mass_flow[side])
+    return split, windows
 
-    Sizes within 10 % (the paper's size distributions are +-3 sigma = +-8 % at 315 um) and densities within
-    1 % pass; anything else, or a model whose metadata does not say, needs ``--force``. A mixture
-    (``diameters``) needs a model whose training domain holds every size and size ratio
-    (``hel_warp.mixture.model_domain_problem``) instead of the 10 % rule. Returns the metadata. ``force_flag``: the
-    option the error names (the caller's).
-    """
-    from hel_warp.errors import ConfigError
 
-    path = os.path.join(model_dir, "metadata.json")
-    try:
-        with open(path) as fh:
-            meta = json.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"{path} not found; --model must be a directory written by `hel-warp train`") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path} is not valid JSON ({exc})") from None
-    defaults = meta.get("defaults") if isinstance(meta, dict) else None
-    problems = []
-    if not isinstance(defaults, dict) or "d1" not in defaults or "rho1" not in defaults:
-        problems.append("its metadata does not record the particle size and density it was trained for")
-    else:
-        d_model, rho_model = float(defaults["d1"]), float(defaults["rho1"])
-        if diameters is not None:
-            from hel_warp.mixture import model_domain_problem
+def build(args):
+    """The rig as a flow (the options checked by :func:`make_config`)."""
+    config = make_config(args)
+    args._rig = config
+    return flow_of(config)
 
-            problem = model_domain_problem(meta, diameters)
-            if problem:
-                problems.append(problem)
-        elif abs(d_model - diameter) > 0.10 * diameter:
-            problems.append(f"it was trained for d = {d_model * 1e6:.0f} um, the run has {diameter * 1e6:.0f} um")
-        if abs(rho_model - density) > 0.01 * density:
-            problems.append(f"it was trained for density {rho_model:g} kg/m^3, the run has {density:g} kg/m^3")
-    if problems and not force:
-        raise ConfigError(f"model {model_dir}: {'; '.join(problems)}; train a model for this particle or pass "
-                          f"{force_flag} to use it anyway")
-    return meta
+
+def flow_of(config: CaseConfig):
+    """The rig as a flow: geometry, inlets, outlet, gravity, the two holders' injectors, the gas warm-up."""
+    dims = dimensions_for_cells(config.cells)
+    flow = rig_flow(dims, gravity=config.gravity, warmup=config.gas_warmup)
+    flow.walls = hc.Walls(contact=config.wall_contact, spin=config.wall_spin)
+    material = hc.Material(density=config.density)
+    species = config.species()
+    weights = config.weights()
+    for k, (d, sd, _) in enumerate(species):
+        flow.species(f"d{k + 1}", d, diameter_std=sd, material=material, weight=weights[k])
+    split, windows = holder_release(config)
+    margin = max(0.5 * d + 1.5 * sd for d, sd, _ in species)
+    for side in (0, 1):
+        lo, hi = dims.injection_box(side, margin)
+        for k in range(len(species)):
+            flow.inject(f"d{k + 1}", (lo, hi), count=split[k][side], start=0.0, end=windows[side],
+                        speed=dims.injection_speed, direction=(1.0, 0.0, 0.0), stream=side,
+                        seed=config.seed + 1000 * k)
+    flow.collision_defaults["ktgf"] = {"particle_diameter": sauter_mean_of(config)}
+    flow.collision_defaults["surrogate"] = {"detection": config.detection}
+    flow.attrs = rig_attrs(flow, dims, config, windows)
+    return flow
+
+
+def rig_layout(dims: RigDimensions, config: CaseConfig) -> dict:
+    """What the report needs to know about the rig (stored in the run's attrs)."""
+    lo, hi = dims.domain()
+    return {"axial_axis": 0, "transverse_axis": 1, "depth_axis": 2, "downstream": [1.0, 0.0, 0.0],
+            "sections": dims.sections(), "domain_lo": list(lo), "domain_hi": list(hi),
+            "main_width": dims.main_width, "main_depth": dims.main_depth,
+            "streams": {"0": "left", "1": "right"}, "axis_transverse": 0.0,
+            "stream_sides": {"0": 1.0, "1": -1.0},  # sign of y - axis on each stream's own arm (left = +y)
+            "dimensions": asdict(dims),
+            "size_classes": [{"diameter": d, "diameter_std": sd, "parcels": n, "particles_per_parcel": w}
+                             for (d, sd, n), w in zip(config.species(), config.weights())]
+            if config.mixture else None}
+
+
+def rig_attrs(flow, dims: RigDimensions, config: CaseConfig, windows) -> dict:
+    """The rig's settings stored with the run (``config.case``, which ``hel-warp report`` reads)."""
+    from hel_warp.case.build import geometry_of, grid_of
+
+    grid = grid_of(flow)
+    _, _, speeds = geometry_of(flow, grid)
+    from hel_warp.io import _jsonable
+
+    settings = asdict(config)
+    return _jsonable({**settings, "grid_shape": list(grid.shape), "grid_cells": int(np.prod(grid.shape)),
+                      "spacing": grid.spacing, "inlet_speeds": speeds,
+                      "inlet_flows_l_per_min": {"main": dims.main_flow / LITRE_PER_MIN,
+                                                "side": dims.side_flow / LITRE_PER_MIN},
+                      "release_window_s": list(windows), "rig": rig_layout(dims, config)})
 
 
 class CollidingStreams:
-    """The rig: gas solver, parcel pool and ``HelSolver`` (walls, two scheduled injectors, two outlet planes).
+    """The rig built for ``config`` through the case API (for scripts and tests that step it by hand):
+    ``solver`` (the HEL solver), ``pool``, ``collision``, ``grid``, ``geometry``, ``domain``, ``dims``,
+    ``inlet_speeds``, ``release_window``, ``holder_parcels``, ``injector_side``; :func:`check` the physical facts."""
 
-    ``step()`` is one HEL step (deposit, gas, interpolate, collide, push, outlets, walls, inject; engineer
-    G's ``HelSolver.step``); ``snapshot()`` the output hook; :func:`check` the physical facts.
-    """
+    def __init__(self, config: CaseConfig, *, model: str | None = None):
+        from hel_warp.case.build import Settings, build as build_simulation
 
-    def __init__(self, config: CaseConfig):
-        from hel_warp._warp import init_warp
-        from hel_warp.coupling import PushConfig
-        from hel_warp.gas import GasConfig, GasField, GasSolver
-        from hel_warp.hel import HelConfig, HelSolver, Outlet, ScheduledInjection, collision_model
-        from hel_warp.material import Material
-        from hel_warp.parcels import ParcelPool, VolumeInjection
-
-        init_warp()
+        flow = flow_of(config)
+        settings = Settings(collisions=config.collisions, dt=config.dt, seed=config.seed, device=config.device,
+                            model=model or config.model, particle_spin=config.particle_spin,
+                            particle_contacts=config.particle_contacts)
+        self.sim = build_simulation(flow, settings)
         self.config = config
+        self.flow = flow
         self.dims = dimensions_for_cells(config.cells)
-        self.grid, self.geometry, self.inlet_speeds = build_geometry(self.dims)
-        device = config.device
-        self.domain = self.geometry.build(self.grid, device=device)
-        gas_config = GasConfig()
-        self.gas_solver = GasSolver(self.domain, gas_config, device=device)
-        self.gas = GasField(self.domain, device=device)
-        self.pool = ParcelPool.empty(sum(n for _, _, n in config.species()), device=device)
-        material = Material(density=config.density)
-        push = PushConfig(fluid_density=gas_config.density, fluid_viscosity=gas_config.viscosity,
-                          gravity=config.gravity)
-        kwargs = {}
-        self.ktgf_diameter = sauter_mean_of(config)
-        if config.collisions == "ktgf":  # one diameter: a mixture's Sauter mean (no mixture KTGF closures)
-            kwargs = {"particle_diameter": self.ktgf_diameter, "particle_density": config.density}
-        elif config.collisions == "surrogate":
-            kwargs = {"model_dir": config.model, "detection": config.detection, "seed": config.seed,
-                      "wall_events": config.wall_events}
-            if (config.cell_coarsen is not None or not config.cell_packing_stress or config.cell_nearest
-                    or config.cell_approaching is not None or config.cell_subdivision != 1 or config.cell_cfl != 1.0
-                    or config.cell_transfer is not None or config.cell_local_density is not None):
-                from hel_warp.cell_collisions import CellConfig
-
-                optional = {} if config.cell_approaching is None else {"approaching": config.cell_approaching}
-                if config.cell_local_density is not None:
-                    optional["local_density"] = config.cell_local_density
-                kwargs["cell"] = CellConfig(coarsen=config.cell_coarsen, packing_stress=config.cell_packing_stress,
-                                            nearest=config.cell_nearest, subdivision=config.cell_subdivision,
-                                            cfl=config.cell_cfl, collisional_transfer=config.cell_transfer,
-                                            **optional)
-        elif config.collisions == "surrogate-paper":
-            kwargs = {"model_dir": config.model}
-        elif config.collisions == "dem":
-            kwargs = {"material": material}
-            if not config.particle_contacts:
-                kwargs["particle_contacts"] = _dem_particle_contacts_option(False)
-        self.collision = collision_model(config.collisions, **kwargs)
-        # each holder releases half of the parcels at its measured mass flow (section 2): a window of
-        # (parcels x particle mass) / mass flow, for one size the same for any particles-per-parcel (the parcel
-        # count stays); a mixture: every holder releases half of each species, all species over the holder's one
-        # window of its real mass (parcels x weight x particle mass) / mass flow
-        species = config.species()
-        weights = config.weights()
-        mass_weights = config.release_weights()
-        self.particle_mass = config.density * math.pi / 6.0 * (config.diameter**3
-                                                                + 3.0 * config.diameter * config.diameter_std**2)
-        split = [(n // 2, n - n // 2) for _, _, n in species]  # per species: (left, right) parcels
+        self.solver = self.sim.solver
+        self.pool = self.solver.pool
+        self.collision = self.solver.collision
+        self.grid, self.geometry, self.domain = self.sim.grid, self.sim.geometry, self.sim.domain
+        self.gas_solver, self.gas = self.solver.gas_solver, self.solver.gas
+        self.inlet_speeds = self.sim.inlet_speeds
+        split, self.release_window = holder_release(config)
         self.holder_parcels = tuple(sum(s[side] for s in split) for side in (0, 1))
-        margin = max(0.5 * d + 1.5 * sd for d, sd, _ in species)
-        injectors = []
-        self.release_window = []
-        self.injector_side = []  # the holder of each injector
-        for side in (0, 1):
-            lo, hi = self.dims.injection_box(side, margin)
-            holder_mass = sum(split[k][side] * mass_weights[k] * config.density * math.pi / 6.0
-                              * (d**3 + 3.0 * d * sd**2) for k, (d, sd, _) in enumerate(species))
-            window = holder_mass / config.mass_flow[side]
-            self.release_window.append(window)
-            for k, (d, sd, _) in enumerate(species):
-                self.injector_side.append(side)
-                injectors.append(ScheduledInjection(
-                    injection=VolumeInjection(box_lo=lo, box_hi=hi, diameter_mean=d, diameter_std=sd,
-                                              density=config.density, count=split[k][side],
-                                              speed=self.dims.injection_speed, direction=(1.0, 0.0, 0.0),
-                                              weight=weights[k], stream=side,
-                                              seed=config.seed + 1000 * k),
-                    t_start=0.0, t_end=window))
-        outlets = (Outlet(point=(self.dims.main_length, 0.0, 0.0), normal=(1.0, 0.0, 0.0)),
-                   Outlet(point=(0.0, 0.0, 0.0), normal=(-1.0, 0.0, 0.0)))  # back out through an inlet plane
-        self.solver = HelSolver(pool=self.pool, gas_solver=self.gas_solver, gas=self.gas,
-                                config=HelConfig(dt=config.dt, push=push, material=material, walls=True,
-                                                 wall_contact=config.wall_contact, wall_spin=config.wall_spin,
-                                                 particle_spin=config.particle_spin, injectors=tuple(injectors),
-                                                 outlets=outlets, parcel_cloud=config.parcel_cloud),
-                                collision=self.collision)
+        self.injector_side = [side for side in (0, 1) for _ in config.species()]
+        self.ktgf_diameter = sauter_mean_of(config)
 
     @property
     def fluid_cells(self) -> int:
-        return int(self.domain.cell_fluid.numpy().sum())
+        return self.sim.fluid_cells
 
     @property
     def injected(self) -> int:
         return int(sum(entry["count"] for entry in self.solver.injected()))
 
     def warm_up(self) -> int:
-        """Gas-only steps of at most 1e-3 s over ``gas_warmup`` s (the flow is established before the release)."""
-        if self.config.gas_warmup <= 0:
-            return 0
-        n = int(math.ceil(self.config.gas_warmup / 1e-3 - 1e-9))
-        for _ in range(n):
-            self.gas_solver.step(self.gas, self.config.gas_warmup / n)
-        return n
+        return self.sim.warm_up()
 
     def step(self) -> dict:
-        """One HEL step; returns this step's collision counts."""
         self.solver.step()
         return self.solver.collision_counts()
 
-    def snapshot(self) -> dict:
-        """Host arrays of the live parcels (output intervals only)."""
-        p = self.pool.particles
-        alive = p.alive.numpy().astype(bool)
-        return {name: getattr(p, name).numpy()[alive]
-                for name in ("x", "v", "radius", "weight", "density", "stream", "particle_id")}
-
     def rig_layout(self) -> dict:
-        """What the report needs to know about the rig (stored in the run's attrs)."""
-        lo, hi = self.dims.domain()
-        return {"axial_axis": 0, "transverse_axis": 1, "depth_axis": 2, "downstream": [1.0, 0.0, 0.0],
-                "sections": self.dims.sections(), "domain_lo": list(lo), "domain_hi": list(hi),
-                "main_width": self.dims.main_width, "main_depth": self.dims.main_depth,
-                "streams": {"0": "left", "1": "right"}, "axis_transverse": 0.0,
-                "stream_sides": {"0": 1.0, "1": -1.0},  # sign of y - axis on each stream's own arm (left = +y)
-                "dimensions": asdict(self.dims),
-                "size_classes": [{"diameter": d, "diameter_std": sd, "parcels": n, "particles_per_parcel": w}
-                                 for (d, sd, n), w in zip(self.config.species(), self.config.weights())]
-                if self.config.mixture else None}
+        return rig_layout(self.dims, self.config)
 
 
-def _dem_particle_contacts_option(value: bool) -> bool:
-    """``value`` if ``DemCollision`` takes ``particle_contacts``, else a ConfigError (an engine without it)."""
-    import inspect
-
-    from hel_warp.hel import COLLISION_MODELS
-    from hel_warp.errors import ConfigError
-
-    if "particle_contacts" not in inspect.signature(COLLISION_MODELS["dem"].__init__).parameters:
-        raise ConfigError("--no-particle-contacts: this engine's DemCollision has no particle_contacts option yet; "
-                          "run dem with contacts")
-    return value
-
-
-def check(rig: CollidingStreams) -> list[str]:
+def check(rig) -> list[str]:
     """Physical facts at the end of the run; the list of violations (empty = pass).
 
     - no live parcel centre lies in a wall (SDF > 0; MP-PIC parcels meet the wall as points, so a centre may
@@ -760,332 +598,116 @@ def check(rig: CollidingStreams) -> list[str]:
 
     from kernels.sdf import eval_sdf
 
+    solver = rig.solver
+    config = rig.config if isinstance(rig, CollidingStreams) else rig.args._rig
     errors = []
-    p = rig.pool.particles
+    p = solver.pool.particles
     alive = p.alive.numpy().astype(bool)
     x = p.x.numpy()[alive]
     v = p.v.numpy()[alive]
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
         errors.append("non-finite parcel positions or velocities")
     if x.shape[0]:
+        geometry = solver.gas.domain.geometry
         points = wp.array(x, dtype=wp.vec3, device="cpu")
         distance = wp.zeros(x.shape[0], dtype=float, device="cpu")
         normal = wp.zeros(x.shape[0], dtype=wp.vec3, device="cpu")
-        eval_sdf(rig.geometry.shapes_struct("cpu"), points, distance, normal)
+        eval_sdf(geometry.shapes_struct("cpu"), points, distance, normal)
         d = distance.numpy()
         inside_wall = int(np.sum(d > 0.0))  # parcels meet the wall as points (kernels/reflect.py): d <= 0
         if inside_wall:
             errors.append(f"{inside_wall} parcel centres inside a wall (largest SDF {d.max():.3e} m)")
-    removed = rig.pool.removed_count()
-    if int(alive.sum()) != rig.injected - removed:
-        errors.append(f"parcel count: {int(alive.sum())} alive != {rig.injected} injected - {removed} removed")
+    removed = solver.pool.removed_count()
+    injected = int(sum(entry["count"] for entry in solver.injected()))
+    if int(alive.sum()) != injected - removed:
+        errors.append(f"parcel count: {int(alive.sum())} alive != {injected} injected - {removed} removed")
+    split, _ = holder_release(config)
+    holder = [sum(s[side] for s in split) for side in (0, 1)]
     released = [0, 0]
-    for side, entry in zip(rig.injector_side, rig.solver.injected()):
-        released[side] += entry["count"]
+    for k, entry in enumerate(solver.injected()):
+        released[k // len(config.species())] += entry["count"]
     for side in (0, 1):
-        if released[side] > rig.holder_parcels[side]:
-            errors.append(f"holder {side} released {released[side]} > {rig.holder_parcels[side]} parcels")
+        if released[side] > holder[side]:
+            errors.append(f"holder {side} released {released[side]} > {holder[side]} parcels")
     return errors
 
 
-# ---------------------------------------------------------------------------------------------- running
-def prepare_out(out: str, overwrite: bool, resume: bool) -> str:
-    """'new' or 'resume-complete'; refuses an existing run directory without --overwrite / --resume."""
-    from hel_warp.errors import ConfigError
-
-    path = Path(out)
-    if overwrite and resume:
-        raise ConfigError("give at most one of --overwrite and --resume")
-    if not path.exists():
-        if resume:
-            raise ConfigError(f"--resume: run directory {out} does not exist")
-        return "new"
-    if resume:
-        return "resume"
-    if not overwrite:
-        raise ConfigError(f"run directory {out} exists; pass --overwrite to replace it or --resume to continue it")
-    if path.is_dir() and any(path.iterdir()) and not (path / "run.zarr").exists():
-        raise ConfigError(f"{out} is not a run directory (no run.zarr); --overwrite only replaces run directories")
-    shutil.rmtree(path) if path.is_dir() else path.unlink()
-    return "new"
+def summary(run) -> dict:
+    """The rig's own keys of the summary (the report reads ``collisions``, ``dt``, ``diameter``, ``end_time``)."""
+    config = run.args._rig
+    collisions = run.series("collisions_collisions")
+    overlaps = run.series("collisions_detected_pairs")
+    return {"collisions": config.collisions, "diameter": config.diameter, "diameter2": config.diameter2,
+            "mass_fraction2": config.mass_fraction2 if config.mixture else None,
+            "particles_released": [n for _, _, n in config.species()],
+            "particles_per_parcel_species": config.weights(),
+            "real_particles_released": [n * w for (_, _, n), w in zip(config.species(), config.weights())],
+            "ktgf_diameter": sauter_mean_of(config), "particles_per_parcel": config.particles_per_parcel,
+            "particle_contacts": config.particle_contacts,
+            "total_collisions": float(np.sum(collisions)) if collisions is not None else None,
+            "total_overlap_pairs": int(np.sum(overlaps)) if overlaps is not None else 0,
+            "collision_counts_available": hasattr(run.solver.collision, "counts")}
 
 
-def _jsonable(value):
-    from hel_warp.io import _jsonable as jsonable
-
-    return jsonable(value)
-
-
-def case_attrs(rig: CollidingStreams, config: CaseConfig) -> dict:
-    """The case settings stored in the run's attrs (``config.case``); a --resume must match them, so the
-    end time and output settings (which a resume may change) are not among them."""
-    settings = {k: v for k, v in asdict(config).items() if k not in ("end_time", "output_interval")}
-    return _jsonable({"case": "colliding_streams", **settings,
-                      "grid_shape": list(rig.grid.shape), "grid_cells": int(np.prod(rig.grid.shape)),
-                      "fluid_cells": rig.fluid_cells, "spacing": rig.grid.spacing, "inlet_speeds": rig.inlet_speeds,
-                      "inlet_flows_l_per_min": {"main": rig.dims.main_flow / LITRE_PER_MIN,
-                                                "side": rig.dims.side_flow / LITRE_PER_MIN},
-                      "release_window_s": rig.release_window, "rig": rig.rig_layout(),
-                      "collision_counts_available": hasattr(rig.collision, "counts")})
-
-
-class EventRecorder:
-    """``--collision-events PATH``: every collision of every step of this call, for ``scripts/collision_events.py``:
-    ``dem`` contact onsets (``DemCollision.onset_events``), the ``surrogate``'s resolved collisions with swept or
-    overlap detection (``SurrogateCollision.collision_events``; switched on here). Saved as one ``.npz`` of equal-length
-    arrays: ``step``, ``particle_a`` < ``particle_b`` (ids), ``speed`` (normal approach speed, m/s), ``time`` (s of
-    the run), ``stream_a`` <= ``stream_b``, ``radius_a``, ``radius_b`` (m), and ``truncated_steps`` (steps whose list
-    overflowed; their counts in the run's series stay exact)."""
-
-    def __init__(self, rig: "CollidingStreams"):
-        from hel_warp.errors import ConfigError
-
-        collision = rig.collision
-        if hasattr(collision, "record_events"):
-            collision.record_events = True
-            self._read = collision.collision_events
-        elif hasattr(collision, "onset_events"):
-            self._read = collision.onset_events
-        else:
-            raise ConfigError(f"--collision-events records the dem and surrogate collisions (got --collisions "
-                              f"{rig.config.collisions}, which resolves none)")
-        self.rows = {k: [] for k in ("step", "particle_a", "particle_b", "speed", "time", "stream_a", "stream_b",
-                                     "radius_a", "radius_b")}
-        self.truncated = []
-
-    def add(self, solver) -> None:
-        ev = self._read()
-        n = len(ev["speed"])
-        p = solver.pool.particles
-        radius = np.full(max(int(p.particle_id.numpy().max(initial=0)) + 1, 1), np.nan, np.float32)
-        alive = p.alive.numpy() != 0
-        radius[p.particle_id.numpy()[alive]] = p.radius.numpy()[alive]
-        step = solver.step_count - 1
-        r = self.rows
-        r["step"].append(np.full(n, step, np.int32))
-        for key in ("particle_a", "particle_b", "speed", "stream_a", "stream_b"):
-            r[key].append(np.asarray(ev[key]))
-        r["time"].append(np.asarray(ev["time"], np.float64) + (solver.time - solver.config.dt))
-        r["radius_a"].append(radius[np.asarray(ev["particle_a"], np.int64)])
-        r["radius_b"].append(radius[np.asarray(ev["particle_b"], np.int64)])
-        if ev.get("truncated"):
-            self.truncated.append(step)
-
-    def save(self, path: str) -> None:
-        out = {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in self.rows.items()}
-        np.savez_compressed(path, **out, truncated_steps=np.asarray(self.truncated, np.int32))
-
-
-def run(args, *, progress: bool = True) -> int:
-    """Build the rig, warm the gas up, step to --end-time with ``hel_warp.run.Run`` (checkpoints, --resume)."""
-    import zarr
-
-    from hel_warp.run import Run, RunConfig, load_kernels
-
-    config = make_config(args)
-    mode = prepare_out(args.out, args.overwrite, args.resume)
-    model_meta = None
-    if config.collisions.startswith("surrogate"):
-        model_meta = check_model(config.model, config.diameter, config.density, args.force,
-                                 diameters=[d for d, _, _ in config.species()] if config.mixture else None)
-    kernel_load_s = load_kernels(config.device)  # compile before anything is timed (the rig build launches kernels)
-    t_setup = time.perf_counter()
-    rig = CollidingStreams(config)
-    warm_steps = 0 if mode == "resume" else rig.warm_up()  # a resume restores the gas from the checkpoint
-    setup_s = time.perf_counter() - t_setup
-    if mode == "resume" and not (Path(args.out) / "checkpoint.npz").exists() \
-            and not (Path(args.out) / "checkpoint.prev.npz").exists():
-        from hel_warp.errors import ConfigError
-
-        raise ConfigError(f"--resume: {args.out} holds no checkpoint; rerun with --overwrite")
-    runner = Run(rig.solver, RunConfig(out_dir=args.out, end_time=config.end_time,
-                                       output_interval=config.output_interval, vtk=not args.no_vtk,
-                                       gas_snapshots=not args.no_gas_snapshots),
-                 case_config=case_attrs(rig, config), restart=mode == "resume")
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=runner.total_steps, initial=rig.solver.step_count, unit="step",
-                   desc=f"colliding_streams {config.collisions} dt={config.dt:g}")
-    events = EventRecorder(rig) if getattr(args, "collision_events", None) else None
-
-    def callback(solver):
-        if events is not None:
-            events.add(solver)
-        if bar is not None:
-            bar.update(1)
-    t_loop = time.perf_counter()
-    taken = runner.run(progress=callback)
-    loop_total_s = time.perf_counter() - t_loop
-    if bar is not None:
-        bar.close()
-    if events is not None:
-        events.save(args.collision_events)
-    errors = check(rig)
-    root = zarr.open_group(str(Path(args.out) / "run.zarr"), mode="r+")
-    root.attrs["kernel_load_s"] = float(root.attrs.get("kernel_load_s", 0.0)) + kernel_load_s
-    series = root["series"]
-    step_wall = np.asarray(series["timing_step"][...], np.float64) if "timing_step" in series else np.zeros(0)
-    # real binary collisions (counts() "collisions": dem contact onsets, surrogate resolved collisions weighted by
-    # min(w_i, w_j)) and the pairs overlapping at step ends ("detected_pairs"); per stream pair in their own series
-    collisions = float(np.sum(series["collisions_collisions"][...])) if "collisions_collisions" in series else None
-    overlaps = int(np.sum(series["collisions_detected_pairs"][...])) if "collisions_detected_pairs" in series else 0
-    summary = {"collisions": config.collisions, "dt": config.dt, "diameter": config.diameter,
-               "diameter2": config.diameter2, "mass_fraction2": config.mass_fraction2 if config.mixture else None,
-               "particles_released": [n for _, _, n in config.species()],
-               "particles_per_parcel_species": config.weights(),
-               "real_particles_released": [n * w for (_, _, n), w in zip(config.species(), config.weights())],
-               "ktgf_diameter": rig.ktgf_diameter,
-               "end_time": config.end_time, "simulated_time": rig.solver.time, "steps": rig.solver.step_count,
-               "status": "complete" if rig.solver.step_count >= runner.total_steps else "running",
-               "wall_clock_s": float(step_wall.sum()),
-               "wall_clock_with_output_s": (root.attrs.get("summary", {}).get("wall_clock_with_output_s", 0.0)
-                                            if mode == "resume" else 0.0) + loop_total_s,
-               "setup_wall_clock_s": setup_s, "warmup_steps": warm_steps,
-               "particles_per_parcel": config.particles_per_parcel,
-               "kernel_load_s": float(root.attrs.get("kernel_load_s", 0.0)),
-               "particle_contacts": config.particle_contacts,
-               "injected": rig.injected, "removed": rig.pool.removed_count(), "total_collisions": collisions,
-               "total_overlap_pairs": overlaps,
-               "collision_counts_available": hasattr(rig.collision, "counts"),
-               "model_metadata": ({k: model_meta.get(k) for k in ("form", "dataset_hash", "defaults")}
-                                  if model_meta else None),
-               "check_errors": errors}
-    root.attrs["summary"] = _jsonable(summary)
+def report(run, summary: dict) -> str:
+    config = run.args._rig
     sizes = (f"{config.diameter * 1e6:.0f}" if not config.mixture else
              f"{config.diameter * 1e6:.0f}/{config.diameter2 * 1e6:.0f} (mass fraction {config.mass_fraction2:g} of "
              f"the second; {config.particles} + {config.particles2} parcels of "
              f"{' + '.join(f'{w:g}' for w in config.weights())} particles)")
-    print(f"colliding_streams: {config.collisions}, d = {sizes} um, dt = {config.dt:g} s, "
-          f"{taken} steps this call, t = {rig.solver.time:.4g} s on {int(np.prod(rig.grid.shape))} cells "
-          f"({rig.fluid_cells} fluid), {rig.injected} parcels injected, {rig.pool.removed_count()} removed, "
-          f"{'-' if collisions is None else f'{collisions:g}'} collisions ({overlaps} overlapping pairs at step "
-          f"ends); step wall clock {summary['wall_clock_s']:.2f} s (loop with output "
-          f"{loop_total_s:.2f} s, Warp kernel loading {summary['kernel_load_s']:.2f} s, setup + gas warm-up "
-          f"{setup_s:.2f} s) -> {args.out}")
-    for e in errors:
-        print(f"check failed: {e}", file=sys.stderr)
-    return 1 if errors else 0
+    total = summary.get("total_collisions")
+    return (f"colliding_streams: {config.collisions}, d = {sizes} um, dt = {config.dt:g} s, {run.steps_this_call} "
+            f"steps this call, t = {summary['simulated_time']:.4g} s on {int(np.prod(run.sim.grid.shape))} cells "
+            f"({summary['fluid_cells']} fluid), {summary['injected']} parcels injected, {summary['removed']} removed, "
+            f"{'-' if total is None else f'{total:g}'} collisions ({summary['total_overlap_pairs']} overlapping pairs "
+            f"at step ends); step wall clock {summary['wall_clock_s']:.2f} s (loop with output "
+            f"{summary['wall_clock_with_output_s']:.2f} s, Warp kernel loading {summary['kernel_load_s']:.2f} s, setup "
+            f"+ gas warm-up {summary['setup_wall_clock_s']:.2f} s) -> {run.out}")
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+def options(groups) -> None:
     from hel_warp.errors import finite_float
 
-    parser.add_argument("--diameter", type=finite_float, required=True,
-                        help="mean particle diameter, m (315e-6, 475e-6)")
-    parser.add_argument("--diameter2", type=finite_float, default=None,
-                        help="a binary mixture: mean diameter of the second species, m (e.g. 475e-6; with "
-                             "--mass-fraction2): both holders release both sizes")
-    parser.add_argument("--mass-fraction2", type=finite_float, default=None,
-                        help="mass fraction of the --diameter2 species, in (0, 1) (e.g. 0.5)")
-    parser.add_argument("--dt", type=finite_float, required=True, help="HEL time step, s (1e-3, 1e-4, 7.14e-5)")
-    parser.add_argument("--collisions", choices=COLLISIONS, required=True, help="collision model")
-    parser.add_argument("--end-time", type=finite_float, required=True, help="simulated time after release, s")
-    parser.add_argument("--out", required=True, help="run directory (refused if it exists, see --overwrite/--resume)")
-    parser.add_argument("--model", default=None, help="surrogate model directory (hel-warp train output)")
-    parser.add_argument("--detection", choices=("swept", "overlap", "cell"), default=None,
-                        help="surrogate pair detection: swept (continuous, default), overlap (the paper's "
-                             "end-of-step test) or cell (stochastic per grid cell; default with "
-                             "--particles-per-parcel > 1)")
-    parser.add_argument("--wall-contact", choices=("point", "surface"), default="surface",
-                        help="where HEL parcels meet the walls: surface (a particle radius from the centre, as the "
-                             "dem's spheres; default) or point (their centre, MP-PIC)")
-    parser.add_argument("--wall-spin", action="store_true",
-                        help="HEL parcels meet the walls as rough spheres that carry their spin (Walton's law, "
-                             "beta = 0: a sphere rolling along a wall keeps its speed), as the dem's spheres do; "
-                             "default: the spinless reflection with Table 1's e_t = 0.8")
-    parser.add_argument("--particle-spin", action="store_true",
-                        help="surrogate: particle-particle collisions at the contact point, the spins turned (with "
-                             "--wall-spin the parcels carry the spin they get rolling on the walls into their "
-                             "collisions, as the dem's spheres do)")
-    parser.add_argument("--collision-events", metavar="PATH", default=None,
-                        help="save every collision of every step to PATH (.npz: ids, normal approach speed, time, "
-                             "stream tags, radii; dem contact onsets or the surrogate's resolved collisions) for "
-                             "scripts/collision_events.py")
-    parser.add_argument("--no-wall-events", action="store_true",
-                        help="surrogate swept detection: walls only at the step's end (the push's reflection) "
-                             "instead of as events in time order with the collisions (the default)")
-    parser.add_argument("--force", action="store_true",
-                        help="use a model trained for another particle size or material (refused otherwise)")
-    parser.add_argument("--no-particle-contacts", action="store_true",
-                        help="dem only: no particle-particle contacts (walls, drag, injection as with contacts)")
-    parser.add_argument("--particles-per-parcel", default="1",
-                        help="real particles per parcel (paper's second HEL run: 8); default 1. A mixture: W for "
-                             "both species or W1,W2 per species (the real mass stays, parcels = real / W_k)")
-    parser.add_argument("--device", default="cpu", help="Warp device: cpu or cuda (default cpu)")
-    group = parser.add_mutually_exclusive_group()
-    group.add_argument("--overwrite", action="store_true", help="replace an existing run directory")
-    group.add_argument("--resume", action="store_true", help="continue an existing run directory")
-    parser.add_argument("--cells", type=int, default=None, help="shrink the grid to about N cells (CI)")
-    parser.add_argument("--cell-coarsen", type=int, default=None,
-                        help="cell detection: grid cells per collision cell and axis (default: 1 at weight 1, else "
-                             "the smallest that keeps a parcel pair from saturating, 4 on the 1 mm grid at 8 per "
-                             "parcel)")
-    parser.add_argument("--cell-nearest", type=int, default=None,
-                        help="cell detection: the partner of a candidate is the nearest of up to N parcels of its "
-                             "cell (Bird's nearest-neighbour collisions; default 0: a random one)")
-    parser.add_argument("--cell-subdivision", type=int, default=None,
-                        help="cell detection: sub-cells per grid cell and axis (default 1; finer cells sample "
-                             "pairs closer together, at more cost, and warn when a pair saturates)")
-    parser.add_argument("--cell-cfl", type=finite_float, default=None,
-                        help="cell detection: largest path of a parcel per collision sub-step, in cell edges "
-                             "(default 1)")
-    parser.add_argument("--cell-approaching", action=argparse.BooleanOptionalAction, default=None,
-                        help="cell detection: only parcel pairs whose centres approach collide, a receding pair "
-                             "handing its collision to an approaching one of its cell, so that a cell collides as "
-                             "often as Bird's NTC says while two streams that have passed each other in it stop "
-                             "colliding (default: on when a parcel weighs more than 1, off at weight 1; "
-                             "--no-cell-approaching: plain NTC, any pair of the cell, which crosses ~0.05 too much "
-                             "at 64 particles per parcel; FIGURES, issue 12, twenty-eighth and twenty-ninth "
-                             "sessions)")
-    parser.add_argument("--cell-transfer", action=argparse.BooleanOptionalAction, default=None,
-                        help="cell detection: the collisional transfer of the consistent Boltzmann algorithm, the "
-                             "two parcels of each collision moved apart by their share of the contact distance, so "
-                             "that a dense cloud pushes back as the DEM's spheres do (default: on; "
-                             "--no-cell-transfer: plain NTC, whose crossing is further from "
-                             "the CFD-DEM at every weight and transverse spread 1.5-3 points higher; FIGURES, "
-                             "issue 12)")
-    parser.add_argument("--cell-local-density", action=argparse.BooleanOptionalAction, default=None,
-                        help="cell detection, merged cells (more than 1 particle per parcel): a pair collides at "
-                             "the solids fraction the coupling's deposit gives around its two parcels, not at its "
-                             "cell's mean, which loses the collisions of clouds smaller than a cell (default: off; "
-                             "on the rig it brings weight 8 closer to the CFD-DEM, 0.51 of its collisions and "
-                             "v_y rms -1.5 %% against 0.47 and -5.1 %%, but leaves weight 64's v_y rms 11.6 %% low; "
-                             "FIGURES, issue 12, thirtieth session)")
-    parser.add_argument("--parcel-cloud", choices=("density", "weight"), default="density",
-                        help="how wide a weighted parcel couples to the gas: density (default) = its real particles "
-                             "at the number density of those around it (narrow in the dense streams), weight = one "
-                             "particle per cell anywhere (the earlier rule; its weighted streams ran ~9 points of the "
-                             "particles further downstream than weight 1 without collisions; FIGURES, issue 12)")
-    parser.add_argument("--no-packing-stress", action="store_true",
-                        help="cell detection: without the MP-PIC packing stress (on by default: the cell scheme's "
-                             "parcels have no excluded volume)")
-    parser.add_argument("--max-particles", type=int, default=None, help="cap the parcels released (CI)")
-    parser.add_argument("--real-particles", type=int, default=None,
-                        help="one size: real particles released over the paper's window (default: the paper's "
-                             "parcels x --particles-per-parcel, 12,000 x W at 315 um); parcels = real / W. The "
-                             "paper's second HEL run: 96000 (its DEM reference: 96000 at weight 1)")
-    parser.add_argument("--monodisperse", action="store_true", help="all particles of the mean diameter")
-    parser.add_argument("--gas-warmup", type=finite_float, default=0.01, help="gas-only time before release, s")
-    parser.add_argument("--output-interval", type=finite_float, default=1e-3, help="time between snapshots, s")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the injection positions and sizes")
-    parser.add_argument("--no-vtk", action="store_true", help="write run.zarr only")
-    parser.add_argument("--no-gas-snapshots", action="store_true", help="no gas cell fields at output times")
+    c, p, o = groups.case, groups.physics, groups.output
+    c.add_argument("--diameter", type=finite_float, required=True, help="mean particle diameter, m (315e-6, 475e-6)")
+    c.add_argument("--diameter2", type=finite_float, default=None,
+                   help="a binary mixture: mean diameter of the second species, m (e.g. 475e-6; with "
+                        "--mass-fraction2): both holders release both sizes")
+    c.add_argument("--mass-fraction2", type=finite_float, default=None,
+                   help="mass fraction of the --diameter2 species, in (0, 1) (e.g. 0.5)")
+    c.add_argument("--cells", type=int, default=None, help="shrink the grid to about N cells (a reduced rig)")
+    c.add_argument("--max-particles", type=int, default=None, help="cap the parcels released (a reduced rig)")
+    c.add_argument("--real-particles", type=int, default=None,
+                   help="one size: real particles released over the paper's window (default: the paper's parcels x "
+                        "--particles-per-parcel, 12,000 x W at 315 um); parcels = real / W. The paper's second HEL "
+                        "run: 96000 (its DEM reference: 96000 at weight 1)")
+    c.add_argument("--monodisperse", action="store_true", help="all particles of the mean diameter")
+    c.add_argument("--gas-warmup", type=finite_float, default=0.01, help="gas-only time before the release, s "
+                                                                          "(default 0.01)")
+    p.add_argument("--wall-contact", choices=("point", "surface"), default="surface",
+                   help="where HEL parcels meet the walls: surface (a particle radius from the centre, as the dem's "
+                        "spheres; default) or point (their centre, MP-PIC)")
+    p.add_argument("--wall-spin", action="store_true",
+                   help="HEL parcels meet the walls as rough spheres that carry their spin (a sphere rolling along a "
+                        "wall keeps its speed), as the dem's spheres do; default: the spinless reflection with "
+                        "Table 1's e_t = 0.8")
+    p.add_argument("--no-particle-contacts", action="store_true",
+                   help="dem only: no particle-particle contacts (walls, drag, injection as with contacts): the "
+                        "walls-only reference")
+
+
+def add_arguments(parser) -> None:
+    """Every option of the case on ``parser`` (its own and the shared ones)."""
+    CASE.add_arguments(parser)
+
+
+CASE = hc.Case("colliding_streams", build, doc=__doc__, options=options, summary=summary,
+               check=lambda run: check(run), report=report,
+               defaults={"output_interval": 1.0e-3})
 
 
 def main(argv=None) -> int:
-    from hel_warp.errors import HelWarpError
-
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    add_arguments(parser)
-    parser.add_argument("--no-progress", action="store_true")
-    args = parser.parse_args(argv)
-    try:
-        return run(args, progress=not args.no_progress)
-    except HelWarpError as exc:
-        print(f"colliding_streams: error: {exc}", file=sys.stderr)
-        return 2
+    return CASE.main(argv)
 
 
 if __name__ == "__main__":

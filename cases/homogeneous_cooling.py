@@ -1,33 +1,21 @@
 """Homogeneous cooling of a granular gas (Haff 1983) in a periodic box: each collision model against kinetic theory.
 
-N equal spheres (diameter D, ``Material`` density) fill a cubic, triply periodic box at solids fraction
-EPS: no gas, no gravity, no walls. They start at random, non-overlapping positions (a jittered lattice above
-a parcel solids fraction of 0.1; never overlapping, also across the periodic faces) with Maxwellian
-velocities at Theta0 and zero total momentum, rescaled so that the initial granular temperature is exactly
-Theta0. Then, per step of dt, the collision model acts and the
-parcels fly on straight lines:
+N equal spheres (diameter D, the material's density) fill a cubic, triply periodic box at solids fraction EPS: no
+gas, no gravity, no walls (a gas-free flow of the case API, ``hel_warp.case.granular``). They start at random,
+non-overlapping positions (a jittered lattice above a parcel solids fraction of 0.1; never overlapping, also across
+the periodic faces) with Maxwellian velocities at Theta0 and zero total momentum, rescaled so that the initial
+granular temperature is exactly Theta0. Then, per step of dt, the collision model acts and the parcels fly on
+straight lines (``none``: ballistic; ``ktgf``: the engine's KTGF acceleration on a periodic grid of the rig's cell
+size, from the noise of a homogeneous gas only; ``surrogate`` with ``--detection swept|overlap|cell`` and
+``surrogate-paper``; ``dem``: Hertz-Mindlin sub-steps). A swept search wider than half the box takes the step in
+sub-steps that fit.
 
-- ``none``: ballistic (Theta stays Theta0, no collision);
-- ``ktgf``: the engine's KTGF term (``hel_warp.hel.KtgfCollision``, ``kernels/ktgf.py``) as the HEL step
-  applies it, on a periodic grid of the rig's cell size (1 mm, rounded to fit the box): the parcels are
-  deposited with the engine's cloud-in-cell coupling (``hel_warp.coupling.deposit_parcels``), the cells get
-  g0, the algebraic Theta and p_s, and each parcel the acceleration a = -grad(p_s) / (eps_s rho_p)
-  (limited to h / dt^2), then ``v += a dt``. Its collision count is 0 by construction (no binary
-  collisions); in a homogeneous gas the only gradients are those of the parcels' sampling noise;
-- ``surrogate`` (HELSCM ``pairwise``, contact-form ``--model``; ``--detection swept|overlap|cell``, ``cell`` the
-  default with ``--particles-per-parcel`` > 1: collision cells tiling the box, ``hel_warp/cell_collisions.py``) and
-  ``surrogate-paper`` (paper-form ``--model``): ``strategy.collide(particles, dt)``, the ballistic move
-  ``x += v dt``, ``strategy.correct_positions(particles)`` (the swept in-step corrections), the wrap
-  into [0, L);
-- ``dem``: Hertz-Mindlin sub-steps at the DEM step across dt (``DemCollision.advance_free``: contacts
-  only, periodic, positions wrapped); its ``collisions`` are contact onsets.
+Box: the side L = (N pi D^3 / (6 EPS))^(1/3) holds N real particles; with ``--particles-per-parcel W`` they are
+N / W parcels of weight W (each a sphere of diameter D standing for W particles). Material: the data set's
+(restitution, friction) when the model's metadata records it, else ``Material(friction=0)`` (Haff's law and the
+Enskog frequency are for smooth spheres).
 
-Box: the side L = (N pi D^3 / (6 EPS))^(1/3) holds N real particles; with ``--particles-per-parcel W``
-they are N / W parcels of weight W (each a sphere of diameter D standing for W particles). Material: the
-data set's (restitution, friction) when the model's metadata records it, else ``Material(friction=0)``
-(Haff's law and the Enskog frequency are for smooth spheres).
-
-References (``../shared/PHYSICS-NOTES.md``, "Collisions in a granular gas"):
+References (``docs/physics.md``, "Collisions in a granular gas"):
 
 - Enskog collision frequency per particle: omega = 24 eps g0 sqrt(Theta) / (sqrt(pi) D), Carnahan-Starling
   g0 = (1 - eps/2) / (1 - eps)^3; the reference count is N/2 times omega integrated over the measured
@@ -37,55 +25,39 @@ References (``../shared/PHYSICS-NOTES.md``, "Collisions in a granular gas"):
 
 A binary mixture (``--diameter2 D2 --number-fraction2 F``; ``--particles`` counts both species, round(F N) of
 D2): the box holds both species' volume at EPS, the start is random and non-overlapping (sum of radii) with the
-species at equipartition (m_1 Theta_1 = m_2 Theta_2, T_i = m_i Theta_i) and the mass-weighted mixture Theta
-exactly Theta0, each species' mean velocity removed. A parcel's ``stream`` tag is its species, so the strategies'
-per-stream-pair counts are the collisions per pair type. The JSON adds ``granular_temperature_1`` / ``_2``
-(Theta_i = <|c_i|^2>/3 of each species, about its own mean), their start and end values, ``temperature_ratio``
-T_2/T_1 (1 = equipartition), ``collision_pair_types`` (small-small, small-large, large-large against kinetic
-theory) and ``kinetic_theory`` (``hel_warp/mixture.py``: the Maxwellian rate equations of a smooth inelastic binary
-mixture integrated from the measured start, with BMCSL g0_ij, and the homogeneous-cooling-state ratio T_2/T_1 of
-Garzo & Dufty 1999, which differs from 1: non-equipartition). ``granular_temperature`` is then the mixture's
-mass-weighted Theta, and the ``enskog_*`` / ``haff_slope`` / ``cooling_rate_ratio`` keys refer to that mixture
-theory (``haff_slope``: the slope of its Theta^-1/2(t)). ``ktgf`` gets one diameter, the mixture's Sauter mean
-(the mixture KTGF closures are out of scope). A surrogate model must hold both sizes and their ratios in its
-training domain (``hel-warp dataset --diameters D1,D2``). ``--particles-per-parcel W1,W2`` gives each species its
-own weight (W_k divides N_k; one value: both): N_k / W_k parcels of weight W_k, the same real particles, box and
-references; the ``cell`` detection (the default once a weight exceeds 1) puts back the energy the heavier parcel's
-partial impulse loses (``kernels/cell_collide.py``)::
+species at equipartition (m_1 Theta_1 = m_2 Theta_2) and the mass-weighted mixture Theta exactly Theta0, each
+species' mean velocity removed. A parcel's ``stream`` tag is its species, so the strategies' per-stream-pair counts
+are the collisions per pair type. The JSON adds ``granular_temperature_1`` / ``_2``, ``temperature_ratio`` T_2/T_1,
+``collision_pair_types`` and ``kinetic_theory`` (``hel_warp/mixture.py``: the Maxwellian rate equations of a smooth
+inelastic binary mixture, BMCSL g0_ij, and the homogeneous-cooling-state ratio of Garzo & Dufty 1999).
+``--particles-per-parcel W1,W2`` gives each species its own weight (W_k divides N_k)::
 
     python cases/homogeneous_cooling.py --collisions surrogate --model MIXTURE_MODEL --dt 1e-3 \\
         --solids-fraction 0.01 --particles 8000 --diameter 315e-6 --diameter2 475e-6 --number-fraction2 0.3 \\
         --granular-temperature 1 --end-time 0.04 --out runs/hc_mix_1e-3 --json
 
-Statistical size of the check: with C real collisions over the run the collision count has a relative
-standard error of about 1/sqrt(C) (Poisson), and the energy lost (hence the fitted slope) about
-sqrt(2/C): the loss per collision is (1 - e^2) m g_n^2 / 4 and, for collisions of a Maxwellian gas
-(weighted by |g|, impact parameter uniform in b^2), E[g_n^4] / E[g_n^2]^2 = 2. Both are in the output
-(``*_stderr``). Keep the run short enough that the gas stays homogeneous (a few to ~20 collisions per
-particle at e = 0.9).
+Statistical size of the check: with C real collisions the count has a relative standard error of about 1/sqrt(C)
+(Poisson), and the energy lost (hence the fitted slope) about sqrt(2/C): the loss per collision is (1 - e^2) m
+g_n^2 / 4 and, for collisions of a Maxwellian gas, E[g_n^4] / E[g_n^2]^2 = 2. Both are in the output
+(``*_stderr``). Keep the run short enough that the gas stays homogeneous (a few to ~20 collisions per particle at
+e = 0.9).
 
-    python cases/homogeneous_cooling.py --collisions surrogate --model MODEL_DIR --detection swept \\
-        --dt 1e-3 --solids-fraction 0.01 --particles 8000 --diameter 315e-6 --granular-temperature 1 \\
-        --end-time 0.04 --out runs/hc_swept_1e-3 --json
+    python cases/homogeneous_cooling.py --collisions surrogate --detection swept --dt 1e-3 --solids-fraction 0.01 \\
+        --particles 8000 --diameter 315e-6 --granular-temperature 1 --end-time 0.04 --out runs/hc_swept --json
     hel-warp run cases/homogeneous_cooling.py --collisions none --dt 1e-4 --solids-fraction 0.01 \\
         --particles 1000 --diameter 315e-6 --granular-temperature 1 --end-time 0.005 --out runs/hc_none
 
-Writes ``OUT/summary.json`` (the object ``--json`` prints) and ``OUT/cooling.png`` (Theta(t) with Haff's
-curve, and Theta^(-1/2)(t) with the fitted and Haff's lines). Bad input: one line
-``homogeneous_cooling: error: ...`` and exit code 2; a failed ``check()`` (non-finite state, a parcel
-outside the box, momentum not conserved by a conserving model): exit code 1.
+Writes the run directory of every case (``run.zarr``, VTK, checkpoints: ``--resume`` continues bit for bit) with
+``summary.json`` (the object ``--json`` prints) and ``cooling.png`` (Theta(t) with Haff's curve, and
+Theta^(-1/2)(t) with the fitted and Haff's lines). A failed ``check()`` (non-finite state, a parcel outside the
+box, momentum not conserved by a conserving model): exit code 1.
 """
 
 from __future__ import annotations
 
-import argparse
-import inspect
-import json
 import math
 import os
-import shutil
 import sys
-import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -94,20 +66,17 @@ import numpy as np
 if str(Path(__file__).resolve().parents[1]) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from hel_warp import case as hc  # noqa: E402
+
 COLLISIONS = ("none", "ktgf", "surrogate", "surrogate-paper", "dem")
-DETECTIONS = ("swept", "overlap", "cell")
-KTGF_CELL = 1.0e-3
-"""Target cell size of the KTGF grid, m (the colliding-streams rig's; rounded so that whole cells fill L)."""
 MAX_JSON_POINTS = 2000
 """At most this many (time, Theta) points in the JSON / summary (every k-th step; the fit uses every step)."""
 LATTICE_GAP = 1.0e-3
 """Smallest gap between lattice neighbours, in diameters (the jitter keeps every pair this far apart)."""
-SUMMARY = "summary.json"
 PICTURE = "cooling.png"
 COUNT_FLAGS = ("guard", "clamp", "causal", "corrected", "overflow", "outside")
 """Substrings of the strategy's count names gathered under ``strategy_flags`` (guard corrections, domain clamps,
 causality counters)."""
-
 
 # ------------------------------------------------------------------------------------ kinetic-theory references
 def carnahan_starling_g0(eps: float) -> float:
@@ -150,127 +119,71 @@ def theta_from_moments(moments: np.ndarray) -> np.ndarray:
     return (moments[:, 4] - (s1**2).sum(axis=1) / s0) / (3.0 * s0)
 
 
+
 # ------------------------------------------------------------------------------------------------ configuration
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+def options(groups) -> None:
+    """The case's own options (the shared ones come from ``hel_warp.case.Case``)."""
     from hel_warp.errors import finite_float
 
-    parser.add_argument("--collisions", choices=COLLISIONS, required=True, help="collision model")
-    parser.add_argument("--model", default=None,
-                        help="model directory (hel-warp train --out); needed by surrogate (contact form) and "
-                             "surrogate-paper (paper form); with the others it only supplies the material")
-    parser.add_argument("--cell-approaching", action=argparse.BooleanOptionalAction, default=None,
-                        help="cell detection: collisions go to parcel pairs whose centres approach, a receding "
-                             "accepted pair handing its collision to an approaching one of its cell "
-                             "(CellConfig.approaching; default: on when a parcel weighs more than 1)")
-    parser.add_argument("--cell-transfer", action=argparse.BooleanOptionalAction, default=None,
-                        help="cell detection: the collisional transfer, the two parcels of each collision moved "
-                             "apart by their share of the contact distance (CellConfig.collisional_transfer; "
-                             "default: CellConfig's)")
-    parser.add_argument("--detection", choices=DETECTIONS, default=None,
-                        help="surrogate only: swept (continuous), overlap (the paper's end-of-step test) or cell "
-                             "(stochastic per collision cell, for parcels of many particles); default: swept, cell "
-                             "when --particles-per-parcel > 1")
-    parser.add_argument("--dt", type=finite_float, required=True, help="time step, s")
-    parser.add_argument("--solids-fraction", type=finite_float, required=True, help="solids volume fraction eps_s")
-    parser.add_argument("--particles", type=int, required=True, help="real particles N")
-    parser.add_argument("--diameter", type=finite_float, required=True, help="particle diameter, m")
-    parser.add_argument("--diameter2", type=finite_float, default=None,
-                        help="a binary mixture: diameter of the second species, m (with --number-fraction2; "
-                             "--particles counts both species)")
-    parser.add_argument("--number-fraction2", type=finite_float, default=None,
-                        help="number fraction of the --diameter2 species, in (0, 1)")
-    parser.add_argument("--granular-temperature", type=finite_float, required=True,
-                        help="initial granular temperature Theta0, m^2/s^2")
-    parser.add_argument("--end-time", type=finite_float, required=True, help="simulated time, s")
-    parser.add_argument("--particles-per-parcel", default="1",
-                        help="real particles per parcel: W for every species (divides N; default 1), or W1,W2 "
-                             "per species of a mixture (W_k divides species k's particles)")
-    parser.add_argument("--particle-spin", action="store_true",
-                        help="surrogate (pairwise) only: collisions at the contact point, the spins turned "
-                             "(SurrogateCollision.particle_spin); with a frictional model the gas then heats up in "
-                             "rotation as the dem's does (rotational_temperature in the JSON)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the start (lattice jitter, velocities)")
-    parser.add_argument("--out", required=True, help="output directory")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
-    parser.add_argument("--json", action="store_true", help="print the summary as one JSON object (no progress bar)")
-    parser.add_argument("--device", default="cpu", help="Warp device: cpu or cuda (default cpu)")
+    g = groups.case
+    g.add_argument("--solids-fraction", type=finite_float, required=True, help="solids volume fraction eps_s")
+    g.add_argument("--particles", type=int, required=True, help="real particles N")
+    g.add_argument("--diameter", type=finite_float, required=True, help="particle diameter, m")
+    g.add_argument("--diameter2", type=finite_float, default=None,
+                   help="a binary mixture: diameter of the second species, m (with --number-fraction2; --particles "
+                        "counts both species)")
+    g.add_argument("--number-fraction2", type=finite_float, default=None,
+                   help="number fraction of the --diameter2 species, in (0, 1)")
+    g.add_argument("--granular-temperature", type=finite_float, required=True,
+                   help="initial granular temperature Theta0, m^2/s^2")
+
+
+def add_arguments(parser) -> None:
+    """Every option of the case on ``parser`` (its own and the shared ones)."""
+    CASE.add_arguments(parser)
 
 
 class CoolingConfig(SimpleNamespace):
     """The validated settings (see :func:`make_config`): collisions, model, detection, dt, eps, particles (real,
     every species), parcels, weights (real particles per parcel of each species: (W,) for one size, (W1, W2) for a
-    mixture), parcel_eps (the parcels' own solids fraction, sum of parcels x one particle's volume / L^3),
-    diameter, theta0, end_time, steps, seed, out, overwrite, device, box_length, material, material_source,
-    model_meta, species (None, or the binary mixture of :func:`mixture_species`)."""
-
-
-def _read_model_meta(model_dir: str) -> dict:
-    from hel_warp.errors import ConfigError
-
-    path = os.path.join(model_dir, "metadata.json")
-    if not os.path.isdir(model_dir):
-        raise ConfigError(f"--model {model_dir}: no such directory; give a directory written by `hel-warp train`")
-    try:
-        with open(path) as fh:
-            meta = json.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"--model {model_dir}: {path} not found; give a directory written by `hel-warp train`") \
-            from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"--model {model_dir}: {path} is not valid JSON ({exc})") from None
-    if not isinstance(meta, dict):
-        raise ConfigError(f"--model {model_dir}: {path} does not hold a JSON object")
-    return meta
+    mixture), parcel_eps (the parcels' own solids fraction), diameter, theta0, end_time, steps, seed, device,
+    box_length, material, material_source, model_meta, species (None, or the binary mixture of
+    :func:`mixture_species`)."""
 
 
 def _model_material(meta: dict | None):
     """(Material, source): the model's data-set material when its metadata records one, else friction 0."""
+    from hel_warp.case.models import model_material
     from hel_warp.material import Material
 
-    if meta:
-        for where in (meta.get("material"), (meta.get("dataset") or {}).get("material"),
-                      (meta.get("defaults") or {}).get("material")):
-            if isinstance(where, dict):
-                fields = {k: float(where[k]) for k in ("density", "youngs_modulus", "poisson_ratio", "restitution",
-                                                       "friction", "rolling_friction") if k in where}
-                return Material(**fields), "model metadata"
+    recorded = model_material(meta) if meta else None
+    if recorded:
+        fields = {k: float(recorded[k]) for k in ("density", "youngs_modulus", "poisson_ratio", "restitution",
+                                                  "friction", "rolling_friction") if k in recorded}
+        return Material(**fields), "model metadata"
     return Material(friction=0.0), "Material(friction=0) (the model metadata records no material)" if meta else \
         "Material(friction=0)"
 
 
 def make_config(args) -> CoolingConfig:
-    """Validate the options once (ConfigError with what to change) and derive the box, steps and material."""
+    """Validate the case's options once (ConfigError with what to change) and derive the box, steps and material."""
+    from hel_warp.case.models import read_metadata
     from hel_warp.errors import ConfigError
+    from hel_warp.mixture import species_weights
 
     name = args.collisions
-    if name not in COLLISIONS:
-        raise ConfigError(f"--collisions must be one of {', '.join(COLLISIONS)} (got {name!r})")
-    if args.detection is not None and name != "surrogate":
-        raise ConfigError(f"--detection applies to --collisions surrogate only (got --collisions {name}); drop it")
-    if name in ("surrogate", "surrogate-paper") and not args.model:
-        raise ConfigError(f"--collisions {name} needs --model MODEL_DIR (a "
-                          f"{'contact' if name == 'surrogate' else 'paper'}-form model written by hel-warp train)")
-    if not args.dt > 0.0:
-        raise ConfigError(f"--dt must be > 0 s (got {args.dt:g})")
     if not 0.0 < args.solids_fraction < 1.0:
         raise ConfigError(f"--solids-fraction must lie in (0, 1) (got {args.solids_fraction:g})")
     if not args.diameter > 0.0:
         raise ConfigError(f"--diameter must be > 0 m (got {args.diameter:g})")
     if not args.granular_temperature > 0.0:
         raise ConfigError(f"--granular-temperature must be > 0 m^2/s^2 (got {args.granular_temperature:g})")
-    if not args.end_time > 0.0:
-        raise ConfigError(f"--end-time must be > 0 s (got {args.end_time:g})")
-    if args.end_time < args.dt * (1.0 - 1e-9):
-        raise ConfigError(f"--end-time {args.end_time:g} s is shorter than one step (--dt {args.dt:g} s); give an "
-                          "end time of at least one step")
     if args.particles < 2:
         raise ConfigError(f"--particles must be >= 2 (got {args.particles})")
-    from hel_warp.mixture import species_weights
-
+    if not args.dt > 0.0:
+        raise ConfigError(f"--dt must be > 0 s (got {args.dt:g})")
     two_sizes = getattr(args, "diameter2", None) is not None or getattr(args, "number_fraction2", None) is not None
     weights = species_weights(args.particles_per_parcel, 2 if two_sizes else 1)
-    if args.seed < 0:
-        raise ConfigError(f"--seed must be >= 0 (got {args.seed})")
     eps, d = float(args.solids_fraction), float(args.diameter)
     species = mixture_species(args, weights)  # None: one size
     if species is None:
@@ -295,7 +208,7 @@ def make_config(args) -> CoolingConfig:
         raise ConfigError(f"{parcels} parcels of {d_big:g} m do not fit on a non-overlapping lattice in the box of "
                           f"side {L:.4g} m (eps_s {eps:g} with W = {','.join(map(str, weights))}: lattice spacing "
                           f"{L / side / d_big:.3f} d < 1); lower --solids-fraction or raise --particles-per-parcel")
-    meta = _read_model_meta(args.model) if args.model else None
+    meta = read_metadata(args.model) if args.model else None
     if meta is not None:
         defaults = meta.get("defaults") or {}
         if species is not None:
@@ -310,70 +223,16 @@ def make_config(args) -> CoolingConfig:
             raise ConfigError(f"--model {args.model} was trained for density {float(defaults['rho1']):g} kg/m^3, "
                               f"the material has {material.density:g} kg/m^3")
     steps = max(1, int(round(args.end_time / args.dt)))
-    out = Path(args.out)
-    if out.exists() and not args.overwrite:
-        raise ConfigError(f"output directory {args.out} exists; pass --overwrite to replace it")
-    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / SUMMARY).exists())):
-        raise ConfigError(f"{args.out} is not an output directory of this case (no {SUMMARY}); --overwrite only "
-                          "replaces those")
     detection = args.detection
-    particle_spin = bool(getattr(args, "particle_spin", False))
-    if particle_spin and name != "surrogate":
-        raise ConfigError(f"--particle-spin turns the surrogate's collisions at the contact point; --collisions {name} "
-                          "does not use it (the dem's spheres spin on their own)")
     if name == "surrogate" and detection is None and max(weights) > 1:
         detection = "cell"  # the strategy's own default for parcels heavier than one particle
-    cell_approaching = getattr(args, "cell_approaching", None)
-    if cell_approaching is not None and not (name == "surrogate" and detection == "cell"):
-        raise ConfigError("--[no-]cell-approaching is an option of the surrogate's cell detection (give --detection "
-                          "cell or --particles-per-parcel > 1)")
-    cell_transfer = getattr(args, "cell_transfer", None)
-    if cell_transfer is not None and not (name == "surrogate" and detection == "cell"):
-        raise ConfigError("--[no-]cell-transfer is an option of the surrogate's cell detection (give --detection cell "
-                          "or --particles-per-parcel > 1)")
-    config = CoolingConfig(collisions=name, model=args.model, detection=detection, dt=float(args.dt), eps=eps,
-                           particles=int(args.particles), parcels=parcels, weights=weights, parcel_eps=parcel_eps,
-                           diameter=d,
-                           theta0=float(args.granular_temperature), end_time=float(args.end_time), steps=steps,
-                           seed=int(args.seed), out=str(args.out), overwrite=bool(args.overwrite), device=args.device,
-                           box_length=L, material=material, material_source=source, model_meta=meta, species=species,
-                           particle_spin=particle_spin, cell_approaching=cell_approaching,
-                           cell_transfer=cell_transfer)
-    check_search(config)
-    return config
-
-
-def search_cell(config: CoolingConfig, speed_max: float) -> float:
-    """Hash-grid cell of the model's pair search, m: 2 (r + v_max dt) for the swept surrogate (a pair within reach
-    over the step), 2 r for the end-of-step overlap tests, 2 r + 0.3 r (the contact-list skin) for dem; 0 for the
-    models without a pair search."""
-    r = 0.5 * (config.diameter if config.species is None else max(config.species.diameters))
-    if config.collisions == "surrogate" and config.detection == "cell":
-        return 0.0  # collision cells tile the box; no search radius
-    if config.collisions == "surrogate" and (config.detection or "swept") == "swept":
-        return 2.0 * (r + speed_max * config.dt)
-    if config.collisions in ("surrogate", "surrogate-paper"):
-        return 2.0 * r
-    if config.collisions == "dem":
-        return 2.3 * r
-    return 0.0
-
-
-def check_search(config: CoolingConfig) -> None:
-    """The pair search must stay below half the periodic box (no parcel meets its own image, minimum image is
-    unique): refuse a box too small for the initial state's fastest parcel (as the strategy would, but here, before
-    anything is built)."""
-    from hel_warp.errors import ConfigError
-
-    _, v = initial_state(config)
-    speed = float(np.linalg.norm(v, axis=1).max())
-    cell = search_cell(config, speed)
-    if cell > 0.5 * config.box_length:
-        raise ConfigError(f"the box side L = {config.box_length:.4g} m is too small for the pair search of "
-                          f"{config.collisions} at dt = {config.dt:g} s: it spans {cell:.4g} m (fastest parcel "
-                          f"{speed:.3g} m/s) and must stay below L/2; raise --particles, or lower --dt or "
-                          "--solids-fraction")
-
+    return CoolingConfig(collisions=name, model=args.model, detection=detection, dt=float(args.dt), eps=eps,
+                         particles=int(args.particles), parcels=parcels, weights=weights, parcel_eps=parcel_eps,
+                         diameter=d, theta0=float(args.granular_temperature), end_time=float(args.end_time),
+                         steps=steps, seed=int(args.seed), device=args.device, box_length=L, material=material,
+                         material_source=source, model_meta=meta, species=species,
+                         particle_spin=bool(getattr(args, "particle_spin", False)),
+                         cell_approaching=getattr(args, "cell_approaching", None))
 
 # ------------------------------------------------------------------------------------------------ initial state
 RANDOM_START_MAX_EPS = 0.1
@@ -650,217 +509,47 @@ def first_periodic_overlap(x: np.ndarray, diameter: float, box: float, tolerance
     return int(i), int(j), float(diameter - np.linalg.norm(s))
 
 
-# ------------------------------------------------------------------------------------------------ the flights
-class BallisticFlight:
-    """``none``: x += v dt, wrapped."""
 
-    name = "none"
-
-    def __init__(self, config: CoolingConfig):
-        self.box = (config.box_length,) * 3
-        self.notes = []
-
-    def step(self, particles, dt: float) -> None:
-        from kernels.free_flight import drift, wrap_periodic
-
-        drift(particles.x, particles.v, particles.alive, dt)
-        wrap_periodic(particles.x, particles.alive, self.box)
-
-    def counts(self) -> dict:
-        return {}
-
-    def diagnostics(self, particles) -> dict:
-        return {}
-
-
-class KtgfFlight(BallisticFlight):
-    """``ktgf``: deposit on a periodic grid, the engine's KTGF acceleration, v += a dt, then the ballistic move."""
-
-    name = "ktgf"
+# ------------------------------------------------------------------------------------------------ the record
+class CoolingRecorder:
+    """Observer of the box (after every step): the velocity moments (S0, S1, S2) of the parcels on the device, per
+    species for a mixture, and the rotational temperature when the collisions turn spins; the collision counts of
+    each step. All of it goes into the checkpoints, so a resumed run analyses the whole history."""
 
     def __init__(self, config: CoolingConfig):
-        from hel_warp.coupling import CouplingFields, GridSpec
-        from hel_warp.hel import KtgfCollision
-
-        super().__init__(config)
-        L = config.box_length
-        cells = max(3, int(round(L / KTGF_CELL)))
-        self.grid = GridSpec(origin=(0.0, 0.0, 0.0), spacing=L / cells, shape=(cells,) * 3,
-                             periodic=(True, True, True))
-        self.fields = CouplingFields.allocate(self.grid, config.parcels, device=config.device)
-        self.ktgf_diameter = config.diameter if config.species is None else config.species.sauter_mean
-        self.strategy = KtgfCollision(particle_diameter=self.ktgf_diameter, particle_density=config.material.density,
-                                      restitution=config.material.restitution)
-        self.dt = config.dt
-        if config.species is not None:
-            self.notes.append(f"ktgf: one diameter, the mixture's Sauter mean d_32 = {self.ktgf_diameter * 1e6:.1f} um "
-                              "(the mixture KTGF closures are out of scope)")
-        self.notes = self.notes + [f"ktgf: the engine's KtgfCollision on a periodic {cells}^3 grid of h = {L / cells:.4g} m "
-                      f"({config.parcels / cells**3:.3g} parcels per cell), deposited with the engine's cloud-in-cell "
-                      "coupling, no gas (no drag, K_sg = 0); it has no binary collisions (count 0); what it does "
-                      "to Theta comes from the sampling-noise gradients of p_s only"]
-
-    def step(self, particles, dt: float) -> None:
-        from hel_warp.coupling import deposit_parcels
-        from kernels.free_flight import kick
-
-        deposit_parcels(self.grid, particles, self.fields)
-        view = SimpleNamespace(grid=self.grid, pool=SimpleNamespace(particles=particles), fields=self.fields,
-                               config=SimpleNamespace(dt=dt))
-        self.strategy.accelerate(view)
-        kick(particles.v, self.fields.parcel_a_coll, particles.alive, dt)
-        super().step(particles, dt)
-
-    def diagnostics(self, particles) -> dict:
-        """The KTGF cell state of the last step: eps_s-weighted cell Theta, |a_coll| dt (velocity kick per step)."""
-        eps = self.fields.cell_eps_s.numpy().astype(np.float64)
-        theta = self.fields.cell_theta.numpy().astype(np.float64)
-        a = np.linalg.norm(self.fields.parcel_a_coll.numpy().astype(np.float64), axis=1)
-        return {"ktgf_cell_theta_eps_weighted": float((eps * theta).sum() / max(eps.sum(), 1e-300)),
-                "ktgf_cell_theta_max": float(theta.max()), "ktgf_cell_eps_s_max": float(eps.max()),
-                "ktgf_cells_with_solids": int((eps > float(self.strategy.params.eps_s_min)).sum()),
-                "ktgf_kick_mean": float(a.mean() * self.dt), "ktgf_kick_max": float(a.max() * self.dt)}
-
-
-def _accepts(func, name: str) -> bool:
-    try:
-        return name in inspect.signature(func).parameters
-    except (TypeError, ValueError):
-        return False
-
-
-class SurrogateFlight(BallisticFlight):
-    """``surrogate`` / ``surrogate-paper``: collide (swept: the coming step's collisions; overlap: the current
-    positions), x += v dt, the strategy's in-step position corrections, wrap."""
-
-    def __init__(self, config: CoolingConfig):
-        from hel_warp.errors import ConfigError
-        import hel_warp.collision_models as cm
-
-        super().__init__(config)
-        self.name = config.collisions
-        cls = cm.SurrogateCollision if config.collisions == "surrogate" else cm.SurrogatePaperCollision
-        kwargs = {"model_dir": config.model}
-        if _accepts(cls.__init__, "periodic_box"):
-            kwargs["periodic_box"] = self.box
-        else:
-            self.notes.append("the strategy has no periodic_box: its pair search does not see across the periodic "
-                              "faces, so collisions of pairs straddling a face are missed")
-        if config.detection is not None:
-            if not _accepts(cls.__init__, "detection"):
-                raise ConfigError(f"--detection {config.detection}: SurrogateCollision in this checkout takes no "
-                                  "detection argument (only its own end-of-step overlap test); drop --detection")
-            kwargs["detection"] = config.detection
-        if config.detection == "cell":
-            kwargs["seed"] = config.seed  # the collision cells' random numbers
-            cell = {}
-            if getattr(config, "cell_approaching", None) is not None:
-                cell["approaching"] = bool(config.cell_approaching)
-            if getattr(config, "cell_transfer", None) is not None:
-                cell["collisional_transfer"] = bool(config.cell_transfer)
-            if cell:
-                from hel_warp.cell_collisions import CellConfig
-
-                kwargs["cell"] = CellConfig(**cell)
-        if getattr(config, "particle_spin", False):
-            kwargs["particle_spin"] = True
-        self.strategy = cls(**kwargs)
-        self.detection = getattr(self.strategy, "detection", config.detection or "overlap")
-        self._collide_takes_dt = _accepts(self.strategy.collide, "dt")
-        if not self._collide_takes_dt:
-            self.notes.append("the strategy's collide() takes no dt: it resolves the pairs overlapping at the current "
-                              "positions (end-of-step test)")
-        self._correct = getattr(self.strategy, "correct_positions", None)
-        self.weight = min(config.weights)
-        self._warned_count = False
-
-    def step(self, particles, dt: float) -> None:
-        from kernels.free_flight import drift, wrap_periodic
-
-        if self._collide_takes_dt:
-            self.strategy.collide(particles, dt)
-        else:
-            self.strategy.collide(particles)
-        drift(particles.x, particles.v, particles.alive, dt)
-        if self._correct is not None:
-            self._correct(particles)
-        wrap_periodic(particles.x, particles.alive, self.box)
-
-    def counts(self) -> dict:
-        c = dict(self.strategy.counts())
-        if "collisions" not in c:  # before the weight-aware count: every resolved pair counts min(W_k)
-            c["collisions"] = c.get("surrogate_calls", 0) * self.weight
-            if not self._warned_count:
-                self.notes.append("the strategy reports no 'collisions' count: used surrogate_calls x W")
-                self._warned_count = True
-        return c
-
-
-class DemFlight(BallisticFlight):
-    """``dem``: ``DemCollision(periodic_box=...).advance_free(particles, dt)`` (contacts only, wraps positions)."""
-
-    name = "dem"
-
-    def __init__(self, config: CoolingConfig):
-        from hel_warp.errors import ConfigError
-        from hel_warp.cfd_dem import DemCollision
-
-        super().__init__(config)
-        if not hasattr(DemCollision, "advance_free") or not _accepts(DemCollision.__init__, "periodic_box"):
-            raise ConfigError("--collisions dem needs DemCollision(periodic_box=...).advance_free(particles, dt) "
-                              "(gas-free, periodic DEM sub-steps), which this checkout does not have yet")
-        self.strategy = DemCollision(material=config.material, periodic_box=self.box)
-
-    def step(self, particles, dt: float) -> None:
-        self.strategy.advance_free(particles, dt)
-
-    def counts(self) -> dict:
-        return dict(self.strategy.counts())
-
-
-FLIGHTS = {"none": BallisticFlight, "ktgf": KtgfFlight, "surrogate": SurrogateFlight,
-           "surrogate-paper": SurrogateFlight, "dem": DemFlight}
-
-
-# ------------------------------------------------------------------------------------------------ the case
-class HomogeneousCooling:
-    """The case: ``step()`` advances one dt with the chosen model and records the velocity moments on the device;
-    ``theta()`` reads the Theta history once."""
-
-    def __init__(self, config: CoolingConfig):
-        import warp as wp
-
-        from hel_warp.particles import Particles
-
         self.config = config
-        x, v = initial_state(config)
-        self.x0, self.v0 = x, v
-        radius, stream = 0.5 * config.diameter, 0
-        weight = np.full(config.parcels, float(config.weights[0]))
-        if config.species is not None:  # the stream tag is the species: the strategies count per stream pair
-            stream = mixture_labels(config)
-            radius = 0.5 * np.asarray(config.species.diameters)[stream]
-            weight = np.asarray(config.weights, np.float64)[stream]  # each species its own weight
-        self.particles = Particles.from_numpy(x, radius, v=v, density=config.material.density, weight=weight,
-                                              stream=stream, check_overlap=False, device=config.device)
-        self._moment_weight = self.particles.weight  # one size: the parcel weights
-        self._species_weight = []
-        if config.species is not None:  # mass-weighted moments (w mass / m_1) and one set per species
-            rel_mass = (species_masses(config) / species_masses(config)[0])[stream]
-            self._moment_weight = wp.array((weight * rel_mass).astype(np.float32), dtype=wp.float32,
-                                           device=config.device)
-            self._species_weight = [wp.array((weight * (stream == k)).astype(np.float32), dtype=wp.float32,
-                                             device=config.device) for k in (0, 1)]
-        self.species_moments = [wp.zeros((config.steps + 1, 5), dtype=wp.float64, device=config.device)
-                                for _ in self._species_weight]
-        self.flight = FLIGHTS[config.collisions](config)
-        self.moments = wp.zeros((config.steps + 1, 5), dtype=wp.float64, device=config.device)
-        self.steps_done = 0
         self.count_totals: dict[str, float] = {}
         self.collisions_per_step = np.zeros(config.steps, np.float64)
         self.spin_square = np.zeros(config.steps + 1, np.float64)
         """Per recorded step: the mean of I |omega|^2 / (3 m) over the parcels (weights), m^2/s^2."""
+        self.steps_done = 0
+        self.moments = None
+
+    def bind(self, sim) -> None:
+        """Allocate the device records for the simulation's parcels and record the start (row 0)."""
+        import warp as wp
+
+        cfg = self.config
+        particles = sim.solver.particles
+        self.particles = particles
+        self._moment_weight = particles.weight  # one size: the parcel weights
+        self._species_weight = []
+        if cfg.species is not None:  # mass-weighted moments (w mass / m_1) and one set per species
+            stream = particles.stream.numpy()
+            weight = particles.weight.numpy().astype(np.float64)
+            rel_mass = (species_masses(cfg) / species_masses(cfg)[0])[stream]
+            self._moment_weight = wp.array((weight * rel_mass).astype(np.float32), dtype=wp.float32,
+                                           device=cfg.device)
+            self._species_weight = [wp.array((weight * (stream == k)).astype(np.float32), dtype=wp.float32,
+                                             device=cfg.device) for k in (0, 1)]
+        self.moments = wp.zeros((cfg.steps + 1, 5), dtype=wp.float64, device=cfg.device)
+        self.species_moments = [wp.zeros((cfg.steps + 1, 5), dtype=wp.float64, device=cfg.device)
+                                for _ in self._species_weight]
         self._record()
+
+    def _spins(self) -> bool:
+        return self.config.collisions == "dem" or (self.config.collisions == "surrogate"
+                                                   and self.config.particle_spin)
 
     def _record(self) -> None:
         from kernels.free_flight import velocity_moments
@@ -869,24 +558,54 @@ class HomogeneousCooling:
         velocity_moments(p.v, self._moment_weight, p.alive, self.moments, self.steps_done)
         for weight, moments in zip(self._species_weight, self.species_moments):
             velocity_moments(p.v, weight, p.alive, moments, self.steps_done)
-        # the others never turn a spin (the surrogate only with --particle-spin): their rows stay 0, with no read-back
-        if self.config.collisions == "dem" or (self.config.collisions == "surrogate"
-                                               and getattr(self.config, "particle_spin", False)):
+        if self._spins():  # the others never turn a spin: their rows stay 0, with no read-back
             w = p.omega.numpy().astype(np.float64)
             r = p.radius.numpy().astype(np.float64)
             weight = np.asarray(self._moment_weight.numpy(), np.float64)
             self.spin_square[self.steps_done] = float(np.sum(weight * 0.4 * r**2 * (w**2).sum(axis=1)) /
                                                       (3.0 * weight.sum()))
 
-    def step(self) -> None:
-        self.flight.step(self.particles, self.config.dt)
-        counts = self.flight.counts()
+    def after_step(self, sim) -> None:
+        counts = sim.last_counts
         for k, c in counts.items():
             if isinstance(c, (int, float, np.integer, np.floating)) and not isinstance(c, bool):
                 self.count_totals[k] = self.count_totals.get(k, 0) + c
-        self.collisions_per_step[self.steps_done] = float(counts.get("collisions", 0))
+        if self.steps_done < len(self.collisions_per_step):
+            self.collisions_per_step[self.steps_done] = float(counts.get("collisions", 0))
         self.steps_done += 1
-        self._record()
+        if self.steps_done <= self.config.steps:
+            self._record()
+
+    def state(self) -> dict:
+        names = sorted(self.count_totals)
+        out = {"moments": self.moments.numpy(), "steps_done": np.array(self.steps_done),
+               "collisions_per_step": self.collisions_per_step, "spin_square": self.spin_square,
+               "count_names": np.array(names, dtype=str),
+               "count_values": np.array([float(self.count_totals[k]) for k in names], np.float64)}
+        for k, m in enumerate(self.species_moments):
+            out[f"species_moments{k}"] = m.numpy()
+        return out
+
+    def set_state(self, state: dict) -> None:
+        import warp as wp
+
+        def grow(old, rows):
+            new = np.zeros((rows,) + np.asarray(old).shape[1:], np.asarray(old).dtype)
+            n = min(rows, len(old))
+            new[:n] = np.asarray(old)[:n]
+            return new
+
+        rows = self.config.steps + 1
+        self.steps_done = int(state["steps_done"])
+        self.moments = wp.array(grow(state["moments"], rows), dtype=wp.float64, device=self.config.device)
+        self.species_moments = [wp.array(grow(state[f"species_moments{k}"], rows), dtype=wp.float64,
+                                         device=self.config.device) for k in range(len(self.species_moments))]
+        self.collisions_per_step = grow(state["collisions_per_step"], rows - 1)
+        self.spin_square = grow(state["spin_square"], rows)
+        self.count_totals = {str(k): float(v) for k, v in zip(state["count_names"], state["count_values"])}
+        for k, v in list(self.count_totals.items()):
+            if v.is_integer():
+                self.count_totals[k] = int(v)
 
     def time(self) -> np.ndarray:
         return np.arange(self.steps_done + 1) * self.config.dt
@@ -914,38 +633,61 @@ MOMENTUM_CONSERVING = ("none", "surrogate", "dem")
 ``surrogate-paper`` (each parcel's new velocity from its averaged partners, sec. 4.3) do not conserve momentum."""
 
 
-def momentum_drift(case: HomogeneousCooling) -> float:
+def momentum_drift(record: CoolingRecorder) -> float:
     """max |P(T) - P(0)| over the axes, in units of N m sqrt(Theta0) (the momentum scale of the thermal motion)."""
-    m = case.config.material.density * math.pi * case.config.diameter**3 / 6.0
-    p = case.momentum()
-    return float(np.abs(p[-1] - p[0]).max()) / (m * case.config.particles * math.sqrt(case.config.theta0))
+    cfg = record.config
+    m = cfg.material.density * math.pi * cfg.diameter**3 / 6.0
+    p = record.momentum()
+    return float(np.abs(p[-1] - p[0]).max()) / (m * cfg.particles * math.sqrt(cfg.theta0))
 
 
-def check(case: HomogeneousCooling, theta: np.ndarray) -> list[str]:
-    """Physical facts at the end: finite state, every parcel in [0, L)^3, total momentum conserved (to 1e-4 of
-    N m sqrt(Theta0), float32 velocities) by the models of MOMENTUM_CONSERVING."""
-    errors = []
-    x = case.particles.x.numpy()
-    v = case.particles.v.numpy()
-    L = case.config.box_length
-    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v)) and np.all(np.isfinite(theta))):
-        errors.append("non-finite positions, velocities or Theta")
-    elif np.any(x < 0.0) or np.any(x >= L):
-        errors.append(f"{int(np.sum(np.any((x < 0.0) | (x >= L), axis=1)))} parcels outside the periodic box [0, L)")
-    drift = momentum_drift(case)
-    if case.config.collisions in MOMENTUM_CONSERVING and not drift <= 1e-4:
-        errors.append(f"total momentum drifted by {drift:.2e} of N m sqrt(Theta0)")
-    return errors
+# ------------------------------------------------------------------------------------------------ the case
+def build(args):
+    """The flow: the periodic box without gas, the Maxwellian start placed parcel by parcel."""
+    config = make_config(args)
+    args._cooling = config
+    L = config.box_length
+    flow = hc.Flow("homogeneous_cooling", lo=(0.0, 0.0, 0.0), hi=(L, L, L), spacing=L, periodic=(True, True, True),
+                   gas=None)
+    x, v = initial_state(config)
+    if config.species is None:
+        flow.species("gas", config.diameter, material=config.material, weight=config.weights[0])
+        flow.place("gas", x, v=v, weight=np.full(config.parcels, float(config.weights[0])), check_overlap=False)
+    else:  # the stream tag is the species: the strategies count per stream pair
+        stream = mixture_labels(config)
+        for k, dk in enumerate(config.species.diameters):
+            flow.species(f"species{k + 1}", dk, material=config.material, weight=config.weights[k])
+        flow.place("species1", x, v=v, radius=0.5 * np.asarray(config.species.diameters)[stream],
+                   weight=np.asarray(config.weights, np.float64)[stream], stream=stream, check_overlap=False)
+    if config.species is not None:  # KTGF's one diameter: the mixture's Sauter mean
+        flow.collision_defaults["ktgf"] = {"ktgf_diameter": config.species.sauter_mean}
+    cell = {}
+    if config.cell_approaching is not None:
+        cell["approaching"] = bool(config.cell_approaching)
+    if config.detection is not None:
+        flow.collision_defaults["surrogate"] = {"detection": config.detection, **({"cell": cell} if cell else {})}
+    return flow
 
 
-def analyse(case: HomogeneousCooling, wall_s: float, kernel_load_s: float) -> dict:
+def observers(args, flow) -> list:
+    return [CoolingRecorder(args._cooling)]
+
+
+def _record_of(run) -> CoolingRecorder:
+    record = run.solver.observers[0]
+    return record
+
+
+def analyse(run) -> dict:
     """The summary: Theta(t), collisions, the Enskog and Haff references, their ratios and the statistics."""
-    cfg = case.config
-    cells = getattr(getattr(case.flight, "strategy", None), "cells", None)  # the cell detection's, if it runs
-    t = case.time()
-    theta = case.theta()
+    record = _record_of(run)
+    cfg = record.config
+    flight = run.solver.flight
+    cells = getattr(flight.strategy, "cells", None)  # the cell detection's, if it runs
+    t = record.time()
+    theta = record.theta()
     T = float(t[-1])
-    collisions = float(case.count_totals.get("collisions", 0.0))
+    collisions = float(record.count_totals.get("collisions", 0.0))
     freq = 2.0 * collisions / (cfg.particles * T)
     g0 = carnahan_starling_g0(cfg.eps)
     omega = enskog_frequency(cfg.eps, cfg.diameter, theta)
@@ -959,22 +701,26 @@ def analyse(case: HomogeneousCooling, wall_s: float, kernel_load_s: float) -> di
     idx = np.arange(0, len(t), stride)
     if idx[-1] != len(t) - 1:
         idx = np.append(idx, len(t) - 1)
-    counts = {k: (int(v) if float(v).is_integer() else float(v)) for k, v in sorted(case.count_totals.items())}
+    counts = {k: (int(v) if float(v).is_integer() else float(v)) for k, v in sorted(record.count_totals.items())}
     flags = {k: v for k, v in counts.items() if any(f in k for f in COUNT_FLAGS)}
     enskog_collisions = 0.5 * cfg.particles * expected_per_particle
     # the statistics are those of the parcel events: a parcel collision of weight W stands for W real ones
     events = enskog_collisions / cfg.weights[0]
-    notes = list(case.flight.notes)
+    notes = list(flight.notes)
+    if cfg.species is not None and cfg.collisions == "ktgf":
+        notes.append(f"ktgf: one diameter, the mixture's Sauter mean d_32 = {flight.ktgf_diameter * 1e6:.1f} um "
+                     "(the mixture KTGF closures are out of scope)")
     if max(cfg.weights) > 1:
         notes.append(f"parcels of weight {','.join(map(str, cfg.weights))}: the references are those of the N real "
                      "particles")
     summary = {
         "case": "homogeneous_cooling", "collision_model": cfg.collisions,
-        "detection": getattr(case.flight, "detection", None), "model": cfg.model,
+        "detection": getattr(flight, "detection", None), "model": cfg.model,
         "time": t[idx].tolist(), "granular_temperature": theta[idx].tolist(), "output_every_steps": int(stride),
         "collisions": collisions, "collision_frequency": freq,
         "solids_fraction": cfg.eps, "particles": cfg.particles, "parcels": cfg.parcels,
-        "particles_per_parcel": weights_output(cfg.weights), "diameter": cfg.diameter, "dt": cfg.dt, "steps": case.steps_done,
+        "particles_per_parcel": weights_output(cfg.weights), "diameter": cfg.diameter, "dt": cfg.dt,
+        "steps": record.steps_done,
         "end_time": T, "granular_temperature_initial": float(theta[0]), "granular_temperature_final": float(theta[-1]),
         "box_length": cfg.box_length, "restitution": e, "friction": cfg.material.friction,
         "density": cfg.material.density, "material_source": cfg.material_source, "g0_carnahan_starling": g0,
@@ -985,21 +731,74 @@ def analyse(case: HomogeneousCooling, wall_s: float, kernel_load_s: float) -> di
         "haff_slope": slope_haff, "fitted_slope": fitted,
         "cooling_rate_ratio": fitted / slope_haff if slope_haff > 0 else None,
         "cooling_rate_ratio_stderr": (math.sqrt(2.0 / events)) if events > 0 else None,
-        "collisions_per_step_max": float(case.collisions_per_step[: case.steps_done].max(initial=0.0)),
-        "wall_clock_s": wall_s, "wall_clock_per_step_s": wall_s / max(case.steps_done, 1),
-        "kernel_load_s": kernel_load_s,
-        "rotational_temperature": case.rotational_temperature()[idx].tolist(),
-        "rotational_temperature_final": float(case.rotational_temperature()[-1]),
-        "particle_spin": bool(getattr(cfg, "particle_spin", False)),
+        "collisions_per_step_max": float(record.collisions_per_step[: record.steps_done].max(initial=0.0)),
+        "wall_clock_per_step_s": None,
+        "rotational_temperature": record.rotational_temperature()[idx].tolist(),
+        "rotational_temperature_final": float(record.rotational_temperature()[-1]),
+        "particle_spin": bool(cfg.particle_spin),
         "cell_approaching": None if cells is None else bool(cells.approaching),  # the last step's, resolved
         "cell_transfer": None if cells is None else bool(cells.config.transfer),
-        "momentum_drift": momentum_drift(case), "strategy_counts": counts, "strategy_flags": flags,
-        "diagnostics": case.flight.diagnostics(case.particles),
-        "seed": cfg.seed, "device": str(cfg.device), "notes": notes,
+        "momentum_drift": momentum_drift(record), "strategy_counts": counts, "strategy_flags": flags,
+        "diagnostics": flight.diagnostics(run.solver.particles), "notes": notes,
+        "swept_substeps": getattr(flight, "last_substeps", 1),
     }
     if cfg.species is not None:  # the mixture's references replace the one-size Enskog / Haff ones
-        summary.update(mixture_summary(case, t, theta, idx, counts))
+        summary.update(mixture_summary(record, t, theta, idx, counts))
     return summary
+
+
+def summary(run) -> dict:
+    out = analyse(run)
+    wall = run.series("timing_step")
+    out["wall_clock_s"] = float(np.sum(wall)) if wall is not None else 0.0
+    out["wall_clock_per_step_s"] = out["wall_clock_s"] / max(out["steps"], 1)
+    return out
+
+
+def check(run) -> list[str]:
+    """Physical facts at the end: finite state, every parcel in [0, L)^3, total momentum conserved (to 1e-4 of
+    N m sqrt(Theta0), float32 velocities) by the models of MOMENTUM_CONSERVING."""
+    record = _record_of(run)
+    theta = record.theta()
+    errors = []
+    x = run.solver.particles.x.numpy()
+    v = run.solver.particles.v.numpy()
+    L = record.config.box_length
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v)) and np.all(np.isfinite(theta))):
+        errors.append("non-finite positions, velocities or Theta")
+    elif np.any(x < 0.0) or np.any(x >= L):
+        errors.append(f"{int(np.sum(np.any((x < 0.0) | (x >= L), axis=1)))} parcels outside the periodic box [0, L)")
+    drift = momentum_drift(record)
+    if record.config.collisions in MOMENTUM_CONSERVING and not drift <= 1e-4:
+        errors.append(f"total momentum drifted by {drift:.2e} of N m sqrt(Theta0)")
+    return errors
+
+
+def finish(run, summary: dict) -> None:
+    plot(summary, str(run.out / PICTURE))
+    summary["picture"] = str(run.out / PICTURE)
+
+
+def report(run, summary: dict) -> str:
+    cfg = _record_of(run).config
+    text = (f"homogeneous_cooling [{cfg.collisions}{'/' + summary['detection'] if summary['detection'] else ''}]: "
+            f"N = {cfg.particles} ({cfg.parcels} parcels, W = {','.join(map(str, cfg.weights))}), eps_s = "
+            f"{cfg.eps:g}, dt = {cfg.dt:g} s, {summary['steps']} steps: Theta "
+            f"{summary['granular_temperature_initial']:.4g} -> {summary['granular_temperature_final']:.4g} m^2/s^2, "
+            f"{summary['collisions']:g} collisions ({summary['collisions_per_particle']:.3g} per particle); "
+            f"collision frequency / Enskog = {summary['collision_frequency_ratio']:.4f} "
+            f"(+- {summary['collision_frequency_ratio_stderr'] or 0:.3f}), cooling rate / Haff = "
+            f"{summary['cooling_rate_ratio']:.4f} (+- {summary['cooling_rate_ratio_stderr'] or 0:.3f}); "
+            f"wall clock {summary['wall_clock_s']:.2f} s -> {run.out}")
+    if summary.get("mixture"):
+        kt = summary["kinetic_theory"]
+        text += (f"\n  mixture: Theta_1 {summary['granular_temperature_1_initial']:.4g} -> "
+                 f"{summary['granular_temperature_1_final']:.4g}, Theta_2 "
+                 f"{summary['granular_temperature_2_initial']:.4g} -> {summary['granular_temperature_2_final']:.4g} "
+                 f"m^2/s^2, T_2/T_1 = {summary['temperature_ratio_final']:.4f} (kinetic theory "
+                 f"{kt['temperature_ratio_final']:.4f}, homogeneous cooling state {kt['temperature_ratio_hcs']:.4f}); "
+                 "the ratios above are to the mixture's kinetic theory")
+    return text
 
 
 def plot(summary: dict, path: str) -> None:
@@ -1047,85 +846,12 @@ def plot(summary: dict, path: str) -> None:
     plt.close(fig)
 
 
-# ------------------------------------------------------------------------------------------------ running
-def run(args, *, progress: bool = True) -> int:
-    from hel_warp._warp import init_warp
-    from hel_warp.run import check_device, load_kernels
-
-    config = make_config(args)
-    check_device(config.device)
-    init_warp(config.device)
-    import kernels.free_flight  # noqa: F401  (compiled with the rest before the timed loop)
-
-    kernel_load_s = load_kernels(config.device)
-    case = HomogeneousCooling(config)
-    bar = None
-    if progress and not args.json:
-        from tqdm import tqdm
-
-        bar = tqdm(total=config.steps, unit="step", mininterval=0.5,
-                   desc=f"homogeneous_cooling {config.collisions} dt={config.dt:g}")
-    start = time.perf_counter()
-    for _ in range(config.steps):
-        case.step()
-        if bar is not None:
-            bar.update(1)
-    wall_s = time.perf_counter() - start
-    if bar is not None:
-        bar.close()
-    summary = analyse(case, wall_s, kernel_load_s)
-    errors = check(case, case.theta())
-    summary["check_errors"] = errors
-    out = Path(config.out)
-    if out.exists() and config.overwrite:
-        shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
-    plot(summary, str(out / PICTURE))
-    summary["picture"] = str(out / PICTURE)
-    with open(out / SUMMARY, "w") as fh:
-        json.dump(summary, fh, indent=1)
-    if args.json:
-        print(json.dumps(summary))
-    else:
-        print(f"homogeneous_cooling [{config.collisions}"
-              f"{'/' + summary['detection'] if summary['detection'] else ''}]: N = {config.particles} "
-              f"({config.parcels} parcels, W = {','.join(map(str, config.weights))}), eps_s = {config.eps:g}, dt = {config.dt:g} s, {case.steps_done} steps: "
-              f"Theta {summary['granular_temperature_initial']:.4g} -> {summary['granular_temperature_final']:.4g} "
-              f"m^2/s^2, {summary['collisions']:g} collisions ({summary['collisions_per_particle']:.3g} per particle); "
-              f"collision frequency / Enskog = {summary['collision_frequency_ratio']:.4f} "
-              f"(+- {summary['collision_frequency_ratio_stderr'] or 0:.3f}), cooling rate / Haff = "
-              f"{summary['cooling_rate_ratio']:.4f} (+- {summary['cooling_rate_ratio_stderr'] or 0:.3f}); "
-              f"wall clock {wall_s:.2f} s -> {config.out}")
-        if summary.get("mixture"):
-            kt = summary["kinetic_theory"]
-            print(f"  mixture: Theta_1 {summary['granular_temperature_1_initial']:.4g} -> "
-                  f"{summary['granular_temperature_1_final']:.4g}, Theta_2 {summary['granular_temperature_2_initial']:.4g}"
-                  f" -> {summary['granular_temperature_2_final']:.4g} m^2/s^2, T_2/T_1 = "
-                  f"{summary['temperature_ratio_final']:.4f} (kinetic theory {kt['temperature_ratio_final']:.4f}, "
-                  f"homogeneous cooling state {kt['temperature_ratio_hcs']:.4f}); the ratios above are to the "
-                  "mixture's kinetic theory")
-    for e in errors:
-        print(f"homogeneous_cooling: check failed: {e}", file=sys.stderr)
-    return 1 if errors else 0
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # one line, exit code 2 (as the hel-warp command line)
-        self.exit(2, f"{self.prog}: error: {message}\n")
+CASE = hc.Case("homogeneous_cooling", build, doc=__doc__, options=options, summary=summary, check=check,
+               observers=observers, report=report, finish=finish, models=COLLISIONS, gas_snapshots=False)
 
 
 def main(argv=None) -> int:
-    from hel_warp.errors import HelWarpError
-
-    parser = _Parser(prog="homogeneous_cooling", description=__doc__.split("\n\n")[0])
-    add_arguments(parser)
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    args = parser.parse_args(argv)
-    try:
-        return run(args, progress=not args.no_progress)
-    except HelWarpError as exc:
-        print(f"homogeneous_cooling: error: {exc}", file=sys.stderr)
-        return 2
+    return CASE.main(argv)
 
 
 if __name__ == "__main__":

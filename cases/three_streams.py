@@ -9,22 +9,23 @@ of step k + 5: lateral gap 0.63 d then (0.2 mm), 1.19 d one step earlier. So eve
 seen overlapping "after the fifth step" and the centres are still apart (a defined normal).
 
 ``--collisions``: ``none``; ``ktgf`` (the paper's HEL: eps_s < 0.06 in every cell, the granular
-pressure sees no collision and the streams pass through); ``surrogate`` (HELSCM pairwise, needs a
-contact-form ``--model``); ``surrogate-paper`` (paper-form ``--model``); ``dem`` (Hertz-Mindlin
-sub-steps). ``check()`` reads the sign of each particle's lateral velocity v_y after its pair met:
+pressure sees no collision and the streams pass through); ``surrogate`` (HELSCM pairwise; a contact-form
+``--model``, or without one a model built for these particles on first use and cached); ``surrogate-paper``
+(paper-form ``--model``); ``dem`` (Hertz-Mindlin sub-steps). The streams are a flow of the case API
+(``hel_warp.case``): the nozzles are explicit releases, one particle per stream at the start of each of the
+first three steps. ``check()`` reads the sign of each particle's lateral velocity v_y after its pair met:
 reversed for every particle of a stream = "rebound", for none = "pass-through".
 
     python cases/three_streams.py --collisions dem --out runs/three_streams_dem
     python cases/three_streams.py --collisions surrogate --model runs/model_contact --out runs/three_streams_sm
 
-Writes ``OUT/before.png``, ``OUT/at.png``, ``OUT/after.png`` (pyvista off-screen; matplotlib if
-pyvista cannot render) and ``OUT/summary.json`` (outcome, lateral velocities, max eps_s, counts).
+Writes the run directory of every case (``run.zarr``, VTK) with ``OUT/before.png``, ``OUT/at.png``,
+``OUT/after.png`` (pyvista off-screen; matplotlib if pyvista cannot render) and ``OUT/summary.json`` (outcome,
+lateral velocities, max eps_s, counts).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import os
 import sys
@@ -34,6 +35,8 @@ import numpy as np
 
 if str(Path(__file__).resolve().parents[1]) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from hel_warp import case as hc  # noqa: E402
 
 DIAMETER = 315e-6
 """Particle diameter, m (the paper's small size)."""
@@ -57,14 +60,10 @@ NOZZLE_Z = 2e-3
 COLLISIONS = ("none", "ktgf", "surrogate", "surrogate-paper", "dem")
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--collisions", choices=COLLISIONS, default="surrogate",
-                        help="collision model (default surrogate)")
-    parser.add_argument("--model", default=None, help="model directory of the surrogate (hel-warp train --out)")
-    parser.add_argument("--out", default="runs/three_streams", help="output directory (default runs/three_streams)")
-    parser.add_argument("--device", default="cpu", help="Warp device: cpu or cuda (default cpu)")
-    parser.add_argument("--steps", type=int, default=12, help="HEL steps of 1e-4 s (default 12, >= 9)")
-    parser.add_argument("--no-render", action="store_true", help="skip the pictures")
+
+def options(groups) -> None:
+    groups.case.add_argument("--steps", type=int, default=12, help="HEL steps of 1e-4 s (default 12, >= 9)")
+    groups.output.add_argument("--no-render", action="store_true", help="skip the pictures")
 
 
 def stream_velocity(stream: int) -> np.ndarray:
@@ -80,87 +79,57 @@ def nozzle(stream: int) -> np.ndarray:
     return np.array([NOZZLE_X, y_meet - MEET_STEPS * DT * v[1], NOZZLE_Z])
 
 
-def make_collision(args):
+
+def build(args):
+    """Still air in a closed box; two nozzles release one particle per stream at the start of each of the first
+    three steps (``PER_STREAM``), placed so that pair k overlaps at the end of step k + 5."""
     from hel_warp.errors import ConfigError
-    from hel_warp.hel import collision_model
-    from hel_warp.material import Material
 
-    name = args.collisions
-    if name == "ktgf":
-        return collision_model("ktgf", particle_diameter=DIAMETER, particle_density=Material().density,
-                               restitution=Material().restitution)
-    if name in ("surrogate", "surrogate-paper"):
-        if not args.model:
-            raise ConfigError(f"--collisions {name} needs --model MODEL_DIR (a model written by hel-warp train)")
-        return collision_model(name, model_dir=args.model)
-    if name == "dem":
-        return collision_model("dem", material=Material())
-    return collision_model("none")
+    if args.steps < MEET_STEPS + PER_STREAM + 1:
+        raise ConfigError(f"--steps must be >= {MEET_STEPS + PER_STREAM + 1} so that every pair meets "
+                          f"(got {args.steps})")
+    if args.end_time is None:
+        args.end_time = args.steps * DT
+    flow = hc.Flow("three_streams", lo=BOX_LO, hi=BOX_HI, spacing=SPACING, gravity=(0.0, 0.0, -9.80665),
+                   walls=hc.Walls(contact="point"))
+    flow.species("pe", DIAMETER, material=hc.Material())
+    for k in range(PER_STREAM):
+        velocities = [stream_velocity(s) for s in (0, 1)]
+        flow.release("pe", k * DT, [nozzle(0), nozzle(1)], speed=SPEED,
+                     directions=[v / SPEED for v in velocities], stream=[0, 1])
+    return flow
 
 
-class ThreeStreams:
-    """The case: ``step()`` injects the due particles and takes one HEL step; ``history`` per step."""
+class History:
+    """Observer: per step end, the parcels' x, v, alive, stream (slot order), the largest cell eps_s and the
+    collision counts."""
 
-    def __init__(self, args):
-        from hel_warp.coupling import PushConfig
-        from hel_warp.errors import ConfigError
-        from hel_warp.gas import GasConfig, GasField, GasSolver
-        from hel_warp.grid import Box, Geometry, Grid
-        from hel_warp.hel import HelConfig, HelSolver
-        from hel_warp.parcels import ParcelPool
-
-        if args.steps < MEET_STEPS + PER_STREAM + 1:
-            raise ConfigError(f"--steps must be >= {MEET_STEPS + PER_STREAM + 1} so that every pair meets "
-                              f"(got {args.steps})")
-        shape = tuple(int(round((h - l) / SPACING)) for l, h in zip(BOX_LO, BOX_HI))
-        grid = Grid(origin=BOX_LO, spacing=SPACING, shape=shape)
-        domain = Geometry(shapes=(Box(lo=BOX_LO, hi=BOX_HI),)).build(grid, device=args.device)
-        push = PushConfig(drag="gidaspow")
-        gas_solver = GasSolver(domain, GasConfig(density=push.fluid_density, viscosity=push.fluid_viscosity),
-                               device=args.device)
-        gas = GasField(domain, device=args.device)
-        self.pool = ParcelPool.empty(2 * PER_STREAM, device=args.device)
-        self.collision = make_collision(args)
-        self.hel = HelSolver(pool=self.pool, gas_solver=gas_solver, gas=gas, config=HelConfig(dt=DT, push=push),
-                             collision=self.collision)
-        self.steps_done = 0
-        self.history = []  # per step end: x, v, alive, stream (slot order), max eps_s, counts
+    def __init__(self):
+        self.history = []
         self.max_eps_s = 0.0
 
-    def inject_due(self) -> None:
-        """Particle k of each stream enters at the start of step k (k = 0, 1, 2) at its nozzle."""
-        import warp as wp
-
-        from hel_warp.material import Material
-        from hel_warp.parcels import VolumeInjection
-
-        if self.steps_done >= PER_STREAM:
-            return
-        for stream in (0, 1):
-            x = nozzle(stream)
-            v = stream_velocity(stream)
-            inj = VolumeInjection(box_lo=tuple(x - 1e-9), box_hi=tuple(x + 1e-9), diameter_mean=DIAMETER,
-                                  density=Material().density, count=1, speed=SPEED, direction=tuple(v / SPEED),
-                                  stream=stream)
-            self.pool.inject(inj)
-            slot = self.pool.used - 1  # exact nozzle position (the injection box is only 2 nm wide)
-            wp.copy(self.pool.particles.x, wp.array(x[None].astype(np.float32), dtype=wp.vec3,
-                                                    device=self.pool.particles.device), dest_offset=slot, count=1)
-
-    def step(self) -> None:
-        self.inject_due()
-        self.hel.step()
-        self.steps_done += 1
-        p = self.pool.particles
-        eps = float(self.hel.fields.cell_eps_s.numpy().max())
+    def after_step(self, solver) -> None:
+        p = solver.pool.particles
+        eps = float(solver.fields.cell_eps_s.numpy().max())
         self.max_eps_s = max(self.max_eps_s, eps)
-        counts = self.collision.counts() if hasattr(self.collision, "counts") else {}
-        self.history.append({"step": self.steps_done, "x": p.x.numpy().copy(), "v": p.v.numpy().copy(),
+        self.history.append({"step": solver.step_count, "x": p.x.numpy().copy(), "v": p.v.numpy().copy(),
                              "alive": p.alive.numpy().copy(), "stream": p.stream.numpy().copy(),
-                             "max_eps_s": eps, "counts": counts})
+                             "max_eps_s": eps, "counts": solver.collision_counts()})
 
 
-def check(case: ThreeStreams) -> dict:
+def observers(args, flow) -> list:
+    return [History()]
+
+
+def _case_view(run):
+    from types import SimpleNamespace
+
+    record = run.solver.observers[0]
+    return SimpleNamespace(history=record.history, max_eps_s=record.max_eps_s, collision=run.solver.collision,
+                           steps_done=run.solver.step_count)
+
+
+def outcome(case) -> dict:
     """Rebound or pass-through per stream, from the sign of v_y once each pair has met.
 
     Particle k (k = 0, 1, 2) of stream 0 starts with v_y < 0 (stream 1: > 0); it enters before step k + 1
@@ -189,12 +158,29 @@ def check(case: ThreeStreams) -> dict:
     return result
 
 
+
+def summary(run) -> dict:
+    return outcome(_case_view(run))
+
+
+def finish(run, summary: dict) -> None:
+    if not run.args.no_render:
+        summary["pictures"] = render(_case_view(run), str(run.out))
+
+
+def report(run, result: dict) -> str:
+    s = result["streams"]
+    return (f"three_streams [{result['collisions']}]: {result['outcome']} (stream 0 v_y {s['0']['vy_initial']:+.3f} -> "
+            f"{s['0']['vy_final_mean']:+.3f} m/s, stream 1 {s['1']['vy_initial']:+.3f} -> "
+            f"{s['1']['vy_final_mean']:+.3f} m/s), max cell eps_s {result['max_cell_eps_s']:.4f} -> {run.out}")
+
+
 # ------------------------------------------------------------------------------------------ pictures
 
 COLOURS = ("red", "blue")
 
 
-def _frames(case: ThreeStreams) -> dict:
+def _frames(case) -> dict:
     """before: all injected, no pair met (end of step 3); at: first pair overlapping (step 5); after: last."""
     n = len(case.history)
     return {"before": case.history[min(PER_STREAM, n) - 1], "at": case.history[min(MEET_STEPS, n) - 1],
@@ -246,7 +232,7 @@ def _render_matplotlib(frame, trail, path: str, title: str) -> None:
     plt.close(fig)
 
 
-def render(case: ThreeStreams, out: str) -> list[str]:
+def render(case, out: str) -> list[str]:
     """before.png, at.png, after.png in ``out`` (positions up to each frame as faint trails)."""
     os.makedirs(out, exist_ok=True)
     paths = []
@@ -266,31 +252,14 @@ def render(case: ThreeStreams, out: str) -> list[str]:
     return paths
 
 
-def run(args) -> int:
-    from hel_warp._warp import init_warp
 
-    init_warp(args.device)
-    case = ThreeStreams(args)
-    for _ in range(args.steps):
-        case.step()
-    result = check(case)
-    os.makedirs(args.out, exist_ok=True)
-    if not args.no_render:
-        result["pictures"] = render(case, args.out)
-    with open(os.path.join(args.out, "summary.json"), "w") as fh:
-        json.dump(result, fh, indent=2)
-    s = result["streams"]
-    print(f"three_streams [{result['collisions']}]: {result['outcome']} (stream 0 v_y {s['0']['vy_initial']:+.3f} -> "
-          f"{s['0']['vy_final_mean']:+.3f} m/s, stream 1 {s['1']['vy_initial']:+.3f} -> "
-          f"{s['1']['vy_final_mean']:+.3f} m/s), max cell eps_s {result['max_cell_eps_s']:.4f} -> {args.out}")
-    return 0
+CASE = hc.Case("three_streams", build, doc=__doc__, options=options, summary=summary, observers=observers,
+               report=report, finish=finish, weights=False,
+               defaults={"collisions": "surrogate", "dt": DT, "end_time": None, "output_interval": DT})
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    add_arguments(parser)
-    args = parser.parse_args(argv)
-    return run(args)
+    return CASE.main(argv)
 
 
 if __name__ == "__main__":

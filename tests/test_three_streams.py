@@ -10,7 +10,6 @@ overlapping at a later step end is never collided again); KTGF at eps_s < 0.06 s
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -33,17 +32,18 @@ def tiny_models(tmp_path_factory):
 
 
 def run_case(collisions, out, model=None, render=False) -> dict:
-    from cases.three_streams import ThreeStreams, check, render as render_pictures
+    from cases.three_streams import main
 
-    args = argparse.Namespace(collisions=collisions, model=model, out=str(out), device="cpu", steps=STEPS,
-                              no_render=not render)
-    case = ThreeStreams(args)
-    for _ in range(STEPS):
-        case.step()
-    result = check(case)
-    if render:
-        result["pictures"] = render_pictures(case, str(out))
-    return result
+    argv = ["--collisions", collisions, "--out", str(out), "--steps", str(STEPS), "--no-progress", "--overwrite"]
+    if model is not None:
+        # the tiny model is frictionless, the case's material has mu = 0.3: --force, since the pairs meet head-on in
+        # their relative frame (no tangential velocity), where friction plays no part
+        argv += ["--model", model, "--force"]
+    if not render:
+        argv.append("--no-render")
+    assert main(argv) == 0
+    with open(os.path.join(out, "summary.json")) as fh:
+        return json.load(fh)
 
 
 @pytest.fixture(scope="module")
@@ -108,12 +108,16 @@ def test_ktgf_streams_pass_through(tmp_path):
         assert np.all(lateral(result, s) / stream_velocity(s)[1] > 0.0)
 
 
-def test_case_writes_summary_and_refuses_too_few_steps(tmp_path):
+def test_case_writes_summary_and_refuses_too_few_steps(tmp_path, capsys):
     from cases.three_streams import main
-    from hel_warp.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="steps"):
-        main(["--collisions", "none", "--steps", "5", "--out", str(tmp_path), "--no-render"])
-    assert main(["--collisions", "none", "--steps", str(STEPS), "--out", str(tmp_path), "--no-render"]) == 0
-    with open(tmp_path / "summary.json") as fh:
+    out = tmp_path / "run"
+    assert main(["--collisions", "none", "--steps", "5", "--out", str(out), "--no-render"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("hel-warp: error: --steps must be >= 9")
+    assert not out.exists()  # refused before anything is written
+    assert main(["--collisions", "none", "--steps", str(STEPS), "--out", str(out), "--no-render",
+                 "--no-progress"]) == 0
+    with open(out / "summary.json") as fh:
         assert json.load(fh)["outcome"] == "pass-through"
+    assert (out / "run.zarr").is_dir()
