@@ -343,6 +343,11 @@ class CaseSolver(HelSolver):
             inlet["host"] = host
             host[inlet["mask"], inlet["axis"]] = inlet["sign"] * value * inlet["shape"]
             inlet["array"].assign(host)
+            # the gas step keeps inlet faces fixed at the velocity they hold: set that too, not only the BC record
+            faces = (self.gas.face_velocity.x, self.gas.face_velocity.y, self.gas.face_velocity.z)[inlet["axis"]]
+            current = faces.numpy()
+            current[inlet["mask"]] = host[inlet["mask"], inlet["axis"]]
+            faces.assign(current)
             inlet["value"] = value
 
     def release_due(self) -> None:
