@@ -567,7 +567,8 @@ MODEL_DIFFERENCES = (
 """What still differs between the ``dem`` reference and an HEL run besides the particle-particle collisions
 (injection, drag law and exchange, gas solver, wall restitution and friction values are shared)."""
 _NOT_A_DIFFERENCE = ("collision", "run", "case.collisions", "case.model", "case.force", "case.particle_contacts",
-                     "case.model_metadata", "case.collision_counts_available")
+                     "case.model_metadata", "case.collision_counts_available", "case.options.collisions",
+                     "case.options.model", "case.options.force", "case.options.no_particle_contacts")
 """Config keys that name the collision model or follow from it, or are run/output settings: never listed."""
 
 

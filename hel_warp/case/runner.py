@@ -442,7 +442,8 @@ def _case_options(args) -> dict:
     """The options a resume must repeat (everything but the run-loop ones it may change)."""
     skip = {"out", "overwrite", "resume", "end_time", "output_interval", "checkpoint_interval", "no_vtk", "json",
             "no_progress", "collision_events", "no_gas_snapshots", "device"}
-    return {k: v for k, v in sorted(vars(args).items()) if k not in skip}
+    # "_name": what a case keeps on args for itself (the rig's validated config), not an option
+    return {k: v for k, v in sorted(vars(args).items()) if k not in skip and not k.startswith("_")}
 
 
 def _check_weights(value, flow) -> None:
