@@ -288,8 +288,13 @@ def test_particle_spin_reaches_the_solver_and_the_rig_cli():
     assert config.particle_spin and config.wall_spin
     from hel_warp.errors import ConfigError
 
+    def settings(extra):  # the run's settings (hel_warp.case.Case.settings), which the strategy is built from
+        args = parser.parse_args(extra + ["--cells", "5000"])
+        return rig.CASE.settings(args, rig.build(args))
+
+    assert settings(argv + ["--particle-spin"]).particle_spin and not settings(argv).particle_spin
     with pytest.raises(ConfigError, match="particle-spin"):
-        rig.make_config(parser.parse_args(argv[:5] + ["ktgf"] + argv[6:-2] + ["--particle-spin"]))
+        settings(argv[:5] + ["ktgf"] + argv[6:-2] + ["--particle-spin"])
 
 
 # ------------------------------------------------------------------ the contact_spin form: trained on spinning impacts

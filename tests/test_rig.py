@@ -172,7 +172,11 @@ def test_existing_run_dir_refused(cs, tmp_path, capsys):
 
 
 def test_model_for_another_particle_refused(cs, tmp_path, capsys):
+    from hel_warp.case.models import check_model
     from hel_warp.errors import ConfigError
+
+    def species(diameter, density):
+        return [cs.hc.Species(name="d1", diameter=diameter, material=cs.hc.Material(density=density))]
 
     model = tmp_path / "model"
     model.mkdir()
@@ -180,13 +184,13 @@ def test_model_for_another_particle_refused(cs, tmp_path, capsys):
                                                      "defaults": {"d1": 475e-6, "d2": 475e-6, "rho1": 1000.0,
                                                                   "rho2": 1000.0}}))
     with pytest.raises(ConfigError, match="475 um.*pass --force to"):
-        cs.check_model(str(model), 315e-6, 1000.0, force=False)
+        check_model(str(model), species(315e-6, 1000.0), force=False)
     with pytest.raises(ConfigError, match="pass --force-model to"):  # the option of the caller (scripts/bench_rig.py)
-        cs.check_model(str(model), 315e-6, 1000.0, force=False, force_flag="--force-model")
-    assert cs.check_model(str(model), 315e-6, 1000.0, force=True)["defaults"]["d1"] == 475e-6
-    cs.check_model(str(model), 475e-6, 1000.0, force=False)  # the right particle passes
+        check_model(str(model), species(315e-6, 1000.0), force=False, force_flag="--force-model")
+    assert check_model(str(model), species(315e-6, 1000.0), force=True)["defaults"]["d1"] == 475e-6
+    check_model(str(model), species(475e-6, 1000.0), force=False)  # the right particle passes
     with pytest.raises(ConfigError, match="density"):
-        cs.check_model(str(model), 475e-6, 950.0, force=False)
+        check_model(str(model), species(475e-6, 950.0), force=False)
     args = _args(tmp_path / "run")
     args[args.index("none")] = "surrogate"
     assert cs.main(args + ["--model", str(model)]) == 2
@@ -217,60 +221,53 @@ def test_paper_particle_sets(cs):
                            (("--real-particles", "12000", "--particles-per-parcel", "64"), 188)):
         c = config("315e-6", *extra)
         assert c.particles == parcels and c.particles * c.release_weights()[0] == pytest.approx(12000)
+    from hel_warp.cell_collisions import CellConfig
     from hel_warp.errors import ConfigError
 
     with pytest.raises(ConfigError, match="one-size option"):
         config("315e-6", "--real-particles", "96000", "--diameter2", "475e-6", "--mass-fraction2", "0.5")
     with pytest.raises(ConfigError, match="--real-particles must be"):
         config("315e-6", "--real-particles", "10", "--particles-per-parcel", "8")
-    # --cell-coarsen: an option of the surrogate's cell detection only
-    def surrogate(*extra):
-        return cs.make_config(parser.parse_args(["--diameter", "315e-6", "--dt", "1e-3", "--collisions", "surrogate",
-                                                 "--model", "m", "--end-time", "0.02", "--out", "x", *extra]))
 
-    assert surrogate("--particles-per-parcel", "8", "--cell-coarsen", "3").cell_coarsen == 3
-    assert surrogate("--detection", "cell", "--cell-coarsen", "2").cell_coarsen == 2
-    assert surrogate("--particles-per-parcel", "8").cell_coarsen is None
+    # the cell detection's options (the case API's shared ones): refused where the run has no cell detection,
+    # validated at the door; the strategy's settings of the run (Case.settings)
+    def settings(collisions, *extra):
+        args = parser.parse_args(["--diameter", "315e-6", "--dt", "1e-3", "--collisions", collisions, "--end-time",
+                                  "0.02", "--out", "x", "--cells", "5000",
+                                  *(("--model", "m") if collisions == "surrogate" else ()), *extra])
+        return cs.CASE.settings(args, cs.build(args))
+
+    def cell(*extra):
+        return settings("surrogate", *extra).strategy.get("cell", {})
+
+    assert cell("--particles-per-parcel", "8", "--cell-coarsen", "3")["coarsen"] == 3
+    assert cell("--detection", "cell", "--cell-coarsen", "2")["coarsen"] == 2
+    assert cell("--particles-per-parcel", "8") == {}  # not given: CellConfig's defaults
     with pytest.raises(ConfigError, match="--cell-coarsen is an option"):
-        config("315e-6", "--particles-per-parcel", "8", "--cell-coarsen", "3")
+        settings("none", "--particles-per-parcel", "8", "--cell-coarsen", "3")
     with pytest.raises(ConfigError, match="--cell-coarsen is an option"):
-        surrogate("--cell-coarsen", "3")  # weight 1: swept detection
+        cell("--cell-coarsen", "3")  # weight 1: swept detection
     with pytest.raises(ConfigError, match="--cell-coarsen must be"):
-        surrogate("--particles-per-parcel", "8", "--cell-coarsen", "0")
-    # --cell-nearest, --no-packing-stress: cell detection only
-    c = surrogate("--particles-per-parcel", "8", "--cell-nearest", "8", "--no-packing-stress")
-    assert c.cell_nearest == 8 and c.cell_packing_stress is False
-    assert surrogate("--particles-per-parcel", "8").cell_packing_stress is True
+        cell("--particles-per-parcel", "8", "--cell-coarsen", "0")
+    # --no-packing-stress: cell detection only
+    assert cell("--particles-per-parcel", "8", "--no-packing-stress")["packing_stress"] is False
+    assert CellConfig().packing_stress is True
     with pytest.raises(ConfigError, match="--no-packing-stress is an option"):
-        surrogate("--no-packing-stress")  # weight 1: swept detection
-    with pytest.raises(ConfigError, match="--cell-nearest is an option"):
-        config("315e-6", "--cell-nearest", "8")
-    with pytest.raises(ConfigError, match="--cell-nearest must be"):
-        surrogate("--detection", "cell", "--cell-nearest", "-1")
-    # --[no-]cell-approaching, --[no-]cell-transfer, --[no-]cell-local-density: cell detection only; not given:
-    # CellConfig's default
-    for option, field in (("cell-approaching", "cell_approaching"), ("cell-transfer", "cell_transfer"),
-                          ("cell-local-density", "cell_local_density")):
-        assert getattr(surrogate("--particles-per-parcel", "64", f"--{option}"), field) is True
-        assert getattr(surrogate("--detection", "cell", f"--no-{option}"), field) is False
-        assert getattr(surrogate("--particles-per-parcel", "8"), field) is None
-        for flag in (f"--{option}", f"--no-{option}"):
-            with pytest.raises(ConfigError, match=rf"--\[no-\]{option} is an option"):
-                surrogate(flag)  # weight 1: swept detection
-    # --cell-subdivision, --cell-cfl: cell detection only, validated at the door
-    c = surrogate("--detection", "cell", "--cell-subdivision", "2", "--cell-cfl", "0.5")
-    assert c.cell_subdivision == 2 and c.cell_cfl == 0.5
-    d = surrogate("--detection", "cell")
-    assert d.cell_subdivision == 1 and d.cell_cfl == 1.0
-    for flag, value in (("--cell-subdivision", "2"), ("--cell-cfl", "0.5")):
-        with pytest.raises(ConfigError, match=f"{flag} is an option"):
-            surrogate(flag, value)  # weight 1: swept detection
-    with pytest.raises(ConfigError, match="--cell-subdivision must be"):
-        surrogate("--detection", "cell", "--cell-subdivision", "0")
+        cell("--no-packing-stress")  # weight 1: swept detection
+    # --[no-]cell-approaching: cell detection only; not given: CellConfig's default
+    assert cell("--particles-per-parcel", "64", "--cell-approaching")["approaching"] is True
+    assert cell("--detection", "cell", "--no-cell-approaching")["approaching"] is False
+    assert "approaching" not in cell("--particles-per-parcel", "8") and CellConfig().approaching is None
+    for flag in ("--cell-approaching", "--no-cell-approaching"):
+        with pytest.raises(ConfigError, match=r"--\[no-\]cell-approaching is an option"):
+            cell(flag)  # weight 1: swept detection
+    # --cell-cfl: cell detection only, validated at the door
+    assert cell("--detection", "cell", "--cell-cfl", "0.5")["cfl"] == 0.5
+    assert "cfl" not in cell("--detection", "cell") and CellConfig().cfl == 1.0
+    with pytest.raises(ConfigError, match="--cell-cfl is an option"):
+        cell("--cell-cfl", "0.5")  # weight 1: swept detection
     with pytest.raises(ConfigError, match="--cell-cfl must be"):
-        surrogate("--detection", "cell", "--cell-cfl", "0")
-    with pytest.raises(ConfigError, match="exclude each other"):
-        surrogate("--particles-per-parcel", "8", "--cell-subdivision", "2", "--cell-coarsen", "2")
+        cell("--detection", "cell", "--cell-cfl", "0")
 
 
 def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
@@ -415,14 +412,6 @@ def test_grouped_jackknife_of_a_mean_is_the_standard_error_of_the_group_means():
     with pytest.raises(ConfigError, match="at least 2 groups"):
         ens.leave_out_groups(10, 1)
     assert ens.main(["--runs", "a", "--reference", "b", "--jackknife", "--jackknife-groups", "1"]) == 2
-
-
-def test_no_wall_events_is_refused_outside_the_swept_surrogate(cs, tmp_path, capsys):
-    # one line, exit 2, nothing written: the option only means something for the surrogate's swept detection
-    out = tmp_path / "run"
-    assert cs.main(_args(out, "--no-wall-events")) == 2  # --collisions none
-    assert "--no-wall-events is an option of the surrogate's swept detection" in capsys.readouterr().err
-    assert not out.exists()
 
 
 def test_collision_events_are_saved_and_match_the_run_s_counts(cs, tmp_path, capsys):

@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from tests.test_cell_collisions import make_gas, strategy
-from tests.test_mixture import _rig_args
+from tests.test_mixture import _rig_args, live_parcels
 from tests.test_particle_spin import rough_constant_model  # noqa: F401 (a fixture)
 from tests.test_swept import write_constant_contact_forest
 
@@ -57,6 +57,7 @@ def constant_mixture_model(tmp_path_factory):
     root = tmp_path_factory.mktemp("constant_mixture_model")
     write_constant_contact_forest(root)
     meta = {"form": "contact", "material": {"density": RHO, "restitution": 0.9, "friction": 0.0},
+            "defaults": {"d1": 0.5 * (D1 + D2), "d2": 0.5 * (D1 + D2), "rho1": RHO, "rho2": RHO},  # as train writes
             "domain": {"features": ["g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio"],
                        "lo": [0.0, 0.0, 0.0, 1e-6, 0.1, 0.1], "hi": [100.0, 100.0, 1.0, 1e-2, 10.0, 10.0]}}
     (root / "metadata.json").write_text(json.dumps(meta))
@@ -133,10 +134,11 @@ def test_cooling_parcels_carry_their_species_weight(hc, tmp_path, weights):
     assert config.parcels == sum(config.species.parcels)
     assert config.box_length == pytest.approx((math.pi * ((800 - n2) * D1**3 + n2 * D2**3) / (6 * 0.01)) ** (1 / 3))
     init_warp("cpu")
-    case = hc.HomogeneousCooling(config)
-    w = case.particles.weight.numpy().astype(np.float64)
-    species = case.particles.stream.numpy()
-    d = 2.0 * case.particles.radius.numpy().astype(np.float64)
+    sim, record = built_box(hc, args)
+    particles = sim.solver.particles
+    w = particles.weight.numpy().astype(np.float64)
+    species = particles.stream.numpy()
+    d = 2.0 * particles.radius.numpy().astype(np.float64)
     for k, dk in enumerate((D1, D2)):
         own = species == k
         assert int(own.sum()) == config.species.parcels[k] and np.all(w[own] == weights[k])
@@ -144,10 +146,22 @@ def test_cooling_parcels_carry_their_species_weight(hc, tmp_path, weights):
         assert w[own].sum() == config.species.counts[k]  # real particles of species k
     mass = (w * RHO * math.pi / 6.0 * d**3).sum()
     assert mass == pytest.approx(RHO * math.pi / 6.0 * ((800 - n2) * D1**3 + n2 * D2**3), rel=1e-5)
-    assert case.theta()[0] == pytest.approx(1.0, rel=1e-5)
-    v = case.particles.v.numpy().astype(np.float64)
+    assert record.theta()[0] == pytest.approx(1.0, rel=1e-5)  # the mass-weighted mixture Theta of the start
+    v = particles.v.numpy().astype(np.float64)
     big_m = w * d**3  # zero momentum, to the float32 rounding of the velocities
     assert np.abs((big_m[:, None] * v).sum(axis=0)).max() <= 1e-6 * (big_m * np.linalg.norm(v, axis=1)).sum()
+
+
+def built_box(hc, args):
+    """The cooling box of ``args`` built through the case API (``hel_warp.case.build``), with the case's record of
+    the velocity moments bound to it (its row 0: the start)."""
+    from hel_warp.case.build import build
+
+    flow = hc.CASE.build(args)
+    record = hc.CoolingRecorder(args._cooling)
+    sim = build(flow, hc.CASE.settings(args, flow), observers=[record])
+    record.bind(sim)
+    return sim, record
 
 
 def test_cooling_summary_states_each_species_weight(hc, capsys, tmp_path):
@@ -201,7 +215,7 @@ def test_rig_holders_release_each_species_with_its_weight(cs):
         assert rig.release_window[side] == pytest.approx(holder_mass / config.mass_flow[side], rel=1e-9)
     while rig.solver.time < max(rig.release_window) + 1e-9:
         rig.step()
-    snap = rig.snapshot()
+    snap = live_parcels(rig)
     kind = species_of(2.0 * snap["radius"], [D1, D2], [S1, S2])
     for k, (n, w) in enumerate(zip((config.particles, config.particles2), (1.0, 8.0))):
         assert np.all(snap["weight"][kind == k] == w)
@@ -478,7 +492,7 @@ def _cool(hc, capsys, tmp_path, model, weights, particles=4000, extra=()):
     return json.loads(out.out)
 
 
-@pytest.mark.parametrize("extra", [(), ("--no-cell-approaching",), ("--cell-approaching", "--no-cell-transfer")])
+@pytest.mark.parametrize("extra", [(), ("--no-cell-approaching",)])
 def test_mixed_weights_collide_and_cool_as_weight_one(hc, capsys, tmp_path, constant_mixture_model, extra):
     """The same 4,000 real particles (315 / 475 um, 30 % large) at weights 1,1 and 1,8: per pair type the collisions
     per real particle against the mixture's Enskog rate within 4 standard errors, and each species' Theta at the end
@@ -487,8 +501,8 @@ def test_mixed_weights_collide_and_cool_as_weight_one(hc, capsys, tmp_path, cons
     +9.4 +- 1.1 % with the filter's met pairs always eligible), and the 315 um species 3-4 % too cold; a 10 %
     bound holds at seed 0 only by luck (seeds 3, 7 and 8 are 11-17 % off with met pairs always eligible). Without the energy put back the
     weight-8 species ended at 13 % of the weight-1 Theta and the other at 60 %. The default (the approach
-    filter with the collisional transfer at weights 1, 8; off at 1, 1), plain NTC (--no-cell-approaching) and the
-    filter without the transfer. The filter's redraw keeps the candidate's two weights (a transfer that took any
+    filter with the collisional transfer at weights 1, 8; off at 1, 1) and plain NTC (--no-cell-approaching). The
+    filter's redraw keeps the candidate's two weights (a transfer that took any
     approaching pair of the cell gave 0.946 +- 0.0125 of the small-small rate here), leaves
     pairs of single particles alone, and draws among the parcels of those weights (drawn from the whole cell,
     0.924 +- 0.012 of the small-large rate with the transfer)."""
@@ -510,12 +524,10 @@ def test_mixed_weights_collide_and_cool_as_weight_one(hc, capsys, tmp_path, cons
 
 
 @pytest.mark.parametrize("flag, says", [("--cell-approaching", "--[no-]cell-approaching"),
-                                        ("--no-cell-approaching", "--[no-]cell-approaching"),
-                                        ("--cell-transfer", "--[no-]cell-transfer"),
-                                        ("--no-cell-transfer", "--[no-]cell-transfer")])
+                                        ("--no-cell-approaching", "--[no-]cell-approaching")])
 def test_cell_options_are_options_of_the_cell_detection(hc, capsys, tmp_path, constant_mixture_model, flag, says):
-    """The cooling case's --[no-]cell-approaching and --[no-]cell-transfer: refused with one line (exit 2) where the
-    cell detection is not used."""
+    """The cooling case's --[no-]cell-approaching: refused with one line (exit 2) where the cell detection is not
+    used."""
     argv = ["--collisions", "surrogate", "--model", constant_mixture_model, "--detection", "swept", "--dt", "1e-3",
             "--solids-fraction", "0.01", "--particles", "400", "--diameter", str(D1), *MIXTURE,
             "--granular-temperature", "1", "--end-time", "0.002", flag, "--out", str(tmp_path / "x")]
