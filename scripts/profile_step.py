@@ -52,8 +52,15 @@ def _box(args, weight: float):
                             "--granular-temperature", "1", "--end-time", f"{(args.warmup + args.steps) * 1e-3:g}",
                             "--particles-per-parcel", f"{weight:g}", "--seed", "1", "--device", args.device,
                             "--out", os.path.join(tempfile.mkdtemp(), "box")])  # nothing is written
-    case = hc.HomogeneousCooling(hc.make_config(ns))
-    return case.step
+    from hel_warp.case.build import build
+    from hel_warp.case.models import check_model
+
+    flow = hc.CASE.build(ns)  # the box as the case runs it: its flow, settings and per-step record of the moments
+    check_model(ns.model, flow.species_list)
+    record = hc.CoolingRecorder(ns._cooling)
+    sim = build(flow, hc.CASE.settings(ns, flow), observers=[record])
+    record.bind(sim)
+    return sim.solver.step
 
 
 def _rig(args, label: str, solver: str, loop: str = "host"):
