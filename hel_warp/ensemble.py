@@ -26,7 +26,8 @@ The case contract relied on
 Resuming (the same command, rerun)
     A member is finished when its record says it exited 0 with a summary (``ok``) or 1 with a summary (``check
     failed``: the run ended, a physical check of the case did not pass; rerunning the same seed gives the same),
-    or, without a record, when ``summary.json`` says ``"status": "complete"``. Finished members are skipped. Every
+    or, without a record (the driver died between the run's end and its record), when ``summary.json`` says
+    ``"status": "complete"`` (``check failed`` when it lists ``check_errors``). Finished members are skipped. Every
     other member runs again: with ``--resume`` when its folder holds ``checkpoint.npz`` (or ``checkpoint.prev.npz``)
     and the case has --resume, else with ``--overwrite`` (a case without --resume starts afresh).
 
@@ -256,7 +257,11 @@ def member_state(folder) -> tuple[str, dict | None]:
     if not isinstance(record, dict):
         summary = _read_json(folder / SUMMARY_JSON)
         if isinstance(summary, dict) and summary.get("status") == "complete":
-            return "finished", {"name": folder.name, "status": "ok", "returncode": None, "error": None,
+            # the run ended but its record was not written (the driver died in between): ok, or check failed
+            errors = summary.get("check_errors")
+            failed = bool(errors) and isinstance(errors, list)
+            return "finished", {"name": folder.name, "status": "check failed" if failed else "ok",
+                                "returncode": None, "error": f"check failed: {errors[0]}" if failed else None,
                                 "summary": summary, "source": SUMMARY_JSON}
         return ("interrupted" if folder.exists() else "new"), None
     return "failed", record

@@ -231,13 +231,17 @@ def test_driver_killed_half_way_then_rerun(tmp_path, capsys):
     assert 3 <= len(finished) < 8, "the driver was not killed half-way"
     time.sleep(0.3)
     assert _member_processes(out) == []  # no member runs on without its driver
-    records = {n: (out / n / ens.MEMBER_RECORD).read_bytes() for n in
-               [p.parent.name for p in out.glob(f"*/{ens.MEMBER_RECORD}")]}
+    # finished: a member with its record, or one whose run ended (summary.json complete) while the driver was being
+    # killed, before the record was written (on loaded cores a member often ends in that window)
+    names = [f"seed{k}" for k in range(8)]
+    done = {n: {f: (out / n / f).read_bytes() for f in (ens.MEMBER_RECORD, ens.SUMMARY_JSON) if (out / n / f).exists()}
+            for n in names if ens.member_state(out / n)[0] == "finished"}
+    assert set(finished) <= set(done) and len(done) < 8
     code, res, _ = ensemble(capsys, TOY, "--out", str(out), *args)
     assert code == 0
     # only the unfinished members ran; the finished ones were left as they were
-    assert sorted(res["run"]["ran"]) == sorted(set(f"seed{k}" for k in range(8)) - set(records))
-    assert all((out / n / ens.MEMBER_RECORD).read_bytes() == b for n, b in records.items())
+    assert sorted(res["run"]["ran"]) == sorted(set(names) - set(done))
+    assert all((out / n / f).read_bytes() == b for n, files in done.items() for f, b in files.items())
     # the result equals the uninterrupted ensemble's
     assert json.loads((out / ens.ENSEMBLE_JSON).read_text()) == json.loads(
         (tmp_path / "whole" / ens.ENSEMBLE_JSON).read_text())
