@@ -250,6 +250,28 @@ def test_hel_warp_run_passes_the_options_to_the_case_script(tmp_path, capsys):
     assert "case script 'no_such_case' not found" in capsys.readouterr().err
 
 
+def test_the_example_of_hel_warp_run_help_runs_as_printed(tmp_path, capsys, monkeypatch):
+    """The command ``hel-warp run --help`` prints as its example, taken from the help text and run in an empty
+    folder: it exits 0 and leaves a complete run of the case it names where it says."""
+    import json
+    import shlex
+
+    from hel_warp.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])
+    text = capsys.readouterr().out.replace("\\\n", " ")
+    (line,) = [ln for ln in text.splitlines() if ln.strip().startswith("hel-warp run ")]
+    argv = shlex.split(line)
+    assert argv[:2] == ["hel-warp", "run"]
+    monkeypatch.chdir(tmp_path)
+    assert main(argv[1:]) == 0, capsys.readouterr().err[-2000:]
+    out = tmp_path / argv[argv.index("--out") + 1]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "complete" and summary["check_errors"] == []
+    assert summary["case"] == argv[2] and summary["collision_model"] == argv[argv.index("--collisions") + 1]
+
+
 def test_an_end_time_shorter_than_one_step_is_refused(tmp_path, capsys):
     # round(end / dt) = 0 steps would write a run of no step and exit 0; the run refuses it instead
     from hel_warp.run import Run, RunConfig
