@@ -145,7 +145,8 @@ def run(args) -> int:
 
     def three_streams():
         for model in ("ktgf", "dem", "surrogate"):
-            argv = ["--collisions", model, "--out", str(out / "three_streams" / model), "--device", args.device]
+            argv = ["--collisions", model, "--out", str(out / "three_streams" / model), "--device", args.device,
+                    "--overwrite"]  # a rerun of the demo runs these seconds-long cases again
             if model == "surrogate":
                 argv += ["--model", str(model_dir)]
             _check(three.main(argv), f"three streams {model}")
