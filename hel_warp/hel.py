@@ -70,13 +70,19 @@ class KtgfCollision:
     in the algebraic Theta is limited by the mean free path (Hrenya & Sinclair 1997) with
     L = ``mean_free_path_length`` (None: the cell size h, the smallest resolved shear length; 0: off):
     without it Theta ~ 1/eps_s in near-empty cells and heats the fringe parcels at dt <= 1e-4 s.
+
+    ``collisional_limit``: the largest eps_s at which the radial distribution g0 is evaluated (None: 0.999 of
+    ``packing``). A flow whose packed parcels carry the MP-PIC packing stress (``PackingStress``) lowers it: kinetic
+    theory is the collisional regime, and g0 ~ 1 / (1 - (eps_s / eps_max)^(1/3)) in a settled bed (g0 ~ 1e3 at
+    0.999 eps_max) with the explicit algebraic Theta turns the slightest fluctuation of the parcels into a pressure
+    that blows the bed apart (``cases/bubbling_bed.py``, ``KTGF_COLLISIONAL_LIMIT``, has the measurements).
     """
 
     name = "ktgf"
 
     def __init__(self, *, particle_diameter: float, particle_density: float, restitution: float = 0.9,
                  packing: float = 0.63, friction_packing: float = 0.61, friction_angle_deg: float = 30.0,
-                 mean_free_path_length: float | None = None):
+                 mean_free_path_length: float | None = None, collisional_limit: float | None = None):
         from kernels.ktgf import make_ktgf_params
 
         require_positive("particle_diameter", particle_diameter, "m")
@@ -85,9 +91,14 @@ class KtgfCollision:
             raise ConfigError(f"restitution must lie in (0, 1] (got {restitution})")
         if not 0.0 < friction_packing < packing < 1.0:
             raise ConfigError(f"need 0 < friction_packing < packing < 1 (got {friction_packing}, {packing})")
+        cap = 0.999
+        if collisional_limit is not None:
+            if not 0.0 < collisional_limit < packing:
+                raise ConfigError(f"collisional_limit must lie in (0, packing = {packing}) (got {collisional_limit})")
+            cap = collisional_limit / packing
         self.params = make_ktgf_params(particle_diameter=particle_diameter, particle_density=particle_density,
                                        restitution=restitution, packing=packing, friction_packing=friction_packing,
-                                       friction_angle_deg=friction_angle_deg)
+                                       friction_angle_deg=friction_angle_deg, max_fraction_of_packing=cap)
         if mean_free_path_length is not None and not mean_free_path_length >= 0.0:
             raise ConfigError(f"mean_free_path_length must be >= 0 m (got {mean_free_path_length}); 0 switches "
                               "the limit off, None takes the cell size")
