@@ -400,6 +400,11 @@ class SurrogateCollision:
             # a common cell width: the sides in the proportion of the dims
             width = max(side / d for side, d in zip(box, dims))
             dims = tuple(int(round(side / width)) for side in box)
+            for first in range(int(np.floor(box[0] / cell * (1.0 + 1e-6))), 0, -1):
+                if not any(abs(side / d - width) > 1e-6 * width for side, d in zip(box, dims)):
+                    break  # else: the widest cells of at least ``cell`` that tile every side (e.g. 0.8 x 10 mm)
+                width = box[0] / first
+                dims = tuple(max(1, int(round(side / width))) for side in box)
             if any(abs(side / d - width) > 1e-6 * width for side, d in zip(box, dims)):
                 raise ConfigError(f"periodic box sides {box} have no common cell width near {cell:.3g} m; use "
                                   "a cubic box or sides in small integer ratios")
