@@ -2,7 +2,7 @@
 
 Two streams (tags 0, red, and 1, blue) of three 315 um polyethylene spheres (``Material()``:
 rho = 1000 kg/m^3) move at 5 m/s in the x-y plane, 20 degrees apart (+-10 deg about +x), in a small
-closed box of still air (10 x 4 x 4 mm, 1 mm cells, engineer F's gas solver). One particle of each
+closed box of still air (10 x 4 x 4 mm, 1 mm cells, the engine's gas solver). One particle of each
 stream enters at the start of each of the first three steps (dt = 1e-4 s) from a fixed nozzle
 point; the nozzles are placed so that pair k (the k-th particle of each stream) overlaps at the end
 of step k + 5: lateral gap 0.63 d then (0.2 mm), 1.19 d one step earlier. So every pair is first

@@ -1,5 +1,5 @@
-"""Helpers of ``scripts/gpu_check.sh``: the device report, the kernel compilation, test and rig summaries, the
-final ``summary.json`` — each writes one JSON file.
+"""The steps of ``scripts/gpu_check.sh`` written in Python: the device report, the kernel compilation, test and rig
+summaries, the final ``summary.json`` — each writes one JSON file.
 
     python scripts/gpu_check.py device --device cuda --out OUT/device.json
     python scripts/gpu_check.py kernels --device cuda --out OUT/kernels.json
