@@ -1,0 +1,226 @@
+"""Pictures of bubbling-bed runs (``cases/bubbling_bed.py``), one run or several models side by side.
+
+For one run (called by the case at its end, into the run directory):
+
+- ``bed_snapshots.png``: the parcels seen through the depth (x-z), coloured by speed, at up to six instants;
+- ``bed_solids_fraction.png``: the solids fraction averaged over the depth and over the gas snapshots of the
+  last level's second half;
+- ``bed_history.png``: the pressure drop across the bed and the bed height over time, with the bed's weight per
+  area and the level windows;
+- ``bed_fluidization.png``: the pressure drop of each level against its velocity, with Ergun's line at the settled
+  voidage, the weight per area and the Wen-Yu minimum fluidization velocity.
+
+Several runs (e.g. one per model) into ``--out``: the solids-fraction maps on one colour scale, the fluidization
+curves of every run on one plot, and the histories together::
+
+    python scripts/bed_report.py runs/bed_dem runs/bed_ktgf runs/bed_surrogate --out runs/bed_report
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+CMAP = "viridis"
+EPS_RANGE = (0.0, 0.65)
+"""One colour range for every solids-fraction map: empty to random close packing."""
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _load(run_dir: Path):
+    import zarr
+
+    root = zarr.open_group(str(run_dir / "run.zarr"), mode="r")
+    summary = json.loads((run_dir / "summary.json").read_text()) if (run_dir / "summary.json").exists() else \
+        dict(root.attrs.get("summary", {}))
+    return root, summary
+
+
+def _label(summary: dict) -> str:
+    return str(summary.get("collision_model", summary.get("collisions", "?")))
+
+
+def _window(summary: dict):
+    levels = summary.get("levels") or []
+    return tuple(levels[-1]["window"]) if levels else None
+
+
+def mean_solids_map(root, summary):
+    """Depth- and time-averaged eps_s (nx, nz) over the gas snapshots in the last level's second half (all
+    snapshots after the first if no level finished)."""
+    gas = root["gas"] if "gas" in root else None
+    if gas is None:
+        return None
+    keys = sorted(gas.group_keys())
+    window = _window(summary)
+    chosen = [k for k in keys if window and window[0] - 1e-9 <= gas[k].attrs["time"] <= window[1] + 1e-9]
+    if not chosen:
+        chosen = keys[1:] or keys
+    if not chosen or "cell_eps_s" not in gas[chosen[0]]:
+        return None
+    return np.mean([np.asarray(gas[k]["cell_eps_s"][...], np.float64).mean(axis=1) for k in chosen], axis=0), len(chosen)
+
+
+def draw_snapshots(root, summary, path: Path, count: int = 6) -> None:
+    plt = _plt()
+    snaps = root["snapshots"]
+    keys = sorted(snaps.group_keys())
+    if not keys:
+        return
+    pick = [keys[int(round(i))] for i in np.linspace(0, len(keys) - 1, min(count, len(keys)))]
+    box = summary.get("box") or [None, None, None]
+    fig, axes = plt.subplots(1, len(pick), figsize=(2.2 * len(pick) + 1.2, 5.2), sharey=True, squeeze=False)
+    speeds = [np.linalg.norm(np.asarray(snaps[k]["v"][...], np.float64), axis=1) for k in pick]
+    vmax = max(float(np.percentile(s, 99)) if s.size else 0.0 for s in speeds) or 1.0
+    for ax, k, s in zip(axes[0], pick, speeds):
+        x = np.asarray(snaps[k]["x"][...], np.float64)
+        sc = ax.scatter(x[:, 0] * 1e3, x[:, 2] * 1e3, c=s, s=1.5, cmap="plasma", vmin=0.0, vmax=vmax,
+                        rasterized=True)
+        ax.set_title(f"t = {snaps[k].attrs['time']:.2f} s", fontsize=9)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x, mm")
+        if box[0]:
+            ax.set_xlim(0, box[0] * 1e3)
+            ax.set_ylim(0, min(box[2], 0.08) * 1e3)
+    axes[0][0].set_ylabel("height above the distributor z, mm")
+    fig.colorbar(sc, ax=axes[0].tolist(), label="parcel speed, m/s", shrink=0.8)
+    fig.suptitle(f"Bubbling bed, {_label(summary)}: parcels through the depth, coloured by speed")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def draw_solids_maps(runs, path: Path) -> None:
+    """One map per run, the same colour range (``EPS_RANGE``)."""
+    plt = _plt()
+    maps = [(summary, mean_solids_map(root, summary)) for root, summary in runs]
+    maps = [(s, m) for s, m in maps if m is not None]
+    if not maps:
+        return
+    fig, axes = plt.subplots(1, len(maps), figsize=(2.6 * len(maps) + 1.2, 5.2), sharey=True, squeeze=False)
+    for ax, (summary, (eps, n)) in zip(axes[0], maps):
+        box = summary["box"]
+        im = ax.imshow(eps.T, origin="lower", extent=(0, box[0] * 1e3, 0, box[2] * 1e3), cmap=CMAP,
+                       vmin=EPS_RANGE[0], vmax=EPS_RANGE[1], aspect="equal")
+        ax.set_ylim(0, min(box[2], 0.08) * 1e3)
+        ax.set_xlabel("x, mm")
+        window = _window(summary)
+        when = f"{window[0]:.2f}-{window[1]:.2f} s" if window else "whole run"
+        ax.set_title(f"{_label(summary)}\n{n} snapshots, {when}", fontsize=9)
+    axes[0][0].set_ylabel("height z, mm")
+    fig.colorbar(im, ax=axes[0].tolist(), label="solids fraction (depth and time average)", shrink=0.8)
+    fig.suptitle("Bubbling bed: time-averaged solids fraction")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def draw_history(runs, path: Path) -> None:
+    plt = _plt()
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    weight = None
+    for root, summary in runs:
+        if "probes" not in root:
+            continue
+        pr = root["probes"]
+        if "bed_pressure_drop" in pr:
+            g = pr["bed_pressure_drop"]
+            a1.plot(g["time"][...], g["pressure_drop"][...], lw=0.8, label=_label(summary))
+        if "bed_height" in pr:
+            g = pr["bed_height"]
+            a2.plot(g["time"][...], np.asarray(g["bed_height"][...]) * 1e3, lw=0.8, label=_label(summary))
+        weight = summary.get("bed_weight_per_area", weight)
+        for lv in summary.get("levels") or []:
+            a1.axvspan(*lv["window"], color="0.92", zorder=0)
+    if weight:
+        a1.axhline(weight, color="k", ls="--", lw=1, label=f"bed weight / area ({weight:.0f} Pa)")
+    a1.set_ylabel("pressure drop across the bed, Pa")
+    a1.legend(fontsize=8, loc="lower right")
+    a1.set_title("Bubbling bed: pressure drop and bed height (shaded: the levels' averaging windows)")
+    a2.set_ylabel("bed height (eps_s > 0.1), mm")
+    a2.set_xlabel("time, s")
+    a2.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def draw_fluidization(runs, path: Path) -> None:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 5))
+    first = runs[0][1]
+    umax = max(max((lv["velocity"] for lv in s.get("levels") or []), default=0.0) for _, s in runs) or 1.0
+    u = np.linspace(0.0, 1.1 * umax, 200)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "cases"))
+    from bubbling_bed import ergun
+
+    d = first.get("diameter", 1.2e-3)
+    erg = [ergun(v, first["settled_height"], 1 - first["settled_solids_fraction"], d) for v in u]
+    ax.plot(u, erg, "k-", lw=1, label=f"Ergun, settled bed (eps_s = {first['settled_solids_fraction']:.3f})")
+    ax.axhline(first["bed_weight_per_area"], color="k", ls="--", lw=1, label="bed weight / area")
+    ax.axvline(first["minimum_fluidization_velocity_wen_yu"], color="0.5", ls=":", lw=1,
+               label="U_mf, Wen-Yu")
+    for marker, (_, s) in zip("osD^v<>", runs):
+        levels = s.get("levels") or []
+        ax.errorbar([lv["velocity"] for lv in levels], [lv["pressure_drop"] for lv in levels],
+                    yerr=[lv["pressure_drop_std"] for lv in levels], fmt=marker, capsize=3, label=_label(s))
+    ax.set_ylim(0, 1.6 * first["bed_weight_per_area"])
+    ax.set_xlabel("superficial gas velocity U, m/s")
+    ax.set_ylabel("pressure drop across the bed, Pa")
+    ax.set_title("Bubbling bed: fluidization curve (bars: std of the fluctuations)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def draw_run(run_dir, summary=None) -> list:
+    """The four pictures of one run into its directory; returns their paths."""
+    run_dir = Path(run_dir)
+    root, stored = _load(run_dir)
+    summary = summary or stored
+    paths = [run_dir / f"bed_{name}.png" for name in ("snapshots", "solids_fraction", "history", "fluidization")]
+    draw_snapshots(root, summary, paths[0])
+    draw_solids_maps([(root, summary)], paths[1])
+    draw_history([(root, summary)], paths[2])
+    if summary.get("levels"):
+        draw_fluidization([(root, summary)], paths[3])
+    return [p for p in paths if p.exists()]
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("runs", nargs="+", help="bubbling-bed run directories")
+    parser.add_argument("--out", required=True, help="directory of the pictures")
+    args = parser.parse_args(argv)
+    runs = []
+    for r in args.runs:
+        path = Path(r)
+        if not (path / "run.zarr").exists():
+            print(f"hel-warp: error: {r} is not a run directory (no run.zarr)", file=sys.stderr)
+            return 2
+        runs.append(_load(path))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    draw_solids_maps(runs, out / "bed_solids_fraction.png")
+    draw_history(runs, out / "bed_history.png")
+    draw_fluidization(runs, out / "bed_fluidization.png")
+    for (root, summary), r in zip(runs, args.runs):
+        draw_snapshots(root, summary, out / f"bed_snapshots_{Path(r).name}.png")
+    print("\n".join(str(p) for p in sorted(out.glob("*.png"))))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
