@@ -63,7 +63,7 @@ class Gas:
     warmup_dt: float = 1.0e-3
     """Largest step of the warm-up, s."""
     drag: str = "gidaspow"
-    """Drag law of the parcels: ``gidaspow`` (Wen-Yu above eps_f 0.8, Ergun below) or ``schiller_naumann``."""
+    """Drag law of the parcels: ``gidaspow`` (Wen-Yu above eps_f 0.8, Ergun below) or ``schiller-naumann``."""
     exchange_pressure: bool | None = None
     """The implicit drag exchange relaxes the gas under its pressure gradient held over the step, so that a packed
     bed's drag balances the pressure force (Ergun's pressure drop) instead of being capped near M u / dt per cell
