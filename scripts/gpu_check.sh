@@ -12,10 +12,11 @@
 # every step passed. Environment: MODEL=DIR runs the rig's surrogate with that contact-form model instead of the
 # tests' tiny one; HEL_WARP_TINY_MODELS=DIR keeps the tests' tiny models there (trained once); STEP_TIMEOUT=S caps
 # each step (default 300 s), TOTAL_TIMEOUT=S the whole check (default 450 s on the GPU, 900 s dry: no step starts
-# after it and none runs past it, so the check ends within TOTAL_TIMEOUT + 10 s of kill grace + the summary); PYTHON.
+# after it and none runs past it, so the check ends within TOTAL_TIMEOUT + 10 s of kill grace + the summary); PYTHON
+# (default: .venv/bin/python where there is one, else python).
 set -uo pipefail
 . "$(dirname "$0")/gpu_check_common.sh"
-gpu_check_args gpu_check gpu_out 15 "$@"
+gpu_check_args gpu_check gpu_out 16 "$@"
 step_timeout=${STEP_TIMEOUT:-300}
 kill_grace=10  # a step still running this long after its SIGTERM gets SIGKILL (timeout -k)
 
@@ -39,6 +40,11 @@ else
   rig_args=(--end-time 0.003 --gas-warmup 0.005)
   total_timeout=${TOTAL_TIMEOUT:-450}  # a lent GPU has ~15 min in all, the machine's start included: < 8 min
 fi
+
+# the tests' tiny model is frictionless, the rig's material has mu = 0.3: the check runs the surrogate's paths with it
+# (--force); a MODEL of the user's must fit the rig's particles
+force=()
+[ -z "${MODEL:-}" ] && force=(--force)
 
 started=$(date +%s.%N)
 finish() {
@@ -88,15 +94,17 @@ run_json bench_forest "$py" scripts/bench_forest.py --model "$model" --device "$
 run_json bench_hel "$py" scripts/bench_hel.py --device "$device" "${hel_args[@]}" --json
 
 for collisions in ktgf surrogate dem; do
+  extra=()
+  [ "$collisions" = surrogate ] && extra=(--model "$model" "${force[@]}")
   run "rig_$collisions" "$py" cases/colliding_streams.py --diameter 315e-6 --dt 1e-3 --collisions "$collisions" \
-    --model "$model" --device "$device" "${rig_args[@]}" --no-vtk --no-gas-snapshots --no-progress --overwrite \
+    "${extra[@]}" --device "$device" "${rig_args[@]}" --no-vtk --no-gas-snapshots --no-progress --overwrite \
     --out "$out/rig_$collisions"
   run "rig_${collisions}_json" "$py" scripts/gpu_check.py rig "$out/rig_$collisions" --out "$out/rig_$collisions.json"
 done
 # the cell detection: parcels of 8 particles collide per cell, its rounds with the batched forest
 run rig_surrogate_cell "$py" cases/colliding_streams.py --diameter 315e-6 --dt 1e-3 --collisions surrogate \
-  --particles-per-parcel 8 --model "$model" --device "$device" "${rig_args[@]}" --no-vtk --no-gas-snapshots \
-  --no-progress --overwrite --out "$out/rig_surrogate_cell"
+  --particles-per-parcel 8 --model "$model" "${force[@]}" --device "$device" "${rig_args[@]}" --no-vtk \
+  --no-gas-snapshots --no-progress --overwrite --out "$out/rig_surrogate_cell"
 run rig_surrogate_cell_json "$py" scripts/gpu_check.py rig "$out/rig_surrogate_cell" \
   --out "$out/rig_surrogate_cell.json"
 finish 0

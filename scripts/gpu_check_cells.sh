@@ -14,7 +14,7 @@
 # Environment: MODEL=DIR the rig's contact-form model, COOL_MODEL=DIR the boxes' (frictionless for Haff's law; default
 # MODEL; both default to the tests' tiny one, trained into HEL_WARP_TINY_MODELS or DIR/models); STEP_TIMEOUT=S caps
 # each step (default 240 s), TOTAL_TIMEOUT=S the whole check (default 540 s on the GPU, 900 s dry: a step gets what
-# is left, none starts after it); PYTHON.
+# is left, none starts after it); PYTHON (default: .venv/bin/python where there is one, else python).
 #
 # On a lent GPU machine without the project's packages (warp-lang, xgboost, zarr), carry them as a prepared
 # site-packages folder (scripts/gpu_bundle.sh builds it; docs/gpu.md) and put it on

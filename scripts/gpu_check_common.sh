@@ -1,5 +1,7 @@
 # Sourced by scripts/gpu_check.sh and scripts/gpu_check_cells.sh (not run on its own): the repository root as the
-# working directory and on PYTHONPATH, the python (PYTHON, default python) in $py, and their shared arguments.
+# working directory and on PYTHONPATH, the python (PYTHON; default the repository's .venv/bin/python where there is
+# one, else python: `make test` runs the suite without activating .venv, so the python on the PATH may lack the
+# project's packages) in $py, and their shared arguments.
 #
 #   gpu_check_args NAME DEFAULT_OUT HELP_LAST_LINE "$@"
 #
@@ -8,7 +10,10 @@
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 root=$(pwd)
 export PYTHONPATH="$root${PYTHONPATH:+:$PYTHONPATH}"
-py=${PYTHON:-python}
+py=${PYTHON:-}
+if [ -z "$py" ]; then
+  if [ -x "$root/.venv/bin/python" ]; then py=$root/.venv/bin/python; else py=python; fi
+fi
 
 gpu_check_args() {
   local name=$1 help_end=$3
@@ -33,6 +38,12 @@ gpu_check_args() {
   if ! "$py" -c "import pytest" > /dev/null 2>&1; then
     echo "$name: $py lacks pytest, which the check's test steps need: install the test extras," \
       "$py -m pip install -e '.[test]'" >&2
+    exit 2
+  fi
+  # every step imports the project: a python without it would fail each step in a second, for no reason of its own
+  if ! "$py" -c "import warp, hel_warp" > /dev/null 2>&1; then
+    echo "$name: $py cannot import warp and hel_warp, which every step needs: set PYTHON to the project's python" \
+      "(e.g. PYTHON=.venv/bin/python) or install the project into it, $py -m pip install -e '.[test]'" >&2
     exit 2
   fi
   mkdir -p "$out" || exit 2
