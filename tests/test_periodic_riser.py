@@ -119,7 +119,8 @@ def test_the_mean_pressure_gradient_balances_the_suspension_weight(device):
 
 
 @pytest.mark.parametrize("collisions", ["none", "ktgf", "dem", "surrogate"])
-def test_one_tile_runs_with_every_model_and_reports_the_keys(collisions, tmp_path, capsys, trained_models):  # noqa: F811
+def test_one_tile_runs_with_every_model_and_reports_the_keys(collisions, tmp_path, capsys,
+                                                            trained_models):  # noqa: F811
     """Each model: 6 steps of one tile from the command line, exit 0, the summary's keys, the check passed, the
     counts per step positive; the slip positive (the gas rises through the falling solids)."""
     from cases.periodic_riser import main
@@ -204,3 +205,19 @@ def test_counters_count_what_warp_does_and_change_no_result(device):
         results.append((p.x.numpy().copy(), p.v.numpy().copy(), sim.solver.gas.cell_velocity.numpy().copy()))
     for off, on in zip(*results):
         assert np.array_equal(off, on)
+
+
+def test_bench_scale_dry_run_writes_its_json_and_plot(tmp_path):
+    """scripts/bench_scale.py --dry-run (K = 0, 3 steps, ``none``): one row with the cost and memory figures, the
+    plot; the seconds per parcel-step are the median step over the parcels."""
+    import subprocess
+
+    repo = os.path.join(os.path.dirname(__file__), "..")
+    proc = subprocess.run([sys.executable, os.path.join(repo, "scripts", "bench_scale.py"), "--dry-run", "--models",
+                           "none", "--out", str(tmp_path)], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-500:]
+    rows = json.loads((tmp_path / "bench_scale.json").read_text())["runs"]
+    assert len(rows) == 1 and rows[0]["parcels"] == 224 and rows[0]["tiles"] == 0
+    assert rows[0]["seconds_per_parcel_step"] == pytest.approx(rows[0]["step_s"] / 224, rel=1e-12)
+    assert rows[0]["bytes_per_particle"] > 0 and rows[0]["launches_per_step"] > 0
+    assert (tmp_path / "bench_scale.png").stat().st_size > 0
