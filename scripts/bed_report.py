@@ -40,6 +40,20 @@ def _plt():
     return plt
 
 
+def _stamp(fig) -> None:
+    """Commit and date in the corner, so a picture says what made it."""
+    import datetime
+    import subprocess
+
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                cwd=Path(__file__).resolve().parents[1], timeout=10).stdout.strip() or "?"
+    except (OSError, subprocess.SubprocessError):
+        commit = "?"
+    fig.text(0.995, 0.005, f"hel_warp {commit}, {datetime.date.today().isoformat()}", ha="right", va="bottom",
+             fontsize=6, color="0.5")
+
+
 def _load(run_dir: Path):
     import zarr
 
@@ -98,6 +112,7 @@ def draw_snapshots(root, summary, path: Path, count: int = 6) -> None:
     axes[0][0].set_ylabel("height above the distributor z, mm")
     fig.colorbar(sc, ax=axes[0].tolist(), label="parcel speed, m/s", shrink=0.8)
     fig.suptitle(f"Bubbling bed, {_label(summary)}: parcels through the depth, coloured by speed")
+    _stamp(fig)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -122,6 +137,7 @@ def draw_solids_maps(runs, path: Path) -> None:
     axes[0][0].set_ylabel("height z, mm")
     fig.colorbar(im, ax=axes[0].tolist(), label="solids fraction (depth and time average)", shrink=0.8)
     fig.suptitle("Bubbling bed: time-averaged solids fraction")
+    _stamp(fig)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -152,6 +168,7 @@ def draw_history(runs, path: Path) -> None:
     a2.set_xlabel("time, s")
     a2.legend(fontsize=8)
     fig.tight_layout()
+    _stamp(fig)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -181,6 +198,7 @@ def draw_fluidization(runs, path: Path) -> None:
     ax.set_title("Bubbling bed: fluidization curve (bars: std of the fluctuations)")
     ax.legend(fontsize=8)
     fig.tight_layout()
+    _stamp(fig)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
