@@ -157,9 +157,10 @@ def as_schedule(value):
     if callable(value) and not isinstance(value, Profile):
         return value
     try:
-        return Constant(float(value))
+        speed = float(value)
     except (TypeError, ValueError):
         raise ConfigError(f"inlet velocity must be a number (m/s), a Ramp or Levels (got {value!r})") from None
+    return Constant(speed)
 
 
 def _check_speed(name: str, value: float) -> None:

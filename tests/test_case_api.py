@@ -1,0 +1,121 @@
+"""The case API (hel_warp.case): a user's mistakes are refused in one line before anything runs, a run resumed from
+its checkpoint ends where an uninterrupted one does (bit for bit), and the shared options act in any case."""
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hel_warp import case as hc
+from hel_warp.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tests.test_collision_models import train_tiny_models  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def tiny_models(tmp_path_factory):
+    root = tmp_path_factory.getbasetemp() / "tiny_collision_models"
+    root.mkdir(exist_ok=True)
+    return train_tiny_models(root)
+
+
+def small_flow(**gas):
+    flow = hc.Flow("box", lo=(0, 0, 0), hi=(4e-3, 4e-3, 12e-3), spacing=1e-3, gravity=(0, 0, -9.81),
+                   gas=hc.Gas(**gas) if gas else hc.Gas())
+    flow.species("glass", 300e-6, density=2500.0)
+    return flow
+
+
+def build(flow, **settings):
+    return hc.build(flow, hc.Settings(**{"collisions": "none", "dt": 1e-4, **settings}))
+
+
+@pytest.mark.parametrize("mistake, message", [
+    (lambda f: f.inlet("in", "w+", 1.0), "face must be one of"),
+    (lambda f: f.inlet("in", "z-", -1.0), "blows out of the domain"),
+    (lambda f: f.inlet("in", "z-", math.nan), "finite"),
+    (lambda f: f.fill("glass", ((0, 0, 0), (4e-3, 4e-3, 2e-3)), solids_fraction=0.7), "random close packing"),
+    (lambda f: f.fill("glass", ((0, 0, 0), (4e-3, 4e-3, 2e-3)), count=10**7), "more than random close packing"),
+    (lambda f: f.fill("glass", ((1, 1, 1), (2, 2, 2)), count=10), "outside the domain"),
+    (lambda f: f.fill("sand", ((0, 0, 0), (4e-3, 4e-3, 2e-3)), count=10), "no species named 'sand'"),
+])
+def test_a_mistake_in_the_flow_is_one_line_naming_what_to_change(mistake, message):
+    flow = small_flow()
+    with pytest.raises(ConfigError, match=message) as err:
+        mistake(flow)
+        flow.fill("glass", ((0, 0, 0), (4e-3, 4e-3, 6e-3)), count=50)
+        build(flow)
+    assert "\n" not in str(err.value)
+
+
+def test_an_inlet_patch_on_no_fluid_face_is_refused():
+    flow = small_flow()
+    flow.inlet("in", "z-", 1.0, lo=(10e-3, 10e-3, 0), hi=(11e-3, 11e-3, 0))  # beside the box, not on it
+    flow.outlet("out", "z+")
+    flow.fill("glass", ((0, 0, 0), (4e-3, 4e-3, 6e-3)), count=50)
+    with pytest.raises(ConfigError, match="covers no fluid cell"):
+        build(flow)
+
+
+def test_a_geometry_with_no_fluid_cell_is_refused():
+    flow = hc.Flow("box", lo=(0, 0, 0), hi=(4e-3, 4e-3, 12e-3), spacing=1e-3,
+                   shapes=(hc.Box(lo=(20e-3, 20e-3, 20e-3), hi=(30e-3, 30e-3, 30e-3)),))
+    flow.species("glass", 300e-6, density=2500.0)
+    flow.fill("glass", ((0, 0, 0), (4e-3, 4e-3, 6e-3)), count=50)
+    with pytest.raises(ConfigError, match="no cell centre lies inside the geometry"):
+        build(flow)
+
+
+def test_a_surrogate_for_other_particles_is_refused(tiny_models):
+    from hel_warp.case.models import check_model
+
+    model = str(tiny_models["contact"])
+    flow = small_flow()  # 300 um, 2500 kg/m^3: the tiny models are trained for others
+    with pytest.raises(ConfigError, match="trained for"):
+        check_model(model, flow.species_list)
+    assert check_model(model, flow.species_list, force=True)  # --force lets the user take it anyway
+
+
+SCRIPT = ROOT / "cases" / "tutorial_classifier.py"
+
+
+def run(tmp_path, *args):
+    done = subprocess.run([sys.executable, str(SCRIPT), "--no-progress", "--no-vtk", "--json", *args],
+                          capture_output=True, text=True, cwd=ROOT, timeout=600)
+    return done
+
+
+def last_particles(out: Path):
+    import zarr
+
+    snaps = zarr.open_group(str(out / "run.zarr"), mode="r")["snapshots"]
+    last = snaps[sorted(snaps.group_keys())[-1]]
+    return last.attrs["time"], np.asarray(last["x"][...]), np.asarray(last["v"][...])
+
+
+def test_resume_continues_bit_for_bit_and_the_shared_options_act(tmp_path):
+    whole, part = tmp_path / "whole", tmp_path / "part"
+    done = run(tmp_path, "--end-time", "0.02", "--output-interval", "0.005", "--out", str(whole))
+    assert done.returncode == 0, done.stderr[-1500:]
+    done = run(tmp_path, "--end-time", "0.01", "--output-interval", "0.005", "--checkpoint-interval", "0.005",
+               "--out", str(part))
+    assert done.returncode == 0, done.stderr[-1500:]
+    # an existing run directory is refused without --overwrite or --resume, nothing touched
+    again = run(tmp_path, "--end-time", "0.02", "--out", str(part))
+    assert again.returncode == 2 and again.stderr.strip().startswith("hel-warp: error:")
+    done = run(tmp_path, "--end-time", "0.02", "--output-interval", "0.005", "--resume", "--out", str(part))
+    assert done.returncode == 0, done.stderr[-1500:]
+    summary = json.loads(done.stdout.strip().splitlines()[-1])
+    assert summary["status"] == "complete"
+    t1, x1, v1 = last_particles(whole)
+    t2, x2, v2 = last_particles(part)
+    assert t1 == pytest.approx(0.02) and t2 == pytest.approx(0.02)
+    np.testing.assert_array_equal(x1, x2)
+    np.testing.assert_array_equal(v1, v2)
