@@ -283,8 +283,10 @@ def settled(run) -> dict:
 def levels_summary(run) -> list:
     flow = run.sim.flow
     probes = run.probes
-    rec = probes.arrays()
+    rec = probes.arrays() if probes is not None else {}
     out = []
+    if "bed_pressure_drop" not in rec or "bed_height" not in rec:  # a run shorter than one probe interval
+        return out
     windows = hc.Levels(flow.attrs["levels"], hold=flow.attrs["hold"], ramp=flow.attrs["ramp"]).windows()
     for u, (start, end) in zip(flow.attrs["levels"], windows):
         half = 0.5 * (start + end)
