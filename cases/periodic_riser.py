@@ -164,6 +164,17 @@ def build(args):
 
 
 # ------------------------------------------------------------------------------------------ observers
+def use_linear_contact(strategy) -> None:
+    """The ``dem`` strategy's particle-particle contact made the benchmark's linear spring-dashpot."""
+    from hel_warp.contact_law import damping_coefficient
+    from kernels.hertz import MODEL_LINEAR
+
+    strategy.params.model = MODEL_LINEAR
+    strategy.params.linear_stiffness = LINEAR_STIFFNESS
+    strategy.params.normal_damping = float(damping_coefficient(RESTITUTION, "linear"))
+    strategy.params.friction = 0.0
+
+
 class LinearContacts:
     """Gives the ``dem`` reference the benchmark's linear spring-dashpot once the simulation is built: the case
     API's ``dem`` strategy sets up Hertz contacts from the material, and its kernels also hold the linear law
@@ -172,14 +183,7 @@ class LinearContacts:
     def bind(self, sim) -> None:
         if sim.settings.collisions != "dem":
             return
-        from hel_warp.contact_law import damping_coefficient
-        from kernels.hertz import MODEL_LINEAR
-
-        strategy = sim.solver.collision
-        strategy.params.model = MODEL_LINEAR
-        strategy.params.linear_stiffness = LINEAR_STIFFNESS
-        strategy.params.normal_damping = float(damping_coefficient(RESTITUTION, "linear"))
-        strategy.params.friction = 0.0
+        use_linear_contact(sim.solver.collision)
 
     def after_step(self, solver) -> None:
         pass

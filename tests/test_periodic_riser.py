@@ -221,3 +221,43 @@ def test_bench_scale_dry_run_writes_its_json_and_plot(tmp_path):
     assert rows[0]["seconds_per_parcel_step"] == pytest.approx(rows[0]["step_s"] / 224, rel=1e-12)
     assert rows[0]["bytes_per_particle"] > 0 and rows[0]["launches_per_step"] > 0
     assert (tmp_path / "bench_scale.png").stat().st_size > 0
+
+
+def _head_on(speed, steps_per_contact, sample):
+    """Two riser spheres meeting head-on at relative ``speed`` under the riser's dem contact: (restitution,
+    time in contact sampled every ``sample`` s)."""
+    import cases.periodic_riser as R
+    from hel_warp.cfd_dem import DemCollision
+    from hel_warp.particles import Particles
+
+    r = 0.5 * R.DIAMETER
+    gap = 0.2 * speed * R.contact_duration()
+    x = np.array([[0.5e-3 - r - gap, 0.5e-3, 0.5e-3], [0.5e-3 + r + gap, 0.5e-3, 0.5e-3]])
+    v = np.array([[0.5 * speed, 0.0, 0.0], [-0.5 * speed, 0.0, 0.0]])
+    p = Particles.from_numpy(x, np.full(2, r), v=v, density=R.PARTICLE_DENSITY, device="cpu")
+    dem = DemCollision(material=R.material(), periodic_box=(1e-3,) * 3,
+                       dt_dem=R.contact_duration() / steps_per_contact)
+    R.use_linear_contact(dem)
+    touching = 0
+    for _ in range(int(round(2.0 * R.contact_duration() / sample))):
+        dem.advance_free(p, sample)
+        xs = p.x.numpy().astype(np.float64)
+        touching += np.linalg.norm(xs[1] - xs[0]) < 2.0 * r
+    vs = p.v.numpy().astype(np.float64)
+    return (vs[1, 0] - vs[0, 0]) / speed, touching * sample
+
+
+def test_the_reference_contact_is_the_benchmarks_linear_spring_dashpot():
+    """Head-on pairs under the dem strategy the riser runs: the restitution is e = 0.8 (within 1.5 % at the riser's
+    DEM step of t_c / 20, first-order convergence to within 0.3 % at t_c / 100), and the contact lasts
+    pi sqrt(m*/k_n) = 22.7 us at 1 m/s and at 0.1 m/s alike (a linear spring; a Hertz contact of that duration at
+    1 m/s would last 10^(1/5) = 1.58 times longer at 0.1 m/s)."""
+    import cases.periodic_riser as R
+
+    e, _ = _head_on(1.0, R.DEM_STEPS_PER_CONTACT, R.contact_duration() / 10)
+    assert e == pytest.approx(0.8, abs=0.015)
+    tc = R.contact_duration()
+    for speed in (1.0, 0.1):
+        e, duration = _head_on(speed, 100, tc / 50)
+        assert e == pytest.approx(0.8, abs=0.003)
+        assert duration == pytest.approx(tc, rel=0.05)
