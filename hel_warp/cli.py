@@ -47,6 +47,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 _NO_CUDA = ('"cuda" device requested', "CUDA is not supported", "Invalid device identifier")
+
+
+def refused(exc: Exception) -> int:
+    """The one line ``hel-warp: error: ...`` of a run the user's input stops (a ``HelWarpError``, or Warp's
+    RuntimeError for a CUDA device this machine lacks) on stderr, and exit code 2; anything else is re-raised."""
+    if isinstance(exc, HelWarpError):
+        message = str(exc)
+    elif isinstance(exc, RuntimeError) and any(text in str(exc) for text in _NO_CUDA):
+        message = f"Warp: {str(exc).splitlines()[0]}; use --device cpu"
+    else:
+        raise exc
+    print(f"hel-warp: error: {message}", file=sys.stderr)
+    return 2
 """Warp's RuntimeError messages for a device that is not on this machine (warp/_src/context.py)."""
 
 
@@ -59,14 +72,8 @@ def main(argv: list[str] | None = None) -> int:
 
             check_device(args.device)
         code = args._run(args)
-    except HelWarpError as exc:
-        print(f"hel-warp: error: {exc}", file=sys.stderr)
-        return 2
-    except RuntimeError as exc:
-        if not any(text in str(exc) for text in _NO_CUDA):
-            raise
-        print(f"hel-warp: error: Warp: {str(exc).splitlines()[0]}; use --device cpu", file=sys.stderr)
-        return 2
+    except (HelWarpError, RuntimeError) as exc:
+        return refused(exc)
     except KeyboardInterrupt:
         print("hel-warp: interrupted; rerun the same command to resume where supported", file=sys.stderr)
         return 130

@@ -197,16 +197,10 @@ class Case:
         args = parser.parse_args(argv)
         try:
             return self.run(args, progress=progress)
-        except HelWarpError as exc:
-            print(f"hel-warp: error: {exc}", file=sys.stderr)
-            return 2
-        except RuntimeError as exc:
-            from hel_warp.cli import _NO_CUDA
+        except (HelWarpError, RuntimeError) as exc:
+            from hel_warp.cli import refused
 
-            if not any(text in str(exc) for text in _NO_CUDA):
-                raise
-            print(f"hel-warp: error: Warp: {str(exc).splitlines()[0]}; use --device cpu", file=sys.stderr)
-            return 2
+            return refused(exc)
 
     def __call__(self, argv=None) -> int:
         return self.main(argv)
