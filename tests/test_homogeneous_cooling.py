@@ -216,15 +216,6 @@ def trained_models(tmp_path_factory):
     return train_tiny_models(root)
 
 
-def _swept_available():
-    import inspect
-
-    import hel_warp.collision_models as cm
-
-    params = inspect.signature(cm.SurrogateCollision.__init__).parameters
-    return "detection" in params and "periodic_box" in params
-
-
 def _check_kinetic_theory(result):
     """Tolerances from the statistics of the run (the case's ``*_stderr``, see its module docstring):
     the collision count of a run with C expected collisions has a relative standard error 1/sqrt(C) (Poisson), the
@@ -244,8 +235,6 @@ def test_surrogate_swept_follows_enskog_and_haff(hc, capsys, tmp_path, trained_m
     steps, several collisions per step in the box): the collision frequency within 4 sigma of Enskog's and
     Theta^-1/2 growing at Haff's slope within 4 sigma + 3 %. CI: 500 particles, 8 ms (~3,800 collisions, sigma
     1.6 % / 2.3 %); HEL_WARP_FULL=1: 4,000 particles (sigma 0.6 % / 0.8 %)."""
-    if not _swept_available():
-        pytest.skip("SurrogateCollision has no swept detection / periodic_box in this checkout")
     particles = 4000 if full_size else 500
     argv = ["--collisions", "surrogate", "--model", trained_models["contact"], "--detection", "swept", "--dt", "1e-4",
             "--solids-fraction", "0.05", "--particles", particles, "--diameter", D, "--granular-temperature", "1",
@@ -262,8 +251,6 @@ def test_surrogate_swept_at_the_paper_step(hc, capsys, tmp_path, trained_models,
     """The same at the paper's dt = 1e-3 s, where a particle flies ~5 diameters per step; the box must hold the
     step's search (L > 2 x 2 (r + v_max dt) ~ 19 mm): 4,000 particles at eps_s = 0.005 in CI size (~16,000
     collisions), HEL_WARP_FULL=1: 8,000 at eps_s = 0.01, the reference case (~60,000)."""
-    if not _swept_available():
-        pytest.skip("SurrogateCollision has no swept detection / periodic_box in this checkout")
     particles, eps = (8000, 0.01) if full_size else (4000, 0.005)
     argv = ["--collisions", "surrogate", "--model", trained_models["contact"], "--detection", "swept", "--dt", "1e-3",
             "--solids-fraction", eps, "--particles", particles, "--diameter", D, "--granular-temperature", "1",
