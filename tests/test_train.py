@@ -196,7 +196,9 @@ def test_train_and_predict_commands(tmp_path, monkeypatch, capsys):
     assert len(out) == 2
     v1, v2 = np.array(out[0]["velocity1_after"]), np.array(out[0]["velocity2_after"])
     np.testing.assert_allclose(v1 + v2, 0.0, atol=1e-6)  # momentum of equal masses
-    assert abs(v1[0] + 0.9) < 0.1
+    # the synthetic data hold e = 0.9 at every impact, so the forest learns a constant: float32 round-off of the
+    # targets and the contact frame bounds the error (1e-5 of |g| = 2 m/s)
+    assert abs(v1[0] + 0.9) < 2e-5
     assert "2 pairs" in captured.err and "guard corrections" in captured.err  # the engine's guarded path, with its counts
     monkeypatch.setattr("sys.stdin", io.StringIO('{"v1": [1, 0, 0], "v2": [0, 0, 0]}\n'))
     assert main(["predict", "--model", model, "--json"]) == 2
