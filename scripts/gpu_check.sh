@@ -31,6 +31,7 @@ if [ "$dry" = 1 ]; then
   hel_args=(--cells 8 12 --parcels 1000 4000 --fixed-side 0 --repeats 1 --no-rig)  # the rig grid: minutes on a CPU
   rig_args=(--cells 5000 --max-particles 200 --end-time 0.002 --gas-warmup 0.001)
   tests=(tests/test_device_paths.py tests/test_multigrid.py)  # the rest of the subset runs on the CPU in the suite
+  scale_args=(--dry-run --models ktgf)
   total_timeout=${TOTAL_TIMEOUT:-900}
 else
   device=cuda
@@ -38,6 +39,7 @@ else
   forest_args=(--samples 1000000 --repeats 5)
   hel_args=(--repeats 3)
   rig_args=(--end-time 0.003 --gas-warmup 0.005)
+  scale_args=(--max-tiles 7 --budget 40 --steps 8)  # the riser up to 3.7e6 particles while a run takes < 40 s
   total_timeout=${TOTAL_TIMEOUT:-450}  # a lent GPU has ~15 min in all, the machine's start included: < 8 min
 fi
 
@@ -107,4 +109,7 @@ run rig_surrogate_cell "$py" cases/colliding_streams.py --diameter 315e-6 --dt 1
   --no-gas-snapshots --no-progress --overwrite --out "$out/rig_surrogate_cell"
 run rig_surrogate_cell_json "$py" scripts/gpu_check.py rig "$out/rig_surrogate_cell" \
   --out "$out/rig_surrogate_cell.json"
+# the periodic riser's size ladder (docs/scale.md): every model at K = 0, 1, ... tiles, last (the longest step)
+run bench_scale "$py" scripts/bench_scale.py --device "$device" --model "$model" "${force[@]}" "${scale_args[@]}" \
+  --out "$out"
 finish 0

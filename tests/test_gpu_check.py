@@ -45,8 +45,9 @@ def test_dry_run_passes_and_writes_every_figure_as_json(tmp_path, trained_models
     names = [s["step"] for s in summary["steps"]]
     assert names == ["device", "kernels", "models", "tests", "tests_json", "bench_dem", "bench_forest", "bench_hel",
                      "rig_ktgf", "rig_ktgf_json", "rig_surrogate", "rig_surrogate_json", "rig_dem", "rig_dem_json",
-                     "rig_surrogate_cell", "rig_surrogate_cell_json"]
+                     "rig_surrogate_cell", "rig_surrogate_cell_json", "bench_scale"]
     fig = summary["figures"]
+    assert [(r["model"], r["tiles"]) for r in fig["bench_scale"]["runs"]] == [("ktgf", 0)]
     assert fig["device"]["device"] == "cpu" and fig["kernels"]["kernel_load_s"] >= 0
     assert fig["tests"]["tests"] >= 10 and fig["tests"]["failures"] == fig["tests"]["errors"] == 0
     assert any("test_device_paths" in s["test"] for s in fig["tests"]["slowest"])
