@@ -378,16 +378,17 @@ def test_sixty_thousand_random_pairs_all_touch_separate_and_keep_e():
     e = 0.9 along its normal (the runner's clipped-oscillator calibration; 1 % as the module's Verlet bound). Its
     speed is measured by scripts/bench_pairs.py, not here: a wall-clock bound in a unit test fails on a loaded
     machine and proves nothing on an idle one."""
-    rng = np.random.default_rng(1)
-    n = 60_000
-    r1, r2 = (R * rng.uniform(0.7, 1.3, n) for _ in range(2))
-    v1, v2 = rng.uniform(-20, 20, (n, 3)), rng.uniform(-20, 20, (n, 3))
-    g = v1 - v2
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    from bench_pairs import RHO as BENCH_RHO, random_pairs  # the benchmark's batch: the same pairs it times
+
+    pairs = random_pairs(60_000, seed=1)
+    assert pairs["density1"] == BENCH_RHO and pairs["restitution"] == 0.9
+    g = pairs["v1"] - pairs["v2"]
     normal = g / np.linalg.norm(g, axis=1)[:, None]
-    dt = np.minimum(stable_time_step(r1, RHO, E_MOD, NU), stable_time_step(r2, RHO, E_MOD, NU))
-    x1, x2 = place_just_apart(normal=normal, velocity1=v1, velocity2=v2, radius1=r1, radius2=r2, dt=dt)
-    res = simulate_pairs(x1=x1, x2=x2, v1=v1, v2=v2, radius1=r1, radius2=r2, density1=RHO, youngs1=E_MOD,
-                         poisson1=NU, restitution=0.9, friction=0.3, device=DEVICE)
+    res = simulate_pairs(**pairs, device=DEVICE)
     assert res.separated.all() and res.touched.all()
     e_out = -np.einsum("ij,ij->i", res.velocity1 - res.velocity2, normal) / np.linalg.norm(g, axis=1)
     np.testing.assert_allclose(e_out, 0.9, rtol=0.01)  # head-on along the normal: e exactly
