@@ -120,7 +120,7 @@ def junit_report(path: str) -> dict:
 
 def rig_report(run_dir: str) -> dict:
     """A rig run's summary (``run.zarr`` attrs) with the median wall time of each sub-step over its steps, the
-    collision path it took (``detection``, ``wall_events``, ``wall_contact``, ``particles_per_parcel``) and the
+    collision path it took (``detection``, ``wall_contact``, ``particles_per_parcel``) and the
     totals over its steps of the collisions, rounds and in-step wall events (so the figures show that the rounds
     ran on the device, not only that the run ended)."""
     import numpy as np
@@ -141,7 +141,7 @@ def rig_report(run_dir: str) -> dict:
     for key in ("collisions_collisions", "collisions_rounds", "collisions_wall_events", "wall_hits"):
         if key in series:
             totals[key] = int(np.asarray(series[key][:], dtype=np.int64).sum())
-    path = {key: case.get(key) for key in ("detection", "wall_events", "wall_contact", "particles_per_parcel")}
+    path = {key: case.get(key) for key in ("detection", "wall_contact", "particles_per_parcel")}
     return {"run": run_dir, "collisions": summary.get("collisions"), "device": case.get("device"), **path,
             "totals": totals,
             "grid_cells": case.get("grid_cells"), "fluid_cells": case.get("fluid_cells"),
