@@ -18,6 +18,8 @@ the summary at the end. Sampling reads the device at the probe times only.
 
 from __future__ import annotations
 
+import abc
+
 import math
 from dataclasses import dataclass, field
 
@@ -46,7 +48,9 @@ def _layer(grid_origin, spacing, shape, axis: int, position: float, name: str) -
 
 
 @dataclass
-class Probe:
+class Probe(abc.ABC):
+    """A measurement sampled after steps (``ProbeRecorder``); each kind says what it samples in ``sample``."""
+
     name: str
     every: float | None = None
     """Sampling interval, s (None: every step)."""
@@ -58,8 +62,9 @@ class Probe:
     def bind(self, sim) -> None:
         """Precompute what the samples need (indices, masks) once the simulation is built."""
 
+    @abc.abstractmethod
     def sample(self, sim) -> dict:
-        raise NotImplementedError
+        """{key: value} of this probe now (a number or an array per key)."""
 
 
 def _fluid(sim) -> np.ndarray:
