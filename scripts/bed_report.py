@@ -54,6 +54,13 @@ def _stamp(fig) -> None:
              fontsize=6, color="0.5")
 
 
+def _save(fig, path: Path) -> None:
+    """Stamp, write and close a figure."""
+    _stamp(fig)
+    fig.savefig(path, dpi=110)
+    _plt().close(fig)
+
+
 def _load(run_dir: Path):
     import zarr
 
@@ -112,9 +119,7 @@ def draw_snapshots(root, summary, path: Path, count: int = 6) -> None:
     axes[0][0].set_ylabel("height above the distributor z, mm")
     fig.colorbar(sc, ax=axes[0].tolist(), label="parcel speed, m/s", shrink=0.8)
     fig.suptitle(f"Bubbling bed, {_label(summary)}: parcels through the depth, coloured by speed")
-    _stamp(fig)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def draw_solids_maps(runs, path: Path) -> None:
@@ -137,9 +142,7 @@ def draw_solids_maps(runs, path: Path) -> None:
     axes[0][0].set_ylabel("height z, mm")
     fig.colorbar(im, ax=axes[0].tolist(), label="solids fraction (depth and time average)", shrink=0.8)
     fig.suptitle("Bubbling bed: time-averaged solids fraction")
-    _stamp(fig)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def draw_history(runs, path: Path) -> None:
@@ -168,9 +171,7 @@ def draw_history(runs, path: Path) -> None:
     a2.set_xlabel("time, s")
     a2.legend(fontsize=8)
     fig.tight_layout()
-    _stamp(fig)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def draw_fluidization(runs, path: Path) -> None:
@@ -198,9 +199,7 @@ def draw_fluidization(runs, path: Path) -> None:
     ax.set_title("Bubbling bed: fluidization curve (bars: std of the fluctuations)")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    _stamp(fig)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def draw_run(run_dir, summary=None) -> list:
