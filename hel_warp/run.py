@@ -154,6 +154,27 @@ def import_kernel_modules(cpu: bool = True) -> None:
             importlib.import_module(name)
 
 
+def plain_atomics_without_cuda() -> None:
+    """On a machine without CUDA, compile the modules that ask for Warp's deterministic atomics
+    (``DeterministicMode.RUN_TO_RUN``: ``kernels.gas``, ``kernels.deposit``, ``kernels.free_flight``) with plain ones.
+
+    The CPU device runs a kernel's threads one after another, so its atomic sums are in index order either way and
+    the results are the same to the bit (the reduced rig's and the cooling box's run.zarr arrays compared). What the
+    mode costs on the CPU is start-up: Warp rebuilds such a module's code in every process that loads it from the
+    kernel cache, ~7 s of a tiny run's ~10 s (``python -m cProfile cases/homogeneous_cooling.py ...``), which an
+    ensemble of a thousand tiny members pays a thousand times. A machine with a GPU keeps the mode everywhere, so that
+    a process that runs on both devices never launches a CUDA kernel without it."""
+    import warp as wp
+
+    if not hasattr(wp.config, "DeterministicMode"):
+        return
+    plain = wp.config.DeterministicMode.NOT_GUARANTEED
+    registry = getattr(getattr(wp, "_src", None), "context", None)
+    for name in list(getattr(registry, "user_modules", None) or {}):
+        if wp.get_module_options(name).get("deterministic", plain) != plain:
+            wp.set_module_options({"deterministic": plain}, module=name)
+
+
 def load_kernels(device) -> float:
     """Compile (or load from Warp's kernel cache) every Warp module of ``kernels/`` and any other imported module
     with Warp code, on ``device`` (None: every device), less ``CPU_ONLY_MODULES`` on CUDA; returns the seconds it
@@ -167,6 +188,8 @@ def load_kernels(device) -> float:
     start = _time.perf_counter()
     devices = wp.get_devices() if device is None else [wp.get_device(device)]
     import_kernel_modules(cpu=any(not d.is_cuda for d in devices))
+    if wp.get_cuda_device_count() == 0:
+        plain_atomics_without_cuda()
     for d in devices:
         wp.force_load(device=d, modules=kernel_modules(d))
     return _time.perf_counter() - start
