@@ -119,3 +119,34 @@ def test_resume_continues_bit_for_bit_and_the_shared_options_act(tmp_path):
     assert t1 == pytest.approx(0.02) and t2 == pytest.approx(0.02)
     np.testing.assert_array_equal(x1, x2)
     np.testing.assert_array_equal(v1, v2)
+
+
+def test_members_that_start_together_build_the_automatic_model_once(tmp_path, monkeypatch):
+    """Two runs asking at once for the same automatic surrogate (an ensemble's first members): one builds it, the
+    other waits on the cache's lock and then uses it, instead of both writing into one folder."""
+    import threading
+    import time
+
+    from hel_warp.case import models
+
+    monkeypatch.setenv("HEL_WARP_CACHE", str(tmp_path))
+    builds = []
+
+    def slow_build(species, form, root, model_dir, announce):
+        builds.append(threading.get_ident())
+        time.sleep(0.5)
+        model_dir.mkdir(parents=True)
+        (model_dir / "metadata.json").write_text("{}")
+        return str(model_dir)
+
+    monkeypatch.setattr(models, "_build_model", slow_build)
+    species = [hc.Species(name="glass", diameter=315e-6)]
+    got = []
+    threads = [threading.Thread(target=lambda: got.append(models.model_for(species, announce=lambda *_: None)))
+               for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(builds) == 1
+    assert len(got) == 2 and got[0] == got[1]

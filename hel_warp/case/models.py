@@ -11,6 +11,7 @@ built by ``hel-warp dataset`` then ``hel-warp train --form contact`` at the size
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
@@ -112,6 +113,20 @@ def model_for(species, *, form: str = "contact", announce=print) -> str:
     model_dir = root / "model"
     if (model_dir / "metadata.json").exists():
         return str(model_dir)
+    root.mkdir(parents=True, exist_ok=True)
+    # Members of an ensemble start together and would build the same model side by side, writing into one folder:
+    # the first takes the lock and builds, the others wait for it and then find the model.
+    with open(root / ".lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            if (model_dir / "metadata.json").exists():
+                return str(model_dir)
+            return _build_model(species, form, root, model_dir, announce)
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def _build_model(species, form, root, model_dir, announce) -> str:
     from hel_warp.cli import main as cli_main
 
     m = species[0].material
