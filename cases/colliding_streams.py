@@ -217,7 +217,7 @@ def dimensions_for_cells(cells: int | None) -> RigDimensions:
 def rig_shapes(dims: RigDimensions) -> tuple:
     """The fluid region: the main channel, two supply channels and two inclined arms (a union of shapes that runs
     past the inlet and outlet planes, so that no wall stands on an open boundary)."""
-    from hel_warp.grid import Box, Channel
+    from hel_warp.gas.grid import Box, Channel
 
     h = dims.spacing
     beyond = 5.0 * h
@@ -354,7 +354,7 @@ class CaseConfig:
 def make_config(args) -> CaseConfig:
     """The rig's options, checked (a ConfigError names what to change)."""
     from hel_warp.errors import ConfigError
-    from hel_warp.mixture import species_weights
+    from hel_warp.collisions.mixture import species_weights
 
     if not args.diameter > 0:
         raise ConfigError(f"--diameter must be > 0 m (got {args.diameter}); e.g. 315e-6")
@@ -413,7 +413,7 @@ def make_config(args) -> CaseConfig:
 def sauter_mean_of(config: CaseConfig) -> float:
     """The one diameter KTGF gets: the mean diameter, or a mixture's Sauter mean d_32 = sum N E[d^3] / sum N E[d^2]
     (the mixture KTGF closures are out of scope)."""
-    from hel_warp.mixture import sauter_mean
+    from hel_warp.collisions.mixture import sauter_mean
 
     if not config.mixture:
         return config.diameter
@@ -436,7 +436,7 @@ def mixture_release(args, diameter: float, std: float, known: float | None, weig
     ``mass_flow``."""
     from hel_warp.errors import ConfigError
 
-    from hel_warp.mixture import second_size
+    from hel_warp.collisions.mixture import second_size
 
     sizes = second_size(getattr(args, "diameter2", None), getattr(args, "mass_fraction2", None), diameter,
                         "--mass-fraction2", "0.5")
@@ -530,7 +530,7 @@ def rig_attrs(flow, dims: RigDimensions, config: CaseConfig, windows) -> dict:
 
     grid = grid_of(flow)
     _, _, speeds = geometry_of(flow, grid)
-    from hel_warp.io import _jsonable
+    from hel_warp.runs.io import _jsonable
 
     settings = asdict(config)
     return _jsonable({**settings, "grid_shape": list(grid.shape), "grid_cells": int(np.prod(grid.shape)),

@@ -28,7 +28,7 @@ D2): the box holds both species' volume at EPS, the start is random and non-over
 species at equipartition (m_1 Theta_1 = m_2 Theta_2) and the mass-weighted mixture Theta exactly Theta0, each
 species' mean velocity removed. A parcel's ``stream`` tag is its species, so the strategies' per-stream-pair counts
 are the collisions per pair type. The JSON adds ``granular_temperature_1`` / ``_2``, ``temperature_ratio`` T_2/T_1,
-``collision_pair_types`` and ``kinetic_theory`` (``hel_warp/mixture.py``: the Maxwellian rate equations of a smooth
+``collision_pair_types`` and ``kinetic_theory`` (``hel_warp/collisions/mixture.py``: the Maxwellian rate equations of a smooth
 inelastic binary mixture, BMCSL g0_ij, and the homogeneous-cooling-state ratio of Garzo & Dufty 1999).
 ``--particles-per-parcel W1,W2`` gives each species its own weight (W_k divides N_k)::
 
@@ -169,7 +169,7 @@ def make_config(args) -> CoolingConfig:
     """Validate the case's options once (ConfigError with what to change) and derive the box, steps and material."""
     from hel_warp.case.models import read_metadata
     from hel_warp.errors import ConfigError
-    from hel_warp.mixture import species_weights
+    from hel_warp.collisions.mixture import species_weights
 
     name = args.collisions
     if not 0.0 < args.solids_fraction < 1.0:
@@ -297,7 +297,7 @@ def mixture_species(args, weights: tuple):
     Species 1 is --diameter."""
     from hel_warp.errors import ConfigError
 
-    from hel_warp.mixture import second_size
+    from hel_warp.collisions.mixture import second_size
 
     sizes = second_size(getattr(args, "diameter2", None), getattr(args, "number_fraction2", None),
                         float(args.diameter), "--number-fraction2", "0.3")
@@ -314,7 +314,7 @@ def mixture_species(args, weights: tuple):
             raise ConfigError(f"--particles-per-parcel {','.join(map(str, weights))}: W{k + 1} = {w} does not divide "
                               f"the {n} particles of species {k + 1} ({n1} + {n2}); choose --particles (and "
                               "--number-fraction2) so that every weight divides its species")
-    from hel_warp.mixture import sauter_mean
+    from hel_warp.collisions.mixture import sauter_mean
 
     fractions = (n1 / args.particles, n2 / args.particles)
     diameters = (float(args.diameter), float(d2))
@@ -337,9 +337,9 @@ def mixture_box_length(species, eps: float) -> float:
 
 def check_model_covers(model_dir: str, meta: dict, diameters) -> None:
     """A mixture run needs a model whose training domain holds every size and size ratio
-    (``hel_warp.mixture.model_domain_problem``); a ConfigError says which one it lacks."""
+    (``hel_warp.collisions.mixture.model_domain_problem``); a ConfigError says which one it lacks."""
     from hel_warp.errors import ConfigError
-    from hel_warp.mixture import model_domain_problem
+    from hel_warp.collisions.mixture import model_domain_problem
 
     problem = model_domain_problem(meta, diameters)
     if problem:
@@ -405,12 +405,12 @@ def mixture_initial_state(config) -> tuple[np.ndarray, np.ndarray]:
 
 
 def mixture_references(config, t: np.ndarray, theta_species: np.ndarray) -> dict:
-    """Kinetic theory of the binary mixture (``hel_warp.mixture``): the Maxwellian rate equations from the measured
+    """Kinetic theory of the binary mixture (``hel_warp.collisions.mixture``): the Maxwellian rate equations from the measured
     start, the homogeneous-cooling temperature ratio, and the collisions per pair type over the measured
     Theta_i(t) (BMCSL g0_ij)."""
     from scipy.optimize import brentq
 
-    from hel_warp import mixture as mx
+    from hel_warp.collisions import mixture as mx
 
     volume = config.box_length**3
     n = np.asarray(config.species.counts, float) / volume
@@ -435,10 +435,10 @@ def mixture_references(config, t: np.ndarray, theta_species: np.ndarray) -> dict
 def mixture_summary(case, t: np.ndarray, theta: np.ndarray, idx: np.ndarray, counts: dict) -> dict:
     """Keys of a binary-mixture run: the species temperatures (``granular_temperature_1``, ``_2``: Theta_i =
     <|c_i|^2>/3 of each species about its own mean, m^2/s^2) and their ratio T_2/T_1 = m_2 Theta_2 / (m_1 Theta_1)
-    (1 = equipartition), the kinetic-theory references (module ``hel_warp.mixture``) and the collisions per pair
+    (1 = equipartition), the kinetic-theory references (module ``hel_warp.collisions.mixture``) and the collisions per pair
     type (the strategies count per stream pair; a parcel's stream is its species). Replaces the one-size
     Enskog / Haff keys by the mixture's: ``haff_slope`` is the slope of the kinetic-theory mixture Theta^-1/2(t)."""
-    from hel_warp import mixture as mx
+    from hel_warp.collisions import mixture as mx
 
     cfg = case.config
     sp = case.theta_species()
@@ -476,7 +476,7 @@ def mixture_summary(case, t: np.ndarray, theta: np.ndarray, idx: np.ndarray, cou
         "granular_temperature_1_final": float(sp[-1, 0]), "granular_temperature_2_final": float(sp[-1, 1]),
         "temperature_ratio": ratio[idx].tolist(), "temperature_ratio_final": float(ratio[-1]),
         "kinetic_theory": {
-            "reference": "Maxwellian rate equations of a smooth inelastic binary mixture (hel_warp/mixture.py; "
+            "reference": "Maxwellian rate equations of a smooth inelastic binary mixture (hel_warp/collisions/mixture.py; "
                          "Garzo & Dufty 1999 zeroth order), BMCSL g0_ij, from the measured start",
             "granular_temperature_1_final": float(ref["theta"][-1, 0]),
             "granular_temperature_2_final": float(ref["theta"][-1, 1]),

@@ -38,7 +38,7 @@ over samples in the second half of the run), ``solids_flux`` (kg/m^2/s: the soli
 volume, rho_p <eps_s v_s>, second half; up is positive), ``solids_fraction_variance`` (the variance of the cells'
 eps_s over the cells and the second half's samples: clustering; ``solids_fraction_variance_normalised`` divides
 it by the mean eps_s squared), ``launches_per_step``, ``graph_launches_per_step`` and ``device_reads_per_step``
-(medians over the steady steps, ``hel_warp.counters``), ``device_bytes`` and ``bytes_per_particle`` (the Warp
+(medians over the steady steps, ``hel_warp.runs.counters``), ``device_bytes`` and ``bytes_per_particle`` (the Warp
 arrays the run holds), ``pressure_gradient`` (Pa/m), ``solids_fraction``.
 
     python cases/periodic_riser.py --collisions ktgf --tiles 1 --dt 1e-4 --end-time 0.05 --out runs/riser_ktgf --json
@@ -166,7 +166,7 @@ def build(args):
 # ------------------------------------------------------------------------------------------ observers
 def use_linear_contact(strategy) -> None:
     """The ``dem`` strategy's particle-particle contact made the benchmark's linear spring-dashpot."""
-    from hel_warp.contact_law import damping_coefficient
+    from hel_warp.collisions.contact_law import damping_coefficient
     from kernels.hertz import MODEL_LINEAR
 
     strategy.params.model = MODEL_LINEAR
@@ -207,10 +207,10 @@ def momentum(solver) -> dict:
 class Statistics:
     """Samples, in the second half of the run, the mean gas and solids axial velocities, the solids' axial
     momentum and the cells' eps_s (the reads paused for the launch and read counters); also the per-step
-    launch and read counts (``hel_warp.counters.PerStep``)."""
+    launch and read counts (``hel_warp.runs.counters.PerStep``)."""
 
     def __init__(self, end_time: float, dt: float, samples: int):
-        from hel_warp.counters import PerStep
+        from hel_warp.runs.counters import PerStep
 
         total = max(1, int(round(end_time / dt)))
         self.first = total // 2
@@ -222,7 +222,7 @@ class Statistics:
         self.counts = PerStep()
 
     def after_step(self, solver) -> None:
-        from hel_warp import counters
+        from hel_warp.runs import counters
 
         self.counts.after_step(solver)
         step = solver.step_count
@@ -256,7 +256,7 @@ class Statistics:
 
 
 def observers(args, flow) -> list:
-    from hel_warp import counters
+    from hel_warp.runs import counters
 
     counters.start()  # stopped in summary(); the counts are per step, so what came before does not matter
     return [LinearContacts(), Statistics(args.end_time, args.dt, args.samples)]
@@ -278,7 +278,7 @@ def device_bytes(device) -> int:
 
 
 def summary(run) -> dict:
-    from hel_warp import counters
+    from hel_warp.runs import counters
 
     stats = run.solver.observers[1]
     counts = stats.counts.medians()

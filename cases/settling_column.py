@@ -52,10 +52,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def build(args):
     """The solver of the settling column (particles on a jittered lattice in a closed box)."""
     from hel_warp._warp import init_warp
-    from hel_warp.dem import DEMConfig, DEMSolver
+    from hel_warp.collisions.dem import DEMConfig, DEMSolver
     from hel_warp.errors import ConfigError
     from hel_warp.material import Material
-    from hel_warp.particles import Particles, lattice_positions
+    from hel_warp.parcels.particles import Particles, lattice_positions
 
     init_warp(args.device)
     if args.particles < 1:
@@ -103,8 +103,8 @@ def check(solver, n_initial: int) -> list[str]:
 
 
 def run(args, *, progress: bool = True) -> int:
-    from hel_warp.dem import run_with_output
-    from hel_warp.io import RunWriter
+    from hel_warp.collisions.dem import run_with_output
+    from hel_warp.runs.io import RunWriter
 
     solver = build(args)
     n = solver.particles.count

@@ -40,7 +40,7 @@ def start_warp(*, cuda: bool = False) -> None:
 
     Unless ``cuda`` (the caller asks for a CUDA device), Warp's "Could not find or load the NVIDIA CUDA driver"
     warning is dropped: on a machine without a GPU every CPU run would print it, and a run that asks for CUDA there
-    fails with its own one-line reason (``init_warp``, ``hel_warp.run.check_device``).
+    fails with its own one-line reason (``init_warp``, ``hel_warp.runs.run.check_device``).
     """
     import warp as wp
 

@@ -8,7 +8,7 @@
 - ``ktgf``: the paper's HEL baseline, a_coll = -grad(p_s)/(eps_s rho_p) with the Table 1 closures
   (``kernels/ktgf.py``);
 - ``surrogate``, ``surrogate-paper`` (HELSCM) and ``dem`` (CFD-DEM reference), from
-  ``hel_warp.collision_models``, resolved lazily by :data:`COLLISION_MODELS` / :func:`collision_model`.
+  ``hel_warp.collisions.models``, resolved lazily by :data:`COLLISION_MODELS` / :func:`collision_model`.
 
 The strategy interface: ``name``; ``accelerate(solver)`` fills ``solver.fields.parcel_a_coll``
 (an acceleration, m/s^2, applied in the push) and may also change ``solver.pool.particles.v``
@@ -33,7 +33,7 @@ Outlets come before walls: a parcel that left through an outlet at the end of a 
 has crossed the SDF boundary too and must be removed, not reflected.
 
 Everything a restart needs is :meth:`HelSolver.state` / :meth:`HelSolver.set_state` (host copies,
-at checkpoint intervals only); ``hel_warp.run`` writes them.
+at checkpoint intervals only); ``hel_warp.runs.run`` writes them.
 """
 
 from __future__ import annotations
@@ -45,11 +45,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hel_warp.coupling import (CouplingFields, GridSpec, PushConfig, deposit_parcels, interpolate_gas,
+from hel_warp.parcels.coupling import (CouplingFields, GridSpec, PushConfig, deposit_parcels, interpolate_gas,
                                exchange_push, ktgf_collision, push_parcels)
 from hel_warp.errors import ConfigError, require_finite, require_positive
 from hel_warp.material import Material
-from hel_warp.parcels import ParcelPool, VolumeInjection
+from hel_warp.parcels.pool import ParcelPool, VolumeInjection
 
 
 class NoCollision:
@@ -112,7 +112,7 @@ class KtgfCollision:
 
 class _CollisionModels:
     """name -> strategy class. ``none`` and ``ktgf`` live here; ``surrogate``, ``surrogate-paper`` and
-    ``dem`` are resolved lazily from ``hel_warp.collision_models`` (classes ``SurrogateCollision``,
+    ``dem`` are resolved lazily from ``hel_warp.collisions.models`` (classes ``SurrogateCollision``,
     ``SurrogatePaperCollision``, ``DemCollision``), so importing the HEL loop never loads the forest or
     the DEM."""
 
@@ -136,11 +136,11 @@ class _CollisionModels:
             import importlib
 
             try:
-                module = importlib.import_module("hel_warp.collision_models")
+                module = importlib.import_module("hel_warp.collisions.models")
             except ModuleNotFoundError as err:
-                if err.name != "hel_warp.collision_models":
+                if err.name != "hel_warp.collisions.models":
                     raise
-                raise ConfigError(f"collision model {name!r} lives in hel_warp.collision_models, which is not "
+                raise ConfigError(f"collision model {name!r} lives in hel_warp.collisions.models, which is not "
                                   f"installed in this checkout; use none or ktgf") from err
             return getattr(module, self._lazy[name])
         raise ConfigError(f"unknown collision model {name!r}; choose one of {', '.join(self.keys())}")
@@ -182,7 +182,7 @@ class ScheduledInjection:
 
     def __post_init__(self):
         if not isinstance(self.injection, VolumeInjection):
-            raise ConfigError("ScheduledInjection.injection must be a hel_warp.parcels.VolumeInjection")
+            raise ConfigError("ScheduledInjection.injection must be a hel_warp.parcels.pool.VolumeInjection")
         require_finite("injection t_start", self.t_start)
         if self.t_start < 0:
             raise ConfigError(f"injection t_start must be >= 0 (got {self.t_start} s)")
@@ -420,10 +420,10 @@ class HelConfig:
 class HelSolver:
     """Parcels (``ParcelPool``) coupled two-way to the ``GasSolver`` on its grid.
 
-    ``gas_solver``/``gas``: ``hel_warp.gas.GasSolver`` and its ``GasField`` (or any objects with
+    ``gas_solver``/``gas``: ``hel_warp.gas.solver.GasSolver`` and its ``GasField`` (or any objects with
     ``step(gas, dt)`` and ``cell_velocity``, ``cell_grad_p``, ``cell_eps_s``, ``cell_momentum_source``,
     ``cell_drag_coeff`` float32 cell arrays). Updates ``pool.particles`` and ``gas`` in place.
-    Walls need the geometry: ``gas.domain.geometry`` (a ``hel_warp.grid.Geometry``).
+    Walls need the geometry: ``gas.domain.geometry`` (a ``hel_warp.gas.grid.Geometry``).
 
     Bad input is refused here with a ConfigError that names the fix: live parcels or injector boxes
     outside the fluid (SDF >= 0), gas properties that differ from the gas solver's.
@@ -507,7 +507,7 @@ class HelSolver:
                    cell_drag_coeff_f32=self.gas.cell_drag_coeff, launches=self.fields.launches)
 
     def gas_step(self) -> None:
-        """2. eps_f-weighted Navier-Stokes step with the particle momentum source (``hel_warp.gas``); with
+        """2. eps_f-weighted Navier-Stokes step with the particle momentum source (``hel_warp.gas.solver``); with
         ``time_sub_steps`` its phases go into ``timings`` as ``gas_<phase>`` (inside ``gas_step``'s own time)."""
         solver = self.gas_solver
         if hasattr(solver, "time_phases"):  # a GasSolver (a test's stand-in gas may not time itself)
@@ -526,7 +526,7 @@ class HelSolver:
         contacts (``HelConfig.packing_stress``) on top."""
         stress = self.config.packing_stress
         if stress is not None and stress.damping > 0.0 and getattr(self.collision, "name", None) != "dem":
-            from hel_warp.coupling import parcel_grid
+            from hel_warp.parcels.coupling import parcel_grid
             from kernels.ktgf import contact_damping
 
             # before the collisions: the deposit's solids velocities are those of these velocities (momentum exact)
@@ -535,7 +535,7 @@ class HelSolver:
                             ramp=DAMPING_RAMP, damping=stress.damping)
         self.collision.accelerate(self)
         if stress is not None and getattr(self.collision, "name", None) != "dem":
-            from hel_warp.coupling import packing_acceleration
+            from hel_warp.parcels.coupling import packing_acceleration
 
             if getattr(self.collision, "_kicked", False):  # the swept detection pushed inside its collisions
                 raise ConfigError("packing_stress acts through the push, which the surrogate's swept detection "
@@ -592,7 +592,7 @@ class HelSolver:
 
         from kernels.contacts import launch_gather
         from kernels.interp import cell_order
-        from hel_warp.particles import FIELDS_FLOAT, FIELDS_INT, FIELDS_VEC3
+        from hel_warp.parcels.particles import FIELDS_FLOAT, FIELDS_INT, FIELDS_VEC3
 
         strategy_permute = getattr(self.collision, "permute_parcels", None)
         if getattr(self.collision, "has_parcel_memory", False) and strategy_permute is None:
@@ -799,7 +799,7 @@ class HelSolver:
         """Everything a restart needs, as host arrays: parcels (all slots, incl. alive/stream/weight), pool
         counters, coupling fields (the drag impulses owed to the gas), gas fields, time, step, injector
         progress, wall hits, and the strategy's own ``state()`` if it has one. A sync: checkpoints only."""
-        from hel_warp.particles import FIELDS_FLOAT, FIELDS_INT, FIELDS_VEC3
+        from hel_warp.parcels.particles import FIELDS_FLOAT, FIELDS_INT, FIELDS_VEC3
 
         p = self.pool.particles
         out = {f"particles/{n}": getattr(p, n).numpy().copy() for n in FIELDS_VEC3 + FIELDS_FLOAT + FIELDS_INT}
@@ -824,7 +824,7 @@ class HelSolver:
 
     def set_state(self, state: dict) -> None:
         """Restore :meth:`state` (same capacity, grid and injectors); the run then continues bitwise."""
-        from hel_warp.particles import FIELDS_FLOAT, FIELDS_INT, FIELDS_VEC3
+        from hel_warp.parcels.particles import FIELDS_FLOAT, FIELDS_INT, FIELDS_VEC3
 
         def put(array, name):
             value = np.asarray(state[name])

@@ -104,7 +104,7 @@ parcels by cell (``wp.utils.radix_sort_pairs``), cell ranges from the sorted key
 (deterministic totals). The optional event log (fixed capacity, overflow counted) records the sampled geometry
 for tests and diagnostics.
 
-Launch wrappers at the bottom; they never allocate (hel_warp/cell_collisions.py owns the arrays).
+Launch wrappers at the bottom; they never allocate (hel_warp/collisions/cells.py owns the arrays).
 """
 
 from __future__ import annotations
@@ -135,7 +135,7 @@ classes of a block whose energy deficit was restored / could not be (a single pa
 
 @wp.struct
 class CellArgs:
-    """Everything the cell kernels read (arrays on one device); built by hel_warp/cell_collisions.py."""
+    """Everything the cell kernels read (arrays on one device); built by hel_warp/collisions/cells.py."""
 
     particle_x: wp.array(dtype=wp.vec3)
     """(N,) parcel centres along their paths at the sub-step's start, m (the cells are found from these)."""

@@ -18,7 +18,7 @@ loop over rows and an unrolled one over the parts: the caller's loop body (often
 once. Every point within the radius is visited exactly once (a search wider than the periodic box is clamped to its
 cells once), the others of the box of cells too: callers test the distance.
 
-Launch wrappers at the bottom; they never allocate (the host side, hel_warp/collision_models.py, owns the arrays).
+Launch wrappers at the bottom; they never allocate (the host side, hel_warp/collisions/models.py, owns the arrays).
 """
 
 from __future__ import annotations

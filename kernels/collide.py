@@ -9,7 +9,7 @@ What it computes (reference paper sec. 4.3; docs/developer/architecture.md "Coll
   follows its new velocity for the rest of the step. Several collisions per parcel are resolved in time order,
   event-driven within the step (the section "swept detection" below). The paper's end-of-step overlap test
   ``|x_i - x_j| < r_i + r_j`` is the same machinery with paths of zero length (every event at t = 0, ties by
-  parcel index): ``detection="overlap"`` of hel_warp/collision_models.py.
+  parcel index): ``detection="overlap"`` of hel_warp/collisions/models.py.
   A pair is collided only while approaching: an overlapping pair that already separates (e.g. the one collided
   at the previous step) is skipped - the repeated-detection fix the paper names as missing (its sec. 8).
   The impulse on particle 2 is ``J = m*|g| (impulse_n n + impulse_t t_hat)`` from the forest's two targets
@@ -21,11 +21,11 @@ What it computes (reference paper sec. 4.3; docs/developer/architecture.md "Coll
   (own velocity, averaged partner velocity, d, mean partner d, rho, mean partner rho) to the new
   velocity. No approach test and no momentum guarantee (the paper's scheme).
 - The overlap pair list (``count_pairs``/``fill_pairs``, a compact list i < j, rows sorted by j, independent of
-  thread order) that ``hel_warp.pairs.PairDetector`` builds for the CFD-DEM's end-of-step overlap count.
+  thread order) that ``hel_warp.collisions.pairs.PairDetector`` builds for the CFD-DEM's end-of-step overlap count.
 - Counts (integer atomics, deterministic): pairs overlapping at the step's start, resolved pairs and real
   collisions per stream pair ``(min(s_i, s_j), max(s_i, s_j))``, separating overlaps skipped, rounds.
 
-Launch wrappers at the bottom of each section; they never allocate (hel_warp/collision_models.py owns the arrays).
+Launch wrappers at the bottom of each section; they never allocate (hel_warp/collisions/models.py owns the arrays).
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from kernels.reflect import WallParams, wall_impact
 from kernels.sdf import SdfShapes, sdf_shape, sdf_union, sdf_union_normal
 
 PAIR_PENDING = wp.constant(0)
-"""``pair_state`` of a detected pair (the overlap pair list of ``hel_warp.pairs.PairDetector``)."""
+"""``pair_state`` of a detected pair (the overlap pair list of ``hel_warp.collisions.pairs.PairDetector``)."""
 
 
 @wp.func

@@ -38,7 +38,7 @@ bookkeeping); row i is the ``count[i]`` entries from ``start[i]``, sorted by par
 arrays:
 
 - *padded* (every device): ``start[i] = i * capacity``, -1 in the unused partner slots; the host reads the
-  rows as (N, capacity) arrays (``hel_warp.dem.ContactList``);
+  rows as (N, capacity) arrays (``hel_warp.collisions.dem.ContactList``);
 - *packed* (``build_contact_list`` with ``packed = 1``; a device that runs threads in ``tid`` order, the
   CPU): row i follows row i - 1 (``start[i] = start[i-1] + count[i-1]``), so the entries in use are one
   contiguous stream. A sparse list (a falling bed: 0.4 entries per sphere in the half list) then costs

@@ -28,7 +28,7 @@ differs is how the work is arranged, for a device that runs a kernel's threads o
 The shear history of a pair lives in its owner's row (i < j) in the owner's frame; on a spatial sort
 the owner can change, and the rebuild then finds the history in the partner's row with its sign
 reversed (``build_contact_list``). On CUDA threads run concurrently: the solver keeps the full list and
-the separate kernels there (``hel_warp/dem.py``).
+the separate kernels there (``hel_warp/collisions/dem.py``).
 """
 
 from __future__ import annotations

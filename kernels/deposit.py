@@ -65,7 +65,7 @@ def reserve_records(need: int) -> int:
     ``deterministic_max_records`` per thread and target, fixed when the module compiles, and fails a launch whose
     thread makes more (``WarpDeterminismError``; first seen on an H200, the CPU device has no such buffer). A parcel
     of half-width K adds into (2K)^3 cells. The module is rebuilt when the bound grows (once per run in practice: the
-    weights are the injection's); ``hel_warp.coupling`` asks for the largest live parcel's tent before the step's
+    weights are the injection's); ``hel_warp.parcels.coupling`` asks for the largest live parcel's tent before the step's
     tent deposits on CUDA. Memory: parcels x (2K)^3 records of the target's type, ~230 bytes per real particle at
     any weight (8 K^3 ~ 2.8 w)."""
     global _records

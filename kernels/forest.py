@@ -7,7 +7,7 @@ group per target, summed in XGBoost's order (base, tree 0, tree 1, ...). Contact
 features in the contact frame and the equal-and-opposite impulse of surrogate/features.py
 ``apply_contact_model`` (momentum conserved exactly).
 
-Device layouts (built by hel_warp/forest.py from the file): 8-byte ``Node`` records
+Device layouts (built by hel_warp/collisions/forest.py from the file): 8-byte ``Node`` records
 (packed split feature, default direction and child index + threshold or leaf value), either
 
 - ``perfect`` (default when every tree has depth <= 12): each tree padded to a perfect tree
@@ -19,7 +19,7 @@ Device layouts (built by hel_warp/forest.py from the file): 8-byte ``Node`` reco
   pick by selects, deeper levels gather; or
 - ``explicit``: breadth-first nodes with child indices, one row at a time, early exit.
 
-Launch wrappers at the bottom; they never allocate (the host side, hel_warp/forest.py,
+Launch wrappers at the bottom; they never allocate (the host side, hel_warp/collisions/forest.py,
 owns the scratch arrays).
 """
 
@@ -60,7 +60,7 @@ class Node:
 
 @wp.struct
 class Forest:
-    """Flattened forest on the device (file layout: surrogate/flatten.py; packing: hel_warp/forest.py)."""
+    """Flattened forest on the device (file layout: surrogate/flatten.py; packing: hel_warp/collisions/forest.py)."""
 
     nodes: wp.array(dtype=Node)
     """explicit layout: (n_nodes,) all trees' nodes, breadth first per tree, siblings adjacent;

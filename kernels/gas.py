@@ -1454,7 +1454,7 @@ def cell_projected_kernel(
 
 
 # ----------------------------------------------------------------- aggregation multigrid (pressure)
-# A V-cycle preconditioner for the pressure CG (hel_warp/multigrid.py): 2x2x2 blocks of cells aggregate
+# A V-cycle preconditioner for the pressure CG (hel_warp/gas/multigrid.py): 2x2x2 blocks of cells aggregate
 # into one coarse row, coarse matrices by Galerkin products with the piecewise-constant prolongation
 # (A_c = P^T A P, again a 7-point stencil; Braess 1995), multi-colour symmetric Gauss-Seidel smoothing
 # (parallel within a colour), a scaled coarse correction.

@@ -865,7 +865,7 @@ def ic0_step_apply_kernel(
     ic0_step_apply_rows(pivot_inverse, A.coef, A.neighbour, p, ap, scalars, n, ordered, x, r, z)
 
 
-# ----------------------------------------------------------------- multigrid V-cycle (hel_warp/multigrid.py), one thread
+# ----------------------------------------------------------------- multigrid V-cycle (hel_warp/gas/multigrid.py), one thread
 
 
 @wp.func_native(_STENCIL + """

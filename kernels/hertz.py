@@ -22,7 +22,7 @@ Normal force, model ``MODEL_LINEAR`` (Cundall & Strack 1979, Geotechnique 29: 47
     F_n = max(0, k_n delta + c sqrt(m* k_n) v_n)
 
 The total normal force is clipped at zero (no attraction). The dimensionless damping ``c``
-is computed on the host (``hel_warp.contact_law.damping_coefficient``) so that the clipped
+is computed on the host (``hel_warp.collisions.contact_law.damping_coefficient``) so that the clipped
 contact returns exactly the requested restitution ``e`` (c depends on e alone — see
 docs/physics/references.md "damping pitfall"); the raw Tsuji and LIGGGHTS forms are host options too.
 Thornton, Cummins & Cleary (2013), Powder Technol. 233: 30-46, discuss why the clipped
@@ -62,7 +62,7 @@ Stable API for other rooms (N-body DEM in ``kernels/contacts.py``, the HEL ``dem
 
 Isolated-pair runner (bottom of the file): ``PairBodies`` / ``PairState`` / ``PairRecord`` structs,
 the ``step_pairs`` kernel and its wrappers ``launch_build_pair_params`` / ``launch_step_pairs``;
-host side in ``hel_warp.impact.simulate_pairs``.
+host side in ``hel_warp.collisions.impact.simulate_pairs``.
 
 Note on the tangential history: the spring force is ``S_t(delta) xi`` with the current stiffness
 (the LIGGGHTS/Di Renzo & Di Maio 2004 form), so it relaxes with the normal load on unloading. With
@@ -282,7 +282,7 @@ def rolling_torque(p: ContactParams, n: wp.vec3, omega_rel: wp.vec3, fn: float):
 
 # =========================================================================== isolated-pair runner
 # One thread per independent pair (sphere–sphere or sphere–wall), one step per launch. Used by
-# ``hel_warp.impact.simulate_pairs``; host code calls the wrappers at the bottom.
+# ``hel_warp.collisions.impact.simulate_pairs``; host code calls the wrappers at the bottom.
 #
 # Before first touch no force acts (no gravity), so the motion is ballistic and the touch
 # instant is solved exactly: a pair whose touch falls inside the coming step moves just to the

@@ -1,6 +1,6 @@
 """Injection sites: a candidate position of a new parcel is blocked when a live parcel is too close.
 
-``hel_warp.parcels`` places volume-injected parcels only where no live parcel lies within
+``hel_warp.parcels.pool`` places volume-injected parcels only where no live parcel lies within
 ``(r_i + r_j)(1 + clearance)`` of the candidate (the overlap test of the HELSCM pair detection, one
 thread per candidate on the hash grid of the pool), so an injection never starts an overlap.
 """

@@ -18,7 +18,7 @@ import warp as wp
 
 @wp.struct
 class SphereArrays:
-    """The per-particle arrays DEM kernels read and update (views of ``hel_warp.particles.Particles``)."""
+    """The per-particle arrays DEM kernels read and update (views of ``hel_warp.parcels.particles.Particles``)."""
 
     x: wp.array(dtype=wp.vec3)
     """Centre positions, m."""
@@ -86,7 +86,7 @@ def kick(
 
 
 def sphere_arrays(particles) -> SphereArrays:
-    """The ``SphereArrays`` view of a ``hel_warp.particles.Particles`` (no copy)."""
+    """The ``SphereArrays`` view of a ``hel_warp.parcels.particles.Particles`` (no copy)."""
     s = SphereArrays()
     s.x, s.v, s.omega = particles.x, particles.v, particles.omega
     s.radius, s.density, s.alive = particles.radius, particles.density, particles.alive

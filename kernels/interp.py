@@ -63,7 +63,7 @@ class CellGrid:
 
 @wp.struct
 class ParcelArrays:
-    """The per-parcel arrays the push and deposit kernels read (views of ``hel_warp.particles.Particles``)."""
+    """The per-parcel arrays the push and deposit kernels read (views of ``hel_warp.parcels.particles.Particles``)."""
 
     x: wp.array(dtype=wp.vec3)
     """Centre positions, m."""
@@ -144,7 +144,7 @@ def spread_half_width(grid: CellGrid, weight: float):
     in a 1 mm cell would otherwise take its whole drag from the gas of 8 cells, ~1.8 times its drag impulse per step
     on the rig at 1e-3 s). The earlier rule K = round(w^(1/3)) matched the tent's support (2 K h)^3 to 8 w cells,
     twice the cloud's variance at large w; on the rig at w = 64 it crossed 0.01-0.04 more and spread 2-5 points less
-    than this tent on the same seeds (``hel_warp.rig_ensemble``)."""
+    than this tent on the same seeds (``hel_warp.studies.rig_ensemble``)."""
     if grid.spread == 0 or weight < 3.9528:  # K < 1.5 below w = 2.5^1.5 (weight 1 skips the pow)
         return 1
     return int(wp.round(wp.sqrt(0.5 * wp.pow(weight, 2.0 / 3.0) + 1.0)))
@@ -618,7 +618,7 @@ def cell_order(grid: CellGrid, n_used: int, particle_x, particle_alive, keys, va
 
 
 def parcel_arrays(particles, *, x=None, v=None) -> ParcelArrays:
-    """The ``ParcelArrays`` view of a ``hel_warp.particles.Particles`` (no copy); ``x``/``v`` replace the
+    """The ``ParcelArrays`` view of a ``hel_warp.parcels.particles.Particles`` (no copy); ``x``/``v`` replace the
     particles' positions/velocities (e.g. the implicit exchange's start positions)."""
     p = ParcelArrays()
     p.x = particles.x if x is None else x

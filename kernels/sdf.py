@@ -23,7 +23,7 @@ overlap: near an opening into another shape it reports the wall of the shape the
 deepest in). The normal is that of the minimising shape.
 
 Wall code of other rooms calls ``sdf_union`` / ``sdf_union_normal`` with an ``SdfShapes``
-built once by ``hel_warp.grid.Geometry.shapes_struct``.
+built once by ``hel_warp.gas.grid.Geometry.shapes_struct``.
 """
 
 import warp as wp

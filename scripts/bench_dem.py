@@ -77,7 +77,7 @@ def bed(case: str, n: int, seed: int = 0, offset: float = 0.0) -> dict:
     moves the box and the spheres along every axis (a float32 resolution check: the spacing of float32
     numbers grows with the distance from the origin)."""
     from hel_warp.material import Material
-    from hel_warp.particles import lattice_positions
+    from hel_warp.parcels.particles import lattice_positions
 
     d = DIAMETER
     spacing = CASES[case] * d
@@ -101,8 +101,8 @@ def bed(case: str, n: int, seed: int = 0, offset: float = 0.0) -> dict:
 
 
 def build_ours(case: dict, device: str, sort_every=None, capacity: int = 16, shuffle: bool = False):
-    from hel_warp.dem import DEMConfig, DEMSolver
-    from hel_warp.particles import Particles
+    from hel_warp.collisions.dem import DEMConfig, DEMSolver
+    from hel_warp.parcels.particles import Particles
 
     x, v = case["x"], case["v"]
     if shuffle:  # memory order unrelated to space: what spatial sorting is for
@@ -153,7 +153,7 @@ def run_ours(case: dict, steps: int, device: str, capacity: int, sort_every=None
 def liggghts_restitution(restitution: float) -> float:
     """e' whose LIGGGHTS Hertz damping equals our calibrated one: sqrt(5) beta(e') = c(e) (module docstring),
     beta(e') = |ln e'| / sqrt(ln^2 e' + pi^2)."""
-    from hel_warp.contact_law import damping_coefficient
+    from hel_warp.collisions.contact_law import damping_coefficient
 
     beta = float(damping_coefficient(restitution)) / math.sqrt(5.0)
     return math.exp(-math.pi * beta / math.sqrt(1.0 - beta * beta))

@@ -94,7 +94,7 @@ def main(argv=None) -> int:
     import warp as wp
     import xgboost as xgb
 
-    from hel_warp.forest import ForestPredictor, load_forest, quiet_warp
+    from hel_warp.collisions.forest import ForestPredictor, load_forest, quiet_warp
     from kernels.forest import eval_forest
     from surrogate.artifact import load_artifact
     from surrogate.features import (CANONICAL_FEATURES, form_rows, scale_predictions, standardize,

@@ -71,8 +71,8 @@ def _sync(device):
 
 
 def bench_gas(n_side: int, repeats: int, device, seed: int = 0) -> dict:
-    from hel_warp.gas import GasConfig, GasField, GasSolver
-    from hel_warp.grid import Box, Geometry, Grid
+    from hel_warp.gas.solver import GasConfig, GasField, GasSolver
+    from hel_warp.gas.grid import Box, Geometry, Grid
 
     h = H
     grid = Grid(spacing=h, shape=(n_side,) * 3)
@@ -121,7 +121,7 @@ def gas_snapshot(gas):
 def warm_rig(device):
     """The colliding-streams rig (315 um, 1e-3 s, no collisions) after its gas warm-up: the grid and flow whose gas
     step the rig timings and the gas profile measure."""
-    from hel_warp.commands._common import load_case_module
+    from hel_warp.cli.commands._common import load_case_module
 
     case = load_case_module("colliding_streams")
     ns = argparse.Namespace(diameter=315e-6, dt=1e-3, collisions="none", end_time=1e-3, particles_per_parcel=1.0,
@@ -243,11 +243,11 @@ def make_solver(shape, n: int, device, *, coupling: str, seed: int = 0):
     """A HelSolver on a closed box of ``shape`` cells of H with ``n`` parcels (radius 0.1 mm, 1000 kg/m^3) at
     uniformly random positions; gas velocity random (0.5 m/s rms), grad p' zero. Returns (solver, x, v) with
     the host copies of the initial parcel state."""
-    from hel_warp.gas import GasConfig, GasField, GasSolver
-    from hel_warp.grid import Box, Geometry, Grid
+    from hel_warp.gas.solver import GasConfig, GasField, GasSolver
+    from hel_warp.gas.grid import Box, Geometry, Grid
     from hel_warp.hel import HelConfig, HelSolver
-    from hel_warp.coupling import PushConfig
-    from hel_warp.parcels import ParcelPool
+    from hel_warp.parcels.coupling import PushConfig
+    from hel_warp.parcels.pool import ParcelPool
 
     shape = tuple(int(s) for s in shape)
     grid = Grid(spacing=H, shape=shape)

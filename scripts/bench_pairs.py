@@ -1,4 +1,4 @@
-"""Throughput of the batched binary DEM (``hel_warp.impact.simulate_pairs``, what ``hel-warp dataset`` runs).
+"""Throughput of the batched binary DEM (``hel_warp.collisions.impact.simulate_pairs``, what ``hel-warp dataset`` runs).
 
 N random pairs of 315 um polyethylene spheres (radii 0.7-1.3 R, velocities uniform in [-20, 20] m/s per component,
 head-on along their relative velocity, Hertz contact, e = 0.9, mu = 0.3), each at its own eq. (12) stable step, run
@@ -28,7 +28,7 @@ def random_pairs(n: int, seed: int = 1) -> dict:
     """``simulate_pairs`` keyword arguments for ``n`` random head-on pairs placed just apart."""
     import numpy as np
 
-    from hel_warp.impact import place_just_apart, stable_time_step
+    from hel_warp.collisions.impact import place_just_apart, stable_time_step
 
     rng = np.random.default_rng(seed)
     r1, r2 = (R * rng.uniform(0.7, 1.3, n) for _ in range(2))
@@ -42,7 +42,7 @@ def random_pairs(n: int, seed: int = 1) -> dict:
 
 
 def bench(pairs: int, device: str, repeats: int) -> dict:
-    from hel_warp.impact import simulate_pairs
+    from hel_warp.collisions.impact import simulate_pairs
 
     simulate_pairs(**random_pairs(16), device=device)  # kernel loading, not timed
     args = random_pairs(pairs)

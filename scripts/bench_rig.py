@@ -201,8 +201,8 @@ def main(argv=None) -> int:
         if path and not os.path.isfile(os.path.join(path, "metadata.json")):
             parser.error(f"{flag} {path}: no metadata.json there; give a directory written by `hel-warp train`")
     from hel_warp.errors import HelWarpError
-    from hel_warp.forest import quiet_warp
-    from hel_warp.commands._common import load_case_module
+    from hel_warp.collisions.forest import quiet_warp
+    from hel_warp.cli.commands._common import load_case_module
 
     quiet_warp()
     case = load_case_module("colliding_streams")

@@ -60,8 +60,8 @@ def gas(n: int, eps: float, seed: int = 0):
 def bench_case(model: str, n: int, eps: float, dt: float, steps: int) -> dict:
     import numpy as np
 
-    from hel_warp.collision_models import SurrogateCollision
-    from hel_warp.particles import Particles
+    from hel_warp.collisions.models import SurrogateCollision
+    from hel_warp.parcels.particles import Particles
 
     x, v, side = gas(n, eps)
     runs = {}

@@ -41,7 +41,7 @@ def main(argv=None) -> int:
     try:
         from hel_warp._warp import init_warp
         from hel_warp.errors import ConfigError
-        from hel_warp.forest import load_forest
+        from hel_warp.collisions.forest import load_forest
         from surrogate.sweep import format_table, sweep_against_dem
 
         init_warp()

@@ -62,14 +62,14 @@ def kernel_report(device: str) -> dict:
     import importlib
 
     from hel_warp._warp import init_warp
-    from hel_warp.run import load_kernels
+    from hel_warp.runs.run import load_kernels
 
     import warp as wp
 
     dev = init_warp(device)
     wp.config.load_module_max_workers = os.cpu_count() or 1
-    for name in ("hel_warp.dem", "hel_warp.gas", "hel_warp.multigrid", "hel_warp.forest", "hel_warp.collision_models",
-                 "hel_warp.cell_collisions", "hel_warp.cfd_dem", "hel_warp.hel", "hel_warp.impact"):
+    for name in ("hel_warp.collisions.dem", "hel_warp.gas.solver", "hel_warp.gas.multigrid", "hel_warp.collisions.forest", "hel_warp.collisions.models",
+                 "hel_warp.collisions.cells", "hel_warp.collisions.cfd_dem", "hel_warp.hel", "hel_warp.collisions.impact"):
         try:
             importlib.import_module(name)
         except ModuleNotFoundError as exc:  # a module renamed or moved: its kernels still load at first use

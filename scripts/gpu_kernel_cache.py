@@ -29,10 +29,10 @@ ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-IMPORTS = ("hel_warp.hel", "hel_warp.gas", "hel_warp.multigrid", "hel_warp.cell_collisions", "hel_warp.collision_models",
-           "hel_warp.dem", "hel_warp.cfd_dem", "cases.colliding_streams", "cases.homogeneous_cooling", "bench_rig",
+IMPORTS = ("hel_warp.hel", "hel_warp.gas.solver", "hel_warp.gas.multigrid", "hel_warp.collisions.cells", "hel_warp.collisions.models",
+           "hel_warp.collisions.dem", "hel_warp.collisions.cfd_dem", "cases.colliding_streams", "cases.homogeneous_cooling", "bench_rig",
            "profile_step")
-"""Modules imported besides every ``kernels/`` module (``hel_warp.run.import_kernel_modules``): they define Warp
+"""Modules imported besides every ``kernels/`` module (``hel_warp.runs.run.import_kernel_modules``): they define Warp
 kernels of their own or import the modules that do."""
 
 
@@ -40,7 +40,7 @@ def engine_modules() -> list:
     """Every Warp module with kernels that the engine, the cases and the benches import, less the CPU-only ones."""
     import warp as wp
 
-    from hel_warp.run import CPU_ONLY_MODULES, import_kernel_modules
+    from hel_warp.runs.run import CPU_ONLY_MODULES, import_kernel_modules
 
     import_kernel_modules(cpu=False)
     for name in IMPORTS:

@@ -162,7 +162,7 @@ def _run(args) -> int:
     import warp as wp
 
     from hel_warp._warp import init_warp
-    from hel_warp.run import check_device, load_kernels
+    from hel_warp.runs.run import check_device, load_kernels
 
     check_device(args.device)
     init_warp(args.device)

@@ -33,7 +33,7 @@ def build_rig(model: str, dt: float, end_time: float, diameter: float):
     """The rig with the swept surrogate after its gas warm-up (``bench_rig.build_model``)."""
     import bench_rig
 
-    from hel_warp.commands._common import load_case_module
+    from hel_warp.cli.commands._common import load_case_module
 
     case = load_case_module("colliding_streams")
     args = argparse.Namespace(diameter=diameter, dt=dt, end_time=end_time, model=model, paper_model=None,
@@ -176,7 +176,7 @@ def main(argv=None) -> int:
     cmp_.add_argument("b")
     args = parser.parse_args(argv)
 
-    from hel_warp.forest import quiet_warp
+    from hel_warp.collisions.forest import quiet_warp
 
     quiet_warp()
     if args.command == "capture":

@@ -30,7 +30,7 @@ def thinned(run, k: int):
 
 
 def main(argv=None) -> int:
-    from hel_warp.report import DEFAULT_BOXES, load_run, stream_metrics, stream_metrics_vs
+    from hel_warp.runs.report import DEFAULT_BOXES, load_run, stream_metrics, stream_metrics_vs
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("runs", nargs="+", help="run directories (cases/colliding_streams.py --out)")

@@ -452,7 +452,7 @@ def colliding_streams(ctx: Context) -> Result:
             res.figures.append("validation/rig_stream_crossing.png")
     if ctx.quick:
         res.notes.append(f"Quick size: the paper's rig with at most {size['max_particles']:,} parcels, one seed, {size['end_time']:g} s. The targets (0.05, 5 %) hold for the paper's "
-                         "12,000 parcels pooled over seeds (`python -m hel_warp.rig_ensemble`): at this size one seed moves the "
+                         "12,000 parcels pooled over seeds (`python -m hel_warp.studies.rig_ensemble`): at this size one seed moves the "
                          "figures by a few hundredths, so they are shown, and the judged fact is that HELSCM's "
                          "binary collisions, not the granular pressure, set the crossing. The full size releases "
                          "12,000 parcels at two time steps and judges the targets.")
@@ -531,7 +531,7 @@ def _find_keys(tree, keys):
 
 
 def _settling_snapshots(root):
-    """The first and the last particle snapshot of a ``hel_warp.io`` run.zarr, as dicts of numpy arrays."""
+    """The first and the last particle snapshot of a ``hel_warp.runs.io`` run.zarr, as dicts of numpy arrays."""
     import numpy as np
 
     groups = []

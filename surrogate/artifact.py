@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hel_warp.errors import ConfigError
-from hel_warp.forest import sha256_file  # noqa: F401 (one implementation; tests import it from here)
+from hel_warp.collisions.forest import sha256_file  # noqa: F401 (one implementation; tests import it from here)
 from surrogate.features import CANONICAL_FEATURES, TARGETS
 
 FORMAT = "hel_warp.surrogate"

@@ -1,5 +1,5 @@
 """The collision data set: configurations (``surrogate.configurations``) run through the batched
-binary DEM (``hel_warp.impact.simulate_pairs``) and stored in a zarr group, paper section 4.1.
+binary DEM (``hel_warp.collisions.impact.simulate_pairs``) and stored in a zarr group, paper section 4.1.
 
 Layout (``docs/file-formats.md`` "The collision data set"): arrays ``inputs`` (N, 14) float64,
 ``outputs`` (N, 15) float64, ``config_id`` (N,) int64, ``family`` (N,) int8, ``chunk_done``
@@ -47,8 +47,8 @@ CONTACT_MODELS = ("hertz", "linear")
 DEFAULT_CHUNK_SIZE = 4096
 FORMAT_VERSION = 1
 ROW_ARRAYS = ("inputs", "outputs", "config_id", "family")
-FINGERPRINT_MODULES = ("surrogate.configurations", "surrogate.dataset", "hel_warp.material", "hel_warp.impact",
-                       "hel_warp.contact_law", "kernels.hertz")
+FINGERPRINT_MODULES = ("surrogate.configurations", "surrogate.dataset", "hel_warp.material", "hel_warp.collisions.impact",
+                       "hel_warp.collisions.contact_law", "kernels.hertz")
 """Modules whose source decides the bytes of a data set (``code_fingerprint``)."""
 
 
@@ -245,17 +245,17 @@ def grazing_contact_time(configs: Configurations) -> np.ndarray:
 
 
 def dem_runner(configs: Configurations, spec: DatasetSpec) -> np.ndarray:
-    """Outputs (n, 15) of the batched binary DEM ``hel_warp.impact.simulate_pairs`` for ``configs``.
+    """Outputs (n, 15) of the batched binary DEM ``hel_warp.collisions.impact.simulate_pairs`` for ``configs``.
 
     One call (one Warp thread per pair) for the whole chunk, in each pair's centre-of-mass frame (the
     lab velocity added back to the outputs); the time step is ``spec.dt_factor``
     times the runner's default (eq. 12 for the smaller sphere of the pair, V_max = max(20 m/s,
-    approach speed), ``hel_warp.impact.stable_time_step``), capped at 1/GRAZING_CONTACT_STEPS of the
+    approach speed), ``hel_warp.collisions.impact.stable_time_step``), capped at 1/GRAZING_CONTACT_STEPS of the
     grazing contact time (``grazing_contact_time``); the step limit covers 4x the longer of the Hertz
     and the geometric contact times. Pairs that never touched or did not
     separate within the runner's step limit are refused (DatasetError), never stored.
     """
-    from hel_warp.impact import TIME_STEP_MAX_SPEED, simulate_pairs, stable_time_step  # lazy: imports warp
+    from hel_warp.collisions.impact import TIME_STEP_MAX_SPEED, simulate_pairs, stable_time_step  # lazy: imports warp
 
     material = spec.material
     # run in the centre-of-mass frame (Galilean invariance: no gravity, no walls) so float32 keeps the
@@ -282,7 +282,7 @@ def dem_runner(configs: Configurations, spec: DatasetSpec) -> np.ndarray:
     x2 = r2 * configs.normal - t_start * v2
     # step limit: the runner's own estimate uses the Hertz duration at the normal speed; a slow grazing
     # contact lasts up to the geometric time instead (the spheres slide past before the normal rebound)
-    from hel_warp.contact_law import hertz_contact_duration
+    from hel_warp.collisions.contact_law import hertz_contact_duration
 
     inv_e = 2.0 * (1.0 - material.poisson_ratio**2) / material.youngs_modulus
     r_eff = 0.5 * configs.d1 * configs.d2 / (configs.d1 + configs.d2)

@@ -64,7 +64,7 @@ TARGET_SCALE = {"contact": ("cos_angle", "sin_angle"),
                 "contact_spin": ("cos_angle", "sin_angle", "none", "sin_angle", "none")}
 """Scale of each target when trained scaled (surrogate/train.py, ``TrainConfig.target_scale``): the trees learn
 impulse_n / cos_angle (about 1 + e: nearly constant over the incidence) and impulse_t / sin_angle; the forest
-multiplies its tree sum back (hel_warp/forest.py TARGET_SCALES, kernels/forest.py ``scale_factor``)."""
+multiplies its tree sum back (hel_warp/collisions/forest.py TARGET_SCALES, kernels/forest.py ``scale_factor``)."""
 TANGENT_EPS = 1e-6
 """Relative slip ``g_t/|g|`` below which the tangential direction is taken as zero (float32-safe)."""
 CENTRAL_OFFSET_TOL = 1e-6

@@ -19,7 +19,7 @@ float32 input — no round-off disagreement, no in-kernel standardisation.
 
 File format (JSON, version 2)::
 
-    {"format": "hel_warp.forest", "version": 2,
+    {"format": "hel_warp.collisions.forest", "version": 2,
      "form": "contact" | "paper",
      "features": [canonical feature names; node feature indices point into this list],
      "targets": [target names, one tree group each],
@@ -39,7 +39,7 @@ File format (JSON, version 2)::
             engine refuses them (retrain).
 
     target_scale: the prediction of a target is its tree sum (base_score + leaves) times the row's cos_angle
-            or sqrt(1 - cos_angle^2) (contact form; hel_warp/forest.py TARGET_SCALES): the trees then learn
+            or sqrt(1 - cos_angle^2) (contact form; hel_warp/collisions/forest.py TARGET_SCALES): the trees then learn
             impulse_n / cos_angle (about 1 + e) and impulse_t / sin_angle, nearly constant in the incidence,
             which a few shallow trees fit better than the staircase of the linear dependence (surrogate/train.py).
 
@@ -62,7 +62,7 @@ import numpy as np
 
 from hel_warp.errors import ConfigError
 
-FORMAT = "hel_warp.forest"
+FORMAT = "hel_warp.collisions.forest"
 VERSION = 2
 
 
@@ -209,9 +209,9 @@ def flatten_models(form: str, canonical_features: list[str], used_features: list
     """All targets' XGBoost JSON models (dict target -> parsed JSON) -> the forest.json document.
 
     ``domain``: the training domain (``surrogate.admissibility.training_domain``), written as is.
-    ``target_scale``: per target a name of hel_warp.forest.TARGET_SCALES (None: not written, all unscaled).
+    ``target_scale``: per target a name of hel_warp.collisions.forest.TARGET_SCALES (None: not written, all unscaled).
     """
-    from hel_warp.forest import _parse_domain
+    from hel_warp.collisions.forest import _parse_domain
 
     _parse_domain(domain, canonical_features)
     missing = [f for f in used_features if f not in canonical_features]

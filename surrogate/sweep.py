@@ -2,7 +2,7 @@
 
 For each incidence angle chi (between g = v1 - v2 and the first-touch normal n), relative speed
 |g| and size ratio d2/d1, one isolated sphere-sphere impact is run by the batched DEM that
-``hel-warp impact`` runs (``hel_warp.impact.simulate_pairs`` with its default step: eq. (12),
+``hel-warp impact`` runs (``hel_warp.collisions.impact.simulate_pairs`` with its default step: eq. (12),
 40 steps per contact), all pairs in one launch, in the centre-of-mass frame. The surrogate
 predicts the same pairs through the engine's path (``ForestPredictor.predict_pairs``: domain
 clamp + admissibility guard; and bare, ``guard=False``). The error is
@@ -47,7 +47,7 @@ def sweep_pairs(*, diameter: float, size_ratios, density: float, angles=SWEEP_AN
 def dem_outcomes(pairs: dict, material: dict, contact_model: str = "hertz") -> tuple[np.ndarray, np.ndarray]:
     """Post-collision velocities (u1, u2) of the sweep pairs from the DEM of ``hel-warp impact``."""
     from hel_warp.errors import HelWarpError
-    from hel_warp.impact import place_just_apart, simulate_pairs, stable_time_step
+    from hel_warp.collisions.impact import place_just_apart, simulate_pairs, stable_time_step
 
     r1, r2 = 0.5 * pairs["d1"], 0.5 * pairs["d2"]
     e_mod, nu = float(material["youngs_modulus"]), float(material["poisson_ratio"])
@@ -80,7 +80,7 @@ def _band_table(angle, errors: dict) -> dict:
 def sweep_against_dem(flat, material: dict, *, contact_model: str = "hertz", diameter: float, density: float,
                       size_ratios=None, angles=SWEEP_ANGLES, speeds=SWEEP_SPEEDS, device="cpu") -> dict:
     """The sweep of a contact-form ``FlatForest``; ``size_ratios`` default (1, an unequal one in the domain)."""
-    from hel_warp.forest import CANONICAL_FEATURES, ForestPredictor
+    from hel_warp.collisions.forest import CANONICAL_FEATURES, ForestPredictor
     from surrogate.admissibility import guarded_targets
 
     if flat.form not in ("contact", "contact_spin"):
@@ -118,7 +118,7 @@ def sweep_against_dem(flat, material: dict, *, contact_model: str = "hertz", dia
     errors = {"model": model, "engine": engine, "dem_guard_floor": floor}
     worst = int(np.argmax(engine))
     return {
-        "reference": "hel_warp.impact.simulate_pairs (hel-warp impact's DEM, default step), sphere-sphere, COM frame",
+        "reference": "hel_warp.collisions.impact.simulate_pairs (hel-warp impact's DEM, default step), sphere-sphere, COM frame",
         "angles_deg": [float(a) for a in angles], "speeds_m_s": [float(v) for v in speeds],
         "size_ratios": [float(r) for r in size_ratios], "diameter": float(diameter), "pairs": int(g_mag.size),
         "target_pct": TARGET_PERCENT, "bands": _band_table(pairs["angle"], errors),
@@ -166,8 +166,8 @@ def spin_sweep_against_dem(flat, material: dict, *, contact_model: str = "hertz"
     translational |g|: post-collision relative velocity ``g'`` and post-collision spins as surface speeds
     ``r |omega' - omega'_DEM|`` (the larger of the pair's two)."""
     from hel_warp.errors import HelWarpError
-    from hel_warp.forest import ForestPredictor
-    from hel_warp.impact import place_just_apart, simulate_pairs, stable_time_step
+    from hel_warp.collisions.forest import ForestPredictor
+    from hel_warp.collisions.impact import place_just_apart, simulate_pairs, stable_time_step
 
     predictor = ForestPredictor(flat, device=device)
     e_mod, nu = float(material["youngs_modulus"]), float(material["poisson_ratio"])
@@ -207,7 +207,7 @@ def spin_sweep_against_dem(flat, material: dict, *, contact_model: str = "hertz"
         rows[f"{spin_ratio:g}"] = {name: {"median_pct": float(np.median(e)), "p90_pct": float(np.percentile(e, 90)),
                                           "p99_pct": float(np.percentile(e, 99)), "max_pct": float(e.max())}
                                    for name, e in errors.items()}
-    return {"reference": "hel_warp.impact.simulate_pairs with the spins (DEM), sphere-sphere, COM frame",
+    return {"reference": "hel_warp.collisions.impact.simulate_pairs with the spins (DEM), sphere-sphere, COM frame",
             "pairs_per_ratio": int(n), "spin_ratios": [float(r) for r in spin_ratios],
             "size_ratios": [float(r) for r in size_ratios], "diameter": float(diameter), "rows": rows}
 

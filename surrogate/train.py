@@ -276,11 +276,11 @@ def mixture_species(attrs: dict) -> tuple[list, list] | None:
 
 
 def pair_type_metrics(arrays: dict, means, stds) -> dict:
-    """Test-set metrics per pair type of a size mixture (``hel_warp.mixture.pair_type_names``: small-small,
+    """Test-set metrics per pair type of a size mixture (``hel_warp.collisions.mixture.pair_type_names``: small-small,
     small-large, large-large), each row's particles put in the species of the nearest mean
-    (``hel_warp.mixture.species_of``): rows, share of the test rows, MAE of u1 per component, median relative
+    (``hel_warp.collisions.mixture.species_of``): rows, share of the test rows, MAE of u1 per component, median relative
     error of u1, and the error of the post-collision relative velocity g' in % of |g| (median, p99, max)."""
-    from hel_warp.mixture import pair_type_names, pair_type_of, species_of
+    from hel_warp.collisions.mixture import pair_type_names, pair_type_of, species_of
 
     kind = pair_type_of(species_of(arrays["d1"], means, stds), species_of(arrays["d2"], means, stds))
     g = arrays["v1"] - arrays["v2"]
@@ -383,7 +383,7 @@ def train(data: CollisionData, model_dir: str, config: TrainConfig, *, log=print
     metrics["forest_vs_xgboost_max_abs_diff"] = _forest_check(doc, rows.features[test_r], predicted)
     metrics["fit_wall_time_s"] = round(time.perf_counter() - t_start, 2)
     if config.form == "contact_spin" and material is not None and config.sweep:
-        from hel_warp.forest import parse_forest
+        from hel_warp.collisions.forest import parse_forest
         from surrogate.sweep import format_spin_table, format_table, spin_sweep_against_dem, sweep_against_dem
 
         defaults = {k: float(np.mean(data.col(k))) for k in ("d1", "rho1")}
@@ -399,7 +399,7 @@ def train(data: CollisionData, model_dir: str, config: TrainConfig, *, log=print
         metrics["guard"] = guard_metrics(doc, rows, test_r, predicted)
         log(f"WARNING: {metrics['guard']['warning']}" if metrics["guard"]["flagged"] else metrics["guard"]["note"])
         if material is not None and config.sweep:
-            from hel_warp.forest import parse_forest
+            from hel_warp.collisions.forest import parse_forest
             from surrogate.sweep import format_table, sweep_against_dem
 
             defaults = {k: float(np.mean(data.col(k))) for k in ("d1", "rho1")}
@@ -408,7 +408,7 @@ def train(data: CollisionData, model_dir: str, config: TrainConfig, *, log=print
                                                  diameter=defaults["d1"], density=defaults["rho1"])
             log(format_table(metrics["sweep"]))
             if species is not None:  # one sweep per pair type, at the species' mean sizes
-                from hel_warp.mixture import pair_type_names
+                from hel_warp.collisions.mixture import pair_type_names
 
                 means = species[0]
                 metrics["sweep_pair_types"] = {}
@@ -469,7 +469,7 @@ def _flat_document(form, features, targets, boosters, mean, std, domain, target_
 
 def _forest_check(doc: dict, raw_test, predicted) -> float:
     """Largest |Warp flattened forest - XGBoost| over the test rows and targets (should be ~0)."""
-    from hel_warp.forest import ForestPredictor, parse_forest
+    from hel_warp.collisions.forest import ForestPredictor, parse_forest
 
     out = ForestPredictor(parse_forest(doc)).predict_features(raw_test)
     return float(np.max(np.abs(out - predicted))) if predicted.size else 0.0
@@ -495,7 +495,7 @@ def guard_metrics(doc: dict, rows: FormRows, test_rows: np.ndarray, predicted: n
     with the strict separation rule (no slack) instead, the DEM's own grazing outcomes would count as corrected
     (4-5 % of the rows), which the engine never does.
     """
-    from hel_warp.forest import ForestPredictor, parse_forest
+    from hel_warp.collisions.forest import ForestPredictor, parse_forest
     from surrogate.admissibility import FLAG_FRACTION, MATERIAL_CORRECTION, guarded_targets
 
     flat = parse_forest(doc)

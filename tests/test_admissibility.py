@@ -7,7 +7,7 @@ References (docs/developer/conventions.md rule 9):
   kinetic energy ``|g'| <= |g|`` (an internal impulse leaves the centre-of-mass energy unchanged);
 - momentum ``m1 v1 + m2 v2`` unchanged by an equal and opposite impulse;
 - the clamp: ``g_n = |g| c``, ``g_t = |g| s`` with c kept, closed forms below;
-- the verified DEM (``hel_warp.impact.simulate_pairs``, what ``hel-warp impact`` runs).
+- the verified DEM (``hel_warp.collisions.impact.simulate_pairs``, what ``hel-warp impact`` runs).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from hel_warp.forest import ForestPredictor, parse_forest
+from hel_warp.collisions.forest import ForestPredictor, parse_forest
 from kernels import forest as kf
 
 EPS32 = float(np.finfo(np.float32).eps)
@@ -268,7 +268,7 @@ def test_tiny_model_stays_close_to_the_dem_at_grazing_incidence(tmp_path, full_s
     by at most the DEM's own distance to the admissible set plus the model error."""
     pytest.importorskip("xgboost")
     pytest.importorskip("optuna")
-    from hel_warp.forest import load_forest
+    from hel_warp.collisions.forest import load_forest
     from hel_warp.material import Material
     from surrogate import train as T
     from surrogate.dataset import build_dataset, make_spec
@@ -302,7 +302,7 @@ def test_the_training_metrics_measure_the_engines_guard_on_dem_rows(tmp_path):
     that holds the DEM outcome and so never moves it farther from the DEM (up to float32 round-off: less than
     MATERIAL_CORRECTION |g|), and such a model is not flagged. Default DEM rows, grazing ones included (30 %
     beyond 60 deg, where the soft spheres end with the centre line turned)."""
-    from hel_warp.forest import load_forest
+    from hel_warp.collisions.forest import load_forest
     from surrogate import train as T
     from surrogate.dataset import build_dataset, make_spec
     from surrogate.features import load_collision_data

@@ -1,4 +1,4 @@
-"""``cell`` detection of the surrogate (hel_warp/cell_collisions.py, kernels/cell_collide.py): Bird's NTC per cell.
+"""``cell`` detection of the surrogate (hel_warp/collisions/cells.py, kernels/cell_collide.py): Bird's NTC per cell.
 
 References (docs/developer/conventions.md rule 9; docs/physics/references.md "Stochastic collisions of parcels", "Impact parameter", "Enskog
 collision frequency"):
@@ -50,7 +50,7 @@ def box_side(real_particles, eps):
 
 def make_gas(n, side, weight, rng, device, theta=1.0):
     """n parcels uniformly in the periodic box, Maxwellian velocities at Theta (zero mean), weights ``weight``."""
-    from hel_warp.particles import Particles
+    from hel_warp.parcels.particles import Particles
 
     x = rng.uniform(0.0, side, size=(n, 3))
     v = rng.normal(0.0, math.sqrt(theta), size=(n, 3))
@@ -59,8 +59,8 @@ def make_gas(n, side, weight, rng, device, theta=1.0):
 
 
 def strategy(model, side, *, seed=0, log=0, **cell):
-    from hel_warp.cell_collisions import CellConfig
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.cells import CellConfig
+    from hel_warp.collisions.models import SurrogateCollision
 
     return SurrogateCollision(model_dir=model, detection="cell", periodic_box=(side,) * 3, seed=seed,
                               cell=CellConfig(log_capacity=log, **cell))
@@ -207,7 +207,7 @@ def test_approach_filter_keeps_each_kind_of_pairs_count_where_a_weight_is_rare(c
     64 draws often missed the one weight-8 parcel's pairs, and when no pair of
     the other weights was accepted either (small-small pairs pass the majorant of the large, 8-weighted pairs
     seldom), the collision would be lost: 4-5 % of the 1-8 collisions of a cooling weights 1 / 8 mixture."""
-    from hel_warp.particles import Particles
+    from hel_warp.parcels.particles import Particles
 
     rng = np.random.default_rng(7)
     n, reps, dt, eps, d2 = 4000, 24, 2e-4, 0.05, 475e-6
@@ -327,7 +327,7 @@ def weight8_gas(seed: int, device, n: int = 1000, eps: float = 0.05):
     v = rng.normal(size=(n, 3))
 
     def fresh():
-        from hel_warp.particles import Particles
+        from hel_warp.parcels.particles import Particles
 
         return Particles.from_numpy(x, 0.5 * D, v=v, density=RHO, weight=8.0, check_overlap=False, device=device)
 
@@ -405,7 +405,7 @@ def test_approach_filter_cuts_the_step_by_the_last_steps_events_and_restarts_exa
         want[p_, :len(r)] = r
     assert np.array_equal(se.state()["cell_recent_partners"], want)
     # a checkpoint from before the ring (one last partner per parcel) restores as its first column
-    from hel_warp.cell_collisions import CellCollisions
+    from hel_warp.collisions.cells import CellCollisions
 
     old_state = CellCollisions()
     old_state.set_state({"cell_last_partner": want[:, 0]})
@@ -421,7 +421,7 @@ def test_approach_filter_cuts_the_step_by_the_last_steps_events_and_restarts_exa
 
 
 def test_detection_defaults_to_cell_when_a_parcel_is_heavier_than_one(constant_model, device):
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     rng = np.random.default_rng(9)
     side = box_side(400, 0.02)
@@ -437,9 +437,9 @@ def test_cells_follow_the_solver_grid(constant_model, device):
     import warp as wp
     from types import SimpleNamespace
 
-    from hel_warp.cell_collisions import CellConfig
-    from hel_warp.collision_models import SurrogateCollision
-    from hel_warp.coupling import GridSpec
+    from hel_warp.collisions.cells import CellConfig
+    from hel_warp.collisions.models import SurrogateCollision
+    from hel_warp.parcels.coupling import GridSpec
 
     rng = np.random.default_rng(10)
     n = 800
@@ -465,8 +465,8 @@ def test_cells_follow_the_solver_grid(constant_model, device):
 def test_batched_rounds_equal_inline_walks(constant_model, device):
     """The batched forest rounds resolve the same pairs in the same order as the inline walks (one cell thread
     going through its candidates): identical velocities."""
-    from hel_warp.cell_collisions import CellConfig
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.cells import CellConfig
+    from hel_warp.collisions.models import SurrogateCollision
 
     rng = np.random.default_rng(11)
     n, eps = 1500, 0.05
@@ -475,7 +475,7 @@ def test_batched_rounds_equal_inline_walks(constant_model, device):
     v = rng.normal(size=(n, 3))
     out = []
     for batched in (True, False):
-        from hel_warp.particles import Particles
+        from hel_warp.parcels.particles import Particles
 
         p = Particles.from_numpy(x, 0.5 * D, v=v, density=RHO, weight=8.0, check_overlap=False, device=device)
         s = SurrogateCollision(model_dir=constant_model, detection="cell", periodic_box=(side,) * 3, seed=3,
@@ -492,9 +492,9 @@ def test_batched_rounds_equal_inline_walks(constant_model, device):
 
 def test_rounds_cap_finishes_inline_with_the_same_result(constant_model, device):
     """Capping the batched rounds (dense cells finish inline) changes nothing but the rounds taken."""
-    from hel_warp.cell_collisions import CellConfig
-    from hel_warp.collision_models import SurrogateCollision
-    from hel_warp.particles import Particles
+    from hel_warp.collisions.cells import CellConfig
+    from hel_warp.collisions.models import SurrogateCollision
+    from hel_warp.parcels.particles import Particles
 
     rng = np.random.default_rng(12)
     n, eps = 1500, 0.05
@@ -516,11 +516,11 @@ def test_rounds_cap_finishes_inline_with_the_same_result(constant_model, device)
 def small_walled_hel(strategy, injection, capacity: int, dt: float = 1e-3):
     """A HEL solver in a closed 6 mm box (6^3 cells, gas, walls) with ``injection`` released over the first 2 ms: the
     restart tests' run."""
-    from hel_warp.coupling import PushConfig
-    from hel_warp.gas import GasConfig, GasField, GasSolver
-    from hel_warp.grid import Box, Geometry, Grid
+    from hel_warp.parcels.coupling import PushConfig
+    from hel_warp.gas.solver import GasConfig, GasField, GasSolver
+    from hel_warp.gas.grid import Box, Geometry, Grid
     from hel_warp.hel import HelConfig, HelSolver, ScheduledInjection
-    from hel_warp.parcels import ParcelPool
+    from hel_warp.parcels.pool import ParcelPool
 
     grid = Grid(spacing=1e-3, shape=(6, 6, 6))
     domain = Geometry(shapes=(Box(lo=(0, 0, 0), hi=(0.006, 0.006, 0.006)),)).build(grid)
@@ -534,7 +534,7 @@ def small_walled_hel(strategy, injection, capacity: int, dt: float = 1e-3):
 def run_straight_and_restarted(build, out, dt: float, n: int):
     """``build()`` run 2n steps in one go, and again as n steps, an interruption, a restart from the checkpoint at n
     and n more: the two solvers."""
-    from hel_warp.run import Run, RunConfig
+    from hel_warp.runs.run import Run, RunConfig
 
     def run_config(path, checkpoint_every=None):
         return RunConfig(out_dir=str(path), end_time=2 * n * dt, output_interval=2 * dt,
@@ -555,9 +555,9 @@ def test_hel_run_with_cell_collisions_restarts_bitwise(constant_model, tmp_path,
     """A HEL run (gas, walls, injection) of parcels of 8 particles under the cell detection (the grid cells): 2N steps
     in one go == N steps, an interruption, a restart from the checkpoint at N (the random state is in it), N more;
     with and without the collisional transfer (its displacements live within a step)."""
-    from hel_warp.cell_collisions import CellConfig
+    from hel_warp.collisions.cells import CellConfig
     from hel_warp.hel import collision_model
-    from hel_warp.parcels import VolumeInjection
+    from hel_warp.parcels.pool import VolumeInjection
 
     dt, n = 1e-3, 4
 
@@ -586,8 +586,8 @@ def test_substeps_follow_the_paths_and_the_shift_closes_them(constant_model, dev
     x += v_final dt and ``correct_positions`` are those of the straight paths with the velocities of each sub-step
     (a parcel that never collided moved by v0 dt, one that did not by v_final dt), the centre of mass moved by
     P dt / M (momentum is conserved in every sub-step), and momentum is exact."""
-    from hel_warp.cell_collisions import CellConfig
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.cells import CellConfig
+    from hel_warp.collisions.models import SurrogateCollision
     from kernels.free_flight import drift
 
     rng = np.random.default_rng(13)
@@ -636,7 +636,7 @@ def beams_decay_rate(model, device, weight, cell_size, dt, steps, n_real=64000, 
     """Two cold beams of weight-``weight`` parcels at +-speed along x in a periodic box, cell detection with cubic
     collision cells of ``cell_size``, the parcels flown ballistically between steps: the fitted d(1/U)/dt (U = half
     the beams' mean velocity difference) over kinetic theory's initial (1 + e) chi n_2 sigma, and the strategy."""
-    from hel_warp.particles import Particles
+    from hel_warp.parcels.particles import Particles
 
     n = n_real // int(weight)
     side = round(box_side(n_real, eps) / cell_size) * cell_size
@@ -670,7 +670,7 @@ def test_counter_streaming_beams_lose_momentum_at_kinetic_theorys_rate_unless_a_
     the initial rate) against kinetic theory; over 1 ms (a pair crosses a 2 mm cell side by side) weight 8 in 4 mm
     cells (saturation 0.16) against weight 1, and weight 64 in 2 mm cells (saturation 5) flagged with a warning and
     far short."""
-    from hel_warp.cell_collisions import SATURATION_WARN
+    from hel_warp.collisions.cells import SATURATION_WARN
 
     model = hard_sphere_model
     initial, s1 = beams_decay_rate(model, device, 1, 2e-3, 1e-4, 2)
@@ -700,7 +700,7 @@ def test_heavy_parcels_cool_at_haffs_rate_in_the_periodic_boxs_own_cells(hard_sp
     of Haff's rate over these 24 seeds (0.972 with the trained frictionless model over 8); in cells of at least
     sqrt(w sigma / 0.2) it cools at Haff's rate. Reference: Haff's law with Enskog's g0, d(Theta^-1/2)/dt =
     4 (1 - e^2) g0 eps / (d sqrt(pi)), fitted over 40 steps of 1e-3 s (Theta falls to ~6 % of its start)."""
-    from hel_warp.cell_collisions import SATURATION_WARN
+    from hel_warp.collisions.cells import SATURATION_WARN
 
     weight, n, eps, dt, steps = 64.0, 1000, 0.05, 1e-3, 40
     side = box_side(n * weight, eps)
@@ -732,9 +732,9 @@ def test_weighted_parcels_get_collision_cells_coarse_enough_not_to_saturate(cons
     import warp as wp
     from types import SimpleNamespace
 
-    from hel_warp.cell_collisions import SATURATION_TARGET, CellConfig
-    from hel_warp.collision_models import SurrogateCollision
-    from hel_warp.coupling import GridSpec
+    from hel_warp.collisions.cells import SATURATION_TARGET, CellConfig
+    from hel_warp.collisions.models import SurrogateCollision
+    from hel_warp.parcels.coupling import GridSpec
     from hel_warp.errors import ConfigError
 
     rng = np.random.default_rng(12)
@@ -778,9 +778,9 @@ def test_shifted_merged_cells_let_parcels_meet_across_a_fixed_face(constant_mode
     import warp as wp
     from types import SimpleNamespace
 
-    from hel_warp.cell_collisions import CellConfig
-    from hel_warp.collision_models import SurrogateCollision
-    from hel_warp.coupling import GridSpec
+    from hel_warp.collisions.cells import CellConfig
+    from hel_warp.collisions.models import SurrogateCollision
+    from hel_warp.parcels.coupling import GridSpec
 
     rng = np.random.default_rng(13)
     n, h, weight = 600, 1e-3, 8.0
@@ -829,9 +829,9 @@ def test_packing_stress_follows_harris_crighton_and_pushes_parcels_out_of_a_pack
     import warp as wp
     from types import SimpleNamespace
 
-    from hel_warp.cell_collisions import CellConfig
-    from hel_warp.collision_models import SurrogateCollision
-    from hel_warp.coupling import GridSpec
+    from hel_warp.collisions.cells import CellConfig
+    from hel_warp.collisions.models import SurrogateCollision
+    from hel_warp.parcels.coupling import GridSpec
     from kernels.ktgf import packing_pressure
 
     eps = np.array([0.0, 0.1, 0.3, 0.5, 0.57, 0.6, 0.9], np.float32).reshape(7, 1, 1)
@@ -882,7 +882,7 @@ def test_nearest_partners_stay_within_their_cluster(constant_model, device, near
         centre = np.repeat([[0.25 * side, 0.5 * side, 0.5 * side], [0.75 * side, 0.5 * side, 0.5 * side]], 12, axis=0)
         x = centre + rng.uniform(-0.05 * side, 0.05 * side, size=(24, 3))
         v = np.repeat([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]], 12, axis=0) + rng.normal(0.0, 0.05, size=(24, 3))
-        from hel_warp.particles import Particles
+        from hel_warp.parcels.particles import Particles
         p = Particles.from_numpy(x, 0.5 * D, v=v, density=RHO, weight=1.0, check_overlap=False, device=device)
         select(s, p, 0.05)
         pairs = s.cells.event_log()["pair"]
@@ -910,7 +910,7 @@ def test_collision_cells_take_the_fluid_volume_inside_them(device):
     grid cell), at least FLUID_VOLUME_FLOOR of the box; a box wholly in fluid reads the cell volume itself."""
     import warp as wp
 
-    from hel_warp.cell_collisions import CellCollisions
+    from hel_warp.collisions.cells import CellCollisions
     from kernels.cell_collide import FLUID_VOLUME_FLOOR, CellArgs, fill_fluid_volumes
 
     rng = np.random.default_rng(1)
@@ -953,9 +953,9 @@ def test_candidates_use_the_fluid_volume_and_fluid_grid_cells_keep_their_bits(co
     gives the same pairs and velocities with or without the fluid volumes."""
     import warp as wp
 
-    from hel_warp.cell_collisions import CellConfig
-    from hel_warp.collision_models import SurrogateCollision
-    from hel_warp.coupling import GridSpec
+    from hel_warp.collisions.cells import CellConfig
+    from hel_warp.collisions.models import SurrogateCollision
+    from hel_warp.parcels.coupling import GridSpec
 
     h = 1e-3
     grid = GridSpec(origin=(0.0, 0.0, 0.0), spacing=h, shape=(12, 6, 6))
@@ -1051,8 +1051,8 @@ def test_substep_paths_reflect_at_the_walls_as_the_push_does(constant_model, wal
     motion at its old speed to the end of the crossing sub-step, as the push's reflection); a parcel
     flying parallel to the wall moves by v dt. Without ``wall_paths`` (the earlier rule) the path runs straight
     through the wall, for the push's end-of-step reflection."""
-    from hel_warp.cell_collisions import CellConfig
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.cells import CellConfig
+    from hel_warp.collisions.models import SurrogateCollision
     from kernels.free_flight import drift
     from tests.test_collision_models import make_particles
     from tests.test_swept_walls import E_WALL, SIDE
@@ -1122,7 +1122,7 @@ def test_collisional_transfer_moves_each_pair_apart_by_its_share_of_the_collisio
     (J.n = mu (1 + e) g_n, g'_n = e g_n): written out by hand from the event log; the mass-weighted centre sum w m x
     does not move, nor does momentum change. On by default, with the approach filter too;
     the filter is on by default where a parcel weighs more than 1."""
-    from hel_warp.cell_collisions import CellConfig
+    from hel_warp.collisions.cells import CellConfig
 
     assert CellConfig().transfer and CellConfig(approaching=True).transfer
     assert not CellConfig().approaching_at(1.0) and CellConfig().approaching_at(8.0)
@@ -1211,7 +1211,7 @@ def test_live_extremes_on_the_device_equal_numpys_over_the_live_parcels(device):
 def test_a_nan_velocity_stops_the_cell_collisions_with_a_clear_error(constant_model, device):
     """A live parcel with a NaN velocity: ``SurrogateCollision.collide`` (cell detection) raises HelWarpError
     naming it, instead of stepping on (the device reduction's maximum passes a NaN over)."""
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
     from hel_warp.errors import HelWarpError
 
     rng = np.random.default_rng(3)
@@ -1234,9 +1234,9 @@ def _grid_gas_collisions(model, device, slabs, local, reps=10, weight=64.0, eps=
     import warp as wp
     from types import SimpleNamespace
 
-    from hel_warp.cell_collisions import CellConfig
-    from hel_warp.collision_models import SurrogateCollision
-    from hel_warp.coupling import CouplingFields, GridSpec, deposit_parcels, parcel_grid
+    from hel_warp.collisions.cells import CellConfig
+    from hel_warp.collisions.models import SurrogateCollision
+    from hel_warp.parcels.coupling import CouplingFields, GridSpec, deposit_parcels, parcel_grid
     from kernels.interp import interpolate_scalar_parcels
 
     side, h = 20e-3, 1e-3

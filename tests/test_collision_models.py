@@ -1,4 +1,4 @@
-"""Collision strategies of hel_warp/collision_models.py: surrogate (pairwise, paper) and dem.
+"""Collision strategies of hel_warp/collisions/models.py: surrogate (pairwise, paper) and dem.
 
 References (docs/developer/conventions.md rule 9): XGBoost's own ``predict`` of the trained boosters with the numpy
 contact-form impulse of surrogate/features.py; the closed-form frictionless binary collision
@@ -93,9 +93,9 @@ def impulse_n_mae(model_dir) -> float:
 
 
 def dem_outcome(v1, v2, n):
-    """The project's DEM (hel_warp.impact, the data set's material: Material(friction=0), D, RHO) on the impact of
+    """The project's DEM (hel_warp.collisions.impact, the data set's material: Material(friction=0), D, RHO) on the impact of
     v1, v2 whose first-touch normal from 1 to 2 is n: the post-collision velocities (v1', v2')."""
-    from hel_warp.impact import place_just_apart, simulate_pairs, stable_time_step
+    from hel_warp.collisions.impact import place_just_apart, simulate_pairs, stable_time_step
     from hel_warp.material import Material
 
     m = Material(friction=0.0)
@@ -108,7 +108,7 @@ def dem_outcome(v1, v2, n):
 
 
 def make_particles(x, v, *, radius=0.5 * D, density=RHO, weight=1.0, stream=0):
-    from hel_warp.particles import Particles
+    from hel_warp.parcels.particles import Particles
 
     return Particles.from_numpy(np.asarray(x, float), radius, v=np.asarray(v, float), density=density,
                                 weight=weight, stream=stream, check_overlap=False, device=None)  # the test run's device
@@ -128,7 +128,7 @@ def closed_form(v1, v2, n, e):
 
 def pair_case(trained_models, offset_angle_deg):
     """Two spheres overlapping by 10 % of d, centre line at ``offset_angle_deg`` to the relative velocity."""
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     a = math.radians(offset_angle_deg)
     n = np.array([math.cos(a), math.sin(a), 0.0])
@@ -167,7 +167,7 @@ def test_pairwise_binary_collision_matches_xgboost_and_the_closed_form(trained_m
 
 
 def test_separating_overlapping_pair_is_not_collided(trained_models):
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     x = [[0.0, 0.0, 0.0], [0.8 * D, 0.0, 0.0]]
     v = np.array([[-1.0, 0.2, 0.0], [1.0, 0.0, 0.0]], np.float32)
@@ -185,7 +185,7 @@ def test_three_body_cluster_overlap_resolved_in_order_until_no_pair_approaches(t
     # first), each with the velocities the earlier ones left, until no overlapping pair approaches, a pair never
     # twice in a row for either parcel (here A-B, then B-C; B bounced back towards A, but A's last partner is B).
     # Reference: XGBoost's own predict applied in that order.
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     x = np.array([[0.0, 0.0, 0.0], [0.9 * D, 0.0, 0.0], [1.8 * D, 0.05 * D, 0.0]])
     v = np.array([[3.0, 0.0, 0.0], [0.0, 0.0, 0.0], [-2.0, 0.1, 0.0]])
@@ -220,7 +220,7 @@ def test_three_body_cluster_overlap_resolved_in_order_until_no_pair_approaches(t
 def test_weighted_parcels_conserve_parcel_momentum(trained_models):
     # w_i = 3, w_j = 1: one real binary collision per particle of parcel j, so parcel j gets the binary
     # velocity change and parcel i a third of its own binary change; sum w m v is conserved.
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     x = [[0.0, 0.0, 0.0], [0.9 * D, 0.0, 0.0]]
     v = np.array([[2.0, 0.0, 0.0], [-2.0, 0.5, 0.0]])
@@ -250,7 +250,7 @@ def random_cloud(n=3000, seed=1, side=4e-3):
 
 def test_many_random_particles_momentum_exact_and_pairs_match_brute_force(trained_models):
     # Collision only (no gas, no walls): 3000 polydisperse weighted parcels, ~30 % solids by volume.
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     p = random_cloud()
     x = p.x.numpy().astype(np.float64)
@@ -280,7 +280,7 @@ def test_many_random_particles_momentum_exact_and_pairs_match_brute_force(traine
 
 
 def test_pairwise_is_deterministic(trained_models):
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     results = []
     for _ in range(2):
@@ -298,7 +298,7 @@ def test_batched_prediction_changes_nothing(trained_models, mode):
     # The batched prediction (pairwise: per round; paper: all clustered particles) is a shortcut: it must
     # give bit for bit what inline walks give (same features, same float32 summation order), in clusters
     # of several partners too.
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     results = []
     for batched in (False, True):
@@ -320,7 +320,7 @@ def test_batched_prediction_changes_nothing(trained_models, mode):
 
 def test_paper_mode_uses_the_cluster_averaged_partner_velocity(trained_models):
     # B overlaps A and C: its partner velocity is the mean of A's and C's; A and C see B only.
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     x = np.array([[0.0, 0.0, 0.0], [0.9 * D, 0.0, 0.0], [1.8 * D, 0.0, 0.0]])
     v = np.array([[3.0, 0.0, 0.0], [0.0, 0.5, 0.0], [-2.0, 0.0, 0.0]])
@@ -335,7 +335,7 @@ def test_paper_mode_uses_the_cluster_averaged_partner_velocity(trained_models):
 
 
 def test_mode_and_model_form_must_agree_and_hel_resolves_the_names(trained_models):
-    from hel_warp.collision_models import DemCollision, SurrogateCollision, SurrogatePaperCollision, make_collision
+    from hel_warp.collisions.models import DemCollision, SurrogateCollision, SurrogatePaperCollision, make_collision
     from hel_warp.errors import ConfigError
     from hel_warp.hel import collision_model
 
@@ -355,7 +355,7 @@ def test_mode_and_model_form_must_agree_and_hel_resolves_the_names(trained_model
 
 def dem_solver_stub(particles, dt, gravity=(0.0, 0.0, 0.0)):
     """What DemCollision.advance reads of HelSolver: pool.particles, fields, push_params, config.dt, fluid_push."""
-    from hel_warp.coupling import CouplingFields, GridSpec, PushConfig
+    from hel_warp.parcels.coupling import CouplingFields, GridSpec, PushConfig
 
     from kernels.interp import parcel_arrays
     from kernels.push import push
@@ -378,7 +378,7 @@ def test_dem_head_on_restitution_and_momentum_with_drag():
     # Two spheres 1 um apart approach at 2 m/s each in still gas, frictionless; one fluid step of 1e-4 s.
     # Closed form: relative normal velocity reverses with e (drag over 1e-4 s changes it by < 0.3 %:
     # F_D ~ 13 1/s at Re ~ 80); momentum change = sum of the recorded drag impulses + gravity impulse.
-    from hel_warp.collision_models import DemCollision
+    from hel_warp.collisions.models import DemCollision
     from hel_warp.material import Material
 
     dt = 1e-4
@@ -404,7 +404,7 @@ def test_dem_head_on_restitution_and_momentum_with_drag():
 
 
 def test_dem_refuses_weighted_parcels():
-    from hel_warp.collision_models import DemCollision
+    from hel_warp.collisions.models import DemCollision
     from hel_warp.errors import ConfigError
 
     p = make_particles([[0, 0, 0], [2 * D, 0, 0]], [[0, 0, 0], [0, 0, 0]], weight=2.0)
@@ -442,11 +442,11 @@ def test_hel_step_particle_momentum_change_is_the_drag_impulse_handed_to_the_gas
     # 216 parcels on a 1.05 d lattice with random velocities (many collisions per step), air at 0.5 m/s,
     # no gravity: over HelSolver steps (deposit, interpolate, collide, push or the dem advance) the parcels'
     # momentum changes by exactly the drag impulses recorded for the gas (contacts are internal forces).
-    from hel_warp.coupling import PushConfig
-    from hel_warp.grid import Grid
+    from hel_warp.parcels.coupling import PushConfig
+    from hel_warp.gas.grid import Grid
     from hel_warp.hel import HelConfig, HelSolver, collision_model
     from hel_warp.material import Material
-    from hel_warp.parcels import ParcelPool, VolumeInjection
+    from hel_warp.parcels.pool import ParcelPool, VolumeInjection
 
     grid = Grid(spacing=1e-3, shape=(4, 4, 4))
     gas = UniformGas(grid, (0.5, 0.0, 0.0))
@@ -488,7 +488,7 @@ def test_a_pair_overlapping_over_several_steps_is_collided_once_pairwise_but_rep
     # per step): the pair stays overlapped for several steps after the collision. Pairwise: one model call
     # (the pair separates afterwards, sec. 8's repeated-detection fix); paper mode: a call every step while
     # overlapped (the flaw the paper reports).
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     dt = 2e-5
     calls = {}
@@ -515,8 +515,8 @@ def test_dem_parcel_bounces_off_the_geometry_wall_with_its_radius_and_the_wall_r
     # times the impact speed (drag over the ~60 us changes it by < 0.1 %), and the centre never comes closer to
     # the wall than r - delta_max, the undamped Hertz overlap (15 m v^2 / (16 E* sqrt(r)))^(2/5) (R* = r, m* = m,
     # wall of the particle material: E* = E / (2 (1 - nu^2))). The point reflection is not needed and skipped.
-    from hel_warp.collision_models import DemCollision
-    from hel_warp.grid import Box, Geometry
+    from hel_warp.collisions.models import DemCollision
+    from hel_warp.gas.grid import Box, Geometry
     from hel_warp.hel import HelSolver
     from hel_warp.material import Material
 

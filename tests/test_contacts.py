@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import warp as wp
 
-from hel_warp.dem import ContactList, ContactOverflowError, DEMConfig, DEMSolver
+from hel_warp.collisions.dem import ContactList, ContactOverflowError, DEMConfig, DEMSolver
 from hel_warp.material import Material
-from hel_warp.particles import Particles
+from hel_warp.parcels.particles import Particles
 from kernels import contacts as kc
 from kernels.integrate import sphere_arrays
 
@@ -160,7 +160,7 @@ def test_gather_rows_follow_a_permutation():
 
 
 def _frictional_heap(sort_every):
-    from hel_warp.particles import lattice_positions
+    from hel_warp.parcels.particles import lattice_positions
 
     n = 800
     x = lattice_positions(n, 2.3e-3, (0, 0, 0), (0.02, 0.02, 0.2), jitter=0.2e-3, seed=6)

@@ -10,11 +10,11 @@ import pytest
 import warp as wp
 from scipy.optimize import brentq
 
-from hel_warp.coupling import (CouplingFields, GridSpec, PushConfig, deposit_parcels, parcel_grid, interpolate_gas,
+from hel_warp.parcels.coupling import (CouplingFields, GridSpec, PushConfig, deposit_parcels, parcel_grid, interpolate_gas,
                                ktgf_collision, push_parcels)
 from hel_warp.errors import ConfigError, HelWarpError
-from hel_warp.parcels import ParcelPool, VolumeInjection
-from hel_warp.particles import Particles
+from hel_warp.parcels.pool import ParcelPool, VolumeInjection
+from hel_warp.parcels.particles import Particles
 from kernels.interp import CellGrid as CellGridStruct
 from kernels.interp import (cloud_support, interpolate_scalar, interpolate_vec3, interpolate_vec3_parcels,
                            spread_half_width, stencil_weights)
@@ -294,8 +294,8 @@ def periodic_suspension(eps_s, *, gravity=(0.0, 0.0, 0.0), mean_pressure_gradien
     """A triply periodic box of 4^3 cells of 2 mm with the engine's gas solver and a uniform suspension of
     ``per_axis``^3 parcels on a lattice (solid fraction ``eps_s`` in every cell, velocity ``v0``), Gidaspow drag.
     Returns (HelSolver, GasField, grid, push config, parcel masses m_p weight)."""
-    from hel_warp.gas import GasConfig, GasField, GasSolver
-    from hel_warp.grid import Box, Geometry, Grid
+    from hel_warp.gas.solver import GasConfig, GasField, GasSolver
+    from hel_warp.gas.grid import Box, Geometry, Grid
     from hel_warp.hel import HelConfig, HelSolver, NoCollision
 
     n, h = 4, 2e-3
@@ -351,8 +351,8 @@ def test_hel_solver_with_gas_hindered_settling_conserves_momentum():
 
 
 def test_hel_solver_refuses_gas_properties_that_differ_from_the_gas_solver():
-    from hel_warp.gas import GasConfig, GasField, GasSolver
-    from hel_warp.grid import Box, Geometry, Grid
+    from hel_warp.gas.solver import GasConfig, GasField, GasSolver
+    from hel_warp.gas.grid import Box, Geometry, Grid
     from hel_warp.hel import HelConfig, HelSolver
 
     grid = Grid(spacing=1e-3, shape=(3, 3, 3), periodic=(True, True, True))
@@ -431,7 +431,7 @@ def test_the_host_knows_each_tent_before_the_launch(device):
     ``spread_half_width`` at every weight, and never below it at the rounding boundaries K + 1/2 (float32 there);
     ``Particles.live_extremes`` (whose largest weight sizes it) skips removed parcels; and the CPU needs no
     reservation (its atomics keep no records)."""
-    from hel_warp.coupling import reserve_tent_records
+    from hel_warp.parcels.coupling import reserve_tent_records
     from kernels.deposit import TRILINEAR_RECORDS
     from kernels.interp import spread_half_width_host
 
@@ -638,7 +638,7 @@ def test_the_host_knows_each_cloud_before_the_launch():
     """The host's bound on a cloud's stencil (what sizes the deterministic deposit's records on CUDA,
     ``coupling.tent_support_host``) is the kernel's ``cloud_support`` for every float32 width, the widest cloud a
     weight can get (alone) is ``cloud_width_host``'s, and the bound covers both rules' stencils."""
-    from hel_warp.coupling import tent_support_host
+    from hel_warp.parcels.coupling import tent_support_host
     from kernels.interp import cloud_support_host, cloud_width_host, spread_half_width_host
 
     widths = np.concatenate([np.linspace(0.0, 12.0, 2401), np.float32([2.0, 4.0, 6.0]) + np.float32(1e-6)])

@@ -255,7 +255,7 @@ def test_unknown_diameter_needs_a_std():
 # ---------------------------------------------------------------- the DEM rows
 
 def _dem_rows(tmp_path, central_fraction, samples=192, contact_model="hertz"):
-    import hel_warp.impact  # noqa: F401 - the DEM that writes the rows; missing, the test fails
+    import hel_warp.collisions.impact  # noqa: F401 - the DEM that writes the rows; missing, the test fails
     spec = make_spec(samples=samples, seed=11, diameter=315e-6, chunk_size=96, central_fraction=central_fraction,
                      grazing_fraction=min(0.3, 1.0 - central_fraction), contact_model=contact_model)
     build_dataset(tmp_path / "dem", spec, progress=False)
@@ -271,7 +271,7 @@ def _masses(ds):
 def test_dem_runs_grazing_and_slow_rows_to_separation(tmp_path):
     """Rows at 85-89.8 deg and |g| down to 0.01 m/s complete their contact (touch, separate) in the
     data set's DEM, and none gains kinetic energy (float32 round-off aside)."""
-    import hel_warp.impact  # noqa: F401 - the DEM that writes the rows; missing, the test fails
+    import hel_warp.collisions.impact  # noqa: F401 - the DEM that writes the rows; missing, the test fails
     spec = make_spec(samples=400, seed=12, diameter=315e-6, chunk_size=400, grazing_angle=85.0,
                      grazing_fraction=1.0, central_fraction=0.0, slow_fraction=0.5)
     build_dataset(tmp_path / "graze", spec, progress=False)  # refuses rows that did not touch or separate
@@ -325,7 +325,7 @@ def test_unreachable_scheduler_is_a_clear_error(tmp_path):
 
 
 def test_cli_builds_resumes_and_refuses_other_parameters(tmp_path, capsys):
-    import hel_warp.impact  # noqa: F401 - the DEM that writes the rows; missing, the test fails
+    import hel_warp.collisions.impact  # noqa: F401 - the DEM that writes the rows; missing, the test fails
     from hel_warp.cli import main
 
     out = str(tmp_path / "ds")

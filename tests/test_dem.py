@@ -1,4 +1,4 @@
-"""N-body DEM (hel_warp/dem.py) against conservation laws and closed forms."""
+"""N-body DEM (hel_warp/collisions/dem.py) against conservation laws and closed forms."""
 
 import math
 
@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import warp as wp
 
-from hel_warp.dem import DEMConfig, DEMSolver
+from hel_warp.collisions.dem import DEMConfig, DEMSolver
 from hel_warp.errors import ConfigError
 from hel_warp.material import Material
-from hel_warp.particles import Particles, lattice_positions
+from hel_warp.parcels.particles import Particles, lattice_positions
 
 GLASS_SOFT = dict(density=2500.0, youngs_modulus=1e8, poisson_ratio=0.3)
 
@@ -190,7 +190,7 @@ def test_settling_column_case_writes_zarr_and_vtk(tmp_path, full_size):
     import pyvista as pv
 
     from hel_warp.cli import main
-    from hel_warp.io import read_snapshot
+    from hel_warp.runs.io import read_snapshot
 
     n = 100_000 if full_size else 1000
     end = 0.3 if full_size else 0.01
@@ -226,7 +226,7 @@ def wall_impact(theta_deg, restitution, friction, dt_fraction):
 
 
 def test_wall_impact_restitution_and_gross_sliding():
-    """Normal impact returns the material's e (damping c(e) of hel_warp.contact_law). Oblique impact in
+    """Normal impact returns the material's e (damping c(e) of hel_warp.collisions.contact_law). Oblique impact in
     gross sliding (tan theta >= 3.5 mu (1+e)): e_t = 1 - mu (1+e) cot theta and w = 2.5 mu (1+e) v cos theta / R
     (docs/physics/references.md; Maw, Barber & Fawcett 1976). At dt = eq.(12)/4 (~60 steps per contact); measured at
     eq. (12) itself (~15 steps): e = 0.508 for 0.5."""
@@ -245,7 +245,7 @@ def test_run_writer_round_trip_with_changing_count(tmp_path):
     import pyvista as pv
     import zarr
 
-    from hel_warp.io import RunWriter, read_snapshot
+    from hel_warp.runs.io import RunWriter, read_snapshot
 
     rng = np.random.default_rng(0)
     writer = RunWriter(tmp_path, config={"case": "io", "dt": 1e-6})
@@ -277,7 +277,7 @@ def test_half_list_is_bit_identical_to_the_full_list():
     order, so positions, velocities, spins and forces agree bitwise — with friction, rolling friction,
     walls, list rebuilds and spatial sorts (the sort moves pairs between owners' rows), and so do the onset
     counts."""
-    from hel_warp.particles import lattice_positions
+    from hel_warp.parcels.particles import lattice_positions
 
     def run(half):
         n = 700

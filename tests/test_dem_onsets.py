@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 import warp as wp
 
-from hel_warp.cfd_dem import DemCollision
-from hel_warp.dem import DEMConfig, DEMSolver
+from hel_warp.collisions.cfd_dem import DemCollision
+from hel_warp.collisions.dem import DEMConfig, DEMSolver
 from hel_warp.errors import ConfigError
 from hel_warp.material import Material
-from hel_warp.particles import Particles
+from hel_warp.parcels.particles import Particles
 
 D = 315e-6  # m, the rig's particles
 R = 0.5 * D
@@ -41,7 +41,7 @@ def free_solver(particles, walls_box=None):
     config = SimpleNamespace(dt=None, walls=walls_box is not None)
     shapes = None
     if walls_box is not None:
-        from hel_warp.grid import Box, Geometry
+        from hel_warp.gas.grid import Box, Geometry
 
         shapes = Geometry(shapes=(Box(lo=walls_box[0], hi=walls_box[1]),)).shapes_struct("cpu")
     return SimpleNamespace(pool=SimpleNamespace(particles=particles), fields=fields, config=config,

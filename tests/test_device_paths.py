@@ -79,9 +79,9 @@ def test_capture_while_and_if_are_a_host_loop_and_branch_outside_a_capture_and_n
 
 # ------------------------------------------------------------------------------ DEM: graph-captured sub-steps
 def _dem_column(device, **config):
-    from hel_warp.dem import DEMConfig, DEMSolver
+    from hel_warp.collisions.dem import DEMConfig, DEMSolver
     from hel_warp.material import Material
-    from hel_warp.particles import Particles, lattice_positions
+    from hel_warp.parcels.particles import Particles, lattice_positions
 
     n = 800
     material = Material(density=2500.0, youngs_modulus=1e8, poisson_ratio=0.3, restitution=0.5, friction=0.3)
@@ -161,8 +161,8 @@ def test_the_cpu_only_half_list_is_refused_on_cuda_and_the_cpu_default(device):
 # ------------------------------------------------------------------------------ gas: warp.optim.linear.cg
 def _projection_problem(device, linear_solver, preconditioner):
     """The closed L-shaped cavity of tests/test_gas.py with random face velocities and eps_f: one projection."""
-    from hel_warp.gas import GasConfig, GasField, GasSolver
-    from hel_warp.grid import Box, Channel, Geometry, Grid
+    from hel_warp.gas.solver import GasConfig, GasField, GasSolver
+    from hel_warp.gas.grid import Box, Channel, Geometry, Grid
 
     rng = np.random.default_rng(1)
     grid = Grid(spacing=1e-3, shape=(12, 10, 8))
@@ -230,7 +230,7 @@ def test_forest_at_the_cuda_rows_per_thread_equals_the_cpu_default_and_xgboost(d
     """``ForestPredictor`` walks one row per thread on CUDA and 64 on the CPU (explicit layout); the perfect layout
     (the engine's batched rounds) has one shape on both. Every launch shape gives XGBoost's own prediction, bit for
     bit (the thresholds are folded so float32 branches as XGBoost does; the leaf sums in the same order)."""
-    from hel_warp.forest import ForestPredictor, load_forest
+    from hel_warp.collisions.forest import ForestPredictor, load_forest
     from surrogate.artifact import load_artifact
     from surrogate.features import form_rows, synthetic_collisions
 
@@ -295,8 +295,8 @@ def test_swept_rounds_captured_as_a_graph_loop_equal_the_eager_rounds(device, tr
     round. Here the call captured into a graph and replayed, against the same call run eagerly (the host loop every
     device takes today): bit for bit, and the same counts, on a dense periodic gas with chains of collisions."""
     import kernels.collide as kc
-    from hel_warp.collision_models import SurrogateCollision
-    from hel_warp.particles import Particles
+    from hel_warp.collisions.models import SurrogateCollision
+    from hel_warp.parcels.particles import Particles
 
     require_graph_conditionals(device)
     eager_resolve = kc.resolve_swept
@@ -335,8 +335,8 @@ def test_cell_rounds_captured_as_a_graph_loop_equal_the_eager_rounds(device, tra
     and replayed, against the same call eager: bit for bit, and the same counts, two steps of a dense gas of
     weight-8 parcels."""
     import kernels.cell_collide as kcc
-    from hel_warp.collision_models import SurrogateCollision
-    from hel_warp.particles import Particles
+    from hel_warp.collisions.models import SurrogateCollision
+    from hel_warp.parcels.particles import Particles
 
     require_graph_conditionals(device)
     eager_collide = kcc.collide_cells
@@ -432,7 +432,7 @@ def test_swept_hel_steps_kick_first_with_wall_events_captured_equal_the_eager_st
     HEL steps of 315 um parcels in the closed box of tests/test_hel_step.py, the walls met by the parcels' surface
     (the rig's default) or their centre."""
     import kernels.collide as kc
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
     from tests.test_hel_step import BOX_HI, make_solver
 
     require_graph_conditionals(device)
@@ -496,8 +496,8 @@ def test_swept_rounds_do_not_depend_on_which_thread_holds_which_parcel(device, t
     another order within a cell). Reference: the unpermuted call, mapped back: measured equal bit for bit, counts
     included (a race between threads of one launch, invisible to the CPU's fixed order, would show here as a
     difference under some labelling)."""
-    from hel_warp.collision_models import SurrogateCollision
-    from hel_warp.particles import Particles
+    from hel_warp.collisions.models import SurrogateCollision
+    from hel_warp.parcels.particles import Particles
     from tests.test_swept_walls import SIDE, box_walls
 
     if space == "periodic":

@@ -12,8 +12,8 @@ import pytest
 import warp as wp
 from scipy.optimize import brentq
 
-from hel_warp.coupling import CouplingFields, GridSpec, PushConfig, push_parcels, single_particle_response
-from hel_warp.particles import Particles
+from hel_warp.parcels.coupling import CouplingFields, GridSpec, PushConfig, push_parcels, single_particle_response
+from hel_warp.parcels.particles import Particles
 from kernels.push import DRAG_LAWS, eval_drag_rate
 
 AIR = dict(fluid_density=1.205, fluid_viscosity=1.81e-5)

@@ -1,4 +1,4 @@
-"""hel-warp ensemble (hel_warp/ensemble.py) on a local Dask cluster of two workers, with a tiny pure-Python case.
+"""hel-warp ensemble (hel_warp/studies/ensemble.py) on a local Dask cluster of two workers, with a tiny pure-Python case.
 
 The case (tests/data/ensemble_toy_case.py) is a random walk whose steps are drawn from a generator seeded by
 (seed, step), so the test recomputes every member's result on its own (``walk``): the ensemble's means and errors are
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hel_warp import ensemble as ens
+from hel_warp.studies import ensemble as ens
 from hel_warp.cli import main
 from hel_warp.errors import ConfigError
 

@@ -15,7 +15,7 @@ import pytest
 xgb = pytest.importorskip("xgboost")
 
 from hel_warp.errors import ConfigError
-from hel_warp.forest import ForestPredictor, load_forest, parse_forest
+from hel_warp.collisions.forest import ForestPredictor, load_forest, parse_forest
 from kernels.forest import Forest as kf_Forest
 from surrogate.features import (CANONICAL_FEATURES, apply_contact_model, form_rows, sphere_mass, standardize,
                                 synthetic_collisions, used_features)

@@ -14,10 +14,10 @@ import pytest
 import warp as wp
 
 from hel_warp.errors import ConfigError, HelWarpError
-from hel_warp.gas import GasConfig, GasField, GasSolver
-import hel_warp.gas as gas_module
-from hel_warp.multigrid import COARSEST_ROWS_CUDA
-from hel_warp.grid import Box, Channel, Geometry, Grid, Patch
+from hel_warp.gas.solver import GasConfig, GasField, GasSolver
+import hel_warp.gas.solver as gas_module
+from hel_warp.gas.multigrid import COARSEST_ROWS_CUDA
+from hel_warp.gas.grid import Box, Channel, Geometry, Grid, Patch
 from kernels import gas as K
 from kernels import gas_cpu
 
@@ -700,7 +700,7 @@ def test_native_cpu_loops_equal_the_warp_kernels(periodic):
     of the Warp kernels they stand for, bit for bit: the same operations on every row in the same order, the dot
     products in the same chunks and partial sums; the IC(0) factor plain and modified, its substitutions with the
     slot reading (``ordered``) and the index tests, and the V-cycle's passes on a two-level aggregation."""
-    from hel_warp.multigrid import AggregationMultigrid
+    from hel_warp.gas.multigrid import AggregationMultigrid
 
     shape = (9, 7, 6)
     A, n, rng = _stencil_system(shape, periodic, seed=5)
@@ -804,7 +804,7 @@ def test_viscous_preconditioners_meet_the_tolerance(case, preconditioner, monkey
 
 
 def test_native_cpu_module_compiles_for_cuda(tmp_path):
-    """kernels/gas_cpu.py only runs on the CPU, but ``wp.force_load(device=...)`` on a GPU (hel_warp/run.py
+    """kernels/gas_cpu.py only runs on the CPU, but ``wp.force_load(device=...)`` on a GPU (hel_warp/runs/run.py
     ``load_kernels``, scripts/gpu_check.py) builds every module for it: the native snippets must be valid CUDA C++
     as well (compiled here with NVRTC for sm_90 where the toolkit is present, without a GPU)."""
     wp.init()

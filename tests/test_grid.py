@@ -7,7 +7,7 @@ import pytest
 import warp as wp
 
 from hel_warp.errors import ConfigError
-from hel_warp.grid import Box, Channel, Geometry, Grid, Patch
+from hel_warp.gas.grid import Box, Channel, Geometry, Grid, Patch
 from kernels import gas as gas_kernels
 from kernels import sdf as sdf_kernels
 

@@ -21,12 +21,12 @@ def make_solver(x=None, v=None, *, capacity=None, radius=0.5e-3, density=8000.0,
     """A closed box of still air (grid = geometry, 12 x 6 x 10 cells of 1 mm) with parcels at ``x``."""
     import warp as wp
 
-    from hel_warp.coupling import PushConfig
-    from hel_warp.gas import GasConfig, GasField, GasSolver
-    from hel_warp.grid import Box, Geometry, Grid
+    from hel_warp.parcels.coupling import PushConfig
+    from hel_warp.gas.solver import GasConfig, GasField, GasSolver
+    from hel_warp.gas.grid import Box, Geometry, Grid
     from hel_warp.hel import HelConfig, HelSolver
     from hel_warp.material import Material
-    from hel_warp.parcels import ParcelPool
+    from hel_warp.parcels.pool import ParcelPool
 
     grid = Grid(spacing=H, shape=tuple(int(round(b / H)) for b in BOX_HI))
     domain = Geometry(shapes=(Box(lo=(0.0, 0.0, 0.0), hi=BOX_HI),)).build(grid)
@@ -165,7 +165,7 @@ def test_parcel_in_a_corner_ends_inside_both_walls():
 
 def test_injection_count_window_speed_and_box():
     from hel_warp.hel import ScheduledInjection
-    from hel_warp.parcels import VolumeInjection
+    from hel_warp.parcels.pool import VolumeInjection
 
     box_lo, box_hi = (0.002, 0.001, 0.005), (0.006, 0.005, 0.008)
     inj = VolumeInjection(box_lo=box_lo, box_hi=box_hi, diameter_mean=2e-4, count=1000, speed=2.0,
@@ -188,7 +188,7 @@ def test_injection_count_window_speed_and_box():
 def test_injection_by_mass_at_once():
     """Mass mode: the released real-particle mass reaches the request and exceeds it by less than one parcel."""
     from hel_warp.hel import ScheduledInjection
-    from hel_warp.parcels import VolumeInjection
+    from hel_warp.parcels.pool import VolumeInjection
 
     mass = 2.0e-6  # kg
     inj = VolumeInjection(box_lo=(0.002, 0.001, 0.002), box_hi=(0.010, 0.005, 0.008), diameter_mean=3e-4,
@@ -223,7 +223,7 @@ def test_outlet_removes_exactly_the_parcels_past_the_plane():
 
 def test_parcels_or_injector_boxes_outside_the_fluid_are_refused():
     from hel_warp.hel import ScheduledInjection
-    from hel_warp.parcels import VolumeInjection
+    from hel_warp.parcels.pool import VolumeInjection
 
     with pytest.raises(ConfigError, match="outside the fluid.*place the parcels inside"):
         make_solver(x=[(0.004, 0.003, 0.005), (0.004, 0.003, -0.001)])
@@ -235,7 +235,7 @@ def test_parcels_or_injector_boxes_outside_the_fluid_are_refused():
 
 
 def test_grid_too_coarse_for_the_geometry_names_the_spacing():
-    from hel_warp.grid import Channel, Geometry, Grid
+    from hel_warp.gas.grid import Channel, Geometry, Grid
 
     geometry = Geometry(shapes=(Channel(start=(0, 0.01, 0.01), end=(0.05, 0.01, 0.01), width=0.004, height=0.004),))
     with pytest.raises(ConfigError, match="too coarse.*use spacing <="):
@@ -310,7 +310,7 @@ def test_reflection_off_an_inclined_channel_floor_uses_the_sdf_normal():
     v' = -e_n (v.n) n + e_t v_t and the centre comes back to e_n times its depth past the floor."""
     import warp as wp
 
-    from hel_warp.grid import Channel, Geometry
+    from hel_warp.gas.grid import Channel, Geometry
     from kernels.reflect import make_wall_params, reflect_at_walls
 
     channel = Channel(start=(0.0, 0.0, 0.0), end=(0.1, 0.0, 0.1), width=0.02, height=0.01)
@@ -349,7 +349,7 @@ def test_sorting_parcels_by_cell_changes_nothing_but_the_slot_order(strategy):
     runs = {}
     for every in (0, 1):
         if strategy == "dem":
-            from hel_warp.collision_models import DemCollision
+            from hel_warp.collisions.models import DemCollision
 
             collision = DemCollision(dt_dem=2e-5)
         else:

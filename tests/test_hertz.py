@@ -1,5 +1,5 @@
-"""Contact law (kernels/hertz.py, hel_warp/contact_law.py) and the batched pair runner
-(hel_warp/impact.py), each checked against an independent reference: closed forms (Johnson 1985
+"""Contact law (kernels/hertz.py, hel_warp/collisions/contact_law.py) and the batched pair runner
+(hel_warp/collisions/impact.py), each checked against an independent reference: closed forms (Johnson 1985
 §11.4 elastic impact, rigid-body Coulomb impact), conservation laws, and a separate fixed-step
 RK4 integration of the dimensionless clipped oscillator written here.
 
@@ -16,9 +16,9 @@ import pytest
 import warp as wp
 
 from hel_warp import ConfigError
-from hel_warp.contact_law import (clipped_oscillator_restitution, damping_coefficient,
+from hel_warp.collisions.contact_law import (clipped_oscillator_restitution, damping_coefficient,
                                   linear_stiffness_matching_hertz)
-from hel_warp.impact import place_just_apart, simulate_pairs, stable_time_step
+from hel_warp.collisions.impact import place_just_apart, simulate_pairs, stable_time_step
 from kernels import hertz as hz
 
 R = 157.5e-6  # the paper's 315 um polyethylene sphere

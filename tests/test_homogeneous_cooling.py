@@ -21,7 +21,7 @@ D = 315e-6
 
 @pytest.fixture(scope="module")
 def hc():
-    from hel_warp.commands._common import load_case_module
+    from hel_warp.cli.commands._common import load_case_module
 
     return load_case_module(str(CASE))
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from hel_warp.errors import ConfigError
-from hel_warp.parcels import ParcelPool, VolumeInjection
+from hel_warp.parcels.pool import ParcelPool, VolumeInjection
 
 BOX_LO, BOX_HI = (0.0, 0.0, 0.0), (6e-3, 4e-3, 3e-3)
 

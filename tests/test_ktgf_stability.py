@@ -37,10 +37,10 @@ def _dense_slab(limited: bool, dt: float, steps: int, seed: int = 0):
     """A periodic 10^3 grid of 1 mm cells, no gas flow (still air drag, no gravity): a 4-cell-thick slab of
     two counter-moving streams (+-3.4 m/s across the slab, the rig's injection speed; eps_s up to ~0.2) and
     a dilute background of parcels with 1 m/s random velocities, 315 um, 1000 kg/m^3. Deposit, KTGF
-    collision acceleration and push each step (hel_warp.coupling); returns the max parcel speed per step."""
-    from hel_warp.coupling import (CouplingFields, GridSpec, PushConfig, deposit_parcels, interpolate_gas,
+    collision acceleration and push each step (hel_warp.parcels.coupling); returns the max parcel speed per step."""
+    from hel_warp.parcels.coupling import (CouplingFields, GridSpec, PushConfig, deposit_parcels, interpolate_gas,
                                    ktgf_collision, push_parcels)
-    from hel_warp.particles import Particles
+    from hel_warp.parcels.particles import Particles
 
     h, d, rho, n = 1e-3, 315e-6, 1000.0, 10
     length = n * h

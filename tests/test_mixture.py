@@ -145,7 +145,7 @@ def test_metrics_per_pair_type(mixture_model):
 # ------------------------------------------------------------------------------------------ two-size collision
 def _central_pair(d1, d2, speed, restitution=0.9):
     """A frictionless central impact in the DEM of ``hel-warp impact`` (simulate_pairs), COM frame plus a drift."""
-    from hel_warp.impact import place_just_apart, simulate_pairs, stable_time_step
+    from hel_warp.collisions.impact import place_just_apart, simulate_pairs, stable_time_step
     from hel_warp.material import Material
 
     mat = Material(friction=0.0)
@@ -188,7 +188,7 @@ def test_two_size_central_impact_matches_the_closed_form(speed):
 
 # ------------------------------------------------------------------------------------------ kinetic theory
 def test_mixture_kinetic_theory_reduces_to_haff_and_enskog():
-    from hel_warp import mixture as mx
+    from hel_warp.collisions import mixture as mx
 
     d, eps, e, theta = 315e-6, 0.01, 0.9, 1.3
     m = 1000.0 * math.pi * d**3 / 6
@@ -205,7 +205,7 @@ def test_mixture_kinetic_theory_reduces_to_haff_and_enskog():
 
 
 def test_mixture_kinetic_theory_conserves_energy_when_elastic_and_equilibrates():
-    from hel_warp import mixture as mx
+    from hel_warp.collisions import mixture as mx
 
     dens, diam = [2e6, 5e5], [D1, D2]
     mass = [1000.0 * math.pi * d**3 / 6 for d in diam]
@@ -232,7 +232,7 @@ SECTIONS = [{"name": f"S{k + 1}", "lo": [float(k), 0.0, 0.0], "hi": [float(k + 1
 def _mixture_run(path, collisions, parcels, *, mixture=True, times=(0.002, 0.003, 0.004)):
     """A run directory in the layout of cases/colliding_streams.py: ``parcels`` (x, v, radius, stream) in every
     snapshot; the rig names its size classes (315 / 475 um) when ``mixture``."""
-    from hel_warp.io import RunWriter
+    from hel_warp.runs.io import RunWriter
 
     rig = {"axial_axis": 0, "transverse_axis": 1, "downstream": [1.0, 0.0, 0.0], "sections": SECTIONS,
            "domain_lo": [0.0, 0.0, 0.0], "domain_hi": [10.0, 1.0, 1.0], "main_depth": 1.0,
@@ -270,7 +270,7 @@ def test_report_splits_a_mixture_by_size_class(tmp_path):
     """Small parcels: half of each stream across (crossing 0.5), axial 3 m/s; large: all across (1.0), 6 m/s,
     v_y 2 m/s. The dem reference of the same mixture: nobody crosses, axial 3 and 5 m/s. Per class the report must
     give these answers, the whole run their parcel-weighted mix; a one-size dem run is not the reference."""
-    from hel_warp.report import build_report
+    from hel_warp.runs.report import build_report
 
     sur = _mixture_run(tmp_path / "sur", "surrogate", _placement(True, True, 3.0, 6.0))
     dem = _mixture_run(tmp_path / "dem", "dem", _placement(False, False, 3.0, 5.0))
@@ -300,7 +300,7 @@ def test_report_splits_a_mixture_by_size_class(tmp_path):
 # ------------------------------------------------------------------------------------------ the cooling box
 @pytest.fixture(scope="module")
 def hc():
-    from hel_warp.commands._common import load_case_module
+    from hel_warp.cli.commands._common import load_case_module
 
     return load_case_module(str(ROOT / "cases" / "homogeneous_cooling.py"))
 
@@ -451,7 +451,7 @@ def live_parcels(rig) -> dict:
 def test_rig_mixture_both_holders_release_both_sizes(cs):
     """A reduced rig: after the release window every holder has put out its half of each species (sizes told apart
     by the nearest mean in stds), and the rig layout names the size classes for the report."""
-    from hel_warp.mixture import species_of
+    from hel_warp.collisions.mixture import species_of
 
     config = cs.make_config(_rig_args(cs, "--diameter2", str(D2), "--mass-fraction2", "0.5", "--cells", "5000",
                                       "--max-particles", "120"))

@@ -1,4 +1,4 @@
-"""Aggregation multigrid preconditioner (hel_warp/multigrid.py) against linear algebra done in numpy.
+"""Aggregation multigrid preconditioner (hel_warp/gas/multigrid.py) against linear algebra done in numpy.
 
 References: the Galerkin coarse operator A_c = P^T A P with the piecewise-constant prolongation P of the
 2 x 2 x 2 aggregates (dense numpy products); CG needs a symmetric positive definite preconditioner
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from hel_warp.multigrid import AggregationMultigrid
+from hel_warp.gas.multigrid import AggregationMultigrid
 from kernels.gas import make_stencil
 
 

@@ -5,7 +5,7 @@ through the contact point, so rolling parcels trade spin for motion as the DEM's
 References, independent of the kernels: rigid-body mechanics of two solid spheres (I = 2/5 m r^2) - momentum and
 angular momentum (orbital plus spin) conserved by an impulse through the contact point, the total kinetic energy
 with rotation never grows; the spinless outcome whenever the spins are zero; and the project's DEM
-(``hel_warp.impact.simulate_pairs`` with initial spins) for spinning impacts (``surrogate/sweep.py``
+(``hel_warp.collisions.impact.simulate_pairs`` with initial spins) for spinning impacts (``surrogate/sweep.py``
 ``spin_sweep_against_dem``).
 """
 
@@ -29,7 +29,7 @@ def rough_constant_model(tmp_path_factory):
     without training; Coulomb bound 1), domain over every contact feature."""
     root = tmp_path_factory.mktemp("rough_constant_model")
     names = ["g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio"]
-    doc = {"format": "hel_warp.forest", "version": 2, "form": "contact", "features": names,
+    doc = {"format": "hel_warp.collisions.forest", "version": 2, "form": "contact", "features": names,
            "targets": ["impulse_n", "impulse_t"], "base_score": [A_CONST, B_CONST], "tree_start": [0, 1, 2],
            "max_depth": 0,
            "arrays": {"tree_root": _array([0, 1], "<i4"), "node_info": _array([-1, -1], "<i4"),
@@ -103,7 +103,7 @@ def test_the_total_energy_guard_never_lets_the_energy_grow_and_keeps_admissible_
 
 
 def test_a_spinning_pair_conserves_momentum_and_angular_momentum_and_never_gains_energy(rough_constant_model):
-    from hel_warp.forest import ForestPredictor, load_forest
+    from hel_warp.collisions.forest import ForestPredictor, load_forest
 
     p = random_spinning_pairs(3000, seed=1)
     pred = ForestPredictor(load_forest(rough_constant_model))
@@ -132,7 +132,7 @@ def test_a_spinning_pair_conserves_momentum_and_angular_momentum_and_never_gains
 
 
 def test_zero_spins_give_the_spinless_outcome_exactly(rough_constant_model):
-    from hel_warp.forest import ForestPredictor, load_forest
+    from hel_warp.collisions.forest import ForestPredictor, load_forest
 
     p = random_spinning_pairs(2000, seed=2, spin_ratio=0.0)
     pred = ForestPredictor(load_forest(rough_constant_model))
@@ -161,8 +161,8 @@ def test_zero_spins_give_the_spinless_outcome_exactly(rough_constant_model):
 def test_the_swept_engine_resolves_a_spinning_pair_as_the_predictor(rough_constant_model):
     import warp as wp
 
-    from hel_warp.collision_models import SurrogateCollision
-    from hel_warp.forest import ForestPredictor, load_forest
+    from hel_warp.collisions.models import SurrogateCollision
+    from hel_warp.collisions.forest import ForestPredictor, load_forest
 
     dt = 1e-4
     v1, v2 = np.array([1.0, 0.2, 0.0]), np.array([-1.0, -0.1, 0.3])
@@ -199,8 +199,8 @@ def cell_box_check(model_dir):
     heavier parcels' lost spread is put back (without the restoration the same step ends colder)."""
     import warp as wp
 
-    from hel_warp.cell_collisions import CellConfig
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.cells import CellConfig
+    from hel_warp.collisions.models import SurrogateCollision
     from tests.test_collision_models import momentum
 
     rng = np.random.default_rng(5)
@@ -246,7 +246,7 @@ def test_spinning_impacts_against_the_dem(tmp_path, full_size):
     --spin: median 0.59 % against 2.78 % of |g|)."""
     pytest.importorskip("xgboost")
     pytest.importorskip("optuna")
-    from hel_warp.forest import load_forest
+    from hel_warp.collisions.forest import load_forest
     from hel_warp.material import Material
     from surrogate import train as T
     from surrogate.dataset import build_dataset, make_spec
@@ -375,7 +375,7 @@ def test_a_contact_spin_model_meets_the_dem_of_spinning_impacts(spin_model):
     """Trained on spinning impacts, the model's outcome stays close to the DEM's at every spin ratio the engine
     meets; measured with the rig's model (300,000 rows, scripts/check_surrogate.py --spin): median 0.23-0.46 %,
     p90 0.6-1.4 % of |g| up to r|omega| = 2 |g| (the spinless contact model asked at g_c: p90 up to 16.5 %)."""
-    from hel_warp.forest import load_forest
+    from hel_warp.collisions.forest import load_forest
     from surrogate.sweep import spin_sweep_against_dem
 
     model, meta = spin_model
@@ -423,8 +423,8 @@ def test_the_contact_spin_targets_give_back_the_dem_outcome(spin_model):
 def test_the_engine_resolves_a_pair_with_a_contact_spin_model_as_the_predictor(spin_model):
     import warp as wp
 
-    from hel_warp.collision_models import SurrogateCollision
-    from hel_warp.forest import ForestPredictor, load_forest
+    from hel_warp.collisions.models import SurrogateCollision
+    from hel_warp.collisions.forest import ForestPredictor, load_forest
 
     model, _ = spin_model
     dt = 1e-4
@@ -454,7 +454,7 @@ def test_a_rough_granular_gas_cools_and_spins_up_as_the_dem(spin_model, tmp_path
     temperature ends 22 % low (the spin the collisions make is lost)."""
     import json
 
-    from hel_warp.commands._common import load_case_module
+    from hel_warp.cli.commands._common import load_case_module
     from pathlib import Path
 
     hc = load_case_module(str(Path(__file__).resolve().parents[1] / "cases" / "homogeneous_cooling.py"))

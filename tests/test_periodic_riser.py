@@ -1,4 +1,4 @@
-"""cases/periodic_riser.py at one tile (224 spheres, 800 cells) and hel_warp.counters.
+"""cases/periodic_riser.py at one tile (224 spheres, 800 cells) and hel_warp.runs.counters.
 
 References: the benchmark's numbers (224 spheres of 100 um in 0.8 x 10 x 0.8 mm: eps_s, the buoyant weight);
 conservation of the particles in a periodic box; Newton's second law for the whole mixture in a periodic box
@@ -57,7 +57,7 @@ def test_the_driving_gradient_is_the_buoyant_weight_of_the_benchmark_suspension(
         assert flow.cells == (4 * 2**k, 50, 4 * 2**k) and flow.real_particles == 224 * 4**k
         assert flow.spacing == pytest.approx(0.2e-3)
     # the reference's linear contact: pi sqrt(m*/k_n); the Hertz modulus gives the same duration at 1 m/s
-    from hel_warp.contact_law import hertz_contact_duration
+    from hel_warp.collisions.contact_law import hertz_contact_duration
 
     m = 2000.0 * math.pi / 6 * (100e-6) ** 3
     assert R.contact_duration() == pytest.approx(math.pi * math.sqrt(0.5 * m / 10.0), rel=1e-12)
@@ -170,7 +170,7 @@ def test_counters_count_what_warp_does_and_change_no_result(device):
     bit for bit; outside the block Warp's functions are its own again."""
     import warp as wp
 
-    from hel_warp import counters
+    from hel_warp.runs import counters
 
     @wp.kernel
     def bump(a: wp.array(dtype=float)):
@@ -227,8 +227,8 @@ def _head_on(speed, steps_per_contact, sample):
     """Two riser spheres meeting head-on at relative ``speed`` under the riser's dem contact: (restitution,
     time in contact sampled every ``sample`` s)."""
     import cases.periodic_riser as R
-    from hel_warp.cfd_dem import DemCollision
-    from hel_warp.particles import Particles
+    from hel_warp.collisions.cfd_dem import DemCollision
+    from hel_warp.parcels.particles import Particles
 
     r = 0.5 * R.DIAMETER
     gap = 0.2 * speed * R.contact_duration()

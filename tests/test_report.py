@@ -20,10 +20,10 @@ CENTRES = [(b + 0.5) / BOXES for b in range(BOXES)]
 
 def make_run(path, collisions, snapshots, *, dt=1e-3, collision_series=(0, 0, 0, 0), wall=1.5, diameter=315e-6,
              series=None, hel=None, rig_extra=None, particle_contacts=None, end_time=0.004):
-    """A run directory in the layout of cases/colliding_streams.py + hel_warp.run (config attrs ``hel``, ``case``;
+    """A run directory in the layout of cases/colliding_streams.py + hel_warp.runs.run (config attrs ``hel``, ``case``;
     attrs ``summary``); snapshots: list of (time, parcels list). ``collision_series``: the real collisions per step
     (``collisions_collisions``; None: no such series); ``series``: more per-step series by name."""
-    from hel_warp.io import RunWriter
+    from hel_warp.runs.io import RunWriter
 
     rig = {"axial_axis": 0, "transverse_axis": 1, "downstream": [1.0, 0.0, 0.0], "sections": SECTIONS,
            "domain_lo": [0.0, 0.0, 0.0], "domain_hi": [10.0, 1.0, 1.0], "main_depth": 1.0, **(rig_extra or {})}
@@ -87,7 +87,7 @@ def expected_sur(downstream_only):
 
 def test_rms_leaves_out_sparse_sub_boxes():
     from hel_warp.errors import ConfigError
-    from hel_warp.report import build_report, profile_rms
+    from hel_warp.runs.report import build_report, profile_rms
 
     a = [{"mean_axial_velocity": [1.0, 2.0, 3.0], "samples": [50, 12, 2]}]
     b = [{"mean_axial_velocity": [2.0, 4.0, 30.0], "samples": [40, 10, 9]}]
@@ -101,7 +101,7 @@ def test_rms_leaves_out_sparse_sub_boxes():
 
 @pytest.mark.parametrize("downstream_only", [False, True])
 def test_profiles_and_rms_exact(runs, tmp_path, downstream_only):
-    from hel_warp.report import write_report
+    from hel_warp.runs.report import write_report
 
     report = write_report(list(runs), str(tmp_path / "rep"), boxes=[BOXES], downstream_only=downstream_only,
                           figures=False, min_samples=1)
@@ -133,7 +133,7 @@ def test_profiles_and_rms_exact(runs, tmp_path, downstream_only):
 
 
 def test_paper_box_counts_and_figures(runs, tmp_path):
-    from hel_warp.report import write_report
+    from hel_warp.runs.report import write_report
 
     report = write_report(list(runs), str(tmp_path / "rep"), boxes=[20, 88, 126])
     for boxes in (20, 88, 126):
@@ -152,7 +152,7 @@ def test_paper_box_counts_and_figures(runs, tmp_path):
 
 def test_missing_and_corrupt_run_dirs(tmp_path, capsys):
     from hel_warp.cli import main
-    from hel_warp.report import load_run
+    from hel_warp.runs.report import load_run
 
     with pytest.raises(ConfigError, match="not found"):
         load_run(str(tmp_path / "nowhere"))
@@ -171,7 +171,7 @@ def test_missing_and_corrupt_run_dirs(tmp_path, capsys):
 
 def test_dem_reference_must_have_the_same_diameter(runs, tmp_path):
     # a 475 um run is never compared with a 315 um dem run: its RMS is absent, not a cross-size number
-    from hel_warp.report import build_report
+    from hel_warp.runs.report import build_report
 
     dem_dir, _ = runs
     other = make_run(tmp_path / "sur475", "surrogate", [(0.004, [parcel(0, 0, 1.0)])], diameter=475e-6)
@@ -216,7 +216,7 @@ def mix(k):  # half of each stream's particles on each side, by weight (1 parcel
 
 
 def _metrics(path, **kwargs):
-    from hel_warp.report import build_report
+    from hel_warp.runs.report import build_report
 
     report, _ = build_report([path], boxes=[BOXES], min_samples=1, **kwargs)
     return report["runs"][0]["stream_metrics"]
@@ -281,7 +281,7 @@ def test_stream_composition_per_sub_box(tmp_path):
 
 
 def test_metrics_against_dem(tmp_path):
-    from hel_warp.report import build_report
+    from hel_warp.runs.report import build_report
 
     dem = stream_run(tmp_path, "dem", mix, collisions="dem")
     sur = stream_run(tmp_path, "sur", cross)
@@ -306,7 +306,7 @@ def test_metrics_against_dem(tmp_path):
 
 # ------------------------------------------------------------------------------------------ collision rates
 def test_real_collision_rates_per_stream_pair(tmp_path):
-    from hel_warp.report import build_report
+    from hel_warp.runs.report import build_report
 
     pairs = {f"collisions_collisions_{a}_{b}": np.zeros(4) for a in range(4) for b in range(a, 4)}
     pairs["collisions_collisions_0_0"] = np.array([1.0, 0, 0, 0])
@@ -340,7 +340,7 @@ def test_real_collision_rates_per_stream_pair(tmp_path):
 
 # ------------------------------------------------------------------------------------------ like with like
 def test_like_with_like_lists_differences_and_measures_the_walls(tmp_path):
-    from hel_warp.report import build_report
+    from hel_warp.runs.report import build_report
 
     dem = stream_run(tmp_path, "dem", mix, collisions="dem", hel={"dt": 1e-3, "wall_friction": 0.3})
     walls = stream_run(tmp_path, "walls", mix, collisions="dem", particle_contacts=False,

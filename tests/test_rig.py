@@ -2,7 +2,7 @@
 
 References: the paper's section 2 (240 and 38.4 l/min, 20 m/s in the supply channels) for the
 inlet flows; a flood fill of the fluid mask and the analytic SDF for connectivity; the run
-directory contract of hel_warp/report.py for the reduced run.
+directory contract of hel_warp/runs/report.py for the reduced run.
 """
 
 import importlib.util
@@ -126,7 +126,7 @@ def _args(out, *extra, end_time="0.003"):
 def test_reduced_run_writes_what_the_report_needs(cs, tmp_path):
     import zarr
 
-    from hel_warp.report import load_run, profiles
+    from hel_warp.runs.report import load_run, profiles
 
     out = tmp_path / "run"
     assert cs.main(_args(out)) == 0
@@ -221,7 +221,7 @@ def test_paper_particle_sets(cs):
                            (("--real-particles", "12000", "--particles-per-parcel", "64"), 188)):
         c = config("315e-6", *extra)
         assert c.particles == parcels and c.particles * c.release_weights()[0] == pytest.approx(12000)
-    from hel_warp.cell_collisions import CellConfig
+    from hel_warp.collisions.cells import CellConfig
     from hel_warp.errors import ConfigError
 
     with pytest.raises(ConfigError, match="one-size option"):
@@ -278,7 +278,7 @@ def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
     import inspect
 
     from hel_warp.hel import COLLISION_MODELS
-    from hel_warp.report import build_report
+    from hel_warp.runs.report import build_report
 
     def rig_run(name, model, end_time, *extra):
         args = _args(tmp_path / name, "--no-gas-snapshots", "--output-interval", "0.002", *extra, end_time=end_time)
@@ -326,9 +326,9 @@ def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
     for label in ("none", "ktgf"):
         keys = {d["key"] for d in by[label]["config_differences_vs_dem"]}
         assert not any(k.startswith(("case.", "gas.", "grid.")) for k in keys), keys
-    # hel_warp.rig_ensemble: the metrics are ratios over the parcels, so a run pooled with itself (twice the
+    # hel_warp.studies.rig_ensemble: the metrics are ratios over the parcels, so a run pooled with itself (twice the
     # parcels at half the weight) has the metrics of the run; runs of another snapshot schedule are refused
-    ens = importlib.import_module("hel_warp.rig_ensemble")
+    ens = importlib.import_module("hel_warp.studies.rig_ensemble")
     filled = [k + 1 for k, s in enumerate(by["none"]["stream_metrics"]["sections"]) if s["samples"]]
     one = ens.ensemble_metrics([runs[0]], [runs[1]], min_samples=1, sections=filled[:2])
     two = ens.ensemble_metrics([runs[0], runs[0]], [runs[1], runs[1], runs[1]], min_samples=1, sections=filled[:2],
@@ -367,7 +367,7 @@ def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
     # over the dem run's simulated time T: rates 40 / T and 20 / T, ratio 2; per stream pair likewise
     import dataclasses
 
-    from hel_warp.report import load_run
+    from hel_warp.runs.report import load_run
 
     base = load_run(runs[2])
     t = base.config.get("simulated_time", base.config["end_time"])
@@ -394,10 +394,10 @@ def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
 
 
 def test_grouped_jackknife_of_a_mean_is_the_standard_error_of_the_group_means():
-    """hel_warp.rig_ensemble --jackknife-groups G: leaving out one of G equal contiguous groups at a time gives,
+    """hel_warp.studies.rig_ensemble --jackknife-groups G: leaving out one of G equal contiguous groups at a time gives,
     for a mean, std(group means, ddof=1) / sqrt(G) (closed form); groups cover every run once; G >= n is the
     leave-one-out jackknife; fewer than 2 groups is refused."""
-    ens = importlib.import_module("hel_warp.rig_ensemble")
+    ens = importlib.import_module("hel_warp.studies.rig_ensemble")
     from hel_warp.errors import ConfigError
 
     x = np.random.default_rng(7).normal(size=24)

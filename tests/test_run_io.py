@@ -1,4 +1,4 @@
-"""The run loop (``hel_warp.run``): run.zarr contents, VTK, bitwise restart, failures keep the last checkpoint."""
+"""The run loop (``hel_warp.runs.run``): run.zarr contents, VTK, bitwise restart, failures keep the last checkpoint."""
 
 from __future__ import annotations
 
@@ -14,11 +14,11 @@ DT = 1e-3
 
 def build(collision="ktgf"):
     """Closed 8 x 6 x 8 mm box of air, a windowed injector (parcels fall, bounce), an outlet plane at x = 7 mm."""
-    from hel_warp.coupling import PushConfig
-    from hel_warp.gas import GasConfig, GasField, GasSolver
-    from hel_warp.grid import Box, Geometry, Grid
+    from hel_warp.parcels.coupling import PushConfig
+    from hel_warp.gas.solver import GasConfig, GasField, GasSolver
+    from hel_warp.gas.grid import Box, Geometry, Grid
     from hel_warp.hel import HelConfig, HelSolver, Outlet, ScheduledInjection, collision_model
-    from hel_warp.parcels import ParcelPool, VolumeInjection
+    from hel_warp.parcels.pool import ParcelPool, VolumeInjection
 
     grid = Grid(spacing=1e-3, shape=(8, 6, 8))
     domain = Geometry(shapes=(Box(lo=(0, 0, 0), hi=(0.008, 0.006, 0.008)),)).build(grid)
@@ -35,7 +35,7 @@ def build(collision="ktgf"):
 
 
 def run_config(out, steps, *, output_every=3, checkpoint_every=None, vtk=False):
-    from hel_warp.run import RunConfig
+    from hel_warp.runs.run import RunConfig
 
     # checkpoint_wall_s=0: a checkpoint at every output (these tests are about what a checkpoint holds)
     return RunConfig(out_dir=str(out), end_time=steps * DT, output_interval=output_every * DT,
@@ -59,8 +59,8 @@ def stop_at(step):
 def test_run_zarr_holds_snapshots_gas_fields_timings_and_config(tmp_path):
     import zarr
 
-    from hel_warp.io import read_snapshot
-    from hel_warp.run import Run
+    from hel_warp.runs.io import read_snapshot
+    from hel_warp.runs.run import Run
 
     solver = build()
     Run(solver, run_config(tmp_path, 6, vtk=True), case_config={"name": "test-case"}).run()
@@ -91,7 +91,7 @@ def test_collision_counts_hook_is_written_per_step(tmp_path):
     import zarr
 
     from hel_warp.hel import NoCollision
-    from hel_warp.run import Run
+    from hel_warp.runs.run import Run
 
     class Counting(NoCollision):
         name = "counting"
@@ -118,7 +118,7 @@ def test_restart_continues_bitwise_identically(tmp_path):
     """2N steps in one go == N steps, interruption a few steps later, restart from the checkpoint at N, N more."""
     import zarr
 
-    from hel_warp.run import Run
+    from hel_warp.runs.run import Run
 
     n = 6
     straight = build()
@@ -146,7 +146,7 @@ def test_restart_continues_bitwise_identically(tmp_path):
 
 
 def test_restart_with_another_configuration_is_refused(tmp_path):
-    from hel_warp.run import Run
+    from hel_warp.runs.run import Run
 
     Run(build(), run_config(tmp_path, 3)).run()
     with pytest.raises(ConfigError, match="another configuration"):
@@ -154,7 +154,7 @@ def test_restart_with_another_configuration_is_refused(tmp_path):
 
 
 def test_nan_in_a_field_stops_the_run_and_keeps_the_last_checkpoint(tmp_path):
-    from hel_warp.run import Run, read_checkpoint
+    from hel_warp.runs.run import Run, read_checkpoint
 
     def poison(solver):
         if solver.step_count == 6:  # after the step, before the output check of step 6
@@ -182,7 +182,7 @@ def test_default_checkpoints_are_a_wall_clock_apart_and_a_restart_from_one_is_ex
 
     import zarr
 
-    from hel_warp.run import CHECKPOINT_WALL_S, Run, RunConfig, read_checkpoint
+    from hel_warp.runs.run import CHECKPOINT_WALL_S, Run, RunConfig, read_checkpoint
 
     assert RunConfig(out_dir=str(tmp_path), end_time=DT, output_interval=DT).checkpoint_wall_s == CHECKPOINT_WALL_S
     gated = lambda out: dataclasses.replace(run_config(out, 9), checkpoint_wall_s=3600.0)  # noqa: E731
@@ -213,7 +213,7 @@ def test_default_checkpoints_are_a_wall_clock_apart_and_a_restart_from_one_is_ex
 
 
 def test_pressure_solve_failure_keeps_the_checkpoint_and_gives_the_advice(tmp_path):
-    from hel_warp.run import Run, read_checkpoint
+    from hel_warp.runs.run import Run, read_checkpoint
 
     def starve(solver):
         if solver.step_count == 4:
@@ -227,7 +227,7 @@ def test_pressure_solve_failure_keeps_the_checkpoint_and_gives_the_advice(tmp_pa
 
 
 def test_a_torn_checkpoint_falls_back_to_the_previous_one(tmp_path):
-    from hel_warp.run import Run, read_checkpoint
+    from hel_warp.runs.run import Run, read_checkpoint
 
     Run(build(), run_config(tmp_path, 6)).run()  # checkpoints at 0, 3, 6: prev holds step 3
     (tmp_path / "checkpoint.npz").write_bytes(b"torn")
@@ -274,7 +274,7 @@ def test_the_example_of_hel_warp_run_help_runs_as_printed(tmp_path, capsys, monk
 
 def test_an_end_time_shorter_than_one_step_is_refused(tmp_path, capsys):
     # round(end / dt) = 0 steps would write a run of no step and exit 0; the run refuses it instead
-    from hel_warp.run import Run, RunConfig
+    from hel_warp.runs.run import Run, RunConfig
 
     with pytest.raises(ConfigError, match="shorter than one step"):
         Run(build(), RunConfig(out_dir=str(tmp_path / "a"), end_time=0.4 * DT, output_interval=DT))
@@ -293,7 +293,7 @@ def test_cuda_without_a_gpu_is_a_one_line_error(tmp_path, capsys):
     import warp as wp
 
     from hel_warp.cli import main
-    from hel_warp.run import check_device
+    from hel_warp.runs.run import check_device
 
     wp.init()
     if wp.is_cuda_available():
@@ -322,7 +322,7 @@ def test_weight_aware_counts_stay_fractional(tmp_path):
     import zarr
 
     from hel_warp.hel import NoCollision
-    from hel_warp.run import Run
+    from hel_warp.runs.run import Run
 
     class Weighted(NoCollision):
         name = "weighted"
@@ -359,7 +359,7 @@ def test_kernel_compilation_is_timed_apart_from_the_steps(tmp_path):
     import zarr
 
     from hel_warp.hel import NoCollision
-    from hel_warp.run import Run
+    from hel_warp.runs.run import Run
 
     source = tmp_path / f"fresh_{uuid.uuid4().hex}.py"
     source.write_text(KERNEL_SOURCE.format(factor=1.0 + uuid.uuid4().int % 1000 / 1e6))
@@ -393,7 +393,7 @@ def test_load_kernels_keeps_cpu_only_modules_off_cuda():
 
     import warp as wp
 
-    from hel_warp.run import CPU_ONLY_MODULES, kernel_modules, load_kernels
+    from hel_warp.runs.run import CPU_ONLY_MODULES, kernel_modules, load_kernels
 
     load_kernels("cpu")
     cpu_names = {m.name for m in kernel_modules(wp.get_device("cpu"))}

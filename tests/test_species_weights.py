@@ -38,14 +38,14 @@ RHO = 1000.0
 
 @pytest.fixture(scope="module")
 def hc():
-    from hel_warp.commands._common import load_case_module
+    from hel_warp.cli.commands._common import load_case_module
 
     return load_case_module(str(ROOT / "cases" / "homogeneous_cooling.py"))
 
 
 @pytest.fixture(scope="module")
 def cs():
-    from hel_warp.commands._common import load_case_module
+    from hel_warp.cli.commands._common import load_case_module
 
     return load_case_module(str(ROOT / "cases" / "colliding_streams.py"))
 
@@ -67,7 +67,7 @@ def constant_mixture_model(tmp_path_factory):
 # ------------------------------------------------------------------------------------------ the option
 def test_weights_option_one_or_two_integers():
     from hel_warp.errors import ConfigError
-    from hel_warp.mixture import species_weights
+    from hel_warp.collisions.mixture import species_weights
 
     assert species_weights("8", 2) == (8, 8) and species_weights("1,8", 2) == (1, 8)
     assert species_weights(" 8 , 1 ", 2) == (8, 1) and species_weights(1.0, 1) == (1,)
@@ -204,7 +204,7 @@ def test_rig_holders_release_each_species_with_its_weight(cs):
     """A reduced rig at weights 1,8: after the release window every holder has put out its parcels of each species,
     each of its species' weight; the window is the holder's real mass over its mass flow; the layout and the
     summary fields name the weights."""
-    from hel_warp.mixture import species_of
+    from hel_warp.collisions.mixture import species_of
 
     config = _rig_config(cs, "--particles-per-parcel", "1,8", "--cells", "5000", "--max-particles", "120")
     rig = cs.CollidingStreams(config)
@@ -228,7 +228,7 @@ def test_rig_holders_release_each_species_with_its_weight(cs):
 # ------------------------------------------------------------------------------------------ unequal-weight events
 def _mixed_gas(device, seed, n=3000, eps=0.05):
     """n parcels, half 315 um of weight 1 and half 475 um of weight 8, uniformly in a periodic box at real eps."""
-    from hel_warp.particles import Particles
+    from hel_warp.parcels.particles import Particles
 
     rng = np.random.default_rng(seed)
     species = rng.integers(0, 2, size=n)
@@ -246,8 +246,8 @@ def _mixed_gas(device, seed, n=3000, eps=0.05):
 
 def _one_step(model, device, seed, restore, dt):
     """One collision step of one sub-step (the events do not depend on the energy put back after it)."""
-    from hel_warp.cell_collisions import CellConfig
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.cells import CellConfig
+    from hel_warp.collisions.models import SurrogateCollision
 
     p, side = _mixed_gas(device, seed)
     s = SurrogateCollision(model_dir=model, detection="cell", periodic_box=(side,) * 3, seed=seed,
@@ -312,8 +312,8 @@ def test_unequal_weights_keep_the_energy_of_the_real_collisions(constant_mixture
 def _repeats(model, device, seed, approaching):
     """Events of a weights 1 / 8 box (``_mixed_gas``, 3,000 parcels) over 5 steps of 2e-4 s: per kind of pair, the
     events whose two parcels had met before in the run, and all events."""
-    from hel_warp.cell_collisions import CellConfig
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.cells import CellConfig
+    from hel_warp.collisions.models import SurrogateCollision
 
     p, side = _mixed_gas(device, seed)
     s = SurrogateCollision(model_dir=model, detection="cell", periodic_box=(side,) * 3, seed=seed,
@@ -355,8 +355,8 @@ def test_restoration_over_many_steps_momentum_exact_energy_never_grows(constant_
     """A denser gas of weights 1 and 8 over several steps (many events per parcel): sum w m v to float32 round-off,
     the kinetic energy never above the start (the guarded outcome dissipates; the deficit put back is no more than
     the partial impulse lost), nearly every class restored."""
-    from hel_warp.cell_collisions import CellConfig
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.cells import CellConfig
+    from hel_warp.collisions.models import SurrogateCollision
 
     p, side = _mixed_gas(device, 11, n=2000)
     s = SurrogateCollision(model_dir=constant_mixture_model, detection="cell", periodic_box=(side,) * 3, seed=3,
@@ -403,9 +403,9 @@ def _sixteen_per_cell(side, parcels):
 def _anisotropy_decay(model, device, large_weight, seed, steps=4, dt=2e-4):
     """``_weighted_box`` with T_x = 3 T_y = 3 T_z, collided ``steps`` steps of ``dt`` with ~13 sub-steps each
     (``cfl`` 0.05): the large class's T_x / T_yz - 1 after each step."""
-    from hel_warp.cell_collisions import CellConfig
-    from hel_warp.collision_models import SurrogateCollision
-    from hel_warp.particles import Particles
+    from hel_warp.collisions.cells import CellConfig
+    from hel_warp.collisions.models import SurrogateCollision
+    from hel_warp.parcels.particles import Particles
 
     _, d, w, side, x, v = _weighted_box(seed, large_weight, hot_x=3.0)
     p = Particles.from_numpy(x, 0.5 * d, v=v, density=RHO, weight=w, stream=(d > D1).astype(int),
@@ -446,9 +446,9 @@ def _spin_decay(model, device, large_weight, seed, restore=True, steps=4, dt=2e-
     steps, over its start."""
     import warp as wp
 
-    from hel_warp.cell_collisions import CellConfig
-    from hel_warp.collision_models import SurrogateCollision
-    from hel_warp.particles import Particles
+    from hel_warp.collisions.cells import CellConfig
+    from hel_warp.collisions.models import SurrogateCollision
+    from hel_warp.parcels.particles import Particles
 
     rng, d, w, side, x, v = _weighted_box(seed, large_weight)
     omega = (rng.normal(0.0, 0.5, size=(d.size, 3)) + np.array([0.0, 0.0, 1.0])) * (2.0 / d)[:, None]

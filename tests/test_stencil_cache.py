@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from hel_warp.coupling import CouplingFields, GridSpec, interpolate_gas
+from hel_warp.parcels.coupling import CouplingFields, GridSpec, interpolate_gas
 from kernels.interp import fill_stencil, make_parcel_stencil, stencil_weights
 
 H = 1e-3
@@ -120,11 +120,11 @@ def _solver(*, cache: bool, mixed: bool, periodic: bool, nudge: bool, device, n=
     """The bench's box (``scripts/bench_hel.py`` ``make_solver``: random parcels and gas velocity), small;
     ``mixed``: every other parcel of weight 8 (a tent of 2^3 x 8 cells beside trilinear parcels); ``periodic``:
     x periodic (the box reaches past the grid's x ends, so no wall there)."""
-    from hel_warp.coupling import PushConfig
-    from hel_warp.gas import GasConfig, GasField, GasSolver
-    from hel_warp.grid import Box, Geometry, Grid
+    from hel_warp.parcels.coupling import PushConfig
+    from hel_warp.gas.solver import GasConfig, GasField, GasSolver
+    from hel_warp.gas.grid import Box, Geometry, Grid
     from hel_warp.hel import HelConfig, HelSolver
-    from hel_warp.parcels import ParcelPool
+    from hel_warp.parcels.pool import ParcelPool
 
     hi = tuple(s * H for s in shape)
     grid = Grid(spacing=H, shape=shape, periodic=(periodic, False, False))

@@ -1,4 +1,4 @@
-"""Swept (continuous) detection of the ``surrogate`` strategy (hel_warp/collision_models.py, kernels/collide.py).
+"""Swept (continuous) detection of the ``surrogate`` strategy (hel_warp/collisions/models.py, kernels/collide.py).
 
 References (docs/developer/conventions.md rule 9):
 - the first touch of two straight paths against a brute-force time march of |s(t)| (no root formula involved);
@@ -37,7 +37,7 @@ def write_constant_contact_forest(root) -> str:
     """A contact-form forest of one leaf per target in directory ``root``: impulse_n = 1 + e, impulse_t = 0 (exact
     for central impacts, cos_angle = 1; an outcome without training a model); its domain covers every contact
     feature. Returns the directory."""
-    doc = {"format": "hel_warp.forest", "version": 2, "form": "contact",
+    doc = {"format": "hel_warp.collisions.forest", "version": 2, "form": "contact",
            "features": ["g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio"],
            "targets": ["impulse_n", "impulse_t"], "base_score": [1.0 + E, 0.0], "tree_start": [0, 1, 2],
            "max_depth": 0,
@@ -70,7 +70,7 @@ def brute_force_touch(x1, x2, v1, v2, radius_sum, dt, steps=200000):
 
 
 def test_first_touch_matches_a_brute_force_time_march(hard_sphere_model):
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     rng = np.random.default_rng(7)
     dt = 1e-3
@@ -105,7 +105,7 @@ def test_head_on_chain_matches_the_hard_sphere_sequence(hard_sphere_model):
     # A -> B   C on the x axis, equal spheres, gaps g1 (A-B) and g2 (B-C), A at speed u, B and C at rest, e = 0.9.
     # Closed form: A-B at t1 = g1/u: vA = u(1-e)/2, vB = u(1+e)/2; B-C at t2 = t1 + g2/vB: vB' = vB(1-e)/2,
     # vC = vB(1+e)/2; A catches B at t3 (both then known straight lines); one step of dt covers all three.
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     u, g1, g2, dt = 3.0, 1.0e-3, 1.0e-5, 3.0e-3
     x = np.array([[0.0, 0.0, 0.0], [D + g1, 0.0, 0.0], [2 * D + g1 + g2, 0.0, 0.0]])
@@ -143,7 +143,7 @@ def test_head_on_chain_matches_the_hard_sphere_sequence(hard_sphere_model):
 def test_the_event_log_holds_the_chain_in_time_order(hard_sphere_model):
     # the chain above with collision_events on: three entries at t1 < t2 < t3 with the normal approach speeds of the
     # closed form (u, then vB, then vA - vB'), ids ordered, same stream; the log changes nothing else
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     u, g1, g2, dt = 3.0, 1.0e-3, 1.0e-5, 3.0e-3
     x = np.array([[0.0, 0.0, 0.0], [D + g1, 0.0, 0.0], [2 * D + g1 + g2, 0.0, 0.0]])
@@ -182,7 +182,7 @@ def periodic_gas(n, eps, seed=0, theta=1.0):
 def test_parallel_rounds_equal_the_strict_event_order(trained_models):
     # 1000 spheres at eps = 0.05 for a step in which each collides ~0.5 times (chains of collisions in the step):
     # the rounds of causally safe events give exactly what one event at a time, globally earliest first, gives.
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     x, v, side = periodic_gas(1000, 0.05)
     results = []
@@ -202,7 +202,7 @@ def test_parallel_rounds_equal_the_strict_event_order(trained_models):
 
 def test_collisions_across_periodic_faces_equal_those_inside(hard_sphere_model):
     # The same approaching pair once in the middle of a periodic box, once split across the x and y faces.
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     side, dt = 20 * D, 1e-3
     v = np.array([[1.5, 0.4, 0.0], [-1.5, 0.0, 0.1]])
@@ -222,7 +222,7 @@ def test_swept_frequency_does_not_depend_on_dt_and_overlap_misses_most(trained_m
     # A dilute periodic gas (eps = 0.01): collisions found in one step of 1e-3 s equal ten steps of 1e-4 s within
     # the statistics, and the Enskog rate N/2 * 24 eps g0 sqrt(Theta) / (sqrt(pi) d) (Carnahan-Starling g0)
     # within 4 sigma of a Poisson count; overlap detection at step ends finds only a fraction at 1e-3 s.
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     n, eps, dt = 2000, 0.01, 1e-3
     x, v, side = periodic_gas(n, eps, seed=3)
@@ -255,7 +255,7 @@ def test_a_reach_grown_past_the_cut_is_still_searched(hard_sphere_model, monkeyp
     # finds the pair. The same step searched out to the global maximum reach (the cut at infinity, nothing listed)
     # and in the strict event order: the same three collisions (A-B, Y-i, i-B), bit for bit. 40 parcels at rest far
     # away keep the mean reach, and so the cut, small.
-    import hel_warp.collision_models as cm
+    import hel_warp.collisions.models as cm
 
     r, dt, u, w = 0.5 * D, 1e-3, 4.0, 1.0
     cross = np.array([3.0e-3, 0.0, 0.0])
@@ -290,7 +290,7 @@ def test_searches_with_a_reach_cut_equal_the_search_to_the_maximum_reach(trained
     # share of the parcels listed, more after each round's collisions) against the cut at infinity (every search
     # out to the global maximum reach, the list empty): the same events in the same rounds, bit for bit, in one
     # window and in three.
-    import hel_warp.collision_models as cm
+    import hel_warp.collisions.models as cm
 
     x, v, side = periodic_gas(1000, 0.05)
     outcomes = []
@@ -322,7 +322,7 @@ def test_windows_change_the_searches_not_the_events(trained_models):
     # the window only bounds the searches (the paths, event times and outcomes are those of the whole step); the
     # parallel rounds in windows give it too, and so does the serial queue (``ordering="serial"``, the CPU's
     # default), in one window and in seven.
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     x, v, side = periodic_gas(2000, 0.05, seed=4)
     results = {}

@@ -32,7 +32,7 @@ def push_and_correct(strategy, p, keep=KEEP):
 
 
 def test_a_late_collision_under_strong_drag_leaves_the_pair_apart_on_its_new_paths(hard_sphere_model):
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     # A and B head on at 2 m/s each, touching at t* = 0.8 dt; C alone (no event): the push alone moves it
     u = 2.0
@@ -59,7 +59,7 @@ def test_a_late_collision_under_strong_drag_leaves_the_pair_apart_on_its_new_pat
 
 
 def test_without_a_velocity_change_in_the_push_the_end_positions_are_the_swept_paths(hard_sphere_model):
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     u, t_star = 3.0, 0.3 * DT
     x = [[0.0, 0.0, 0.0], [D + 2.0 * u * t_star, 0.0, 0.0]]
@@ -102,7 +102,7 @@ class KickSolver:
 
 
 def test_the_kick_comes_first_so_the_swept_paths_are_the_pushed_paths(hard_sphere_model):
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     # A and B head on at 2 m/s: on their start velocities they would touch at 0.6 dt, on the pushed ones (1 m/s
     # each) at 1.2 dt, i.e. not in this step: no collision, each drifts by v_push dt
@@ -145,7 +145,7 @@ def test_a_hel_step_with_strong_drag_ends_with_nothing_overlapping(hard_sphere_m
     # pairs the detection saw on paths the parcels do not take (measured: up to 0.8 of the contact distance)
     from scipy.spatial import cKDTree
 
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
     from tests.test_hel_step import BOX_HI, make_solver
 
     rng = np.random.default_rng(11)

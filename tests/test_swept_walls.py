@@ -21,7 +21,7 @@ SIDE = 0.01  # the fluid: the box [0, SIDE]^3
 
 
 def box_walls():
-    from hel_warp.grid import Box, Geometry
+    from hel_warp.gas.grid import Box, Geometry
     from kernels.reflect import make_wall_params
 
     geometry = Geometry(shapes=(Box(lo=(0.0, 0.0, 0.0), hi=(SIDE, SIDE, SIDE)),))
@@ -39,7 +39,7 @@ def step(strategy, p, dt):
 def test_a_parcel_reflected_by_the_wall_collides_on_its_way_back_within_the_step(hard_sphere_model, wall_events):
     # A flies at +4 m/s into the wall x = SIDE, comes back at -E_WALL * 4 and meets B at rest, head on, all within
     # one step of 1 ms; closed form: wall at t1 = 0.5 mm / 4 m/s, touch when x_A - x_B = D
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     dt = 1e-3
     xa0, xb0, va = SIDE - 0.5e-3, SIDE - 1.2e-3, 4.0
@@ -71,7 +71,7 @@ def test_a_parcel_reflected_by_the_wall_collides_on_its_way_back_within_the_step
 def test_oblique_wall_bounce_keeps_the_tangential_speed_times_e_t_and_the_path_continuous(hard_sphere_model):
     # one parcel at 30 deg onto the wall y = 0: the reflection of kernels/reflect.py at the crossing time; its end
     # position is the reflected straight path (nothing left outside, nothing moved along the normal afterwards)
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     dt = 1e-3
     v0 = np.array([2.0, -2.0 * np.tan(np.radians(60.0)), 0.0])
@@ -92,7 +92,7 @@ def test_wall_events_in_time_order_with_collisions_match_the_sequential_referenc
     # a gas of parcels in a small closed box, fast enough for several wall hits and collisions per parcel and step:
     # the parallel rounds give the strict event order's result (one event per round, the globally earliest), and
     # the strict order gives the same in the step's windows as in one
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     rng = np.random.default_rng(3)
     n = 60
@@ -100,7 +100,7 @@ def test_wall_events_in_time_order_with_collisions_match_the_sequential_referenc
     x = 0.001 + lattice * 2.5 * D + rng.uniform(-0.2, 0.2, (n, 3)) * D
     v = rng.normal(0.0, 1.5, (n, 3))
     side = 0.001 + 4 * 2.5 * D  # a closed box just around the lattice
-    from hel_warp.grid import Box, Geometry
+    from hel_warp.gas.grid import Box, Geometry
     from kernels.reflect import make_wall_params
 
     shapes = Geometry(shapes=(Box(lo=(0.0, 0.0, 0.0), hi=(side, side, side)),)).shapes_struct(None)

@@ -1,4 +1,4 @@
-"""The swept detection's windows (hel_warp/collision_models.py ``windows``, kernels/collide.py ``swept_window``).
+"""The swept detection's windows (hel_warp/collisions/models.py ``windows``, kernels/collide.py ``swept_window``).
 
 A step may be resolved in windows, one after the other, each with searches of the window's reach; the paths, event
 times and outcomes are those of the whole step. References (docs/developer/conventions.md rule 9): the strict event order in one window
@@ -29,7 +29,7 @@ def test_auto_windows_follow_the_last_step_rounds_and_the_reach(constant_model):
     # than it saves); after a step of many rounds, windows of a mean reach of WINDOW_REACH radii: ceil(reach_mean /
     # (WINDOW_REACH r_max)), capped at ceil(WINDOWS_PER_ROOT_ROUND sqrt(rounds)) and MAX_WINDOWS. The rounds survive
     # the checkpoint (state / set_state).
-    import hel_warp.collision_models as cm
+    import hel_warp.collisions.models as cm
 
     x, v, side = periodic_gas(1000, 0.01, seed=2)
     dt = 1e-3
@@ -84,9 +84,9 @@ def test_hel_run_that_switches_to_windows_restarts_bitwise(constant_model, tmp_p
     """A HEL run (gas, walls, injection) of single-particle parcels under the swept detection, the window rule made to
     switch on after any step with a round (``WINDOW_ROUNDS`` = 1): 2N steps in one go == N steps, an interruption,
     a restart from the checkpoint at N (the last step's rounds are in it), N more."""
-    import hel_warp.collision_models as cm
+    import hel_warp.collisions.models as cm
     from hel_warp.hel import collision_model
-    from hel_warp.parcels import VolumeInjection
+    from hel_warp.parcels.pool import VolumeInjection
 
     monkeypatch.setattr(cm, "WINDOW_ROUNDS", 1)
     dt, n = 1e-3, 4

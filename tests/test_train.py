@@ -52,7 +52,7 @@ def test_quick_training_beats_the_mean_by_far_and_conserves_momentum(contact_mod
 def test_the_artifact_states_its_training_domain(contact_model):
     """metadata.json and forest.json carry the ranges of the train rows' features (recomputed here from
     the data and the split), the material friction and the Coulomb bound; the guard's counts are in metrics."""
-    from hel_warp.forest import load_forest
+    from hel_warp.collisions.forest import load_forest
     from surrogate.features import CANONICAL_FEATURES, form_rows
     from surrogate.train import split_groups
 
@@ -105,7 +105,7 @@ def test_artifact_round_trip_equals_xgboost(contact_model):
     art = load_artifact(model_dir, boosters=True)
     assert art.form == "contact" and art.features == meta["features"] and art.targets == ["impulse_n", "impulse_t"]
     assert art.metadata["dataset_hash"] == data.dataset_hash
-    from hel_warp.forest import ForestPredictor, load_forest
+    from hel_warp.collisions.forest import ForestPredictor, load_forest
     from surrogate.features import form_rows
 
     rows = form_rows("contact", data)
@@ -214,7 +214,7 @@ def test_targets_fitted_per_incidence_need_fewer_trees_for_the_same_error(tmp_pa
     """The same small forest (20 trees of depth 4) fits impulse_n (about (1 + e) cos_angle) better per cos_angle than
     as it is: XGBoost's own test MAE of the target, scaled fit against unscaled, on the same split; both files state
     what their forest multiplies by."""
-    from hel_warp.forest import load_forest
+    from hel_warp.collisions.forest import load_forest
 
     data = synthetic_collisions(3000, seed=5, central_fraction=0.2)
     fixed = {"n_estimators": (20, 20), "max_depth": (4, 4), "learning_rate": (0.3, 0.3)}
@@ -232,7 +232,7 @@ def test_targets_fitted_per_incidence_need_fewer_trees_for_the_same_error(tmp_pa
 
 
 def test_a_forest_file_with_a_bad_target_scale_is_refused(contact_model):
-    from hel_warp.forest import parse_forest
+    from hel_warp.collisions.forest import parse_forest
 
     model_dir, _, _ = contact_model
     doc = json.load(open(os.path.join(model_dir, "forest.json")))

@@ -20,7 +20,7 @@ R = 0.5 * D
 
 
 def surface_walls():
-    from hel_warp.grid import Box, Geometry
+    from hel_warp.gas.grid import Box, Geometry
     from kernels.reflect import make_wall_params
 
     geometry = Geometry(shapes=(Box(lo=(0.0, 0.0, 0.0), hi=(SIDE, SIDE, SIDE)),))
@@ -58,7 +58,7 @@ def test_the_push_reflection_acts_a_radius_from_the_wall():
 def test_a_wall_event_at_the_surface_then_a_collision_within_the_step(hard_sphere_model):
     # as tests/test_swept_walls.py's bounce-then-collide, with the wall acting at SIDE - r: A at +4 m/s reaches the
     # contact plane at t1 = (SIDE - r - xa0) / 4, comes back at -E_WALL 4 and meets B at rest head on
-    from hel_warp.collision_models import SurrogateCollision
+    from hel_warp.collisions.models import SurrogateCollision
 
     dt = 1e-3
     xa0, xb0, va = SIDE - R - 0.5e-3, SIDE - R - 1.2e-3, 4.0
@@ -97,7 +97,7 @@ def test_the_push_reflection_at_a_concave_corner_uses_the_face_its_path_crossed(
     v' = -e_n v, and the depth 2 mm comes back shortened by e_n, x' = 10 - e_n 2 mm (hand-written reference)."""
     import warp as wp
 
-    from hel_warp.grid import Box, Geometry
+    from hel_warp.gas.grid import Box, Geometry
     from kernels.reflect import make_wall_params, reflect_at_walls
 
     mm = 1e-3

@@ -6,7 +6,7 @@ References, independent of the kernel: the rigid-body closed forms of a solid sp
 (Walton 1993): a sticking impact without spin leaves v_t' = (1 - 2/7 (1 + beta)) v_t with the contact point at
 -beta times its old tangential velocity, a sliding one loses mu (1 + e_n) v_n; the angular momentum about the contact
 point is conserved (the wall's impulse acts there); kinetic energy (with rotation) never grows; the dem strategy's
-Hertz-Mindlin wall (``hel_warp.dem`` via ``hel-warp impact --target wall``) on a sphere rolling into the wall.
+Hertz-Mindlin wall (``hel_warp.collisions.dem`` via ``hel-warp impact --target wall``) on a sphere rolling into the wall.
 """
 
 from __future__ import annotations
@@ -119,8 +119,8 @@ def test_a_rolling_sphere_meets_the_wall_as_the_dem_hertz_mindlin_wall_does():
 def test_the_push_and_the_swept_wall_events_carry_the_spin(hard_sphere_model):
     import warp as wp
 
-    from hel_warp.collision_models import SurrogateCollision
-    from hel_warp.grid import Box, Geometry
+    from hel_warp.collisions.models import SurrogateCollision
+    from hel_warp.gas.grid import Box, Geometry
     from kernels.reflect import make_wall_params, reflect_at_walls
 
     geometry = Geometry(shapes=(Box(lo=(0.0, 0.0, 0.0), hi=(SIDE, SIDE, SIDE)),))

@@ -50,7 +50,7 @@ def test_asking_for_cuda_without_a_gpu_keeps_the_reason():
                    "try:\n    init_warp('cuda')\nexcept ConfigError as e:\n    print(e)\n")
     assert "--device cpu" in done.stdout and DRIVER_LINE in done.stderr, (done.stdout, done.stderr)
     # the run's device check (its first start asks for no device) names the missing driver in its one line
-    done = _python("from hel_warp.run import check_device\n"
+    done = _python("from hel_warp.runs.run import check_device\n"
                    "from hel_warp.errors import ConfigError\n"
                    "try:\n    check_device('cuda')\nexcept ConfigError as e:\n    print(e)\n")
     assert "no CUDA device" in done.stdout and "driver" in done.stdout and "--device cpu" in done.stdout

@@ -11,7 +11,7 @@ from hel_warp.case.flow import (COLLISION_MODELS, FACES, RANDOM_CLOSE_PACKING, F
 from hel_warp.case.probes import BedHeight, Plane, Pressure, PressureDrop
 from hel_warp.case.runner import Case, Run, floats, ints, weights_of
 from hel_warp.case.schedule import Constant, Levels, Profile, Ramp
-from hel_warp.grid import Box, Channel, Cylinder
+from hel_warp.gas.grid import Box, Channel, Cylinder
 from hel_warp.material import Material
 
 __all__ = ["BedHeight", "Box", "COLLISION_MODELS", "Case", "Channel", "Constant", "Cylinder", "FACES", "Fill",

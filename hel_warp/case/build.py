@@ -1,7 +1,7 @@
 """From a :class:`~hel_warp.case.flow.Flow` to a running simulation.
 
-``build(flow, settings)`` makes, in this order: the grid and the fluid geometry (``hel_warp.grid``), the gas solver
-and its field (``hel_warp.gas``), the parcel pool with the initial fills and placed parcels, the collision
+``build(flow, settings)`` makes, in this order: the grid and the fluid geometry (``hel_warp.gas.grid``), the gas solver
+and its field (``hel_warp.gas.solver``), the parcel pool with the initial fills and placed parcels, the collision
 strategy, and the HEL solver (``hel_warp.hel.HelSolver``) that steps them together, with the flow's inlet
 schedules, explicit releases and observers (:class:`CaseSolver`). A flow without gas becomes a
 :class:`~hel_warp.case.granular.GranularSimulation` (a periodic box of colliding parcels).
@@ -93,7 +93,7 @@ def collision_strategy(flow, settings: Settings, *, periodic_box=None):
                 kwargs["periodic_box"] = periodic_box
             cell = options.pop("cell", None)
             if isinstance(cell, dict) and cell:
-                from hel_warp.cell_collisions import CellConfig
+                from hel_warp.collisions.cells import CellConfig
 
                 cell = CellConfig(**cell)
             if cell:
@@ -113,7 +113,7 @@ def collision_strategy(flow, settings: Settings, *, periodic_box=None):
 
 # ---------------------------------------------------------------------------------------------- geometry
 def grid_of(flow):
-    from hel_warp.grid import Grid
+    from hel_warp.gas.grid import Grid
 
     return Grid(origin=flow.lo, spacing=flow.spacing, shape=flow.grid_shape, periodic=flow.periodic)
 
@@ -121,7 +121,7 @@ def grid_of(flow):
 def fluid_shapes(flow) -> tuple:
     """The fluid region: the flow's shapes, or the domain box extended past every face that parcels cross
     (periodic faces, and open boundaries that remove parcels), so that no wall stands there."""
-    from hel_warp.grid import Box
+    from hel_warp.gas.grid import Box
 
     if flow.shapes is not None:
         return flow.shapes
@@ -165,7 +165,7 @@ def boundary_layer_fluid(grid, shapes, axis: int, side: str, lo, hi) -> np.ndarr
     """Fluid cells of the boundary layer whose centres lie in the patch region (2D bool)."""
     import warp as wp
 
-    from hel_warp.grid import Geometry
+    from hel_warp.gas.grid import Geometry
     from kernels import sdf as sdf_kernels
 
     cell_fluid = wp.zeros(grid.shape, dtype=wp.int32, device="cpu")
@@ -185,7 +185,7 @@ def boundary_layer_fluid(grid, shapes, axis: int, side: str, lo, hi) -> np.ndarr
 def geometry_of(flow, grid):
     """(Geometry, {inlet name: (schedule, profile factors or None, axis, side)}, inlet speeds at t = 0)."""
     from hel_warp.case.flow import FACES, Inlet
-    from hel_warp.grid import Geometry, Patch
+    from hel_warp.gas.grid import Geometry, Patch
 
     shapes = fluid_shapes(flow)
     patches, schedules, speeds = [], {}, {}
@@ -282,7 +282,7 @@ def fill_injections(flow, settings: Settings, *, progress=None):
 def injector_schedule(flow, settings: Settings, first_index: int):
     """(ScheduledInjection list, capacity) of the flow's injectors."""
     from hel_warp.hel import ScheduledInjection
-    from hel_warp.parcels import VolumeInjection
+    from hel_warp.parcels.pool import VolumeInjection
 
     out, capacity = [], 0
     for k, inj in enumerate(flow.injectors):
@@ -445,7 +445,7 @@ def build(flow, settings: Settings, *, observers=(), progress=None) -> Simulatio
 
 def _build_granular(flow, settings: Settings, observers) -> Simulation:
     from hel_warp.case.granular import FLIGHTS, GranularConfig, GranularSimulation
-    from hel_warp.particles import Particles
+    from hel_warp.parcels.particles import Particles
 
     if not all(flow.periodic) or any(flow.lo):
         raise ConfigError("a flow without gas runs in a triply periodic box with its origin at 0 (periodic=(True, "
@@ -475,10 +475,10 @@ def _build_granular(flow, settings: Settings, observers) -> Simulation:
 
 
 def _build_hel(flow, settings: Settings, observers, progress) -> Simulation:
-    from hel_warp.coupling import PushConfig
-    from hel_warp.gas import GasConfig, GasField, GasSolver
+    from hel_warp.parcels.coupling import PushConfig
+    from hel_warp.gas.solver import GasConfig, GasField, GasSolver
     from hel_warp.hel import HelConfig, Outlet
-    from hel_warp.parcels import ParcelPool, VolumeInjection
+    from hel_warp.parcels.pool import ParcelPool, VolumeInjection
     from hel_warp.case.flow import FACES
 
     grid = grid_of(flow)

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from hel_warp.errors import ConfigError, require_finite, require_positive
-from hel_warp.grid import Box, Channel, Cylinder
+from hel_warp.gas.grid import Box, Channel, Cylinder
 from hel_warp.material import Material
 
 FACES = {"x-": (0, "min"), "x+": (0, "max"), "y-": (1, "min"), "y+": (1, "max"), "z-": (2, "min"),
@@ -48,7 +48,7 @@ def _face(name: str, face: str) -> tuple:
 
 @dataclass(frozen=True, kw_only=True)
 class Gas:
-    """The gas phase (incompressible, eps_f-weighted Navier-Stokes; ``hel_warp.gas``)."""
+    """The gas phase (incompressible, eps_f-weighted Navier-Stokes; ``hel_warp.gas.solver``)."""
 
     density: float = 1.205
     """rho_f, kg/m^3 (air at 20 C)."""
@@ -71,7 +71,7 @@ class Gas:
     where it matters; in dilute flows the two agree."""
     inlet_superficial: bool | None = None
     """Inlet velocities are superficial: the gas enters with eps_f = 1 on the inlet faces, whatever solids lie
-    beside them (``hel_warp.gas.GasConfig.inlet_superficial``). None: on when the flow starts from a filled bed."""
+    beside them (``hel_warp.gas.solver.GasConfig.inlet_superficial``). None: on when the flow starts from a filled bed."""
 
     def __post_init__(self):
         require_positive("gas density", self.density, "kg/m^3")

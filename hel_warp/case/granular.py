@@ -79,7 +79,7 @@ class KtgfFlight(BallisticFlight):
 
     def __init__(self, box, *, parcels: int, device, ktgf_diameter: float, density: float, restitution: float,
                  dt: float, **_):
-        from hel_warp.coupling import CouplingFields, GridSpec
+        from hel_warp.parcels.coupling import CouplingFields, GridSpec
         from hel_warp.hel import KtgfCollision
 
         super().__init__(box)
@@ -98,7 +98,7 @@ class KtgfFlight(BallisticFlight):
                       "to Theta comes from the sampling-noise gradients of p_s only"]
 
     def step(self, particles, dt: float) -> None:
-        from hel_warp.coupling import deposit_parcels
+        from hel_warp.parcels.coupling import deposit_parcels
         from kernels.free_flight import kick
 
         deposit_parcels(self.grid, particles, self.fields)
@@ -125,7 +125,7 @@ class SurrogateFlight(BallisticFlight):
 
     def __init__(self, box, *, collisions: str, model: str, seed: int, weights, detection: str | None = None,
                  cell: dict | None = None, particle_spin: bool = False, **_):
-        import hel_warp.collision_models as cm
+        import hel_warp.collisions.models as cm
 
         super().__init__(box)
         self.name = collisions
@@ -136,7 +136,7 @@ class SurrogateFlight(BallisticFlight):
         if detection == "cell":
             kwargs["seed"] = seed  # the collision cells' random numbers
             if cell:
-                from hel_warp.cell_collisions import CellConfig
+                from hel_warp.collisions.cells import CellConfig
 
                 kwargs["cell"] = CellConfig(**cell)
         if particle_spin:
@@ -204,7 +204,7 @@ class DemFlight(BallisticFlight):
     name = "dem"
 
     def __init__(self, box, *, material, **_):
-        from hel_warp.cfd_dem import DemCollision
+        from hel_warp.collisions.cfd_dem import DemCollision
 
         super().__init__(box)
         self.strategy = DemCollision(material=material, periodic_box=self.box)
@@ -221,14 +221,14 @@ FLIGHTS = {"none": BallisticFlight, "ktgf": KtgfFlight, "surrogate": SurrogateFl
 
 
 class GranularSimulation:
-    """Parcels of a gas-free periodic box advanced by one of the :data:`FLIGHTS` (the interface ``hel_warp.run.Run``
+    """Parcels of a gas-free periodic box advanced by one of the :data:`FLIGHTS` (the interface ``hel_warp.runs.run.Run``
     drives: ``step``, ``time``, ``step_count``, ``state`` / ``set_state``, ``check_finite``, ``collision_counts``).
 
     ``observers``: objects with ``after_step(sim)`` (and optionally ``state()`` / ``set_state(state)`` for the
     checkpoints), called after every step, e.g. a case's per-step record of the velocity moments."""
 
     def __init__(self, particles, config: GranularConfig, flight, *, observers=()):
-        from hel_warp.coupling import GridSpec
+        from hel_warp.parcels.coupling import GridSpec
 
         self.config = config
         self.flight = flight
@@ -274,7 +274,7 @@ class GranularSimulation:
                                f"{self.time:.6g} s): reduce dt or check the start")
 
     def state(self) -> dict:
-        from hel_warp.particles import FIELDS_FLOAT, FIELDS_INT, FIELDS_VEC3
+        from hel_warp.parcels.particles import FIELDS_FLOAT, FIELDS_INT, FIELDS_VEC3
 
         p = self.particles
         out = {f"particles/{n}": getattr(p, n).numpy().copy() for n in FIELDS_VEC3 + FIELDS_FLOAT + FIELDS_INT}
@@ -289,7 +289,7 @@ class GranularSimulation:
         return out
 
     def set_state(self, state: dict) -> None:
-        from hel_warp.particles import FIELDS_FLOAT, FIELDS_INT, FIELDS_VEC3
+        from hel_warp.parcels.particles import FIELDS_FLOAT, FIELDS_INT, FIELDS_VEC3
 
         p = self.particles
         for n in FIELDS_VEC3 + FIELDS_FLOAT + FIELDS_INT:

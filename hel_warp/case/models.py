@@ -58,7 +58,7 @@ def check_model(model_dir: str, species, *, force: bool = False, force_flag: str
 
     ``species``: the flow's species. One size: the model's mean diameter within 10 % of the species' (a size
     distribution of +-3 sigma spans +-8 % at 315 um) and its density within 1 %; several sizes: a training domain
-    holding every size and size ratio (``hel_warp.mixture.model_domain_problem``). ``check_material``: also the
+    holding every size and size ratio (``hel_warp.collisions.mixture.model_domain_problem``). ``check_material``: also the
     elastic and frictional constants within 1 % when the metadata records them. ``force`` lets it pass anyway.
     """
     meta = read_metadata(model_dir)
@@ -70,7 +70,7 @@ def check_model(model_dir: str, species, *, force: bool = False, force_flag: str
         d_model, rho_model = float(defaults["d1"]), float(defaults["rho1"])
         diameters = [s.diameter for s in species]
         if len(set(diameters)) > 1:
-            from hel_warp.mixture import model_domain_problem
+            from hel_warp.collisions.mixture import model_domain_problem
 
             problem = model_domain_problem(meta, diameters)
             if problem:

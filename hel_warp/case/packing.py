@@ -1,7 +1,7 @@
 """Initial fills: parcels placed at random without overlaps, or a settled bed poured by a short DEM.
 
 Settled bed of real spheres (weight 1): the spheres start on a jittered lattice filling the region's cross-section
-from its floor up, fall under gravity inside the region's walls and come to rest (``hel_warp.dem``; Hertz-Mindlin
+from its floor up, fall under gravity inside the region's walls and come to rest (``hel_warp.collisions.dem``; Hertz-Mindlin
 with the species' material, its stiffness capped at ``POUR_MODULUS`` and its restitution at ``POUR_RESTITUTION``
 so that the pour settles in ~1e4 steps; a packing's solids fraction depends on friction, hardly on stiffness).
 The pour stops when the fastest sphere is slower than ``POUR_REST_SPEED`` or at ``POUR_MAX_TIME``. The packing is
@@ -13,7 +13,7 @@ height that holds them at ``Fill.settled_fraction``; the parcels are placed at r
 their own spheres, over that height (MP-PIC parcels of a dense bed are sparse clouds: their spheres fill 1 / W of
 the bed).
 
-Random fill: the parcels spread over the whole region without overlaps (``hel_warp.parcels.VolumeInjection``'s
+Random fill: the parcels spread over the whole region without overlaps (``hel_warp.parcels.pool.VolumeInjection``'s
 lattice placement, at most ~0.5 of the region's volume in parcel spheres).
 """
 
@@ -62,7 +62,7 @@ def gravity_axis(gravity) -> tuple[int, float]:
 def random_injection(species, region, count: int, seed: int, velocity=(0.0, 0.0, 0.0)):
     """A ``VolumeInjection`` of ``count`` parcels at random in ``region`` (a Box) without overlaps (at
     ``velocity``); its ``sample()`` refuses with a ConfigError when they do not fit."""
-    from hel_warp.parcels import VolumeInjection
+    from hel_warp.parcels.pool import VolumeInjection
 
     margin = 0.5 * species.diameter * (1.0 + 1e-3) + 3.0 * species.diameter_std
     lo = np.asarray(region.lo) + margin
@@ -86,7 +86,7 @@ def settled_height(species, region, real: int, fraction: float, up: int) -> floa
 
 def weighted_bed(species, region, parcels: int, real: int, fraction: float, gravity, seed: int):
     """The injection that places ``parcels`` weighted parcels at random over a settled bed's height."""
-    from hel_warp.grid import Box
+    from hel_warp.gas.grid import Box
 
     up, sign = gravity_axis(gravity)
     height = settled_height(species, region, real, fraction, up)
@@ -158,8 +158,8 @@ def poured_bed(species, region, real: int, gravity, seed: int, *, device="cpu", 
         box_hi[up] = max(hi[up], floor + height + pitch)
     else:
         box_lo[up] = min(lo[up], floor - height - pitch)
-    from hel_warp.dem import DEMConfig, DEMSolver
-    from hel_warp.particles import Particles
+    from hel_warp.collisions.dem import DEMConfig, DEMSolver
+    from hel_warp.parcels.particles import Particles
 
     material = replace(species.material, youngs_modulus=min(species.material.youngs_modulus, POUR_MODULUS),
                        restitution=min(species.material.restitution, POUR_RESTITUTION))

@@ -10,7 +10,7 @@
   solids fraction last exceeds ``threshold`` (the bed's surface), and twice the real-particle-mean height above
   the floor (the height of a uniform bed of the same centre of mass).
 
-Pressures are the solver's modified pressure p' = p - rho_f g . x (``hel_warp.gas``): differences of p' are the
+Pressures are the solver's modified pressure p' = p - rho_f g . x (``hel_warp.gas.solver``): differences of p' are the
 pressure differences less the gas's hydrostatic head, i.e. what the particles' weight and drag make. The records
 live in memory and in the checkpoints (a resumed run keeps them) and go to ``run.zarr``'s ``probes`` group and
 the summary at the end. Sampling reads the device at the probe times only.

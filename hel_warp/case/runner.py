@@ -7,7 +7,7 @@ A case script describes its flow in a ``build(args) -> Flow`` function and hands
 
 ``Case.main(argv)`` parses the options (the case's own, grouped in ``--help`` as case, physics, numerics, output,
 advanced, beside the shared ones below), builds the flow, checks the output directory and the surrogate model,
-builds the simulation, warms the gas up, and steps it to ``--end-time`` with ``hel_warp.run.Run`` (snapshots,
+builds the simulation, warms the gas up, and steps it to ``--end-time`` with ``hel_warp.runs.run.Run`` (snapshots,
 per-step series, ``run.zarr``, VTK, atomic checkpoints, ``--resume`` bit for bit), a progress bar, the probes,
 the case's ``check`` of physical facts, and a summary (``OUT/summary.json``, one JSON object on stdout with
 ``--json``). Bad input stops it before anything is written: one line ``hel-warp: error: ...`` on stderr and
@@ -285,7 +285,7 @@ class Case:
         from hel_warp.case.build import build as build_simulation
         from hel_warp.case.models import check_model, model_for, surrogate_domain
         from hel_warp.case.probes import ProbeRecorder
-        from hel_warp.run import Run as RunLoop, RunConfig, check_device, load_kernels
+        from hel_warp.runs.run import Run as RunLoop, RunConfig, check_device, load_kernels
 
         t_setup = time.perf_counter()
         check_device(args.device)
@@ -371,7 +371,7 @@ class Case:
         if self.summary is not None:
             summary.update(self.summary(result))
         summary["check_errors"] = errors
-        from hel_warp.io import _jsonable
+        from hel_warp.runs.io import _jsonable
 
         summary = _jsonable(summary)
         root.attrs["summary"] = summary
@@ -441,14 +441,14 @@ def _case_options(args) -> dict:
 
 
 def _check_weights(value, flow) -> None:
-    from hel_warp.mixture import species_weights
+    from hel_warp.collisions.mixture import species_weights
 
     species_weights(value, max(len(flow.species_list), 1))
 
 
 def weights_of(args, species: int = 1) -> tuple:
-    """``--particles-per-parcel`` as one integer weight per species (``hel_warp.mixture.species_weights``)."""
-    from hel_warp.mixture import species_weights
+    """``--particles-per-parcel`` as one integer weight per species (``hel_warp.collisions.mixture.species_weights``)."""
+    from hel_warp.collisions.mixture import species_weights
 
     return species_weights(getattr(args, "particles_per_parcel", "1"), species)
 
