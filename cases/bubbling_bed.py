@@ -116,7 +116,7 @@ packing stress carries the enduring contacts."""
 
 SURROGATE_EPS_CAP = 0.1
 """Largest solids fraction of the Enskog factor g0 in the surrogate's collision cells in the bed
-(``hel_warp.cell_collisions.CellConfig.eps_cap``; 0.55 elsewhere). Binary collisions are the collisional regime:
+(``hel_warp.collisions.cells.CellConfig.eps_cap``; 0.55 elsewhere). Binary collisions are the collisional regime:
 with g0 up to 0.55 the cells' collisions keep a bed at rest below U_mf boiling (3,000 particles at 0.44 U_mf: 53 mm
 high instead of 34, pressure drop 32 +- 142 Pa); with 0.1 it holds (36 mm, 48 +- 41 Pa; with contact damping
 0.9: 33.6 mm, 54 +- 12 Pa against Ergun's 49 Pa)."""
@@ -251,6 +251,39 @@ def ergun(u: float, height: float, voidage: float, d: float, rho_f: float = GAS_
     return height * (150.0 * mu * u * (1 - e) ** 2 / (e**3 * d**2) + 1.75 * rho_f * u**2 * (1 - e) / (e**3 * d))
 
 
+FLUIDIZED_FRACTION = 0.9
+"""A level whose pressure drop reaches this fraction of the bed weight per area counts as fluidized."""
+
+
+def measured_umf(velocities, pressure_drops, weight_per_area: float) -> float | None:
+    """The minimum fluidization velocity of a measured curve, m/s: where the fixed bed's branch meets the fluidized
+    plateau, as read off a fluidization curve (Kunii & Levenspiel 1991, ch. 3).
+
+    Fixed branch: the levels below ``FLUIDIZED_FRACTION`` of the weight per area, fitted by least squares with
+    Ergun's form a U + b U^2 (a line through the origin with one level); plateau: the mean pressure drop of the
+    other levels. None without a level on each branch."""
+    u = np.asarray(velocities, float)
+    dp = np.asarray([np.nan if p is None else p for p in pressure_drops], float)
+    ok = np.isfinite(dp)
+    u, dp = u[ok], dp[ok]
+    fixed = dp < FLUIDIZED_FRACTION * weight_per_area
+    if not fixed.any() or fixed.all():
+        return None
+    plateau = float(dp[~fixed].mean())
+    uf, pf = u[fixed], dp[fixed]
+    if len(uf) >= 2:
+        (a, b), *_ = np.linalg.lstsq(np.column_stack([uf, uf**2]), pf, rcond=None)
+    else:
+        a, b = float(pf[0] / uf[0]), 0.0
+    if abs(b) < 1e-12 * max(abs(a), 1e-300):
+        return plateau / a if a > 0 else None
+    disc = a * a + 4.0 * b * plateau
+    if disc < 0:
+        return None
+    root = (-a + math.sqrt(disc)) / (2.0 * b)
+    return float(root) if root > 0 else None
+
+
 def dominant_frequency(t: np.ndarray, signal: np.ndarray) -> float:
     """The frequency of the largest peak of the fluctuations' spectrum, Hz (0 without samples enough)."""
     if len(signal) < 8:
@@ -321,7 +354,10 @@ def summary(run) -> dict:
     levels = levels_summary(run)
     p = run.solver.pool.particles
     alive = p.alive.numpy().astype(bool)
-    return {"levels": levels, "bed_weight_per_area": mass * G / area,
+    weight = mass * G / area
+    return {"levels": levels, "bed_weight_per_area": weight,
+            "minimum_fluidization_velocity": measured_umf([lv["velocity"] for lv in levels],
+                                                          [lv["pressure_drop"] for lv in levels], weight),
             "ergun_pressure_drop": [ergun(u, bed["height"], 1 - bed["solids_fraction"], args.diameter)
                                     for u in run.sim.flow.attrs["levels"]],
             "minimum_fluidization_velocity_wen_yu": wen_yu_umf(args.diameter, args.density),
@@ -347,6 +383,8 @@ def report(run, summary) -> str:
              f"settled {summary['settled_height'] * 1e3:.1f} mm at eps_s {summary['settled_solids_fraction']:.3f}; "
              f"weight/area {summary['bed_weight_per_area']:.1f} Pa, U_mf (Wen-Yu) "
              f"{summary['minimum_fluidization_velocity_wen_yu']:.3f} m/s"]
+    if summary.get("minimum_fluidization_velocity") is not None:
+        lines[0] += f", measured {summary['minimum_fluidization_velocity']:.3f} m/s"
     for lv, erg in zip(summary["levels"], summary["ergun_pressure_drop"]):
         lines.append(f"  U = {lv['velocity']:.3f} m/s: dp = {lv['pressure_drop']:.1f} +- {lv['pressure_drop_std']:.1f} "
                      f"Pa (Ergun {erg:.1f}), bed {lv['bed_height'] * 1e3:.1f} mm, {lv['pressure_frequency']:.1f} Hz")

@@ -191,8 +191,12 @@ def draw_fluidization(runs, path: Path) -> None:
                label="U_mf, Wen-Yu")
     for marker, (_, s) in zip("osD^v<>", runs):
         levels = s.get("levels") or []
-        ax.errorbar([lv["velocity"] for lv in levels], [lv["pressure_drop"] for lv in levels],
-                    yerr=[lv["pressure_drop_std"] for lv in levels], fmt=marker, capsize=3, label=_label(s))
+        umf = s.get("minimum_fluidization_velocity")
+        bars = ax.errorbar([lv["velocity"] for lv in levels], [lv["pressure_drop"] for lv in levels],
+                           yerr=[lv["pressure_drop_std"] for lv in levels], fmt=marker, capsize=3,
+                           label=_label(s) + (f", U_mf {umf:.3f} m/s" if umf else ""))
+        if umf:  # where this model's fixed branch meets its plateau
+            ax.plot([umf], [s["bed_weight_per_area"]], marker="|", ms=18, mew=2, color=bars[0].get_color())
     ax.set_ylim(0, 1.6 * first["bed_weight_per_area"])
     ax.set_xlabel("superficial gas velocity U, m/s")
     ax.set_ylabel("pressure drop across the bed, Pa")

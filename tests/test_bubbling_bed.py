@@ -74,3 +74,21 @@ def test_settled_below_and_fluidized_above_minimum_fluidization(tmp_path):
     assert s["parcels"] == 1500
     for name in ("bed_snapshots.png", "bed_solids_fraction.png", "bed_history.png", "bed_fluidization.png"):
         assert (out / name).stat().st_size > 10_000
+
+
+def test_the_measured_minimum_fluidization_is_where_ergun_meets_the_weight():
+    """A curve made of Ergun's law below and the bed weight above: the branches meet where Ergun's drop equals the
+    weight, the root of a quadratic solved here independently; with one fixed level, where that level's line
+    through the origin meets the weight."""
+    height, voidage, d = 0.035, 0.42, 1.2e-3
+    weight = 197.7
+    a = height * 150.0 * bb.GAS_VISCOSITY * (1 - voidage) ** 2 / (voidage**3 * d**2)
+    b = height * 1.75 * bb.GAS_DENSITY * (1 - voidage) / (voidage**3 * d)
+    exact = (-a + math.sqrt(a * a + 4 * b * weight)) / (2 * b)
+    levels = [0.1, 0.2, 0.3, 0.45, 0.6, 0.8, 1.0]
+    drops = [bb.ergun(u, height, voidage, d) if bb.ergun(u, height, voidage, d) < weight else weight for u in levels]
+    assert bb.measured_umf(levels, drops, weight) == pytest.approx(exact, rel=1e-9)
+    assert bb.measured_umf(levels[:1] + levels[3:], drops[:1] + drops[3:], weight) == pytest.approx(
+        weight * levels[0] / drops[0], rel=1e-12)
+    assert bb.measured_umf(levels[:3], drops[:3], weight) is None  # no level on the plateau
+    assert bb.measured_umf(levels[3:], drops[3:], weight) is None  # no level on the fixed branch
