@@ -26,6 +26,9 @@ from kernels import gas as K  # noqa: E402
 from kernels import gas_cpu  # noqa: E402
 
 print("hel_warp from", os.path.dirname(hel_warp.__file__))
+if {"-h", "--help"} & set(sys.argv[1:]):
+    print(__doc__)
+    sys.exit(0)
 pairs = int(sys.argv[1]) if len(sys.argv) > 1 else 100
 rev = sys.argv[2] if len(sys.argv) > 2 else "main"
 root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

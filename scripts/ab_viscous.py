@@ -18,6 +18,9 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import hel_warp, bench_hel
 print("hel_warp from", os.path.dirname(hel_warp.__file__))
 
+if {"-h", "--help"} & set(sys.argv[1:]):
+    print(__doc__)
+    sys.exit(0)
 pairs = int(sys.argv[1]) if len(sys.argv) > 1 else 30
 A_KIND, B_KIND = (sys.argv[2], sys.argv[3]) if len(sys.argv) > 3 else ("ic0", "jacobi")
 device = wp.get_device("cpu")

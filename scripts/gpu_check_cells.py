@@ -112,6 +112,9 @@ def summarise(out: str) -> tuple[dict, bool]:
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    if argv in (["-h"], ["--help"]):
+        print(__doc__)
+        return 0
     if len(argv) != 1 or argv[0].startswith("-"):
         print("usage: python scripts/gpu_check_cells.py OUT", file=sys.stderr)
         return 2
