@@ -12,6 +12,7 @@ with rotation never grows; the spinless outcome whenever the spins are zero; and
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -451,7 +452,14 @@ def test_a_rough_granular_gas_cools_and_spins_up_as_the_dem(spin_model, tmp_path
     translational temperature and the rotational one it builds up, against the surrogate with particle_spin and a
     contact_spin model. Measured with the rig's model (8,000 spheres, 0.04 s): Theta / Theta_rot at the end -1.7 /
     -1.1 % (1e-3 s), -1.2 / -1.7 % (1e-4 s), -0.8 / 0.0 % (7.14e-5 s) of the DEM's; without spin the translational
-    temperature ends 22 % low (the spin the collisions make is lost)."""
+    temperature ends 22 % low (the spin the collisions make is lost).
+
+    Tolerance from the sampling noise of a finite gas: a temperature estimated from N Maxwellian velocities is a
+    chi-square of 3N degrees of freedom, relative standard deviation sqrt(2 / 3N) (1.8 % at the CI's N = 2,000); the
+    ratio of two runs that diverge from one start has at most sqrt(2) of that, so the band is 3 sqrt(2) sqrt(2 / 3N)
+    (7.7 % in CI, 3.9 % at full size). Measured at the CI size over seeds 0-5 (``--seed``): the ratio's standard
+    deviation is 1.6 % (Theta) and 2.5 % (Theta_rot), means +0.2 % and -1.0 %, inside it; the spinless run's
+    deficit, -11.8 +- 0.9 %, lies more than four of its standard deviations beyond the band's edge."""
     import json
 
     from hel_warp.cli.commands._common import load_case_module
@@ -469,8 +477,8 @@ def test_a_rough_granular_gas_cools_and_spins_up_as_the_dem(spin_model, tmp_path
         out[name] = json.loads(capsys.readouterr().out)
     dem, spin, spinless = out["dem"], out["spin"], out["spinless"]
     assert dem["friction"] == 0.3 and dem["rotational_temperature_final"] > 0.2 * dem["granular_temperature_final"]
-    tol = 0.03 if full_size else 0.06
+    tol = 3.0 * math.sqrt(2.0) * math.sqrt(2.0 / (3.0 * particles))
     assert spin["granular_temperature_final"] == pytest.approx(dem["granular_temperature_final"], rel=tol)
-    assert spin["rotational_temperature_final"] == pytest.approx(dem["rotational_temperature_final"], rel=2 * tol)
+    assert spin["rotational_temperature_final"] == pytest.approx(dem["rotational_temperature_final"], rel=tol)
     assert spinless["rotational_temperature_final"] == 0.0
-    assert spinless["granular_temperature_final"] < (1 - 2 * tol) * dem["granular_temperature_final"]
+    assert spinless["granular_temperature_final"] < (1 - tol) * dem["granular_temperature_final"]
