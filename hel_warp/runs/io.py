@@ -19,7 +19,9 @@ pyvista and zarr are imported lazily.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
+import math
 import os
 from pathlib import Path
 
@@ -30,16 +32,23 @@ ROW_CHUNK = 65536
 
 
 def _jsonable(value):
-    """Config values as JSON-safe types for zarr attrs."""
+    """Config values as JSON-safe types (zarr attrs, summary.json): dataclasses as dicts with their type's name,
+    non-finite floats as text, other objects as text without memory addresses (a restart compares configs)."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {"type": type(value).__name__,
+                **{f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}}
     if isinstance(value, dict):
         return {str(k): _jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [_jsonable(v) for v in value]
     if isinstance(value, np.generic):
         return value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
     if isinstance(value, (str, int, float, bool)) or value is None:
         return value
-    return str(value)
+    text = str(value)
+    return type(value).__name__ if " at 0x" in text else text
 
 
 class RunWriter:

@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from hel_warp.errors import ConfigError, HelWarpError, require_positive
+from hel_warp.runs.io import _jsonable
 
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_WALL_S = 60.0
@@ -198,24 +199,6 @@ def load_kernels(device) -> float:
 def run_config_from_args(args) -> RunConfig:
     return RunConfig(out_dir=args.out, end_time=args.end_time, output_interval=args.output_interval,
                      checkpoint_interval=args.checkpoint_interval, vtk=not args.no_vtk)
-
-
-def _jsonable(value):
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {"type": type(value).__name__,
-                **{f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}}
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return str(value)
-    if isinstance(value, (str, int, float, bool)) or value is None:
-        return value
-    text = str(value)
-    return type(value).__name__ if " at 0x" in text else text  # no memory addresses (restart compares configs)
 
 
 def resolved_config(solver, run_config: RunConfig, case_config: dict | None = None) -> dict:
