@@ -1026,6 +1026,14 @@ def _mpl():
     return plt
 
 
+def _save(plt, fig, path: str, dpi: int = 100) -> str:
+    """Lay out, write and close one figure; its path."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
 def _mpl_dispersion(run: RunData, path: str) -> str:
     plt = _mpl()
     rig = run.rig
@@ -1044,10 +1052,7 @@ def _mpl_dispersion(run: RunData, path: str) -> str:
     ax.set_ylabel("y, m")
     ax.set_title(f"{run.label}: particles at t = {run.times[-1]:.4g} s")
     ax.legend(loc="upper right", markerscale=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path, dpi=110)
 
 
 def _mpl_volume_fraction(run: RunData, path: str) -> str:
@@ -1057,10 +1062,7 @@ def _mpl_volume_fraction(run: RunData, path: str) -> str:
     im = ax.imshow(image.T, origin="lower", extent=extent, cmap="viridis")
     fig.colorbar(im, ax=ax, label="log10 eps_s")
     ax.set_title(f"{run.label}: solid volume fraction, t = {run.times[-1]:.4g} s")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path, dpi=110)
 
 
 def _plot_profiles(report: dict, boxes: int, path: str) -> str:
@@ -1079,10 +1081,7 @@ def _plot_profiles(report: dict, boxes: int, path: str) -> str:
     axes.flat[0].legend(fontsize=7)
     fig.suptitle(f"time-averaged particle velocity profiles, {boxes} sub-boxes"
                  + (" (downstream-moving only)" if report["downstream_only"] else ""))
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path)
 
 
 def _plot_bars(report: dict, key: str, ylabel: str, path: str) -> str:
@@ -1106,10 +1105,7 @@ def _plot_bars(report: dict, key: str, ylabel: str, path: str) -> str:
     if key == "wall_clock_s":
         ax.set_yscale("log")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path)
 
 
 def _run_label(entry: dict) -> str:
@@ -1135,10 +1131,7 @@ def _plot_per_section(report: dict, key: str, ylabel: str, path: str) -> str:
     window = report["stream_window"]
     ax.set_title(f"{ylabel} per section, snapshots from {window[0]:g} to {window[1]:g} of each run's time")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path)
 
 
 def _plot_composition(report: dict, path: str) -> str:
@@ -1164,10 +1157,7 @@ def _plot_composition(report: dict, path: str) -> str:
     axes[0, 0].legend(fontsize=7, loc="upper right")
     axes[-1, 0].set_xlabel("y, mm (left arm at +y)")
     fig.suptitle(f"stream composition of section {name}, {boxes} sub-boxes (empty: no parcel)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path)
 
 
 def _plot_summary_table(report: dict, path: str) -> str:
@@ -1184,7 +1174,4 @@ def _plot_summary_table(report: dict, path: str) -> str:
     table.set_fontsize(8)
     table.scale(1.0, 1.3)
     ax.set_title(f"collision models against dem (axial RMS over {report['boxes'][0]} sub-boxes)", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path, dpi=110)
