@@ -150,3 +150,20 @@ def test_members_that_start_together_build_the_automatic_model_once(tmp_path, mo
         t.join()
     assert len(builds) == 1
     assert len(got) == 2 and got[0] == got[1]
+
+
+def test_no_pictures_skips_the_pictures_and_nothing_else(tmp_path):
+    """``--no-pictures`` (a shared output option) leaves out the case's picture and keeps the same summary."""
+    root = Path(__file__).resolve().parents[1]
+    argv = [sys.executable, str(root / "cases" / "homogeneous_cooling.py"), "--collisions", "none",
+            "--solids-fraction", "0.01", "--particles", "216", "--diameter", "315e-6", "--granular-temperature", "1",
+            "--end-time", "3e-5", "--dt", "1e-5", "--json", "--no-progress", "--no-vtk"]
+    out = {}
+    for name, extra in (("with", []), ("without", ["--no-pictures"])):
+        done = subprocess.run(argv + extra + ["--out", str(tmp_path / name)], capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr[-2000:]
+        out[name] = json.loads(done.stdout.strip().splitlines()[-1])
+    assert (tmp_path / "with" / "cooling.png").exists()
+    assert not (tmp_path / "without" / "cooling.png").exists()
+    keep = ("granular_temperature_final", "collisions", "steps")
+    assert {k: out["with"][k] for k in keep} == {k: out["without"][k] for k in keep}

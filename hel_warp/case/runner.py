@@ -15,7 +15,7 @@ exit code 2; a failed check: exit code 1.
 
 Shared options: ``--out DIR``, ``--overwrite`` | ``--resume``, ``--end-time T``, ``--dt DT``, ``--output-interval
 T``, ``--checkpoint-interval T``, ``--collisions {none,ktgf,surrogate,surrogate-paper,dem}``, ``--model DIR``,
-``--force``, ``--seed S``, ``--device cpu|cuda``, ``--no-vtk``, ``--no-gas-snapshots``, ``--json``,
+``--force``, ``--seed S``, ``--device cpu|cuda``, ``--no-vtk``, ``--no-pictures``, ``--no-gas-snapshots``, ``--json``,
 ``--no-progress``, and for the surrogate ``--detection``, ``--particle-spin``, ``--cell-coarsen``, ``--cell-cfl``,
 ``--[no-]cell-approaching``, ``--no-packing-stress``; ``--particles-per-parcel W[,W2]`` where the case takes
 weights; ``--collision-events PATH`` (every collision of every step to a ``.npz``).
@@ -169,6 +169,8 @@ class Case:
         mode.add_argument("--resume", action="store_true", help="continue an existing run directory from its last "
                                                                 "checkpoint (bit for bit)")
         output.add_argument("--no-vtk", action="store_true", help="write run.zarr only")
+        output.add_argument("--no-pictures", action="store_true",
+                            help="skip the case's pictures at the end (the members of a large ensemble: ~1 s each)")
         output.add_argument("--no-gas-snapshots", action="store_true", help="no gas cell fields at the snapshots")
         output.add_argument("--json", action="store_true", help="print the summary as one JSON object (last line)")
         output.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -375,7 +377,7 @@ class Case:
 
         summary = _jsonable(summary)
         root.attrs["summary"] = summary
-        if self.finish is not None:
+        if self.finish is not None and not getattr(args, "no_pictures", False):
             self.finish(result, summary)
         with open(out / SUMMARY, "w") as fh:
             json.dump(summary, fh, indent=1)
@@ -435,7 +437,7 @@ def _default(defaults: dict, key: str) -> str:
 def _case_options(args) -> dict:
     """The options a resume must repeat (everything but the run-loop ones it may change)."""
     skip = {"out", "overwrite", "resume", "end_time", "output_interval", "checkpoint_interval", "no_vtk", "json",
-            "no_progress", "collision_events", "no_gas_snapshots", "device"}
+            "no_pictures", "no_progress", "collision_events", "no_gas_snapshots", "device"}
     # "_name": what a case keeps on args for itself (the rig's validated config), not an option
     return {k: v for k, v in sorted(vars(args).items()) if k not in skip and not k.startswith("_")}
 
