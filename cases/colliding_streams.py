@@ -701,6 +701,16 @@ def add_arguments(parser) -> None:
     CASE.add_arguments(parser)
 
 
+def pooled_metrics(member_dirs, reference_dirs=None) -> dict:
+    """The rig's figures pooled over an ensemble's members, for ``hel-warp ensemble`` (its table's ``pooled:`` rows):
+    stream crossing and transverse v_y rms over the run, over sections 1-7 and per section, per size class, and the
+    real collision rate, each against the ``--reference`` ensemble's with jackknife errors
+    (``hel_warp.studies.rig_ensemble.case_hook``)."""
+    from hel_warp.studies.rig_ensemble import case_hook
+
+    return case_hook(member_dirs, reference_dirs)
+
+
 CASE = hc.Case("colliding_streams", build, doc=__doc__, options=options, summary=summary,
                check=lambda run: check(run), report=report,
                defaults={"output_interval": 1.0e-3})

@@ -347,7 +347,14 @@ def test_report_on_a_reduced_rig_has_every_new_metric(cs, tmp_path):
             two["fixed"][key] == pytest.approx(one["fixed"][key], rel=1e-12, abs=1e-12)
     assert one["stream_crossing"] == pytest.approx(by["none"]["stream_metrics"]["stream_crossing"], rel=1e-12)
     assert {"fixed_stream_crossing_vs_dem", "fixed_transverse_velocity_rms_vs_dem"} <= set(two["jackknife"]["runs"])
-    # the ensemble's hook (hel-warp ensemble): a run pooled with itself keeps the report's figures, per section too
+    # the ensemble's hook (hel-warp ensemble): the rig's case file hands it to the ensemble (the loader the ensemble
+    # uses), and a run pooled with itself keeps the report's figures, per section too
+    from hel_warp.studies.ensemble import load_hook
+
+    rig_hook = load_hook(Path(__file__).resolve().parents[1] / "cases" / "colliding_streams.py")
+    assert rig_hook is not None
+    assert json.dumps(rig_hook([runs[0]], [runs[1]])["metrics"]) == \
+        json.dumps(ens.case_hook([runs[0]], [runs[1]])["metrics"])
     for hook in (ens.case_hook([runs[0], runs[0]], [runs[1]], min_samples=1, sections=filled[:2]),
                  ens.case_hook([runs[0], runs[0]], None, min_samples=1, sections=filled[:2])):
         sections = by["none"]["stream_metrics"]["sections"]
