@@ -19,7 +19,7 @@ float32 input — no round-off disagreement, no in-kernel standardisation.
 
 File format (JSON, version 2)::
 
-    {"format": "hel_warp.collisions.forest", "version": 2,
+    {"format": "hel_warp.forest", "version": 2,
      "form": "contact" | "paper",
      "features": [canonical feature names; node feature indices point into this list],
      "targets": [target names, one tree group each],
@@ -62,7 +62,7 @@ import numpy as np
 
 from hel_warp.errors import ConfigError
 
-FORMAT = "hel_warp.collisions.forest"
+FORMAT = "hel_warp.forest"
 VERSION = 2
 
 

@@ -30,7 +30,7 @@ def rough_constant_model(tmp_path_factory):
     without training; Coulomb bound 1), domain over every contact feature."""
     root = tmp_path_factory.mktemp("rough_constant_model")
     names = ["g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio"]
-    doc = {"format": "hel_warp.collisions.forest", "version": 2, "form": "contact", "features": names,
+    doc = {"format": "hel_warp.forest", "version": 2, "form": "contact", "features": names,
            "targets": ["impulse_n", "impulse_t"], "base_score": [A_CONST, B_CONST], "tree_start": [0, 1, 2],
            "max_depth": 0,
            "arrays": {"tree_root": _array([0, 1], "<i4"), "node_info": _array([-1, -1], "<i4"),

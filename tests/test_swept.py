@@ -37,7 +37,7 @@ def write_constant_contact_forest(root) -> str:
     """A contact-form forest of one leaf per target in directory ``root``: impulse_n = 1 + e, impulse_t = 0 (exact
     for central impacts, cos_angle = 1; an outcome without training a model); its domain covers every contact
     feature. Returns the directory."""
-    doc = {"format": "hel_warp.collisions.forest", "version": 2, "form": "contact",
+    doc = {"format": "hel_warp.forest", "version": 2, "form": "contact",
            "features": ["g_n", "g_t", "cos_angle", "d1", "size_ratio", "density_ratio"],
            "targets": ["impulse_n", "impulse_t"], "base_score": [1.0 + E, 0.0], "tree_start": [0, 1, 2],
            "max_depth": 0,

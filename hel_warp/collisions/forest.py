@@ -17,7 +17,7 @@ import numpy as np
 
 from hel_warp.errors import ConfigError
 
-FORMAT = "hel_warp.collisions.forest"
+FORMAT = "hel_warp.forest"
 VERSION = 2
 """Version 2 adds the ``domain`` section (training feature ranges, friction, Coulomb bound)."""
 CANONICAL_FEATURES = {
