@@ -835,3 +835,32 @@ def test_viscous_tolerance_keeps_the_float32_field():
           f"iterations {iterations[2.0**-24]} vs {iterations[1e-13]}")
     assert error <= 9.0 * 2.0**-24 * u_max + 4 * float(np.spacing(np.float32(u_max)))
     assert iterations[2.0**-24] < iterations[1e-13]
+
+
+def test_the_device_side_cg_loop_keeps_its_v_cycle_across_steps():
+    """The device-side CG loop captures the V-cycle inside its graph. Recorded inside the capture, the CPU
+    smoother's colour schedules were copied from host buffers freed before the graph's next replay, so from the
+    second step on the pressure's preconditioner read whatever reused that memory (a riser step then took ~105 CG
+    iterations against the host loop's 6). Here the host memory is churned between steps (small int32 arrays
+    full of 7, the size of a colour schedule): the device loop must still give the host loop's iterations and
+    bits at every step."""
+    domain, config = _masked_case("periodic", "native")
+    config = dataclasses.replace(config, pressure_preconditioner="multigrid", viscous_preconditioner="red_black")
+    results = {}
+    for loop in (False, True):
+        solver = GasSolver(domain, dataclasses.replace(config, pcg_device_loop=loop))
+        rng = np.random.default_rng(5)
+        gas, shape = GasField(domain), domain.grid.shape
+        gas.set_face_velocity([rng.normal(0.0, 0.2, size=a.shape) for a in gas.face_arrays()])
+        steps = []
+        for _ in range(5):
+            gas.cell_eps_s.assign(rng.uniform(0.0, 0.4, shape).astype(np.float32))
+            solver.step(gas, 1e-3)
+            steps.append((solver.last_iterations["pressure"], _gas_fields(gas)))
+            churn = [np.full(k % 40 + 1, 7, np.int32) for k in range(20000)]
+            del churn
+        results[loop] = steps
+    for (it_host, host), (it_device, device) in zip(results[False], results[True]):
+        assert it_device == it_host
+        for name, expected in host.items():
+            assert np.array_equal(device[name], expected, equal_nan=True), name

@@ -129,8 +129,12 @@ class AggregationMultigrid:
         for launch in launches:
             launch.launch()
 
-    def apply(self, r, z) -> None:
-        """z = M^-1 r (one V-cycle from z = 0)."""
+    def record(self, r, z) -> list:
+        """The V-cycle's launches for (r, z) and the fine matrix of the last ``setup``, recorded on first use (no
+        launch). Call it before a graph capture that holds ``apply(r, z)``: recording allocates the CPU smoother's
+        colour schedules from host lists, and a capture on the CPU defers that copy to each replay of the graph,
+        reading a host buffer that is freed by then (the device-side CG loop of the pressure then took ~20 times
+        the host loop's iterations from its second solve on)."""
         fine = self.levels[0].A
         key = (r.ptr, z.ptr, fine.diag.ptr, fine.coef.ptr, fine.neighbour.ptr, r.shape[0])
         launches = self._recorded.get(key)
@@ -139,7 +143,11 @@ class AggregationMultigrid:
                 self._recorded.pop(next(iter(self._recorded)))
             launches = self._recorded[key] = []
             self._cycle(0, r, z, launches)
-        for launch in launches:
+        return launches
+
+    def apply(self, r, z) -> None:
+        """z = M^-1 r (one V-cycle from z = 0)."""
+        for launch in self.record(r, z):
             launch.launch()
 
     def _record(self, launches: list, kernel, dim: int, inputs: list, outputs: list) -> None:

@@ -668,6 +668,8 @@ class GasSolver:
             run["r.z new"]()  # the first iteration's shift moves it to (r.z)_old
 
         if self.device_loop:
+            if multigrid is not None:
+                multigrid.record(r, z)  # outside the capture (``AggregationMultigrid.record`` says why)
             kind = precondition if precondition in (None, "jacobi") else "multigrid"
             done = self._device_loop_pcg((system, n, kind), start, prepare, self._pcg_iteration(run, precondition),
                                          None, tol, maxiter, atol_floor)
