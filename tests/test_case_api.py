@@ -17,6 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tests.test_collision_models import train_tiny_models  # noqa: E402
+from tests.test_swept import write_constant_contact_forest  # noqa: E402
 
 
 @pytest.fixture(scope="session")
@@ -136,6 +137,7 @@ def test_members_that_start_together_build_the_automatic_model_once(tmp_path, mo
         builds.append(threading.get_ident())
         time.sleep(0.5)
         model_dir.mkdir(parents=True)
+        write_constant_contact_forest(model_dir)
         (model_dir / "metadata.json").write_text("{}")
         return str(model_dir)
 
@@ -150,6 +152,38 @@ def test_members_that_start_together_build_the_automatic_model_once(tmp_path, mo
         t.join()
     assert len(builds) == 1
     assert len(got) == 2 and got[0] == got[1]
+
+
+def test_a_cached_automatic_model_that_no_longer_loads_is_set_aside_and_built_again(tmp_path, monkeypatch):
+    """An automatic surrogate in the cache whose forest.json no longer matches the sha256 its metadata recorded
+    (edited or damaged after it was built) is moved aside, kept for inspection, and built again with a warning,
+    instead of every run that needs it stopping on the checksum error."""
+    from hel_warp.case import models
+    from hel_warp.collisions.forest import sha256_file
+
+    monkeypatch.setenv("HEL_WARP_CACHE", str(tmp_path))
+    builds = []
+
+    def build(species, form, root, model_dir, announce):
+        builds.append(1)
+        model_dir.mkdir(parents=True)
+        write_constant_contact_forest(model_dir)
+        files = {"forest.json": sha256_file(model_dir / "forest.json")}
+        (model_dir / "metadata.json").write_text(json.dumps({"files": files}))
+        return str(model_dir)
+
+    monkeypatch.setattr(models, "_build_model", build)
+    species = [hc.Species(name="glass", diameter=315e-6)]
+    said = []
+    first = models.model_for(species, announce=said.append)
+    assert models.model_for(species, announce=said.append) == first and len(builds) == 1 and not said
+    forest = Path(first) / "forest.json"
+    forest.write_text(forest.read_text().replace('"max_depth": 0', '"max_depth":  0'))  # same JSON, other bytes
+    again = models.model_for(species, announce=said.append)
+    assert again == first and len(builds) == 2
+    assert len(said) == 1 and "no longer loads" in said[0]
+    aside = [p for p in Path(first).parent.iterdir() if p.name.startswith("model.unreadable-")]
+    assert len(aside) == 1 and (aside[0] / "forest.json").read_text() != forest.read_text()
 
 
 def test_no_pictures_skips_the_pictures_and_nothing_else(tmp_path):

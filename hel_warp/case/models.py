@@ -16,6 +16,7 @@ import hashlib
 import json
 import os
 import shutil
+import time
 
 from hel_warp.errors import ConfigError
 
@@ -111,7 +112,7 @@ def model_for(species, *, form: str = "contact", announce=print) -> str:
                           "of materials")
     root = cache_dir() / "models" / _key(species, form)
     model_dir = root / "model"
-    if (model_dir / "metadata.json").exists():
+    if (model_dir / "metadata.json").exists() and _readable(model_dir):
         return str(model_dir)
     root.mkdir(parents=True, exist_ok=True)
     # Members of an ensemble start together and would build the same model side by side, writing into one folder:
@@ -120,10 +121,27 @@ def model_for(species, *, form: str = "contact", announce=print) -> str:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
             if (model_dir / "metadata.json").exists():
-                return str(model_dir)
+                if _readable(model_dir):
+                    return str(model_dir)
+                # a cache entry edited or damaged since it was built: set aside (not deleted), then built again
+                aside = root / f"model.unreadable-{int(time.time())}"
+                os.replace(model_dir, aside)
+                announce(f"hel-warp: warning: the cached surrogate in {model_dir} no longer loads; moved to {aside} "
+                         "and built again")
             return _build_model(species, form, root, model_dir, announce)
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def _readable(model_dir) -> bool:
+    """Whether the cached model loads: its forest.json parses and matches the sha256 its metadata records."""
+    from hel_warp.collisions.forest import load_forest
+
+    try:
+        load_forest(str(model_dir))
+    except ConfigError:
+        return False
+    return True
 
 
 def _build_model(species, form, root, model_dir, announce) -> str:
