@@ -393,6 +393,15 @@ class HelConfig:
     phase 1.6-1.7x faster on the CPU. False: every pass computes the stencils (the reference the tests compare with);
     costs 108 bytes per parcel of capacity."""
 
+    read_back: str = "auto"
+    """When the host reads the device: ``step`` (every step checks itself: the gas CG's stop test after each
+    iteration or solve, the NaN count, the largest parcel weight for the deposit's stencils), ``output`` (a steady
+    step reads nothing: the gas CG loops on the device (``GasConfig.pcg_device_loop``), its failures and NaN
+    cells are logged there and raised at the next output by ``check_finite``, the deposit sizes its stencils from
+    a host bound of the weights, refreshed at each output and raised by every injection), or ``auto``: ``output``
+    on CUDA, where each read is a sync that empties the GPU's queue of launches, ``step`` on the CPU, where a read
+    is a view. Both give the same bits; ``output`` reports a failure up to one output interval late."""
+
     def __post_init__(self):
         require_positive("dt", self.dt, "s")
         if int(self.sort_every) != self.sort_every or self.sort_every < 0:
@@ -405,6 +414,8 @@ class HelConfig:
             raise ConfigError(f"wall_spin_restitution must be in [-1, 1] (got {self.wall_spin_restitution})")
         if self.wall_contact not in ("point", "surface"):
             raise ConfigError(f"wall_contact must be 'point' or 'surface' (got {self.wall_contact!r})")
+        if self.read_back not in ("auto", "step", "output"):
+            raise ConfigError(f"read_back must be 'auto', 'step' or 'output' (got {self.read_back!r})")
         if self.packing_stress is not None and not isinstance(self.packing_stress, PackingStress):
             raise ConfigError("packing_stress must be a hel_warp.hel.PackingStress or None")
         object.__setattr__(self, "injectors", tuple(self.injectors))
@@ -487,6 +498,15 @@ class HelSolver:
         """Wall-clock seconds of each sub-step of the last step (device-synchronised on CUDA)."""
         self.time_sub_steps = True
         """Record ``timings``; False skips the per-sub-step device syncs (CUDA graph capture, benchmarks)."""
+        self.read_back = config.read_back if config.read_back != "auto" else ("output" if device.is_cuda else "step")
+        """``HelConfig.read_back`` resolved for this device: 'step' or 'output'."""
+        self._weight_bound = None
+        """With ``read_back`` 'output': an upper bound of the live parcels' weights (host), else None (read)."""
+        if self.read_back == "output":
+            if hasattr(gas_solver, "deferred_checks"):
+                gas_solver.device_loop = True
+                gas_solver.deferred_checks = True
+            self._refresh_weight_bound()
         self.check_injectors_inside()
         self._inject_due(self.time)
         self.check_parcels_inside()
@@ -498,7 +518,8 @@ class HelSolver:
 
         from kernels.deposit import to_float32
 
-        deposit_parcels(self.grid, self.pool.particles, self.fields, self.cell_fluid, stencil=self.stencil)
+        deposit_parcels(self.grid, self.pool.particles, self.fields, self.cell_fluid, stencil=self.stencil,
+                        max_weight=self._live_weight_bound())
         if self.config.coupling == "implicit":
             wp.copy(self.fields.cell_momentum_source, self.fields.cell_gas_impulse)
         wp.copy(self.gas.cell_eps_s, self.fields.cell_eps_s)
@@ -578,7 +599,7 @@ class HelSolver:
             exchange_push(self.grid, p, self.fields, self.push_params, cell_velocity=self.gas.cell_velocity,
                           cell_fluid=self.cell_fluid, gas_density=self.config.push.fluid_density,
                           eps_f_min=self.eps_f_min, particle_x_out=particle_x_out, particle_v_out=particle_v_out,
-                          stencil=self.stencil,
+                          stencil=self.stencil, max_weight=self._live_weight_bound(),
                           cell_grad_p=self.gas.cell_grad_p if self.config.exchange_pressure else None)
         else:
             push_parcels(p, self.fields, self.push_params, particle_x_out=particle_x_out,
@@ -768,6 +789,14 @@ class HelSolver:
         from hel_warp.errors import HelWarpError
         from kernels.finite import count_nonfinite
 
+        check = getattr(self.gas_solver, "check", None)
+        if check is not None:  # what a gas step with deferred checks logged on the device
+            try:
+                check()
+            except HelWarpError as err:
+                raise HelWarpError(f"at step {self.step_count} (t = {self.time:.6g} s): {err}") from None
+        if self.read_back == "output":
+            self._refresh_weight_bound()
         p = self.pool.particles
         named = [("particle x", p.x), ("particle v", p.v), ("gas cell_velocity", self.gas.cell_velocity),
                  ("gas cell_pressure", self.gas.cell_pressure), ("gas cell_grad_p", self.gas.cell_grad_p),
@@ -781,6 +810,19 @@ class HelSolver:
             which = ", ".join(f"{name} ({int(c)} entries)" for (name, _), c in zip(named, counts) if c)
             raise HelWarpError(f"NaN/inf at step {self.step_count} (t = {self.time:.6g} s) in {which}; the run "
                                "blew up: reduce dt, check the inputs for NaN, or restart from the last checkpoint")
+
+    def _live_weight_bound(self) -> float | None:
+        """read_back 'output': an upper bound of the live weights, the last read's raised by what was placed since
+        (no read); 'step': None (the deposit reads the largest live weight)."""
+        if self._weight_bound is None:
+            return None
+        return max(self._weight_bound, float(getattr(self.pool, "weight_placed_since", 0.0)))
+
+    def _refresh_weight_bound(self) -> None:
+        """``_weight_bound`` from the live parcels (one read: set-up, outputs, restarts)."""
+        self._weight_bound = float(self.pool.particles.live_extremes()[1]) if self.pool.particles.count else 0.0
+        if hasattr(self.pool, "weight_placed_since"):
+            self.pool.weight_placed_since = 0.0
 
     # ------------------------------------------------------------------ restart state (host copies)
     def _gas_arrays(self) -> dict:
@@ -858,12 +900,24 @@ class HelSolver:
         if set_strategy_state is not None:
             prefix = "collision/"
             set_strategy_state({k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)})
+        if self.read_back == "output":
+            self._refresh_weight_bound()
 
     # ------------------------------------------------------------------ diagnostics (host reads)
     def collision_counts(self) -> dict:
         """This step's collision counts from the strategy's optional ``counts()`` ({} when it has none)."""
         counts = getattr(self.collision, "counts", None)
         return dict(counts()) if counts is not None else {}
+
+    def collision_count_arrays(self):
+        """The strategy's ``count_arrays()`` (device arrays behind :meth:`collision_counts` and host extras), or
+        None where it has none: the run loop then reads :meth:`collision_counts` each step."""
+        staged = getattr(self.collision, "count_arrays", None)
+        return staged() if staged is not None else None
+
+    def collision_counts_from(self, host: dict, extras: dict) -> dict:
+        """:meth:`collision_counts` from host copies of :meth:`collision_count_arrays`."""
+        return dict(self.collision.counts_from(host, extras))
 
     def wall_hit_count(self) -> int:
         """Parcel-wall reflections so far (host read)."""

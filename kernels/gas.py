@@ -2240,6 +2240,50 @@ def pcg_params_kernel(
 
 
 @wp.kernel
+def pcg_params_floor_kernel(
+    tol: wp.float64,
+    scale: wp.float64,
+    sums: wp.array(dtype=wp.float64),
+    index: int,
+    maxiter: wp.float64,
+    # outputs
+    params: wp.array(dtype=wp.float64),
+):
+    """``pcg_params_kernel`` with atol_floor = scale sqrt(sums[index]) taken on the device: the pressure solve's
+    float32 floor from the right-hand side's gross flux (``GasSolver.project``) without reading it back. The host
+    takes ``scale * sqrt(x)`` in float64 too: the same bits."""
+    params[0] = tol
+    params[1] = wp.sqrt(sums[index]) * scale
+    params[2] = maxiter
+
+
+@wp.kernel
+def pcg_log_kernel(
+    stop: wp.array(dtype=wp.float64),
+    slot: int,
+    # outputs
+    log: wp.array2d(dtype=wp.float64),
+):
+    """After a device-side CG solve, one thread (``GasSolver`` with deferred checks): log[slot] = (iterations,
+    ||r||, bound) of this solve, [3] += 1 when it failed (||r|| not within the bound: not converged, or NaN), and
+    [4:7] the first failure's (iterations, ||r||, bound) until ``GasSolver.check`` reads the log and fills it with
+    -1 (column 3 <= 0: no failure yet)."""
+    atol = stop[0]
+    residual = stop[1]
+    iterations = stop[2]
+    log[slot, 0] = iterations
+    log[slot, 1] = residual
+    log[slot, 2] = atol
+    if not (residual <= atol):
+        failed = wp.max(log[slot, 3], wp.float64(0.0))
+        if failed == wp.float64(0.0):
+            log[slot, 4] = iterations
+            log[slot, 5] = residual
+            log[slot, 6] = atol
+        log[slot, 3] = failed + wp.float64(1.0)
+
+
+@wp.kernel
 def pcg_stop_start_kernel(
     scalars: wp.array(dtype=wp.float64),
     params: wp.array(dtype=wp.float64),

@@ -864,3 +864,41 @@ def test_the_device_side_cg_loop_keeps_its_v_cycle_across_steps():
         assert it_device == it_host
         for name, expected in host.items():
             assert np.array_equal(device[name], expected, equal_nan=True), name
+
+
+@pytest.mark.parametrize("fault", ["nan", "not_converged"])
+def test_deferred_checks_raise_at_the_check_what_the_step_raises_at_once(fault):
+    """``GasConfig.deferred_checks`` (with the device-side loop): a NaN face velocity, or a pressure solve cut off at one
+    iteration, lets the steps run without a read, and ``check()`` then raises the error the per-step checks raise
+    in the step itself; after the check (the log cleared) clean steps check clean."""
+    domain, config = _masked_case("inlet_outlet", "native")
+    if fault == "not_converged":
+        config = dataclasses.replace(config, pressure_max_iterations=1)
+    rng = np.random.default_rng(5)
+    shape = domain.grid.shape
+    eps = rng.uniform(0.0, 0.4, shape).astype(np.float32)
+    faces = [rng.normal(0.0, 0.2, size=a.shape) for a in GasField(domain).face_arrays()]
+    if fault == "nan":
+        faces[0][7, 5, 4] = np.nan  # a face inside the channel
+    errors = {}
+    for deferred in (False, True):
+        solver = GasSolver(domain, dataclasses.replace(config, pcg_device_loop=True, deferred_checks=deferred))
+        gas = GasField(domain)
+        gas.set_face_velocity(faces)
+        gas.cell_eps_s.assign(eps)
+        with pytest.raises(HelWarpError) as caught:
+            solver.step(gas, 1e-3)
+            solver.step(gas, 1e-3)
+            solver.check()
+        errors[deferred] = str(caught.value)
+    word = "NaN" if fault == "nan" else "did not converge"
+    assert word in errors[False] and word in errors[True]
+    assert "since the last check" in errors[True]
+    # the log starts afresh after a check: a clean step then checks clean
+    solver = GasSolver(domain, dataclasses.replace(config, pcg_device_loop=True, deferred_checks=True,
+                                                   pressure_max_iterations=1000))
+    gas = GasField(domain)
+    gas.cell_eps_s.assign(rng.uniform(0.0, 0.4, shape).astype(np.float32))
+    solver.step(gas, 1e-3)
+    solver.check()
+    assert solver.last_iterations["pressure"] >= 0

@@ -261,3 +261,25 @@ def test_the_reference_contact_is_the_benchmarks_linear_spring_dashpot():
         e, duration = _head_on(speed, 100, tc / 50)
         assert e == pytest.approx(0.8, abs=0.003)
         assert duration == pytest.approx(tc, rel=0.05)
+
+
+@pytest.mark.parametrize("collisions", ["none", "ktgf"])
+def test_read_back_at_outputs_reads_nothing_in_a_steady_step_and_changes_no_result(collisions, tmp_path, capsys):
+    """``--read-back output`` (the CUDA default) on the CPU, through the code the GPU runs: a steady HEL step has no
+    device-to-host read and at most 5 captured graphs (the four CG solves, each one graph looping on the device),
+    and the run's summary is the per-step reading run's (slip, flux, variance, momentum: the same bits)."""
+    from cases.periodic_riser import main
+
+    summaries = {}
+    for mode in ("step", "output"):
+        argv = ["--collisions", collisions, "--tiles", "0", "--dt", "1e-4", "--end-time", "1.2e-3", "--out",
+                str(tmp_path / mode), "--no-vtk", "--no-progress", "--json", "--samples", "4", "--read-back", mode,
+                "--output-interval", "1.2e-3"]  # one output, at the end: the steps between are steady
+        assert main(argv) == 0
+        summaries[mode] = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    step, output = summaries["step"], summaries["output"]
+    assert output["device_reads_per_step"] == 0 and step["device_reads_per_step"] > 0
+    assert output["graph_launches_per_step"] <= 5
+    assert output["launches_per_step"] < step["launches_per_step"]
+    for key in ("slip_velocity", "solids_flux", "solids_fraction_variance", "momentum", "series"):
+        assert output[key] == step[key], key

@@ -41,6 +41,8 @@ class Settings:
     """``dem``: False switches the particle-particle contacts off (the walls-only reference)."""
     particle_spin: bool = False
     """``surrogate``: particle-particle collisions at the contact point, the spins turned."""
+    read_back: str = "auto"
+    """``HelConfig.read_back``: when the host reads the device (auto, step, output)."""
 
 
 def sauter_mean_diameter(flow) -> float:
@@ -549,7 +551,7 @@ def _build_hel(flow, settings: Settings, observers, progress) -> Simulation:
                        injectors=tuple(fills) + tuple(injectors), outlets=tuple(outlets),
                        exchange_pressure=bool(flow.fills) if flow.gas.exchange_pressure is None
                        else bool(flow.gas.exchange_pressure),
-                       packing_stress=flow.packing_stress, **extra)
+                       packing_stress=flow.packing_stress, read_back=settings.read_back, **extra)
     solver = CaseSolver(pool=pool, gas_solver=gas_solver, gas=gas, config=config, collision=collision,
                         inlet_schedules=schedules, releases=release_list, observers=observers)
     return Simulation(flow=flow, settings=settings, solver=solver, grid=grid, geometry=geometry, domain=domain,

@@ -178,6 +178,10 @@ class Case:
                             help="save every collision of every step to PATH (.npz; dem contact onsets or the "
                                  "surrogate's resolved collisions)")
         advanced.add_argument("--device", default="cpu", help="Warp device: cpu or cuda (default cpu)")
+        advanced.add_argument("--read-back", choices=("auto", "step", "output"), default="auto",
+                              help="when the host reads the device: 'step' (each step checks itself), 'output' "
+                                   "(a steady step reads nothing; NaN and solver failures reported at the next "
+                                   "output), 'auto': output on cuda, step on cpu (default). The same results")
         advanced.add_argument("--force", action="store_true",
                               help="use a surrogate trained for other particles (refused otherwise)")
         advanced.add_argument("--cell-coarsen", type=int, default=None,
@@ -262,7 +266,8 @@ class Case:
                               "resolves none")
         return Settings(collisions=name, dt=float(args.dt), seed=int(args.seed), device=args.device,
                         model=args.model, strategy=strategy, particle_spin=bool(args.particle_spin),
-                        particle_contacts=not getattr(args, "no_particle_contacts", False))
+                        particle_contacts=not getattr(args, "no_particle_contacts", False),
+                        read_back=getattr(args, "read_back", "auto"))
 
     def prepare_out(self, args) -> str:
         """'new' or 'resume'; refuses an existing run directory without --overwrite / --resume (nothing written)."""

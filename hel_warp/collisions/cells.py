@@ -671,6 +671,34 @@ class CellCollisions:
             arr.zero_()
 
     # ------------------------------------------------------------------ results
+    def count_arrays(self):
+        """The device arrays :meth:`counts` reads, ({name: wp.array}, {}) (``SurrogateCollision.count_arrays``);
+        None before the first step."""
+        if self._args is None:
+            return None
+        return {"cell_counts": self._args.counts, "calls": self._args.calls, "collisions": self._args.collisions,
+                "rounds": self._rounds, "wall_hits": self._wall_hits}, {}
+
+    def counts_from(self, host: dict, extras: dict) -> dict:
+        """:meth:`counts` from host copies of :meth:`count_arrays`."""
+        from kernels.cell_collide import (COUNT_ACCEPTED, COUNT_CANDIDATES, COUNT_CELLS, COUNT_CLAMPED,
+                                          COUNT_COULOMB, COUNT_ENERGY, COUNT_LOG_OVERFLOW, COUNT_OVER_MAX,
+                                          COUNT_RESTORED, COUNT_SEPARATION, COUNT_UNRESTORED)
+
+        s = self.n_streams
+        c = np.asarray(host["cell_counts"]).astype(np.int64)
+        calls = np.asarray(host["calls"]).reshape(s, s).astype(np.int64)
+        collisions = np.asarray(host["collisions"]).reshape(s, s).astype(np.int64)
+        return {"collisions": int(collisions.sum()), "surrogate_calls": int(calls.sum()),
+                "detected_pairs": 0, "cell_candidates": int(c[COUNT_CANDIDATES]),
+                "cell_accepted": int(c[COUNT_ACCEPTED]), "cell_over_max": int(c[COUNT_OVER_MAX]),
+                "cell_cells": int(c[COUNT_CELLS]), "cell_log_overflow": int(c[COUNT_LOG_OVERFLOW]),
+                "cell_restored": int(c[COUNT_RESTORED]), "cell_unrestored": int(c[COUNT_UNRESTORED]),
+                "rounds": int(host["rounds"][0]), "cell_wall_hits": int(host["wall_hits"][0]),
+                "guard_separation": int(c[COUNT_SEPARATION]), "guard_coulomb": int(c[COUNT_COULOMB]),
+                "guard_energy": int(c[COUNT_ENERGY]), "guard_domain_clamped": int(c[COUNT_CLAMPED]),
+                **pair_counts("collisions", collisions), **pair_counts("surrogate_calls", calls)}
+
     def counts(self) -> dict:
         """``collisions`` (real binary collisions: sum of min(w_i, w_j)), ``surrogate_calls`` (accepted events),
         ``detected_pairs`` (0: no overlap test), ``rounds`` (batched forest rounds), ``cell_candidates``, ``cell_accepted``, ``cell_over_max``
@@ -680,28 +708,16 @@ class CellCollisions:
         ``collisions_<a>_<b>``, ``surrogate_calls_<a>_<b>``."""
         if self._counts is not None:
             return dict(self._counts)
-        from kernels.cell_collide import (COUNT_ACCEPTED, COUNT_CANDIDATES, COUNT_CELLS, COUNT_CLAMPED,
-                                          COUNT_COULOMB, COUNT_ENERGY, COUNT_LOG_OVERFLOW, COUNT_OVER_MAX,
-                                          COUNT_RESTORED, COUNT_SEPARATION, COUNT_UNRESTORED, N_COUNTS)
+        staged = self.count_arrays()
+        if staged is None:
+            from kernels.cell_collide import N_COUNTS
 
-        s = self.n_streams
-        if self._args is None:
-            c = np.zeros(N_COUNTS, np.int64)
-            calls = collisions = np.zeros((s, s), np.int64)
+            s = self.n_streams
+            host = {"cell_counts": np.zeros(N_COUNTS, np.int64), "calls": np.zeros(s * s, np.int64),
+                    "collisions": np.zeros(s * s, np.int64), "rounds": [0], "wall_hits": [0]}
+            self._counts = self.counts_from(host, {})
         else:
-            c = self._args.counts.numpy().astype(np.int64)
-            calls = self._args.calls.numpy().reshape(s, s).astype(np.int64)
-            collisions = self._args.collisions.numpy().reshape(s, s).astype(np.int64)
-        self._counts = {"collisions": int(collisions.sum()), "surrogate_calls": int(calls.sum()),
-                        "detected_pairs": 0, "cell_candidates": int(c[COUNT_CANDIDATES]),
-                        "cell_accepted": int(c[COUNT_ACCEPTED]), "cell_over_max": int(c[COUNT_OVER_MAX]),
-                        "cell_cells": int(c[COUNT_CELLS]), "cell_log_overflow": int(c[COUNT_LOG_OVERFLOW]),
-                        "cell_restored": int(c[COUNT_RESTORED]), "cell_unrestored": int(c[COUNT_UNRESTORED]),
-                        "rounds": 0 if self._args is None else int(self._rounds.numpy()[0]),
-                        "cell_wall_hits": 0 if self._args is None else int(self._wall_hits.numpy()[0]),
-                        "guard_separation": int(c[COUNT_SEPARATION]), "guard_coulomb": int(c[COUNT_COULOMB]),
-                        "guard_energy": int(c[COUNT_ENERGY]), "guard_domain_clamped": int(c[COUNT_CLAMPED]),
-                        **pair_counts("collisions", collisions), **pair_counts("surrogate_calls", calls)}
+            self._counts = self.counts_from({k: a.numpy() for k, a in staged[0].items()}, staged[1])
         return dict(self._counts)
 
     def event_log(self) -> dict:

@@ -480,7 +480,9 @@ class SurrogateCollision:
             self.set_walls(solver.shapes, solver.wall_params)
         particles = solver.pool.particles
         self._kicked = False
-        uses_swept = self._uses_swept(particles)
+        # one read for the choice of detection and the collisions (unless the kick below changes the velocities)
+        extremes = particles.live_extremes() if self.mode == "pairwise" and self.auto_detection else None
+        uses_swept = self._uses_swept(particles, None if extremes is None else extremes[1])
         if not uses_swept and self.mode == "pairwise" and getattr(solver.config, "packing_stress", None) is None:
             self._packing_stress(solver)  # a solver's own packing stress (HelConfig.packing_stress) replaces it
         if self.kick_first and uses_swept:
@@ -492,7 +494,7 @@ class SurrogateCollision:
                 self._x_scratch = wp.empty_like(particles.x)
             solver.fluid_push(particle_x_out=self._x_scratch)
             self._kicked = True
-        self.collide(particles, solver.config.dt)
+        self.collide(particles, solver.config.dt, extremes=None if self._kicked else extremes)
 
     def _packing_stress(self, solver) -> None:
         """The cell detection's MP-PIC packing stress into ``solver.fields.parcel_a_coll`` (``CellConfig.
@@ -511,14 +513,15 @@ class SurrogateCollision:
         collision_acceleration(grid.cell_grid(), 1.0e-6, particles.x, particles.density, fields.cell_grad_p_s,
                                fields.cell_eps_s, fields.parcel_a_coll, dt=solver.config.dt)
 
-    def _uses_swept(self, particles) -> bool:
+    def _uses_swept(self, particles, w_max: float | None = None) -> bool:
         """Whether :meth:`collide` takes the swept detection for these particles (``cell`` where auto-detection
-        meets a parcel of weight > 1)."""
+        meets a parcel of weight > 1); ``w_max``: the largest live weight when the caller has it."""
         if self.mode != "pairwise":
             return False
         if self.auto_detection:
-            alive = particles.alive.numpy().astype(bool)
-            return not bool((particles.weight.numpy()[alive] > 1.0).any())
+            if w_max is None:
+                w_max = particles.live_extremes()[1]
+            return not w_max > 1.0
         return self.detection == "swept"
 
     def advance(self, solver) -> None:
@@ -538,10 +541,11 @@ class SurrogateCollision:
         """Called by ``HelSolver.push`` after the parcels moved: the in-step position corrections (swept)."""
         self.correct_positions(solver.pool.particles)
 
-    def collide(self, particles, dt: float | None = None) -> None:
+    def collide(self, particles, dt: float | None = None, *, extremes: tuple | None = None) -> None:
         """Resolve the collisions of ``particles`` in the coming step of ``dt`` (swept; required) or at the current
         positions (overlap, paper), updating the velocities in place. With swept detection the caller then moves
-        the parcels with their new velocities and calls :meth:`correct_positions`."""
+        the parcels with their new velocities and calls :meth:`correct_positions`. ``extremes``:
+        ``particles.live_extremes()`` when the caller has them for the current velocities."""
         self._setup(particles)
         for arr in (self.detected, self.calls, self.collisions, self.skipped, self.round_cap_hit,
                     self.event_rounds, self.swept.round, self.swept.guard, self.swept.wall_hits):
@@ -549,7 +553,9 @@ class SurrogateCollision:
         self._counts = None
         self._events = None
         self._shift_pending = False
-        v_max, w_max, r_max, n_alive, bad = particles.live_extremes()  # one read-back, not four arrays
+        if extremes is None:
+            extremes = particles.live_extremes()  # one read-back, not four arrays
+        v_max, w_max, r_max, n_alive, bad = extremes
         if bad:
             raise HelWarpError(f"{bad} live parcels have a NaN or infinite velocity, weight or radius before the "
                                "collisions: the step blew up (reduce dt) or the input holds NaN")
@@ -756,33 +762,48 @@ class SurrogateCollision:
         if "swept_rounds_prev" in state:
             self._rounds_prev = int(np.asarray(state["swept_rounds_prev"]))
 
+    def count_arrays(self):
+        """The device arrays :meth:`counts` reads and the host values it needs, taken now: ({name: wp.array},
+        extras), for a caller that copies the arrays on the device every step and reads them at output intervals
+        (``hel_warp.runs.run.Run``, ``HelConfig.read_back`` 'output'); None where nothing is on the device yet."""
+        if self.detection == "cell" and self.mode == "pairwise":
+            return self.cells.count_arrays()
+        if self._device is None:
+            return None
+        arrays = {"detected": self.detected, "calls": self.calls, "collisions": self.collisions,
+                  "skipped": self.skipped, "rounds": self.event_rounds, "cap": self.round_cap_hit,
+                  "guard": self.swept.guard, "wall_events": self.swept.wall_hits}
+        return arrays, {"windows": self._windows if self.detection == "swept" else 1}
+
+    def counts_from(self, host: dict, extras: dict) -> dict:
+        """:meth:`counts` from host copies of :meth:`count_arrays` (the same names) and its extras."""
+        if "cell_counts" in host:
+            return self.cells.counts_from(host, extras)
+        s = self.n_streams
+        detected, calls, collisions = (np.asarray(host[k]).reshape(s, s) for k in ("detected", "calls", "collisions"))
+        return {"collisions": int(collisions.sum()), "surrogate_calls": int(calls.sum()),
+                "detected_pairs": int(detected.sum()), "separating_skipped": int(host["skipped"][0]),
+                "rounds": int(host["rounds"][0]), "round_cap_hit": int(host["cap"][0]),
+                "wall_events": int(host["wall_events"][0]), "windows": extras["windows"],
+                **{f"guard_{name}": int(k) for name, k in zip(GUARD_NAMES, host["guard"])},
+                **pair_counts("collisions", collisions), **pair_counts("surrogate_calls", calls),
+                **pair_counts("detected_pairs", detected)}
+
     def counts(self) -> dict:
         """Counts of the last :meth:`collide` (host read): totals and per stream pair (see the class)."""
         if self.detection == "cell" and self.mode == "pairwise":
             return self.cells.counts()
         if self._counts is None:
-            s = self.n_streams
-            if self._device is None:
-                detected = calls = collisions = np.zeros((s, s), np.int64)
-                skipped = rounds = cap = 0
+            staged = self.count_arrays()
+            if staged is None:
+                s = self.n_streams
+                zero = np.zeros(s * s, np.int64)
+                host = {"detected": zero, "calls": zero, "collisions": zero, "skipped": [0], "rounds": [0],
+                        "cap": [0], "guard": np.zeros(len(GUARD_NAMES), np.int64), "wall_events": [0]}
+                extras = {"windows": self._windows if self.detection == "swept" else 1}
             else:
-                detected = self.detected.numpy().reshape(s, s)
-                calls = self.calls.numpy().reshape(s, s)
-                collisions = self.collisions.numpy().reshape(s, s)
-                skipped, rounds = int(self.skipped.numpy()[0]), int(self.event_rounds.numpy()[0])
-                cap = int(self.round_cap_hit.numpy()[0])
-                guard = self.swept.guard.numpy()
-                wall_events = int(self.swept.wall_hits.numpy()[0])
-            if self._device is None:
-                guard = np.zeros(len(GUARD_NAMES), np.int64)
-                wall_events = 0
-            self._counts = {"collisions": int(collisions.sum()), "surrogate_calls": int(calls.sum()),
-                            "detected_pairs": int(detected.sum()), "separating_skipped": skipped,
-                            "rounds": rounds, "round_cap_hit": cap, "wall_events": wall_events,
-                            "windows": self._windows if self.detection == "swept" else 1,
-                            **{f"guard_{name}": int(k) for name, k in zip(GUARD_NAMES, guard)},
-                            **pair_counts("collisions", collisions), **pair_counts("surrogate_calls", calls),
-                            **pair_counts("detected_pairs", detected)}
+                host, extras = {k: a.numpy() for k, a in staged[0].items()}, staged[1]
+            self._counts = self.counts_from(host, extras)
         return dict(self._counts)
 
 

@@ -36,6 +36,7 @@ import sys
 import time
 import weakref
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import warp as wp
@@ -53,6 +54,15 @@ gross face flux through the cells (floor of the pressure solver's absolute toler
 
 FLOAT32_UNIT_ROUNDOFF = 2.0**-24
 """Unit round-off of float32 (5.96e-8): the relative error of rounding a value to the stored float32."""
+
+
+class _FloorOf(NamedTuple):
+    """A CG's absolute floor scale * sqrt(sums[index]) from a device array: the device-side loop takes it there
+    (``kernels/gas.py`` ``pcg_params_floor_kernel``), the other paths read it back (``GasSolver._host_floor``)."""
+
+    sums: object
+    index: int
+    scale: float
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -118,10 +128,18 @@ class GasConfig:
     """The native CG as one captured graph per system whose iterations loop on the device (``wp.capture_while``,
     the stop test in a kernel): one read-back per solve instead of one per iteration (~33 per rig step, each a sync
     on a GPU). The same bits as the host loop (tests/test_gas.py), NaN cases included, and as fast on the CPU
-    (21.8 against 22.1 ms of gas per rig step). Off by default: it has not run on a GPU yet;
-    a driver without graph conditional nodes falls back to the host loop with a warning."""
+    (21.8 against 22.1 ms of gas per rig step). Off here by default; ``HelSolver`` turns it on with
+    ``HelConfig.read_back`` 'output' (the CUDA default). A driver without graph conditional nodes falls back to
+    the host loop with a warning."""
     check_finite: bool = True
-    """Raise HelWarpError when a NaN/inf appears (one int read back per step)."""
+    """Raise HelWarpError when a NaN/inf appears (one int read back per step; with ``deferred_checks`` at
+    ``GasSolver.check``)."""
+    deferred_checks: bool = False
+    """Steps without a device-to-host read (with ``pcg_device_loop`` on the native solver): the CG solves log their
+    iterations and failures (not converged, NaN) on the device, the NaN cells accumulate there, the pressure's
+    float32 floor is taken on the device, and ``GasSolver.check()`` reads them, raising the error a step would
+    have raised, at the caller's pace (``HelSolver`` does at each output: ``HelConfig.read_back``). On a GPU
+    every read is a sync that stalls the queue of launches; the numbers are the same bits either way."""
 
     def __post_init__(self) -> None:
         require_positive("gas density", self.density, "kg/m^3")
@@ -397,14 +415,74 @@ class GasSolver:
         self._pcg_params = wp.zeros(3, dtype=wp.float64, device=dev)  # tol, atol_floor, maxiter
         self._device_loop_warned = False
         self._pcg_more = wp.zeros(1, dtype=wp.int32, device=dev)  # the while loop's condition
+        self._solve_log = wp.full((4, 7), -1.0, dtype=wp.float64, device=dev)  # kernels/gas.py pcg_log_kernel
+        self._log_unread = False
         self.device_loop = bool(self.config.pcg_device_loop)
         """``GasConfig.pcg_device_loop`` (may be changed between steps)."""
+        self.deferred_checks = bool(self.config.deferred_checks)
+        """``GasConfig.deferred_checks`` (may be changed between steps; ``check`` first)."""
         self._ordered_slots = int(not any(bool(v) for v in grid.periodic))
         """1 when every compact system couples a row to lower rows only through slots -x, -y, -z (no axis
         periodic: no coupling wraps around), which ``ic0_step_apply_kernel`` then takes without index tests."""
         self._primed = weakref.WeakSet()  # GasFields whose solid cells and far faces hold the constants
-        self.last_iterations = {"pressure": 0, "viscous": [0, 0, 0]}
-        """CG iterations of the last step (diagnostic)."""
+        self._last_iterations = {"pressure": 0, "viscous": [0, 0, 0]}
+
+    @staticmethod
+    def _host_floor(atol_floor) -> float:
+        """A CG's absolute floor on the host: a float, or ``_FloorOf`` read back."""
+        if isinstance(atol_floor, _FloorOf):
+            return atol_floor.scale * float(np.sqrt(atol_floor.sums.numpy()[atol_floor.index]))
+        return float(atol_floor)
+
+    @property
+    def last_iterations(self) -> dict:
+        """CG iterations of the last step (diagnostic): {'pressure': n, 'viscous': [nx, ny, nz]}. With deferred
+        checks the solves log them on the device, and asking reads the log (a sync on a GPU)."""
+        if self._log_unread:
+            self._read_log()
+        return self._last_iterations
+
+    def _read_log(self) -> np.ndarray:
+        log = self._solve_log.numpy().copy()
+        self._log_unread = False
+        for slot, row in enumerate(log):
+            if row[0] < 0.0:  # no solve of this system since the last read
+                continue
+            if slot == 3:
+                self._last_iterations["pressure"] = int(row[0])
+            else:
+                self._last_iterations["viscous"][slot] = int(row[0])
+        return log
+
+    def _deferring(self) -> bool:
+        """Checks deferred to ``check`` this step: asked for, and the native CG looping on the device."""
+        return self.deferred_checks and self.device_loop and self.linear_solver == "native"
+
+    def check(self) -> None:
+        """With deferred checks: read what the steps since the last call logged on the device (two reads) and
+        raise the HelWarpError a step would have raised at once: NaN/inf in the gas field, a CG solve that produced
+        NaN or did not converge. Without deferred checks nothing is pending (the steps checked themselves)."""
+        if not (self.deferred_checks or self._log_unread):
+            return
+        log = self._read_log()
+        bad = int(self._bad.numpy()[0]) if self.config.check_finite else 0
+        self._solve_log.fill_(-1.0)  # column 0 < 0: no solve since this read; column 3 <= 0: no failure
+        self._bad.zero_()
+        for slot, row in enumerate(log):
+            if row[3] > 0.0:
+                what = "pressure" if slot == 3 else f"viscous ({'xyz'[slot]})"
+                iterations, residual, atol = int(row[4]), float(row[5]), float(row[6])
+                since = f" ({int(row[3])} failed solves since the last check)"
+                if not np.isfinite(residual):
+                    raise HelWarpError(f"{what} solve produced NaN/inf (residual {residual}){since}; the gas state "
+                                       "blew up: reduce dt or check the inputs (eps_s, momentum source) for NaN")
+                raise HelWarpError(
+                    f"{what} solve did not converge: residual {residual:.3e} > {atol:.3e} after {iterations} "
+                    f"CG iterations{since}; raise {'pressure' if slot == 3 else 'viscous'}_max_iterations, "
+                    f"loosen {'pressure' if slot == 3 else 'viscous'}_tolerance, or reduce dt")
+        if bad > 0:
+            raise HelWarpError(f"gas field held NaN/inf in {bad} cell-steps since the last check; "
+                               "reduce dt or check eps_s and the momentum source for NaN")
 
     # ------------------------------------------------------------------ private building blocks
     def _params(self, dt: float) -> K.FlowParams:
@@ -536,7 +614,10 @@ class GasSolver:
         if self.linear_solver == "native":
             iterations, residual, atol = self._native_pcg(system, n, A, tol, maxiter, atol_floor, relaxation,
                                                           multigrid, preconditioner)
+            if iterations is None:  # deferred: logged on the device, read by ``check``
+                return None
         else:
+            atol_floor = self._host_floor(atol_floor)
             def matvec(xv, yv, zv, alpha, beta):
                 wp.launch(K.stencil_matvec_kernel, dim=n, inputs=[A, xv, yv, wp.float64(alpha), wp.float64(beta)],
                           outputs=[zv], device=self.device)
@@ -684,6 +765,7 @@ class GasSolver:
         the captured iteration (``_pcg_iteration_graph``) until the bound or ``maxiter``, and ``after`` (None:
         nothing). One read-back per iteration. Returns (iterations, ||r||, bound)."""
         s = self._scalars
+        atol_floor = self._host_floor(atol_floor)
         start()
         host = s.numpy()
         atol = max(tol * float(np.sqrt(host[1])), atol_floor)
@@ -807,10 +889,18 @@ class GasSolver:
             return None
         # the stop test's parameters on the device, so that one graph serves every step (the pressure's atol_floor
         # changes with the step's gross divergence)
-        wp.launch(K.pcg_params_kernel, dim=1, inputs=[wp.float64(tol), wp.float64(atol_floor), wp.float64(maxiter)],
-                  outputs=[params], device=dev)
+        if isinstance(atol_floor, _FloorOf):
+            wp.launch(K.pcg_params_floor_kernel, dim=1,
+                      inputs=[wp.float64(tol), wp.float64(atol_floor.scale), atol_floor.sums, atol_floor.index,
+                              wp.float64(maxiter)], outputs=[params], device=dev)
+        else:
+            wp.launch(K.pcg_params_kernel, dim=1, inputs=[wp.float64(tol), wp.float64(atol_floor),
+                                                          wp.float64(maxiter)], outputs=[params], device=dev)
         graph = self._pcg_solve_graphs.get(key)
         if graph is None:
+            slot = 3 if key[0] == "pressure" else int(key[0])
+            log = wp.launch(K.pcg_log_kernel, dim=1, inputs=[stop, slot], outputs=[self._solve_log], device=dev,
+                            record_cmd=True)
             stop_start = wp.launch(K.pcg_stop_start_kernel, dim=1, inputs=[s, params], outputs=[stop, more],
                                    device=dev, record_cmd=True)
             check = wp.launch(K.pcg_stop_kernel, dim=1, inputs=[s, params], outputs=[stop, more], device=dev,
@@ -827,8 +917,12 @@ class GasSolver:
                 wp.capture_while(more, body)
                 if finish is not None:
                     finish()
+                log.launch()
             graph = self._pcg_solve_graphs[key] = capture.graph
         wp.capture_launch(graph)
+        if self.deferred_checks:
+            self._log_unread = True
+            return None, None, None
         atol, residual, iterations = (float(v) for v in self._pcg_stop.numpy())
         return int(iterations), residual, atol
 
@@ -872,9 +966,11 @@ class GasSolver:
                          [g, params, faces, face_row, self._viscous_topology[axis], dom.face_type, dom.face_bc,
                           dom.cell_fluid, gas.face_eps, gas.face_kappa_flat[axis], gas.cell_momentum_source,
                           gas.pressure_solution, self._velocity_tmp, self._c_rhs, self._c_x, self._stencils[axis]])
-            self.last_iterations["viscous"][axis] = self._solve(
+            iterations = self._solve(
                 axis, f"viscous ({'xyz'[axis]})", c.viscous_tolerance, c.viscous_max_iterations,
                 preconditioner=c.viscous_preconditioner)
+            if iterations is not None:
+                self._last_iterations["viscous"][axis] = iterations
             self._launch(K.STORE_COMPONENT_KERNELS[axis], faces, [g, faces, face_row, self._c_x, gas.face_velocity])
 
     def project(self, gas: GasField, dt: float) -> None:
@@ -893,12 +989,14 @@ class GasSolver:
             wp.launch(K.remove_mean_kernel, dim=n, inputs=[self._c_active[:n], self._fluid_sum, self._c_rhs[:n]],
                       device=self.device)
         self._c_x.zero_()
-        # floor: float32 round-off of the stored face velocities, relative to the gross flux
-        gross = float(np.sqrt(self._fluid_sum.numpy()[2]))
-        self.last_iterations["pressure"] = self._solve("pressure", "pressure", c.pressure_tolerance,
-                                                       c.pressure_max_iterations, atol_floor=FLOAT32_FLOOR * gross,
-                                                       relaxation=c.pressure_preconditioner_relaxation,
-                                                       multigrid=self._pressure_mg)
+        # floor: float32 round-off of the stored face velocities, relative to the gross flux (read back unless
+        # the device-side loop takes it there)
+        floor = _FloorOf(self._fluid_sum, 2, FLOAT32_FLOOR)
+        iterations = self._solve("pressure", "pressure", c.pressure_tolerance, c.pressure_max_iterations,
+                                 atol_floor=floor if self._deferring() else self._host_floor(floor),
+                                 relaxation=c.pressure_preconditioner_relaxation, multigrid=self._pressure_mg)
+        if iterations is not None:
+            self._last_iterations["pressure"] = iterations
         dp = self._pressure_increment
         self._launch(K.pressure_increment_kernel, cells, [g, cells, cell_row, self._c_x, dp, gas.pressure_solution])
         for axis in range(3):
@@ -908,7 +1006,8 @@ class GasSolver:
                           gas.face_velocity, self._face_grad_p])
             alias = self._alias_faces[axis]
             self._launch(K.periodic_sync_kernel, alias, [g, axis, alias, gas.face_velocity])
-        self._bad.zero_()
+        if not self._deferring():  # deferred: the count accumulates until ``check``
+            self._bad.zero_()
         self._launch(K.cell_projected_kernel, cells,
                      [g, params, cells, dom.cell_fluid, dom.face_type, self._face_grad_p, gas.pressure_solution,
                       gas.face_velocity, gas.cell_pressure, gas.cell_grad_p, gas.cell_velocity, self._bad])
@@ -936,7 +1035,7 @@ class GasSolver:
                 self.timings[phase.__name__] = time.perf_counter() - start
             else:
                 phase(*args)
-        if self.config.check_finite:
+        if self.config.check_finite and not self._deferring():
             # counted by the projection's cell pass over the fluid cells (the solid cells hold constants)
             if int(self._bad.numpy()[0]) > 0:
                 raise HelWarpError(f"gas field holds NaN/inf in {int(self._bad.numpy()[0])} cells after the step; "

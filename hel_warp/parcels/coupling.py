@@ -259,15 +259,18 @@ class CouplingFields:
         return fields
 
 
-def reserve_tent_records(grid: GridSpec, particles) -> int:
+def reserve_tent_records(grid: GridSpec, particles, max_weight: float | None = None) -> int:
     """Before the tent deposits of a coupling call on CUDA: Warp's deterministic atomics of ``kernels/deposit.py``
     sized for the largest live parcel's tent (``kernels.deposit.reserve_records``; a tent of half-width K adds into
-    (2K)^3 cells). Nothing to do on the CPU, without tents or without parcels. Returns the bound in force."""
+    (2K)^3 cells); ``max_weight``: an upper bound of the live weights, None: read it (``live_extremes``). Nothing to
+    do on the CPU, without tents or without parcels. Returns the bound in force."""
     from kernels import deposit as D
 
     if not (D.DETERMINISTIC and particles.device.is_cuda and grid.spread and particles.count > 0):
         return D.reserve_records(0)
-    k = tent_support_host(grid, particles.live_extremes()[1])  # the largest live weight
+    if max_weight is None:
+        max_weight = particles.live_extremes()[1]  # the largest live weight
+    k = tent_support_host(grid, max_weight)
     return D.reserve_records(8 * k**3)
 
 
@@ -289,17 +292,22 @@ def parcel_grid(grid: GridSpec, fields: "CouplingFields", cell_fluid=None):
     return grid.cell_grid(cell_fluid, cloud)
 
 
-def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields, cell_fluid=None, *, stencil=None) -> None:
+def deposit_parcels(grid: GridSpec, particles, fields: CouplingFields, cell_fluid=None, *, stencil=None,
+                    max_weight: float | None = None) -> None:
     """Step 1: parcels -> cells (volume, momentum source from the last push, sum beta V, solids momentum);
     ``cell_fluid``: the int32 fluid mask heavy parcels' tents keep to; ``stencil``: a ``ParcelStencil`` the
-    deposit fills at the parcels' positions (every trilinear row: the parcels moved since the last step)."""
+    deposit fills at the parcels' positions (every trilinear row: the parcels moved since the last step);
+    ``max_weight``: an upper bound of the live parcels' weights (None: read the largest, one sync). The bound
+    may exceed it: the cloud widths of parcels of weight <= 1 are 0, whose stencil is the trilinear one that the
+    weight rule gives them (``kernels/interp.py`` ``parcel_cell``, K = 1), so computing them changes no bit."""
     from kernels.deposit import cloud_widths, deposit, finish_cells
     from kernels.interp import parcel_arrays
 
-    reserve_tent_records(grid, particles)
+    reserve_tent_records(grid, particles, max_weight)
     arrays = parcel_arrays(particles)
     fields.cloud_on = False  # not a field: True from a deposit that computed parcel_cloud to the next deposit
-    if grid.spread and grid.cloud_density and particles.count > 0 and particles.live_extremes()[1] > 1.0:
+    if grid.spread and grid.cloud_density and particles.count > 0 and \
+            (particles.live_extremes()[1] if max_weight is None else max_weight) > 1.0:
         cloud_widths(grid.cell_grid(cell_fluid), arrays, cell_solid_volume=fields.cell_solid_volume,
                      parcel_cloud=fields.parcel_cloud, launches=fields.launches)
         fields.cloud_on = True
@@ -380,7 +388,7 @@ drag law's balance with three passes, 3.7 % with two (the iteration alternates a
 
 def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params, *, cell_velocity, cell_fluid,
                   gas_density: float, eps_f_min: float, particle_x_out=None, particle_v_out=None,
-                  stencil=None, cell_grad_p=None) -> None:
+                  stencil=None, cell_grad_p=None, max_weight: float | None = None) -> None:
     """Step 5 with the implicit drag exchange (``kernels/deposit.py``): eq. (4) for the parcels and the gas
     impulse ``fields.cell_gas_impulse`` for the next gas step, solved together per cell so that neither
     phase overshoots their common velocity however dense the cell, and momentum balances to round-off.
@@ -393,7 +401,7 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
     ``cell_grad_p``: the gas's grad p' (Pa/m), held over the step while the gas relaxes with the parcels, so that a
     steady drag balances the pressure force (``kernels/deposit.py`` ``exchange_cells_kernel``); None: the gas's
     inertia alone, which carries at most ~M u / dt of drag per cell (a packed bed at 0.1 m/s and 5e-4 s: 8 Pa of
-    the 62 Pa Ergun's law asks).
+    the 62 Pa Ergun's law asks). ``max_weight``: as :func:`deposit_parcels`'s.
     """
     import warp as wp
 
@@ -403,7 +411,7 @@ def exchange_push(grid: GridSpec, particles, fields: CouplingFields, push_params
 
     p = particles
     f = fields
-    reserve_tent_records(grid, p)  # once for the passes below
+    reserve_tent_records(grid, p, max_weight)  # once for the passes below
     g = parcel_grid(grid, fields, cell_fluid)
     x_out = p.x if particle_x_out is None else particle_x_out
     v_out = p.v if particle_v_out is None else particle_v_out

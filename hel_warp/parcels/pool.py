@@ -188,6 +188,9 @@ class ParcelPool:
     _removed_counter: object = field(default=None, repr=False)
     _grid: object = field(default=None, repr=False)
     """Hash grid of the pool's positions for the injection overlap check (built per release)."""
+    weight_placed_since: float = 0.0
+    """The largest weight :meth:`place` wrote since its reader last set this to 0 (``HelSolver``'s bound of the
+    live weights between two reads of the device)."""
 
     @classmethod
     def empty(cls, capacity: int, *, device=None) -> "ParcelPool":
@@ -238,6 +241,8 @@ class ParcelPool:
         put(p.radius, each(radius, np.float32), wp.float32)
         put(p.density, each(density, np.float32), wp.float32)
         put(p.weight, each(weight, np.float32), wp.float32)
+        if n:
+            self.weight_placed_since = max(self.weight_placed_since, float(np.max(each(weight, np.float32))))
         put(p.stream, each(stream, np.int32), wp.int32)
         put(p.alive, np.ones(n, np.int32), wp.int32)
         put(p.particle_id, np.arange(self.used, self.used + n, dtype=np.int32), wp.int32)

@@ -309,6 +309,7 @@ class Run:
         self.checkpoint_every = self.output_every * max(1, int(round(interval / (self.output_every * dt))))
         self.resolved = resolved_config(solver, config, case_config)
         self._series: dict[str, list] = {}
+        self._counts_log = _DeviceCountsLog(self.output_every)
         self._output_rows: dict[str, list] = {"output_step": [], "wall_hits": []}
         """Per-output series rows not yet written (flushed with the per-step ones at each checkpoint)."""
         self._checkpoint_step = None
@@ -369,9 +370,23 @@ class Run:
         s = self.solver
         row = {"step": np.int64(s.step_count), "time": np.float64(s.time), "timing_step": np.float64(wall)}
         row.update({f"timing_{name}": np.float64(t) for name, t in s.timings.items()})
+        staged = None
+        if getattr(s, "read_back", "step") == "output" and hasattr(s, "collision_count_arrays"):
+            staged = s.collision_count_arrays()
+        if staged is not None and self._counts_log.stage(row, *staged):
+            return  # the row waits for its counts, copied on the device, until the next read (_drain_counts)
+        self._drain_counts()
+        self._append_row(row, s.collision_counts())
+
+    def _drain_counts(self) -> None:
+        """The rows whose collision counts wait on the device: one read, then into the series in step order."""
+        for row, host, extras in self._counts_log.drain():
+            self._append_row(row, self.solver.collision_counts_from(host, extras))
+
+    def _append_row(self, row: dict, counts: dict) -> None:
         # integer counts stay integers; a weight-aware count (real collisions of parcels, min(w_i, w_j) each) is float
         row.update({f"collisions_{name}": (np.int64(c) if isinstance(c, (int, np.integer)) else np.float64(c))
-                    for name, c in s.collision_counts().items()})
+                    for name, c in counts.items()})
         done = len(self._series.get("step", []))
         for name in set(self._series) - set(row):  # a count not reported this step: 0
             self._series[name].append(np.zeros((), dtype=np.asarray(self._series[name][0]).dtype)[()])
@@ -383,6 +398,7 @@ class Run:
     def _flush_series(self) -> None:
         """Append the buffered per-step rows (and the per-output ones). A count that a strategy reports only on some
         steps reads 0 on the others, so every per-step series stays as long as ``series/step``."""
+        self._drain_counts()
         for name, values in self._output_rows.items():
             if values:
                 self._append_series(name, np.asarray(values, np.int64))
@@ -507,6 +523,7 @@ class Run:
 
     def _output_and_checkpoint(self, *, force_checkpoint: bool) -> None:
         s = self.solver
+        self._drain_counts()
         try:
             s.check_finite()
         except HelWarpError as err:
@@ -514,3 +531,67 @@ class Run:
         self.write_output()
         if force_checkpoint or self._checkpoint_due():
             self.checkpoint()
+
+
+class _DeviceCountsLog:
+    """Per-step collision counts kept on the device between two reads (``HelConfig.read_back`` 'output'): each
+    step copies the strategy's count arrays into the next row of a buffer per dtype (device-to-device copies, no
+    sync), and :meth:`drain` reads each buffer once. A change of arrays (the detection switched) or a full buffer
+    drains first. The counts are the same bits a per-step read gives."""
+
+    def __init__(self, rows: int):
+        self.rows = max(1, int(rows))
+        self.layout = None  # ((name, dtype, shape), ...) of the staged arrays
+        self.buffers = {}  # dtype -> (flat device buffer, row width)
+        self.offsets = {}  # name -> (dtype, offset in the row)
+        self.pending = []  # (row dict, extras)
+        self.device = None
+
+    def stage(self, row: dict, arrays: dict, extras: dict) -> bool:
+        """Copy ``arrays`` into the next row; False (nothing staged) for arrays off the device or not contiguous."""
+        import warp as wp
+
+        layout = tuple((name, a.dtype, tuple(a.shape)) for name, a in arrays.items())
+        if any(not a.is_contiguous for a in arrays.values()):
+            return False
+        if layout != self.layout or len(self.pending) >= self.rows:
+            if self.pending:
+                return False  # the caller drains, then stages the next step afresh
+            if layout != self.layout:
+                self._allocate(arrays, layout)
+        k = len(self.pending)
+        for name, a in arrays.items():
+            dtype, offset = self.offsets[name]
+            buffer, width = self.buffers[dtype]
+            wp.copy(buffer, a.flatten() if a.ndim > 1 else a, dest_offset=k * width + offset, count=a.size)
+        self.pending.append((row, dict(extras)))
+        return True
+
+    def _allocate(self, arrays: dict, layout) -> None:
+        import warp as wp
+
+        widths, self.offsets = {}, {}
+        for name, a in arrays.items():
+            self.offsets[name] = (a.dtype, widths.get(a.dtype, 0))
+            widths[a.dtype] = widths.get(a.dtype, 0) + a.size
+        device = next(iter(arrays.values())).device
+        self.buffers = {dtype: (wp.zeros(self.rows * width, dtype=dtype, device=device), width)
+                        for dtype, width in widths.items()}
+        self.layout = layout
+
+    def drain(self) -> list:
+        """[(row, {name: host array}, extras)] of the staged steps, in order (one read per dtype), emptied."""
+        if not self.pending:
+            return []
+        host = {dtype: buffer.numpy().copy() for dtype, (buffer, _) in self.buffers.items()}
+        shapes = {name: shape for name, _, shape in self.layout}
+        out = []
+        for k, (row, extras) in enumerate(self.pending):
+            values = {}
+            for name, (dtype, offset) in self.offsets.items():
+                width = self.buffers[dtype][1]
+                size = int(np.prod(shapes[name])) if shapes[name] else 1
+                values[name] = host[dtype][k * width + offset:k * width + offset + size].reshape(shapes[name])
+            out.append((row, values, extras))
+        self.pending = []
+        return out
