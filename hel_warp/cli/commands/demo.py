@@ -11,7 +11,8 @@ The whole HELSCM pipeline, each stage cached so a rerun continues where it stopp
 5. ``hel-warp report`` over the rig runs (profiles, stream metrics, collision rates, pictures), then the table per
    step of stream crossing, transverse rms velocity, collision rate and axial RMS of each model against dem.
 
-Every stage shows its own progress; the defaults take 3-4 minutes on two cores (about 50 MB of output). The
+Every stage shows its own progress; the defaults take 3-4 minutes on two cores (about 50 MB of output), about 8
+the first time, when Warp compiles the kernels into its cache. The
 full-size versions of each stage are the commands printed in README.md.
 """
 
