@@ -11,7 +11,9 @@ For one run (called by the case at its end, into the run directory):
   voidage, the weight per area and the Wen-Yu minimum fluidization velocity.
 
 Several runs (e.g. one per model) into ``--out``: the solids-fraction maps on one colour scale, the fluidization
-curves of every run on one plot, and the histories together::
+curves of every run on one plot, and the histories together; with a reference (``--reference RUN``, by default the
+``dem`` run among them) ``comparison.md`` / ``.json``: each run beside it at its last level (bed height, pressure
+drop and frequency, the RMS distance of the solids-fraction profiles at 10, 20 and 40 mm, cost)::
 
     python scripts/bed_report.py runs/bed_dem runs/bed_ktgf runs/bed_surrogate --out runs/bed_report
 """
@@ -220,10 +222,90 @@ def draw_run(run_dir, summary=None) -> list:
     return [p for p in paths if p.exists()]
 
 
+def _matching_level(summary: dict, velocity: float):
+    """The level of ``summary`` whose velocity is nearest ``velocity`` (None when it is more than 2 % away)."""
+    levels = summary.get("levels") or []
+    if not levels:
+        return None
+    level = min(levels, key=lambda lv: abs(lv["velocity"] - velocity))
+    return level if abs(level["velocity"] - velocity) <= 0.02 * max(velocity, 1e-12) else None
+
+
+def profile_distance(profile, reference) -> float:
+    """RMS over the reference's x of (eps_s - eps_s_ref), the profile interpolated onto the reference's points."""
+    x_ref, e_ref = (np.asarray(v, np.float64) for v in zip(*reference))
+    x, e = (np.asarray(v, np.float64) for v in zip(*profile))
+    return float(np.sqrt(np.mean((np.interp(x_ref, x, e) - e_ref) ** 2)))
+
+
+def compare(runs, reference: int) -> dict:
+    """Each run beside the reference run (e.g. the CFD-DEM) at the reference's last level: bed height, pressure
+    drop and its standard deviation, dominant pressure frequency, the RMS distance of the solids-fraction profiles
+    at each height from the reference's, wall clock per simulated second and its ratio to the reference's."""
+    ref_summary = runs[reference][1]
+    ref_level = (ref_summary.get("levels") or [None])[-1]
+    if ref_level is None:
+        raise ValueError("the reference run holds no finished level")
+    velocity = ref_level["velocity"]
+
+    def cost(summary):
+        t = summary.get("simulated_time") or summary.get("end_time")
+        return summary["wall_clock_s"] / t if summary.get("wall_clock_s") and t else None
+
+    ref_cost = cost(ref_summary)
+    rows = []
+    for k, (_, summary) in enumerate(runs):
+        level = _matching_level(summary, velocity)
+        if level is None:
+            continue
+        distances = {h: profile_distance(p, ref_level["solids_fraction_profiles"][h])
+                     for h, p in level["solids_fraction_profiles"].items()
+                     if h in ref_level["solids_fraction_profiles"]}
+        c = cost(summary)
+        rows.append({"run": _label(summary), "reference": k == reference, "velocity": level["velocity"],
+                     "bed_height": level["bed_height"], "mean_height_x2": level["mean_height_x2"],
+                     "pressure_drop": level["pressure_drop"], "pressure_drop_std": level["pressure_drop_std"],
+                     "pressure_frequency": level["pressure_frequency"],
+                     "profile_rms": distances,
+                     "profile_rms_mean": float(np.mean(list(distances.values()))) if distances else None,
+                     "wall_clock_per_simulated_s": c,
+                     "reference_cost_ratio": ref_cost / c if c and ref_cost else None})
+    return {"velocity": velocity, "reference": _label(ref_summary), "weight_per_area": ref_summary.get(
+        "bed_weight_per_area"), "runs": rows}
+
+
+def comparison_table(result: dict) -> str:
+    """``compare``'s result as a Markdown table with a line on each column."""
+    heights = sorted({h for r in result["runs"] for h in r["profile_rms"]}, key=float)
+    head = ["run", "bed height, mm", "2 x mean height, mm", "pressure drop, Pa", "pressure frequency, Hz",
+            *[f"eps_s RMS at {float(h) * 1e3:g} mm" for h in heights], "wall clock per simulated s",
+            f"{result['reference']} / run"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in result["runs"]:
+        cells = [r["run"] + (" (reference)" if r["reference"] else ""), f"{r['bed_height'] * 1e3:.1f}",
+                 f"{r['mean_height_x2'] * 1e3:.1f}", f"{r['pressure_drop']:.1f} ± {r['pressure_drop_std']:.1f}",
+                 f"{r['pressure_frequency']:.2f}",
+                 *[f"{r['profile_rms'][h]:.3f}" if h in r["profile_rms"] else "" for h in heights],
+                 "" if r["wall_clock_per_simulated_s"] is None else f"{r['wall_clock_per_simulated_s']:.0f} s",
+                 "" if r["reference_cost_ratio"] is None else f"{r['reference_cost_ratio']:.1f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", f"At U = {result['velocity']:g} m/s, each level's second half. Bed height: the highest layer above "
+              "eps_s = 0.1; 2 x mean height: twice the mean particle height; the pressure drop's mean and standard "
+              "deviation across the bed (the bed weight per area is "
+              f"{result['weight_per_area']:.1f} Pa); pressure frequency: the dominant frequency of its fluctuations. "
+              "eps_s RMS: the root mean square distance of the time-averaged solids-fraction profile across the width "
+              f"from the {result['reference']}'s at that height (0: the same profile; smaller is closer). "
+              "Wall clock of the steps per simulated second, and the reference's divided by the run's."]
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("runs", nargs="+", help="bubbling-bed run directories")
     parser.add_argument("--out", required=True, help="directory of the pictures")
+    parser.add_argument("--reference", default=None,
+                        help="the run the others are compared with at its last level (default: the dem run, if "
+                             "any): comparison.md and comparison.json in --out")
     args = parser.parse_args(argv)
     runs = []
     for r in args.runs:
@@ -239,6 +321,26 @@ def main(argv=None) -> int:
     draw_fluidization(runs, out / "bed_fluidization.png")
     for (root, summary), r in zip(runs, args.runs):
         draw_snapshots(root, summary, out / f"bed_snapshots_{Path(r).name}.png")
+    reference = None
+    if args.reference is not None:
+        matches = [k for k, r in enumerate(args.runs) if Path(r).resolve() == Path(args.reference).resolve()]
+        if not matches:
+            print(f"hel-warp: error: --reference {args.reference} is not one of the runs given", file=sys.stderr)
+            return 2
+        reference = matches[0]
+    else:
+        dem = [k for k, (_, summary) in enumerate(runs) if _label(summary) == "dem"]
+        reference = dem[0] if dem else None
+    if reference is not None and len(runs) > 1:
+        try:
+            result = compare(runs, reference)
+        except ValueError as exc:
+            print(f"hel-warp: error: {exc}", file=sys.stderr)
+            return 2
+        table = comparison_table(result)
+        (out / "comparison.md").write_text(table + "\n")
+        (out / "comparison.json").write_text(json.dumps(result, indent=1) + "\n")
+        print(table)
     print("\n".join(str(p) for p in sorted(out.glob("*.png"))))
     return 0
 

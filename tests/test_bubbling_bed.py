@@ -103,3 +103,36 @@ def test_the_measured_minimum_fluidization_is_where_ergun_meets_the_weight():
         weight * levels[0] / drops[0], rel=1e-12)
     assert bb.measured_umf(levels[:3], drops[:3], weight) is None  # no level on the plateau
     assert bb.measured_umf(levels[3:], drops[3:], weight) is None  # no level on the fixed branch
+
+
+def test_the_comparison_measures_profile_distances_and_costs_against_the_reference():
+    """``scripts/bed_report.py``'s comparison on made-up runs: a profile is at distance 0 from itself and at |c|
+    from itself shifted by c (the RMS of a constant), one sampled on other x is interpolated onto the reference's;
+    a run is matched at the reference's last velocity; the cost ratio is the reference's wall clock per simulated
+    second over the run's."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    import bed_report
+
+    x = [0.0012 * (2 * k + 1) for k in range(6)]
+    base = [0.5 - 0.05 * k for k in range(6)]
+
+    def run(name, shift, wall, velocity=0.66, points=x):
+        values = [0.5 - 0.05 * (p / 0.0024 - 0.5) + shift for p in points]
+        level = {"velocity": velocity, "bed_height": 0.05, "mean_height_x2": 0.045, "pressure_drop": 190.0,
+                 "pressure_drop_std": 10.0, "pressure_frequency": 3.0,
+                 "solids_fraction_profiles": {"0.01": list(map(list, zip(points, values)))}}
+        return None, {"collision_model": name, "levels": [{**level, "velocity": 0.3}, level], "wall_clock_s": wall,
+                      "simulated_time": 2.0, "bed_weight_per_area": 197.7}
+
+    assert bed_report.profile_distance(list(zip(x, base)), list(zip(x, base))) == 0.0
+    fine = [0.0006 * k for k in range(25)]  # the same straight line on other points, across the whole width
+    result = bed_report.compare([run("dem", 0.0, 2000.0), run("surrogate", 0.03, 100.0),
+                                 run("ktgf", 0.0, 50.0, points=fine), run("none", 0.0, 40.0, velocity=0.9)], 0)
+    rows = {r["run"]: r for r in result["runs"]}
+    assert set(rows) == {"dem", "surrogate", "ktgf"}  # none ran no level at 0.66 m/s
+    assert rows["dem"]["profile_rms"]["0.01"] == 0.0 and rows["dem"]["reference"]
+    assert rows["surrogate"]["profile_rms"]["0.01"] == pytest.approx(0.03, rel=1e-12)
+    assert rows["ktgf"]["profile_rms"]["0.01"] == pytest.approx(0.0, abs=1e-9)
+    assert rows["surrogate"]["reference_cost_ratio"] == pytest.approx(20.0)
+    assert rows["surrogate"]["wall_clock_per_simulated_s"] == pytest.approx(50.0)
+    assert "eps_s RMS at 10 mm" in bed_report.comparison_table(result)
