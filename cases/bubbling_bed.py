@@ -222,8 +222,9 @@ def build(args):
     # carries the bed (``hel_warp.hel.KtgfCollision``'s collisional_limit)
     if flow.packing_stress is not None:
         flow.collision_defaults["ktgf"] = {"collisional_limit": KTGF_COLLISIONAL_LIMIT, "restitution": KTGF_RESTITUTION}
-    flow.probe(hc.PressureDrop("bed_pressure_drop", axis="z", low=0.5 * spacing, high=hi[2] - 0.5 * spacing,
-                               every=PROBE_EVERY))
+    # from the distributor to the outlet (the probes extend the pressure to the boundary faces): the whole bed, whose
+    # weight per area the drop of a fluidized bed must equal
+    flow.probe(hc.PressureDrop("bed_pressure_drop", axis="z", low=0.0, high=hi[2], every=PROBE_EVERY))
     flow.probe(hc.BedHeight("bed_height", floor=0.0, threshold=0.1, every=PROBE_EVERY))
     for h in PROFILE_HEIGHTS:
         if h < hi[2]:

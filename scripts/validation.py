@@ -560,12 +560,15 @@ def bubbling_bed(ctx: Context) -> Result:
             r = measured / umf
             res.add(f"`{name}`: minimum fluidization velocity / Wen-Yu", f"{r:.3f}", f"1 ({umf:.3f} m/s)",
                     "within 0.15", abs(r - 1) <= 0.15)
-        picture = out / "bed_fluidization.png"
-        if picture.exists() and name == size["models"][-1]:
-            target = ctx.docs / "validation" / "bed_fluidization.png"
-            target.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(picture, target)
-            res.figures.append("validation/bed_fluidization.png")
+    # every model's curve on one plot, with Ergun's line, the weight and Wen-Yu's U_mf (scripts/bed_report.py)
+    sys.path.insert(0, str(REPO / "scripts"))
+    import bed_report
+
+    runs = [bed_report._load(ctx.path("bed", name)) for name in size["models"]]
+    target = ctx.docs / "validation" / "bed_fluidization.png"
+    target.parent.mkdir(parents=True, exist_ok=True)
+    bed_report.draw_fluidization(runs, target)
+    res.figures.append("validation/bed_fluidization.png")
     res.notes.append(f"1.2 mm spheres of 1000 kg/m^3 in air (rho_f 1.13 kg/m^3), settled by a DEM pour, each level "
                      f"held {size['hold']:g} s and averaged over its second half; dt = 2e-4 s. "
                      + ("Quick size: the CI's 1,500-particle column of 9.6 mm x 9.6 mm at 0.3 and 2 U_mf, the MP-PIC "

@@ -201,3 +201,43 @@ def test_no_pictures_skips_the_pictures_and_nothing_else(tmp_path):
     assert not (tmp_path / "without" / "cooling.png").exists()
     keep = ("granular_temperature_final", "collisions", "steps")
     assert {k: out["with"][k] for k in keep} == {k: out["without"][k] for k in keep}
+
+
+def test_a_pressure_plane_is_exact_for_a_linear_field_up_to_the_boundary_faces():
+    """A pressure linear along z, p = a + b z at the cell centres, with a solid column: the plane probe gives
+    a + b z at a cell centre, between two centres and on the boundary faces (the distributor at z = 0, the outlet
+    at the top: the line extended over the half cell), and a drop between the faces of b times the height; a
+    position outside the domain is refused in one line."""
+    from types import SimpleNamespace
+
+    from hel_warp.case.probes import Pressure, PressureDrop
+
+    shape, h = (3, 2, 5), 2e-3
+    fluid = np.ones(shape, np.int32)
+    fluid[0, 0, :] = 0  # a solid column: its pressure (garbage here) must not enter the means
+    z = (np.arange(shape[2]) + 0.5) * h
+    a, b = 101.5, -2.5e3
+    p = np.broadcast_to(a + b * z, shape).astype(np.float32).copy()
+    p[0, 0, :] = 1e9
+
+    class Arr:
+        def __init__(self, v):
+            self.v = v
+
+        def numpy(self):
+            return self.v
+
+    sim = SimpleNamespace(grid=SimpleNamespace(origin=(0.0, 0.0, 0.0), spacing=h, shape=shape),
+                          solver=SimpleNamespace(cell_fluid=Arr(fluid), gas=SimpleNamespace(cell_pressure=Arr(p))))
+    flow = SimpleNamespace(lo=(0.0, 0.0, 0.0), hi=tuple(n * h for n in shape), spacing=h, grid_shape=shape)
+    for position in (0.0, 0.5 * h, 0.3 * h, 1.7 * h, 2.5 * h, 4.9 * h, 5 * h):
+        probe = Pressure(name="p", axis="z", position=position)
+        probe.check(flow)
+        probe.bind(sim)
+        assert probe.sample(sim)["pressure"] == pytest.approx(a + b * position, rel=1e-6, abs=1e-6 * abs(b) * h)
+    drop = PressureDrop(name="d", axis="z", low=0.0, high=5 * h)
+    drop.check(flow)
+    drop.bind(sim)
+    assert drop.sample(sim)["pressure_drop"] == pytest.approx(-b * 5 * h, rel=1e-5)
+    with pytest.raises(ConfigError, match="outside the domain"):
+        Pressure(name="p", axis="z", position=5.2 * h).check(flow)

@@ -47,6 +47,22 @@ def _layer(grid_origin, spacing, shape, axis: int, position: float, name: str) -
     return index
 
 
+def _plane(grid_origin, spacing, shape, axis: int, position: float, name: str) -> tuple[int, float]:
+    """(i, w): the pressure at ``position`` along ``axis`` is p_i + w (p_(i+1) - p_i) from the cell centres i and
+    i + 1 around it; between a boundary and the first (last) centre, 0 <= position - boundary < h / 2, the line
+    through the two nearest centres is extended (w < 0 or w > 1): the pressure on a distributor or an outlet face.
+    The boundaries themselves are accepted."""
+    extent = spacing * shape[axis]
+    offset = position - grid_origin[axis]
+    if not (-1e-12 * extent <= offset <= extent * (1.0 + 1e-12)):
+        raise ConfigError(f"probe {name!r}: position {position} m lies outside the domain along {AXES[axis]}")
+    if shape[axis] == 1:
+        return 0, 0.0
+    s = offset / spacing - 0.5
+    i = min(max(int(math.floor(s)), 0), shape[axis] - 2)
+    return i, s - i
+
+
 @dataclass
 class Probe(abc.ABC):
     """A measurement sampled after steps (``ProbeRecorder``); each kind says what it samples in ``sample``."""
@@ -73,7 +89,9 @@ def _fluid(sim) -> np.ndarray:
 
 @dataclass
 class Pressure(Probe):
-    """Gas pressure p' at ``point`` or the plane mean on (``axis``, ``position``), Pa."""
+    """Gas pressure p' at ``point`` (its cell's) or the plane mean on (``axis``, ``position``), Pa: linear between
+    the cell centres on either side of the plane, extended to a boundary face (``_plane``), so that a drop between
+    the distributor (``position`` 0) and the outlet counts the whole bed."""
 
     point: tuple | None = None
     axis: object = None
@@ -89,7 +107,7 @@ class Pressure(Probe):
                 raise ConfigError(f"probe {self.name!r}: point {self.point} lies outside the domain")
         else:
             self.axis = _axis(self.name, self.axis)
-            _layer(flow.lo, flow.spacing, flow.grid_shape, self.axis, float(self.position), self.name)
+            _plane(flow.lo, flow.spacing, flow.grid_shape, self.axis, float(self.position), self.name)
 
     def bind(self, sim) -> None:
         grid = sim.grid
@@ -101,19 +119,24 @@ class Pressure(Probe):
                 raise ConfigError(f"probe {self.name!r}: point {self.point} lies in a solid cell; move it into the gas")
             self._index = ijk
         else:
-            index = _layer(grid.origin, grid.spacing, grid.shape, self.axis, float(self.position), self.name)
-            sl = [slice(None)] * 3
-            sl[self.axis] = index
-            self._slice = tuple(sl)
-            self._mask = fluid[self._slice]
+            index, self._weight = _plane(grid.origin, grid.spacing, grid.shape, self.axis, float(self.position),
+                                         self.name)
+            self._slices = []
+            for layer in (index, min(index + 1, grid.shape[self.axis] - 1)):
+                sl = [slice(None)] * 3
+                sl[self.axis] = layer
+                self._slices.append(tuple(sl))
+            self._mask = fluid[self._slices[0]] & fluid[self._slices[1]]
             if not self._mask.any():
-                raise ConfigError(f"probe {self.name!r}: the plane at {self.position} m holds no fluid cell")
+                raise ConfigError(f"probe {self.name!r}: the plane at {self.position} m has no fluid cell on both "
+                                  "sides")
 
     def sample(self, sim) -> dict:
         p = sim.solver.gas.cell_pressure.numpy()
         if self.point is not None:
             return {"pressure": float(p[self._index])}
-        return {"pressure": float(np.mean(p[self._slice][self._mask], dtype=np.float64))}
+        p0, p1 = (p[sl][self._mask].astype(np.float64) for sl in self._slices)
+        return {"pressure": float(np.mean(p0 + self._weight * (p1 - p0)))}
 
 
 @dataclass
