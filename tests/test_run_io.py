@@ -400,3 +400,38 @@ def test_load_kernels_keeps_cpu_only_modules_off_cuda():
     assert set(CPU_ONLY_MODULES) <= cpu_names and "kernels.collide" in cpu_names
     cuda_names = {m.name for m in kernel_modules(types.SimpleNamespace(is_cuda=True))}
     assert cuda_names == cpu_names - set(CPU_ONLY_MODULES)
+
+
+def test_counts_staged_on_the_device_come_back_row_by_row_in_step_order():
+    """``HelConfig.read_back`` 'output': the run loop copies each step's collision-count arrays into a device
+    buffer per dtype and reads it once per output. Staged rows come back with each step's values (int32 and
+    float32 arrays, a 2-D one flattened and reshaped) and its host extras, in order; a full buffer or arrays of
+    another layout are refused (the caller drains first), and after a drain the log takes a new layout."""
+    import warp as wp
+
+    from hel_warp.runs.run import _DeviceCountsLog
+
+    log = _DeviceCountsLog(rows=3)
+    counts = wp.zeros(4, dtype=wp.int32, device="cpu")
+    pairs = wp.zeros((2, 2), dtype=wp.int32, device="cpu")
+    speed = wp.zeros(1, dtype=wp.float32, device="cpu")
+    expected = []
+    for step in range(3):
+        counts.assign(np.arange(4, dtype=np.int32) + 10 * step)
+        pairs.assign(np.array([[step, 1], [2, 3 * step]], np.int32))
+        speed.assign(np.array([0.5 * step], np.float32))
+        assert log.stage({"step": step}, {"counts": counts, "pairs": pairs, "speed": speed}, {"windows": step + 1})
+        expected.append((counts.numpy().copy(), pairs.numpy().copy(), speed.numpy().copy()))
+    assert not log.stage({"step": 3}, {"counts": counts, "pairs": pairs, "speed": speed}, {})  # full
+    drained = log.drain()
+    assert [row["step"] for row, _, _ in drained] == [0, 1, 2]
+    for (row, host, extras), (c, p, s) in zip(drained, expected):
+        assert extras == {"windows": row["step"] + 1}
+        assert np.array_equal(host["counts"], c) and np.array_equal(host["pairs"], p) and host["pairs"].shape == (2, 2)
+        assert np.array_equal(host["speed"], s)
+    assert log.drain() == []
+    other = wp.full(3, 7, dtype=wp.int32, device="cpu")
+    assert log.stage({"step": 4}, {"cell_counts": other}, {})  # a new layout once nothing waits
+    assert not log.stage({"step": 5}, {"counts": counts}, {})  # another layout while a row waits
+    (row, host, _), = log.drain()
+    assert row["step"] == 4 and host["cell_counts"].tolist() == [7, 7, 7]
