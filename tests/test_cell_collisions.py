@@ -693,6 +693,18 @@ def test_counter_streaming_beams_lose_momentum_at_kinetic_theorys_rate_unless_a_
           f"{r64 / r1:.3f} of weight 1")
 
 
+def test_no_saturation_warning_for_single_particles_in_small_cells(hard_sphere_model, device, capsys):
+    """At weight 1 a parcel is one particle: in collision cells of 0.8 mm (w sigma h / V = 0.49 for 315 um
+    spheres, above the warning's 0.3) no parcel re-collides with a deflected copy of itself and no lower weight
+    exists, so no warning about saturated parcel pairs (a packed bed's dense cells at weight 1 would print it)."""
+    from hel_warp.collisions.cells import SATURATION_WARN
+
+    capsys.readouterr()
+    _, s1 = beams_decay_rate(hard_sphere_model, device, 1, 0.8e-3, 1e-4, 1, n_real=4000)
+    assert s1.cells.pair_saturation > SATURATION_WARN
+    assert "saturates" not in capsys.readouterr().err
+
+
 def test_heavy_parcels_cool_at_haffs_rate_in_the_periodic_boxs_own_cells(hard_sphere_model, device):
     """Weight 64 at eps_s = 0.05 (1,000 parcels, the reference cooling box), default lattice: the box's cells are
     sized for 16 parcels unless that would saturate a heavy pair, as grids coarsen. At 16 parcels per cell

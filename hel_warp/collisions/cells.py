@@ -561,7 +561,9 @@ class CellCollisions:
             raise ConfigError(f"{n_cells} collision cells do not fit int32 keys: give a larger cell_size")
         self.lattice = (origin, edges, shape)
         self.pair_saturation = pair_saturation(w_max, r_max, edges)
-        if self.pair_saturation > SATURATION_WARN and not self._saturation_warned:
+        # weight 1: a parcel is one particle, so no parcel meets its own deflected self and no lower weight exists;
+        # the saturation is then the dense regime of particles comparable to the cell (a packed bed's), not an artefact
+        if self.pair_saturation > SATURATION_WARN and w_max > 1.0 and not self._saturation_warned:
             self._saturation_warned = True
             print(f"hel-warp: warning: cell detection: a parcel pair of weight {w_max:g} meets "
                   f"{self.pair_saturation:.2g} collisions while it crosses one collision cell of "
