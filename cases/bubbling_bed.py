@@ -129,6 +129,10 @@ def options(groups) -> None:
     c.add_argument("--hold", type=float, default=None,
                    help="seconds each velocity level is held (default: --end-time shared among the levels)")
     c.add_argument("--ramp", type=float, default=0.0, help="seconds of linear ramp into each level (default 0)")
+    c.add_argument("--distributor-noise", type=float, default=0.0,
+                   help="frozen random nonuniformity of the distributor: each face's speed times 1 + A u, u uniform "
+                        "in [-1, 1] (mean removed, so the superficial velocity stays), seeded by --seed; default 0: "
+                        "uniform, as the CFDEM tutorial")
     c.add_argument("--particles", type=int, default=PARTICLES, help=f"real particles (default {PARTICLES})")
     p.add_argument("--diameter", type=float, default=DIAMETER, help=f"particle diameter, m (default {DIAMETER})")
     p.add_argument("--density", type=float, default=DENSITY, help=f"particle density, kg/m^3 (default {DENSITY:g})")
@@ -194,6 +198,15 @@ def schedule(args):
     return sched
 
 
+def distributor_noise(amplitude: float, seed: int):
+    """The profile of ``--distributor-noise``: factors 1 + A (u - mean u), u uniform in [-1, 1] per face, fixed by
+    ``seed``; their mean is 1, so the superficial velocity is the schedule's."""
+    def factors(points):
+        u = np.random.default_rng([int(seed), 0xD157]).uniform(-1.0, 1.0, len(points))
+        return 1.0 + amplitude * (u - u.mean())
+    return factors
+
+
 def build(args):
     """The box, the distributor and outlet, the settled bed, the probes."""
     cells, spacing, hi = grid(args)
@@ -204,7 +217,12 @@ def build(args):
     flow = hc.Flow("bubbling_bed", lo=(0.0, 0.0, 0.0), hi=hi, cells=cells, gravity=(0.0, 0.0, -G),
                    gas=hc.Gas(density=GAS_DENSITY, viscosity=GAS_VISCOSITY),
                    walls=hc.Walls(friction=0.1, contact="surface"), packing_stress=packing_stress(args))
-    flow.inlet("distributor", "z-", sched)
+    if not (math.isfinite(args.distributor_noise) and 0.0 <= args.distributor_noise < 1.0):
+        raise ConfigError(f"--distributor-noise must be in [0, 1) (got {args.distributor_noise})")
+    if args.distributor_noise > 0.0:
+        flow.inlet("distributor", "z-", sched, profile=hc.Profile(distributor_noise(args.distributor_noise, args.seed)))
+    else:
+        flow.inlet("distributor", "z-", sched)
     flow.outlet("top", "z+")
     mat = replace(material(), density=float(args.density))
     flow.species("bed", float(args.diameter), material=mat, weight=weights[0])

@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -32,6 +33,7 @@ def run_case(tmp_path, *args):
     (["--cells", "20,4,30"], "smaller than a particle"),
     (["--particles", "900000"], "fill more than 0.6"),
     (["--velocity", "0.1,0.2", "--hold", "0.1", "--end-time", "0.1"], "shorter than the levels need"),
+    (["--distributor-noise", "1.5"], "must be in [0, 1)"),
 ])
 def test_bad_input_is_one_line_and_exit_2(tmp_path, bad, message):
     done, out = run_case(tmp_path, *SMALL, "--collisions", "none", "--end-time", "0.01", *bad)
@@ -136,3 +138,14 @@ def test_the_comparison_measures_profile_distances_and_costs_against_the_referen
     assert rows["surrogate"]["reference_cost_ratio"] == pytest.approx(20.0)
     assert rows["surrogate"]["wall_clock_per_simulated_s"] == pytest.approx(50.0)
     assert "eps_s RMS at 10 mm" in bed_report.comparison_table(result)
+
+
+def test_the_distributor_noise_keeps_the_superficial_velocity():
+    """``--distributor-noise A``: per face 1 + A (u - mean u), u uniform in [-1, 1]: the factors average exactly 1
+    (the superficial velocity is the schedule's), lie within 1 +- 2A, vary across the faces, and repeat for a
+    seed."""
+    faces = np.random.default_rng(3).uniform(0.0, 0.04, (72, 3))
+    f = bb.distributor_noise(0.2, 5)(faces)
+    assert f.mean() == pytest.approx(1.0, abs=1e-14) and np.all(np.abs(f - 1.0) <= 0.4) and f.std() > 0.05
+    assert np.array_equal(f, bb.distributor_noise(0.2, 5)(faces))
+    assert not np.array_equal(f, bb.distributor_noise(0.2, 6)(faces))
