@@ -404,18 +404,20 @@ def _masked_case(case, linear_solver):
     return geometry.build(grid), config
 
 
-def _three_steps(solver, domain):
-    """Three steps of ``solver`` from random face velocities with random eps_s and particle sources (seeded): the
-    GasField arrays after each (``_gas_fields``)."""
+def _three_steps(solver, domain, count=3, after_step=None):
+    """Three (``count``) steps of ``solver`` from random face velocities with random eps_s and particle sources
+    (seeded): the GasField arrays after each (``_gas_fields``); ``after_step(solver)`` runs after each step."""
     rng = np.random.default_rng(5)
     gas, shape = GasField(domain), domain.grid.shape
     gas.set_face_velocity([rng.normal(0.0, 0.2, size=a.shape) for a in gas.face_arrays()])
     fields = []
-    for _ in range(3):
+    for _ in range(count):
         gas.cell_eps_s.assign(rng.uniform(0.0, 0.4, shape).astype(np.float32))
         gas.cell_momentum_source.assign(rng.normal(0.0, 1e-9, shape + (3,)).astype(np.float32))
         solver.step(gas, 1e-3)
         fields.append(_gas_fields(gas))
+        if after_step is not None:
+            after_step(solver)
     return fields
 
 
@@ -848,18 +850,16 @@ def test_the_device_side_cg_loop_keeps_its_v_cycle_across_steps():
     config = dataclasses.replace(config, pressure_preconditioner="multigrid", viscous_preconditioner="red_black")
     results = {}
     for loop in (False, True):
+        iterations = []
+
+        def churn(solver):
+            iterations.append(solver.last_iterations["pressure"])
+            del solver
+            junk = [np.full(k % 40 + 1, 7, np.int32) for k in range(20000)]
+            del junk
+
         solver = GasSolver(domain, dataclasses.replace(config, pcg_device_loop=loop))
-        rng = np.random.default_rng(5)
-        gas, shape = GasField(domain), domain.grid.shape
-        gas.set_face_velocity([rng.normal(0.0, 0.2, size=a.shape) for a in gas.face_arrays()])
-        steps = []
-        for _ in range(5):
-            gas.cell_eps_s.assign(rng.uniform(0.0, 0.4, shape).astype(np.float32))
-            solver.step(gas, 1e-3)
-            steps.append((solver.last_iterations["pressure"], _gas_fields(gas)))
-            churn = [np.full(k % 40 + 1, 7, np.int32) for k in range(20000)]
-            del churn
-        results[loop] = steps
+        results[loop] = list(zip(iterations, _three_steps(solver, domain, count=5, after_step=churn)))
     for (it_host, host), (it_device, device) in zip(results[False], results[True]):
         assert it_device == it_host
         for name, expected in host.items():
