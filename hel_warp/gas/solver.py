@@ -65,6 +65,18 @@ class _FloorOf(NamedTuple):
     scale: float
 
 
+def _check_solve(what: str, iterations, residual: float, atol: float, since: str = "") -> None:
+    """HelWarpError for a CG solve of ``what`` ('pressure', 'viscous (x)') that produced NaN/inf or stopped above
+    its bound; ``since``: how many failed since the last check (deferred checks)."""
+    kind = "pressure" if what == "pressure" else "viscous"
+    if not np.isfinite(residual):
+        raise HelWarpError(f"{what} solve produced NaN/inf (residual {residual}){since}; the gas state blew up: "
+                           "reduce dt or check the inputs (eps_s, momentum source) for NaN")
+    if residual > atol:
+        raise HelWarpError(f"{what} solve did not converge: residual {residual:.3e} > {atol:.3e} after {iterations} "
+                           f"CG iterations{since}; raise {kind}_max_iterations, loosen {kind}_tolerance, or reduce dt")
+
+
 @dataclass(frozen=True, kw_only=True)
 class GasConfig:
     """Gas properties and solver controls (SI units)."""
@@ -471,15 +483,8 @@ class GasSolver:
         for slot, row in enumerate(log):
             if row[3] > 0.0:
                 what = "pressure" if slot == 3 else f"viscous ({'xyz'[slot]})"
-                iterations, residual, atol = int(row[4]), float(row[5]), float(row[6])
-                since = f" ({int(row[3])} failed solves since the last check)"
-                if not np.isfinite(residual):
-                    raise HelWarpError(f"{what} solve produced NaN/inf (residual {residual}){since}; the gas state "
-                                       "blew up: reduce dt or check the inputs (eps_s, momentum source) for NaN")
-                raise HelWarpError(
-                    f"{what} solve did not converge: residual {residual:.3e} > {atol:.3e} after {iterations} "
-                    f"CG iterations{since}; raise {'pressure' if slot == 3 else 'viscous'}_max_iterations, "
-                    f"loosen {'pressure' if slot == 3 else 'viscous'}_tolerance, or reduce dt")
+                _check_solve(what, int(row[4]), float(row[5]), float(row[6]),
+                             f" ({int(row[3])} failed solves since the last check)")
         if bad > 0:
             raise HelWarpError(f"gas field held NaN/inf in {bad} cell-steps since the last check; "
                                "reduce dt or check eps_s and the momentum source for NaN")
@@ -636,14 +641,7 @@ class GasSolver:
                                    matvec=jacobi if multigrid is None else vcycle)
             iterations, residual, atol = wpl.cg(operator, rhs, x, tol=tol, atol=atol_floor, maxiter=maxiter, M=M, check_every=10,
                                                 use_cuda_graph=False)
-        if not np.isfinite(residual):
-            raise HelWarpError(f"{what} solve produced NaN/inf (residual {residual}); the gas state blew up: "
-                               "reduce dt or check the inputs (eps_s, momentum source) for NaN")
-        if residual > atol:
-            raise HelWarpError(
-                f"{what} solve did not converge: residual {residual:.3e} > {atol:.3e} after {iterations} "
-                f"CG iterations; raise {'pressure' if what == 'pressure' else 'viscous'}_max_iterations, "
-                f"loosen {'pressure' if what == 'pressure' else 'viscous'}_tolerance, or reduce dt")
+        _check_solve(what, iterations, residual, atol)
         return int(iterations)
 
     def _pcg_launches(self, system, n: int, A: K.Stencil, relaxation: float) -> dict:
