@@ -26,8 +26,9 @@ loose. ``dem`` carries its contacts itself.
 
 ``--json`` prints one object: per level the velocity, the pressure drop (mean and standard deviation over the
 level's second half), the bed height, the solids-fraction profiles across the bed at 10, 20 and 40 mm above the
-distributor, the dominant frequency of the pressure-drop fluctuations; the bed's weight per area, Ergun's pressure
-drop per level at the settled bed's voidage, the Wen-Yu minimum fluidization velocity. ``OUT/`` holds the run
+distributor, the dominant frequency of the pressure-drop fluctuations, Ergun's pressure drop through the level's own
+bed (its law integrated over the time-averaged voidage of each cell layer); the bed's weight per area, Ergun's
+pressure drop per level at the settled bed's voidage, the Wen-Yu minimum fluidization velocity. ``OUT/`` holds the run
 directory of every case and the pictures ``bed_snapshots.png`` (parcels coloured by speed at a few instants),
 ``bed_solids_fraction.png`` (the time-averaged map), ``bed_history.png`` (pressure drop and bed height over time)
 and ``bed_fluidization.png`` (the curve with Ergun's line and the weight). ``scripts/bed_report.py`` draws several
@@ -355,11 +356,17 @@ def levels_summary(run) -> list:
                 avg = probes.time_average(name, "solids_fraction", half, end)
                 x = flow.lo[0] + (np.arange(flow.cells[0]) + 0.5) * flow.spacing
                 profiles[f"{h:g}"] = [[float(a), float(b)] for a, b in zip(x, avg)] if avg is not None else []
+        layers = probes.time_average("bed_height", "layer_solids_fraction", half, end)
+        ergun_layers = None
+        if layers is not None:
+            # Ergun's law through the bed the level holds: its gradient at each cell layer's time-averaged voidage
+            eps_s = np.clip(np.nan_to_num(np.asarray(layers, np.float64)), 0.0, 0.99)
+            ergun_layers = float(sum(ergun(u, run.sim.flow.spacing, 1.0 - e, run.args.diameter) for e in eps_s))
         out.append({"velocity": float(u), "pressure_drop": float(dp.mean()) if dp.size else None,
                     "pressure_drop_std": float(dp.std()) if dp.size else None,
                     "bed_height": float(probes.time_average("bed_height", "bed_height", half, end)),
                     "mean_height_x2": float(probes.time_average("bed_height", "mean_height_x2", half, end)),
-                    "solids_fraction_profiles": profiles,
+                    "solids_fraction_profiles": profiles, "ergun_pressure_drop_layers": ergun_layers,
                     "pressure_frequency": dominant_frequency(t[sel], dp), "window": [half, end]})
     return out
 
@@ -405,8 +412,11 @@ def report(run, summary) -> str:
     if summary.get("minimum_fluidization_velocity") is not None:
         lines[0] += f", measured {summary['minimum_fluidization_velocity']:.3f} m/s"
     for lv, erg in zip(summary["levels"], summary["ergun_pressure_drop"]):
+        layered = lv.get("ergun_pressure_drop_layers")
         lines.append(f"  U = {lv['velocity']:.3f} m/s: dp = {lv['pressure_drop']:.1f} +- {lv['pressure_drop_std']:.1f} "
-                     f"Pa (Ergun {erg:.1f}), bed {lv['bed_height'] * 1e3:.1f} mm, {lv['pressure_frequency']:.1f} Hz")
+                     f"Pa (Ergun {erg:.1f} at the settled voidage"
+                     + (f", {layered:.1f} through the level's layers" if layered is not None else "")
+                     + f"), bed {lv['bed_height'] * 1e3:.1f} mm, {lv['pressure_frequency']:.1f} Hz")
     lines.append(f"  {summary['wall_clock_s']:.1f} s of steps; {run.out}")
     return "\n".join(lines)
 
