@@ -502,6 +502,8 @@ class HelSolver:
         """``HelConfig.read_back`` resolved for this device: 'step' or 'output'."""
         self._weight_bound = None
         """With ``read_back`` 'output': an upper bound of the live parcels' weights (host), else None (read)."""
+        self._radius_bound, self._count_bound = 0.0, 0
+        """With ``read_back`` 'output': the same bounds of their radii and count (:meth:`live_bounds`)."""
         if self.read_back == "output":
             if hasattr(gas_solver, "deferred_checks"):
                 gas_solver.device_loop = True
@@ -818,11 +820,24 @@ class HelSolver:
             return None
         return max(self._weight_bound, float(getattr(self.pool, "weight_placed_since", 0.0)))
 
+    def live_bounds(self) -> tuple[float, float, int]:
+        """(max weight, max radius, live count) of the live parcels: with ``read_back`` 'output' host upper bounds,
+        the last read's raised by what the pool placed since (no read); else read now."""
+        if self._weight_bound is None:
+            return tuple(self.pool.particles.live_extremes()[1:4]) if self.pool.particles.count else (0.0, 0.0, 0)
+        pool = self.pool
+        return (self._live_weight_bound(), max(self._radius_bound, float(getattr(pool, "radius_placed_since", 0.0))),
+                self._count_bound + int(getattr(pool, "count_placed_since", 0)))
+
     def _refresh_weight_bound(self) -> None:
-        """``_weight_bound`` from the live parcels (one read: set-up, outputs, restarts)."""
-        self._weight_bound = float(self.pool.particles.live_extremes()[1]) if self.pool.particles.count else 0.0
-        if hasattr(self.pool, "weight_placed_since"):
-            self.pool.weight_placed_since = 0.0
+        """``_weight_bound`` (and the radius and count bounds of :meth:`live_bounds`) from the live parcels (one
+        read: set-up, outputs, restarts)."""
+        extremes = self.pool.particles.live_extremes() if self.pool.particles.count else (0.0, 0.0, 0.0, 0, 0)
+        self._weight_bound, self._radius_bound, self._count_bound = (float(extremes[1]), float(extremes[2]),
+                                                                     int(extremes[3]))
+        for name, zero in (("weight_placed_since", 0.0), ("radius_placed_since", 0.0), ("count_placed_since", 0)):
+            if hasattr(self.pool, name):
+                setattr(self.pool, name, zero)
 
     # ------------------------------------------------------------------ restart state (host copies)
     def _gas_arrays(self) -> dict:

@@ -98,8 +98,9 @@ Threads: one per collision cell; a cell's candidates are resolved in order by it
 cells are disjoint. The forest is evaluated either inline (explicit tree walks in the cell's thread) or, faster,
 in rounds: each cell stops at its next accepted pair, all cells' pairs are predicted in one batched evaluation
 (``kernels/forest.py`` ``eval_forest``, perfect layout), applied, and the cells go on; the same pairs in the same
-order either way. Random numbers: ``wp.rand_init(seed, cell)`` with a per-step seed from the host, so a run is
-deterministic for a seed and restarts exactly from (seed, step). Parcel lists: a stable radix sort of the live
+order either way. Random numbers: ``wp.rand_init(seed, cell)`` with a per-sub-step seed mixed on the device from
+the host's per-step seed and the sub-step index (``substep_begin``), so a run is deterministic for a seed and
+restarts exactly from (seed, step). Parcel lists: a stable radix sort of the live
 parcels by cell (``wp.utils.radix_sort_pairs``), cell ranges from the sorted keys. Counts are integer atomics
 (deterministic totals). The optional event log (fixed capacity, overflow counted) records the sampled geometry
 for tests and diagnostics.
@@ -176,9 +177,11 @@ class CellArgs:
     """HEL grid spacing, m."""
     cell_fluid_volume: wp.array(dtype=wp.float32)
     """(n_cells,) with ``use_fluid``: the fluid volume of each collision cell, m^3 (``cell_fluid_volumes``)."""
-    dt: wp.float32
-    seed: wp.int32
-    """This step's seed (the host mixes the run seed with the step counter)."""
+    sub_dt: wp.array(dtype=wp.float32)
+    """(1,) the sub-step's dt, s (``substep_plan``: the step's dt over its sub-steps)."""
+    sub_seed: wp.array(dtype=wp.int32)
+    """(1,) the sub-step's seed (``substep_begin``: the step's seed, which the host mixes from the run seed and the
+    step counter, mixed with the sub-step index)."""
     local_density: wp.int32
     """1: a pair's rate takes the real solids fraction around its two parcels (``particle_eps_local``) instead of
     the cell's mean, for cells coarser than the coupling's deposit."""
@@ -670,9 +673,9 @@ def cell_prepare(
         d_max = 2.0 * r_max
         kept = 1.0 - 0.375 * d_max * (1.0 / args.cell_size[0] + 1.0 / args.cell_size[1] + 1.0 / args.cell_size[2])
         pairs += (1.0 - compressibility(solids / volume, args.eps_cap)) * wp.max(kept, 0.0) * float(count)
-    expected = 0.5 * pairs * w_max * chi_max * sigma_g_max * args.dt / volume
+    expected = 0.5 * pairs * w_max * chi_max * sigma_g_max * args.sub_dt[0] / volume
     args.cell_candidates[cell] = expected
-    state = wp.rand_init(args.seed, cell)
+    state = wp.rand_init(args.sub_seed[0], cell)
     n_candidates = int(wp.floor(expected))
     if wp.randf(state) < expected - float(n_candidates):
         n_candidates += 1
@@ -1005,14 +1008,95 @@ def store_cell_args(
 def path_advance(
     particle_v: wp.array(dtype=wp.vec3),
     particle_alive: wp.array(dtype=wp.int32),
-    dt: float,
+    sub_dt: wp.array(dtype=wp.float32),
     # outputs
     path_x: wp.array(dtype=wp.vec3),
 ):
     """A sub-step along the straight path with the velocity after the sub-step's collisions: x += v dt."""
     i = wp.tid()
     if particle_alive[i] != 0:
-        path_x[i] = path_x[i] + particle_v[i] * dt
+        path_x[i] = path_x[i] + particle_v[i] * sub_dt[0]
+
+
+# ------------------------------------------------------------------------------------------ the sub-step loop
+# The step's sub-steps are planned and counted on the device: K from the live parcels' largest speed (the
+# ``live_extremes`` array) and, with the approach filter, from the last step's accepted events per parcel, so that
+# the loop can run as a graph's while node without reading K back (``HelConfig.read_back`` 'output'); the host loop
+# takes the same K, dt and seeds from here.
+LOOP_K, LOOP_SUBSTEPS, LOOP_SEED = 0, 1, 2
+"""Slots of the (3,) int32 loop state: sub-step index, sub-steps of the step, the step's seed."""
+
+
+@wp.func
+def mix_seed(seed: wp.int32, step: wp.int32) -> wp.int32:
+    """``hel_warp.collisions.cells.step_seed`` on the device: splitmix64 of the pair, 31 bits."""
+    z = wp.uint64(seed) * wp.uint64(0x9E3779B97F4A7C15) + wp.uint64(step) + wp.uint64(0x632BE59BD9B4E019)
+    z = (z ^ (z >> wp.uint64(30))) * wp.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> wp.uint64(27))) * wp.uint64(0x94D049BB133111EB)
+    return wp.int32((z ^ (z >> wp.uint64(31))) & wp.uint64(0x7FFFFFFF))
+
+
+@wp.kernel
+def substep_plan(
+    extremes: wp.array(dtype=wp.float64),
+    events: wp.array(dtype=wp.float64),
+    dt: wp.float64,
+    path_cell: wp.float64,
+    max_substeps: int,
+    approaching: int,
+    approach_events: wp.float64,
+    host_substeps: int,
+    step_seed: int,
+    # outputs
+    loop: wp.array(dtype=wp.int32),
+    more: wp.array(dtype=wp.int32),
+    sub_dt: wp.array(dtype=wp.float32),
+):
+    """K = ceil(v_max dt / (cfl h_min)), with ``approaching`` at least ceil(events per parcel / approach_events),
+    within [1, max_substeps] (the host's float64 arithmetic, so the same K); ``host_substeps`` > 0: that K (the
+    host loop's). The loop state starts at sub-step 0 and dt / K is the sub-step."""
+    k = host_substeps
+    if k <= 0:
+        paths = extremes[0] * dt / path_cell
+        k = max_substeps
+        if paths < wp.float64(max_substeps):  # NaN and inf keep the largest
+            k = wp.max(1, int(wp.ceil(paths)))
+        if approaching != 0:
+            need = events[0] / approach_events - wp.float64(1.0e-9)
+            if need < wp.float64(max_substeps):
+                k = wp.max(k, int(wp.ceil(need)))
+            else:
+                k = max_substeps
+        k = wp.min(k, max_substeps)
+    loop[LOOP_K] = 0
+    loop[LOOP_SUBSTEPS] = k
+    loop[LOOP_SEED] = step_seed
+    more[0] = 1
+    sub_dt[0] = wp.float32(dt / wp.float64(k))
+
+
+@wp.kernel
+def substep_begin(loop: wp.array(dtype=wp.int32), sub_seed: wp.array(dtype=wp.int32)):
+    """The sub-step's seed from the step's and the sub-step index."""
+    sub_seed[0] = mix_seed(loop[LOOP_SEED], loop[LOOP_K])
+
+
+@wp.kernel
+def substep_end(loop: wp.array(dtype=wp.int32), more: wp.array(dtype=wp.int32)):
+    """The next sub-step; ``more`` 0 after the last."""
+    k = loop[LOOP_K] + 1
+    loop[LOOP_K] = k
+    if k < loop[LOOP_SUBSTEPS]:
+        more[0] = 1
+    else:
+        more[0] = 0
+
+
+@wp.kernel
+def substep_events(counts: wp.array(dtype=wp.int32), extremes: wp.array(dtype=wp.float64),
+                   events: wp.array(dtype=wp.float64)):
+    """Accepted events per live parcel of the step (each counted for both parcels): the next step's plan."""
+    events[0] = wp.float64(2.0) * wp.float64(counts[COUNT_ACCEPTED]) / wp.float64(wp.max(int(extremes[3]), 1))
 
 
 @wp.kernel
@@ -1210,7 +1294,7 @@ def cell_restore(
     hi = wp.vec3i(wp.min(lo[0] + block, args.shape[0]), wp.min(lo[1] + block, args.shape[1]),
                   wp.min(lo[2] + block, args.shape[2]))
     n_block = (hi[0] - lo[0]) * (hi[1] - lo[1]) * (hi[2] - lo[2])
-    block_state = wp.rand_init(args.seed, args.shape[0] * args.shape[1] * args.shape[2] + b)
+    block_state = wp.rand_init(args.sub_seed[0], args.shape[0] * args.shape[1] * args.shape[2] + b)
     for k in range(n_block):
         cell = block_cell(args, lo, hi, k)
         for s in range(args.cell_start[cell], args.cell_end[cell]):
@@ -1222,7 +1306,7 @@ def cell_restore(
                 else:
                     wp.atomic_add(args.counts, COUNT_UNRESTORED, 1)
     if args.spin != 0:
-        spin_state = wp.rand_init(args.seed + 7919, args.shape[0] * args.shape[1] * args.shape[2] + b)
+        spin_state = wp.rand_init(args.sub_seed[0] + 7919, args.shape[0] * args.shape[1] * args.shape[2] + b)
         for k in range(n_block):
             cell = block_cell(args, lo, hi, k)
             for s in range(args.cell_start[cell], args.cell_end[cell]):
@@ -1234,8 +1318,9 @@ def cell_restore(
 # ------------------------------------------------------------------------------------------ launch wrappers
 
 
-def advance_paths(path_x, particle_v, particle_alive, dt: float) -> None:
-    wp.launch(path_advance, dim=path_x.shape[0], device=path_x.device, inputs=[particle_v, particle_alive, float(dt)],
+def advance_paths(path_x, particle_v, particle_alive, sub_dt) -> None:
+    """x += v dt along the paths, dt the (1,) float32 ``sub_dt``."""
+    wp.launch(path_advance, dim=path_x.shape[0], device=path_x.device, inputs=[particle_v, particle_alive, sub_dt],
               outputs=[path_x])
 
 

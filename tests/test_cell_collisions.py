@@ -365,6 +365,51 @@ def test_same_seed_same_run_and_restart_is_exact(constant_model, device):
     assert np.array_equal(d.v.numpy(), a.v.numpy())
 
 
+def test_the_device_planned_sub_step_loop_reads_nothing_and_gives_the_host_loops_bits(constant_model, device):
+    """``CellDetection.collide(device_extremes=...)`` (``HelConfig.read_back`` 'output'): the sub-steps planned on the
+    device from the live speeds and the last step's accepted events, run as one captured while loop. Parcels of 8
+    with the approach filter at dt = 1e-3 s (many events, several sub-steps that grow with the events): step after
+    step the same velocities, path shifts, sub-steps and events per parcel as the host loop, bit for bit, and from
+    the second step on (the loop captured) one graph launch and no read per step."""
+    import warp as wp
+
+    from hel_warp.runs import counters
+
+    n, dt = 1000, 1e-3
+    side, fresh = weight8_gas(11, device, n)
+    host, dev = fresh(), fresh()
+    sh = strategy(constant_model, side, seed=3, approaching=True)
+    sd = strategy(constant_model, side, seed=3, approaching=True)
+    bounds = (8.0, 0.5 * D, n)
+    substeps = []
+    for step in range(4):
+        sh.collide(host, dt)
+        if step == 0:
+            sd.collide(dev, dt, bounds=bounds)
+        else:
+            with counters.counting():
+                before = counters.snapshot()
+                sd.collide(dev, dt, bounds=bounds)
+                d = counters.snapshot() - before
+            assert (d.graph_launches, d.reads) == (1, 0), d
+        assert sd.cells.device_loop_steps == step + 1
+        assert np.array_equal(dev.v.numpy(), host.v.numpy())
+        assert np.array_equal(sd.cells._shift.numpy(), sh.cells._shift.numpy())
+        assert sd.cells.substeps == sh.cells.substeps
+        assert sd.cells.events_per_parcel == sh.cells.events_per_parcel
+        substeps.append(sh.cells.substeps)
+        # the parcels move on (as the push would): x += v dt plus the sub-stepped paths' shift
+        for p, s in ((host, sh), (dev, sd)):
+            x = p.x.numpy() + p.v.numpy() * np.float32(dt)
+            p.x.assign(np.mod(x, np.float32(side)).astype(np.float32))
+            s.cells._shift_pending = False
+    assert max(substeps) > substeps[0] > 1  # the events per parcel cut the later steps further
+    assert sd.counts()["cell_accepted"] == sh.counts()["cell_accepted"] > 0
+    # a checkpoint taken after device steps holds the device's events per parcel
+    assert sd.state()["cell_events_per_parcel"] == sh.state()["cell_events_per_parcel"]
+    wp.synchronize()
+
+
 def test_approach_filter_cuts_the_step_by_the_last_steps_events_and_restarts_exactly(constant_model, device):
     """With ``approaching``, a step is cut into at least ceil(events per parcel of the last step / approach_events)
     sub-steps; that count is in the checkpoint, so a restart continues bit for bit (and without it, it would not)."""

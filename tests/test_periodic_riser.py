@@ -263,11 +263,13 @@ def test_the_reference_contact_is_the_benchmarks_linear_spring_dashpot():
         assert duration == pytest.approx(tc, rel=0.05)
 
 
-@pytest.mark.parametrize("collisions", ["none", "ktgf"])
-def test_read_back_at_outputs_reads_nothing_in_a_steady_step_and_changes_no_result(collisions, tmp_path, capsys):
+@pytest.mark.parametrize("collisions", ["none", "ktgf", "surrogate"])
+def test_read_back_at_outputs_reads_nothing_in_a_steady_step_and_changes_no_result(collisions, tmp_path, capsys,
+                                                                                 trained_models):  # noqa: F811
     """``--read-back output`` (the CUDA default) on the CPU, through the code the GPU runs: a steady HEL step has no
-    device-to-host read and at most 5 captured graphs (the four CG solves, each one graph looping on the device),
-    and the run's summary is the per-step reading run's (slip, flux, variance, momentum: the same bits)."""
+    device-to-host read and at most 5 captured graphs (the four CG solves, each one graph looping on the device;
+    HELSCM's cell detection at parcels of 4: its sub-step loop the fifth, planned on the device), and the run's
+    summary is the per-step reading run's (slip, flux, variance, momentum: the same bits)."""
     from cases.periodic_riser import main
 
     summaries = {}
@@ -275,6 +277,8 @@ def test_read_back_at_outputs_reads_nothing_in_a_steady_step_and_changes_no_resu
         argv = ["--collisions", collisions, "--tiles", "0", "--dt", "1e-4", "--end-time", "1.2e-3", "--out",
                 str(tmp_path / mode), "--no-vtk", "--no-progress", "--json", "--samples", "4", "--read-back", mode,
                 "--output-interval", "1.2e-3"]  # one output, at the end: the steps between are steady
+        if collisions == "surrogate":  # the cell detection (weights > 1); the tiny model's domain: --force
+            argv += ["--particles-per-parcel", "4", "--model", trained_models["contact"], "--force"]
         assert main(argv) == 0
         summaries[mode] = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     step, output = summaries["step"], summaries["output"]

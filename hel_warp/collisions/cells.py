@@ -282,6 +282,22 @@ class CellConfig:
             raise ConfigError(f"cell log_capacity must be an integer >= 0 (got {self.log_capacity!r})")
 
 
+def _launch_key(value):
+    """What a launch bakes in of ``value`` (a Warp struct, array or plain value), hashable: arrays by address and
+    shape, structs field by field (``CellDetection``'s captured loop is captured again when it changes)."""
+    import warp as wp
+
+    if isinstance(value, wp.array):
+        return ("array", int(value.ptr or 0), tuple(value.shape), str(value.device))
+    cls = getattr(value, "_cls", None)
+    if cls is not None and hasattr(cls, "vars"):
+        return tuple((name, _launch_key(getattr(value, name))) for name in cls.vars)
+    try:
+        return tuple(float(v) for v in value)
+    except TypeError:
+        return value
+
+
 def step_seed(seed: int, step: int) -> int:
     """The kernel seed of step ``step`` of a run seeded ``seed``: splitmix64 of the pair, 31 bits (int32 >= 0)."""
     z = (int(seed) * 0x9E3779B97F4A7C15 + int(step) + 0x632BE59BD9B4E019) & 0xFFFFFFFFFFFFFFFF
@@ -386,8 +402,7 @@ class CellCollisions:
         self._counts = None
         self.lattice = None
         """(origin, cell edges, shape) of the last step."""
-        self.substeps = 0
-        """Sub-steps of the last step."""
+        self._substeps = 0
         self.pair_saturation = 0.0
         """Of the last step: w_max pi (2 r_max)^2 h_max / V, the collisions a parcel pair of the largest weight
         and size meets while it crosses one collision cell together (``pair_saturation``)."""
@@ -399,11 +414,67 @@ class CellCollisions:
         """A restored ``cell_recent_partners`` waiting for the arrays to be allocated."""
         self.approaching = False
         """Whether the last step ran the approach filter (``CellConfig.approaching_at`` its heaviest parcel)."""
-        self.events_per_parcel = 0.0
-        """Accepted events per live parcel (each event counted for both parcels) of the last step: with
-        ``approaching`` it sets the next step's sub-steps (``CellConfig.approach_events``); in the checkpoint."""
+        self._events_per_parcel = 0.0
         self._fluid = None
         """(fluid mask array, its integral F on the device) of the last HEL grid (``fluid_integral``)."""
+        self._loop = None
+        """(loop state (3,) int32, more (1,) int32, sub-step seed (1,) int32, sub-step dt (1,) float32, accepted
+        events per parcel (1,) float64) on the device (``kernels/cell_collide.py`` ``substep_plan``)."""
+        self._loop_graphs = {}
+        """Captured sub-step loops of the device loop, by what their launches bake in."""
+        self._on_device = False
+        """True while the last step's sub-steps and events per parcel live on the device (the device loop), not in
+        :attr:`substeps` / :attr:`events_per_parcel`'s host values."""
+        self.device_loop_steps = 0
+        """Steps whose sub-steps ran as the captured device loop (no read-back)."""
+
+    @property
+    def substeps(self) -> int:
+        """Sub-steps of the last step (read from the device after a device-loop step)."""
+        if self._on_device and self._loop is not None:
+            from kernels.cell_collide import LOOP_SUBSTEPS
+
+            return int(self._loop[0].numpy()[LOOP_SUBSTEPS])
+        return self._substeps
+
+    @substeps.setter
+    def substeps(self, value: int) -> None:
+        self._substeps = int(value)
+
+    @property
+    def events_per_parcel(self) -> float:
+        """Accepted events per live parcel (each event counted for both parcels) of the last step: with
+        ``approaching`` it sets the next step's sub-steps (``CellConfig.approach_events``); in the checkpoint (read
+        from the device after a device-loop step)."""
+        if self._on_device and self._loop is not None:
+            return float(self._loop[4].numpy()[0])
+        return self._events_per_parcel
+
+    @events_per_parcel.setter
+    def events_per_parcel(self, value: float) -> None:
+        self._events_per_parcel = float(value)
+        if self._loop is not None:
+            self._loop[4].fill_(float(value))
+
+    def _loop_arrays(self, device):
+        """The sub-step loop's device state (:attr:`_loop`), allocated once per device; the host's events per parcel
+        written into it."""
+        import warp as wp
+
+        if self._loop is None or str(self._loop[0].device) != str(device):
+            self._loop = (wp.zeros(3, dtype=wp.int32, device=device), wp.zeros(1, dtype=wp.int32, device=device),
+                          wp.zeros(1, dtype=wp.int32, device=device), wp.zeros(1, dtype=wp.float32, device=device),
+                          wp.full(1, self._events_per_parcel, dtype=wp.float64, device=device))
+            self._loop_graphs = {}
+        return self._loop
+
+    def _leave_device(self) -> None:
+        """Bring the device loop's sub-steps and events per parcel back to the host values (a host-loop step
+        follows)."""
+        if self._on_device:
+            self._substeps = self.substeps
+            self._events_per_parcel = self.events_per_parcel
+            self._on_device = False
 
     # ------------------------------------------------------------------ device arrays
     def _allocate(self, particles, n_cells: int, spin_form: bool = False) -> None:
@@ -520,7 +591,7 @@ class CellCollisions:
 
     def collide(self, particles, dt: float, forest, domain, *, batch_forest=None, periodic_box=None, grid=None,
                 apply: bool = True, particle_spin: bool = False, spin_form: bool = False, fluid=None, walls=None,
-                extremes: tuple | None = None, local=None) -> None:
+                extremes: tuple | None = None, local=None, device_extremes: tuple | None = None) -> None:
         """The step's collisions of ``particles`` (velocities in place); ``forest`` an explicit-layout ``Forest``,
         ``domain`` its ``ContactDomain``; ``batch_forest`` (perfect layout, optional): the accepted pairs predicted
         in batched rounds (faster, same pairs). ``apply=False``: selection only (counts and log; velocities
@@ -532,28 +603,51 @@ class CellCollisions:
         wall, the velocities with them (``CellConfig.wall_paths``). ``extremes``: (max |v|, max weight, max radius,
         count) of the live parcels when the caller has them, else ``Particles.live_extremes`` here (one read-back).
         ``local``: (the coupling's ``CellGrid``, ``parcel_eps_s``) of the step, the solids fraction the deposit gives
-        each parcel: in merged grid cells a pair's rate then takes it (``CellConfig.local_density``)."""
+        each parcel: in merged grid cells a pair's rate then takes it (``CellConfig.local_density``).
+
+        ``device_extremes``: (the (5,) float64 device array ``Particles.launch_live_extremes`` filled, (max weight,
+        max radius, live count) as host upper bounds) instead of ``extremes``: the sub-steps are then planned on the
+        device from its largest speed, and where the lattice needs no positions (a grid's or a periodic box's,
+        unshifted) and the paths no walls (``CellConfig.wall_paths`` off) they run as one captured graph whose while
+        node loops over them, with no read-back (``HelConfig.read_back`` 'output'); elsewhere the extremes are read
+        and the host loops. Both loops launch the same kernels with the same seeds and sub-step: the same bits."""
         import warp as wp
 
         from kernels.cell_collide import (advance_paths, collide_cells, fill_fluid_volumes, path_shifts, restore_energy,
-                                          sort_by_cell)
+                                          sort_by_cell, substep_begin, substep_end, substep_events, substep_plan)
 
         if dt is None or not (dt > 0 and math.isfinite(dt)):
             raise ConfigError(f"cell detection needs the step dt > 0 (got {dt!r})")
         self._counts = None
         self._shift_pending = False
-        if extremes is None:
-            extremes = particles.live_extremes()[:4]
-        v_max, w_max, r_max, n_alive = extremes
+        store = None
+        if device_extremes is not None:
+            store, (w_max, r_max, n_alive) = device_extremes
+            v_max = None
+        else:
+            if extremes is None:
+                extremes = particles.live_extremes()[:4]
+            v_max, w_max, r_max, n_alive = extremes
         n_alive = int(n_alive)
         seed = step_seed(self.seed, self.steps)
         self.steps += 1
         if n_alive < 2:
+            self._leave_device()
             self._zero_counts()
             return
+        cfg = self.config
+        device_loop = store is not None and (periodic_box is not None or grid is not None) and not (
+            walls is not None and cfg.wall_paths)
+        if store is not None and not device_loop:  # a bounding box needs the positions and the reach: read
+            v_max, w_max, r_max, n_alive = particles.live_extremes()[:4]
+            store = None
         origin, edges, shape = self.choose_lattice(particles, periodic_box=periodic_box, grid=grid,
-                                                   reach=v_max * dt, extremes=(w_max, r_max, n_alive))
+                                                   reach=0.0 if v_max is None else v_max * dt,
+                                                   extremes=(w_max, r_max, n_alive))
         shift = self.config.shift if self.config.shift is not None else self._merged
+        if device_loop and shift:  # each sub-step's lattice offset is drawn on the host: read, loop there
+            v_max = particles.live_extremes()[0]
+            device_loop, store = False, None
         if shift and periodic_box is None:
             shape = np.asarray(shape, int) + 1  # a shifted lattice reaches one cell further on every axis
         n_cells = int(np.prod(shape))
@@ -570,15 +664,27 @@ class CellCollisions:
                   f"{1e3 * float(np.max(edges)):.3g} mm (w sigma h / V > {SATURATION_WARN:g}): the pair collides with "
                   "itself and the momentum it exchanges saturates (too little: two counter-streaming beams lose "
                   "17 % of their exchange at 0.62); use a lower weight or coarser collision cells", file=sys.stderr)
-        cfg = self.config
         self.approaching = approaching = cfg.approaching_at(w_max)
         self._allocate(particles, n_cells, spin_form)
         a = self._args
-        substeps = max(1, math.ceil(v_max * dt / (cfg.cfl * float(np.min(edges)))))
-        if approaching:
-            substeps = max(substeps, math.ceil(self.events_per_parcel / cfg.approach_events - 1e-9))
-        substeps = int(min(cfg.max_substeps, substeps))
-        self.substeps = substeps
+        if not device_loop:
+            self._leave_device()
+        loop, more, sub_seed, sub_dt, events = self._loop_arrays(particles.device)
+        path_cell = cfg.cfl * float(np.min(edges))
+        substeps = 0  # planned on the device
+        if device_loop and not self._on_device:  # the host's events per parcel of the last step, for the plan
+            events.fill_(self._events_per_parcel)
+        if not device_loop:
+            substeps = max(1, math.ceil(v_max * dt / path_cell))
+            if approaching:
+                substeps = max(substeps, math.ceil(self.events_per_parcel / cfg.approach_events - 1e-9))
+            substeps = int(min(cfg.max_substeps, substeps))
+            self.substeps = substeps
+        wp.launch(substep_plan, dim=1, device=particles.device,
+                  inputs=[events if store is None else store, events, wp.float64(dt),  # host K: no extremes read
+                          wp.float64(path_cell), int(cfg.max_substeps), 1 if approaching else 0,
+                          wp.float64(cfg.approach_events), int(substeps), int(seed)],
+                  outputs=[loop, more, sub_dt])
         wp.copy(self._path, particles.x)
         a.particle_x, a.particle_radius = self._path, particles.radius
         a.particle_density, a.particle_weight = particles.density, particles.weight
@@ -597,8 +703,7 @@ class CellCollisions:
             a.fluid_integral = self.fluid_integral(fluid, particles.device)
             a.fluid_origin = tuple(float(v) for v in grid.origin)
             a.fluid_spacing = float(grid.spacing)
-        sub_dt = float(dt) / substeps
-        a.dt = sub_dt
+        a.sub_dt, a.sub_seed = sub_dt, sub_seed
         a.enskog = 1 if self.config.enskog else 0
         a.approaching = 1 if approaching else 0
         a.approach_redraw = int(cfg.approach_redraw) if approaching else 0
@@ -621,17 +726,15 @@ class CellCollisions:
         self._rounds.zero_()
         self._wall_hits.zero_()
         # the parcels' paths are advanced here (and their shift handed to the push) when there are sub-steps or the
-        # transfer moves them
-        paths = substeps > 1 or (cfg.transfer and apply)
+        # transfer moves them; the device loop, not knowing K, always does (one sub-step without the transfer: the
+        # path ends at x + v dt, the shift is 0 exactly)
+        paths = device_loop or substeps > 1 or (cfg.transfer and apply)
         reflect = walls is not None and cfg.wall_paths and substeps > 1 and apply
         if reflect:
             from kernels.reflect import reflect_at_walls
-        for k in range(substeps):
-            a.seed = step_seed(seed, k)
-            if shift:  # the sub-step's random lattice offset, from the step's seed (restart-exact)
-                offset = np.random.default_rng((a.seed, 0x5EED)).uniform(0.0, 1.0, 3) * np.asarray(edges)
-                a.origin = tuple(float(v) for v in np.asarray(origin) - offset)
-                self.lattice = (np.asarray(origin) - offset, edges, shape)
+
+        def substep():
+            wp.launch(substep_begin, dim=1, device=particles.device, inputs=[loop], outputs=[sub_seed])
             fill_fluid_volumes(a)
             sort_by_cell(a)
             collide_cells(a, forest, particles.v, self._more, self._round, self._rounds, batch_forest=batch_forest,
@@ -646,14 +749,41 @@ class CellCollisions:
                     reflect_at_walls(walls[0], walls[1], particles.alive, self._path, particles.v, self._wall_hits,
                                      particles.radius, particle_x_start=self._path_start,
                                      particle_omega=particles.omega)
+            wp.launch(substep_end, dim=1, device=particles.device, inputs=[loop], outputs=[more])
+
+        if device_loop:
+            key = (_launch_key(a), _launch_key(particles.v), _launch_key(particles.omega), id(forest), id(batch_forest),
+                   id(self._args_store), bool(apply), bool(cfg.restore_energy), int(cfg.restore_block),
+                   int(cfg.batched_rounds), int(cfg.batched_min_rows))
+            graph = self._loop_graphs.get(key)
+            if graph is None:
+                if len(self._loop_graphs) >= 8:  # a lattice that keeps changing: keep the newest few
+                    self._loop_graphs.pop(next(iter(self._loop_graphs)))
+                with wp.ScopedCapture(device=particles.device, force_module_load=False) as capture:
+                    wp.capture_while(more, substep)
+                graph = self._loop_graphs[key] = capture.graph
+            wp.capture_launch(graph)
+            self._on_device = True
+            self.device_loop_steps += 1
+        else:
+            for k in range(substeps):
+                if shift:  # the sub-step's random lattice offset, from the step's seed (restart-exact)
+                    offset = (np.random.default_rng((step_seed(seed, k), 0x5EED)).uniform(0.0, 1.0, 3)
+                              * np.asarray(edges))
+                    a.origin = tuple(float(v) for v in np.asarray(origin) - offset)
+                    self.lattice = (np.asarray(origin) - offset, edges, shape)
+                substep()
         if paths:
             path_shifts(self._path, particles.x, particles.v, particles.alive, float(dt), self._shift)
             self._shift_pending = True
         if approaching:
-            from kernels.cell_collide import COUNT_ACCEPTED
+            if device_loop:
+                wp.launch(substep_events, dim=1, device=particles.device, inputs=[a.counts, store], outputs=[events])
+            else:
+                from kernels.cell_collide import COUNT_ACCEPTED
 
-            accepted = int(a.counts.numpy()[COUNT_ACCEPTED])
-            self.events_per_parcel = 2.0 * accepted / max(n_alive, 1)
+                accepted = int(a.counts.numpy()[COUNT_ACCEPTED])
+                self._events_per_parcel = 2.0 * accepted / max(n_alive, 1)
 
     def correct_positions(self, particles) -> None:
         """After the caller moved the parcels by v dt (the push): add the sub-stepped paths' position changes

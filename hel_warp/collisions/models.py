@@ -480,9 +480,14 @@ class SurrogateCollision:
             self.set_walls(solver.shapes, solver.wall_params)
         particles = solver.pool.particles
         self._kicked = False
-        # one read for the choice of detection and the collisions (unless the kick below changes the velocities)
-        extremes = particles.live_extremes() if self.mode == "pairwise" and self.auto_detection else None
-        uses_swept = self._uses_swept(particles, None if extremes is None else extremes[1])
+        # read_back 'output': the solver's host bounds of the live weights, radii and count choose the detection and
+        # the cell lattice, and the cells plan their sub-steps on the device (no read)
+        bounds = solver.live_bounds() if getattr(solver, "read_back", "step") == "output" else None
+        # else one read for the choice of detection and the collisions (unless the kick below changes the velocities)
+        extremes = (particles.live_extremes() if bounds is None and self.mode == "pairwise" and self.auto_detection
+                    else None)
+        uses_swept = self._uses_swept(particles, bounds[0] if bounds is not None else
+                                      None if extremes is None else extremes[1])
         if not uses_swept and self.mode == "pairwise" and getattr(solver.config, "packing_stress", None) is None:
             self._packing_stress(solver)  # a solver's own packing stress (HelConfig.packing_stress) replaces it
         if self.kick_first and uses_swept:
@@ -494,7 +499,8 @@ class SurrogateCollision:
                 self._x_scratch = wp.empty_like(particles.x)
             solver.fluid_push(particle_x_out=self._x_scratch)
             self._kicked = True
-        self.collide(particles, solver.config.dt, extremes=None if self._kicked else extremes)
+        self.collide(particles, solver.config.dt, extremes=None if self._kicked else extremes,
+                     bounds=None if uses_swept else bounds)
 
     def _packing_stress(self, solver) -> None:
         """The cell detection's MP-PIC packing stress into ``solver.fields.parcel_a_coll`` (``CellConfig.
@@ -541,11 +547,15 @@ class SurrogateCollision:
         """Called by ``HelSolver.push`` after the parcels moved: the in-step position corrections (swept)."""
         self.correct_positions(solver.pool.particles)
 
-    def collide(self, particles, dt: float | None = None, *, extremes: tuple | None = None) -> None:
+    def collide(self, particles, dt: float | None = None, *, extremes: tuple | None = None,
+                bounds: tuple | None = None) -> None:
         """Resolve the collisions of ``particles`` in the coming step of ``dt`` (swept; required) or at the current
         positions (overlap, paper), updating the velocities in place. With swept detection the caller then moves
         the parcels with their new velocities and calls :meth:`correct_positions`. ``extremes``:
-        ``particles.live_extremes()`` when the caller has them for the current velocities."""
+        ``particles.live_extremes()`` when the caller has them for the current velocities. ``bounds``: (max weight,
+        max radius, live count) host upper bounds (``HelSolver.live_bounds``): the cell detection then reads
+        nothing back (its sub-steps planned on the device, ``CellDetection.collide``'s ``device_extremes``); the
+        non-finite velocities its read would catch are the solver's output check's (``HelSolver.check_finite``)."""
         self._setup(particles)
         for arr in (self.detected, self.calls, self.collisions, self.skipped, self.round_cap_hit,
                     self.event_rounds, self.swept.round, self.swept.guard, self.swept.wall_hits):
@@ -553,6 +563,19 @@ class SurrogateCollision:
         self._counts = None
         self._events = None
         self._shift_pending = False
+        if bounds is not None and self.mode == "pairwise" and (
+                self.detection == "cell" if not self.auto_detection else bounds[0] > 1.0):
+            if bounds[2] == 0:
+                return
+            self.detection = "cell"
+            self.cells.collide(particles, dt, self.forest, self.swept.domain, batch_forest=self.batch_forest,
+                               particle_spin=self.particle_spin, spin_form=self.flat.form == "contact_spin",
+                               periodic_box=self.periodic_box,
+                               grid=None if self.periodic_box is not None else self._solver_grid,
+                               device_extremes=(particles.launch_live_extremes(), tuple(bounds)),
+                               fluid=self._solver_fluid, walls=self._walls,
+                               local=None if self.periodic_box is not None else self._solver_local)
+            return
         if extremes is None:
             extremes = particles.live_extremes()  # one read-back, not four arrays
         v_max, w_max, r_max, n_alive, bad = extremes

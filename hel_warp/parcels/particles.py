@@ -179,6 +179,12 @@ class Particles:
         sync on CUDA) instead of reading the arrays back. With no live parcel: (0, 0, 0, 0, 0). A NaN is counted in
         the last entry, not in the maxima (an atomic maximum passes it over): callers that need finite values check
         it."""
+        v_max, w_max, r_max, count, bad = (float(x) for x in self.launch_live_extremes().numpy())
+        return v_max, w_max, r_max, int(count), int(bad)
+
+    def launch_live_extremes(self):
+        """:meth:`live_extremes` left on the device: the (5,) float64 array (same order) it reduced into, no read
+        (kernels that plan from it: ``kernels/cell_collide.py`` ``substep_plan``)."""
         import warp as wp
 
         from kernels.interp import launch_live_extremes
@@ -187,8 +193,7 @@ class Particles:
         if store is None or str(store.device) != str(self.v.device):
             store = self._extremes_store = wp.zeros(5, dtype=wp.float64, device=self.v.device)
         launch_live_extremes(self.v, self.weight, self.radius, self.alive, store)
-        v_max, w_max, r_max, count, bad = (float(x) for x in store.numpy())
-        return v_max, w_max, r_max, int(count), int(bad)
+        return store
 
     def clone(self) -> "Particles":
         import warp as wp

@@ -191,6 +191,10 @@ class ParcelPool:
     weight_placed_since: float = 0.0
     """The largest weight :meth:`place` wrote since its reader last set this to 0 (``HelSolver``'s bound of the
     live weights between two reads of the device)."""
+    radius_placed_since: float = 0.0
+    """The largest radius :meth:`place` wrote since its reader last set this to 0 (as ``weight_placed_since``)."""
+    count_placed_since: int = 0
+    """Parcels :meth:`place` wrote since its reader last set this to 0 (``HelSolver``'s bound of the live count)."""
 
     @classmethod
     def empty(cls, capacity: int, *, device=None) -> "ParcelPool":
@@ -243,6 +247,8 @@ class ParcelPool:
         put(p.weight, each(weight, np.float32), wp.float32)
         if n:
             self.weight_placed_since = max(self.weight_placed_since, float(np.max(each(weight, np.float32))))
+            self.radius_placed_since = max(self.radius_placed_since, float(np.max(each(radius, np.float32))))
+            self.count_placed_since += int(n)
         put(p.stream, each(stream, np.int32), wp.int32)
         put(p.alive, np.ones(n, np.int32), wp.int32)
         put(p.particle_id, np.arange(self.used, self.used + n, dtype=np.int32), wp.int32)
