@@ -284,7 +284,7 @@ class CellConfig:
 
 def _launch_key(value):
     """What a launch bakes in of ``value`` (a Warp struct, array or plain value), hashable: arrays by address and
-    shape, structs field by field (``CellDetection``'s captured loop is captured again when it changes)."""
+    shape, structs field by field (``CellCollisions``' captured loop is captured again when it changes)."""
     import warp as wp
 
     if isinstance(value, wp.array):
@@ -462,6 +462,7 @@ class CellCollisions:
         import warp as wp
 
         if self._loop is None or str(self._loop[0].device) != str(device):
+            self._leave_device()
             self._loop = (wp.zeros(3, dtype=wp.int32, device=device), wp.zeros(1, dtype=wp.int32, device=device),
                           wp.zeros(1, dtype=wp.int32, device=device), wp.zeros(1, dtype=wp.float32, device=device),
                           wp.full(1, self._events_per_parcel, dtype=wp.float64, device=device))
@@ -486,6 +487,7 @@ class CellCollisions:
         key = (str(particles.device), particles.count, n_cells, bool(spin_form), memory)
         if self._key == key:
             return
+        self._loop_graphs = {}  # their launches hold the arrays replaced here
         dev = particles.device
         n = particles.count
         cap = int(self.config.log_capacity)
@@ -645,9 +647,17 @@ class CellCollisions:
                                                    reach=0.0 if v_max is None else v_max * dt,
                                                    extremes=(w_max, r_max, n_alive))
         shift = self.config.shift if self.config.shift is not None else self._merged
-        if device_loop and shift:  # each sub-step's lattice offset is drawn on the host: read, loop there
-            v_max = particles.live_extremes()[0]
+        if device_loop and shift:  # each sub-step's lattice offset is drawn on the host: read, loop there, with
+            # the exact extremes in place of the bounds (the host loop's lattice and events per parcel)
+            v_max, w_max, r_max, n_alive = particles.live_extremes()[:4]
             device_loop, store = False, None
+            if n_alive < 2:
+                self._leave_device()
+                self._zero_counts()
+                return
+            origin, edges, shape = self.choose_lattice(particles, periodic_box=periodic_box, grid=grid,
+                                                       reach=v_max * dt, extremes=(w_max, r_max, n_alive))
+            shift = self.config.shift if self.config.shift is not None else self._merged
         if shift and periodic_box is None:
             shape = np.asarray(shape, int) + 1  # a shifted lattice reaches one cell further on every axis
         n_cells = int(np.prod(shape))
@@ -755,14 +765,15 @@ class CellCollisions:
             key = (_launch_key(a), _launch_key(particles.v), _launch_key(particles.omega), id(forest), id(batch_forest),
                    id(self._args_store), bool(apply), bool(cfg.restore_energy), int(cfg.restore_block),
                    int(cfg.batched_rounds), int(cfg.batched_min_rows))
-            graph = self._loop_graphs.get(key)
-            if graph is None:
+            cached = self._loop_graphs.get(key)
+            if cached is None:
                 if len(self._loop_graphs) >= 8:  # a lattice that keeps changing: keep the newest few
                     self._loop_graphs.pop(next(iter(self._loop_graphs)))
                 with wp.ScopedCapture(device=particles.device, force_module_load=False) as capture:
                     wp.capture_while(more, substep)
-                graph = self._loop_graphs[key] = capture.graph
-            wp.capture_launch(graph)
+                # the objects keyed by id() are held with their graph, so no other object can take their id
+                cached = self._loop_graphs[key] = (capture.graph, (forest, batch_forest, self._args_store, particles))
+            wp.capture_launch(cached[0])
             self._on_device = True
             self.device_loop_steps += 1
         else:
@@ -787,7 +798,8 @@ class CellCollisions:
 
     def correct_positions(self, particles) -> None:
         """After the caller moved the parcels by v dt (the push): add the sub-stepped paths' position changes
-        (once; a no-op after a step of one sub-step)."""
+        (once; a no-op after a host-loop step of one sub-step without the transfer; after the device loop's the
+        change added is 0)."""
         if not self._shift_pending:
             return
         from kernels.collide import launch_add_shift  # the swept detection's x += shift

@@ -553,9 +553,13 @@ class SurrogateCollision:
         positions (overlap, paper), updating the velocities in place. With swept detection the caller then moves
         the parcels with their new velocities and calls :meth:`correct_positions`. ``extremes``:
         ``particles.live_extremes()`` when the caller has them for the current velocities. ``bounds``: (max weight,
-        max radius, live count) host upper bounds (``HelSolver.live_bounds``): the cell detection then reads
-        nothing back (its sub-steps planned on the device, ``CellDetection.collide``'s ``device_extremes``); the
-        non-finite velocities its read would catch are the solver's output check's (``HelSolver.check_finite``)."""
+        max radius, live count) host upper bounds (``HelSolver.live_bounds``): the cell detection then plans its
+        sub-steps on the device (``CellCollisions.collide``'s ``device_extremes``) and, on a grid's or a periodic
+        box's unshifted lattice, reads nothing back; the non-finite velocities its read would catch are the
+        solver's output check's (``HelSolver.check_finite``). Between two outputs the bounds may exceed the live
+        values where parcels leave (an outlet): the choice of detection, the lattice and the approach filter then
+        follow the bounds, so an open flow's run departs from the per-step reading one's; a closed one's gives the
+        same bits."""
         self._setup(particles)
         for arr in (self.detected, self.calls, self.collisions, self.skipped, self.round_cap_hit,
                     self.event_rounds, self.swept.round, self.swept.guard, self.swept.wall_hits):
