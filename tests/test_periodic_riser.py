@@ -166,7 +166,8 @@ def test_bad_input_is_one_line_and_exit_2(bad, words, tmp_path, capsys):
 
 def test_counters_count_what_warp_does_and_change_no_result(device):
     """Three wp.launch calls, one recorded launch replayed twice, one numpy(): 5 launches, 1 read; a recorded
-    launch is not a launch until replayed. Five riser steps counted and uncounted: positions and velocities equal
+    launch is not a launch until replayed; a loop's or branch's condition tested on the host is a read, one tested
+    in a captured graph is not. Five riser steps counted and uncounted: positions and velocities equal
     bit for bit; outside the block Warp's functions are its own again."""
     import warp as wp
 
@@ -189,7 +190,31 @@ def test_counters_count_what_warp_does_and_change_no_result(device):
         d = counters.snapshot() - before
     assert (d.launches, d.graph_launches, d.reads) == (5, 0, 1)
     assert np.all(values == 5.0)
+
+    # a loop condition tested on the host is a read per test (on CUDA a pinned copy and a sync): three passes, four
+    # tests; one capture_if, one test; the same loop captured and replayed: one graph launch, no read
+    @wp.kernel
+    def count_down(n: wp.array(dtype=wp.int32)):
+        n[wp.tid()] = n[wp.tid()] - 1
+
+    n = wp.array([3], dtype=wp.int32, device=device)
+    capture_if, capture_while = wp.capture_if, wp.capture_while
+    with counters.counting():
+        before = counters.snapshot()
+        wp.capture_while(n, lambda: wp.launch(count_down, dim=1, inputs=[n], device=device))
+        wp.capture_if(n, on_false=lambda: None)
+        d = counters.snapshot() - before
+        n.fill_(3)
+        with wp.ScopedCapture(device=device, force_module_load=False) as capture:
+            wp.capture_while(n, lambda: wp.launch(count_down, dim=1, inputs=[n], device=device))
+        before = counters.snapshot()
+        wp.capture_launch(capture.graph)
+        replayed = counters.snapshot() - before
+    assert (d.launches, d.reads) == (3, 4 + 1)
+    assert (replayed.launches, replayed.graph_launches, replayed.reads) == (0, 1, 0)
+    assert int(n.numpy()[0]) == 0
     assert wp.launch is launch and wp.array.numpy is numpy
+    assert wp.capture_if is capture_if and wp.capture_while is capture_while
 
     results = []
     for counted in (False, True):

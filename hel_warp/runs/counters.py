@@ -8,9 +8,11 @@ read. :func:`counting` installs counters around Warp's entry points for the dura
 - ``launches``: kernels launched by ``wp.launch`` (not those only recorded with ``record_cmd=True``) and recorded
   launches replayed (``wp.Launch.launch``: the gas solver's, the multigrid's, ``kernels.launches.LaunchCache``'s);
 - ``graph_launches``: captured graphs replayed (``wp.capture_launch``);
-- ``reads``: ``wp.array.numpy()`` calls and ``wp.copy`` from a CUDA array to a host array. On the CPU ``numpy()``
-  is a view, not a copy, but each call is where a CUDA run of the same code reads the device back and waits for
-  it: the count is the same on both devices.
+- ``reads``: ``wp.array.numpy()`` calls, ``wp.copy`` from a CUDA array to a host array, and each test of the
+  condition of a ``wp.capture_if`` or ``wp.capture_while`` outside a graph capture (on CUDA a copy to pinned
+  memory and a sync; inside a capture the test is a graph's conditional node, no read). On the CPU ``numpy()``
+  is a view, not a copy, and a condition is read in place, but each is where a CUDA run of the same code reads
+  the device back and waits for it: the count is the same on both devices.
 
 The wrappers only count and call Warp's own functions with the same arguments, so results are bit for bit those
 of an uncounted run; outside :func:`counting` Warp is untouched. :func:`paused` stops the counting for code that
@@ -53,7 +55,32 @@ def _install() -> None:
 
     launch, capture_launch, copy = wp.launch, wp.capture_launch, wp.copy
     replay, numpy = wp.Launch.launch, wp.array.numpy
-    _saved.update(launch=launch, capture_launch=capture_launch, copy=copy, replay=replay, numpy=numpy)
+    capture_if, capture_while = wp.capture_if, wp.capture_while
+    _saved.update(launch=launch, capture_launch=capture_launch, copy=copy, replay=replay, numpy=numpy,
+                  capture_if=capture_if, capture_while=capture_while)
+
+    def host_test(condition) -> bool:
+        """Whether Warp tests ``condition`` on the host (no capture on its device): a read."""
+        device = getattr(condition, "device", None)
+        return not _paused and device is not None and not device.is_capturing
+
+    def counted_capture_if(condition, *args, **kwargs):
+        if host_test(condition):
+            _counts.reads += 1
+        return capture_if(condition, *args, **kwargs)
+
+    def counted_capture_while(condition, while_body, *args, **kwargs):
+        if not host_test(condition) or not callable(while_body):
+            return capture_while(condition, while_body, *args, **kwargs)
+        _counts.reads += 1  # the first test
+
+        def body(*a, **k):
+            result = while_body(*a, **k)
+            if not _paused:
+                _counts.reads += 1  # the test after each pass
+            return result
+
+        return capture_while(condition, body, *args, **kwargs)
 
     def counted_launch(*args, **kwargs):
         if not _paused and not kwargs.get("record_cmd", False):
@@ -83,6 +110,7 @@ def _install() -> None:
 
     wp.launch, wp.capture_launch, wp.copy = counted_launch, counted_capture_launch, counted_copy
     wp.Launch.launch, wp.array.numpy = counted_replay, counted_numpy
+    wp.capture_if, wp.capture_while = counted_capture_if, counted_capture_while
 
 
 def _uninstall() -> None:
@@ -90,6 +118,7 @@ def _uninstall() -> None:
 
     wp.launch, wp.capture_launch, wp.copy = _saved["launch"], _saved["capture_launch"], _saved["copy"]
     wp.Launch.launch, wp.array.numpy = _saved["replay"], _saved["numpy"]
+    wp.capture_if, wp.capture_while = _saved["capture_if"], _saved["capture_while"]
     _saved.clear()
 
 
