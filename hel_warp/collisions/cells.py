@@ -456,6 +456,23 @@ class CellCollisions:
         if self._loop is not None:
             self._loop[4].fill_(float(value))
 
+    def _device_loop_ok(self, device) -> bool:
+        """Whether the sub-step loop can be a captured while loop here: the CPU (Warp's graphs), or CUDA with graph
+        conditional nodes (CUDA 12.4+); else, and after a graph the driver refused, the host loop (one warning)."""
+        import warp as wp
+
+        if getattr(self, "_device_loop_refused", False):
+            return False
+        if wp.get_device(device).is_cuda and not wp.is_conditional_graph_supported():
+            self._refuse_device_loop("this driver lacks CUDA graph conditional nodes (CUDA 12.4+)")
+            return False
+        return True
+
+    def _refuse_device_loop(self, why: str) -> None:
+        self._device_loop_refused = True
+        print(f"hel-warp: warning: cell detection: the sub-steps loop on the host, reading the device each step: {why}",
+              file=sys.stderr)
+
     def _loop_arrays(self, device):
         """The sub-step loop's device state (:attr:`_loop`), allocated once per device; the host's events per parcel
         written into it."""
@@ -639,7 +656,7 @@ class CellCollisions:
             return
         cfg = self.config
         device_loop = store is not None and (periodic_box is not None or grid is not None) and not (
-            walls is not None and cfg.wall_paths)
+            walls is not None and cfg.wall_paths) and self._device_loop_ok(particles.device)
         if store is not None and not device_loop:  # a bounding box needs the positions and the reach: read
             v_max, w_max, r_max, n_alive = particles.live_extremes()[:4]
             store = None
@@ -769,13 +786,25 @@ class CellCollisions:
             if cached is None:
                 if len(self._loop_graphs) >= 8:  # a lattice that keeps changing: keep the newest few
                     self._loop_graphs.pop(next(iter(self._loop_graphs)))
-                with wp.ScopedCapture(device=particles.device, force_module_load=False) as capture:
-                    wp.capture_while(more, substep)
-                # the objects keyed by id() are held with their graph, so no other object can take their id
-                cached = self._loop_graphs[key] = (capture.graph, (forest, batch_forest, self._args_store, particles))
-            wp.capture_launch(cached[0])
-            self._on_device = True
-            self.device_loop_steps += 1
+                try:
+                    with wp.ScopedCapture(device=particles.device, force_module_load=False) as capture:
+                        wp.capture_while(more, substep)
+                    # the objects keyed by id() are held with their graph, so no other object can take their id
+                    cached = (capture.graph, (forest, batch_forest, self._args_store, particles))
+                except RuntimeError as exc:  # a graph the driver will not build: nothing of the step has run
+                    if not wp.get_device(particles.device).is_cuda:
+                        raise
+                    self._refuse_device_loop(f"the CUDA graph could not be created ({str(exc).splitlines()[0][:120]})")
+                    cached = None
+                if cached is not None:
+                    self._loop_graphs[key] = cached
+            if cached is not None:
+                wp.capture_launch(cached[0])
+                self.device_loop_steps += 1
+            else:  # the host loop after all, over the K the device planned (read back)
+                for _ in range(int(self._loop[0].numpy()[1])):
+                    substep()
+            self._on_device = True  # K and the events per parcel (below) are the device's
         else:
             for k in range(substeps):
                 if shift:  # the sub-step's random lattice offset, from the step's seed (restart-exact)
