@@ -280,8 +280,9 @@ def measured_umf(velocities, pressure_drops, weight_per_area: float) -> float | 
     plateau, as read off a fluidization curve (Kunii & Levenspiel 1991, ch. 3).
 
     Fixed branch: the levels below ``FLUIDIZED_FRACTION`` of the weight per area, fitted by least squares with
-    Ergun's form a U + b U^2 (a line through the origin with one level); plateau: the mean pressure drop of the
-    other levels. None without a level on each branch."""
+    Ergun's form a U + b U^2 (a line through the origin with one level); plateau: the median pressure drop of the
+    other levels (a slug that hits the top of the box sends one level's mean to several times the weight; the
+    median keeps the plateau the fluidized levels share). None without a level on each branch."""
     u = np.asarray(velocities, float)
     dp = np.asarray([np.nan if p is None else p for p in pressure_drops], float)
     ok = np.isfinite(dp)
@@ -289,7 +290,7 @@ def measured_umf(velocities, pressure_drops, weight_per_area: float) -> float | 
     fixed = dp < FLUIDIZED_FRACTION * weight_per_area
     if not fixed.any() or fixed.all():
         return None
-    plateau = float(dp[~fixed].mean())
+    plateau = float(np.median(dp[~fixed]))
     uf, pf = u[fixed], dp[fixed]
     if len(uf) >= 2:
         (a, b), *_ = np.linalg.lstsq(np.column_stack([uf, uf**2]), pf, rcond=None)

@@ -107,6 +107,8 @@ def test_the_measured_minimum_fluidization_is_where_ergun_meets_the_weight():
     assert bb.measured_umf(levels, drops, weight) == pytest.approx(exact, rel=1e-9)
     assert bb.measured_umf(levels[:1] + levels[3:], drops[:1] + drops[3:], weight) == pytest.approx(
         weight * levels[0] / drops[0], rel=1e-12)
+    # a slug that hits the top of the box (one level's mean at 2.8 times the weight) leaves the meeting point
+    assert bb.measured_umf(levels, drops[:-1] + [2.8 * weight], weight) == pytest.approx(exact, rel=1e-9)
     assert bb.measured_umf(levels[:3], drops[:3], weight) is None  # no level on the plateau
     assert bb.measured_umf(levels[3:], drops[3:], weight) is None  # no level on the fixed branch
 
