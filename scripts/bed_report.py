@@ -183,7 +183,7 @@ def draw_fluidization(runs, path: Path) -> None:
     umax = max(max((lv["velocity"] for lv in s.get("levels") or []), default=0.0) for _, s in runs) or 1.0
     u = np.linspace(0.0, 1.1 * umax, 200)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "cases"))
-    from bubbling_bed import ergun
+    from bubbling_bed import FLUIDIZED_FRACTION, ergun, measured_umf
 
     d = first.get("diameter", 1.2e-3)
     erg = [ergun(v, first["settled_height"], 1 - first["settled_solids_fraction"], d) for v in u]
@@ -191,14 +191,23 @@ def draw_fluidization(runs, path: Path) -> None:
     ax.axhline(first["bed_weight_per_area"], color="k", ls="--", lw=1, label="bed weight / area")
     ax.axvline(first["minimum_fluidization_velocity_wen_yu"], color="0.5", ls=":", lw=1,
                label="U_mf, Wen-Yu")
+    layered_label = "Ergun through the level's own layers (fixed levels)"
     for marker, (_, s) in zip("osD^v<>", runs):
         levels = s.get("levels") or []
-        umf = s.get("minimum_fluidization_velocity")
+        # the case's own reading of the curve, from the levels (a summary written by an older run may differ)
+        umf = measured_umf([lv["velocity"] for lv in levels], [lv["pressure_drop"] for lv in levels],
+                           s["bed_weight_per_area"]) if levels else None
         bars = ax.errorbar([lv["velocity"] for lv in levels], [lv["pressure_drop"] for lv in levels],
                            yerr=[lv["pressure_drop_std"] for lv in levels], fmt=marker, capsize=3,
                            label=_label(s) + (f", U_mf {umf:.3f} m/s" if umf else ""))
         if umf:  # where this model's fixed branch meets its plateau
             ax.plot([umf], [s["bed_weight_per_area"]], marker="|", ms=18, mew=2, color=bars[0].get_color())
+        fixed = [lv for lv in levels if lv.get("ergun_pressure_drop_layers") and lv["pressure_drop"] is not None
+                 and lv["pressure_drop"] < FLUIDIZED_FRACTION * s["bed_weight_per_area"]]
+        if fixed:
+            ax.plot([lv["velocity"] for lv in fixed], [lv["ergun_pressure_drop_layers"] for lv in fixed], "x",
+                    ms=7, color=bars[0].get_color(), label=layered_label)
+            layered_label = None
     ax.set_ylim(0, 1.6 * first["bed_weight_per_area"])
     ax.set_xlabel("superficial gas velocity U, m/s")
     ax.set_ylabel("pressure drop across the bed, Pa")
