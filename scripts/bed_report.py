@@ -208,7 +208,9 @@ def draw_fluidization(runs, path: Path) -> None:
             ax.plot([lv["velocity"] for lv in fixed], [lv["ergun_pressure_drop_layers"] for lv in fixed], "x",
                     ms=7, color=bars[0].get_color(), label=layered_label)
             layered_label = None
-    ax.set_ylim(0, 1.6 * first["bed_weight_per_area"])
+    highest = max((lv["pressure_drop"] for _, s in runs for lv in s.get("levels") or []
+                   if lv["pressure_drop"] is not None), default=0.0)
+    ax.set_ylim(0, max(1.6 * first["bed_weight_per_area"], 1.1 * highest))
     ax.set_xlabel("superficial gas velocity U, m/s")
     ax.set_ylabel("pressure drop across the bed, Pa")
     ax.set_title("Bubbling bed: fluidization curve (bars: std of the fluctuations)")
