@@ -579,7 +579,7 @@ def bubbling_bed(ctx: Context) -> Result:
                      f"held {size['hold']:g} s and averaged over its second half; dt = 2e-4 s. "
                      + ("Quick size: the CI's 1,500-particle column of 9.6 mm x 9.6 mm at 0.3 and 2 U_mf, the MP-PIC "
                         "bed (`none`); the full size runs the 9,240-particle bed of the CFDEM tutorial at eight "
-                        "levels with `none`, `ktgf`, `surrogate` and the CFD-DEM (`dem`, about an hour on one "
+                        "levels with `none`, `ktgf`, `surrogate` and the CFD-DEM (`dem`, about two hours on one "
                         "core)." if ctx.quick else
                         "The 9,240-particle bed of the CFDEM tutorial (43.2 x 9.6 mm, settled ~35 mm)."))
     return res
