@@ -94,9 +94,9 @@ def plot(rows: list, path: Path, title: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 5))
-    keys = sorted({(r["device"], r["model"], r["weight"]) for r in rows if "error" not in r})
+    keys = sorted({(r["device"], r["model"], r["weight"]) for r in rows if not r.get("error")})
     for device, model, weight in keys:
-        sel = sorted((r for r in rows if "error" not in r and (r["device"], r["model"], r["weight"]) ==
+        sel = sorted((r for r in rows if not r.get("error") and (r["device"], r["model"], r["weight"]) ==
                       (device, model, weight)), key=lambda r: r["parcels"])
         label = f"{device} {model}" + (f" W={weight}" if weight > 1 else "")
         ax.loglog([r["parcels"] for r in sel], [r["parcel_steps_per_second"] for r in sel], "o-", label=label)
@@ -106,6 +106,10 @@ def plot(rows: list, path: Path, title: str) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bed_report import _stamp  # commit and date in the corner
+
+    _stamp(fig)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
