@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 import sys
+from typing import NamedTuple
 from dataclasses import dataclass
 
 import numpy as np
@@ -282,6 +283,21 @@ class CellConfig:
             raise ConfigError(f"cell log_capacity must be an integer >= 0 (got {self.log_capacity!r})")
 
 
+class _LoopState(NamedTuple):
+    """The sub-step loop's device state (``kernels/cell_collide.py`` ``substep_plan``)."""
+
+    state: object
+    """(3,) int32: sub-step index, sub-steps of the step, the step's seed (``LOOP_*``)."""
+    more: object
+    """(1,) int32: 1 while a sub-step is left (the while node's condition)."""
+    sub_seed: object
+    """(1,) int32: the sub-step's seed."""
+    sub_dt: object
+    """(1,) float32: the sub-step, s."""
+    events: object
+    """(1,) float64: the last step's accepted events per parcel."""
+
+
 def _launch_key(value):
     """What a launch bakes in of ``value`` (a Warp struct, array or plain value), hashable: arrays by address and
     shape, structs field by field (``CellCollisions``' captured loop is captured again when it changes)."""
@@ -418,8 +434,7 @@ class CellCollisions:
         self._fluid = None
         """(fluid mask array, its integral F on the device) of the last HEL grid (``fluid_integral``)."""
         self._loop = None
-        """(loop state (3,) int32, more (1,) int32, sub-step seed (1,) int32, sub-step dt (1,) float32, accepted
-        events per parcel (1,) float64) on the device (``kernels/cell_collide.py`` ``substep_plan``)."""
+        """The sub-step loop's device state (``_LoopState``), allocated per device by :meth:`_loop_arrays`."""
         self._loop_graphs = {}
         """Captured sub-step loops of the device loop, by what their launches bake in."""
         self._on_device = False
@@ -434,7 +449,7 @@ class CellCollisions:
         if self._on_device and self._loop is not None:
             from kernels.cell_collide import LOOP_SUBSTEPS
 
-            return int(self._loop[0].numpy()[LOOP_SUBSTEPS])
+            return int(self._loop.state.numpy()[LOOP_SUBSTEPS])
         return self._substeps
 
     @substeps.setter
@@ -447,14 +462,14 @@ class CellCollisions:
         ``approaching`` it sets the next step's sub-steps (``CellConfig.approach_events``); in the checkpoint (read
         from the device after a device-loop step)."""
         if self._on_device and self._loop is not None:
-            return float(self._loop[4].numpy()[0])
+            return float(self._loop.events.numpy()[0])
         return self._events_per_parcel
 
     @events_per_parcel.setter
     def events_per_parcel(self, value: float) -> None:
         self._events_per_parcel = float(value)
         if self._loop is not None:
-            self._loop[4].fill_(float(value))
+            self._loop.events.fill_(float(value))
 
     def _device_loop_ok(self, device) -> bool:
         """Whether the sub-step loop can be a captured while loop here: the CPU (Warp's graphs), or CUDA with graph
@@ -478,11 +493,13 @@ class CellCollisions:
         written into it."""
         import warp as wp
 
-        if self._loop is None or str(self._loop[0].device) != str(device):
+        if self._loop is None or str(self._loop.state.device) != str(device):
             self._leave_device()
-            self._loop = (wp.zeros(3, dtype=wp.int32, device=device), wp.zeros(1, dtype=wp.int32, device=device),
-                          wp.zeros(1, dtype=wp.int32, device=device), wp.zeros(1, dtype=wp.float32, device=device),
-                          wp.full(1, self._events_per_parcel, dtype=wp.float64, device=device))
+            self._loop = _LoopState(wp.zeros(3, dtype=wp.int32, device=device),
+                                    wp.zeros(1, dtype=wp.int32, device=device),
+                                    wp.zeros(1, dtype=wp.int32, device=device),
+                                    wp.zeros(1, dtype=wp.float32, device=device),
+                                    wp.full(1, self._events_per_parcel, dtype=wp.float64, device=device))
             self._loop_graphs = {}
         return self._loop
 
@@ -632,8 +649,9 @@ class CellCollisions:
         and the host loops. Both loops launch the same kernels with the same seeds and sub-step: the same bits."""
         import warp as wp
 
-        from kernels.cell_collide import (advance_paths, collide_cells, fill_fluid_volumes, path_shifts, restore_energy,
-                                          sort_by_cell, substep_begin, substep_end, substep_events, substep_plan)
+        from kernels.cell_collide import (LOOP_SUBSTEPS, advance_paths, collide_cells, fill_fluid_volumes, path_shifts,
+                                          restore_energy, sort_by_cell, substep_begin, substep_end, substep_events,
+                                          substep_plan)
 
         if dt is None or not (dt > 0 and math.isfinite(dt)):
             raise ConfigError(f"cell detection needs the step dt > 0 (got {dt!r})")
@@ -647,34 +665,30 @@ class CellCollisions:
             if extremes is None:
                 extremes = particles.live_extremes()[:4]
             v_max, w_max, r_max, n_alive = extremes
-        n_alive = int(n_alive)
         seed = step_seed(self.seed, self.steps)
         self.steps += 1
+        cfg = self.config
+        lattice = None
+        device_loop = n_alive >= 2 and store is not None and (periodic_box is not None or grid is not None) and not (
+            walls is not None and cfg.wall_paths) and self._device_loop_ok(particles.device)
+        if device_loop:  # the lattice from the bounds; a shifted one draws each sub-step's offset on the host
+            lattice = self.choose_lattice(particles, periodic_box=periodic_box, grid=grid,
+                                          extremes=(w_max, r_max, n_alive))
+            device_loop = not (cfg.shift if cfg.shift is not None else self._merged)
+        if store is not None and not device_loop and n_alive >= 2:  # the host loop: the exact extremes (its
+            # lattice, reach and K; bounds below 2 parcels need no read)
+            v_max, w_max, r_max, n_alive = particles.live_extremes()[:4]
+            store, lattice = None, None
+        n_alive = int(n_alive)
         if n_alive < 2:
             self._leave_device()
             self._zero_counts()
             return
-        cfg = self.config
-        device_loop = store is not None and (periodic_box is not None or grid is not None) and not (
-            walls is not None and cfg.wall_paths) and self._device_loop_ok(particles.device)
-        if store is not None and not device_loop:  # a bounding box needs the positions and the reach: read
-            v_max, w_max, r_max, n_alive = particles.live_extremes()[:4]
-            store = None
-        origin, edges, shape = self.choose_lattice(particles, periodic_box=periodic_box, grid=grid,
-                                                   reach=0.0 if v_max is None else v_max * dt,
-                                                   extremes=(w_max, r_max, n_alive))
-        shift = self.config.shift if self.config.shift is not None else self._merged
-        if device_loop and shift:  # each sub-step's lattice offset is drawn on the host: read, loop there, with
-            # the exact extremes in place of the bounds (the host loop's lattice and events per parcel)
-            v_max, w_max, r_max, n_alive = particles.live_extremes()[:4]
-            device_loop, store = False, None
-            if n_alive < 2:
-                self._leave_device()
-                self._zero_counts()
-                return
-            origin, edges, shape = self.choose_lattice(particles, periodic_box=periodic_box, grid=grid,
-                                                       reach=v_max * dt, extremes=(w_max, r_max, n_alive))
-            shift = self.config.shift if self.config.shift is not None else self._merged
+        if lattice is None:
+            lattice = self.choose_lattice(particles, periodic_box=periodic_box, grid=grid, reach=v_max * dt,
+                                          extremes=(w_max, r_max, n_alive))
+        origin, edges, shape = lattice
+        shift = cfg.shift if cfg.shift is not None else self._merged
         if shift and periodic_box is None:
             shape = np.asarray(shape, int) + 1  # a shifted lattice reaches one cell further on every axis
         n_cells = int(np.prod(shape))
@@ -802,7 +816,7 @@ class CellCollisions:
                 wp.capture_launch(cached[0])
                 self.device_loop_steps += 1
             else:  # the host loop after all, over the K the device planned (read back)
-                for _ in range(int(self._loop[0].numpy()[1])):
+                for _ in range(int(loop.numpy()[LOOP_SUBSTEPS])):
                     substep()
             self._on_device = True  # K and the events per parcel (below) are the device's
         else:

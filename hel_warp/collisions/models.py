@@ -572,13 +572,7 @@ class SurrogateCollision:
             if bounds[2] == 0:
                 return
             self.detection = "cell"
-            self.cells.collide(particles, dt, self.forest, self.swept.domain, batch_forest=self.batch_forest,
-                               particle_spin=self.particle_spin, spin_form=self.flat.form == "contact_spin",
-                               periodic_box=self.periodic_box,
-                               grid=None if self.periodic_box is not None else self._solver_grid,
-                               device_extremes=(particles.launch_live_extremes(), tuple(bounds)),
-                               fluid=self._solver_fluid, walls=self._walls,
-                               local=None if self.periodic_box is not None else self._solver_local)
+            self._collide_cells(particles, dt, device_extremes=(particles.launch_live_extremes(), tuple(bounds)))
             return
         if extremes is None:
             extremes = particles.live_extremes()  # one read-back, not four arrays
@@ -595,12 +589,7 @@ class SurrogateCollision:
         if self.auto_detection:
             self.detection = "cell" if w_max > 1.0 else "swept"
         if self.detection == "cell":
-            self.cells.collide(particles, dt, self.forest, self.swept.domain, batch_forest=self.batch_forest,
-                               particle_spin=self.particle_spin, spin_form=self.flat.form == "contact_spin",
-                               periodic_box=self.periodic_box,
-                               grid=None if self.periodic_box is not None else self._solver_grid,
-                               extremes=extremes, fluid=self._solver_fluid, walls=self._walls,
-                               local=None if self.periodic_box is not None else self._solver_local)
+            self._collide_cells(particles, dt, extremes=extremes)
             return
         alive = particles.alive.numpy().astype(bool)
         if self.detection == "swept":
@@ -610,6 +599,16 @@ class SurrogateCollision:
         else:
             sweep = 0.0
         self._collide_pairwise(particles, r_max, sweep, alive)
+
+    def _collide_cells(self, particles, dt, **extremes) -> None:
+        """The cell detection's step (``CellCollisions.collide``) with this strategy's forests, spin, box or grid,
+        fluid mask, walls and local solids fraction; ``extremes``: its ``extremes=`` or ``device_extremes=``."""
+        periodic = self.periodic_box is not None
+        self.cells.collide(particles, dt, self.forest, self.swept.domain, batch_forest=self.batch_forest,
+                           particle_spin=self.particle_spin, spin_form=self.flat.form == "contact_spin",
+                           periodic_box=self.periodic_box, grid=None if periodic else self._solver_grid,
+                           fluid=self._solver_fluid, walls=self._walls,
+                           local=None if periodic else self._solver_local, **extremes)
 
     def _collide_pairwise(self, particles, r_max: float, sweep: float, alive: np.ndarray) -> None:
         import warp as wp
