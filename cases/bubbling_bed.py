@@ -374,7 +374,7 @@ def levels_summary(run) -> list:
         if layers is not None:
             # Ergun's law through the bed the level holds: its gradient at each cell layer's time-averaged voidage
             eps_s = np.clip(np.nan_to_num(np.asarray(layers, np.float64)), 0.0, 0.99)
-            ergun_layers = float(sum(ergun(u, run.sim.flow.spacing, 1.0 - e, run.args.diameter) for e in eps_s))
+            ergun_layers = float(np.sum(ergun(u, run.sim.flow.spacing, 1.0 - eps_s, run.args.diameter)))
         out.append({"velocity": float(u), "pressure_drop": float(dp.mean()) if dp.size else None,
                     "pressure_drop_std": float(dp.std()) if dp.size else None,
                     "bed_height": float(probes.time_average("bed_height", "bed_height", half, end)),

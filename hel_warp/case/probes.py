@@ -230,8 +230,8 @@ class Plane(Probe):
 class BedHeight(Probe):
     """Bed height above ``floor`` (m) along the axis against gravity: ``bed_height`` where the layer-mean solids
     fraction last exceeds ``threshold``, ``mean_height_x2`` twice the real-particle-mean height above the floor, m;
-    ``layer_solids_fraction`` the layer-mean deposited solids fraction per cell layer (the voidage the drag sees) and
-    ``layer_height`` the layers' centres above the floor, m."""
+    ``layer_solids_fraction`` the layer-mean deposited solids fraction per cell layer, in grid order (the voidage
+    the drag sees)."""
 
     floor: float = 0.0
     threshold: float = 0.1
@@ -264,8 +264,7 @@ class BedHeight(Probe):
         w = (p.weight.numpy()[alive] * p.radius.numpy()[alive].astype(np.float64) ** 3)
         h = self._up * (p.x.numpy()[alive, self._axis].astype(np.float64) - self.floor)
         mean = float(np.sum(w * h) / np.sum(w)) if w.size else 0.0
-        return {"bed_height": surface, "mean_height_x2": 2.0 * mean, "layer_solids_fraction": layer,
-                "layer_height": self._height}
+        return {"bed_height": surface, "mean_height_x2": 2.0 * mean, "layer_solids_fraction": layer}
 
 
 @dataclass
