@@ -42,7 +42,7 @@ def _plt():
     return plt
 
 
-def _stamp(fig) -> None:
+def stamp(fig) -> None:
     """Commit and date in the corner, so a picture says what made it."""
     import datetime
     import subprocess
@@ -58,7 +58,7 @@ def _stamp(fig) -> None:
 
 def _save(fig, path: Path) -> None:
     """Stamp, write and close a figure."""
-    _stamp(fig)
+    stamp(fig)
     fig.savefig(path, dpi=110)
     _plt().close(fig)
 

@@ -107,9 +107,9 @@ def plot(rows: list, path: Path, title: str) -> None:
     ax.legend(fontsize=8)
     fig.tight_layout()
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from bed_report import _stamp  # commit and date in the corner
+    from bed_report import stamp  # commit and date in the corner
 
-    _stamp(fig)
+    stamp(fig)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
