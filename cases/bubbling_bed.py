@@ -79,15 +79,20 @@ def packing_stress(args=None):
     """The enduring contacts of the HEL models' packed parcels (``hel_warp.hel.PackingStress``).
 
     Snider's (2001) stress P_s (eps_s - onset)^2 / (eps_cp - eps_s) with a threshold: no stress below the onset
-    0.50 (looser parcels have no enduring contacts, so bubbles and the freeboard are free of it), diverging at
-    eps_cp = 0.66, above every cell of the poured bed (its cells scatter over 0.53-0.64 on 2.4 mm cells: eight
-    particles a cell). P_s = 300 Pa carries this bed's ~190 Pa weight at eps_s ~ 0.60: a settled bed compacts by
-    about 2 % in height (P_s = 50 Pa: 11 %; measured on a 3,000-particle bed). Contact damping removes the
+    0.575, the poured bed's own packing (0.58: its particles touch there; looser parcels have no enduring contacts,
+    so bubbles and the freeboard are free of it), diverging at eps_cp = 0.66. P_s = 30,000 Pa makes the packed
+    bed nearly rigid, as a bed of stiff spheres is: its ~190 Pa weight holds it between 0.58 at the top and 0.595
+    at the distributor, and as the gas takes the weight below minimum fluidization the bed keeps its voidage, so
+    the pressure drop follows Ergun's line at the settled voidage (0.99-1.01 of it at 0.1-0.2 m/s, 0.94 at 0.4)
+    up to the weight. A soft stress (P_s = 300 Pa from an onset of 0.50) lets the compressed bed spring back as
+    the gas unloads it: the bed at rest is denser than poured (1.22x Ergun at 0.1 m/s), expands before it
+    fluidizes (0.89x at 0.4 m/s) and meets the weight late (U_mf 0.49 m/s against the CFD-DEM's 0.40; this one:
+    0.44). Its stiffness, 2e4 Pa per unit of eps_s at the weight, stays under ``PackingStress.stiffness_limit``
+    (3.6e4 Pa on 2.4 mm cells at dt = 2e-4 s). Contact damping removes the
     parcels' velocity relative to the local solids velocity where contacts endure (O'Rourke & Snider
     2010), so a bed at rest stays at rest instead of ringing on the stress: 0.2 of it per step at the bed's dt of
-    2e-4 s. A bed at rest holds with it as with 0.9 (0.1 m/s: 41.5 +- 0.8 Pa against +- 0.2), and the fluidized
-    bed moves less as one block: at 0.66 m/s 0.9 lifts the emulsion in slugs across the whole width (+- 13 Pa
-    against the CFD-DEM's +- 7 Pa), 0.2 gives +- 7-10 Pa and the CFD-DEM's height within 1 mm; without damping the
+    2e-4 s; 0.9 lifts the fluidized emulsion in slugs across the whole width (+- 13 Pa against the CFD-DEM's +- 7
+    Pa at 0.66 m/s); without damping the
     packed emulsion boils as a granular gas."""
     from hel_warp.hel import PackingStress
 
@@ -102,7 +107,7 @@ def packing_stress(args=None):
     return PackingStress(beta=2.0, **d)
 
 
-PACKING = (300.0, 0.66, 0.50, 0.2)
+PACKING = (30000.0, 0.66, 0.575, 0.2)
 """Default packing stress: P_s (Pa), eps_cp, onset, contact damping (``packing_stress``)."""
 
 
@@ -116,6 +121,15 @@ it to Theta ~ 0.06 m^2/s^2, whose granular pressure throws the bed out of the bo
 at rest at 0.15 m/s and carries its weight at 0.6 m/s (181 +- 24 Pa against 193 Pa); with g0 up to 0.3 it holds at
 rest but is blown out within 0.2 s at 0.6 m/s, up to 0.5 sooner. Kinetic theory is the collisional regime; the
 packing stress carries the enduring contacts."""
+
+
+KTGF_DILUTE_LIMIT = 1.0
+"""Smallest solids fraction of KTGF's solids phase in the bed, in particles per cell (``hel_warp.hel.KtgfCollision.
+dilute_limit``: 0.066 on the 2.4 mm cells; elsewhere 1e-8). Kinetic theory is a continuum; in a cell with less than
+one particle the algebraic Theta grows as 1 / eps_s and its granular pressure kicks the parcels at the cell's edge
+by up to h / dt per step (12 m/s here). Without the limit the splash of each erupting bubble is so kicked: from the
+settled bed at 0.66 m/s 27 % of the particles leave through the outlet within 0.8 s (speeds up to 80 m/s; the
+rigid packed bed of the stiff packing stress erupts harder than a soft one); with it none leave at 0.8 m/s."""
 
 
 SURROGATE_EPS_CAP = 0.1
@@ -252,7 +266,9 @@ def build(args):
     # KTGF: kinetic theory is the collisional regime; above the onset of enduring contacts the packing stress
     # carries the bed (``hel_warp.hel.KtgfCollision``'s collisional_limit)
     if flow.packing_stress is not None:
-        flow.collision_defaults["ktgf"] = {"collisional_limit": KTGF_COLLISIONAL_LIMIT, "restitution": KTGF_RESTITUTION}
+        flow.collision_defaults["ktgf"] = {"collisional_limit": KTGF_COLLISIONAL_LIMIT, "restitution": KTGF_RESTITUTION,
+                                           "dilute_limit": KTGF_DILUTE_LIMIT * math.pi / 6.0 * float(args.diameter) ** 3
+                                           / spacing**3}
     # from the distributor to the outlet (the probes extend the pressure to the boundary faces): the whole bed, whose
     # weight per area the drop of a fluidized bed must equal
     flow.probe(hc.PressureDrop("bed_pressure_drop", axis="z", low=0.0, high=hi[2], every=PROBE_EVERY))

@@ -76,13 +76,20 @@ class KtgfCollision:
     theory is the collisional regime, and g0 ~ 1 / (1 - (eps_s / eps_max)^(1/3)) in a settled bed (g0 ~ 1e3 at
     0.999 eps_max) with the explicit algebraic Theta turns the slightest fluctuation of the parcels into a pressure
     that blows the bed apart (``cases/bubbling_bed.py``, ``KTGF_COLLISIONAL_LIMIT``, has the measurements).
+
+    ``dilute_limit``: the smallest eps_s of a cell that holds a solids phase (below it: no Theta, no stress, no
+    resolved strain against it) and of a parcel's interpolated eps_s that feels the stress. Kinetic theory is a
+    continuum: a cell with less than a particle in it has no granular temperature, and there the algebraic Theta
+    (~ 1 / eps_s) only kicks the few parcels at its edge. A flow whose cells hold a few particles (a bed resolved at
+    two diameters) sets it to one particle per cell; the default 1e-8 keeps every cell with solids.
     """
 
     name = "ktgf"
 
     def __init__(self, *, particle_diameter: float, particle_density: float, restitution: float = 0.9,
                  packing: float = 0.63, friction_packing: float = 0.61, friction_angle_deg: float = 30.0,
-                 mean_free_path_length: float | None = None, collisional_limit: float | None = None):
+                 mean_free_path_length: float | None = None, collisional_limit: float | None = None,
+                 dilute_limit: float = 1e-8):
         from kernels.ktgf import make_ktgf_params
 
         require_positive("particle_diameter", particle_diameter, "m")
@@ -96,9 +103,12 @@ class KtgfCollision:
             if not 0.0 < collisional_limit < packing:
                 raise ConfigError(f"collisional_limit must lie in (0, packing = {packing}) (got {collisional_limit})")
             cap = collisional_limit / packing
+        if not 0.0 < dilute_limit < packing:
+            raise ConfigError(f"dilute_limit must lie in (0, packing = {packing}) (got {dilute_limit})")
         self.params = make_ktgf_params(particle_diameter=particle_diameter, particle_density=particle_density,
                                        restitution=restitution, packing=packing, friction_packing=friction_packing,
-                                       friction_angle_deg=friction_angle_deg, max_fraction_of_packing=cap)
+                                       friction_angle_deg=friction_angle_deg, max_fraction_of_packing=cap,
+                                       eps_s_min=dilute_limit)
         if mean_free_path_length is not None and not mean_free_path_length >= 0.0:
             raise ConfigError(f"mean_free_path_length must be >= 0 m (got {mean_free_path_length}); 0 switches "
                               "the limit off, None takes the cell size")

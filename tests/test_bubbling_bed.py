@@ -70,12 +70,12 @@ def test_settled_below_and_fluidized_above_minimum_fluidization(collisions, tmp_
     assert weight == pytest.approx(1500 * 1000 * math.pi / 6 * 1.2e-3**3 * 9.80665 / 9.6e-3**2, rel=1e-9)
     below, above = s["levels"]
     # below U_mf: the bed stays where it settled, give or take the compaction until the packing stress carries its
-    # weight (twice the mean particle height; 2 % in the 14 mm x 9.6 mm column, 7 % in this 9.6 mm square one whose
-    # poured cells beside the walls are looser)...
+    # weight (twice the mean particle height; this 9.6 mm square column's poured cells beside the walls are looser
+    # than the stress's onset)...
     assert 0.88 * s["settled_height"] < below["mean_height_x2"] < 1.02 * s["settled_height"]
     # ...and the gas pays Ergun's pressure drop at the bed's voidage, not its weight. Ergun is convex in eps_s and
     # the packing stress compacts the bottom more than the mean (the stress there carries the whole bed), so the
-    # drop of the real bed lies above Ergun's at its mean voidage: between 0.8 and 1.5 of it (1.2 measured).
+    # drop of the real bed lies above Ergun's at its mean voidage: between 0.8 and 1.5 of it.
     eps_s = s["settled_solids_fraction"] * s["settled_height"] / below["mean_height_x2"]
     ergun = bb.ergun(low, below["mean_height_x2"], 1 - eps_s, 1.2e-3)
     assert 0.8 * ergun < below["pressure_drop"] < 1.5 * ergun

@@ -118,10 +118,11 @@ def test_algebraic_theta_zeroes_energy_balance(eps_s, tr_d, tr_d2, k_sg):
     assert abs(production - sinks) <= 1e-4 * sinks
 
 
-def _cells(eps_row, u_row, drag_coeff_row=None, h=1e-3):
+def _cells(eps_row, u_row, drag_coeff_row=None, h=1e-3, eps_s_min=1e-8):
     """ktgf_cells on a (n, 1, 1) row of cells; returns (theta, p_s) as float64 rows."""
     n = len(eps_row)
-    params = ktgf.make_ktgf_params(particle_diameter=D, particle_density=RHO_S, restitution=E, packing=EPS_MAX)
+    params = ktgf.make_ktgf_params(particle_diameter=D, particle_density=RHO_S, restitution=E, packing=EPS_MAX,
+                                   eps_s_min=eps_s_min)
     out = {k: wp.zeros((n, 1, 1), dtype=float) for k in ("g0", "theta", "p_s", "mu_s", "mu_fric")}
     drag = None
     if drag_coeff_row is not None:
@@ -165,6 +166,32 @@ def test_solids_strain_is_one_sided_next_to_empty_cells():
     # kg/(m^3 s), the hand value of test_algebraic_theta_with_gas_exchange_hand_value: Theta = 1.963953e-6
     theta, _ = _cells(eps, u, drag_coeff_row=[0.0, 3e-6, 3e-6, 3e-6, 0.0], h=h)
     assert theta[1:4] == pytest.approx([1.963953e-6] * 3, rel=1e-4)
+
+
+def test_the_dilute_limit_leaves_cells_of_less_than_a_particle_without_a_solids_phase():
+    # The simple shear of the test above (u_y = gamma x, eps_s = 0.3) with a fringe cell of eps_s 0.05 at its end.
+    # Without a dilute limit the fringe cell holds a solids phase: its Theta is the algebraic root at eps_s 0.05,
+    # which exceeds the dense cells' (Theta ~ 1 / eps_s in the dilute limit). With the limit 0.065 (one 1.2 mm
+    # particle in a 2.4 mm cell) it holds none (Theta = p_s = 0), and its neighbour's strain is taken one-sided
+    # against the dense cell, exact for the linear profile: the simple-shear hand value 9.48304e-6 m^2/s^2.
+    h, gamma = 1e-3, 10.0
+    x = (np.arange(5) + 0.5) * h
+    eps = [0.0, 0.3, 0.3, 0.05, 0.0]
+    u = [[0.0, gamma * xi if 1 <= n <= 3 else 0.0, 0.0] for n, xi in enumerate(x)]
+    theta, p_s = _cells(eps, u, h=h)
+    assert theta[3] > theta[2] > 0.0 and p_s[3] > 0.0
+    theta, p_s = _cells(eps, u, h=h, eps_s_min=math.pi / 6 * 1.2**3 / 2.4**3)
+    assert theta[3] == 0.0 and p_s[3] == 0.0
+    assert theta[1:3] == pytest.approx([9.48304e-6] * 2, rel=1e-4)
+
+
+def test_ktgf_refuses_a_dilute_limit_outside_zero_to_packing():
+    from hel_warp.errors import ConfigError
+    from hel_warp.hel import KtgfCollision
+
+    for bad in (0.0, 0.63, 0.7):
+        with pytest.raises(ConfigError, match="dilute_limit"):
+            KtgfCollision(particle_diameter=D, particle_density=RHO_S, dilute_limit=bad)
 
 
 def test_radial_distribution_diverges_at_packing():
