@@ -64,7 +64,8 @@ def built(shape, periodic, seed, solid_fraction=0.3):
     return mg, dense, rows
 
 
-CASES = [((8, 6, 4), (False, False, False)), ((7, 5, 3), (True, False, True)), ((6, 4, 5), (True, True, True))]
+CASES = [((8, 6, 4), (False, False, False)), ((7, 5, 3), (True, False, True)), ((6, 4, 5), (True, True, True)),
+         ((4, 9, 4), (True, True, True))]
 
 
 @pytest.mark.parametrize("shape,periodic", CASES)
@@ -118,3 +119,21 @@ def test_vcycle_is_symmetric_positive_definite(shape, periodic):
     d = 1.0 / np.sqrt(np.diag(dense))
     kappa_jacobi = np.linalg.cond(d[:, None] * dense * d[None, :])
     assert kappa_pre < 0.5 * kappa_jacobi, (kappa_pre, kappa_jacobi)
+
+
+def test_a_periodic_axis_of_odd_count_is_halved_with_a_block_of_three_at_its_end():
+    # the periodic riser's tile: 4 x 50 x 4 cells, periodic on every axis. 50 -> 25 -> 12 (blocks of two and one of
+    # three, cells 22-24) -> 6 -> 3 -> 1: every axis halved at every level, so the coarse cells stay cubes (as wide
+    # as they are tall) instead of plates 25 cells across a y of one
+    shape, periodic = (16, 50, 16), (True, True, True)
+    rows = np.arange(np.prod(shape))
+    mg = AggregationMultigrid(rows, shape, periodic, None)
+    assert [s[1] for s in mg.shapes] == [50, 25, 12, 6, 3, 1][:len(mg.shapes)]
+    assert [s[0] for s in mg.shapes] == [16, 8, 4, 2, 1, 1][:len(mg.shapes)]
+    level = mg.levels[1]
+    parent = level.parent.numpy()
+    coords = np.stack(np.unravel_index(np.arange(level.n), mg.shapes[1]), axis=1)
+    block = coords[:, 1] // 2
+    coarse_y = np.stack(np.unravel_index(parent, mg.shapes[2]), axis=1)[:, 1]
+    np.testing.assert_array_equal(coarse_y, np.minimum(block, 11))
+    assert np.count_nonzero(coarse_y[coords[:, 0] + coords[:, 2] == 0] == 11) == 3
