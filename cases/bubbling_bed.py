@@ -258,7 +258,11 @@ def build(args):
     if solids / (hi[0] * hi[1] * hi[2]) > 0.6:
         raise ConfigError(f"{args.particles} particles of {args.diameter * 1e3:g} mm fill more than 0.6 of the box; "
                           "use fewer particles or a taller box")
-    flow.fill("bed", ((0.0, 0.0, 0.0), (hi[0], hi[1], top)), count=args.particles, packing="settled")
+    # weighted parcels are placed over the height the bed holds at the packing stress's onset (a DEM pour is for
+    # single particles): a bed placed denser is thrown apart by the stress in its first steps
+    onset = max(0.3, flow.packing_stress.onset) if flow.packing_stress is not None else 0.6
+    flow.fill("bed", ((0.0, 0.0, 0.0), (hi[0], hi[1], top)), count=args.particles, packing="settled",
+              settled_fraction=onset)
     # surrogate: the cell detection (collisions per collision cell among the parcels in it) suits a dense bed,
     # where the swept search's binary events are not what carries the weight
     flow.collision_defaults["surrogate"] = {"detection": "cell", "cell": {"eps_cap": SURROGATE_EPS_CAP,
