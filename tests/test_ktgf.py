@@ -150,15 +150,21 @@ def test_isolated_moving_parcel_has_no_solids_strain():
     assert np.all(theta == 0.0) and np.all(p_s == 0.0)
 
 
+def _shear_row(last: float, h: float = 1e-3, gamma: float = 10.0):
+    """A row of 5 cells with solids in cells 1..3 (eps_s 0.3, 0.3, ``last``) in simple shear u_y = gamma x:
+    (h, eps_s row, solids velocity row)."""
+    x = (np.arange(5) + 0.5) * h
+    eps = [0.0, 0.3, 0.3, last, 0.0]
+    u = [[0.0, gamma * xi if 1 <= n <= 3 else 0.0, 0.0] for n, xi in enumerate(x)]
+    return h, eps, u
+
+
 def test_solids_strain_is_one_sided_next_to_empty_cells():
     # Solids in cells 1..3 of a row of 5 with u_y = gamma x (simple shear D_xy = gamma/2, tr D = 0,
     # D:D = gamma^2/2 = 50 for gamma = 10 1/s): cell 2 central, cells 1 and 3 one-sided against the
     # centre, both exact for a linear profile, so all three take the simple-shear hand value of
     # test_algebraic_theta_simple_shear_hand_value at eps_s = 0.3: Theta = 9.48304e-6.
-    h, gamma = 1e-3, 10.0
-    x = (np.arange(5) + 0.5) * h
-    eps = [0.0, 0.3, 0.3, 0.3, 0.0]
-    u = [[0.0, gamma * xi if 1 <= n <= 3 else 0.0, 0.0] for n, xi in enumerate(x)]
+    h, eps, u = _shear_row(last=0.3)
     theta, _ = _cells(eps, u, h=h)
     assert theta[1:4] == pytest.approx([9.48304e-6] * 3, rel=1e-4)
     assert theta[0] == 0.0 and theta[4] == 0.0
@@ -174,10 +180,7 @@ def test_the_dilute_limit_leaves_cells_of_less_than_a_particle_without_a_solids_
     # which exceeds the dense cells' (Theta ~ 1 / eps_s in the dilute limit). With the limit 0.065 (one 1.2 mm
     # particle in a 2.4 mm cell) it holds none (Theta = p_s = 0), and its neighbour's strain is taken one-sided
     # against the dense cell, exact for the linear profile: the simple-shear hand value 9.48304e-6 m^2/s^2.
-    h, gamma = 1e-3, 10.0
-    x = (np.arange(5) + 0.5) * h
-    eps = [0.0, 0.3, 0.3, 0.05, 0.0]
-    u = [[0.0, gamma * xi if 1 <= n <= 3 else 0.0, 0.0] for n, xi in enumerate(x)]
+    h, eps, u = _shear_row(last=0.05)
     theta, p_s = _cells(eps, u, h=h)
     assert theta[3] > theta[2] > 0.0 and p_s[3] > 0.0
     theta, p_s = _cells(eps, u, h=h, eps_s_min=math.pi / 6 * 1.2**3 / 2.4**3)
