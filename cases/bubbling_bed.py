@@ -26,13 +26,14 @@ loose. ``dem`` carries its contacts itself.
 
 ``--json`` prints one object: per level the velocity, the pressure drop (mean and standard deviation over the
 level's second half), the bed height, the solids-fraction profiles across the bed at 10, 20 and 40 mm above the
-distributor, the dominant frequency of the pressure-drop fluctuations, Ergun's pressure drop through the level's own
-bed (its law integrated over the time-averaged voidage of each cell layer); the bed's weight per area, Ergun's
-pressure drop per level at the settled bed's voidage, the Wen-Yu minimum fluidization velocity. ``OUT/`` holds the run
-directory of every case and the pictures ``bed_snapshots.png`` (parcels coloured by speed at a few instants),
-``bed_solids_fraction.png`` (the time-averaged map), ``bed_history.png`` (pressure drop and bed height over time)
-and ``bed_fluidization.png`` (the curve with Ergun's line and the weight). ``scripts/bed_report.py`` draws several
-runs (models) side by side on one colour scale.
+distributor, the dominant frequency of the pressure-drop fluctuations, the standard error of the mean pressure drop
+(``pressure_drop_error``: its fluctuations are correlated over a bubble's period), Ergun's pressure drop through the
+level's own bed (its law integrated over the time-averaged voidage of each cell layer); the bed's weight per area,
+Ergun's pressure drop per level at the settled bed's voidage, the Wen-Yu minimum fluidization velocity. ``OUT/``
+holds the run directory of every case and the pictures ``bed_snapshots.png`` (parcels coloured by speed at a few
+instants), ``bed_solids_fraction.png`` (the time-averaged map), ``bed_history.png`` (pressure drop and bed height
+over time) and ``bed_fluidization.png`` (the curve with Ergun's line and the weight). ``scripts/bed_report.py``
+draws several runs (models) side by side on one colour scale.
 """
 
 from __future__ import annotations
@@ -350,6 +351,27 @@ def dominant_frequency(t: np.ndarray, signal: np.ndarray) -> float:
     return float(freq[1 + int(np.argmax(spectrum[1:]))])
 
 
+def mean_error(signal) -> float | None:
+    """Standard error of the mean of a correlated series (None below two samples): sigma sqrt(2 tau / n), with
+    tau = 1/2 + sum of the normalised autocorrelation up to its first zero (Sokal's integrated autocorrelation time,
+    in samples; 1/2 for white noise, which gives sigma / sqrt(n)). A bed's pressure drop is dominated by its bubbles:
+    a 0.2 s window of a 5 Hz signal holds about three independent samples, so its mean is uncertain by about half
+    its standard deviation, not by sigma / sqrt(100)."""
+    x = np.asarray(signal, np.float64)
+    n = x.size
+    if n < 2:
+        return None
+    d = x - x.mean()
+    var = float(d.var())
+    if var == 0.0:
+        return 0.0
+    f = np.fft.rfft(d, 2 * n)
+    acf = np.fft.irfft(f * np.conj(f))[:n] / (n * var)
+    zero = np.flatnonzero(acf <= 0.0)
+    tau = 0.5 + float(acf[1:zero[0] if zero.size else n].sum())
+    return math.sqrt(var * 2.0 * tau / n) if 2.0 * tau < n else math.sqrt(var)
+
+
 # ---------------------------------------------------------------------------------------------- results
 def settled(run) -> dict:
     """The bed at t = 0 (the first snapshot of run.zarr): height (twice the mean particle height above the
@@ -397,6 +419,7 @@ def levels_summary(run) -> list:
             ergun_layers = float(np.sum(ergun(u, run.sim.flow.spacing, 1.0 - eps_s, run.args.diameter)))
         out.append({"velocity": float(u), "pressure_drop": float(dp.mean()) if dp.size else None,
                     "pressure_drop_std": float(dp.std()) if dp.size else None,
+                    "pressure_drop_error": mean_error(dp),
                     "bed_height": float(probes.time_average("bed_height", "bed_height", half, end)),
                     "mean_height_x2": float(probes.time_average("bed_height", "mean_height_x2", half, end)),
                     "solids_fraction_profiles": profiles, "ergun_pressure_drop_layers": ergun_layers,
@@ -446,8 +469,10 @@ def report(run, summary) -> str:
         lines[0] += f", measured {summary['minimum_fluidization_velocity']:.3f} m/s"
     for lv, erg in zip(summary["levels"], summary["ergun_pressure_drop"]):
         layered = lv.get("ergun_pressure_drop_layers")
+        error = lv.get("pressure_drop_error")
         lines.append(f"  U = {lv['velocity']:.3f} m/s: dp = {lv['pressure_drop']:.1f} +- {lv['pressure_drop_std']:.1f} "
-                     f"Pa (Ergun {erg:.1f} at the settled voidage"
+                     + (f"(mean +- {error:.1f}) " if error is not None else "")
+                     + f"Pa (Ergun {erg:.1f} at the settled voidage"
                      + (f", {layered:.1f} through the level's layers" if layered is not None else "")
                      + f"), bed {lv['bed_height'] * 1e3:.1f} mm, {lv['pressure_frequency']:.1f} Hz")
     lines.append(f"  {summary['wall_clock_s']:.1f} s of steps; {run.out}")

@@ -113,6 +113,28 @@ def test_the_measured_minimum_fluidization_is_where_ergun_meets_the_weight():
     assert bb.measured_umf(levels[3:], drops[3:], weight) is None  # no level on the fixed branch
 
 
+def test_the_error_of_a_level_mean_follows_the_correlation_of_its_fluctuations():
+    """The standard error of the mean of a correlated series against its analytic value: white noise sigma / sqrt(n);
+    an AR(1) series x_k = phi x_(k-1) + noise has the integrated autocorrelation time (1 + phi) / (2 (1 - phi))
+    samples, so its mean's error is sigma sqrt((1 + phi) / ((1 - phi) n)) (Sokal 1997). A pure sine over whole
+    periods has no error at all; the estimate stays below its standard deviation."""
+    rng = np.random.default_rng(7)
+    n, sigma = 40_000, 3.0
+    white = rng.normal(0.0, sigma, n)
+    assert bb.mean_error(white) == pytest.approx(sigma / math.sqrt(n), rel=0.1)
+    phi = 0.8
+    x = np.empty(n)
+    x[0] = 0.0
+    kicks = rng.normal(0.0, 1.0, n)
+    for k in range(1, n):
+        x[k] = phi * x[k - 1] + kicks[k]
+    exact = x.std() * math.sqrt((1 + phi) / ((1 - phi) * n))
+    assert bb.mean_error(x) == pytest.approx(exact, rel=0.2)
+    sine = np.sin(2 * np.pi * np.arange(100) / 100)  # one period in the window, as a 5 Hz bed in 0.2 s
+    assert 0.1 * sine.std() < bb.mean_error(sine) <= sine.std()
+    assert bb.mean_error([5.0]) is None and bb.mean_error([2.0, 2.0, 2.0]) == 0.0
+
+
 def test_the_comparison_measures_profile_distances_and_costs_against_the_reference():
     """``scripts/bed_report.py``'s comparison on made-up runs: a profile is at distance 0 from itself and at |c|
     from itself shifted by c (the RMS of a constant), one sampled on other x is interpolated onto the reference's;
