@@ -276,6 +276,7 @@ def compare(runs, reference: int) -> dict:
         rows.append({"run": _label(summary), "reference": k == reference, "velocity": level["velocity"],
                      "bed_height": level["bed_height"], "mean_height_x2": level["mean_height_x2"],
                      "pressure_drop": level["pressure_drop"], "pressure_drop_std": level["pressure_drop_std"],
+                     "pressure_drop_error": level.get("pressure_drop_error"),
                      "pressure_frequency": level["pressure_frequency"],
                      "profile_rms": distances,
                      "profile_rms_mean": float(np.mean(list(distances.values()))) if distances else None,
@@ -294,7 +295,8 @@ def comparison_table(result: dict) -> str:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in result["runs"]:
         cells = [r["run"] + (" (reference)" if r["reference"] else ""), f"{r['bed_height'] * 1e3:.1f}",
-                 f"{r['mean_height_x2'] * 1e3:.1f}", f"{r['pressure_drop']:.1f} ± {r['pressure_drop_std']:.1f}",
+                 f"{r['mean_height_x2'] * 1e3:.1f}", f"{r['pressure_drop']:.1f} ± {r['pressure_drop_std']:.1f}"
+                 + ("" if r.get("pressure_drop_error") is None else f" (mean ± {r['pressure_drop_error']:.1f})"),
                  f"{r['pressure_frequency']:.2f}",
                  *[f"{r['profile_rms'][h]:.3f}" if h in r["profile_rms"] else "" for h in heights],
                  "" if r["wall_clock_per_simulated_s"] is None else f"{r['wall_clock_per_simulated_s']:.0f} s",
@@ -302,7 +304,7 @@ def comparison_table(result: dict) -> str:
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", f"At U = {result['velocity']:g} m/s, each level's second half. Bed height: the highest layer above "
               "eps_s = 0.1; 2 x mean height: twice the mean particle height; the pressure drop's mean and standard "
-              "deviation across the bed (the bed weight per area is "
+              "deviation across the bed, and in brackets the standard error of its mean (the bed weight per area is "
               f"{result['weight_per_area']:.1f} Pa); pressure frequency: the dominant frequency of its fluctuations. "
               "eps_s RMS: the root mean square distance of the time-averaged solids-fraction profile across the width "
               f"from the {result['reference']}'s at that height (0: the same profile; smaller is closer). "
