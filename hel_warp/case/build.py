@@ -247,8 +247,9 @@ def fill_injections(flow, settings: Settings, *, progress=None):
             raise ConfigError(f"fill of {fill.species!r}: {real} particles fill {fraction:.3f} of its region, more than "
                               f"random close packing {RANDOM_CLOSE_PACKING}; enlarge the region or fill fewer")
         seed = _derived_seed(settings.seed, 1, k)
-        if fill.packing == "settled" and sp.weight == 1:
-            bed = packing.poured_bed(sp, fill.region, real, flow.gravity, seed, device="cpu", progress=progress)
+        if fill.packing in ("settled", "dense") and sp.weight == 1:
+            bed = packing.poured_bed(sp, fill.region, real, flow.gravity, seed, dense=fill.packing == "dense",
+                                     device="cpu", progress=progress)
             n = len(bed["x"])
             v = np.tile(np.asarray(fill.velocity, float), (n, 1))
             placed.append({"x": bed["x"], "radius": bed["radius"], "v": v, "density": sp.density,
@@ -258,7 +259,7 @@ def fill_injections(flow, settings: Settings, *, progress=None):
             capacity += n
             continue
         parcels = max(1, int(round(real / sp.weight)))
-        if fill.packing == "settled":
+        if fill.packing in ("settled", "dense"):
             injection = packing.weighted_bed(sp, fill.region, parcels, real, fill.settled_fraction, flow.gravity,
                                              seed)
         else:

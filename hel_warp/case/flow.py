@@ -218,7 +218,9 @@ class Fill:
     - ``random``: parcels at random non-overlapping places over the whole region, at rest or at ``velocity``;
     - ``settled``: a bed at rest packed at the bottom of the region (against gravity), without overlaps: the real
       spheres poured by a short DEM (cached), or, for weighted parcels, placed at random over the height that the
-      real particles fill at ``settled_fraction``.
+      real particles fill at ``settled_fraction``. Frictional spheres pour into a loose random packing;
+    - ``dense``: as ``settled``, the real spheres poured without friction into a dense random packing (towards
+      random close packing, as a bed tapped after filling; ``hel_warp.case.packing``), then given their material.
     """
 
     species: str
@@ -248,8 +250,8 @@ class Fill:
                                   f"{RANDOM_CLOSE_PACKING}] (random close packing); lower it")
         if self.mass is not None:
             require_positive("fill mass", self.mass, "kg")
-        if self.packing not in ("random", "settled"):
-            raise ConfigError(f"fill of {self.species!r}: packing must be 'random' or 'settled' "
+        if self.packing not in ("random", "settled", "dense"):
+            raise ConfigError(f"fill of {self.species!r}: packing must be 'random', 'settled' or 'dense' "
                               f"(got {self.packing!r})")
         object.__setattr__(self, "velocity", _vec3("fill velocity", self.velocity))
         if not 0.3 <= self.settled_fraction <= RANDOM_CLOSE_PACKING:
