@@ -4,7 +4,8 @@
 A box 43.2 mm wide (x) x 10 mm deep (y) x 124.8 mm tall (z) holds 9,240 spheres of 1.2 mm, rho_p = 1000 kg/m^3, in
 a gas of rho_f = 1.13 kg/m^3 with air's viscosity. The gas enters through a uniform distributor on the floor (a
 velocity inlet on ``z-``, superficial velocity U) and leaves through a pressure outlet on the roof. The particles
-start as a settled bed about 30 mm high, poured by a short DEM and cached. The gas grid has cubic cells of
+start as a dense bed 33 mm high, poured by a short DEM without friction and cached (``--packing settled``: poured
+with the material's friction, 35 mm). The gas grid has cubic cells of
 ``--width / nx``: by default 18 x 4 x 52 cells of 2.4 mm, so the depth is 4 cells = 9.6 mm (the nearest whole
 number of cells to 10 mm; the summary gives the box used).
 
@@ -80,16 +81,17 @@ def packing_stress(args=None):
     """The enduring contacts of the HEL models' packed parcels (``hel_warp.hel.PackingStress``).
 
     Snider's (2001) stress P_s (eps_s - onset)^2 / (eps_cp - eps_s) with a threshold: no stress below the onset
-    0.575, the poured bed's own packing (0.58: its particles touch there; looser parcels have no enduring contacts,
-    so bubbles and the freeboard are free of it), diverging at eps_cp = 0.66. P_s = 30,000 Pa makes the packed
-    bed nearly rigid, as a bed of stiff spheres is: its ~190 Pa weight holds it between 0.58 at the top and 0.595
-    at the distributor, and as the gas takes the weight below minimum fluidization the bed keeps its voidage, so
-    the pressure drop follows Ergun's line at the settled voidage (0.99-1.01 of it at 0.1-0.2 m/s, 0.94 at 0.4)
-    up to the weight. A soft stress (P_s = 300 Pa from an onset of 0.50) lets the compressed bed spring back as
-    the gas unloads it: the bed at rest is denser than poured (1.22x Ergun at 0.1 m/s), expands before it
-    fluidizes (0.89x at 0.4 m/s) and meets the weight late (U_mf 0.49 m/s against the CFD-DEM's 0.40; this one:
-    0.44). Its stiffness, 2e4 Pa per unit of eps_s at the weight, stays under ``PackingStress.stiffness_limit``
-    (3.6e4 Pa on 2.4 mm cells at dt = 2e-4 s). Contact damping removes the
+    0.615, the poured bed's own packing (the dense pour's 0.614: its particles touch there; looser parcels have no
+    enduring contacts, so bubbles and the freeboard are free of it), diverging at eps_cp = 0.66. P_s = 30,000 Pa
+    makes the packed bed nearly rigid, as a bed of stiff spheres is: its ~190 Pa weight compresses it by about
+    0.015 in eps_s at the distributor, and as the gas takes the weight below minimum fluidization the bed keeps its
+    voidage, so the pressure drop follows Ergun's line at the settled voidage (1.00 / 0.99 / 0.96 of it at 0.1 /
+    0.2 / 0.3 m/s) up to the weight. An onset below the pour's packing lifts the bed at rest (0.61: 0.96 of Ergun
+    at 0.1 m/s), one above it compacts the bed (0.62: 1.04). A soft stress (P_s = 300 Pa from an onset of 0.50)
+    lets the compressed bed spring back as the gas unloads it: the bed at rest is denser than poured (1.22x Ergun at
+    0.1 m/s in the loose pour), expands before it fluidizes (0.89x at 0.4 m/s) and meets the weight late (U_mf 0.49
+    m/s against the CFD-DEM's 0.40). Its stiffness stays under ``PackingStress.stiffness_limit`` (3.6e4 Pa per unit
+    eps_s on 2.4 mm cells at dt = 2e-4 s; above it the stress goes on along its tangent). Contact damping removes the
     parcels' velocity relative to the local solids velocity where contacts endure (O'Rourke & Snider
     2010), so a bed at rest stays at rest instead of ringing on the stress: 0.2 of it per step at the bed's dt of
     2e-4 s; 0.9 lifts the fluidized emulsion in slugs across the whole width (+- 13 Pa against the CFD-DEM's +- 7
@@ -108,7 +110,7 @@ def packing_stress(args=None):
     return PackingStress(beta=2.0, **d)
 
 
-PACKING = (30000.0, 0.66, 0.575, 0.2)
+PACKING = (30000.0, 0.66, 0.615, 0.2)
 """Default packing stress: P_s (Pa), eps_cp, onset, contact damping (``packing_stress``)."""
 
 
@@ -161,6 +163,10 @@ def options(groups) -> None:
                         "in [-1, 1] (mean removed, so the superficial velocity stays), seeded by --seed; default 0: "
                         "uniform, as the CFDEM tutorial")
     c.add_argument("--particles", type=int, default=PARTICLES, help=f"real particles (default {PARTICLES})")
+    c.add_argument("--packing", choices=("dense", "settled"), default="dense",
+                   help="the bed at rest: 'dense' (poured without friction: a dense random packing, as a bed "
+                        "tapped after filling; default) or 'settled' (poured with the material's friction: a loose "
+                        "random packing)")
     p.add_argument("--diameter", type=float, default=DIAMETER, help=f"particle diameter, m (default {DIAMETER})")
     p.add_argument("--density", type=float, default=DENSITY, help=f"particle density, kg/m^3 (default {DENSITY:g})")
     c.add_argument("--width", type=float, default=WIDTH, help=f"box width (x), m (default {WIDTH})")
@@ -262,7 +268,7 @@ def build(args):
     # weighted parcels are placed over the height the bed holds at the packing stress's onset (a DEM pour is for
     # single particles): a bed placed denser is thrown apart by the stress in its first steps
     onset = max(0.3, flow.packing_stress.onset) if flow.packing_stress is not None else 0.6
-    flow.fill("bed", ((0.0, 0.0, 0.0), (hi[0], hi[1], top)), count=args.particles, packing="settled",
+    flow.fill("bed", ((0.0, 0.0, 0.0), (hi[0], hi[1], top)), count=args.particles, packing=args.packing,
               settled_fraction=onset)
     # surrogate: the cell detection (collisions per collision cell among the parcels in it) suits a dense bed,
     # where the swept search's binary events are not what carries the weight
