@@ -11,11 +11,13 @@ built by ``hel-warp dataset`` then ``hel-warp train --form contact`` at the size
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import hashlib
 import json
 import os
 import shutil
+import sys
 import time
 
 from hel_warp.errors import ConfigError
@@ -157,17 +159,19 @@ def _build_model(species, form, root, model_dir, announce) -> str:
              f"(rho {m.density:g}, E {m.youngs_modulus:g}, nu {m.poisson_ratio:g}, e {m.restitution:g}, "
              f"mu {m.friction:g}): {AUTO_SAMPLES} binary DEM collisions, then {AUTO_TRIALS} Optuna trials per target; "
              f"cached in {root}")
-    code = cli_main(["dataset", "--out", str(data_dir), "--samples", str(AUTO_SAMPLES), *size, "--seed", "0",
-                     "--density", repr(m.density), "--youngs", repr(m.youngs_modulus), "--poisson",
-                     repr(m.poisson_ratio), "--restitution", repr(m.restitution), "--friction", repr(m.friction),
-                     "--no-progress"])
-    if code:
-        raise ConfigError(f"building the data set for the automatic surrogate failed (exit {code}); see above")
-    tmp = root / "model.tmp"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    code = cli_main(["train", "--data", str(data_dir), "--out", str(tmp), "--form", form, "--trials",
-                     str(AUTO_TRIALS), "--jobs", "1"])
+    # the data set's and the training's reports go to stderr: a case's stdout is its --json summary alone
+    with contextlib.redirect_stdout(sys.stderr):
+        code = cli_main(["dataset", "--out", str(data_dir), "--samples", str(AUTO_SAMPLES), *size, "--seed", "0",
+                         "--density", repr(m.density), "--youngs", repr(m.youngs_modulus), "--poisson",
+                         repr(m.poisson_ratio), "--restitution", repr(m.restitution), "--friction",
+                         repr(m.friction), "--no-progress"])
+        if code:
+            raise ConfigError(f"building the data set for the automatic surrogate failed (exit {code}); see above")
+        tmp = root / "model.tmp"
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        code = cli_main(["train", "--data", str(data_dir), "--out", str(tmp), "--form", form, "--trials",
+                         str(AUTO_TRIALS), "--jobs", "1"])
     if code:
         raise ConfigError(f"training the automatic surrogate failed (exit {code}); see above")
     os.replace(tmp, model_dir)
