@@ -197,8 +197,10 @@ def draw_fluidization(runs, path: Path) -> None:
         # the case's own reading of the curve, from the levels (a summary written by an older run may differ)
         umf = measured_umf([lv["velocity"] for lv in levels], [lv["pressure_drop"] for lv in levels],
                            s["bed_weight_per_area"]) if levels else None
-        bars = ax.errorbar([lv["velocity"] for lv in levels], [lv["pressure_drop"] for lv in levels],
-                           yerr=[lv["pressure_drop_std"] for lv in levels], fmt=marker, capsize=3,
+        bars = ax.errorbar([lv["velocity"] for lv in levels],
+                           [np.nan if lv["pressure_drop"] is None else lv["pressure_drop"] for lv in levels],
+                           yerr=[np.nan if lv["pressure_drop_std"] is None else lv["pressure_drop_std"]
+                                 for lv in levels], fmt=marker, capsize=3,
                            label=_label(s) + (f", U_mf {umf:.3f} m/s" if umf else ""))
         if umf:  # where this model's fixed branch meets its plateau
             ax.plot([umf], [s["bed_weight_per_area"]], marker="|", ms=18, mew=2, color=bars[0].get_color())
