@@ -251,10 +251,33 @@ def profile_distance(profile, reference) -> float:
     return float(np.sqrt(np.mean((np.interp(x_ref, x, e) - e_ref) ** 2)))
 
 
+def profile_noise(root, level, height: str) -> float | None:
+    """Statistical error of a level's time-averaged solids-fraction profile at ``height`` (m, as in the summary's
+    keys), RMS across the width: the averages over the two halves of the level's window differ by twice the error
+    of the whole window's average (each half's error is sqrt(2) times the whole's, and they are independent), so
+    RMS(half 1 - half 2) / 2. None without the probe's series."""
+    if root is None or "probes" not in root or not level.get("window"):
+        return None
+    name = f"profile_{float(height) * 1e3:g}mm"
+    if name not in root["probes"]:
+        return None
+    g = root["probes"][name]
+    t = np.asarray(g["time"][...], np.float64)
+    e = np.asarray(g["solids_fraction"][...], np.float64)
+    start, end = level["window"]
+    mid = 0.5 * (start + end)
+    first, second = (t >= start) & (t < mid), (t >= mid) & (t <= end)
+    if first.sum() < 2 or second.sum() < 2:
+        return None
+    return float(np.sqrt(np.mean((e[first].mean(axis=0) - e[second].mean(axis=0)) ** 2)) / 2.0)
+
+
 def compare(runs, reference: int) -> dict:
     """Each run beside the reference run (e.g. the CFD-DEM) at the reference's last level: bed height, pressure
     drop and its standard deviation, dominant pressure frequency, the RMS distance of the solids-fraction profiles
-    at each height from the reference's, wall clock per simulated second and its ratio to the reference's."""
+    at each height from the reference's and the noise floor of that distance (``profile_noise`` of the run and of
+    the reference in quadrature: the distance two independent averages of these lengths would show by chance), wall
+    clock per simulated second and its ratio to the reference's."""
     ref_summary = runs[reference][1]
     ref_level = (ref_summary.get("levels") or [None])[-1]
     if ref_level is None:
@@ -266,21 +289,27 @@ def compare(runs, reference: int) -> dict:
         return summary["wall_clock_s"] / t if summary.get("wall_clock_s") and t else None
 
     ref_cost = cost(ref_summary)
+    ref_root = runs[reference][0]
     rows = []
-    for k, (_, summary) in enumerate(runs):
+    for k, (root, summary) in enumerate(runs):
         level = _matching_level(summary, velocity)
         if level is None:
             continue
         distances = {h: profile_distance(p, ref_level["solids_fraction_profiles"][h])
                      for h, p in level["solids_fraction_profiles"].items()
                      if h in ref_level["solids_fraction_profiles"]}
+        floors = {}
+        for h in distances:
+            own, ref = profile_noise(root, level, h), profile_noise(ref_root, ref_level, h)
+            if own is not None and ref is not None and k != reference:
+                floors[h] = float(math.hypot(own, ref))
         c = cost(summary)
         rows.append({"run": _label(summary), "reference": k == reference, "velocity": level["velocity"],
                      "bed_height": level["bed_height"], "mean_height_x2": level["mean_height_x2"],
                      "pressure_drop": level["pressure_drop"], "pressure_drop_std": level["pressure_drop_std"],
                      "pressure_drop_error": level.get("pressure_drop_error"),
                      "pressure_frequency": level["pressure_frequency"],
-                     "profile_rms": distances,
+                     "profile_rms": distances, "profile_noise_floor": floors,
                      "profile_rms_mean": float(np.mean(list(distances.values()))) if distances else None,
                      "wall_clock_per_simulated_s": c,
                      "reference_cost_ratio": ref_cost / c if c and ref_cost else None})
@@ -300,7 +329,9 @@ def comparison_table(result: dict) -> str:
                  f"{r['mean_height_x2'] * 1e3:.1f}", f"{r['pressure_drop']:.1f} ± {r['pressure_drop_std']:.1f}"
                  + ("" if r.get("pressure_drop_error") is None else f" (mean ± {r['pressure_drop_error']:.1f})"),
                  f"{r['pressure_frequency']:.2f}",
-                 *[f"{r['profile_rms'][h]:.3f}" if h in r["profile_rms"] else "" for h in heights],
+                 *[(f"{r['profile_rms'][h]:.3f}" + (f" ({r['profile_noise_floor'][h]:.3f})"
+                                                     if h in r.get("profile_noise_floor", {}) else ""))
+                   if h in r["profile_rms"] else "" for h in heights],
                  "" if r["wall_clock_per_simulated_s"] is None else f"{r['wall_clock_per_simulated_s']:.0f} s",
                  "" if r["reference_cost_ratio"] is None else f"{r['reference_cost_ratio']:.1f}"]
         lines.append("| " + " | ".join(cells) + " |")
@@ -309,7 +340,10 @@ def comparison_table(result: dict) -> str:
               "deviation across the bed, and in brackets the standard error of its mean (the bed weight per area is "
               f"{result['weight_per_area']:.1f} Pa); pressure frequency: the dominant frequency of its fluctuations. "
               "eps_s RMS: the root mean square distance of the time-averaged solids-fraction profile across the width "
-              f"from the {result['reference']}'s at that height (0: the same profile; smaller is closer). "
+              f"from the {result['reference']}'s at that height (0: the same profile; smaller is closer), and in "
+              "brackets its noise floor: the distance two independent averages of these lengths show by chance, from "
+              "the difference of each run's averages over the two halves of its window (a distance at or below it "
+              "does not tell the run from the reference). "
               "Wall clock of the steps per simulated second, and the reference's divided by the run's."]
     return "\n".join(lines)
 

@@ -177,3 +177,35 @@ def test_the_distributor_noise_keeps_the_superficial_velocity():
     assert f.mean() == pytest.approx(1.0, abs=1e-14) and np.all(np.abs(f - 1.0) <= 0.4) and f.std() > 0.05
     assert np.array_equal(f, bb.distributor_noise(0.2, 5)(faces))
     assert not np.array_equal(f, bb.distributor_noise(0.2, 6)(faces))
+
+
+def test_the_noise_floor_of_a_profile_distance_is_the_error_of_its_average():
+    """``scripts/bed_report.py``'s ``profile_noise`` on a made-up probe series: a fixed profile plus white noise of
+    sigma per point and sample, n samples in the window, has its average uncertain by sigma / sqrt(n) at each point
+    (the analytic error of a mean); the estimate from the window's two halves finds it within 10 %, and a series
+    without noise has none. The floor of two such runs is their errors in quadrature."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    import bed_report
+
+    rng = np.random.default_rng(11)
+    n, cells, sigma = 4000, 400, 0.05
+    t = np.linspace(1.0, 2.0, n)
+    shape = 0.5 + 0.1 * np.sin(np.linspace(0.0, np.pi, cells))
+
+    def root(noise):
+        return {"probes": {"profile_10mm": {"time": t, "solids_fraction": shape + noise * rng.normal(size=(n, cells))}}}
+
+    level = {"window": [1.0, 2.0], "velocity": 0.66}
+    assert bed_report.profile_noise(root(sigma), level, "0.01") == pytest.approx(sigma / math.sqrt(n), rel=0.1)
+    assert bed_report.profile_noise(root(0.0), level, "0.01") == pytest.approx(0.0, abs=1e-12)
+    assert bed_report.profile_noise(None, level, "0.01") is None
+    assert bed_report.profile_noise(root(sigma), level, "0.02") is None  # no probe at 20 mm
+    x = [[0.001 * k, float(v)] for k, v in enumerate(shape)]
+    summary = {"collision_model": "dem", "wall_clock_s": 10.0, "simulated_time": 2.0, "bed_weight_per_area": 197.7,
+               "levels": [{**level, "bed_height": 0.05, "mean_height_x2": 0.045, "pressure_drop": 190.0,
+                           "pressure_drop_std": 10.0, "pressure_frequency": 3.0,
+                           "solids_fraction_profiles": {"0.01": x}}]}
+    result = bed_report.compare([(root(sigma), summary), (root(sigma), {**summary, "collision_model": "ktgf"})], 0)
+    floors = {r["run"]: r["profile_noise_floor"] for r in result["runs"]}
+    assert floors["dem"] == {}
+    assert floors["ktgf"]["0.01"] == pytest.approx(math.sqrt(2.0) * sigma / math.sqrt(n), rel=0.1)
