@@ -575,13 +575,14 @@ def bubbling_bed(ctx: Context) -> Result:
     target.parent.mkdir(parents=True, exist_ok=True)
     bed_report.draw_fluidization(runs, target)
     res.figures.append("validation/bed_fluidization.png")
-    res.notes.append(f"1.2 mm spheres of 1000 kg/m^3 in air (rho_f 1.13 kg/m^3), settled by a DEM pour, each level "
+    res.notes.append("1.2 mm spheres of 1000 kg/m^3 in air (rho_f 1.13 kg/m^3), a dense bed poured by a frictionless "
+                     f"DEM, each level "
                      f"held {size['hold']:g} s and averaged over its second half; dt = 2e-4 s. "
                      + ("Quick size: the CI's 1,500-particle column of 9.6 mm x 9.6 mm at 0.3 and 2 U_mf, the MP-PIC "
                         "bed (`none`); the full size runs the 9,240-particle bed of the CFDEM tutorial at eight "
                         "levels with `none`, `ktgf`, `surrogate` and the CFD-DEM (`dem`, about two hours on one "
                         "core)." if ctx.quick else
-                        "The 9,240-particle bed of the CFDEM tutorial (43.2 x 9.6 mm, settled ~35 mm)."))
+                        "The 9,240-particle bed of the CFDEM tutorial (43.2 x 9.6 mm, settled 33 mm at eps_s 0.614)."))
     return res
 
 

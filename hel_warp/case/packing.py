@@ -9,11 +9,12 @@ Frictional spheres poured this way come to rest in a loose random packing (solid
 Onoda & Liniger 1990); ``dense=True`` pours them without friction, which packs them towards random close packing
 (~0.64 in bulk, Scott & Kilgour 1969), as a bed tapped or vibrated after filling: the packing of the beds from which
 the minimum fluidization correlations were drawn (voidage ~0.38-0.41 for spheres, Wen & Yu 1966). The packing is
-then dilated about the floor by the largest overlap left, which opens the contacts stacked along the vertical (the bed is
-~0.5 % taller than poured); contacts across the width and depth keep the soft pour's deformation under the bed's
-weight (up to ~1.5 % of a diameter in a 30-layer bed, the Hertz deflection at ``POUR_MODULUS``), which spheres of
-the material's own stiffness spring apart from in their first steps: a CFD-DEM bed of 9,240 spheres is back at rest
-(median speed 0.3 mm/s) 0.3 s later, 0.3 % taller. Then the bed is cached: the same species, region, count, gravity and seed load it from the cache.
+then dilated about the floor by the largest overlap left, which opens the contacts stacked along the vertical (the
+bed is ~0.5 % taller than poured); contacts across the width and depth keep the soft pour's deformation under the
+bed's weight (up to ~1.5 % of a diameter in a 30-layer bed, the Hertz deflection at ``POUR_MODULUS``), which spheres
+of the material's own stiffness spring apart from in their first steps: a CFD-DEM bed of 9,240 spheres is back at
+rest (median speed 0.3 mm/s) 0.3 s later, 0.3 % taller. Then the bed is cached: the same species, region, count,
+gravity and seed load it from the cache.
 
 Settled bed of weighted parcels: their real particles fill the region's cross-section from the floor up to the
 height that holds them at ``Fill.settled_fraction``; the parcels are placed at random, without overlaps between
