@@ -289,7 +289,7 @@ def compare(runs, reference: int) -> dict:
         return summary["wall_clock_s"] / t if summary.get("wall_clock_s") and t else None
 
     ref_cost = cost(ref_summary)
-    ref_root = runs[reference][0]
+    ref_noise = {h: profile_noise(runs[reference][0], ref_level, h) for h in ref_level["solids_fraction_profiles"]}
     rows = []
     for k, (root, summary) in enumerate(runs):
         level = _matching_level(summary, velocity)
@@ -299,10 +299,10 @@ def compare(runs, reference: int) -> dict:
                      for h, p in level["solids_fraction_profiles"].items()
                      if h in ref_level["solids_fraction_profiles"]}
         floors = {}
-        for h in distances:
-            own, ref = profile_noise(root, level, h), profile_noise(ref_root, ref_level, h)
-            if own is not None and ref is not None and k != reference:
-                floors[h] = float(math.hypot(own, ref))
+        for h in distances if k != reference else ():
+            own = profile_noise(root, level, h)
+            if own is not None and ref_noise[h] is not None:
+                floors[h] = float(math.hypot(own, ref_noise[h]))
         c = cost(summary)
         rows.append({"run": _label(summary), "reference": k == reference, "velocity": level["velocity"],
                      "bed_height": level["bed_height"], "mean_height_x2": level["mean_height_x2"],

@@ -35,12 +35,9 @@ def bulk_fraction(bed) -> float:
 
 @pytest.fixture(scope="module")
 def beds(tmp_path_factory):
-    import os
-
-    cache = tmp_path_factory.mktemp("pour_cache")
-    old = os.environ.get("HEL_WARP_CACHE")
-    os.environ["HEL_WARP_CACHE"] = str(cache)
-    try:
+    """The same 900 spheres poured loose and dense, in a cache of their own."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("HEL_WARP_CACHE", str(tmp_path_factory.mktemp("pour_cache")))
         flow = hc.Flow("column", lo=(0, 0, 0), hi=(SIDE, SIDE, 40e-3), spacing=2.4e-3, gravity=(0, 0, -9.81))
         material = hc.Material(density=1000.0, youngs_modulus=1.2e8, poisson_ratio=0.3, restitution=0.986,
                                friction=0.3)
@@ -48,11 +45,6 @@ def beds(tmp_path_factory):
         region = Box(lo=(0.0, 0.0, 0.0), hi=(SIDE, SIDE, 40e-3))
         return {dense: packing.poured_bed(species, region, COUNT, (0.0, 0.0, -9.81), 3, dense=dense)
                 for dense in (False, True)}
-    finally:
-        if old is None:
-            os.environ.pop("HEL_WARP_CACHE", None)
-        else:
-            os.environ["HEL_WARP_CACHE"] = old
 
 
 def test_frictional_spheres_pour_loose_and_frictionless_ones_dense(beds):

@@ -247,7 +247,7 @@ def fill_injections(flow, settings: Settings, *, progress=None):
             raise ConfigError(f"fill of {fill.species!r}: {real} particles fill {fraction:.3f} of its region, more than "
                               f"random close packing {RANDOM_CLOSE_PACKING}; enlarge the region or fill fewer")
         seed = _derived_seed(settings.seed, 1, k)
-        if fill.packing in ("settled", "dense") and sp.weight == 1:
+        if fill.settles and sp.weight == 1:
             bed = packing.poured_bed(sp, fill.region, real, flow.gravity, seed, dense=fill.packing == "dense",
                                      device="cpu", progress=progress)
             n = len(bed["x"])
@@ -259,7 +259,7 @@ def fill_injections(flow, settings: Settings, *, progress=None):
             capacity += n
             continue
         parcels = max(1, int(round(real / sp.weight)))
-        if fill.packing in ("settled", "dense"):
+        if fill.settles:
             injection = packing.weighted_bed(sp, fill.region, parcels, real, fill.settled_fraction, flow.gravity,
                                              seed)
         else:

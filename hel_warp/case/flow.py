@@ -258,6 +258,12 @@ class Fill:
             raise ConfigError(f"fill settled_fraction must lie in [0.3, {RANDOM_CLOSE_PACKING}] "
                               f"(got {self.settled_fraction})")
 
+    @property
+    def settles(self) -> bool:
+        """True for a bed at rest on the region's floor (``settled`` or ``dense``): poured, or placed over its
+        settled height."""
+        return self.packing in ("settled", "dense")
+
     def real_particles(self, species: Species) -> int:
         """Real particles of the fill."""
         volume = float(np.prod(np.subtract(self.region.hi, self.region.lo)))

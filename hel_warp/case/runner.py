@@ -318,7 +318,7 @@ class Case:
             observers.append(recorder)
         show = (progress if progress is not None else not args.no_progress) and not args.json
         pour = None
-        if show and any(f.packing in ("settled", "dense") for f in flow.fills):
+        if show and any(f.settles for f in flow.fills):
             from tqdm import tqdm
 
             pour = tqdm(unit="s", desc=f"{self.name}: pouring the bed", bar_format="{desc} {n:.2f} s of DEM",
